@@ -1,0 +1,185 @@
+//! 1D viscous Burgers on a periodic grid: first-order upwind advection and
+//! central diffusion, explicit Euler in time (benchmark P1 `burgers1d`).
+//!
+//! One step, for every cell `i` (indices periodic), with `l = u[i-1]`,
+//! `c = u[i]`, `r = u[i+1]`:
+//!
+//! ```text
+//! adv   = c·(c − l)/dx  if c > 0,  else c·(r − c)/dx
+//! dif   = ν·(r − 2c + l)/dx²
+//! u'[i] = c + dt·(dif − adv)
+//! ```
+//!
+//! The loops are branch-free (the upwind switch is a select) and the two
+//! periodic boundary cells are handled outside the vectorisable interior loop.
+
+use std::f64::consts::PI;
+
+/// Grid and parameters of one Burgers step. Plain data: it is passed as a
+/// constant to generated derivatives.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Burgers1d {
+    /// Number of cells.
+    pub n: usize,
+    /// Cell width.
+    pub dx: f64,
+    /// Time step.
+    pub dt: f64,
+    /// Viscosity ν.
+    pub nu: f64,
+}
+
+/// Viscosity of benchmark P1.
+pub const P1_NU: f64 = 0.01;
+
+impl Burgers1d {
+    /// The P1 grid with `n` cells on [0, 2π): `dx = 2π/n`, `ν = 0.01`,
+    /// `dt = min(0.25·dx, 0.25·dx²/ν)`.
+    pub fn p1(n: usize) -> Self {
+        let dx = 2.0 * PI / n as f64;
+        let dt = (0.25 * dx).min(0.25 * dx * dx / P1_NU);
+        Self { n, dx, dt, nu: P1_NU }
+    }
+
+    /// Cell positions `x_i = i·dx`.
+    pub fn grid(&self) -> Vec<f64> {
+        (0..self.n).map(|i| i as f64 * self.dx).collect()
+    }
+
+    /// `(dt·ν/dx², dt/dx)`: the diffusion and advection coefficients of a step.
+    #[inline(always)]
+    fn coefficients(&self) -> (f64, f64) {
+        (self.dt * self.nu / (self.dx * self.dx), self.dt / self.dx)
+    }
+}
+
+/// New value of one cell from its left, centre and right neighbours.
+#[inline(always)]
+fn cell(l: f64, c: f64, r: f64, a: f64, b: f64) -> f64 {
+    let cp = if c > 0.0 { c } else { 0.0 };
+    let cm = if c > 0.0 { 0.0 } else { c };
+    c + a * (r - 2.0 * c + l) - b * (cp * (c - l) + cm * (r - c))
+}
+
+/// One explicit step: writes `out = step(u)` (overwrites `out`).
+///
+/// # Panics
+/// If `u` and `out` do not both have `cfg.n ≥ 3` elements.
+#[inline]
+pub fn step(cfg: &Burgers1d, u: &[f64], out: &mut [f64]) {
+    let n = cfg.n;
+    assert!(n >= 3 && u.len() == n && out.len() == n, "burgers step: need n ≥ 3 and matching lengths");
+    let (a, b) = cfg.coefficients();
+    out[0] = cell(u[n - 1], u[0], u[1], a, b);
+    for (o, w) in out[1..n - 1].iter_mut().zip(u.windows(3)) {
+        *o = cell(w[0], w[1], w[2], a, b);
+    }
+    out[n - 1] = cell(u[n - 2], u[n - 1], u[0], a, b);
+}
+
+/// Contribution of the adjoints `gl, gc, gr` of cells `j−1, j, j+1` to the
+/// adjoint of `u[j]`, given the state `l, c, r` = `u[j−1], u[j], u[j+1]`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn cell_adjoint(l: f64, c: f64, r: f64, gl: f64, gc: f64, gr: f64, a: f64, b: f64) -> f64 {
+    // ∂u'[j+1]/∂u[j] = a + b·r·[r > 0]              (u[j] is the left neighbour of j+1)
+    // ∂u'[j]  /∂u[j] = 1 − 2a − b·(2c − l)          if c > 0
+    //                = 1 − 2a − b·(r − 2c)          otherwise
+    // ∂u'[j−1]/∂u[j] = a − b·l·[l ≤ 0]              (u[j] is the right neighbour of j−1)
+    let rp = if r > 0.0 { r } else { 0.0 };
+    let lm = if l > 0.0 { 0.0 } else { l };
+    let dcc = if c > 0.0 { 2.0 * c - l } else { r - 2.0 * c };
+    gr * (a + b * rp) + gc * (1.0 - 2.0 * a - b * dcc) + gl * (a - b * lm)
+}
+
+/// Hand-written adjoint of [`step`]: `du += (∂step/∂u)ᵀ·g`, evaluated at the
+/// state `u` the step was taken from (accumulates into `du`).
+///
+/// # Panics
+/// If the slices do not all have `cfg.n ≥ 3` elements.
+#[inline]
+pub fn step_adjoint(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64]) {
+    let n = cfg.n;
+    assert!(n >= 3 && u.len() == n && g.len() == n && du.len() == n, "burgers adjoint: need n ≥ 3 and matching lengths");
+    let (a, b) = cfg.coefficients();
+    let at = |j: usize| -> f64 {
+        let m = |k: isize| ((j as isize + k).rem_euclid(n as isize)) as usize;
+        cell_adjoint(u[m(-1)], u[j], u[m(1)], g[m(-1)], g[j], g[m(1)], a, b)
+    };
+    du[0] += at(0);
+    for ((d, w), gw) in du[1..n - 1].iter_mut().zip(u.windows(3)).zip(g.windows(3)) {
+        *d += cell_adjoint(w[0], w[1], w[2], gw[0], gw[1], gw[2], a, b);
+    }
+    du[n - 1] += at(n - 1);
+}
+
+/// Tangent-linear model of [`step`]: `out = (∂step/∂u)·t` at the state `u`
+/// (overwrites `out`).
+///
+/// # Panics
+/// If the slices do not all have `cfg.n ≥ 3` elements.
+pub fn step_tangent(cfg: &Burgers1d, u: &[f64], t: &[f64], out: &mut [f64]) {
+    let n = cfg.n;
+    assert!(n >= 3 && u.len() == n && t.len() == n && out.len() == n, "burgers tangent: need n ≥ 3 and matching lengths");
+    let (a, b) = cfg.coefficients();
+    for i in 0..n {
+        let (il, ir) = ((i + n - 1) % n, (i + 1) % n);
+        let (l, c, r) = (u[il], u[i], u[ir]);
+        let (dl, dc, dr) = if c > 0.0 { (a + b * c, 1.0 - 2.0 * a - b * (2.0 * c - l), a) } else { (a, 1.0 - 2.0 * a - b * (r - 2.0 * c), a - b * c) };
+        out[i] = dl * t[il] + dc * t[i] + dr * t[ir];
+    }
+}
+
+/// Distance to the nearest upwind switch along `d`: the largest `s` such
+/// that no `u[i] + σ·d[i]`, `|σ| ≤ s`, changes sign (`∞` when `d = 0`).
+pub fn smooth_radius(u: &[f64], d: &[f64]) -> f64 {
+    u.iter().zip(d).filter(|(_, d)| **d != 0.0).map(|(u, d)| (u / d).abs()).fold(f64::INFINITY, f64::min)
+}
+
+/// Initial state of P1: `u0_i = sin(x_i) + 0.5·sin(2·x_i + 0.3)`.
+pub fn p1_initial(cfg: &Burgers1d) -> Vec<f64> {
+    cfg.grid().iter().map(|&x| x.sin() + 0.5 * (2.0 * x + 0.3).sin()).collect()
+}
+
+/// Target of P1: `u*_i = 0.8·sin(x_i − 0.4)`.
+pub fn p1_target(cfg: &Burgers1d) -> Vec<f64> {
+    cfg.grid().iter().map(|&x| 0.8 * (x - 0.4).sin()).collect()
+}
+
+/// P1 loss `L = 0.5·dx·Σ (u_i − u*_i)²`; writes `∂L/∂u = dx·(u − u*)` into
+/// `grad` (overwrites).
+pub fn p1_loss(cfg: &Burgers1d, u: &[f64], target: &[f64], grad: &mut [f64]) -> f64 {
+    let mut sum = 0.0;
+    for ((g, &ui), &ti) in grad.iter_mut().zip(u).zip(target) {
+        let d = ui - ti;
+        sum += d * d;
+        *g = cfg.dx * d;
+    }
+    0.5 * cfg.dx * sum
+}
+
+/// Reference values of one P1 size (float64, from `benchmarks.md`).
+#[derive(Clone, Copy, Debug)]
+pub struct P1Reference {
+    /// Size name (S, M, L).
+    pub name: &'static str,
+    /// Cells.
+    pub n: usize,
+    /// Steps.
+    pub steps: usize,
+    /// Loss.
+    pub loss: f64,
+    /// ‖∇L‖₂.
+    pub grad_l2: f64,
+    /// ∂L/∂u0 at index 0.
+    pub grad_0: f64,
+    /// ∂L/∂u0 at index N/2.
+    pub grad_n2: f64,
+}
+
+/// The three P1 sizes with their reference values.
+pub const P1_SIZES: [P1Reference; 3] = [
+    P1Reference { name: "S", n: 256, steps: 256, loss: 0.5368372669763, grad_l2: 0.18125045729660, grad_0: 6.633665977490e-3, grad_n2: -1.2198946630625e-2 },
+    P1Reference { name: "M", n: 2048, steps: 2048, loss: 0.5078725528708, grad_l2: 0.05414400159445, grad_0: 1.237753013381e-3, grad_n2: -3.574446469229e-4 },
+    P1Reference { name: "L", n: 16384, steps: 1000, loss: 0.6520170921227, grad_l2: 0.02234454159575, grad_0: 1.759639889846e-4, grad_n2: -6.266553176260e-5 },
+];

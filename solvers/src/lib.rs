@@ -1,0 +1,15 @@
+//! Plain forward solvers for diffsim.
+//!
+//! Every solver step here is an ordinary Rust function on slices: it reads
+//! its inputs, overwrites its output, and knows nothing of differentiation or
+//! of the diffsim framework. Beside each step sit its hand-written adjoint
+//! (the reference for correctness and speed of the generated one), the
+//! canonical problems built on it and, where one exists, an exact solution.
+//!
+//! This crate is compiled **without** `-Zautodiff=Enable`: Enzyme sees its
+//! functions only at the fat-LTO link of the binaries that differentiate them.
+//! Linear algebra (faer) will live here too, behind non-generic functions,
+//! because faer crashes rustc when the autodiff flag is on.
+#![deny(missing_docs)]
+
+pub mod burgers;

@@ -1,0 +1,80 @@
+//! The Taylor remainder test.
+
+use std::fmt;
+
+use super::{CheckOptions, Verdict, axpy, dot, functional, max_abs, random_vector, rng};
+use crate::op::{OperatorExt, Vjp};
+
+/// Result of [`taylor`].
+#[derive(Clone, Debug)]
+pub struct TaylorReport {
+    /// The steps `h_k = h₀/2^k`.
+    pub steps: Vec<f64>,
+    /// The remainders `|φ(z + h_k·v) − φ(z) − h_k·⟨∇φ, v⟩|`.
+    pub remainders: Vec<f64>,
+    /// `log₂(r_k / r_{k+1})` where both remainders stand well above
+    /// rounding (`None` elsewhere).
+    pub rates: Vec<Option<f64>>,
+    /// The smoothness radius along `v` (∞ for smooth operators).
+    pub radius: f64,
+    /// The verdict: every usable rate ≥ 1.8.
+    pub verdict: Verdict,
+}
+
+impl fmt::Display for TaylorReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(f, "taylor remainder (radius {:.2e}) → {}", self.radius, self.verdict)?;
+        for (k, (h, r)) in self.steps.iter().zip(&self.remainders).enumerate() {
+            let rate = self.rates.get(k).copied().flatten().map_or("   -".to_string(), |q| format!("{q:4.2}"));
+            writeln!(f, "  h {h:9.3e}  remainder {r:9.3e}  rate {rate}")?;
+        }
+        Ok(())
+    }
+}
+
+/// Taylor remainder test of `op` at `(x, p)` along a seeded random direction
+/// `v`, for `φ = ⟨w, f⟩` with a seeded random `w`.
+///
+/// With a correct gradient the remainder falls as `h²` (rate 2 when `h`
+/// halves); a wrong one leaves a first-order term (rate 1). Steps start at
+/// `h₀ = min(0.1, radius/2)` so that they stay on one smooth piece; rates are
+/// only taken where the remainder stands 100× above the rounding level of
+/// `φ`. A remainder at rounding level for every step (a linear operator with
+/// an exact gradient) passes; a radius too small for any usable step gives
+/// [`Verdict::Kink`].
+pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOptions) -> TaylorReport {
+    let mut rng = rng(opts, 2);
+    let w = random_vector(&mut rng, op.n_out());
+    let vx = random_vector(&mut rng, op.n_in());
+    let vp = random_vector(&mut rng, op.n_params());
+    let (gx, gp) = op.vjp_new(x, p, &w);
+    let slope = dot(&gx, &vx) + dot(&gp, &vp);
+    let mut y = vec![0.0; op.n_out()];
+    let phi0 = functional(op, x, p, &w, &mut y);
+    // Rounding level of φ: ε times the sum of magnitudes, with room for the
+    // error that the operator's own arithmetic accumulates.
+    let magnitude: f64 = w.iter().zip(&y).map(|(a, b)| (a * b).abs()).sum::<f64>() + phi0.abs();
+    let noise = 1e3 * f64::EPSILON * magnitude.max(f64::MIN_POSITIVE);
+
+    let radius = op.smooth_radius(x, p, &vx, &vp);
+    let zscale = max_abs(x).max(max_abs(p)).max(1.0);
+    let h0 = (0.1 * zscale).min(0.5 * radius);
+    let steps: Vec<f64> = (0..16).map(|k| h0 / 2f64.powi(k)).collect();
+    let remainders: Vec<f64> = steps.iter().map(|&h| (functional(op, &axpy(x, h, &vx), &axpy(p, h, &vp), &w, &mut y) - phi0 - h * slope).abs()).collect();
+    let usable = |r: f64| r > 100.0 * noise;
+    let rates: Vec<Option<f64>> = remainders.windows(2).map(|r| (usable(r[0]) && usable(r[1])).then(|| (r[0] / r[1]).log2())).collect();
+    let valid: Vec<f64> = rates.iter().flatten().copied().collect();
+
+    let verdict = if remainders.iter().any(|r| r.is_nan()) || slope.is_nan() {
+        Verdict::Fail("NaN in remainder or gradient".into())
+    } else if let Some(&low) = valid.iter().min_by(|a, b| a.total_cmp(b)) {
+        if low >= 1.8 { Verdict::Pass } else { Verdict::Fail(format!("remainder rate {low:.2} < 1.8: the gradient leaves a first-order error")) }
+    } else if h0 < 1e-6 * zscale {
+        Verdict::Kink(format!("a kink lies {radius:.2e} from the point along the test direction; no usable step fits"))
+    } else if remainders.iter().all(|&r| r <= 100.0 * noise) {
+        Verdict::Pass // remainder at rounding level: locally linear and exact
+    } else {
+        Verdict::Fail("too few remainders above rounding to measure a rate".into())
+    };
+    TaylorReport { steps, remainders, rates, radius, verdict }
+}

@@ -1,0 +1,91 @@
+//! `diffsim bench`: the shared benchmark problems.
+
+use clap::{Args, Subcommand};
+use serde_json::json;
+
+use super::{CliError, median_time, peak_rss_bytes};
+use crate::problems::burgers::P1;
+use crate::rollout::Checkpointing;
+
+#[derive(Debug, Subcommand)]
+pub(super) enum BenchCommand {
+    /// P1 burgers1d: loss and gradient of an unrolled 1D Burgers rollout,
+    /// forward vs Enzyme gradient vs hand-written gradient.
+    P1(P1Args),
+}
+
+#[derive(Debug, Args)]
+pub(super) struct P1Args {
+    /// Number of cells N (≥ 3).
+    #[arg(long, default_value_t = 2048)]
+    n: usize,
+    /// Number of steps T (≥ 1).
+    #[arg(long, default_value_t = 2048)]
+    steps: usize,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// How states are kept for the backward pass: store, periodic[:K],
+    /// binomial[:S].
+    #[arg(long, default_value = "store")]
+    checkpoint: String,
+    /// Print one JSON line instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+pub(super) fn run(cmd: BenchCommand) -> Result<(), CliError> {
+    match cmd {
+        BenchCommand::P1(a) => p1(a),
+    }
+}
+
+fn p1(a: P1Args) -> Result<(), CliError> {
+    if a.n < 3 {
+        return Err(CliError::Argument { arg: "--n", reason: format!("need at least 3 cells, got {}", a.n) });
+    }
+    if a.steps < 1 {
+        return Err(CliError::Argument { arg: "--steps", reason: "need at least 1 step".into() });
+    }
+    let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    if threads < 1 {
+        return Err(CliError::Argument { arg: "--threads", reason: "need at least 1 thread".into() });
+    }
+    let mode: Checkpointing = a.checkpoint.parse().map_err(|reason| CliError::Argument { arg: "--checkpoint", reason })?;
+    let mode = mode.resolve(a.steps);
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|source| CliError::Threads { threads, source })?;
+    pool.install(|| -> Result<(), CliError> {
+        let p = P1::new(a.n, a.steps);
+        let budget = 2.0;
+        let (forward_s, loss) = median_time(budget, 3, 31, || p.value());
+        let loss = loss?;
+        let (grad_s, g) = median_time(budget, 3, 31, || p.grad_enzyme(mode));
+        let g = g?;
+        let (hand_grad_s, h) = median_time(budget, 3, 31, || p.grad_hand(mode));
+        let h = h?;
+        let grad_l2 = g.dx0.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let hand_diff = g.dx0.iter().zip(&h.dx0).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+        let out = json!({
+            "problem": "p1", "n": a.n, "steps": a.steps, "threads": threads,
+            "checkpoint": mode.to_string(),
+            "forward_s": forward_s, "grad_s": grad_s, "hand_grad_s": hand_grad_s,
+            "grad_over_forward": grad_s / forward_s, "enzyme_over_hand": grad_s / hand_grad_s,
+            "peak_rss_bytes": peak_rss_bytes(),
+            "loss": g.loss, "grad_l2": grad_l2, "grad_0": g.dx0[0], "grad_n2": g.dx0[a.n / 2],
+            "forward_loss": loss, "enzyme_hand_max_diff": hand_diff,
+            "peak_state_bytes": g.stats.peak_state_bytes, "step_evaluations": g.stats.step_evaluations,
+        });
+        if a.json {
+            println!("{out}");
+        } else {
+            let cell_steps = (a.n * a.steps) as f64;
+            println!("P1 burgers1d  N = {}  T = {}  threads = {}  checkpointing = {}", a.n, a.steps, threads, mode);
+            println!("  forward          {:10.3} ms   {:6.2} Gcell-steps/s", forward_s * 1e3, cell_steps / forward_s / 1e9);
+            println!("  Enzyme gradient  {:10.3} ms   {:6.2}× forward", grad_s * 1e3, grad_s / forward_s);
+            println!("  hand gradient    {:10.3} ms   {:6.2}× forward   Enzyme/hand {:.2}", hand_grad_s * 1e3, hand_grad_s / forward_s, grad_s / hand_grad_s);
+            println!("  loss {:.13}  ‖∇L‖ {:.14}  ∂L/∂u0[0] {:.12e}  ∂L/∂u0[N/2] {:.12e}", g.loss, grad_l2, g.dx0[0], g.dx0[a.n / 2]);
+            println!("  max |Enzyme − hand| {:.2e}   states held {} ({:.1} MB)   peak RSS {:.1} MB", hand_diff, g.stats.peak_states, g.stats.peak_state_bytes as f64 / 1e6, peak_rss_bytes() as f64 / 1e6);
+        }
+        Ok(())
+    })
+}

@@ -1,0 +1,276 @@
+//! The backward pass of a rollout under each checkpointing mode.
+
+use std::str::FromStr;
+
+use super::{Gradient, Loss, Rollout, RolloutError, RolloutStats};
+use crate::op::Vjp;
+
+/// How the states of a rollout are kept for its backward pass.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Checkpointing {
+    /// Every state is stored: least compute, `T` states of memory.
+    Store,
+    /// Every `every`-th state is stored; each segment is recomputed from its
+    /// checkpoint during the backward pass (`⌈T/k⌉ + k` states, about one
+    /// extra forward). `every ≈ √T` minimises memory.
+    Periodic {
+        /// Distance `k ≥ 1` between checkpoints.
+        every: usize,
+    },
+    /// Binomial checkpointing (Griewank's *revolve* schedule) with at most
+    /// `snapshots` extra states: memory `s + 2` states, recomputation
+    /// `r·T` steps with `r` the smallest integer such that `C(s + r, s) ≥ T`.
+    /// With `s ≈ log₂ T` memory grows as `log T`.
+    Binomial {
+        /// Number `s ≥ 1` of snapshots.
+        snapshots: usize,
+    },
+}
+
+impl Checkpointing {
+    /// Periodic checkpoints every `⌈√T⌉` steps.
+    pub fn periodic_sqrt(steps: usize) -> Self {
+        Checkpointing::Periodic { every: (steps as f64).sqrt().ceil().max(1.0) as usize }
+    }
+
+    /// Binomial checkpointing with `⌈log₂ T⌉` snapshots (at least 1).
+    pub fn binomial_log(steps: usize) -> Self {
+        Checkpointing::Binomial { snapshots: (usize::BITS - steps.max(1).leading_zeros()).max(1) as usize }
+    }
+}
+
+impl FromStr for Checkpointing {
+    type Err = String;
+
+    /// `store`, `periodic` (every ⌈√T⌉, resolved later), `periodic:K`,
+    /// `binomial` (⌈log₂ T⌉ snapshots), `binomial:S`. `periodic` and
+    /// `binomial` without a number are returned with 0, which
+    /// [`Checkpointing::resolve`] replaces by the default for `T`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        let (name, num) = match s.split_once(':') {
+            Some((a, b)) => (a, Some(b)),
+            None => (s, None),
+        };
+        let parse = |default: usize| -> Result<usize, String> {
+            match num {
+                None => Ok(default),
+                Some(v) => match v.parse::<usize>() {
+                    Ok(k) if k >= 1 => Ok(k),
+                    _ => Err(format!("`{v}` in `{s}` is not a positive integer")),
+                },
+            }
+        };
+        match name {
+            "store" if num.is_none() => Ok(Checkpointing::Store),
+            "periodic" => Ok(Checkpointing::Periodic { every: parse(0)? }),
+            "binomial" => Ok(Checkpointing::Binomial { snapshots: parse(0)? }),
+            _ => Err(format!("unknown checkpointing `{s}` (expected store, periodic[:K] or binomial[:S])")),
+        }
+    }
+}
+
+impl Checkpointing {
+    /// Replaces a zero parameter (from parsing `periodic` or `binomial`
+    /// alone) by the default for `steps`.
+    pub fn resolve(self, steps: usize) -> Self {
+        match self {
+            Checkpointing::Periodic { every: 0 } => Checkpointing::periodic_sqrt(steps),
+            Checkpointing::Binomial { snapshots: 0 } => Checkpointing::binomial_log(steps),
+            m => m,
+        }
+    }
+}
+
+impl std::fmt::Display for Checkpointing {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Checkpointing::Store => write!(f, "store"),
+            Checkpointing::Periodic { every } => write!(f, "periodic:{every}"),
+            Checkpointing::Binomial { snapshots } => write!(f, "binomial:{snapshots}"),
+        }
+    }
+}
+
+/// State of one backward pass: adjoints, buffer accounting, counters.
+struct Backward<'r, 'a, O> {
+    rollout: &'r Rollout<'a, O>,
+    n: usize,
+    /// Adjoint of the current state (the seed of the next VJP).
+    lam: Vec<f64>,
+    /// Zeroed buffer the next VJP accumulates into.
+    lam_next: Vec<f64>,
+    dp: Vec<f64>,
+    /// Recycled state buffers.
+    free: Vec<Vec<f64>>,
+    live: usize,
+    stats: RolloutStats,
+}
+
+impl<'r, 'a, O: Vjp> Backward<'r, 'a, O> {
+    fn alloc(&mut self) -> Vec<f64> {
+        self.live += 1;
+        self.stats.peak_states = self.stats.peak_states.max(self.live);
+        self.free.pop().unwrap_or_else(|| vec![0.0; self.n])
+    }
+
+    fn release(&mut self, v: Vec<f64>) {
+        self.live -= 1;
+        self.free.push(v);
+    }
+
+    fn step(&mut self, x: &[f64], y: &mut [f64]) {
+        self.stats.step_evaluations += 1;
+        self.rollout.op.forward(x, self.rollout.p, y);
+    }
+
+    /// `λ ← (∂f/∂x at x)ᵀ·λ`, `dp += (∂f/∂p)ᵀ·λ`.
+    fn vjp(&mut self, x: &[f64]) {
+        self.rollout.op.vjp(x, self.rollout.p, &mut self.lam, &mut self.lam_next, &mut self.dp);
+        std::mem::swap(&mut self.lam, &mut self.lam_next);
+    }
+
+    /// A new buffer holding the state `k` steps after `from`.
+    fn advance(&mut self, from: &[f64], k: usize) -> Vec<f64> {
+        let mut out = self.alloc();
+        out.copy_from_slice(from);
+        if k > 0 {
+            let mut tmp = self.alloc();
+            for _ in 0..k {
+                self.step(&out, &mut tmp);
+                std::mem::swap(&mut out, &mut tmp);
+            }
+            self.release(tmp);
+        }
+        out
+    }
+
+    /// Reverses steps `a..b`, given `x_a`, with `s` snapshots to spare.
+    fn binomial(&mut self, a: usize, b: usize, xa: &[f64], s: usize) {
+        let t = b - a;
+        if t == 1 {
+            self.vjp(xa);
+            return;
+        }
+        if s == 0 {
+            for j in (a..b).rev() {
+                let xj = self.advance(xa, j - a);
+                self.vjp(&xj);
+                self.release(xj);
+            }
+            return;
+        }
+        let mut r = 1;
+        while binom(s + r, s) < t as u128 {
+            r += 1;
+        }
+        // The right part is reversed with one snapshot fewer, the left with
+        // one repetition fewer: |right| ≤ β(s−1, r), |left| ≤ β(s, r−1).
+        let right = (binom(s - 1 + r, s - 1).min(t as u128 - 1)) as usize;
+        let m = b - right;
+        let xm = self.advance(xa, m - a);
+        self.binomial(m, b, &xm, s - 1);
+        self.release(xm);
+        self.binomial(a, m, xa, s);
+    }
+}
+
+/// `C(n, k)`, saturating.
+fn binom(n: usize, k: usize) -> u128 {
+    let mut c: u128 = 1;
+    for i in 0..k as u128 {
+        c = c.saturating_mul(n as u128 - i) / (i + 1);
+    }
+    c
+}
+
+pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
+    let n = x0.len();
+    let steps = r.steps;
+    let mut bw = Backward {
+        rollout: r,
+        n,
+        lam: vec![0.0; n],
+        lam_next: vec![0.0; n],
+        dp: vec![0.0; r.op.n_params()],
+        free: Vec::new(),
+        live: 0,
+        stats: RolloutStats { steps, ..Default::default() },
+    };
+    let value = match mode.resolve(steps) {
+        Checkpointing::Store => periodic(&mut bw, x0, loss, 1),
+        Checkpointing::Periodic { every } => periodic(&mut bw, x0, loss, every),
+        Checkpointing::Binomial { snapshots } => {
+            // Forward once for the loss (two buffers), then reverse.
+            let xt = bw.advance(x0, steps);
+            let value = loss.value_and_grad(&xt, &mut bw.lam);
+            bw.release(xt);
+            if steps > 0 {
+                let x0v = bw.advance(x0, 0);
+                bw.binomial(0, steps, &x0v, snapshots);
+                bw.release(x0v);
+            }
+            value
+        }
+    };
+    bw.stats.peak_state_bytes = bw.stats.peak_states * n * std::mem::size_of::<f64>();
+    Ok(Gradient { loss: value, dx0: bw.lam, dp: bw.dp, stats: bw.stats })
+}
+
+/// Stores `x_0, x_k, x_2k, …` in one flat buffer during the forward pass and
+/// recomputes each segment from its checkpoint in the backward pass. With
+/// `k = 1` nothing is recomputed and each step writes straight into its slot.
+fn periodic<O: Vjp>(bw: &mut Backward<'_, '_, O>, x0: &[f64], loss: &impl Loss, k: usize) -> f64 {
+    let (n, steps) = (bw.n, bw.rollout.steps);
+    let n_ckpt = steps.div_ceil(k).max(1);
+    let mut store = vec![0.0; n_ckpt * n];
+    bw.live += n_ckpt;
+    store[..n].copy_from_slice(x0);
+    // Forward: x_T lands in `last`.
+    let mut last = bw.alloc();
+    let mut tmp = bw.alloc();
+    last.copy_from_slice(x0);
+    for t in 0..steps {
+        if k == 1 && t + 1 < steps {
+            let (done, rest) = store.split_at_mut((t + 1) * n);
+            bw.step(&done[t * n..], &mut rest[..n]);
+            continue;
+        }
+        let src: &[f64] = if k == 1 { &store[t * n..(t + 1) * n] } else { &last };
+        bw.step(src, &mut tmp);
+        std::mem::swap(&mut last, &mut tmp);
+        if (t + 1) % k == 0 && t + 1 < steps {
+            let c = (t + 1) / k;
+            store[c * n..(c + 1) * n].copy_from_slice(&last);
+        }
+    }
+    let value = loss.value_and_grad(&last, &mut bw.lam);
+    bw.release(tmp);
+    bw.release(last);
+    // Backward, segment by segment from the last.
+    let mut seg: Vec<Vec<f64>> = Vec::new();
+    for c in (0..n_ckpt).rev() {
+        let (a, b) = (c * k, ((c + 1) * k).min(steps));
+        let ckpt = &store[c * n..(c + 1) * n];
+        // seg[i] holds x_{a+1+i}.
+        while seg.len() + a + 1 < b {
+            let buf = bw.alloc();
+            seg.push(buf);
+        }
+        for i in 0..b.saturating_sub(a + 1) {
+            let (done, rest) = seg.split_at_mut(i);
+            let src: &[f64] = if i == 0 { ckpt } else { &done[i - 1] };
+            bw.stats.step_evaluations += 1;
+            bw.rollout.op.forward(src, bw.rollout.p, &mut rest[0]);
+        }
+        for t in (a..b).rev() {
+            let x: &[f64] = if t == a { ckpt } else { &seg[t - a - 1] };
+            bw.rollout.op.vjp(x, bw.rollout.p, &mut bw.lam, &mut bw.lam_next, &mut bw.dp);
+            std::mem::swap(&mut bw.lam, &mut bw.lam_next);
+        }
+    }
+    for s in seg {
+        bw.release(s);
+    }
+    bw.live -= n_ckpt;
+    value
+}

@@ -1,0 +1,186 @@
+//! Rollouts: `T` steps of an operator `x_{t+1} = f(x_t, p)`, a loss on the
+//! final state, and its gradient by per-step VJPs chained backwards.
+//!
+//! The backward pass needs every state `x_t` in reverse order. How they are
+//! kept is a [`Checkpointing`] mode:
+//!
+//! | mode | states held | step evaluations |
+//! |------|-------------|------------------|
+//! | [`Checkpointing::Store`] | `T` | `T` |
+//! | [`Checkpointing::Periodic`]`{ every: k }` | `⌈T/k⌉ + k` | `≈ 2T` |
+//! | [`Checkpointing::Binomial`]`{ snapshots: s }` | `s + 2` | `≈ r·T`, `r` the smallest with `C(s+r, s) ≥ T` |
+//!
+//! All modes compute the same floating-point operations on the same states,
+//! so their gradients agree to rounding (in practice bit for bit).
+//! [`RolloutStats`] reports what each run held and recomputed.
+
+mod checkpoint;
+
+use thiserror::Error;
+
+use crate::op::{Forward, Vjp};
+
+pub use checkpoint::Checkpointing;
+
+/// Errors of a rollout.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum RolloutError {
+    /// The operator does not map a state to a state of the same size.
+    #[error("a rollout needs an operator with n_in == n_out (got n_in = {n_in}, n_out = {n_out})")]
+    NotAStateMap {
+        /// Input size.
+        n_in: usize,
+        /// Output size.
+        n_out: usize,
+    },
+    /// A slice given to the rollout has the wrong length.
+    #[error("`{what}` has length {got}, expected {expected}")]
+    Length {
+        /// Which argument.
+        what: &'static str,
+        /// Its length.
+        got: usize,
+        /// The length the operator needs.
+        expected: usize,
+    },
+    /// A checkpointing parameter is unusable.
+    #[error("invalid checkpointing: {0}")]
+    Checkpointing(String),
+    /// A non-finite value appeared in the forward or backward pass.
+    #[error("non-finite value (NaN or infinity) in the {pass} pass at step {step}")]
+    NonFinite {
+        /// `"forward"` or `"backward"`.
+        pass: &'static str,
+        /// The step whose output held it.
+        step: usize,
+    },
+}
+
+/// A loss on the final state.
+pub trait Loss {
+    /// Returns `L(y)` and writes `∂L/∂y` into `grad` (overwrites).
+    fn value_and_grad(&self, y: &[f64], grad: &mut [f64]) -> f64;
+}
+
+impl<F: Fn(&[f64], &mut [f64]) -> f64> Loss for F {
+    fn value_and_grad(&self, y: &[f64], grad: &mut [f64]) -> f64 {
+        self(y, grad)
+    }
+}
+
+/// What a gradient computation held in memory and recomputed.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RolloutStats {
+    /// Steps of the rollout.
+    pub steps: usize,
+    /// Step evaluations, the forward pass and all recomputation included.
+    pub step_evaluations: usize,
+    /// Largest number of state vectors held at once (checkpoints and
+    /// working buffers, adjoint buffers excluded).
+    pub peak_states: usize,
+    /// `peak_states` in bytes.
+    pub peak_state_bytes: usize,
+}
+
+/// Loss and gradient of a rollout.
+#[derive(Clone, Debug)]
+pub struct Gradient {
+    /// `L(x_T)`.
+    pub loss: f64,
+    /// `∂L/∂x_0`.
+    pub dx0: Vec<f64>,
+    /// `∂L/∂p`.
+    pub dp: Vec<f64>,
+    /// Memory and recomputation of this run.
+    pub stats: RolloutStats,
+}
+
+/// A rollout of `steps` steps of `op` with parameters `p`.
+#[derive(Clone, Copy, Debug)]
+pub struct Rollout<'a, O> {
+    /// The step operator.
+    pub op: &'a O,
+    /// Its parameters, the same at every step.
+    pub p: &'a [f64],
+    /// Number of steps `T`.
+    pub steps: usize,
+}
+
+impl<'a, O: Forward> Rollout<'a, O> {
+    /// A rollout of `steps` steps; checks that `op` maps states to states and
+    /// that `p` has the operator's parameter length.
+    pub fn new(op: &'a O, p: &'a [f64], steps: usize) -> Result<Self, RolloutError> {
+        if op.n_in() != op.n_out() {
+            return Err(RolloutError::NotAStateMap { n_in: op.n_in(), n_out: op.n_out() });
+        }
+        if p.len() != op.n_params() {
+            return Err(RolloutError::Length { what: "p", got: p.len(), expected: op.n_params() });
+        }
+        Ok(Self { op, p, steps })
+    }
+
+    fn check_state(&self, x0: &[f64]) -> Result<(), RolloutError> {
+        if x0.len() != self.op.n_in() {
+            return Err(RolloutError::Length { what: "x0", got: x0.len(), expected: self.op.n_in() });
+        }
+        Ok(())
+    }
+
+    /// The final state `x_T` (two state buffers, nothing stored).
+    pub fn final_state(&self, x0: &[f64]) -> Result<Vec<f64>, RolloutError> {
+        self.check_state(x0)?;
+        let mut x = x0.to_vec();
+        let mut y = vec![0.0; x.len()];
+        for _ in 0..self.steps {
+            self.op.forward(&x, self.p, &mut y);
+            std::mem::swap(&mut x, &mut y);
+        }
+        if !all_finite(&x) {
+            return Err(RolloutError::NonFinite { pass: "forward", step: self.first_non_finite_step(x0) });
+        }
+        Ok(x)
+    }
+
+    /// `L(x_T)` without gradient.
+    pub fn loss(&self, x0: &[f64], loss: &impl Loss) -> Result<f64, RolloutError> {
+        let x = self.final_state(x0)?;
+        let mut g = vec![0.0; x.len()];
+        Ok(loss.value_and_grad(&x, &mut g))
+    }
+
+    /// Replays the rollout to find the first step whose output is not
+    /// finite (only called once something already went wrong).
+    fn first_non_finite_step(&self, x0: &[f64]) -> usize {
+        let mut x = x0.to_vec();
+        let mut y = vec![0.0; x.len()];
+        for t in 0..self.steps {
+            self.op.forward(&x, self.p, &mut y);
+            if !all_finite(&y) {
+                return t;
+            }
+            std::mem::swap(&mut x, &mut y);
+        }
+        self.steps
+    }
+}
+
+impl<O: Vjp> Rollout<'_, O> {
+    /// The loss `L(x_T)` and its gradients with respect to `x_0` and `p`,
+    /// by per-step VJPs over states kept as `mode` says.
+    pub fn value_and_grad(&self, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
+        self.check_state(x0)?;
+        let g = checkpoint::run(self, x0, loss, mode)?;
+        if !g.loss.is_finite() {
+            return Err(RolloutError::NonFinite { pass: "forward", step: self.first_non_finite_step(x0) });
+        }
+        if !all_finite(&g.dx0) || !all_finite(&g.dp) {
+            return Err(RolloutError::NonFinite { pass: "backward", step: 0 });
+        }
+        Ok(g)
+    }
+}
+
+fn all_finite(v: &[f64]) -> bool {
+    // A sum is NaN or infinite if any term is; one pass, vectorisable.
+    v.iter().fold(0.0, |s, &a| s + a * 0.0).is_finite()
+}
