@@ -88,16 +88,24 @@ fn step_avx2(cfg: &Burgers1d, u: &[f64], out: &mut [f64]) {
 #[inline(always)]
 pub fn step_body(cfg: &Burgers1d, u: &[f64], out: &mut [f64]) {
     let n = cfg.n;
-    assert!(n >= 3 && u.len() == n && out.len() == n, "burgers step: need n ≥ 3 and matching lengths");
-    let (a, b) = cfg.coefficients();
-    out[0] = cell(u[n - 1], u[0], u[1], a, b);
-    // Interior: three equal-length shifted views, so that bounds checks
-    // vanish and the loop vectorises.
-    let (l, c, r) = (&u[..n - 2], &u[1..n - 1], &u[2..]);
-    for (i, o) in out[1..n - 1].iter_mut().enumerate() {
-        *o = cell(l[i], c[i], r[i], a, b);
+    if n < 3 || u.len() != n || out.len() != n {
+        // Not a panic: this function is differentiated by Enzyme, and panic
+        // paths (their formatting machinery) have crashed its type analysis.
+        // Callers validate sizes first; reaching this is a bug.
+        std::process::abort();
     }
-    out[n - 1] = cell(u[n - 2], u[n - 1], u[0], a, b);
+    let (a, b) = cfg.coefficients();
+    // SAFETY: all indices below are < n = u.len() = out.len(), checked above.
+    unsafe {
+        *out.get_unchecked_mut(0) = cell(*u.get_unchecked(n - 1), *u.get_unchecked(0), *u.get_unchecked(1), a, b);
+        // Interior: three equal-length shifted views, so that the loop
+        // vectorises.
+        let (l, c, r) = (u.get_unchecked(..n - 2), u.get_unchecked(1..n - 1), u.get_unchecked(2..));
+        for (((o, &l), &c), &r) in out.get_unchecked_mut(1..n - 1).iter_mut().zip(l).zip(c).zip(r) {
+            *o = cell(l, c, r, a, b);
+        }
+        *out.get_unchecked_mut(n - 1) = cell(*u.get_unchecked(n - 2), *u.get_unchecked(n - 1), *u.get_unchecked(0), a, b);
+    }
 }
 
 /// Contribution of the adjoints `gl, gc, gr` of cells `j−1, j, j+1` to the
@@ -159,29 +167,6 @@ pub fn smooth_radius(u: &[f64], d: &[f64]) -> f64 {
     u.iter().zip(d).filter(|(_, d)| **d != 0.0).map(|(u, d)| (u / d).abs()).fold(f64::INFINITY, f64::min)
 }
 
-/// Tangent-linear model of [`step`]: `out = (∂step/∂u)·t` at the state `u`
-/// (overwrites `out`).
-///
-/// # Panics
-/// If the slices do not all have `cfg.n ≥ 3` elements.
-pub fn step_tangent(cfg: &Burgers1d, u: &[f64], t: &[f64], out: &mut [f64]) {
-    let n = cfg.n;
-    assert!(n >= 3 && u.len() == n && t.len() == n && out.len() == n, "burgers tangent: need n ≥ 3 and matching lengths");
-    let (a, b) = cfg.coefficients();
-    for i in 0..n {
-        let (il, ir) = ((i + n - 1) % n, (i + 1) % n);
-        let (l, c, r) = (u[il], u[i], u[ir]);
-        let (dl, dc, dr) = if c > 0.0 { (a + b * c, 1.0 - 2.0 * a - b * (2.0 * c - l), a) } else { (a, 1.0 - 2.0 * a - b * (r - 2.0 * c), a - b * c) };
-        out[i] = dl * t[il] + dc * t[i] + dr * t[ir];
-    }
-}
-
-/// Distance to the nearest upwind switch along `d`: the largest `s` such
-/// that no `u[i] + σ·d[i]`, `|σ| ≤ s`, changes sign (`∞` when `d = 0`).
-pub fn smooth_radius(u: &[f64], d: &[f64]) -> f64 {
-    u.iter().zip(d).filter(|(_, d)| **d != 0.0).map(|(u, d)| (u / d).abs()).fold(f64::INFINITY, f64::min)
-}
-
 /// Initial state of P1: `u0_i = sin(x_i) + 0.5·sin(2·x_i + 0.3)`.
 pub fn p1_initial(cfg: &Burgers1d) -> Vec<f64> {
     cfg.grid().iter().map(|&x| x.sin() + 0.5 * (2.0 * x + 0.3).sin()).collect()
@@ -208,7 +193,7 @@ pub fn p1_loss(cfg: &Burgers1d, u: &[f64], target: &[f64], grad: &mut [f64]) -> 
 #[derive(Clone, Copy, Debug)]
 pub struct P1Reference {
     /// Size name (S, M, L).
-    pub name: &'static str,
+    pub name: char,
     /// Cells.
     pub n: usize,
     /// Steps.
@@ -225,7 +210,7 @@ pub struct P1Reference {
 
 /// The three P1 sizes with their reference values.
 pub const P1_SIZES: [P1Reference; 3] = [
-    P1Reference { name: "S", n: 256, steps: 256, loss: 0.5368372669763, grad_l2: 0.18125045729660, grad_0: 6.633665977490e-3, grad_n2: -1.2198946630625e-2 },
-    P1Reference { name: "M", n: 2048, steps: 2048, loss: 0.5078725528708, grad_l2: 0.05414400159445, grad_0: 1.237753013381e-3, grad_n2: -3.574446469229e-4 },
-    P1Reference { name: "L", n: 16384, steps: 1000, loss: 0.6520170921227, grad_l2: 0.02234454159575, grad_0: 1.759639889846e-4, grad_n2: -6.266553176260e-5 },
+    P1Reference { name: 'S', n: 256, steps: 256, loss: 0.5368372669763, grad_l2: 0.18125045729660, grad_0: 6.633665977490e-3, grad_n2: -1.2198946630625e-2 },
+    P1Reference { name: 'M', n: 2048, steps: 2048, loss: 0.5078725528708, grad_l2: 0.05414400159445, grad_0: 1.237753013381e-3, grad_n2: -3.574446469229e-4 },
+    P1Reference { name: 'L', n: 16384, steps: 1000, loss: 0.6520170921227, grad_l2: 0.02234454159575, grad_0: 1.759639889846e-4, grad_n2: -6.266553176260e-5 },
 ];

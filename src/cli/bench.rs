@@ -84,6 +84,11 @@ fn p1(a: P1Args) -> Result<(), CliError> {
             println!("  Enzyme gradient  {:10.3} ms   {:6.2}× forward", grad_s * 1e3, grad_s / forward_s);
             println!("  hand gradient    {:10.3} ms   {:6.2}× forward   Enzyme/hand {:.2}", hand_grad_s * 1e3, hand_grad_s / forward_s, grad_s / hand_grad_s);
             println!("  loss {:.13}  ‖∇L‖ {:.14}  ∂L/∂u0[0] {:.12e}  ∂L/∂u0[N/2] {:.12e}", g.loss, grad_l2, g.dx0[0], g.dx0[a.n / 2]);
+            if let Some(r) = diffsim_solvers::burgers::P1_SIZES.iter().find(|r| r.n == a.n && r.steps == a.steps) {
+                let rel = |got: f64, want: f64| (got - want).abs() / want.abs();
+                let worst = rel(g.loss, r.loss).max(rel(grad_l2, r.grad_l2)).max(rel(g.dx0[0], r.grad_0)).max(rel(g.dx0[a.n / 2], r.grad_n2));
+                println!("  reference (size {}): loss {:.13}  ‖∇L‖ {:.14}  worst relative difference {:.1e}", r.name, r.loss, r.grad_l2, worst);
+            }
             println!("  max |Enzyme − hand| {:.2e}   states held {} ({:.1} MB)   peak RSS {:.1} MB", hand_diff, g.stats.peak_states, g.stats.peak_state_bytes as f64 / 1e6, peak_rss_bytes() as f64 / 1e6);
         }
         Ok(())

@@ -34,7 +34,7 @@ burgers_sizes!(BurgersHand);
 
 /// The thin wrapper Enzyme differentiates: the solver step, unchanged.
 fn burgers_step(op: &BurgersEnzyme, x: &[f64], _p: &[f64], y: &mut [f64]) {
-    burgers::step(&op.0, x, y)
+    burgers::step_body(&op.0, x, y)
 }
 
 fn burgers_radius(_: &BurgersEnzyme, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
@@ -102,11 +102,13 @@ impl P1 {
     }
 
     /// `L` and `∂L/∂u0` through the Enzyme-generated step VJP.
+    #[inline(never)]
     pub fn grad_enzyme(&self, mode: Checkpointing) -> Result<Gradient, RolloutError> {
         Rollout::new(&BurgersEnzyme(self.cfg), &[], self.steps)?.value_and_grad(&self.u0, &self.loss(), mode)
     }
 
     /// `L` and `∂L/∂u0` through the hand-written step adjoint.
+    #[inline(never)]
     pub fn grad_hand(&self, mode: Checkpointing) -> Result<Gradient, RolloutError> {
         Rollout::new(&BurgersHand(self.cfg), &[], self.steps)?.value_and_grad(&self.u0, &self.loss(), mode)
     }

@@ -126,15 +126,20 @@ impl<'a, O: Forward> Rollout<'a, O> {
         Ok(())
     }
 
-    /// The final state `x_T` (two state buffers, nothing stored).
-    pub fn final_state(&self, x0: &[f64]) -> Result<Vec<f64>, RolloutError> {
-        self.check_state(x0)?;
+    fn final_state_unchecked(&self, x0: &[f64]) -> Vec<f64> {
         let mut x = x0.to_vec();
         let mut y = vec![0.0; x.len()];
         for _ in 0..self.steps {
             self.op.forward(&x, self.p, &mut y);
             std::mem::swap(&mut x, &mut y);
         }
+        x
+    }
+
+    /// The final state `x_T` (two state buffers, nothing stored).
+    pub fn final_state(&self, x0: &[f64]) -> Result<Vec<f64>, RolloutError> {
+        self.check_state(x0)?;
+        let x = self.final_state_unchecked(x0);
         if !all_finite(&x) {
             return Err(RolloutError::NonFinite { pass: "forward", step: self.first_non_finite_step(x0) });
         }
@@ -183,4 +188,63 @@ impl<O: Vjp> Rollout<'_, O> {
 fn all_finite(v: &[f64]) -> bool {
     // A sum is NaN or infinite if any term is; one pass, vectorisable.
     v.iter().fold(0.0, |s, &a| s + a * 0.0).is_finite()
+}
+
+/// A whole rollout `x_0 ↦ x_T` as an operator, so that the gradient checks
+/// apply to it: its VJP is the chained per-step VJP (under the chosen
+/// checkpointing), its JVP the chained per-step JVPs.
+#[derive(Clone, Copy, Debug)]
+pub struct RolloutOperator<'a, O> {
+    /// The rollout.
+    pub rollout: Rollout<'a, O>,
+    /// How the VJP keeps states.
+    pub mode: Checkpointing,
+}
+
+impl<O: Forward> crate::op::Operator for RolloutOperator<'_, O> {
+    fn n_in(&self) -> usize {
+        self.rollout.op.n_in()
+    }
+    fn n_out(&self) -> usize {
+        self.rollout.op.n_out()
+    }
+}
+
+impl<O: Forward> Forward for RolloutOperator<'_, O> {
+    /// `y = x_T` from `x_0 = x` (the rollout's own parameters are used; the
+    /// operator has no parameter input of its own).
+    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) {
+        let xt = self.rollout.final_state_unchecked(x);
+        y.copy_from_slice(&xt);
+    }
+}
+
+impl<O: Vjp> Vjp for RolloutOperator<'_, O> {
+    fn vjp(&self, x: &[f64], _p: &[f64], dy: &mut [f64], dx: &mut [f64], _dp: &mut [f64]) {
+        let seed = dy.to_vec();
+        let linear = |y: &[f64], g: &mut [f64]| -> f64 {
+            g.copy_from_slice(&seed);
+            y.iter().zip(&seed).map(|(a, b)| a * b).sum()
+        };
+        self.rollout.check_state(x).expect("RolloutOperator::vjp: x has the wrong length");
+        let g = checkpoint::run(&self.rollout, x, &linear, self.mode).expect("rollout");
+        for (d, v) in dx.iter_mut().zip(&g.dx0) {
+            *d += v;
+        }
+        dy.fill(0.0);
+    }
+}
+
+impl<O: crate::op::Jvp> crate::op::Jvp for RolloutOperator<'_, O> {
+    fn jvp(&self, x: &[f64], _p: &[f64], tx: &[f64], _tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        let tp = vec![0.0; self.rollout.p.len()];
+        let (mut xc, mut tc) = (x.to_vec(), tx.to_vec());
+        for _ in 0..self.rollout.steps {
+            self.rollout.op.jvp(&xc, self.rollout.p, &tc, &tp, y, ty);
+            xc.copy_from_slice(y);
+            tc.copy_from_slice(ty);
+        }
+        y.copy_from_slice(&xc);
+        ty.copy_from_slice(&tc);
+    }
 }

@@ -1,0 +1,11 @@
+#!/usr/bin/env bash
+# The demo: P1 burgers1d loss and gradient (Enzyme and hand-written),
+# checked against the reference table, with timings, at sizes S, M and L.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/cargo-enzyme build --release --bin diffsim
+for size in "256 256" "2048 2048" "16384 1000"; do
+    set -- $size
+    target/release/diffsim bench p1 --n "$1" --steps "$2" --checkpoint periodic
+    echo
+done

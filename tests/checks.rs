@@ -1,0 +1,160 @@
+//! Every operator through the three gradient checks; kinks are reported,
+//! and a wrong adjoint is caught by all three.
+
+use diffsim::check::{CheckOptions, Verdict, check_all, dot_product_between, finite_differences, taylor};
+use diffsim::op::{FiniteDiff, Forward, Jvp, Operator, Vjp};
+use diffsim::problems::burgers::{BurgersEnzyme, BurgersHand};
+use diffsim::rollout::{Checkpointing, Rollout, RolloutOperator};
+use diffsim_solvers::burgers::{self, Burgers1d};
+
+/// A seeded state whose entries stay at least 0.05 away from the upwind
+/// switch at 0.
+fn state(n: usize, seed: u64) -> Vec<f64> {
+    let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    (0..n)
+        .map(|_| {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let r = (s >> 11) as f64 / (1u64 << 53) as f64;
+            let sign = if s & 1 == 0 { 1.0 } else { -1.0 };
+            sign * (0.05 + 0.95 * r)
+        })
+        .collect()
+}
+
+fn assert_passes<O: Vjp + Jvp>(name: &str, op: &O, x: &[f64], p: &[f64]) {
+    let report = check_all(op, x, p, &CheckOptions::default());
+    assert!(report.passed(), "{name}:\n{report}");
+}
+
+#[test]
+fn burgers_step_enzyme_and_hand_pass_all_checks() {
+    for n in [3, 7, 16, 33] {
+        let cfg = Burgers1d::p1(n);
+        let x = state(n, n as u64);
+        assert_passes(&format!("BurgersEnzyme n={n}"), &BurgersEnzyme(cfg), &x, &[]);
+        assert_passes(&format!("BurgersHand n={n}"), &BurgersHand(cfg), &x, &[]);
+        // Cross-implementation: each JVP against the other VJPs.
+        let o = CheckOptions { tol: 1e-12, ..Default::default() };
+        assert!(dot_product_between(&BurgersEnzyme(cfg), &BurgersHand(cfg), &x, &[], &o).verdict.passed());
+        assert!(dot_product_between(&BurgersHand(cfg), &BurgersEnzyme(cfg), &x, &[], &o).verdict.passed());
+        let fd = dot_product_between(&FiniteDiff::new(BurgersHand(cfg)), &BurgersEnzyme(cfg), &x, &[], &CheckOptions { tol: 1e-7, ..Default::default() });
+        assert!(fd.verdict.passed(), "{fd}");
+    }
+}
+
+#[test]
+fn rollouts_pass_all_checks() {
+    // Larger time step than P1 so that 30 steps move the state visibly.
+    let cfg = Burgers1d { n: 24, dx: 0.25, dt: 0.05, nu: 0.05 };
+    let x = state(cfg.n, 11);
+    for mode in [Checkpointing::Store, Checkpointing::Binomial { snapshots: 2 }] {
+        let e = BurgersEnzyme(cfg);
+        let h = BurgersHand(cfg);
+        let re = RolloutOperator { rollout: Rollout::new(&e, &[], 30).unwrap(), mode };
+        let rh = RolloutOperator { rollout: Rollout::new(&h, &[], 30).unwrap(), mode };
+        assert_passes(&format!("rollout of BurgersEnzyme ({mode})"), &re, &x, &[]);
+        assert_passes(&format!("rollout of BurgersHand ({mode})"), &rh, &x, &[]);
+    }
+}
+
+#[test]
+fn kinks_are_reported_not_failed() {
+    let cfg = Burgers1d::p1(8);
+    let mut x = state(8, 3);
+    // On the switch (closer than the smallest step): inconclusive.
+    x[2] = 1e-13;
+    let fd = finite_differences(&BurgersEnzyme(cfg), &x, &[], &CheckOptions::default());
+    assert!(matches!(fd.verdict, Verdict::Kink(_)), "{fd}");
+    assert_eq!(fd.unusable, vec!["x[2]".to_string()]);
+    let t = taylor(&BurgersEnzyme(cfg), &x, &[], &CheckOptions::default());
+    assert!(matches!(t.verdict, Verdict::Kink(_)), "{t}");
+    // Near the switch: the large steps cross it and are skipped, the small
+    // ones stay on the smooth piece and pass.
+    x[2] = 2e-4;
+    let fd = finite_differences(&BurgersEnzyme(cfg), &x, &[], &CheckOptions::default());
+    assert!(fd.verdict.passed(), "{fd}");
+    assert!(fd.sweep[0].crossing_kink >= 1, "{fd}");
+    let t = taylor(&BurgersEnzyme(cfg), &x, &[], &CheckOptions::default());
+    assert!(t.verdict.passed(), "{t}");
+    assert!(t.radius < 1e-3, "{t}");
+}
+
+/// A classic adjoint bug: applying the Jacobian instead of its transpose.
+struct WrongAdjoint(Burgers1d);
+
+impl Operator for WrongAdjoint {
+    fn n_in(&self) -> usize {
+        self.0.n
+    }
+    fn n_out(&self) -> usize {
+        self.0.n
+    }
+}
+
+impl Forward for WrongAdjoint {
+    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) {
+        burgers::step(&self.0, x, y)
+    }
+}
+
+impl Vjp for WrongAdjoint {
+    fn vjp(&self, x: &[f64], _p: &[f64], dy: &mut [f64], dx: &mut [f64], _dp: &mut [f64]) {
+        let mut t = vec![0.0; dx.len()];
+        burgers::step_tangent(&self.0, x, dy, &mut t);
+        for (d, v) in dx.iter_mut().zip(&t) {
+            *d += v;
+        }
+        dy.fill(0.0);
+    }
+}
+
+impl Jvp for WrongAdjoint {
+    fn jvp(&self, x: &[f64], _p: &[f64], tx: &[f64], _tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        burgers::step(&self.0, x, y);
+        burgers::step_tangent(&self.0, x, tx, ty);
+    }
+}
+
+#[test]
+fn a_wrong_adjoint_fails_every_check() {
+    // Large time step: the Jacobian is far from symmetric.
+    let cfg = Burgers1d { n: 10, dx: 0.3, dt: 0.1, nu: 0.01 };
+    let x = state(10, 5);
+    let report = check_all(&WrongAdjoint(cfg), &x, &[], &CheckOptions::default());
+    assert!(matches!(report.fd.verdict, Verdict::Fail(_)), "{report}");
+    assert!(matches!(report.taylor.verdict, Verdict::Fail(_)), "{report}");
+    assert!(matches!(report.dot.verdict, Verdict::Fail(_)), "{report}");
+}
+
+/// A VJP that forgets to consume its seed breaks the buffer contract.
+struct KeepsSeed(Burgers1d);
+
+impl Operator for KeepsSeed {
+    fn n_in(&self) -> usize {
+        self.0.n
+    }
+    fn n_out(&self) -> usize {
+        self.0.n
+    }
+}
+
+impl Forward for KeepsSeed {
+    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) {
+        burgers::step(&self.0, x, y)
+    }
+}
+
+impl Vjp for KeepsSeed {
+    fn vjp(&self, x: &[f64], _p: &[f64], dy: &mut [f64], dx: &mut [f64], _dp: &mut [f64]) {
+        burgers::step_adjoint(&self.0, x, dy, dx);
+    }
+}
+
+#[test]
+fn the_vjp_contract_is_checked() {
+    let cfg = Burgers1d::p1(9);
+    let x = state(9, 8);
+    let r = dot_product_between(&BurgersHand(cfg), &KeepsSeed(cfg), &x, &[], &CheckOptions::default());
+    assert!(matches!(r.verdict, Verdict::Fail(_)), "{r}");
+    assert_eq!(r.contract, vec!["the seed dy was not consumed (zeroed)".to_string()]);
+}

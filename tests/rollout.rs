@@ -1,0 +1,85 @@
+//! Checkpointed rollouts give the stored rollout's gradient; memory and
+//! time of each mode are reported.
+
+use std::time::Instant;
+
+use diffsim::problems::burgers::P1;
+use diffsim::rollout::{Checkpointing, Rollout, RolloutError};
+
+#[test]
+fn checkpointing_modes_agree_and_report_memory() {
+    // Off a power of two on purpose.
+    let p = P1::new(300, 777);
+    let t = Instant::now();
+    let stored = p.grad_enzyme(Checkpointing::Store).unwrap();
+    let t_store = t.elapsed().as_secs_f64();
+    let scale = stored.dx0.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let modes = [
+        Checkpointing::Periodic { every: 1 },
+        Checkpointing::Periodic { every: 7 },
+        Checkpointing::periodic_sqrt(p.steps),
+        Checkpointing::Periodic { every: 1000 },
+        Checkpointing::Binomial { snapshots: 1 },
+        Checkpointing::Binomial { snapshots: 3 },
+        Checkpointing::binomial_log(p.steps),
+    ];
+    eprintln!("{:>14} {:>8} {:>12} {:>10} {:>10}", "mode", "states", "bytes", "step evals", "time ms");
+    eprintln!("{:>14} {:>8} {:>12} {:>10} {:>10.2}", "store", stored.stats.peak_states, stored.stats.peak_state_bytes, stored.stats.step_evaluations, t_store * 1e3);
+    for mode in modes {
+        for hand in [false, true] {
+            let t = Instant::now();
+            let g = if hand { p.grad_hand(mode) } else { p.grad_enzyme(mode) }.unwrap();
+            let dt = t.elapsed().as_secs_f64();
+            let err = g.dx0.iter().zip(&stored.dx0).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max) / scale;
+            assert!(err <= 1e-13, "{mode} (hand = {hand}): relative difference {err:.2e} from the stored gradient");
+            assert_eq!(g.loss, stored.loss);
+            if !hand {
+                eprintln!("{:>14} {:>8} {:>12} {:>10} {:>10.2}", mode.to_string(), g.stats.peak_states, g.stats.peak_state_bytes, g.stats.step_evaluations, dt * 1e3);
+            }
+            // Memory bounds each mode promises.
+            match mode {
+                Checkpointing::Binomial { snapshots } => assert!(g.stats.peak_states <= snapshots + 2, "{mode}: {} states", g.stats.peak_states),
+                Checkpointing::Periodic { every } => assert!(g.stats.peak_states <= p.steps.div_ceil(every) + every + 2, "{mode}: {} states", g.stats.peak_states),
+                Checkpointing::Store => {}
+            }
+        }
+    }
+    // log T growth: binomial with ⌈log₂ T⌉ snapshots holds far fewer states
+    // than T and recomputes a bounded multiple of T.
+    let b = p.grad_hand(Checkpointing::binomial_log(p.steps)).unwrap();
+    assert!(b.stats.peak_states <= 12, "{} states", b.stats.peak_states);
+    assert!(b.stats.step_evaluations <= 6 * p.steps, "{} step evaluations", b.stats.step_evaluations);
+}
+
+#[test]
+fn rollout_edge_cases() {
+    let p = P1::new(5, 1);
+    for mode in [Checkpointing::Store, Checkpointing::Periodic { every: 3 }, Checkpointing::Binomial { snapshots: 2 }] {
+        let g = p.grad_hand(mode).unwrap();
+        assert_eq!(g.stats.steps, 1);
+    }
+    let zero = P1::new(5, 0);
+    let g = zero.grad_enzyme(Checkpointing::binomial_log(0)).unwrap();
+    // With no steps the gradient is the loss gradient itself: dx·(u0 − u*).
+    for ((d, u), t) in g.dx0.iter().zip(&zero.u0).zip(&zero.target) {
+        assert!((d - zero.cfg.dx * (u - t)).abs() < 1e-15);
+    }
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let p = P1::new(16, 10);
+    let op = diffsim::problems::burgers::BurgersHand(p.cfg);
+    let r = Rollout::new(&op, &[], 10).unwrap();
+    let err = r.value_and_grad(&[0.0; 15], &p.loss(), Checkpointing::Store).unwrap_err();
+    assert_eq!(err, RolloutError::Length { what: "x0", got: 15, expected: 16 });
+    assert!(matches!(Rollout::new(&op, &[1.0], 3), Err(RolloutError::Length { what: "p", .. })));
+    // A state that blows up is reported with the step where it first did.
+    let mut u0 = p.u0.clone();
+    u0[3] = f64::NAN;
+    let err = r.value_and_grad(&u0, &p.loss(), Checkpointing::Store).unwrap_err();
+    assert_eq!(err, RolloutError::NonFinite { pass: "forward", step: 0 });
+    assert!("binomial:0".parse::<Checkpointing>().is_err());
+    assert!("sometimes".parse::<Checkpointing>().is_err());
+    assert_eq!("periodic:5".parse::<Checkpointing>(), Ok(Checkpointing::Periodic { every: 5 }));
+}
