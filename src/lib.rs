@@ -1,4 +1,53 @@
-//! diffsim: differentiable physics in Rust.
+//! # diffsim: differentiable physics in Rust
+//!
+//! A guide in four steps, from a plain solver function to a checked
+//! gradient through a rollout.
+//!
+//! **1. A solver step is a plain function on slices.** It reads a state `x`
+//! and parameters `p` and overwrites its output `y`; it knows nothing of
+//! differentiation. The shipped solvers live in the `diffsim-solvers` crate
+//! (built without the autodiff flag), e.g. [`diffsim_solvers::burgers::step`].
+//!
+//! **2. An operator gives it sizes and derivatives** ([`op`]): implement
+//! [`op::Operator`] for a plain-data type and let
+//! [`differentiable!`] generate [`op::Forward`], [`op::Vjp`] and
+//! [`op::Jvp`] with Enzyme, or write them by hand, or take finite
+//! differences with [`op::FiniteDiff`]. All three obey one contract: a VJP
+//! *adds* `J_xᵀ·dy` into `dx` and consumes its seed.
+//!
+//! ```ignore
+//! #![feature(autodiff)]
+//! use diffsim::op::{Operator, OperatorExt};
+//!
+//! struct Square { n: usize }
+//! impl Operator for Square {
+//!     fn n_in(&self) -> usize { self.n }
+//!     fn n_out(&self) -> usize { self.n }
+//! }
+//! fn square(op: &Square, x: &[f64], _p: &[f64], y: &mut [f64]) {
+//!     for i in 0..op.n { y[i] = x[i] * x[i]; }
+//! }
+//! diffsim::differentiable!(Square => square);
+//!
+//! let (dx, _) = Square { n: 2 }.vjp_new(&[1.0, 3.0], &[], &[1.0, 1.0]);
+//! assert_eq!(dx, vec![2.0, 6.0]);
+//! ```
+//!
+//! (Marked `ignore`: doctests are built without fat LTO, which Enzyme
+//! needs; the same code runs in `tests/user_op.rs`.)
+//!
+//! **3. Check the gradient** ([`check`]): `check::check_all(&op, &x, &p,
+//! &Default::default())` runs finite differences over a sweep of steps, the
+//! Taylor remainder test and the JVP/VJP dot-product test, and says where a
+//! kink makes a check inconclusive.
+//!
+//! **4. Roll it out** ([`rollout`]): chain `T` steps and a loss, and get the
+//! loss and its gradient by per-step VJPs over stored or checkpointed
+//! states (`Store`, `Periodic`, `Binomial`). [`problems::burgers::P1`] is the
+//! benchmark P1 built exactly this way.
+//!
+//! Build everything that calls generated gradients in release with fat LTO
+//! and `-Zautodiff=Enable` on this crate only; see the README.
 #![feature(autodiff)]
 #![deny(missing_docs)]
 
