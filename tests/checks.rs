@@ -3,7 +3,7 @@
 
 use diffsim::check::{CheckOptions, Verdict, check_all, dot_product_between, finite_differences, taylor};
 use diffsim::op::{FiniteDiff, Forward, Jvp, Operator, Vjp};
-use diffsim::problems::burgers::{BurgersEnzyme, BurgersHand};
+use diffsim::problems::burgers::{BurgersEnzyme, BurgersEnzymeWholeStep, BurgersHand};
 use diffsim::rollout::{Checkpointing, Rollout, RolloutOperator};
 use diffsim_solvers::burgers::{self, Burgers1d};
 
@@ -33,10 +33,12 @@ fn burgers_step_enzyme_and_hand_pass_all_checks() {
         let x = state(n, n as u64);
         assert_passes(&format!("BurgersEnzyme n={n}"), &BurgersEnzyme(cfg), &x, &[]);
         assert_passes(&format!("BurgersHand n={n}"), &BurgersHand(cfg), &x, &[]);
+        assert_passes(&format!("BurgersEnzymeWholeStep n={n}"), &BurgersEnzymeWholeStep(cfg), &x, &[]);
         // Cross-implementation: each JVP against the other VJPs.
         let o = CheckOptions { tol: 1e-12, ..Default::default() };
         assert!(dot_product_between(&BurgersEnzyme(cfg), &BurgersHand(cfg), &x, &[], &o).verdict.passed());
         assert!(dot_product_between(&BurgersHand(cfg), &BurgersEnzyme(cfg), &x, &[], &o).verdict.passed());
+        assert!(dot_product_between(&BurgersHand(cfg), &BurgersEnzymeWholeStep(cfg), &x, &[], &o).verdict.passed());
         let fd = dot_product_between(&FiniteDiff::new(BurgersHand(cfg)), &BurgersEnzyme(cfg), &x, &[], &CheckOptions { tol: 1e-7, ..Default::default() });
         assert!(fd.verdict.passed(), "{fd}");
     }

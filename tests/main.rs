@@ -3,6 +3,8 @@
 #![feature(autodiff)]
 
 mod checks;
+mod cli;
 mod p1;
 mod rollout;
 mod user_op;
+

@@ -4,7 +4,7 @@
 use std::time::Instant;
 
 use diffsim::problems::burgers::P1;
-use diffsim::rollout::{Checkpointing, Rollout, RolloutError};
+use diffsim::rollout::{Argument, Checkpointing, Pass, Rollout, RolloutError};
 
 #[test]
 fn checkpointing_modes_agree_and_report_memory() {
@@ -72,13 +72,13 @@ fn bad_inputs_are_errors() {
     let op = diffsim::problems::burgers::BurgersHand(p.cfg);
     let r = Rollout::new(&op, &[], 10).unwrap();
     let err = r.value_and_grad(&[0.0; 15], &p.loss(), Checkpointing::Store).unwrap_err();
-    assert_eq!(err, RolloutError::Length { what: "x0", got: 15, expected: 16 });
-    assert!(matches!(Rollout::new(&op, &[1.0], 3), Err(RolloutError::Length { what: "p", .. })));
+    assert_eq!(err, RolloutError::Length { what: Argument::X0, got: 15, expected: 16 });
+    assert!(matches!(Rollout::new(&op, &[1.0], 3), Err(RolloutError::Length { what: Argument::P, .. })));
     // A state that blows up is reported with the step where it first did.
     let mut u0 = p.u0.clone();
     u0[3] = f64::NAN;
     let err = r.value_and_grad(&u0, &p.loss(), Checkpointing::Store).unwrap_err();
-    assert_eq!(err, RolloutError::NonFinite { pass: "forward", step: 0 });
+    assert_eq!(err, RolloutError::NonFinite { pass: Pass::Forward, step: 0 });
     assert!("binomial:0".parse::<Checkpointing>().is_err());
     assert!("sometimes".parse::<Checkpointing>().is_err());
     assert_eq!("periodic:5".parse::<Checkpointing>(), Ok(Checkpointing::Periodic { every: 5 }));

@@ -48,7 +48,7 @@ impl Burgers1d {
 
     /// `(dt·ν/dx², dt/dx)`: the diffusion and advection coefficients of a step.
     #[inline(always)]
-    fn coefficients(&self) -> (f64, f64) {
+    pub fn coefficients(&self) -> (f64, f64) {
         (self.dt * self.nu / (self.dx * self.dx), self.dt / self.dx)
     }
 }
@@ -57,7 +57,7 @@ impl Burgers1d {
 /// `c + a·(r − 2c + l) − b·c·(c − l or r − c)`, the upwind difference
 /// chosen by a select (no branch), so that the loop vectorises.
 #[inline(always)]
-fn cell(l: f64, c: f64, r: f64, a: f64, b: f64) -> f64 {
+pub fn cell(l: f64, c: f64, r: f64, a: f64, b: f64) -> f64 {
     let (d1, d2) = (c - l, r - c);
     let up = if c > 0.0 { d1 } else { d2 };
     c + a * (d2 - d1) - b * c * up
@@ -88,23 +88,23 @@ fn step_avx2(cfg: &Burgers1d, u: &[f64], out: &mut [f64]) {
 #[inline(always)]
 pub fn step_body(cfg: &Burgers1d, u: &[f64], out: &mut [f64]) {
     let n = cfg.n;
-    if n < 3 || u.len() != n || out.len() != n {
-        // Not a panic: this function is differentiated by Enzyme, and panic
-        // paths (their formatting machinery) have crashed its type analysis.
-        // Callers validate sizes first; reaching this is a bug.
-        std::process::abort();
-    }
+    assert!(n >= 3 && u.len() == n && out.len() == n, "burgers step: need n ≥ 3 and matching lengths");
+    // Interior: three equal-length shifted views.
+    step_map(cfg, &u[..n - 2], &u[1..n - 1], &u[2..], &mut out[1..n - 1]);
     let (a, b) = cfg.coefficients();
-    // SAFETY: all indices below are < n = u.len() = out.len(), checked above.
-    unsafe {
-        *out.get_unchecked_mut(0) = cell(*u.get_unchecked(n - 1), *u.get_unchecked(0), *u.get_unchecked(1), a, b);
-        // Interior: three equal-length shifted views, so that the loop
-        // vectorises.
-        let (l, c, r) = (u.get_unchecked(..n - 2), u.get_unchecked(1..n - 1), u.get_unchecked(2..));
-        for (((o, &l), &c), &r) in out.get_unchecked_mut(1..n - 1).iter_mut().zip(l).zip(c).zip(r) {
-            *o = cell(l, c, r, a, b);
-        }
-        *out.get_unchecked_mut(n - 1) = cell(*u.get_unchecked(n - 2), *u.get_unchecked(n - 1), *u.get_unchecked(0), a, b);
+    out[0] = cell(u[n - 1], u[0], u[1], a, b);
+    out[n - 1] = cell(u[n - 2], u[n - 1], u[0], a, b);
+}
+
+/// The step as a pointwise map over shifted views: `out[i] = cell(l[i],
+/// c[i], r[i])`, where `l, c, r` are the state shifted by −1, 0, +1 (the
+/// form diffsim's stencil operators differentiate). Loops over the shortest
+/// of the slices; no bounds checks, vectorises.
+#[inline(always)]
+pub fn step_map(cfg: &Burgers1d, l: &[f64], c: &[f64], r: &[f64], out: &mut [f64]) {
+    let (a, b) = cfg.coefficients();
+    for (((o, &l), &c), &r) in out.iter_mut().zip(l).zip(c).zip(r) {
+        *o = cell(l, c, r, a, b);
     }
 }
 

@@ -23,7 +23,12 @@ use crate::op::{Forward, Vjp};
 pub use checkpoint::Checkpointing;
 
 /// Errors of a rollout.
-#[derive(Debug, Error, Clone, PartialEq)]
+///
+/// Deliberately free of pointers (no `String`, no `&str`): a `Result` whose
+/// `Ok` holds `Vec<f64>` and whose `Err` holds a string crashes rustc's
+/// Enzyme type-tree emission in crates built with `-Zautodiff=Enable`
+/// (README, "Enzyme notes").
+#[derive(Debug, Error, Clone, Copy, PartialEq, Eq)]
 pub enum RolloutError {
     /// The operator does not map a state to a state of the same size.
     #[error("a rollout needs an operator with n_in == n_out (got n_in = {n_in}, n_out = {n_out})")]
@@ -37,23 +42,56 @@ pub enum RolloutError {
     #[error("`{what}` has length {got}, expected {expected}")]
     Length {
         /// Which argument.
-        what: &'static str,
+        what: Argument,
         /// Its length.
         got: usize,
         /// The length the operator needs.
         expected: usize,
     },
-    /// A checkpointing parameter is unusable.
-    #[error("invalid checkpointing: {0}")]
-    Checkpointing(String),
     /// A non-finite value appeared in the forward or backward pass.
     #[error("non-finite value (NaN or infinity) in the {pass} pass at step {step}")]
     NonFinite {
-        /// `"forward"` or `"backward"`.
-        pass: &'static str,
+        /// Which pass.
+        pass: Pass,
         /// The step whose output held it.
         step: usize,
     },
+}
+
+/// The arguments of a rollout, for error messages.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Argument {
+    /// The initial state.
+    X0,
+    /// The parameters.
+    P,
+}
+
+impl std::fmt::Display for Argument {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Argument::X0 => "x0",
+            Argument::P => "p",
+        })
+    }
+}
+
+/// Forward or backward pass, for error messages.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Pass {
+    /// The forward pass (states).
+    Forward,
+    /// The backward pass (adjoints).
+    Backward,
+}
+
+impl std::fmt::Display for Pass {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Pass::Forward => "forward",
+            Pass::Backward => "backward",
+        })
+    }
 }
 
 /// A loss on the final state.
@@ -114,14 +152,14 @@ impl<'a, O: Forward> Rollout<'a, O> {
             return Err(RolloutError::NotAStateMap { n_in: op.n_in(), n_out: op.n_out() });
         }
         if p.len() != op.n_params() {
-            return Err(RolloutError::Length { what: "p", got: p.len(), expected: op.n_params() });
+            return Err(RolloutError::Length { what: Argument::P, got: p.len(), expected: op.n_params() });
         }
         Ok(Self { op, p, steps })
     }
 
     fn check_state(&self, x0: &[f64]) -> Result<(), RolloutError> {
         if x0.len() != self.op.n_in() {
-            return Err(RolloutError::Length { what: "x0", got: x0.len(), expected: self.op.n_in() });
+            return Err(RolloutError::Length { what: Argument::X0, got: x0.len(), expected: self.op.n_in() });
         }
         Ok(())
     }
@@ -141,7 +179,7 @@ impl<'a, O: Forward> Rollout<'a, O> {
         self.check_state(x0)?;
         let x = self.final_state_unchecked(x0);
         if !all_finite(&x) {
-            return Err(RolloutError::NonFinite { pass: "forward", step: self.first_non_finite_step(x0) });
+            return Err(RolloutError::NonFinite { pass: Pass::Forward, step: self.first_non_finite_step(x0) });
         }
         Ok(x)
     }
@@ -176,10 +214,10 @@ impl<O: Vjp> Rollout<'_, O> {
         self.check_state(x0)?;
         let g = checkpoint::run(self, x0, loss, mode)?;
         if !g.loss.is_finite() {
-            return Err(RolloutError::NonFinite { pass: "forward", step: self.first_non_finite_step(x0) });
+            return Err(RolloutError::NonFinite { pass: Pass::Forward, step: self.first_non_finite_step(x0) });
         }
         if !all_finite(&g.dx0) || !all_finite(&g.dp) {
-            return Err(RolloutError::NonFinite { pass: "backward", step: 0 });
+            return Err(RolloutError::NonFinite { pass: Pass::Backward, step: 0 });
         }
         Ok(g)
     }

@@ -1,0 +1,46 @@
+//! The `diffsim` binary: bad arguments give a clear error and a non-zero
+//! exit; a small P1 run prints one JSON line with the documented keys.
+
+use std::process::Command;
+
+/// Runs `diffsim` and returns (exit code, stdout, stderr).
+fn diffsim(args: &[&str]) -> (i32, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_diffsim")).args(args).output().unwrap();
+    (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
+}
+
+#[track_caller]
+fn fails_with(args: &[&str], needle: &str) {
+    let (code, _, err) = diffsim(args);
+    assert_ne!(code, 0, "{args:?} should fail");
+    assert!(err.contains(needle), "{args:?}: stderr was {err}");
+    assert!(!err.contains("panicked"), "{args:?}: {err}");
+}
+
+// One call per case, not a table: an array of tuples holding `Vec<&str>`
+// tipped rustc's Enzyme type trees into an abort (README, "Enzyme notes").
+#[test]
+fn bench_p1_rejects_bad_arguments() {
+    fails_with(&["bench", "p1", "--n", "2"], "invalid argument --n");
+    fails_with(&["bench", "p1", "--steps", "0"], "invalid argument --steps");
+    fails_with(&["bench", "p1", "--threads", "0"], "invalid argument --threads");
+    fails_with(&["bench", "p1", "--checkpoint", "sometimes"], "unknown checkpointing");
+    fails_with(&["bench", "p1", "--n", "many"], "invalid value 'many'");
+}
+
+#[test]
+fn bench_p1_json_line() {
+    let (code, out, err) = diffsim(&["bench", "p1", "--n", "37", "--steps", "5", "--threads", "1", "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    for key in ["problem", "n", "steps", "threads", "forward_s", "grad_s", "hand_grad_s", "grad_over_forward", "enzyme_over_hand", "peak_rss_bytes", "loss", "grad_l2", "grad_0", "grad_n2"] {
+        assert!(v.get(key).is_some(), "missing {key} in {out}");
+    }
+    assert_eq!(v["problem"], "p1");
+    assert_eq!(v["n"], 37);
+    assert_eq!(v["threads"], 1);
+    // The loss printed is the one the library computes.
+    let p = diffsim::problems::burgers::P1::new(37, 5);
+    assert!((v["loss"].as_f64().unwrap() - p.value().unwrap()).abs() < 1e-15);
+    assert!(v["enzyme_hand_max_diff"].as_f64().unwrap() < 1e-14);
+}
