@@ -63,28 +63,16 @@ pub fn cell(l: f64, c: f64, r: f64, a: f64, b: f64) -> f64 {
     c + a * (d2 - d1) - b * c * up
 }
 
-/// One explicit step: writes `out = step(u)` (overwrites `out`).
-///
-/// # Panics
-/// If `u` and `out` do not both have `cfg.n ≥ 3` elements.
-#[inline]
-pub fn step(cfg: &Burgers1d, u: &[f64], out: &mut [f64]) {
-    #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2, checked just above.
-        return unsafe { step_avx2(cfg, u, out) };
-    }
-    step_body(cfg, u, out)
+crate::simd_dispatch! {
+    /// One explicit step: writes `out = step(u)` (overwrites `out`), with the
+    /// widest vector instructions the CPU has (see [`crate::simd`]).
+    ///
+    /// # Panics
+    /// If `u` and `out` do not both have `cfg.n ≥ 3` elements.
+    pub fn step(cfg: &Burgers1d, u: &[f64], out: &mut [f64]) => step_body
 }
 
-/// [`step`] compiled for AVX2 (4 lanes); same arithmetic, same results.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn step_avx2(cfg: &Burgers1d, u: &[f64], out: &mut [f64]) {
-    step_body(cfg, u, out)
-}
-
-/// [`step`] without the AVX2 dispatch (the baseline x86-64 instructions).
+/// [`step`] in baseline x86-64 instructions (no run-time dispatch).
 #[inline(always)]
 pub fn step_body(cfg: &Burgers1d, u: &[f64], out: &mut [f64]) {
     let n = cfg.n;
@@ -123,26 +111,13 @@ fn cell_adjoint(l: f64, c: f64, r: f64, gl: f64, gc: f64, gr: f64, a: f64, b: f6
     gr * (a + b * rp) + gc * (1.0 - 2.0 * a - b * dcc) + gl * (a - b * lm)
 }
 
-/// Hand-written adjoint of [`step`]: `du += (∂step/∂u)ᵀ·g`, evaluated at the
-/// state `u` the step was taken from (accumulates into `du`).
-///
-/// # Panics
-/// If the slices do not all have `cfg.n ≥ 3` elements.
-#[inline]
-pub fn step_adjoint(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64]) {
-    #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2, checked just above.
-        return unsafe { step_adjoint_avx2(cfg, u, g, du) };
-    }
-    step_adjoint_body(cfg, u, g, du)
-}
-
-/// [`step_adjoint`] compiled for AVX2; same arithmetic, same results.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn step_adjoint_avx2(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64]) {
-    step_adjoint_body(cfg, u, g, du)
+crate::simd_dispatch! {
+    /// Hand-written adjoint of [`step`]: `du += (∂step/∂u)ᵀ·g`, evaluated at the
+    /// state `u` the step was taken from (accumulates into `du`).
+    ///
+    /// # Panics
+    /// If the slices do not all have `cfg.n ≥ 3` elements.
+    pub fn step_adjoint(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64]) => step_adjoint_body
 }
 
 #[inline(always)]

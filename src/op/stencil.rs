@@ -102,10 +102,54 @@ pub fn check_stencil<O: super::Operator + ?Sized>(op: &O, name: &str) {
     }
 }
 
+/// Calls `$body(args)` compiled for the widest of AVX-512F, AVX2 and
+/// baseline x86-64 the CPU supports (generic version of
+/// `diffsim_solvers::simd_dispatch!`; the closures passed in are inlined into
+/// each variant, generated derivatives included).
+macro_rules! dispatch_generic {
+    ($body:ident, [$($g:ident: $bound:path),*], $($arg:ident: $ty:ty),*) => {{
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx512f")]
+            fn wide<$($g: $bound),*>($($arg: $ty),*) {
+                $body($($arg),*)
+            }
+            #[target_feature(enable = "avx2")]
+            fn medium<$($g: $bound),*>($($arg: $ty),*) {
+                $body($($arg),*)
+            }
+            if std::is_x86_feature_detected!("avx512f") {
+                // SAFETY: the CPU supports AVX-512F, checked just above.
+                return unsafe { wide($($arg),*) };
+            }
+            if std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2, checked just above.
+                return unsafe { medium($($arg),*) };
+            }
+        }
+        $body($($arg),*)
+    }};
+}
+
+/// The map of a forward step.
+#[doc(hidden)]
+pub trait MapForward: FnMut(&[f64], &[f64], &[f64], &mut [f64]) {}
+impl<F: FnMut(&[f64], &[f64], &[f64], &mut [f64])> MapForward for F {}
+
+/// The map's forward-mode pass.
+#[doc(hidden)]
+pub trait MapJvp: FnMut(&[f64], &[f64], &[f64], &[f64], &[f64], &[f64], &mut [f64], &mut [f64]) {}
+impl<F: FnMut(&[f64], &[f64], &[f64], &[f64], &[f64], &[f64], &mut [f64], &mut [f64])> MapJvp for F {}
+
 /// `y[i] = k(x[i−1], x[i], x[i+1])` on a periodic grid, through the map `f`.
 #[doc(hidden)]
 #[inline]
-pub fn forward3(x: &[f64], y: &mut [f64], mut f: impl FnMut(&[f64], &[f64], &[f64], &mut [f64])) {
+pub fn forward3<F: MapForward>(x: &[f64], y: &mut [f64], f: F) {
+    dispatch_generic!(forward3_body, [F: MapForward], x: &[f64], y: &mut [f64], f: F)
+}
+
+#[inline(always)]
+fn forward3_body(x: &[f64], y: &mut [f64], mut f: impl MapForward) {
     let n = x.len();
     f(&x[..n - 2], &x[1..n - 1], &x[2..], &mut y[1..n - 1]);
     for (i, il, ir) in [(0, n - 1, 1), (n - 1, n - 2, 0)] {
@@ -119,8 +163,12 @@ pub fn forward3(x: &[f64], y: &mut [f64], mut f: impl FnMut(&[f64], &[f64], &[f6
 /// state and of the tangent.
 #[doc(hidden)]
 #[inline]
-#[allow(clippy::type_complexity)]
-pub fn jvp3(x: &[f64], t: &[f64], y: &mut [f64], ty: &mut [f64], mut f: impl FnMut(&[f64], &[f64], &[f64], &[f64], &[f64], &[f64], &mut [f64], &mut [f64])) {
+pub fn jvp3<F: MapJvp>(x: &[f64], t: &[f64], y: &mut [f64], ty: &mut [f64], f: F) {
+    dispatch_generic!(jvp3_body, [F: MapJvp], x: &[f64], t: &[f64], y: &mut [f64], ty: &mut [f64], f: F)
+}
+
+#[inline(always)]
+fn jvp3_body(x: &[f64], t: &[f64], y: &mut [f64], ty: &mut [f64], mut f: impl MapJvp) {
     let n = x.len();
     f(&x[..n - 2], &t[..n - 2], &x[1..n - 1], &t[1..n - 1], &x[2..], &t[2..], &mut y[1..n - 1], &mut ty[1..n - 1]);
     for (i, il, ir) in [(0, n - 1, 1), (n - 1, n - 2, 0)] {
@@ -142,19 +190,8 @@ impl<F: FnMut(&[f64], &mut [f64], &[f64], &mut [f64], &[f64], &mut [f64], &mut [
 /// reverse pass of its map; consumes `g`.
 #[doc(hidden)]
 #[inline]
-pub fn vjp3(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: impl MapVjp) {
-    #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2, checked just above.
-        return unsafe { vjp3_avx2(x, g, dx, dp, f) };
-    }
-    vjp3_body(x, g, dx, dp, f)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn vjp3_avx2(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: impl MapVjp) {
-    vjp3_body(x, g, dx, dp, f)
+pub fn vjp3<F: MapVjp>(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: F) {
+    dispatch_generic!(vjp3_body, [F: MapVjp], x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: F)
 }
 
 /// Adds `src` into `dst` and zeroes `src` (one pass).

@@ -183,22 +183,41 @@ fn binom(n: usize, k: usize) -> u128 {
     c
 }
 
-pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
+/// Buffers a rollout's backward pass reuses from one call to the next: the
+/// checkpoint store and the state buffers. Reusing them (as a training loop
+/// does) saves the allocation and first-touch page faults of every call,
+/// which for a stored trajectory can cost as much as the arithmetic.
+#[derive(Debug, Default)]
+pub struct Workspace {
+    store: Vec<f64>,
+    free: Vec<Vec<f64>>,
+}
+
+impl Workspace {
+    /// An empty workspace; it grows to what the rollouts run in it need.
+    pub fn new() -> Self {
+        Self::default()
+    }
+}
+
+pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, ws: &mut Workspace, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
     let n = x0.len();
     let steps = r.steps;
+    let mut free = std::mem::take(&mut ws.free);
+    free.retain(|v| v.len() == n);
     let mut bw = Backward {
         rollout: r,
         n,
         lam: vec![0.0; n],
         lam_next: vec![0.0; n],
         dp: vec![0.0; r.op.n_params()],
-        free: Vec::new(),
+        free,
         live: 0,
         stats: RolloutStats { steps, ..Default::default() },
     };
     let value = match mode.resolve(steps) {
-        Checkpointing::Store => periodic(&mut bw, x0, loss, 1),
-        Checkpointing::Periodic { every } => periodic(&mut bw, x0, loss, every),
+        Checkpointing::Store => periodic(&mut bw, &mut ws.store, x0, loss, 1),
+        Checkpointing::Periodic { every } => periodic(&mut bw, &mut ws.store, x0, loss, every),
         Checkpointing::Binomial { snapshots } => {
             // Forward once for the loss (two buffers), then reverse.
             let xt = bw.advance(x0, steps);
@@ -213,16 +232,20 @@ pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, x0: &[f64], loss: &impl Loss, mode
         }
     };
     bw.stats.peak_state_bytes = bw.stats.peak_states * n * std::mem::size_of::<f64>();
+    ws.free = std::mem::take(&mut bw.free);
     Ok(Gradient { loss: value, dx0: bw.lam, dp: bw.dp, stats: bw.stats })
 }
 
 /// Stores `x_0, x_k, x_2k, …` in one flat buffer during the forward pass and
 /// recomputes each segment from its checkpoint in the backward pass. With
 /// `k = 1` nothing is recomputed and each step writes straight into its slot.
-fn periodic<O: Vjp>(bw: &mut Backward<'_, '_, O>, x0: &[f64], loss: &impl Loss, k: usize) -> f64 {
+fn periodic<O: Vjp>(bw: &mut Backward<'_, '_, O>, store: &mut Vec<f64>, x0: &[f64], loss: &impl Loss, k: usize) -> f64 {
     let (n, steps) = (bw.n, bw.rollout.steps);
     let n_ckpt = steps.div_ceil(k).max(1);
-    let mut store = vec![0.0; n_ckpt * n];
+    if store.len() < n_ckpt * n {
+        store.resize(n_ckpt * n, 0.0);
+    }
+    let store = &mut store[..n_ckpt * n];
     bw.live += n_ckpt;
     store[..n].copy_from_slice(x0);
     // Forward: x_T lands in `last`.

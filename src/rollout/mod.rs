@@ -20,7 +20,7 @@ use thiserror::Error;
 
 use crate::op::{Forward, Vjp};
 
-pub use checkpoint::Checkpointing;
+pub use checkpoint::{Checkpointing, Workspace};
 
 /// Errors of a rollout.
 ///
@@ -211,8 +211,14 @@ impl<O: Vjp> Rollout<'_, O> {
     /// The loss `L(x_T)` and its gradients with respect to `x_0` and `p`,
     /// by per-step VJPs over states kept as `mode` says.
     pub fn value_and_grad(&self, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
+        self.value_and_grad_in(&mut Workspace::new(), x0, loss, mode)
+    }
+
+    /// [`Rollout::value_and_grad`] reusing the buffers of `ws` (for repeated
+    /// gradients, as in training).
+    pub fn value_and_grad_in(&self, ws: &mut Workspace, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
         self.check_state(x0)?;
-        let g = checkpoint::run(self, x0, loss, mode)?;
+        let g = checkpoint::run(self, ws, x0, loss, mode)?;
         if !g.loss.is_finite() {
             return Err(RolloutError::NonFinite { pass: Pass::Forward, step: self.first_non_finite_step(x0) });
         }
@@ -265,7 +271,7 @@ impl<O: Vjp> Vjp for RolloutOperator<'_, O> {
             y.iter().zip(&seed).map(|(a, b)| a * b).sum()
         };
         self.rollout.check_state(x).expect("RolloutOperator::vjp: x has the wrong length");
-        let g = checkpoint::run(&self.rollout, x, &linear, self.mode).expect("rollout");
+        let g = checkpoint::run(&self.rollout, &mut Workspace::new(), x, &linear, self.mode).expect("rollout");
         for (d, v) in dx.iter_mut().zip(&g.dx0) {
             *d += v;
         }
