@@ -3,7 +3,9 @@
 #![feature(autodiff)]
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
-use diffsim::problems::burgers::P1;
+use diffsim::op::Vjp;
+use diffsim::problems::burgers::{BurgersEnzyme, BurgersEnzymeWholeStep, BurgersHand, P1};
+use diffsim_solvers::burgers::{self, Burgers1d};
 use diffsim::rollout::Checkpointing;
 
 /// One P1 size: forward, Enzyme gradient (stencil map), Enzyme gradient
@@ -30,5 +32,29 @@ fn p1(c: &mut Criterion) {
     }
 }
 
-criterion_group!(benches, p1);
+/// One step at size L: forward and VJP of each implementation, so that the
+/// per-step costs behind the rollout numbers are visible.
+fn p1_step(c: &mut Criterion) {
+    let cfg = Burgers1d::p1(16384);
+    let x = burgers::p1_initial(&cfg);
+    let mut g = c.benchmark_group("p1_step_16384");
+    step_pair(&mut g, "enzyme_stencil", &BurgersEnzyme(cfg), &x);
+    step_pair(&mut g, "enzyme_whole_step", &BurgersEnzymeWholeStep(cfg), &x);
+    step_pair(&mut g, "hand", &BurgersHand(cfg), &x);
+    g.finish();
+}
+
+fn step_pair<O: Vjp>(g: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>, name: &str, op: &O, x: &[f64]) {
+    let n = x.len();
+    let (mut y, mut seed, mut dx) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+    g.bench_function(BenchmarkId::new("forward", name), |b| b.iter(|| op.forward(x, &[], std::hint::black_box(&mut y))));
+    g.bench_function(BenchmarkId::new("vjp", name), |b| {
+        b.iter(|| {
+            seed.copy_from_slice(x);
+            op.vjp(x, &[], &mut seed, std::hint::black_box(&mut dx), &mut []);
+        })
+    });
+}
+
+criterion_group!(benches, p1, p1_step);
 criterion_main!(benches);

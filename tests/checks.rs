@@ -28,7 +28,8 @@ fn assert_passes<O: Vjp + Jvp>(name: &str, op: &O, x: &[f64], p: &[f64]) {
 
 #[test]
 fn burgers_step_enzyme_and_hand_pass_all_checks() {
-    for n in [3, 7, 16, 33] {
+    // 515 and 1027: the stencil VJP's chunks of 512 end with one- and two-cell chunks.
+    for n in [3, 7, 16, 33, 515, 1027] {
         let cfg = Burgers1d::p1(n);
         let x = state(n, n as u64);
         assert_passes(&format!("BurgersEnzyme n={n}"), &BurgersEnzyme(cfg), &x, &[]);

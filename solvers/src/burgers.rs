@@ -120,20 +120,43 @@ crate::simd_dispatch! {
     pub fn step_adjoint(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64]) => step_adjoint_body
 }
 
+crate::simd_dispatch! {
+    /// [`step_adjoint`] that overwrites: `du = (∂step/∂u)ᵀ·g`.
+    ///
+    /// # Panics
+    /// If the slices do not all have `cfg.n ≥ 3` elements.
+    pub fn step_adjoint_overwrite(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64]) => step_adjoint_overwrite_body
+}
+
 #[inline(always)]
 fn step_adjoint_body(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64]) {
+    adjoint::<true>(cfg, u, g, du)
+}
+
+#[inline(always)]
+fn step_adjoint_overwrite_body(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64]) {
+    adjoint::<false>(cfg, u, g, du)
+}
+
+/// The adjoint in gather form: `du[j] (+)= Σ_i g[i]·∂u'[i]/∂u[j]` over the
+/// three cells `i = j−1, j, j+1`; adds when `ADD`, overwrites otherwise.
+#[inline(always)]
+fn adjoint<const ADD: bool>(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64]) {
     let n = cfg.n;
     assert!(n >= 3 && u.len() == n && g.len() == n && du.len() == n, "burgers adjoint: need n ≥ 3 and matching lengths");
     let (a, b) = cfg.coefficients();
+    let put = |d: &mut f64, v: f64| if ADD { *d += v } else { *d = v };
     let at = |j: usize| -> f64 {
         let m = |k: isize| ((j as isize + k).rem_euclid(n as isize)) as usize;
         cell_adjoint(u[m(-1)], u[j], u[m(1)], g[m(-1)], g[j], g[m(1)], a, b)
     };
-    du[0] += at(0);
-    for ((d, w), gw) in du[1..n - 1].iter_mut().zip(u.windows(3)).zip(g.windows(3)) {
-        *d += cell_adjoint(w[0], w[1], w[2], gw[0], gw[1], gw[2], a, b);
+    put(&mut du[0], at(0));
+    let (l, c, r) = (&u[..n - 2], &u[1..n - 1], &u[2..]);
+    let (gl, gc, gr) = (&g[..n - 2], &g[1..n - 1], &g[2..]);
+    for (i, d) in du[1..n - 1].iter_mut().enumerate() {
+        put(d, cell_adjoint(l[i], c[i], r[i], gl[i], gc[i], gr[i], a, b));
     }
-    du[n - 1] += at(n - 1);
+    put(&mut du[n - 1], at(n - 1));
 }
 
 /// Tangent-linear model of [`step`]: `out = (∂step/∂u)·t` at the state `u`

@@ -15,8 +15,8 @@ pub struct DotReport {
     pub vjp_side: f64,
     /// `|a − b| / max(|a|, |b|)`.
     pub rel_error: f64,
-    /// Violations of the VJP contract (accumulate into outputs, consume the
-    /// seed), empty when it holds.
+    /// Violations of the VJP contract (`vjp` accumulates and consumes the
+    /// seed; `vjp_overwrite` overwrites `dx`), empty when it holds.
     pub contract: Vec<String>,
     /// The verdict against the tolerance.
     pub verdict: Verdict,
@@ -66,6 +66,12 @@ pub fn dot_product_between<A: Jvp, B: Vjp>(a: &A, b: &B, x: &[f64], p: &[f64], o
     let scale = gx.iter().chain(&gp).fold(1.0f64, |m, v| m.max(v.abs()));
     if off(&dx, &r, &gx).max(off(&dp, &q, &gp)) > 1e-12 * scale {
         contract.push("dx/dp were overwritten, not accumulated into".into());
+    }
+    // vjp_overwrite must give the same product whatever dx held before.
+    let (mut seed, mut dxo, mut dpo) = (w.clone(), random_vector(&mut rng, a.n_in()), q.clone());
+    b.vjp_overwrite(x, p, &mut seed, &mut dxo, &mut dpo);
+    if off(&dxo, &vec![0.0; dxo.len()], &gx).max(off(&dpo, &q, &gp)) > 1e-12 * scale {
+        contract.push("vjp_overwrite differs from vjp (dx not overwritten, or dp not accumulated)".into());
     }
     let verdict = if rel_error.is_nan() || rel_error > opts.tol {
         Verdict::Fail(format!("relative mismatch {rel_error:.2e} exceeds {:.1e}", opts.tol))

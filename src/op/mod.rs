@@ -9,6 +9,7 @@
 //! | [`Operator`]| sizes `n`, `k`, `m`                        | –              |
 //! | [`Forward`] | `y = f(x, p)`                              | overwrites `y` |
 //! | [`Vjp`]     | `dx += J_xᵀ·dy`, `dp += J_pᵀ·dy`           | **adds**; `dy` is consumed (zeroed) |
+//! | [`Vjp::vjp_overwrite`] | `dx = J_xᵀ·dy`, `dp += J_pᵀ·dy` | overwrites `dx`; `dy` unspecified |
 //! | [`Jvp`]     | `y = f(x, p)`, `ty = J_x·tx + J_p·tp`      | overwrites both |
 //!
 //! Three interchangeable implementations of the derivatives exist:
@@ -81,6 +82,21 @@ pub trait Vjp: Forward {
     /// # Panics
     /// If a slice length does not match the operator's sizes.
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]);
+
+    /// Like [`Vjp::vjp`] but **overwrites** `dx` and leaves `dy` unspecified:
+    ///
+    /// ```text
+    /// dx = J_xᵀ·dy      dp += J_pᵀ·dy
+    /// ```
+    ///
+    /// Rollouts chain this form: it saves reading `dx` and clearing `dy`,
+    /// two of the five passes over memory a stencil adjoint makes. The
+    /// default clears `dx` and calls [`Vjp::vjp`]; implementations override it
+    /// when overwriting is cheaper.
+    fn vjp_overwrite(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        dx.fill(0.0);
+        self.vjp(x, p, dy, dx, dp);
+    }
 }
 
 /// Forward mode: the Jacobian–vector product.

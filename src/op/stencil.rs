@@ -70,9 +70,20 @@ macro_rules! stencil3 {
                 fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
                     $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
-                    $crate::op::stencil::vjp3(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
+                    $crate::op::stencil::vjp3::<true, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
                         // SAFETY: `DuplicatedOnly` output: `y` is scratch of
                         // the right length whose contents are never read.
+                        unsafe { diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g) }
+                    });
+                }
+
+                #[inline(never)]
+                #[track_caller]
+                fn vjp_overwrite(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+                    $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
+                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
+                    $crate::op::stencil::vjp3::<false, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
+                        // SAFETY: as in `vjp`.
                         unsafe { diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g) }
                     });
                 }
@@ -186,12 +197,26 @@ fn jvp3_body(x: &[f64], t: &[f64], y: &mut [f64], ty: &mut [f64], mut f: impl Ma
 pub trait MapVjp: FnMut(&[f64], &mut [f64], &[f64], &mut [f64], &[f64], &mut [f64], &mut [f64], &mut [f64], &mut [f64]) {}
 impl<F: FnMut(&[f64], &mut [f64], &[f64], &mut [f64], &[f64], &mut [f64], &mut [f64], &mut [f64], &mut [f64])> MapVjp for F {}
 
-/// `dx += Jᵀ·g`, `dp += J_pᵀ·g` for a periodic three-point stencil, from the
-/// reverse pass of its map; consumes `g`.
+/// `dx += Jᵀ·g` (`ADD`) or `dx = Jᵀ·g`, and `dp += J_pᵀ·g`, for a periodic
+/// three-point stencil, from the reverse pass of its map; consumes `g`.
 #[doc(hidden)]
 #[inline]
-pub fn vjp3<F: MapVjp>(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: F) {
-    dispatch_generic!(vjp3_body, [F: MapVjp], x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: F)
+pub fn vjp3<const ADD: bool, F: MapVjp>(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: F) {
+    if ADD {
+        dispatch_generic!(vjp3_add, [F: MapVjp], x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: F)
+    } else {
+        dispatch_generic!(vjp3_overwrite, [F: MapVjp], x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: F)
+    }
+}
+
+#[inline(always)]
+fn vjp3_add(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: impl MapVjp) {
+    vjp3_body::<true>(x, g, dx, dp, f)
+}
+
+#[inline(always)]
+fn vjp3_overwrite(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: impl MapVjp) {
+    vjp3_body::<false>(x, g, dx, dp, f)
 }
 
 /// Adds `src` into `dst` and zeroes `src` (one pass).
@@ -204,23 +229,50 @@ fn drain_into(dst: &mut [f64], src: &mut [f64]) {
 }
 
 #[inline(always)]
-fn vjp3_body(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], mut f: impl MapVjp) {
+fn vjp3_body<const ADD: bool>(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], mut f: impl MapVjp) {
     let n = x.len();
     let mut buf = [0.0f64; 4 * CHUNK];
     let (dl, rest) = buf.split_at_mut(CHUNK);
     let (dc, rest) = rest.split_at_mut(CHUNK);
     let (dr, y) = rest.split_at_mut(CHUNK);
+    if !ADD {
+        // Written only by accumulation below (the wrap-around cells).
+        dx[0] = 0.0;
+        dx[n - 1] = 0.0;
+    }
     // Interior cells 1..n−1 in chunks: the views are plain shifts of x.
+    let mut carry = 0.0; // dr of the previous chunk's last cell, owed to dx[s]
     let mut s = 1;
     while s < n - 1 {
         let e = (s + CHUNK).min(n - 1);
         let m = e - s;
         f(&x[s - 1..e - 1], &mut dl[..m], &x[s..e], &mut dc[..m], &x[s + 1..e + 1], &mut dr[..m], dp, &mut y[..m], &mut g[s..e]);
-        // The transpose of the shifts: three gathers, each vectorised.
-        drain_into(&mut dx[s - 1..e - 1], &mut dl[..m]);
-        drain_into(&mut dx[s..e], &mut dc[..m]);
-        drain_into(&mut dx[s + 1..e + 1], &mut dr[..m]);
+        // The transpose of the shifts: gathers, each vectorised.
+        if ADD {
+            drain_into(&mut dx[s - 1..e - 1], &mut dl[..m]);
+            drain_into(&mut dx[s..e], &mut dc[..m]);
+            drain_into(&mut dx[s + 1..e + 1], &mut dr[..m]);
+        } else {
+            // dx[s+i] = dc[i] + dl[i+1] + dr[i−1], with the chunk's edges
+            // patched from its neighbours.
+            let out = &mut dx[s..e];
+            out[0] = dc[0] + carry + if m > 1 { dl[1] } else { 0.0 };
+            if m > 1 {
+                for (((o, &c), &l), &r) in out[1..m - 1].iter_mut().zip(&dc[1..m - 1]).zip(&dl[2..m]).zip(&dr[..m - 2]) {
+                    *o = c + l + r;
+                }
+                out[m - 1] = dc[m - 1] + dr[m - 2];
+            }
+            dx[s - 1] += dl[0];
+            carry = dr[m - 1];
+            dl[..m].fill(0.0);
+            dc[..m].fill(0.0);
+            dr[..m].fill(0.0);
+        }
         s = e;
+    }
+    if !ADD {
+        dx[n - 1] += carry;
     }
     // The two boundary cells wrap around.
     for (i, il, ir) in [(0, n - 1, 1), (n - 1, n - 2, 0)] {

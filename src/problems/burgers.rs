@@ -75,6 +75,11 @@ impl Vjp for BurgersHand {
         burgers::step_adjoint(&self.0, x, dy, dx);
         dy.fill(0.0);
     }
+
+    fn vjp_overwrite(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "BurgersHand", x, p, dy, dx, dp);
+        burgers::step_adjoint_overwrite(&self.0, x, dy, dx);
+    }
 }
 
 impl Jvp for BurgersHand {

@@ -97,7 +97,7 @@ struct Backward<'r, 'a, O> {
     n: usize,
     /// Adjoint of the current state (the seed of the next VJP).
     lam: Vec<f64>,
-    /// Zeroed buffer the next VJP accumulates into.
+    /// Buffer the next VJP overwrites.
     lam_next: Vec<f64>,
     dp: Vec<f64>,
     /// Recycled state buffers.
@@ -125,7 +125,7 @@ impl<'r, 'a, O: Vjp> Backward<'r, 'a, O> {
 
     /// `λ ← (∂f/∂x at x)ᵀ·λ`, `dp += (∂f/∂p)ᵀ·λ`.
     fn vjp(&mut self, x: &[f64]) {
-        self.rollout.op.vjp(x, self.rollout.p, &mut self.lam, &mut self.lam_next, &mut self.dp);
+        self.rollout.op.vjp_overwrite(x, self.rollout.p, &mut self.lam, &mut self.lam_next, &mut self.dp);
         std::mem::swap(&mut self.lam, &mut self.lam_next);
     }
 
@@ -287,7 +287,7 @@ fn periodic<O: Vjp>(bw: &mut Backward<'_, '_, O>, store: &mut Vec<f64>, x0: &[f6
         }
         for t in (a..b).rev() {
             let x: &[f64] = if t == a { ckpt } else { &seg[t - a - 1] };
-            bw.rollout.op.vjp(x, bw.rollout.p, &mut bw.lam, &mut bw.lam_next, &mut bw.dp);
+            bw.rollout.op.vjp_overwrite(x, bw.rollout.p, &mut bw.lam, &mut bw.lam_next, &mut bw.dp);
             std::mem::swap(&mut bw.lam, &mut bw.lam_next);
         }
     }
