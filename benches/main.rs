@@ -54,6 +54,12 @@ fn step_pair<O: Vjp>(g: &mut criterion::BenchmarkGroup<'_, criterion::measuremen
             op.vjp(x, &[], &mut seed, std::hint::black_box(&mut dx), &mut []);
         })
     });
+    g.bench_function(BenchmarkId::new("vjp_overwrite", name), |b| {
+        b.iter(|| {
+            seed.copy_from_slice(x);
+            op.vjp_overwrite(x, &[], &mut seed, std::hint::black_box(&mut dx), &mut []);
+        })
+    });
 }
 
 criterion_group!(benches, p1, p1_step);
