@@ -1,12 +1,11 @@
 //! The one criterion binary: a group per benchmark problem, with forward,
 //! Enzyme gradient and hand-written gradient as members.
-#![feature(autodiff)]
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use diffsim::op::Vjp;
 use diffsim::problems::burgers::{BurgersEnzyme, BurgersEnzymeWholeStep, BurgersHand, P1};
-use diffsim_solvers::burgers::{self, Burgers1d};
 use diffsim::rollout::Checkpointing;
+use diffsim_solvers::burgers::{self, Burgers1d};
 
 /// One P1 size: forward, Enzyme gradient (stencil map), Enzyme gradient
 /// (whole step) and hand-written gradient.

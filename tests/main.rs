@@ -4,7 +4,7 @@
 
 mod checks;
 mod cli;
+mod doc_examples;
 mod p1;
 mod rollout;
 mod user_op;
-

@@ -10,7 +10,6 @@ fn close(got: f64, want: f64) {
     assert!(err <= 1e-10, "got {got:.15e}, reference {want:.15e}, relative error {err:.2e} > 1e-10");
 }
 
-
 #[inline(never)]
 fn compare(r: &P1Reference, value: f64, g: &Gradient) {
     eprintln!("P1 {}: loss {:.13}", r.name, g.loss);
@@ -22,6 +21,7 @@ fn compare(r: &P1Reference, value: f64, g: &Gradient) {
 }
 
 #[test]
+#[allow(clippy::needless_range_loop)] // by index on purpose, see below
 fn reference_table_enzyme_and_hand() {
     // No arrays of `Gradient` or of the reference structs here: rustc's
     // Enzyme type trees for arrays of structs that mix pointers and numbers

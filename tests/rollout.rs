@@ -24,7 +24,14 @@ fn checkpointing_modes_agree_and_report_memory() {
         Checkpointing::binomial_log(p.steps),
     ];
     eprintln!("{:>14} {:>8} {:>12} {:>10} {:>10}", "mode", "states", "bytes", "step evals", "time ms");
-    eprintln!("{:>14} {:>8} {:>12} {:>10} {:>10.2}", "store", stored.stats.peak_states, stored.stats.peak_state_bytes, stored.stats.step_evaluations, t_store * 1e3);
+    eprintln!(
+        "{:>14} {:>8} {:>12} {:>10} {:>10.2}",
+        "store",
+        stored.stats.peak_states,
+        stored.stats.peak_state_bytes,
+        stored.stats.step_evaluations,
+        t_store * 1e3
+    );
     for mode in modes {
         for hand in [false, true] {
             let t = Instant::now();
@@ -34,12 +41,21 @@ fn checkpointing_modes_agree_and_report_memory() {
             assert!(err <= 1e-13, "{mode} (hand = {hand}): relative difference {err:.2e} from the stored gradient");
             assert_eq!(g.loss, stored.loss);
             if !hand {
-                eprintln!("{:>14} {:>8} {:>12} {:>10} {:>10.2}", mode.to_string(), g.stats.peak_states, g.stats.peak_state_bytes, g.stats.step_evaluations, dt * 1e3);
+                eprintln!(
+                    "{:>14} {:>8} {:>12} {:>10} {:>10.2}",
+                    mode.to_string(),
+                    g.stats.peak_states,
+                    g.stats.peak_state_bytes,
+                    g.stats.step_evaluations,
+                    dt * 1e3
+                );
             }
             // Memory bounds each mode promises.
             match mode {
                 Checkpointing::Binomial { snapshots } => assert!(g.stats.peak_states <= snapshots + 2, "{mode}: {} states", g.stats.peak_states),
-                Checkpointing::Periodic { every } => assert!(g.stats.peak_states <= p.steps.div_ceil(every) + every + 2, "{mode}: {} states", g.stats.peak_states),
+                Checkpointing::Periodic { every } => {
+                    assert!(g.stats.peak_states <= p.steps.div_ceil(every) + every + 2, "{mode}: {} states", g.stats.peak_states)
+                }
                 Checkpointing::Store => {}
             }
         }

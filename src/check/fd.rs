@@ -41,7 +41,11 @@ pub struct FdReport {
 
 impl fmt::Display for FdReport {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        writeln!(f, "finite differences: {} indices, ‖g‖∞ = {:.3e}, error {:.3e} at {} → {}", self.indices_checked, self.scale, self.error, self.worst, self.verdict)?;
+        writeln!(
+            f,
+            "finite differences: {} indices, ‖g‖∞ = {:.3e}, error {:.3e} at {} → {}",
+            self.indices_checked, self.scale, self.error, self.worst, self.verdict
+        )?;
         for s in &self.sweep {
             write!(f, "  step {:9.2e}: max error {:9.3e} at {}", s.rel_step, s.max_error, s.worst)?;
             if s.crossing_kink > 0 {
@@ -101,7 +105,11 @@ pub fn finite_differences<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOpti
     let (mut ex, mut ep) = (vec![0.0; n], vec![0.0; m]);
     for &i in &indices {
         let zi = if i < n { x[i] } else { p[i - n] };
-        if i < n { ex[i] = 1.0 } else { ep[i - n] = 1.0 }
+        if i < n {
+            ex[i] = 1.0
+        } else {
+            ep[i - n] = 1.0
+        }
         let radius = op.smooth_radius(x, p, &ex, &ep);
         let mut best = f64::INFINITY;
         for (s, &rel) in sweep.iter_mut().zip(&steps) {
@@ -119,7 +127,11 @@ pub fn finite_differences<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOpti
             }
             best = best.min(err);
         }
-        if i < n { ex[i] = 0.0 } else { ep[i - n] = 0.0 }
+        if i < n {
+            ex[i] = 0.0
+        } else {
+            ep[i - n] = 0.0
+        }
         if best.is_infinite() {
             unusable.push(name(i, n));
         } else if best > error || worst == "-" {

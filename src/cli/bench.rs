@@ -96,7 +96,13 @@ fn p1(a: P1Args) -> Result<(), CliError> {
                 let worst = rel(g.loss, r.loss).max(rel(grad_l2, r.grad_l2)).max(rel(g.dx0[0], r.grad_0)).max(rel(g.dx0[a.n / 2], r.grad_n2));
                 println!("  reference (size {}): loss {:.13}  ‖∇L‖ {:.14}  worst relative difference {:.1e}", r.name, r.loss, r.grad_l2, worst);
             }
-            println!("  max |Enzyme − hand| {:.2e}   states held {} ({:.1} MB)   peak RSS {:.1} MB", hand_diff, g.stats.peak_states, g.stats.peak_state_bytes as f64 / 1e6, peak_rss_bytes() as f64 / 1e6);
+            println!(
+                "  max |Enzyme − hand| {:.2e}   states held {} ({:.1} MB)   peak RSS {:.1} MB",
+                hand_diff,
+                g.stats.peak_states,
+                g.stats.peak_state_bytes as f64 / 1e6,
+                peak_rss_bytes() as f64 / 1e6
+            );
         }
         Ok(())
     })

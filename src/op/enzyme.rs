@@ -53,6 +53,7 @@ macro_rules! differentiable {
         $crate::differentiable!($ty => $f, smooth_radius = $crate::op::always_smooth);
     };
     ($ty:ty => $f:path, smooth_radius = $radius:path) => {
+        #[allow(clippy::too_many_arguments)]
         const _: () = {
             #[::std::autodiff::autodiff_reverse(diffsim_generated_vjp, Const, Duplicated, Duplicated, DuplicatedOnly)]
             fn diffsim_reverse_wrapper(op: &$ty, x: &[f64], p: &[f64], y: &mut [f64]) {

@@ -96,7 +96,11 @@ impl<O: Forward> Vjp for FiniteDiff<O> {
         let mut col = vec![0.0; self.n_out()];
         let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
         for j in 0..n + m {
-            if j < n { tx[j] = 1.0 } else { tp[j - n] = 1.0 }
+            if j < n {
+                tx[j] = 1.0
+            } else {
+                tp[j - n] = 1.0
+            }
             self.central(x, p, &tx, &tp, &mut col);
             if j < n {
                 tx[j] = 0.0;

@@ -40,6 +40,7 @@ macro_rules! stencil3 {
         $crate::stencil3!($ty => $f, smooth_radius = $crate::op::always_smooth);
     };
     ($ty:ty => $f:path, smooth_radius = $radius:path) => {
+        #[allow(clippy::too_many_arguments)]
         const _: () = {
             #[::std::autodiff::autodiff_reverse(diffsim_map_vjp, Const, Duplicated, Duplicated, Duplicated, Duplicated, DuplicatedOnly)]
             fn diffsim_map_reverse(op: &$ty, l: &[f64], c: &[f64], r: &[f64], p: &[f64], out: &mut [f64]) {
