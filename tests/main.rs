@@ -6,5 +6,6 @@ mod checks;
 mod cli;
 mod doc_examples;
 mod p1;
+mod p2;
 mod rollout;
 mod user_op;

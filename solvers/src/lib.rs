@@ -13,4 +13,5 @@
 #![deny(missing_docs)]
 
 pub mod burgers;
+pub mod smoke;
 pub mod simd;

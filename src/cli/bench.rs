@@ -5,6 +5,8 @@ use serde_json::json;
 
 use super::{CliError, median_time, peak_rss_bytes};
 use crate::problems::burgers::P1;
+use crate::problems::smoke::P2;
+use diffsim_solvers::smoke::{P2_SIZES, Preconditioner};
 use crate::rollout::{Checkpointing, Workspace};
 
 #[derive(Debug, Subcommand)]
@@ -12,6 +14,32 @@ pub(super) enum BenchCommand {
     /// P1 burgers1d: loss and gradient of an unrolled 1D Burgers rollout,
     /// forward vs Enzyme gradient vs hand-written gradient.
     P1(P1Args),
+    /// P2 smoke2d: loss and gradient of buoyant smoke with pressure
+    /// projection, forward vs gradient (Enzyme + implicit adjoint solves).
+    P2(P2Args),
+}
+
+#[derive(Debug, Args)]
+pub(super) struct P2Args {
+    /// Cells per side N (≥ 8).
+    #[arg(long, default_value_t = 64)]
+    n: usize,
+    /// Number of steps T (≥ 1).
+    #[arg(long, default_value_t = 20)]
+    steps: usize,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Preconditioner of the pressure solves: mic0 or none.
+    #[arg(long, default_value = "mic0")]
+    preconditioner: String,
+    /// How states are kept for the backward pass: store, periodic[:K],
+    /// binomial[:S].
+    #[arg(long, default_value = "store")]
+    checkpoint: String,
+    /// Print one JSON line instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -37,6 +65,7 @@ pub(super) struct P1Args {
 pub(super) fn run(cmd: BenchCommand) -> Result<(), CliError> {
     match cmd {
         BenchCommand::P1(a) => p1(a),
+        BenchCommand::P2(a) => p2(a),
     }
 }
 
@@ -47,10 +76,7 @@ fn p1(a: P1Args) -> Result<(), CliError> {
     if a.steps < 1 {
         return Err(CliError::Argument { arg: "--steps", reason: "need at least 1 step".into() });
     }
-    let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    if threads < 1 {
-        return Err(CliError::Argument { arg: "--threads", reason: "need at least 1 thread".into() });
-    }
+    let threads = threads(a.threads)?;
     let mode: Checkpointing = a.checkpoint.parse().map_err(|reason| CliError::Argument { arg: "--checkpoint", reason })?;
     let mode = mode.resolve(a.steps);
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|source| CliError::Threads { threads, source })?;
@@ -106,4 +132,70 @@ fn p1(a: P1Args) -> Result<(), CliError> {
         }
         Ok(())
     })
+}
+
+fn p2(a: P2Args) -> Result<(), CliError> {
+    if a.n < 8 {
+        return Err(CliError::Argument { arg: "--n", reason: format!("need at least 8 cells per side, got {}", a.n) });
+    }
+    if a.steps < 1 {
+        return Err(CliError::Argument { arg: "--steps", reason: "need at least 1 step".into() });
+    }
+    let threads = threads(a.threads)?;
+    let precond = match a.preconditioner.as_str() {
+        "mic0" => Preconditioner::Mic0,
+        "none" => Preconditioner::None,
+        other => return Err(CliError::Argument { arg: "--preconditioner", reason: format!("unknown preconditioner `{other}` (expected mic0 or none)") }),
+    };
+    let mode: Checkpointing = a.checkpoint.parse().map_err(|reason| CliError::Argument { arg: "--checkpoint", reason })?;
+    let mode = mode.resolve(a.steps);
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|source| CliError::Threads { threads, source })?;
+    pool.install(|| -> Result<(), CliError> {
+        let p = P2::new(a.n, a.steps, precond);
+        let budget = 2.0;
+        let (forward_s, loss) = median_time(budget, 3, 21, || p.value());
+        loss?;
+        let mut ws = Workspace::new();
+        let (grad_s, g) = median_time(budget, 3, 21, || p.grad_in(&mut ws, mode));
+        g?;
+        // Iteration totals of one gradient computation (forward and adjoint solves).
+        p.step.cg_forward.set(0);
+        p.step.cg_adjoint.set(0);
+        let g = p.grad_in(&mut ws, mode)?;
+        let (cg_f, cg_a) = (p.step.cg_forward.get(), p.step.cg_adjoint.get());
+        let gs = p.smoke_gradient(&g);
+        let grad_l2 = gs.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let n2 = a.n * a.n / 2;
+        let out = json!({
+            "problem": "p2", "n": a.n, "steps": a.steps, "threads": threads,
+            "checkpoint": mode.to_string(), "preconditioner": precond.to_string(),
+            "forward_s": forward_s, "grad_s": grad_s, "grad_over_forward": grad_s / forward_s,
+            "peak_rss_bytes": peak_rss_bytes(),
+            "loss": g.loss, "grad_l2": grad_l2, "grad_0": gs[0], "grad_n2": gs[n2],
+            "cg_iterations_forward": cg_f, "cg_iterations_adjoint": cg_a,
+        });
+        if a.json {
+            println!("{out}");
+        } else {
+            println!("P2 smoke2d  N = {}  T = {}  threads = {}  preconditioner = {}  checkpointing = {}", a.n, a.steps, threads, precond, mode);
+            println!("  forward          {:10.3} ms", forward_s * 1e3);
+            println!("  gradient         {:10.3} ms   {:6.2}× forward", grad_s * 1e3, grad_s / forward_s);
+            println!("  loss {:.10}  ‖∇L‖ {:.10}  ∂L/∂s[0] {:.8e}  ∂L/∂s[N²/2] {:.8e}", g.loss, grad_l2, gs[0], gs[n2]);
+            println!("  CG iterations per gradient: {cg_f} forward, {cg_a} adjoint ({:.1} per solve)", (cg_f + cg_a) as f64 / (2 * a.steps) as f64);
+            if let Some(r) = P2_SIZES.iter().find(|r| r.n == a.n && r.steps == a.steps) {
+                let rel = |got: f64, want: f64| (got - want).abs() / want.abs();
+                println!("  reference: loss {:.10}  ‖∇L‖ {:.10}  relative differences {:.1e}, {:.1e}", r.loss, r.grad_l2, rel(g.loss, r.loss), rel(grad_l2, r.grad_l2));
+            }
+            println!("  peak RSS {:.1} MB", peak_rss_bytes() as f64 / 1e6);
+        }
+        Ok(())
+    })
+}
+
+fn threads(requested: Option<usize>) -> Result<usize, CliError> {
+    let threads = requested.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    if threads < 1 {
+        return Err(CliError::Argument { arg: "--threads", reason: "need at least 1 thread".into() });
+    }
+    Ok(threads)
 }

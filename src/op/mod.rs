@@ -63,6 +63,31 @@ pub trait Forward: Operator {
         let _ = (x, p, dx, dp);
         f64::INFINITY
     }
+
+    /// The first failure since the last call (a linear solve that did not
+    /// converge, say), cleared by the call. Operators whose forward or VJP
+    /// can fail record it here, since those methods return nothing; rollouts
+    /// ask after every pass and turn it into an error. Infallible operators
+    /// keep the default `None`.
+    fn take_error(&self) -> Option<OpError> {
+        None
+    }
+}
+
+/// Why an operator could not compute its result. Pointer-free on purpose
+/// (see the README's Enzyme notes on type trees).
+#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
+pub enum OpError {
+    /// An iterative linear solve stopped before reaching its tolerance.
+    #[error("linear solve did not converge: relative residual {relative_residual:.3e} after {iterations} iterations (tolerance {tolerance:.1e})")]
+    NoConvergence {
+        /// Iterations done.
+        iterations: usize,
+        /// Final true residual relative to the right-hand side.
+        relative_residual: f64,
+        /// The relative tolerance asked for.
+        tolerance: f64,
+    },
 }
 
 /// Reverse mode: the vector–Jacobian product.

@@ -2,3 +2,4 @@
 //! step with its Enzyme-generated and hand-written derivatives side by side.
 
 pub mod burgers;
+pub mod smoke;

@@ -28,7 +28,7 @@ pub use checkpoint::{Checkpointing, Workspace};
 /// `Ok` holds `Vec<f64>` and whose `Err` holds a string crashes rustc's
 /// Enzyme type-tree emission in crates built with `-Zautodiff=Enable`
 /// (README, "Enzyme notes").
-#[derive(Debug, Error, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Error, Clone, Copy, PartialEq)]
 pub enum RolloutError {
     /// The operator does not map a state to a state of the same size.
     #[error("a rollout needs an operator with n_in == n_out (got n_in = {n_in}, n_out = {n_out})")]
@@ -47,6 +47,14 @@ pub enum RolloutError {
         got: usize,
         /// The length the operator needs.
         expected: usize,
+    },
+    /// The operator failed (e.g. its linear solve did not converge).
+    #[error("in the {pass} pass: {error}")]
+    Operator {
+        /// Which pass.
+        pass: Pass,
+        /// What failed.
+        error: crate::op::OpError,
     },
     /// A non-finite value appeared in the forward or backward pass.
     #[error("non-finite value (NaN or infinity) in the {pass} pass at step {step}")]
@@ -178,6 +186,9 @@ impl<'a, O: Forward> Rollout<'a, O> {
     pub fn final_state(&self, x0: &[f64]) -> Result<Vec<f64>, RolloutError> {
         self.check_state(x0)?;
         let x = self.final_state_unchecked(x0);
+        if let Some(error) = self.op.take_error() {
+            return Err(RolloutError::Operator { pass: Pass::Forward, error });
+        }
         if !all_finite(&x) {
             return Err(RolloutError::NonFinite { pass: Pass::Forward, step: self.first_non_finite_step(x0) });
         }
@@ -218,7 +229,11 @@ impl<O: Vjp> Rollout<'_, O> {
     /// gradients, as in training).
     pub fn value_and_grad_in(&self, ws: &mut Workspace, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
         self.check_state(x0)?;
+        self.op.take_error();
         let g = checkpoint::run(self, ws, x0, loss, mode)?;
+        if let Some(error) = self.op.take_error() {
+            return Err(RolloutError::Operator { pass: Pass::Backward, error });
+        }
         if !g.loss.is_finite() {
             return Err(RolloutError::NonFinite { pass: Pass::Forward, step: self.first_non_finite_step(x0) });
         }

@@ -1,0 +1,56 @@
+//! P2 smoke2d: the reference table of benchmarks.md (loss and ‖∇L‖ to 1e-6
+//! relative, entries to 1e-6·‖∇L‖), with both preconditioners.
+
+use diffsim::problems::smoke::P2;
+use diffsim::rollout::{Checkpointing, Workspace};
+use diffsim_solvers::smoke::{P2_SIZES, Preconditioner};
+
+fn check_size(k: usize, preconds: &[Preconditioner]) {
+    let r = &P2_SIZES[k];
+    for &precond in preconds {
+        let p = P2::new(r.n, r.steps, precond);
+        let g = p.grad_in(&mut Workspace::new(), Checkpointing::Store).unwrap();
+        let gs = p.smoke_gradient(&g);
+        let l2 = gs.iter().map(|v| v * v).sum::<f64>().sqrt();
+        eprintln!("P2 {} {precond}: loss {:.10} ‖∇L‖ {:.10} g0 {:.8e} gn2 {:.8e} cg {} / {}", r.n, g.loss, l2, gs[0], gs[r.n * r.n / 2], p.step.cg_forward.get(), p.step.cg_adjoint.get());
+        assert!((g.loss - r.loss).abs() <= 1e-6 * r.loss, "loss {} vs {}", g.loss, r.loss);
+        assert!((l2 - r.grad_l2).abs() <= 1e-6 * r.grad_l2, "‖∇L‖ {} vs {}", l2, r.grad_l2);
+        assert!((gs[0] - r.grad_0).abs() <= 1e-6 * r.grad_l2, "g0 {} vs {}", gs[0], r.grad_0);
+        assert!((gs[r.n * r.n / 2] - r.grad_n2).abs() <= 1e-6 * r.grad_l2, "gN2 {} vs {}", gs[r.n * r.n / 2], r.grad_n2);
+    }
+}
+
+#[test]
+fn reference_table_64_both_preconditioners() {
+    check_size(0, &[Preconditioner::Mic0, Preconditioner::None]);
+}
+
+#[test]
+fn reference_table_128() {
+    check_size(1, &[Preconditioner::Mic0]);
+}
+
+#[test]
+fn checkpointing_gives_the_stored_gradient() {
+    let p = P2::new(16, 6, Preconditioner::Mic0);
+    let stored = p.grad_in(&mut Workspace::new(), Checkpointing::Store).unwrap();
+    let binomial = p.grad_in(&mut Workspace::new(), Checkpointing::Binomial { snapshots: 2 }).unwrap();
+    let scale = stored.dx0.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let diff = stored.dx0.iter().zip(&binomial.dx0).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+    assert!(diff <= 1e-13 * scale, "{diff:e}");
+}
+
+#[test]
+fn a_solve_that_cannot_converge_is_an_error() {
+    use diffsim::op::OpError;
+    use diffsim::rollout::{Pass, RolloutError};
+    use diffsim_solvers::smoke::Smoke2d;
+    let mut p = P2::new(16, 3, Preconditioner::None);
+    p.step = diffsim::problems::smoke::SmokeStep::new(Smoke2d::p2(16), 1e-12, 3, Preconditioner::None);
+    match p.value() {
+        Err(RolloutError::Operator { pass: Pass::Forward, error: OpError::NoConvergence { iterations: 3, relative_residual, .. } }) => {
+            assert!(relative_residual > 1e-12 && relative_residual.is_finite())
+        }
+        other => panic!("expected a non-convergence error, got {other:?}"),
+    }
+}
