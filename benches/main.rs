@@ -4,7 +4,9 @@
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use diffsim::op::Vjp;
 use diffsim::problems::burgers::{BurgersEnzyme, BurgersEnzymeWholeStep, BurgersHand, P1};
-use diffsim::rollout::Checkpointing;
+use diffsim::problems::smoke::P2;
+use diffsim::rollout::{Checkpointing, Workspace};
+use diffsim_solvers::smoke::Preconditioner;
 use diffsim_solvers::burgers::{self, Burgers1d};
 
 /// One P1 size: forward, Enzyme gradient (stencil map), Enzyme gradient
@@ -61,5 +63,22 @@ fn step_pair<O: Vjp>(g: &mut criterion::BenchmarkGroup<'_, criterion::measuremen
     });
 }
 
-criterion_group!(benches, p1, p1_step);
+/// P2 smoke2d at 64² and 128², 20 steps: forward and gradient, with and
+/// without the MIC(0) preconditioner.
+fn p2(c: &mut Criterion) {
+    let mut g = c.benchmark_group("p2_smoke2d");
+    g.sample_size(10);
+    for n in [64, 128] {
+        for precond in [Preconditioner::None, Preconditioner::Mic0] {
+            let p = P2::new(n, 20, precond);
+            let size = format!("{n}x20_{precond}");
+            g.bench_function(BenchmarkId::new("forward", &size), |b| b.iter(|| std::hint::black_box(p.value().unwrap())));
+            let mut ws = Workspace::new();
+            g.bench_function(BenchmarkId::new("grad", &size), |b| b.iter(|| std::hint::black_box(p.grad_in(&mut ws, Checkpointing::Store).unwrap())));
+        }
+    }
+    g.finish();
+}
+
+criterion_group!(benches, p1, p1_step, p2);
 criterion_main!(benches);

@@ -160,26 +160,29 @@ pub fn divergence_transpose(n: usize, d: &[f64], u: &mut [f64], v: &mut [f64]) {
 
 /// The pressure matrix of the closed box: `(A·p)[c] = Σ_{neighbours m of c
 /// inside the box} (p[c] − p[m])` (overwrites `out`). Symmetric positive
-/// semi-definite, constants in its null space.
+/// semi-definite, constants in its null space. Row by row, branch-free
+/// inside each row, so that it vectorises.
+#[inline(always)]
 pub fn apply_pressure_matrix(n: usize, p: &[f64], out: &mut [f64]) {
     for j in 0..n {
-        for i in 0..n {
-            let c = j * n + i;
-            let pc = p[c];
-            let mut acc = 0.0;
-            if i > 0 {
-                acc += pc - p[c - 1];
+        let row = &p[j * n..(j + 1) * n];
+        let o = &mut out[j * n..(j + 1) * n];
+        // Horizontal neighbours.
+        o[0] = row[0] - row[1];
+        o[n - 1] = row[n - 1] - row[n - 2];
+        for (((o, &l), &c), &r) in o[1..n - 1].iter_mut().zip(&row[..n - 2]).zip(&row[1..n - 1]).zip(&row[2..]) {
+            *o = 2.0 * c - l - r;
+        }
+        // Vertical neighbours.
+        if j > 0 {
+            for ((o, &c), &d) in o.iter_mut().zip(row).zip(&p[(j - 1) * n..j * n]) {
+                *o += c - d;
             }
-            if i + 1 < n {
-                acc += pc - p[c + 1];
+        }
+        if j + 1 < n {
+            for ((o, &c), &u) in o.iter_mut().zip(row).zip(&p[(j + 1) * n..(j + 2) * n]) {
+                *o += c - u;
             }
-            if j > 0 {
-                acc += pc - p[c - n];
-            }
-            if j + 1 < n {
-                acc += pc - p[c + n];
-            }
-            out[c] = acc;
         }
     }
 }
@@ -289,37 +292,7 @@ impl PressureSolver {
         let n = self.n;
         match self.precond {
             Preconditioner::None => self.z.copy_from_slice(&self.r),
-            Preconditioner::Mic0 => {
-                let (r, z, pc) = (&self.r, &mut self.z, &self.inv_diag);
-                // Solve L·q = r (q stored in z).
-                for j in 0..n {
-                    for i in 0..n {
-                        let c = j * n + i;
-                        let mut t = r[c];
-                        if i > 0 {
-                            t += z[c - 1] * pc[c - 1];
-                        }
-                        if j > 0 {
-                            t += z[c - n] * pc[c - n];
-                        }
-                        z[c] = t * pc[c];
-                    }
-                }
-                // Solve Lᵀ·z = q.
-                for j in (0..n).rev() {
-                    for i in (0..n).rev() {
-                        let c = j * n + i;
-                        let mut t = z[c];
-                        if i + 1 < n {
-                            t += z[c + 1] * pc[c];
-                        }
-                        if j + 1 < n {
-                            t += z[c + n] * pc[c];
-                        }
-                        z[c] = t * pc[c];
-                    }
-                }
-            }
+            Preconditioner::Mic0 => mic0_apply(n, &self.inv_diag, &self.r, &mut self.z),
         }
     }
 
@@ -328,7 +301,8 @@ impl PressureSolver {
     /// compatibility condition); it is projected onto that space to remove
     /// rounding. Returns the number of iterations.
     pub fn solve(&mut self, b: &[f64], p: &mut [f64]) -> Result<usize, NoConvergence> {
-        let nn = self.n * self.n;
+        let n = self.n;
+        let nn = n * n;
         let mean = b.iter().sum::<f64>() / nn as f64;
         for (r, &bv) in self.r.iter_mut().zip(b) {
             *r = bv - mean;
@@ -339,51 +313,147 @@ impl PressureSolver {
             return Ok(0);
         }
         let target = self.tolerance * bnorm;
-        self.precondition();
-        self.d.copy_from_slice(&self.z);
-        let mut rz = dot(&self.r, &self.z);
+        let plain = self.precond == Preconditioner::None;
+        let mut rz = self.restart();
+        let mut rr = dot(&self.r, &self.r);
         let mut it = 0;
         loop {
-            let rnorm = dot(&self.r, &self.r).sqrt();
-            if rnorm <= target {
-                // Confirm on the true residual.
-                apply_pressure_matrix(self.n, p, &mut self.q);
-                let mut t = 0.0;
+            if rr.sqrt() <= target {
+                // Confirm on the true residual; restart from it if needed.
+                apply_pressure_matrix(n, p, &mut self.q);
                 for ((q, &bv), r) in self.q.iter().zip(b).zip(self.r.iter_mut()) {
                     *r = bv - mean - q;
-                    t += *r * *r;
                 }
-                if t.sqrt() <= target {
+                rr = dot(&self.r, &self.r);
+                if rr.sqrt() <= target {
                     return Ok(it);
                 }
-                // Restart from the true residual.
+                rz = self.restart();
+            }
+            if it >= self.max_iterations || !rr.is_finite() {
+                return Err(NoConvergence { iterations: it, relative_residual: rr.sqrt() / bnorm, tolerance: self.tolerance });
+            }
+            let mut dq = 0.0;
+            matvec_dot(n, &self.d, &mut self.q, &mut dq);
+            let alpha = rz / dq;
+            update(alpha, &self.d, &self.q, p, &mut self.r, &mut rr);
+            let rz_new = if plain {
+                rr
+            } else {
                 self.precondition();
-                self.d.copy_from_slice(&self.z);
-                rz = dot(&self.r, &self.z);
-            }
-            if it >= self.max_iterations || !rnorm.is_finite() {
-                return Err(NoConvergence { iterations: it, relative_residual: rnorm / bnorm, tolerance: self.tolerance });
-            }
-            apply_pressure_matrix(self.n, &self.d, &mut self.q);
-            let alpha = rz / dot(&self.d, &self.q);
-            for ((pv, &dv), (r, &qv)) in p.iter_mut().zip(&self.d).zip(self.r.iter_mut().zip(&self.q)) {
-                *pv += alpha * dv;
-                *r -= alpha * qv;
-            }
-            self.precondition();
-            let rz_new = dot(&self.r, &self.z);
+                dot(&self.r, &self.z)
+            };
             let beta = rz_new / rz;
             rz = rz_new;
-            for (dv, &zv) in self.d.iter_mut().zip(&self.z) {
-                *dv = zv + beta * *dv;
-            }
+            direction(beta, if plain { &self.r } else { &self.z }, &mut self.d);
             it += 1;
+        }
+    }
+
+    /// `d = M⁻¹·r`; returns `r·M⁻¹·r`.
+    fn restart(&mut self) -> f64 {
+        self.precondition();
+        self.d.copy_from_slice(&self.z);
+        dot(&self.r, &self.z)
+    }
+}
+
+crate::simd_dispatch! {
+    /// `q = A·d` and `*dq = d·q` in one pass.
+    fn matvec_dot(n: usize, d: &[f64], q: &mut [f64], dq: &mut f64) => matvec_dot_body
+}
+
+#[inline(always)]
+fn matvec_dot_body(n: usize, d: &[f64], q: &mut [f64], dq: &mut f64) {
+    apply_pressure_matrix(n, d, q);
+    *dq = dot(d, q);
+}
+
+crate::simd_dispatch! {
+    /// `p += α·d`, `r −= α·q`, `*rr = r·r` in one pass.
+    fn update(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], rr: &mut f64) => update_body
+}
+
+#[inline(always)]
+fn update_body(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], rr: &mut f64) {
+    let mut acc = [0.0f64; 8];
+    let mut tail = 0.0;
+    let (mut pc, mut rc) = (p.chunks_exact_mut(8), r.chunks_exact_mut(8));
+    let (mut dc, mut qc) = (d.chunks_exact(8), q.chunks_exact(8));
+    for (((pv, rv), dv), qv) in (&mut pc).zip(&mut rc).zip(&mut dc).zip(&mut qc) {
+        for l in 0..8 {
+            pv[l] += alpha * dv[l];
+            rv[l] -= alpha * qv[l];
+            acc[l] += rv[l] * rv[l];
+        }
+    }
+    for (((pv, rv), dv), qv) in pc.into_remainder().iter_mut().zip(rc.into_remainder().iter_mut()).zip(dc.remainder()).zip(qc.remainder()) {
+        *pv += alpha * dv;
+        *rv -= alpha * qv;
+        tail += *rv * *rv;
+    }
+    *rr = acc.iter().sum::<f64>() + tail;
+}
+
+crate::simd_dispatch! {
+    /// `d = z + β·d`.
+    fn direction(beta: f64, z: &[f64], d: &mut [f64]) => direction_body
+}
+
+#[inline(always)]
+fn direction_body(beta: f64, z: &[f64], d: &mut [f64]) {
+    for (dv, &zv) in d.iter_mut().zip(z) {
+        *dv = zv + beta * *dv;
+    }
+}
+
+/// `z = (L·Lᵀ)⁻¹·r` for the MIC(0) factor `L` with inverse diagonal `pc`:
+/// forward then backward substitution. Each cell depends on its left and
+/// lower (right and upper) neighbour, so the sweeps run along anti-diagonals
+/// `i + j = k`, whose cells are independent of each other: no dependency
+/// chain between consecutive operations, unlike the row-by-row order.
+fn mic0_apply(n: usize, pc: &[f64], r: &[f64], z: &mut [f64]) {
+    for k in 0..2 * n - 1 {
+        for i in k.saturating_sub(n - 1)..=k.min(n - 1) {
+            let c = (k - i) * n + i;
+            let mut t = r[c];
+            if i > 0 {
+                t += z[c - 1] * pc[c - 1];
+            }
+            if k - i > 0 {
+                t += z[c - n] * pc[c - n];
+            }
+            z[c] = t * pc[c];
+        }
+    }
+    for k in (0..2 * n - 1).rev() {
+        for i in k.saturating_sub(n - 1)..=k.min(n - 1) {
+            let c = (k - i) * n + i;
+            let mut t = z[c];
+            if i + 1 < n {
+                t += z[c + 1] * pc[c];
+            }
+            if k - i + 1 < n {
+                t += z[c + n] * pc[c];
+            }
+            z[c] = t * pc[c];
         }
     }
 }
 
+/// Dot product with eight independent partial sums (vectorises; a fixed
+/// summation order, so results do not depend on the machine).
+#[inline(always)]
 fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(a, b)| a * b).sum()
+    let mut acc = [0.0f64; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f64 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();
+    for (x, y) in ca.zip(cb) {
+        for k in 0..8 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    acc.iter().sum::<f64>() + tail
 }
 
 /// Scratch of the projection: divergence and pressure.
