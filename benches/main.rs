@@ -6,8 +6,8 @@ use diffsim::op::Vjp;
 use diffsim::problems::burgers::{BurgersEnzyme, BurgersEnzymeWholeStep, BurgersHand, P1};
 use diffsim::problems::smoke::P2;
 use diffsim::rollout::{Checkpointing, Workspace};
-use diffsim_solvers::smoke::Preconditioner;
 use diffsim_solvers::burgers::{self, Burgers1d};
+use diffsim_solvers::smoke::Preconditioner;
 
 /// One P1 size: forward, Enzyme gradient (stencil map), Enzyme gradient
 /// (whole step) and hand-written gradient.
@@ -64,12 +64,12 @@ fn step_pair<O: Vjp>(g: &mut criterion::BenchmarkGroup<'_, criterion::measuremen
 }
 
 /// P2 smoke2d at 64² and 128², 20 steps: forward and gradient, with and
-/// without the MIC(0) preconditioner.
+/// without preconditioning, with MIC(0) and with multigrid.
 fn p2(c: &mut Criterion) {
     let mut g = c.benchmark_group("p2_smoke2d");
     g.sample_size(10);
     for n in [64, 128] {
-        for precond in [Preconditioner::None, Preconditioner::Mic0] {
+        for precond in [Preconditioner::Multigrid, Preconditioner::None, Preconditioner::Mic0] {
             let p = P2::new(n, 20, precond);
             let size = format!("{n}x20_{precond}");
             g.bench_function(BenchmarkId::new("forward", &size), |b| b.iter(|| std::hint::black_box(p.value().unwrap())));

@@ -173,12 +173,15 @@ fn smoke_state(cfg: &diffsim_solvers::smoke::Smoke2d, seed: u64) -> Vec<f64> {
 fn smoke_operators_pass_all_checks() {
     use diffsim::problems::smoke::{SmokeAdvect, SmokeStep};
     use diffsim_solvers::smoke::{Preconditioner, Smoke2d};
-    for n in [5, 8] {
+    // 5: odd, no coarse level; 8 and 12: two levels.
+    for n in [5, 8, 12] {
         let cfg = Smoke2d::p2(n);
         let x = smoke_state(&cfg, n as u64);
         assert_passes(&format!("SmokeAdvect n={n}"), &SmokeAdvect(cfg), &x, &[]);
         // Tight solves so that the finite differences see the exact map.
-        let step = SmokeStep::new(cfg, 1e-13, 2000, Preconditioner::Mic0);
-        assert_passes(&format!("SmokeStep n={n}"), &step, &x, &[]);
+        for precond in [Preconditioner::Mic0, Preconditioner::Multigrid] {
+            let step = SmokeStep::new(cfg, 1e-13, 2000, precond);
+            assert_passes(&format!("SmokeStep n={n} {precond}"), &step, &x, &[]);
+        }
     }
 }

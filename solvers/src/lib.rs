@@ -13,5 +13,6 @@
 #![deny(missing_docs)]
 
 pub mod burgers;
-pub mod smoke;
+pub mod multigrid;
 pub mod simd;
+pub mod smoke;

@@ -6,8 +6,8 @@ use serde_json::json;
 use super::{CliError, median_time, peak_rss_bytes};
 use crate::problems::burgers::P1;
 use crate::problems::smoke::P2;
-use diffsim_solvers::smoke::{P2_SIZES, Preconditioner};
 use crate::rollout::{Checkpointing, Workspace};
+use diffsim_solvers::smoke::{P2_SIZES, Preconditioner};
 
 #[derive(Debug, Subcommand)]
 pub(super) enum BenchCommand {
@@ -30,10 +30,9 @@ pub(super) struct P2Args {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Preconditioner of the pressure solves: none or mic0 (MIC(0) needs
-    /// ~4.5× fewer iterations but its sequential sweeps cost more than that
-    /// on this machine's tests; see the README).
-    #[arg(long, default_value = "none")]
+    /// Preconditioner of the pressure solves: multigrid (a V-cycle; the
+    /// fastest), mic0 or none.
+    #[arg(long, default_value = "multigrid")]
     preconditioner: String,
     /// How states are kept for the backward pass: store, periodic[:K],
     /// binomial[:S].
@@ -147,7 +146,10 @@ fn p2(a: P2Args) -> Result<(), CliError> {
     let precond = match a.preconditioner.as_str() {
         "mic0" => Preconditioner::Mic0,
         "none" => Preconditioner::None,
-        other => return Err(CliError::Argument { arg: "--preconditioner", reason: format!("unknown preconditioner `{other}` (expected mic0 or none)") }),
+        "multigrid" => Preconditioner::Multigrid,
+        other => {
+            return Err(CliError::Argument { arg: "--preconditioner", reason: format!("unknown preconditioner `{other}` (expected none, mic0 or multigrid)") });
+        }
     };
     let mode: Checkpointing = a.checkpoint.parse().map_err(|reason| CliError::Argument { arg: "--checkpoint", reason })?;
     let mode = mode.resolve(a.steps);
@@ -186,7 +188,13 @@ fn p2(a: P2Args) -> Result<(), CliError> {
             println!("  CG iterations per gradient: {cg_f} forward, {cg_a} adjoint ({:.1} per solve)", (cg_f + cg_a) as f64 / (2 * a.steps) as f64);
             if let Some(r) = P2_SIZES.iter().find(|r| r.n == a.n && r.steps == a.steps) {
                 let rel = |got: f64, want: f64| (got - want).abs() / want.abs();
-                println!("  reference: loss {:.10}  ‖∇L‖ {:.10}  relative differences {:.1e}, {:.1e}", r.loss, r.grad_l2, rel(g.loss, r.loss), rel(grad_l2, r.grad_l2));
+                println!(
+                    "  reference: loss {:.10}  ‖∇L‖ {:.10}  relative differences {:.1e}, {:.1e}",
+                    r.loss,
+                    r.grad_l2,
+                    rel(g.loss, r.loss),
+                    rel(grad_l2, r.grad_l2)
+                );
             }
             println!("  peak RSS {:.1} MB", peak_rss_bytes() as f64 / 1e6);
         }
