@@ -139,9 +139,10 @@ fn taps(a: usize, nc: usize) -> (usize, usize) {
     (ic, other)
 }
 
-#[inline(always)]
 /// `fine += P·coarse`: bilinear cell-centred prolongation from `nc × nc` to
-/// `2nc × 2nc`.
+/// `2nc × 2nc` (rows blended first, then each coarse value spread to its
+/// two fine cells along x).
+#[inline(always)]
 fn prolong(nc: usize, coarse: &[f64], fine: &mut [f64], row: &mut [f64]) {
     let nf = 2 * nc;
     for jf in 0..nf {
@@ -150,24 +151,27 @@ fn prolong(nc: usize, coarse: &[f64], fine: &mut [f64], row: &mut [f64]) {
             *r = 0.75 * a + 0.25 * b;
         }
         let f = &mut fine[jf * nf..(jf + 1) * nf];
-        for (i_f, fv) in f.iter_mut().enumerate() {
-            let (ic, io) = taps(i_f, nc);
-            *fv += 0.75 * row[ic] + 0.25 * row[io];
+        for ic in 0..nc {
+            let (left, right) = (row[ic.saturating_sub(1)], row[(ic + 1).min(nc - 1)]);
+            f[2 * ic] += 0.75 * row[ic] + 0.25 * left;
+            f[2 * ic + 1] += 0.75 * row[ic] + 0.25 * right;
         }
     }
 }
 
+/// `coarse += Pᵀ·fine`: the exact transpose of [`prolong`], as gathers.
 #[inline(always)]
-/// `coarse += Pᵀ·fine`: the exact transpose of [`prolong`].
 fn restrict(nc: usize, fine: &[f64], coarse: &mut [f64], row: &mut [f64]) {
     let nf = 2 * nc;
     for jf in 0..nf {
         let (jc, jo) = taps(jf, nc);
-        row.fill(0.0);
-        for (i_f, &fv) in fine[jf * nf..(jf + 1) * nf].iter().enumerate() {
-            let (ic, io) = taps(i_f, nc);
-            row[ic] += 0.75 * fv;
-            row[io] += 0.25 * fv;
+        let f = &fine[jf * nf..(jf + 1) * nf];
+        for (ic, r) in row[..nc].iter_mut().enumerate() {
+            // Fine 2ic and 2ic+1 weigh ¾; fine 2ic−1 and 2ic+2 weigh ¼, and
+            // at the walls the reflected fine 0 and nf−1.
+            let left = if ic > 0 { f[2 * ic - 1] } else { f[0] };
+            let right = if ic + 1 < nc { f[2 * ic + 2] } else { f[nf - 1] };
+            *r = 0.75 * (f[2 * ic] + f[2 * ic + 1]) + 0.25 * (left + right);
         }
         for (c, &r) in coarse[jc * nc..(jc + 1) * nc].iter_mut().zip(row.iter()) {
             *c += 0.75 * r;
