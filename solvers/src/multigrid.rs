@@ -12,7 +12,7 @@
 use crate::smoke::apply_pressure_matrix;
 
 const OMEGA: f64 = 0.8;
-const SWEEPS: usize = 2;
+const SWEEPS: usize = 1;
 const COARSEST_SWEEPS: usize = 30;
 
 #[derive(Clone, Debug)]
