@@ -5,7 +5,7 @@ use serde_json::json;
 
 use super::{CliError, median_time, peak_rss_bytes};
 use crate::problems::burgers::P1;
-use crate::problems::smoke::P2;
+use crate::problems::smoke::{P2, SmokeStep};
 use crate::rollout::{Checkpointing, Workspace};
 use diffsim_solvers::smoke::{P2_SIZES, Preconditioner};
 
@@ -162,6 +162,11 @@ fn p2(a: P2Args) -> Result<(), CliError> {
         let mut ws = Workspace::new();
         let (grad_s, g) = median_time(budget, 3, 21, || p.grad_in(&mut ws, mode));
         g?;
+        let hand =
+            P2 { step: SmokeStep::new(*p.step.cfg(), 1e-8, 2000, precond).with_hand_adjoint(), steps: p.steps, x0: p.x0.clone(), target: p.target.clone() };
+        let mut ws_hand = Workspace::new();
+        let (hand_grad_s, h) = median_time(budget, 3, 21, || hand.grad_in(&mut ws_hand, mode));
+        let h = h?;
         // Iteration totals of one gradient computation (forward and adjoint solves).
         p.step.cg_forward.set(0);
         p.step.cg_adjoint.set(0);
@@ -174,6 +179,8 @@ fn p2(a: P2Args) -> Result<(), CliError> {
             "problem": "p2", "n": a.n, "steps": a.steps, "threads": threads,
             "checkpoint": mode.to_string(), "preconditioner": precond.to_string(),
             "forward_s": forward_s, "grad_s": grad_s, "grad_over_forward": grad_s / forward_s,
+            "hand_grad_s": hand_grad_s, "enzyme_over_hand": grad_s / hand_grad_s,
+            "enzyme_hand_max_diff": g.dx0.iter().zip(&h.dx0).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max),
             "peak_rss_bytes": peak_rss_bytes(),
             "loss": g.loss, "grad_l2": grad_l2, "grad_0": gs[0], "grad_n2": gs[n2],
             "cg_iterations_forward": cg_f, "cg_iterations_adjoint": cg_a,
@@ -184,6 +191,7 @@ fn p2(a: P2Args) -> Result<(), CliError> {
             println!("P2 smoke2d  N = {}  T = {}  threads = {}  preconditioner = {}  checkpointing = {}", a.n, a.steps, threads, precond, mode);
             println!("  forward          {:10.3} ms", forward_s * 1e3);
             println!("  gradient         {:10.3} ms   {:6.2}× forward", grad_s * 1e3, grad_s / forward_s);
+            println!("  hand gradient    {:10.3} ms   {:6.2}× forward   Enzyme/hand {:.2}", hand_grad_s * 1e3, hand_grad_s / forward_s, grad_s / hand_grad_s);
             println!("  loss {:.10}  ‖∇L‖ {:.10}  ∂L/∂s[0] {:.8e}  ∂L/∂s[N²/2] {:.8e}", g.loss, grad_l2, gs[0], gs[n2]);
             println!("  CG iterations per gradient: {cg_f} forward, {cg_a} adjoint ({:.1} per solve)", (cg_f + cg_a) as f64 / (2 * a.steps) as f64);
             if let Some(r) = P2_SIZES.iter().find(|r| r.n == a.n && r.steps == a.steps) {
