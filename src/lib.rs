@@ -53,6 +53,7 @@
 
 pub mod check;
 pub mod cli;
+pub mod fluids;
 pub mod op;
 pub mod problems;
 pub mod rollout;

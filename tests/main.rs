@@ -5,6 +5,7 @@
 mod checks;
 mod cli;
 mod doc_examples;
+mod fluids;
 mod p1;
 mod p2;
 mod rollout;

@@ -63,3 +63,43 @@ fn wrong_lengths_panic_before_the_generated_code() {
     let msg = msg.downcast_ref::<String>().unwrap();
     assert!(msg.contains("`x` has length 3, the operator expects 4"), "{msg}");
 }
+
+/// Reads back what it wrote to its output: `y = A·x`, then `y = x − κ·y`.
+/// Enzyme got `∂/∂κ` wrong for this shape when the output was declared
+/// `DuplicatedOnly`; the macro declares it `Duplicated`, and this test keeps
+/// it that way.
+pub struct ReadsBackOutput {
+    pub n: usize,
+}
+
+impl Operator for ReadsBackOutput {
+    fn n_in(&self) -> usize {
+        self.n
+    }
+    fn n_out(&self) -> usize {
+        self.n
+    }
+    fn n_params(&self) -> usize {
+        1
+    }
+}
+
+fn reads_back_output(op: &ReadsBackOutput, x: &[f64], p: &[f64], y: &mut [f64]) {
+    let n = op.n;
+    for i in 0..n {
+        y[i] = 2.0 * x[i] - x[(i + 1) % n] - x[(i + n - 1) % n];
+    }
+    for i in 0..n {
+        y[i] = x[i] - p[0] * y[i];
+    }
+}
+
+diffsim::differentiable!(ReadsBackOutput => reads_back_output);
+
+#[test]
+fn an_operator_that_reads_back_its_output_gets_the_right_gradient() {
+    let op = ReadsBackOutput { n: 6 };
+    let x: Vec<f64> = (0..6).map(|i| (1.3 * i as f64).cos()).collect();
+    let report = check_all(&op, &x, &[0.2], &CheckOptions::default());
+    assert!(report.passed(), "{report}");
+}

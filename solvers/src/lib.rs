@@ -13,6 +13,7 @@
 #![deny(missing_docs)]
 
 pub mod burgers;
+pub mod diffusion;
 pub mod multigrid;
 pub mod simd;
 pub mod smoke;

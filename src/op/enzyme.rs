@@ -55,7 +55,7 @@ macro_rules! differentiable {
     ($ty:ty => $f:path, smooth_radius = $radius:path) => {
         #[allow(clippy::too_many_arguments)]
         const _: () = {
-            #[::std::autodiff::autodiff_reverse(diffsim_generated_vjp, Const, Duplicated, Duplicated, DuplicatedOnly)]
+            #[::std::autodiff::autodiff_reverse(diffsim_generated_vjp, Const, Duplicated, Duplicated, Duplicated)]
             fn diffsim_reverse_wrapper(op: &$ty, x: &[f64], p: &[f64], y: &mut [f64]) {
                 $f(op, x, p, y)
             }
@@ -82,12 +82,12 @@ macro_rules! differentiable {
                 #[track_caller]
                 fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
+                    // The primal output goes to scratch. `Duplicated`, not
+                    // `DuplicatedOnly`: with the latter, a function that reads
+                    // back what it wrote to `y` got a wrong derivative (README,
+                    // Enzyme notes).
                     $crate::op::with_scratch($crate::op::Operator::n_out(self), |y| {
-                        // SAFETY: `DuplicatedOnly` makes the generated function
-                        // unsafe because it may leave the primal output `y`
-                        // unwritten; `y` is scratch of the right length whose
-                        // contents are never read.
-                        unsafe { diffsim_generated_vjp(self, x, dx, p, dp, y, dy) };
+                        diffsim_generated_vjp(self, x, dx, p, dp, y, dy);
                     });
                 }
             }

@@ -88,6 +88,15 @@ pub enum OpError {
         /// The relative tolerance asked for.
         tolerance: f64,
     },
+    /// A parameter is beyond the scheme's stability limit (e.g. an explicit
+    /// time step too large for the diffusion).
+    #[error("unstable: {value} exceeds the stability limit {limit}")]
+    Unstable {
+        /// The parameter's value.
+        value: f64,
+        /// The largest stable value.
+        limit: f64,
+    },
 }
 
 /// Reverse mode: the vector–Jacobian product.

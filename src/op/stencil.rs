@@ -42,7 +42,7 @@ macro_rules! stencil3 {
     ($ty:ty => $f:path, smooth_radius = $radius:path) => {
         #[allow(clippy::too_many_arguments)]
         const _: () = {
-            #[::std::autodiff::autodiff_reverse(diffsim_map_vjp, Const, Duplicated, Duplicated, Duplicated, Duplicated, DuplicatedOnly)]
+            #[::std::autodiff::autodiff_reverse(diffsim_map_vjp, Const, Duplicated, Duplicated, Duplicated, Duplicated, Duplicated)]
             fn diffsim_map_reverse(op: &$ty, l: &[f64], c: &[f64], r: &[f64], p: &[f64], out: &mut [f64]) {
                 $f(op, l, c, r, p, out)
             }
@@ -72,9 +72,7 @@ macro_rules! stencil3 {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
                     $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
                     $crate::op::stencil::vjp3::<true, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
-                        // SAFETY: `DuplicatedOnly` output: `y` is scratch of
-                        // the right length whose contents are never read.
-                        unsafe { diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g) }
+                        diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g)
                     });
                 }
 
@@ -84,8 +82,7 @@ macro_rules! stencil3 {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
                     $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
                     $crate::op::stencil::vjp3::<false, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
-                        // SAFETY: as in `vjp`.
-                        unsafe { diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g) }
+                        diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g)
                     });
                 }
             }

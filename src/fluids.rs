@@ -1,0 +1,212 @@
+//! 2D fluid operators on the P2 grid conventions (closed box, unit cells,
+//! MAC velocity; see [`diffsim_solvers::smoke`]): diffusion, explicit and
+//! implicit, and first-order upwind advection of a scalar. Each wraps a
+//! plain function of `diffsim-solvers`; explicit ones get their derivatives
+//! from Enzyme, implicit ones from the solve with the transposed matrix.
+
+use std::cell::{Cell, RefCell};
+
+use diffsim_solvers::diffusion::{self, EXPLICIT_LIMIT, ImplicitSolver};
+use diffsim_solvers::smoke::{self, NoConvergence, Smoke2d, apply_pressure_matrix};
+
+use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+
+/// Explicit diffusion of a cell-centred scalar, `s' = s − κ·A·s`, with the
+/// parameter `p = [κ]` (κ = ν·dt). Derivatives by Enzyme, with respect to
+/// `s` and κ. A κ beyond the stability limit 1/4 is reported through
+/// [`Forward::take_error`] (the step is still computed).
+#[derive(Debug)]
+pub struct DiffuseExplicit {
+    /// Cells per side.
+    pub n: usize,
+    unstable: Cell<Option<f64>>,
+}
+
+impl DiffuseExplicit {
+    /// Explicit diffusion on an `n × n` box.
+    pub fn new(n: usize) -> Self {
+        Self { n, unstable: Cell::new(None) }
+    }
+}
+
+impl Operator for DiffuseExplicit {
+    fn n_in(&self) -> usize {
+        self.n * self.n
+    }
+    fn n_out(&self) -> usize {
+        self.n * self.n
+    }
+    fn n_params(&self) -> usize {
+        1
+    }
+}
+
+/// Plain data for Enzyme (the `Cell` of [`DiffuseExplicit`] stays outside).
+#[derive(Clone, Copy, Debug)]
+struct ExplicitMap {
+    n: usize,
+}
+
+impl Operator for ExplicitMap {
+    fn n_in(&self) -> usize {
+        self.n * self.n
+    }
+    fn n_out(&self) -> usize {
+        self.n * self.n
+    }
+    fn n_params(&self) -> usize {
+        1
+    }
+}
+
+fn diffuse_explicit(op: &ExplicitMap, x: &[f64], p: &[f64], y: &mut [f64]) {
+    diffusion::explicit(op.n, p[0], x, y)
+}
+
+crate::differentiable!(ExplicitMap => diffuse_explicit);
+
+impl Forward for DiffuseExplicit {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "DiffuseExplicit", x, p, y);
+        if p[0] > EXPLICIT_LIMIT && self.unstable.get().is_none() {
+            self.unstable.set(Some(p[0]));
+        }
+        ExplicitMap { n: self.n }.forward(x, p, y)
+    }
+
+    fn take_error(&self) -> Option<OpError> {
+        self.unstable.take().map(|kappa| OpError::Unstable { value: kappa, limit: EXPLICIT_LIMIT })
+    }
+}
+
+impl Vjp for DiffuseExplicit {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        ExplicitMap { n: self.n }.vjp(x, p, dy, dx, dp)
+    }
+}
+
+impl Jvp for DiffuseExplicit {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        ExplicitMap { n: self.n }.jvp(x, p, tx, tp, y, ty)
+    }
+}
+
+/// Implicit diffusion, `(I + κ·A)·s' = s`, parameter `p = [κ]`, solved by
+/// conjugate gradients to a relative tolerance. The VJP is the same solve
+/// (the matrix is symmetric): with `M·λ = ḡ`, `x̄ += λ` and
+/// `κ̄ += −λᵀ·A·s'`. A solve that does not converge is reported through
+/// [`Forward::take_error`].
+#[derive(Debug)]
+pub struct DiffuseImplicit {
+    n: usize,
+    solver: RefCell<ImplicitSolver>,
+    scratch: RefCell<(Vec<f64>, Vec<f64>)>,
+    error: Cell<Option<NoConvergence>>,
+}
+
+impl DiffuseImplicit {
+    /// Implicit diffusion on an `n × n` box, solves to relative `tolerance`,
+    /// at most `max_iterations` iterations.
+    pub fn new(n: usize, tolerance: f64, max_iterations: usize) -> Self {
+        Self {
+            n,
+            solver: RefCell::new(ImplicitSolver::new(n, tolerance, max_iterations)),
+            scratch: RefCell::new((vec![0.0; n * n], vec![0.0; n * n])),
+            error: Cell::new(None),
+        }
+    }
+
+    fn solve(&self, kappa: f64, b: &[f64], x: &mut [f64]) {
+        if let Err(e) = self.solver.borrow_mut().solve(kappa, b, x) {
+            if self.error.get().is_none() {
+                self.error.set(Some(e));
+            }
+        }
+    }
+}
+
+impl Operator for DiffuseImplicit {
+    fn n_in(&self) -> usize {
+        self.n * self.n
+    }
+    fn n_out(&self) -> usize {
+        self.n * self.n
+    }
+    fn n_params(&self) -> usize {
+        1
+    }
+}
+
+impl Forward for DiffuseImplicit {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "DiffuseImplicit", x, p, y);
+        self.solve(p[0], x, y);
+    }
+
+    fn take_error(&self) -> Option<OpError> {
+        self.error.take().map(|e| OpError::NoConvergence { iterations: e.iterations, relative_residual: e.relative_residual, tolerance: e.tolerance })
+    }
+}
+
+impl Vjp for DiffuseImplicit {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "DiffuseImplicit", x, p, dy, dx, dp);
+        let mut guard = self.scratch.borrow_mut();
+        let (lam, y) = &mut *guard;
+        self.solve(p[0], dy, lam);
+        for (d, &l) in dx.iter_mut().zip(lam.iter()) {
+            *d += l;
+        }
+        // κ̄ = −λᵀ·A·y with y = M⁻¹·x (recomputed: the VJP gets only x).
+        self.solve(p[0], x, y);
+        apply_pressure_matrix(self.n, y, dy);
+        dp[0] -= lam.iter().zip(dy.iter()).map(|(a, b)| a * b).sum::<f64>();
+        dy.fill(0.0);
+    }
+}
+
+impl Jvp for DiffuseImplicit {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        validate_jvp(self, "DiffuseImplicit", x, p, tx, tp, y, ty);
+        self.solve(p[0], x, y);
+        // M·ṫ = ẋ − κ̇·A·y.
+        let mut guard = self.scratch.borrow_mut();
+        let (rhs, _) = &mut *guard;
+        apply_pressure_matrix(self.n, y, rhs);
+        for (r, &t) in rhs.iter_mut().zip(tx) {
+            *r = t - tp[0] * *r;
+        }
+        self.solve(p[0], rhs, ty);
+    }
+}
+
+/// First-order upwind advection of the smoke in a packed `[s, u, v]` state
+/// (P2 layout) over a time step `dt`: `[s, u, v] ↦ [s', u, v]`. Derivatives
+/// by Enzyme; the upwind switch is declared through
+/// [`Forward::smooth_radius`].
+#[derive(Clone, Copy, Debug)]
+pub struct AdvectUpwind {
+    /// The grid.
+    pub cfg: Smoke2d,
+    /// Time step.
+    pub dt: f64,
+}
+
+impl Operator for AdvectUpwind {
+    fn n_in(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_out(&self) -> usize {
+        self.cfg.n_state()
+    }
+}
+
+fn advect_upwind(op: &AdvectUpwind, x: &[f64], _p: &[f64], y: &mut [f64]) {
+    smoke::advect_upwind(&op.cfg, op.dt, x, y)
+}
+
+fn upwind_radius(op: &AdvectUpwind, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+    smoke::upwind_radius(&op.cfg, x, dx)
+}
+
+crate::differentiable!(AdvectUpwind => advect_upwind, smooth_radius = upwind_radius);
