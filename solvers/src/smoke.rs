@@ -761,3 +761,62 @@ pub fn upwind_radius(cfg: &Smoke2d, x: &[f64], d: &[f64]) -> f64 {
     }
     r
 }
+
+/// MacCormack advection of the smoke (second order): a semi-Lagrangian step
+/// back along the velocity, one forward from its result, and half the
+/// difference as a correction, `s' = ŝ + (s − s̃)/2`. With `limiter`, each
+/// corrected value is clamped to the range of the four samples the first
+/// step interpolated from (Selle et al. 2008), which keeps the scheme free
+/// of new extrema; without it the scheme is second order also at extrema.
+/// Reads `x = [s, u, v]`, writes `y = [s', u, v]`; `scratch` holds `ŝ` and
+/// `s̃` (`2·N²` values).
+pub fn advect_maccormack(cfg: &Smoke2d, limiter: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+    let n = cfg.n;
+    assert!(n >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state() && scratch.len() == 2 * cfg.n_s(), "smoke: state lengths");
+    let (s, u, v) = cfg.split(x);
+    let (hat, tilde) = scratch.split_at_mut(cfg.n_s());
+    let nu = n + 1;
+    let vel = |i: usize, j: usize| (0.5 * (u[j * nu + i] + u[j * nu + i + 1]), 0.5 * (v[j * n + i] + v[(j + 1) * n + i]));
+    for j in 0..n {
+        for i in 0..n {
+            let (uc, vc) = vel(i, j);
+            hat[j * n + i] = sample(s, n, n, 0.5, 0.5, i as f64 + 0.5 - uc, j as f64 + 0.5 - vc);
+        }
+    }
+    for j in 0..n {
+        for i in 0..n {
+            let (uc, vc) = vel(i, j);
+            tilde[j * n + i] = sample(hat, n, n, 0.5, 0.5, i as f64 + 0.5 + uc, j as f64 + 0.5 + vc);
+        }
+    }
+    let (s2, rest) = y.split_at_mut(cfg.n_s());
+    for j in 0..n {
+        for i in 0..n {
+            let c = j * n + i;
+            let mut val = hat[c] + 0.5 * (s[c] - tilde[c]);
+            if limiter {
+                let (uc, vc) = vel(i, j);
+                let (lo, hi) = sample_range(s, n, n, 0.5, 0.5, i as f64 + 0.5 - uc, j as f64 + 0.5 - vc);
+                val = val.clamp(lo, hi);
+            }
+            s2[c] = val;
+        }
+    }
+    // Explicit copy loop (see `advect_upwind`).
+    for (o, &a) in rest.iter_mut().zip(&x[cfg.n_s()..]) {
+        *o = a;
+    }
+}
+
+/// The smallest and largest of the four lattice values [`sample`] blends
+/// at this point.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn sample_range(f: &[f64], nx: usize, ny: usize, ox: f64, oy: f64, px: f64, py: f64) -> (f64, f64) {
+    let gx = (px - ox).clamp(0.0, (nx - 1) as f64);
+    let gy = (py - oy).clamp(0.0, (ny - 1) as f64);
+    let k0 = (gx as usize).min(nx - 2);
+    let l0 = (gy as usize).min(ny - 2);
+    let a = [f[l0 * nx + k0], f[l0 * nx + k0 + 1], f[(l0 + 1) * nx + k0], f[(l0 + 1) * nx + k0 + 1]];
+    (a[0].min(a[1]).min(a[2].min(a[3])), a[0].max(a[1]).max(a[2].max(a[3])))
+}
