@@ -117,10 +117,10 @@ impl DiffuseImplicit {
     }
 
     fn solve(&self, kappa: f64, b: &[f64], x: &mut [f64]) {
-        if let Err(e) = self.solver.borrow_mut().solve(kappa, b, x) {
-            if self.error.get().is_none() {
-                self.error.set(Some(e));
-            }
+        if let Err(e) = self.solver.borrow_mut().solve(kappa, b, x)
+            && self.error.get().is_none()
+        {
+            self.error.set(Some(e));
         }
     }
 }
