@@ -239,3 +239,63 @@ fn advect_maccormack(op: &AdvectMacCormack, x: &[f64], _p: &[f64], y: &mut [f64]
 }
 
 crate::differentiable!(AdvectMacCormack => advect_maccormack);
+
+/// An external force field on the faces as the parameters:
+/// `[s, u, v] ↦ [s, u + dt·fu, v + dt·fv]`, `p = [fu, fv]` (`2·N·(N+1)`
+/// values, the velocity layout; wall faces are not forced). The parameter
+/// gradient is the gradient with respect to the force, for control.
+/// Derivatives by Enzyme.
+#[derive(Clone, Copy, Debug)]
+pub struct Force {
+    /// The grid.
+    pub cfg: Smoke2d,
+    /// Time step.
+    pub dt: f64,
+}
+
+impl Operator for Force {
+    fn n_in(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_out(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_params(&self) -> usize {
+        2 * self.cfg.n_u()
+    }
+}
+
+fn force(op: &Force, x: &[f64], p: &[f64], y: &mut [f64]) {
+    smoke::apply_force(&op.cfg, op.dt, x, p, y)
+}
+
+crate::differentiable!(Force => force);
+
+/// Inflow: in the cells `region = [i0, i1, j0, j1]` (half-open) the smoke is
+/// set to `p[0]` and the velocity of the region's faces to `(p[1], p[2])`
+/// every step. Derivatives by Enzyme (with respect to the inflow values too).
+#[derive(Clone, Copy, Debug)]
+pub struct Inflow {
+    /// The grid.
+    pub cfg: Smoke2d,
+    /// Cells `[i0, i1, j0, j1]`, half-open ranges.
+    pub region: [usize; 4],
+}
+
+impl Operator for Inflow {
+    fn n_in(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_out(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_params(&self) -> usize {
+        3
+    }
+}
+
+fn inflow(op: &Inflow, x: &[f64], p: &[f64], y: &mut [f64]) {
+    smoke::apply_inflow(&op.cfg, op.region, x, p, y)
+}
+
+crate::differentiable!(Inflow => inflow);

@@ -139,3 +139,21 @@ fn maccormack_is_more_accurate_than_semi_lagrangian_on_a_smooth_translation() {
     assert!(mc < 0.5 * sl, "MacCormack {mc} vs semi-Lagrangian {sl}");
     assert!(mcl <= sl, "limited MacCormack {mcl} vs semi-Lagrangian {sl}");
 }
+
+#[test]
+fn force_and_inflow_pass_all_checks() {
+    use diffsim::fluids::{Force, Inflow};
+    for n in [4, 7] {
+        let cfg = Smoke2d::p2(n);
+        let x = field(cfg.n_state(), 21 + n as u64);
+        let f = field(2 * cfg.n_u(), 5);
+        let r = check_all(&Force { cfg, dt: 0.5 }, &x, &f, &CheckOptions::default());
+        assert!(r.passed(), "force n = {n}:\n{r}");
+        let op = Inflow { cfg, region: [1, 3, 0, 2] };
+        let r = check_all(&op, &x, &[1.0, 0.2, 0.7], &CheckOptions::default());
+        assert!(r.passed(), "inflow n = {n}:\n{r}");
+        // The inflow values are what the region holds afterwards.
+        let y = op.eval(&x, &[1.0, 0.2, 0.7]);
+        assert_eq!(y[n + 2], 1.0);
+    }
+}

@@ -820,3 +820,55 @@ fn sample_range(f: &[f64], nx: usize, ny: usize, ox: f64, oy: f64, px: f64, py: 
     let a = [f[l0 * nx + k0], f[l0 * nx + k0 + 1], f[(l0 + 1) * nx + k0], f[(l0 + 1) * nx + k0 + 1]];
     (a[0].min(a[1]).min(a[2].min(a[3])), a[0].max(a[1]).max(a[2].max(a[3])))
 }
+
+/// An external force on the interior faces over a time step `dt`:
+/// `[s, u, v] ↦ [s, u + dt·fu, v + dt·fv]`, with the force `f = [fu, fv]`
+/// given per face (`N·(N+1)` values each, the velocity layout); the wall
+/// faces keep their velocity.
+pub fn apply_force(cfg: &Smoke2d, dt: f64, x: &[f64], f: &[f64], y: &mut [f64]) {
+    let n = cfg.n;
+    assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && f.len() == 2 * cfg.n_u(), "smoke: force lengths");
+    let nu = n + 1;
+    for (o, &a) in y.iter_mut().zip(x) {
+        *o = a;
+    }
+    let (fu, fv) = f.split_at(cfg.n_u());
+    let (_, u2, v2) = cfg.split_mut(y);
+    for j in 0..n {
+        for i in 1..n {
+            u2[j * nu + i] += dt * fu[j * nu + i];
+        }
+    }
+    for j in 1..n {
+        for i in 0..n {
+            v2[j * n + i] += dt * fv[j * n + i];
+        }
+    }
+}
+
+/// Inflow: in the cells `i0..i1 × j0..j1` set the smoke to `p[0]` and the
+/// velocity on the faces of those cells (walls excepted) to `(p[1], p[2])`;
+/// everything else passes through.
+pub fn apply_inflow(cfg: &Smoke2d, region: [usize; 4], x: &[f64], p: &[f64], y: &mut [f64]) {
+    let n = cfg.n;
+    let [i0, i1, j0, j1] = region;
+    assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && p.len() == 3 && i0 < i1 && i1 <= n && j0 < j1 && j1 <= n, "smoke: inflow");
+    let nu = n + 1;
+    for (o, &a) in y.iter_mut().zip(x) {
+        *o = a;
+    }
+    let (s2, u2, v2) = cfg.split_mut(y);
+    for j in j0..j1 {
+        for i in i0..i1 {
+            s2[j * n + i] = p[0];
+        }
+        for i in i0.max(1)..=i1.min(n - 1) {
+            u2[j * nu + i] = p[1];
+        }
+    }
+    for j in j0.max(1)..=j1.min(n - 1) {
+        for i in i0..i1 {
+            v2[j * n + i] = p[2];
+        }
+    }
+}
