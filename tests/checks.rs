@@ -204,3 +204,17 @@ fn smoke_advection_hand_adjoint_matches_enzyme() {
         assert!(t.verdict.passed(), "n = {n}: {t}");
     }
 }
+
+#[test]
+fn smoke_step_with_an_obstacle_passes_all_checks() {
+    use diffsim::problems::smoke::SmokeStep;
+    use diffsim_solvers::smoke::Smoke2d;
+    for n in [6, 9] {
+        let cfg = Smoke2d::p2(n);
+        // A 2×2 solid block off the centre.
+        let solid: Vec<bool> = (0..n * n).map(|c| (2..4).contains(&(c % n)) && (2..4).contains(&(c / n))).collect();
+        let step = SmokeStep::with_obstacles(cfg, 1e-13, 2000, &solid);
+        let x = smoke_state(&cfg, 70 + n as u64);
+        assert_passes(&format!("SmokeStep with obstacle n={n}"), &step, &x, &[]);
+    }
+}

@@ -280,6 +280,57 @@ pub fn apply_pressure_matrix(n: usize, p: &[f64], out: &mut [f64]) {
     }
 }
 
+/// The pressure matrix with solid cells (`w[c] = 0`):
+/// `out[c] = w_c·Σ_{m in box} w_m·(p_c − p_m) + (1 − w_c)·p_c`: only
+/// fluid–fluid faces couple, solid rows are the identity. Symmetric.
+pub fn apply_masked_matrix(n: usize, w: &[f64], p: &[f64], out: &mut [f64]) {
+    for j in 0..n {
+        for i in 0..n {
+            let c = j * n + i;
+            let pc = p[c];
+            let mut acc = 0.0;
+            if i > 0 {
+                acc += w[c - 1] * (pc - p[c - 1]);
+            }
+            if i + 1 < n {
+                acc += w[c + 1] * (pc - p[c + 1]);
+            }
+            if j > 0 {
+                acc += w[c - n] * (pc - p[c - n]);
+            }
+            if j + 1 < n {
+                acc += w[c + n] * (pc - p[c + n]);
+            }
+            out[c] = w[c] * acc + (1.0 - w[c]) * pc;
+        }
+    }
+}
+
+/// Zeroes the smoke in solid cells and the velocity on every face that
+/// touches a solid cell (or a wall), in place on a packed state: the
+/// obstacle boundary condition. Linear and self-adjoint (a diagonal 0/1
+/// mask), so the same call is its own VJP.
+pub fn apply_obstacle_mask(cfg: &Smoke2d, fluid: &[f64], x: &mut [f64]) {
+    let n = cfg.n;
+    let nu = n + 1;
+    let (s, u, v) = cfg.split_mut(x);
+    for (sv, &w) in s.iter_mut().zip(fluid) {
+        *sv *= w;
+    }
+    for j in 0..n {
+        for i in 0..=n {
+            let open = if i == 0 || i == n { 0.0 } else { fluid[j * n + i - 1] * fluid[j * n + i] };
+            u[j * nu + i] *= open;
+        }
+    }
+    for j in 0..=n {
+        for i in 0..n {
+            let open = if j == 0 || j == n { 0.0 } else { fluid[(j - 1) * n + i] * fluid[j * n + i] };
+            v[j * n + i] *= open;
+        }
+    }
+}
+
 /// A pressure solve that did not converge.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct NoConvergence {
@@ -338,6 +389,8 @@ pub struct PressureSolver {
     /// MIC(0) inverse diagonal.
     inv_diag: Vec<f64>,
     mg: Option<crate::multigrid::Multigrid>,
+    /// Fluid indicator per cell (1 fluid, 0 solid) when there are obstacles.
+    fluid: Option<Vec<f64>>,
     r: Vec<f64>,
     z: Vec<f64>,
     d: Vec<f64>,
@@ -377,7 +430,23 @@ impl PressureSolver {
         }
         let z = vec![0.0; n * n];
         let mg = (precond == Preconditioner::Multigrid).then(|| crate::multigrid::Multigrid::new(n));
-        Self { n, tolerance, max_iterations, precond, inv_diag, mg, r: z.clone(), z: z.clone(), d: z.clone(), q: z }
+        Self { n, tolerance, max_iterations, precond, inv_diag, mg, fluid: None, r: z.clone(), z: z.clone(), d: z.clone(), q: z }
+    }
+
+    /// A solver for the box with solid cells (`fluid[c] = 0`): the matrix
+    /// couples only fluid cells (no flow through solid faces) and is the
+    /// identity on solid cells. Unpreconditioned: the preconditioners here
+    /// do not know the mask yet.
+    pub fn with_obstacles(n: usize, tolerance: f64, max_iterations: usize, fluid: Vec<f64>) -> Self {
+        assert_eq!(fluid.len(), n * n, "fluid mask length");
+        let mut s = Self::new(n, tolerance, max_iterations, Preconditioner::None);
+        s.fluid = Some(fluid);
+        s
+    }
+
+    /// The fluid indicator, when there are obstacles.
+    pub fn fluid(&self) -> Option<&[f64]> {
+        self.fluid.as_deref()
     }
 
     /// The preconditioner in use.
@@ -402,9 +471,16 @@ impl PressureSolver {
     pub fn solve(&mut self, b: &[f64], p: &mut [f64]) -> Result<usize, NoConvergence> {
         let n = self.n;
         let nn = n * n;
-        let mean = b.iter().sum::<f64>() / nn as f64;
-        for (r, &bv) in self.r.iter_mut().zip(b) {
-            *r = bv - mean;
+        // Remove the component along the null vector (constant on the fluid).
+        let (total, count) = match &self.fluid {
+            None => (b.iter().sum::<f64>(), nn as f64),
+            Some(w) => (b.iter().zip(w).map(|(b, w)| b * w).sum::<f64>(), w.iter().sum::<f64>()),
+        };
+        let mean = total / count.max(1.0);
+        let fluid = self.fluid.clone();
+        let weight = |c: usize| fluid.as_ref().map_or(1.0, |w| w[c]);
+        for (c, (r, &bv)) in self.r.iter_mut().zip(b).enumerate() {
+            *r = bv - mean * weight(c);
         }
         p.fill(0.0);
         let bnorm = dot(&self.r, &self.r).sqrt();
@@ -419,9 +495,12 @@ impl PressureSolver {
         loop {
             if rr.sqrt() <= target {
                 // Confirm on the true residual; restart from it if needed.
-                apply_pressure_matrix(n, p, &mut self.q);
-                for ((q, &bv), r) in self.q.iter().zip(b).zip(self.r.iter_mut()) {
-                    *r = bv - mean - q;
+                match &self.fluid {
+                    None => apply_pressure_matrix(n, p, &mut self.q),
+                    Some(w) => apply_masked_matrix(n, w, p, &mut self.q),
+                }
+                for (c, ((q, &bv), r)) in self.q.iter().zip(b).zip(self.r.iter_mut()).enumerate() {
+                    *r = bv - mean * weight(c) - q;
                 }
                 rr = dot(&self.r, &self.r);
                 if rr.sqrt() <= target {
@@ -433,7 +512,13 @@ impl PressureSolver {
                 return Err(NoConvergence { iterations: it, relative_residual: rr.sqrt() / bnorm, tolerance: self.tolerance });
             }
             let mut dq = 0.0;
-            matvec_dot(n, &self.d, &mut self.q, &mut dq);
+            match &self.fluid {
+                None => matvec_dot(n, &self.d, &mut self.q, &mut dq),
+                Some(w) => {
+                    apply_masked_matrix(n, w, &self.d, &mut self.q);
+                    dq = dot(&self.d, &self.q);
+                }
+            }
             let alpha = rz / dq;
             update(alpha, &self.d, &self.q, p, &mut self.r, &mut rr);
             let rz_new = if plain {
@@ -579,22 +664,31 @@ pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratc
     for d in scratch.d.iter_mut() {
         *d = -*d;
     }
+    if let Some(w) = solver.fluid() {
+        for (d, &wv) in scratch.d.iter_mut().zip(w) {
+            *d *= wv;
+        }
+    }
     let iterations = solver.solve(&scratch.d, &mut scratch.p)?;
-    subtract_gradient(n, &scratch.p, u, v);
+    subtract_gradient(n, &scratch.p, solver.fluid(), u, v);
     Ok(iterations)
 }
 
-/// `u[j][i] −= p[j][i] − p[j][i−1]` (i = 1..N−1), `v[j][i] −= p[j][i] − p[j−1][i]` (j = 1..N−1).
-fn subtract_gradient(n: usize, p: &[f64], u: &mut [f64], v: &mut [f64]) {
+/// `u[j][i] −= p[j][i] − p[j][i−1]` (i = 1..N−1), `v[j][i] −= p[j][i] − p[j−1][i]` (j = 1..N−1),
+/// on fluid–fluid faces only when there is a mask.
+fn subtract_gradient(n: usize, p: &[f64], fluid: Option<&[f64]>, u: &mut [f64], v: &mut [f64]) {
     let nu = n + 1;
+    let open = |a: usize, b: usize| fluid.map_or(1.0, |w| w[a] * w[b]);
     for j in 0..n {
         for i in 1..n {
-            u[j * nu + i] -= p[j * n + i] - p[j * n + i - 1];
+            let (a, b) = (j * n + i, j * n + i - 1);
+            u[j * nu + i] -= open(a, b) * (p[a] - p[b]);
         }
     }
     for j in 1..n {
         for i in 0..n {
-            v[j * n + i] -= p[j * n + i] - p[(j - 1) * n + i];
+            let (a, b) = (j * n + i, (j - 1) * n + i);
+            v[j * n + i] -= open(a, b) * (p[a] - p[b]);
         }
     }
 }
@@ -608,27 +702,30 @@ pub fn project_adjoint(cfg: &Smoke2d, g: &mut [f64], solver: &mut PressureSolver
     let n = cfg.n;
     let nu = n + 1;
     let (_, gu, gv) = cfg.split_mut(g);
-    // λ_p[c] = ∂/∂p of Σ λ·(u − G·p) = −(Gᵀ·λ)[c].
+    let fluid = solver.fluid().map(<[f64]>::to_vec);
+    let open = |a: usize, b: usize| fluid.as_ref().map_or(1.0, |w| w[a] * w[b]);
+    // λ_p[c] = ∂/∂p of Σ λ·(u − G·p) = −(Gᵀ·λ)[c] (fluid–fluid faces only
+    // when there is a mask).
     let lp = &mut scratch.d;
     lp.fill(0.0);
     for j in 0..n {
         for i in 1..n {
-            let l = gu[j * nu + i];
+            let l = open(j * n + i, j * n + i - 1) * gu[j * nu + i];
             lp[j * n + i] -= l;
             lp[j * n + i - 1] += l;
         }
     }
     for j in 1..n {
         for i in 0..n {
-            let l = gv[j * n + i];
+            let l = open(j * n + i, (j - 1) * n + i) * gv[j * n + i];
             lp[j * n + i] -= l;
             lp[(j - 1) * n + i] += l;
         }
     }
-    // p = A⁻¹·b with b = −d: λ_b = A⁻ᵀ·λ_p = μ, λ_d = −μ, λ_(u,v) += Dᵀ·λ_d.
+    // p = A⁻¹·b with b = −W·D·u: λ_b = A⁻ᵀ·λ_p = μ, λ_(u,v) += Dᵀ·(−W·μ).
     let iterations = solver.solve(lp, &mut scratch.p)?;
-    for m in scratch.p.iter_mut() {
-        *m = -*m;
+    for (c, m) in scratch.p.iter_mut().enumerate() {
+        *m = -*m * fluid.as_ref().map_or(1.0, |w| w[c]);
     }
     divergence_transpose(n, &scratch.p, gu, gv);
     Ok(iterations)

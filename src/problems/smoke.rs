@@ -71,6 +71,8 @@ pub struct SmokeStep {
     advect: SmokeAdvect,
     /// Use the hand-written adjoint of the explicit part instead of Enzyme's.
     hand: bool,
+    /// Fluid indicator per cell when there are obstacles.
+    fluid: Option<Vec<f64>>,
     solver: RefCell<PressureSolver>,
     scratch: RefCell<ProjectScratch>,
     error: Cell<Option<NoConvergence>>,
@@ -88,6 +90,7 @@ impl SmokeStep {
         Self {
             advect: SmokeAdvect(cfg),
             hand: false,
+            fluid: None,
             solver: RefCell::new(PressureSolver::new(cfg.n, tolerance, max_iterations, precond)),
             scratch: RefCell::new(ProjectScratch::new(cfg.n)),
             error: Cell::new(None),
@@ -101,6 +104,18 @@ impl SmokeStep {
     pub fn with_hand_adjoint(mut self) -> Self {
         self.hand = true;
         self
+    }
+
+    /// A step of the box `cfg` with solid cells where `solid[c]` is true:
+    /// after the explicit part, smoke in solids and velocity on faces
+    /// touching them are zeroed, and the projection couples fluid cells
+    /// only (unpreconditioned CG).
+    pub fn with_obstacles(cfg: Smoke2d, tolerance: f64, max_iterations: usize, solid: &[bool]) -> Self {
+        let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
+        let mut step = Self::new(cfg, tolerance, max_iterations, Preconditioner::None);
+        step.solver = RefCell::new(PressureSolver::with_obstacles(cfg.n, tolerance, max_iterations, fluid.clone()));
+        step.fluid = Some(fluid);
+        step
     }
 
     /// The grid.
@@ -139,6 +154,9 @@ impl Forward for SmokeStep {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "SmokeStep", x, p, y);
         smoke::advect_buoyancy(&self.advect.0, x, y);
+        if let Some(w) = &self.fluid {
+            smoke::apply_obstacle_mask(&self.advect.0, w, y);
+        }
         let r = smoke::project(&self.advect.0, y, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
         self.record(r, &self.cg_forward);
     }
@@ -154,6 +172,9 @@ impl Vjp for SmokeStep {
         // Through the projection (in place on dy), then the explicit part.
         let r = smoke::project_adjoint(&self.advect.0, dy, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
         self.record(r, &self.cg_adjoint);
+        if let Some(w) = &self.fluid {
+            smoke::apply_obstacle_mask(&self.advect.0, w, dy);
+        }
         if self.hand {
             SmokeAdvectHand(self.advect.0).vjp(x, p, dy, dx, dp);
         } else {
@@ -168,6 +189,10 @@ impl Jvp for SmokeStep {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         validate_jvp(self, "SmokeStep", x, p, tx, tp, y, ty);
         self.advect.jvp(x, p, tx, tp, y, ty);
+        if let Some(w) = &self.fluid {
+            smoke::apply_obstacle_mask(&self.advect.0, w, y);
+            smoke::apply_obstacle_mask(&self.advect.0, w, ty);
+        }
         let (mut solver, mut scratch) = (self.solver.borrow_mut(), self.scratch.borrow_mut());
         let r = smoke::project(&self.advect.0, y, &mut solver, &mut scratch);
         self.record(r, &self.cg_forward);
