@@ -9,3 +9,7 @@ for size in "256 256" "2048 2048" "16384 1000"; do
     target/release/diffsim bench p1 --n "$1" --steps "$2" --checkpoint periodic
     echo
 done
+
+# A smoke plume rising around an obstacle (P2's solver with an obstacle and
+# an inflow), written to out/plume.png.
+target/release/diffsim demo plume --out out

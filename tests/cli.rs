@@ -77,3 +77,15 @@ fn enzyme_log_guard_flags_enzyme_errors_only() {
     assert!(!check("error.log", "   Compiling diffsim\nerror: <unknown>:0:0: in function f: Enzyme: cannot deduce type of copy\n"));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn demo_plume_writes_a_png() {
+    let dir = std::env::temp_dir().join(format!("diffsim-plume-{}", std::process::id()));
+    let (code, out, err) = diffsim(&["demo", "plume", "--n", "24", "--steps", "20", "--out", dir.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("plume.png"), "{out}");
+    let bytes = std::fs::read(dir.join("plume.png")).unwrap();
+    assert_eq!(&bytes[1..4], b"PNG");
+    std::fs::remove_dir_all(&dir).ok();
+    fails_with(&["demo", "plume", "--n", "4"], "invalid argument --n");
+}

@@ -1,6 +1,7 @@
 //! The `diffsim` command line: argument parsing and the subcommands.
 
 mod bench;
+mod demo;
 mod measure;
 
 use clap::{Parser, Subcommand};
@@ -22,6 +23,14 @@ pub enum CliError {
     /// A rollout failed.
     #[error(transparent)]
     Rollout(#[from] crate::rollout::RolloutError),
+    /// A file could not be written.
+    #[error("cannot write {path}: {source}")]
+    Io {
+        /// The file or directory.
+        path: std::path::PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
     /// The thread pool could not be built.
     #[error("cannot start {threads} threads: {source}")]
     Threads {
@@ -45,11 +54,21 @@ enum Command {
     /// Benchmark problems of ../shared/benchmarks.md.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+    /// Demonstrations.
+    #[command(subcommand)]
+    Demo(DemoCommand),
+}
+
+#[derive(Debug, Subcommand)]
+enum DemoCommand {
+    /// A smoke plume rising around an obstacle, written as PNG.
+    Plume(demo::PlumeArgs),
 }
 
 /// Runs the command line.
 pub fn run(cli: Cli) -> Result<(), CliError> {
     match cli.command {
         Command::Bench(b) => bench::run(b),
+        Command::Demo(DemoCommand::Plume(a)) => demo::plume(a),
     }
 }
