@@ -969,3 +969,22 @@ pub fn apply_inflow(cfg: &Smoke2d, region: [usize; 4], x: &[f64], p: &[f64], y: 
         }
     }
 }
+
+/// Solid cells of an axis-aligned box `[lower, upper)` in cell units (x
+/// first), for [`PressureSolver::with_obstacles`] and the fluid operators: a
+/// cell is solid when its centre lies inside. The box is clipped to the
+/// domain; `None` when no cell centre lies inside (a box wholly outside).
+pub fn obstacle_box(n: usize, lower: [f64; 2], upper: [f64; 2]) -> Option<Vec<bool>> {
+    obstacle(n, |x, y| x >= lower[0] && x < upper[0] && y >= lower[1] && y < upper[1])
+}
+
+/// Solid cells of a disc (centre in cell units, x first): a cell is solid
+/// when its centre lies within `radius`. `None` when no cell is covered.
+pub fn obstacle_disc(n: usize, center: [f64; 2], radius: f64) -> Option<Vec<bool>> {
+    obstacle(n, |x, y| (x - center[0]).powi(2) + (y - center[1]).powi(2) <= radius * radius)
+}
+
+fn obstacle(n: usize, inside: impl Fn(f64, f64) -> bool) -> Option<Vec<bool>> {
+    let solid: Vec<bool> = (0..n * n).map(|c| inside((c % n) as f64 + 0.5, (c / n) as f64 + 0.5)).collect();
+    solid.iter().any(|&s| s).then_some(solid)
+}
