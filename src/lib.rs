@@ -11,8 +11,11 @@
 //! **2. An operator gives it sizes and derivatives** ([`op`]): implement
 //! [`op::Operator`] for a plain-data type and let
 //! [`differentiable!`] generate [`op::Forward`], [`op::Vjp`] and
-//! [`op::Jvp`] with Enzyme, or write them by hand, or take finite
-//! differences with [`op::FiniteDiff`]. All three obey one contract: a VJP
+//! [`op::Jvp`] with Enzyme (or [`stencil3!`] for an explicit three-point
+//! stencil written as a pointwise map: faster), or write them by hand, or
+//! take finite differences with [`op::FiniteDiff`]. Linear solves are
+//! operators too: their VJP is the solve with the transposed matrix
+//! ([`problems::smoke::SmokeStep`], [`fluids::DiffuseImplicit`]). All three obey one contract: a VJP
 //! *adds* `J_xᵀ·dy` into `dx` and consumes its seed.
 //!
 //! ```ignore
@@ -43,8 +46,10 @@
 //!
 //! **4. Roll it out** ([`rollout`]): chain `T` steps and a loss, and get the
 //! loss and its gradient by per-step VJPs over stored or checkpointed
-//! states (`Store`, `Periodic`, `Binomial`). [`problems::burgers::P1`] is the
-//! benchmark P1 built exactly this way.
+//! states (`Store`, `Periodic`, `Binomial`). [`problems::burgers::P1`] and
+//! [`problems::smoke::P2`] are the benchmarks built exactly this way;
+//! [`fluids`] holds further 2D operators (diffusion, advection schemes,
+//! forces, inflow).
 //!
 //! Build everything that calls generated gradients in release with fat LTO
 //! and `-Zautodiff=Enable` on this crate only; see the README.

@@ -282,13 +282,11 @@ fn periodic<O: Vjp>(bw: &mut Backward<'_, '_, O>, store: &mut Vec<f64>, x0: &[f6
         for i in 0..b.saturating_sub(a + 1) {
             let (done, rest) = seg.split_at_mut(i);
             let src: &[f64] = if i == 0 { ckpt } else { &done[i - 1] };
-            bw.stats.step_evaluations += 1;
-            bw.rollout.op.forward(src, bw.rollout.p, &mut rest[0]);
+            bw.step(src, &mut rest[0]);
         }
         for t in (a..b).rev() {
             let x: &[f64] = if t == a { ckpt } else { &seg[t - a - 1] };
-            bw.rollout.op.vjp_overwrite(x, bw.rollout.p, &mut bw.lam, &mut bw.lam_next, &mut bw.dp);
-            std::mem::swap(&mut bw.lam, &mut bw.lam_next);
+            bw.vjp(x);
         }
     }
     for s in seg {
