@@ -29,7 +29,7 @@ use rand::{Rng, SeedableRng};
 use crate::op::Forward;
 
 pub use dot::{DotReport, dot_product, dot_product_between};
-pub use fd::{FdReport, FdStep, finite_differences};
+pub use fd::{FdReport, FdStep, finite_differences, sweep_steps};
 pub use taylor::{TaylorReport, taylor};
 
 /// Outcome of a check.
