@@ -1,9 +1,13 @@
 #!/usr/bin/env bash
 # The demo: P1 burgers1d loss and gradient (Enzyme and hand-written),
-# checked against the reference table, with timings, at sizes S, M and L.
+# through the gradient checks and against the reference table, with timings
+# at sizes S, M and L; then a smoke plume around an obstacle as a PNG.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/cargo-enzyme build --release --bin diffsim
+# The gradient of a whole P1 rollout through the three checks.
+target/release/diffsim check --n 256 --steps 256
+echo
 for size in "256 256" "2048 2048" "16384 1000"; do
     set -- $size
     target/release/diffsim bench p1 --n "$1" --steps "$2" --checkpoint periodic

@@ -89,3 +89,11 @@ fn demo_plume_writes_a_png() {
     std::fs::remove_dir_all(&dir).ok();
     fails_with(&["demo", "plume", "--n", "4"], "invalid argument --n");
 }
+
+#[test]
+fn check_command_runs_the_three_checks_on_a_p1_rollout() {
+    let (code, out, err) = diffsim(&["check", "--n", "24", "--steps", "30"]);
+    assert_eq!(code, 0, "{out}\n{err}");
+    assert_eq!(out.matches("→ pass").count(), 6, "{out}");
+    fails_with(&["check", "--n", "2"], "invalid argument --n");
+}

@@ -31,6 +31,9 @@ pub enum CliError {
         /// The cause.
         source: std::io::Error,
     },
+    /// A gradient check did not pass (the report is printed above).
+    #[error("a gradient check did not pass (see the report above)")]
+    ChecksFailed,
     /// The thread pool could not be built.
     #[error("cannot start {threads} threads: {source}")]
     Threads {
@@ -57,6 +60,19 @@ enum Command {
     /// Demonstrations.
     #[command(subcommand)]
     Demo(DemoCommand),
+    /// Gradient checks (finite differences, Taylor, dot product) of a whole
+    /// P1 rollout, Enzyme and hand-written.
+    Check(CheckArgs),
+}
+
+#[derive(Debug, clap::Args)]
+struct CheckArgs {
+    /// Cells (≥ 3).
+    #[arg(long, default_value_t = 256)]
+    n: usize,
+    /// Steps (≥ 1).
+    #[arg(long, default_value_t = 256)]
+    steps: usize,
 }
 
 #[derive(Debug, Subcommand)]
@@ -70,5 +86,35 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
     match cli.command {
         Command::Bench(b) => bench::run(b),
         Command::Demo(DemoCommand::Plume(a)) => demo::plume(a),
+        Command::Check(a) => check_p1(a),
+    }
+}
+
+/// Runs the three gradient checks on the P1 rollout `u0 ↦ u_T`.
+fn check_p1(a: CheckArgs) -> Result<(), CliError> {
+    use crate::check::{CheckOptions, check_all};
+    use crate::problems::burgers::{BurgersEnzyme, BurgersHand, P1};
+    use crate::rollout::{Checkpointing, Rollout, RolloutOperator};
+    if a.n < 3 {
+        return Err(CliError::Argument { arg: "--n", reason: format!("need at least 3 cells, got {}", a.n) });
+    }
+    if a.steps < 1 {
+        return Err(CliError::Argument { arg: "--steps", reason: "need at least 1 step".into() });
+    }
+    let p = P1::new(a.n, a.steps);
+    let mode = Checkpointing::binomial_log(a.steps);
+    let opts = CheckOptions::default();
+    let enzyme = BurgersEnzyme(p.cfg);
+    let r = check_all(&RolloutOperator { rollout: Rollout::new(&enzyme, &[], a.steps)?, mode }, &p.u0, &[], &opts);
+    println!("P1 rollout N = {} T = {} ({mode}), Enzyme step VJPs:\n{r}\n", a.n, a.steps);
+    let passed = r.passed();
+    let hand = BurgersHand(p.cfg);
+    let r = check_all(&RolloutOperator { rollout: Rollout::new(&hand, &[], a.steps)?, mode }, &p.u0, &[], &opts);
+    println!("P1 rollout, hand-written step adjoints:\n{r}");
+    if passed && r.passed() {
+        println!("\nall checks passed");
+        Ok(())
+    } else {
+        Err(CliError::ChecksFailed)
     }
 }
