@@ -477,10 +477,10 @@ impl PressureSolver {
             Some(w) => (b.iter().zip(w).map(|(b, w)| b * w).sum::<f64>(), w.iter().sum::<f64>()),
         };
         let mean = total / count.max(1.0);
-        let fluid = self.fluid.clone();
-        let weight = |c: usize| fluid.as_ref().map_or(1.0, |w| w[c]);
+        // The right-hand side minus its mean on the fluid cells.
+        let fluid_mean = |c: usize, fluid: &Option<Vec<f64>>| mean * fluid.as_ref().map_or(1.0, |w| w[c]);
         for (c, (r, &bv)) in self.r.iter_mut().zip(b).enumerate() {
-            *r = bv - mean * weight(c);
+            *r = bv - fluid_mean(c, &self.fluid);
         }
         p.fill(0.0);
         let bnorm = dot(&self.r, &self.r).sqrt();
@@ -500,7 +500,7 @@ impl PressureSolver {
                     Some(w) => apply_masked_matrix(n, w, p, &mut self.q),
                 }
                 for (c, ((q, &bv), r)) in self.q.iter().zip(b).zip(self.r.iter_mut()).enumerate() {
-                    *r = bv - mean * weight(c) - q;
+                    *r = bv - fluid_mean(c, &self.fluid) - q;
                 }
                 rr = dot(&self.r, &self.r);
                 if rr.sqrt() <= target {
