@@ -80,5 +80,21 @@ fn p2(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, p1, p1_step, p2);
+criterion_group!(benches, p1, p1_step, p2, solver_parts);
 criterion_main!(benches);
+
+/// One multigrid V-cycle and one plain CG matrix product at 64² and 128²,
+/// the costs behind the P2 solve times.
+fn solver_parts(c: &mut Criterion) {
+    use diffsim_solvers::multigrid::Multigrid;
+    use diffsim_solvers::smoke::apply_pressure_matrix;
+    let mut g = c.benchmark_group("pressure_solver_parts");
+    for n in [64, 128] {
+        let r: Vec<f64> = (0..n * n).map(|k| ((k as f64) * 0.618).fract() - 0.5).collect();
+        let mut z = vec![0.0; n * n];
+        let mut mg = Multigrid::new(n);
+        g.bench_function(BenchmarkId::new("vcycle", n), |b| b.iter(|| mg.apply(&r, std::hint::black_box(&mut z))));
+        g.bench_function(BenchmarkId::new("matvec", n), |b| b.iter(|| apply_pressure_matrix(n, &r, std::hint::black_box(&mut z))));
+    }
+    g.finish();
+}

@@ -259,22 +259,44 @@ pub fn divergence_transpose(n: usize, d: &[f64], u: &mut [f64], v: &mut [f64]) {
 pub fn apply_pressure_matrix(n: usize, p: &[f64], out: &mut [f64]) {
     for j in 0..n {
         let row = &p[j * n..(j + 1) * n];
+        let dn = (j > 0).then(|| &p[(j - 1) * n..j * n]);
+        let up = (j + 1 < n).then(|| &p[(j + 1) * n..(j + 2) * n]);
         let o = &mut out[j * n..(j + 1) * n];
-        // Horizontal neighbours.
-        o[0] = row[0] - row[1];
-        o[n - 1] = row[n - 1] - row[n - 2];
-        for (((o, &l), &c), &r) in o[1..n - 1].iter_mut().zip(&row[..n - 2]).zip(&row[1..n - 1]).zip(&row[2..]) {
-            *o = 2.0 * c - l - r;
-        }
-        // Vertical neighbours.
-        if j > 0 {
-            for ((o, &c), &d) in o.iter_mut().zip(row).zip(&p[(j - 1) * n..j * n]) {
-                *o += c - d;
+        // The two end cells, with their neighbour count.
+        for i in [0, n - 1] {
+            let mut acc = 0.0;
+            if i > 0 {
+                acc += row[i] - row[i - 1];
             }
+            if i + 1 < n {
+                acc += row[i] - row[i + 1];
+            }
+            if let Some(d) = dn {
+                acc += row[i] - d[i];
+            }
+            if let Some(u) = up {
+                acc += row[i] - u[i];
+            }
+            o[i] = acc;
         }
-        if j + 1 < n {
-            for ((o, &c), &u) in o.iter_mut().zip(row).zip(&p[(j + 1) * n..(j + 2) * n]) {
-                *o += c - u;
+        // The rest of the row in one pass over five streams.
+        let (l, c, r) = (&row[..n - 2], &row[1..n - 1], &row[2..]);
+        let o = &mut o[1..n - 1];
+        match (dn, up) {
+            (Some(d), Some(u)) => {
+                for (((((o, &l), &c), &r), &d), &u) in o.iter_mut().zip(l).zip(c).zip(r).zip(&d[1..n - 1]).zip(&u[1..n - 1]) {
+                    *o = 4.0 * c - l - r - d - u;
+                }
+            }
+            (Some(v), None) | (None, Some(v)) => {
+                for ((((o, &l), &c), &r), &v) in o.iter_mut().zip(l).zip(c).zip(r).zip(&v[1..n - 1]) {
+                    *o = 3.0 * c - l - r - v;
+                }
+            }
+            (None, None) => {
+                for (((o, &l), &c), &r) in o.iter_mut().zip(l).zip(c).zip(r) {
+                    *o = 2.0 * c - l - r;
+                }
             }
         }
     }
