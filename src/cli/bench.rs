@@ -5,7 +5,7 @@ use serde_json::json;
 
 use super::{CliError, median_time, peak_rss_bytes};
 use crate::problems::burgers::P1;
-use crate::problems::smoke::{P2, SmokeStep};
+use crate::problems::smoke::P2;
 use crate::rollout::{Checkpointing, Workspace};
 use diffsim_solvers::smoke::{P2_SIZES, Preconditioner};
 

@@ -222,6 +222,11 @@ impl P2 {
         Self { step: SmokeStep::new(cfg, 1e-8, 2000, precond), steps, x0: smoke::p2_initial(&cfg), target: smoke::p2_target(&cfg) }
     }
 
+    /// The same problem with the hand-written adjoint of the explicit part.
+    pub fn with_hand_adjoint(self) -> Self {
+        Self { step: self.step.with_hand_adjoint(), ..self }
+    }
+
     /// The loss `L = ½·Σ (s_T − s*)²` and its gradient.
     pub fn loss(&self) -> impl Fn(&[f64], &mut [f64]) -> f64 + '_ {
         |x, g| smoke::p2_loss(self.step.cfg(), x, &self.target, g)
