@@ -162,8 +162,7 @@ fn p2(a: P2Args) -> Result<(), CliError> {
         let mut ws = Workspace::new();
         let (grad_s, g) = median_time(budget, 3, 21, || p.grad_in(&mut ws, mode));
         g?;
-        let hand =
-            P2 { step: SmokeStep::new(*p.step.cfg(), 1e-8, 2000, precond).with_hand_adjoint(), steps: p.steps, x0: p.x0.clone(), target: p.target.clone() };
+        let hand = P2::new(a.n, a.steps, precond).with_hand_adjoint();
         let mut ws_hand = Workspace::new();
         let (hand_grad_s, h) = median_time(budget, 3, 21, || hand.grad_in(&mut ws_hand, mode));
         let h = h?;
