@@ -61,19 +61,26 @@ impl Smoke2d {
     }
 }
 
+/// P2's rule for a point at `(rx, ry)` in lattice units of an `nx × ny`
+/// lattice: clamp to the lattice, then the lower-left sample `(k0, l0)`
+/// (kept one short of the last) and the fractions `(fx, fy)` past it.
+#[inline(always)]
+fn lattice_position(nx: usize, ny: usize, rx: f64, ry: f64) -> (usize, usize, f64, f64) {
+    let gx = rx.clamp(0.0, (nx - 1) as f64);
+    let gy = ry.clamp(0.0, (ny - 1) as f64);
+    // gx, gy ≥ 0, so truncation is the floor (one instruction, no libm call).
+    let k0 = (gx as usize).min(nx - 2);
+    let l0 = (gy as usize).min(ny - 2);
+    (k0, l0, gx - k0 as f64, gy - l0 as f64)
+}
+
 /// Bilinear sample of a lattice `f` of `nx × ny` samples whose sample
 /// `(k, l)` sits at `(k + ox, l + oy)`, at the point `(px, py)`; positions
 /// outside are clamped to the lattice's edge (P2's rule).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 pub fn sample(f: &[f64], nx: usize, ny: usize, ox: f64, oy: f64, px: f64, py: f64) -> f64 {
-    let gx = (px - ox).clamp(0.0, (nx - 1) as f64);
-    let gy = (py - oy).clamp(0.0, (ny - 1) as f64);
-    // gx, gy ≥ 0, so truncation is the floor (one instruction, no libm call).
-    let k0 = (gx as usize).min(nx - 2);
-    let l0 = (gy as usize).min(ny - 2);
-    let fx = gx - k0 as f64;
-    let fy = gy - l0 as f64;
+    let (k0, l0, fx, fy) = lattice_position(nx, ny, px - ox, py - oy);
     let at = |k: usize, l: usize| f[l * nx + k];
     at(k0, l0) * (1.0 - fx) * (1.0 - fy) + at(k0 + 1, l0) * fx * (1.0 - fy) + at(k0, l0 + 1) * (1.0 - fx) * fy + at(k0 + 1, l0 + 1) * fx * fy
 }
@@ -143,12 +150,7 @@ pub fn advect_buoyancy(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
 pub fn sample_adjoint(f: &[f64], gf: &mut [f64], nx: usize, ny: usize, ox: f64, oy: f64, px: f64, py: f64, g: f64) -> (f64, f64) {
     let (rx, ry) = (px - ox, py - oy);
     let (hx, hy) = ((nx - 1) as f64, (ny - 1) as f64);
-    let gx = rx.clamp(0.0, hx);
-    let gy = ry.clamp(0.0, hy);
-    let k0 = (gx as usize).min(nx - 2);
-    let l0 = (gy as usize).min(ny - 2);
-    let fx = gx - k0 as f64;
-    let fy = gy - l0 as f64;
+    let (k0, l0, fx, fy) = lattice_position(nx, ny, rx, ry);
     let (c00, c10, c01, c11) = (l0 * nx + k0, l0 * nx + k0 + 1, (l0 + 1) * nx + k0, (l0 + 1) * nx + k0 + 1);
     gf[c00] += g * (1.0 - fx) * (1.0 - fy);
     gf[c10] += g * fx * (1.0 - fy);
@@ -932,10 +934,7 @@ pub fn advect_maccormack(cfg: &Smoke2d, limiter: bool, x: &[f64], y: &mut [f64],
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn sample_range(f: &[f64], nx: usize, ny: usize, ox: f64, oy: f64, px: f64, py: f64) -> (f64, f64) {
-    let gx = (px - ox).clamp(0.0, (nx - 1) as f64);
-    let gy = (py - oy).clamp(0.0, (ny - 1) as f64);
-    let k0 = (gx as usize).min(nx - 2);
-    let l0 = (gy as usize).min(ny - 2);
+    let (k0, l0, _, _) = lattice_position(nx, ny, px - ox, py - oy);
     let a = [f[l0 * nx + k0], f[l0 * nx + k0 + 1], f[(l0 + 1) * nx + k0], f[(l0 + 1) * nx + k0 + 1]];
     (a[0].min(a[1]).min(a[2].min(a[3])), a[0].max(a[1]).max(a[2].max(a[3])))
 }
