@@ -14,27 +14,14 @@ use crate::smoke::{NoConvergence, apply_pressure_matrix};
 /// Largest stable `κ = ν·dt` of the explicit scheme on unit cells.
 pub const EXPLICIT_LIMIT: f64 = 0.25;
 
-/// `out = s − κ·A·s` (overwrites `out`), in one pass.
+/// `out = s − κ·A·s` (overwrites `out`). It writes `A·s` into `out` and
+/// rescales in place; Enzyme differentiates this correctly with the output
+/// declared `Duplicated`, as diffsim's macros do (tests/user_op.rs keeps
+/// that shape under the checks).
 pub fn explicit(n: usize, kappa: f64, s: &[f64], out: &mut [f64]) {
-    for j in 0..n {
-        for i in 0..n {
-            let c = j * n + i;
-            let sc = s[c];
-            let mut lap = 0.0;
-            if i > 0 {
-                lap += sc - s[c - 1];
-            }
-            if i + 1 < n {
-                lap += sc - s[c + 1];
-            }
-            if j > 0 {
-                lap += sc - s[c - n];
-            }
-            if j + 1 < n {
-                lap += sc - s[c + n];
-            }
-            out[c] = sc - kappa * lap;
-        }
+    apply_pressure_matrix(n, s, out);
+    for (o, &v) in out.iter_mut().zip(s) {
+        *o = v - kappa * *o;
     }
 }
 
@@ -58,11 +45,9 @@ impl ImplicitSolver {
         Self { n, tolerance, max_iterations, r: z.clone(), d: z.clone(), q: z }
     }
 
+    /// `out = (I + κ·A)·x`: the explicit step with `−κ`.
     fn apply(n: usize, kappa: f64, x: &[f64], out: &mut [f64]) {
-        apply_pressure_matrix(n, x, out);
-        for (o, &v) in out.iter_mut().zip(x) {
-            *o = v + kappa * *o;
-        }
+        explicit(n, -kappa, x, out)
     }
 
     /// Solves `(I + κ·A)·x = b`, starting from `x = b` (a good guess for

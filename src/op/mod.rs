@@ -148,6 +148,12 @@ pub trait Jvp: Forward {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]);
 }
 
+impl From<diffsim_solvers::smoke::NoConvergence> for OpError {
+    fn from(e: diffsim_solvers::smoke::NoConvergence) -> Self {
+        OpError::NoConvergence { iterations: e.iterations, relative_residual: e.relative_residual, tolerance: e.tolerance }
+    }
+}
+
 /// Convenience forms that allocate their outputs.
 pub trait OperatorExt: Forward {
     /// `f(x, p)` in a new vector.

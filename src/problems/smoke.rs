@@ -162,7 +162,7 @@ impl Forward for SmokeStep {
     }
 
     fn take_error(&self) -> Option<OpError> {
-        self.error.take().map(|e| OpError::NoConvergence { iterations: e.iterations, relative_residual: e.relative_residual, tolerance: e.tolerance })
+        self.error.take().map(OpError::from)
     }
 }
 
