@@ -1,13 +1,15 @@
-//! 2D fluid operators on the P2 grid conventions (closed box, unit cells,
-//! MAC velocity; see [`diffsim_solvers::smoke`]): diffusion, explicit and
-//! implicit, and first-order upwind advection of a scalar. Each wraps a
+//! 2D fluid operators on the P2 grid conventions (unit cells, MAC velocity,
+//! any [`Boundary`](diffsim_solvers::boundary::Boundary); see
+//! [`diffsim_solvers::smoke`]): diffusion, explicit and implicit (closed
+//! box); semi-Lagrangian, MacCormack and upwind advection; forces and
+//! inflow regions. Each wraps a
 //! plain function of `diffsim-solvers`; explicit ones get their derivatives
 //! from Enzyme, implicit ones from the solve with the transposed matrix.
 
 use std::cell::{Cell, RefCell};
 
 use diffsim_solvers::diffusion::{self, EXPLICIT_LIMIT, ImplicitSolver};
-use diffsim_solvers::smoke::{self, NoConvergence, Smoke2d, apply_pressure_matrix};
+use diffsim_solvers::smoke::{self, NoConvergence, Scheme, Smoke2d, apply_pressure_matrix};
 
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
@@ -211,20 +213,34 @@ fn upwind_radius(op: &AdvectUpwind, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f6
 
 crate::differentiable!(AdvectUpwind => advect_upwind, smooth_radius = upwind_radius);
 
-/// MacCormack advection of the smoke in a packed `[s, u, v]` state (P2
-/// layout), unit time step, with or without the limiter:
-/// `[s, u, v] ↦ [s', u, v]`. Derivatives by Enzyme. With the limiter the
-/// map has kinks where the clamp engages; the gradient checks report them
-/// when they spoil a rate.
+/// Semi-Lagrangian or MacCormack advection over a time step `dt` of the
+/// smoke and/or the velocity in a packed `[s, u, v]` state (P2 layout, any
+/// boundary; [`smoke::advect`]): fields not advected pass through, an
+/// advected velocity gets the boundary conditions. Derivatives by Enzyme.
+/// With MacCormack's limiter the map has kinks where the clamp engages; the
+/// gradient checks report them when they spoil a rate.
 #[derive(Clone, Copy, Debug)]
-pub struct AdvectMacCormack {
-    /// The grid.
+pub struct Advect {
+    /// The grid and its boundary.
     pub cfg: Smoke2d,
-    /// Clamp to the local range of the first step's samples.
-    pub limiter: bool,
+    /// The scheme.
+    pub scheme: Scheme,
+    /// Time step.
+    pub dt: f64,
+    /// Advect the smoke.
+    pub smoke: bool,
+    /// Advect the velocity (by itself).
+    pub velocity: bool,
 }
 
-impl Operator for AdvectMacCormack {
+impl Advect {
+    /// Both fields, unit time step.
+    pub fn new(cfg: Smoke2d, scheme: Scheme) -> Self {
+        Self { cfg, scheme, dt: 1.0, smoke: true, velocity: true }
+    }
+}
+
+impl Operator for Advect {
     fn n_in(&self) -> usize {
         self.cfg.n_state()
     }
@@ -233,12 +249,12 @@ impl Operator for AdvectMacCormack {
     }
 }
 
-fn advect_maccormack(op: &AdvectMacCormack, x: &[f64], _p: &[f64], y: &mut [f64]) {
-    let mut scratch = vec![0.0; 2 * op.cfg.n_s()];
-    smoke::advect_maccormack(&op.cfg, op.limiter, x, y, &mut scratch)
+fn advect(op: &Advect, x: &[f64], _p: &[f64], y: &mut [f64]) {
+    let mut scratch = vec![0.0; smoke::advect_scratch_len(&op.cfg, op.scheme)];
+    smoke::advect(&op.cfg, op.scheme, op.dt, op.smoke, op.velocity, x, y, &mut scratch)
 }
 
-crate::differentiable!(AdvectMacCormack => advect_maccormack);
+crate::differentiable!(Advect => advect);
 
 /// An external force field on the faces as the parameters:
 /// `[s, u, v] ↦ [s, u + dt·fu, v + dt·fv]`, `p = [fu, fv]` (`2·N·(N+1)`

@@ -9,7 +9,7 @@ use diffsim_solvers::burgers::{self, Burgers1d};
 
 /// A seeded state whose entries stay at least 0.05 away from the upwind
 /// switch at 0.
-fn state(n: usize, seed: u64) -> Vec<f64> {
+pub(crate) fn state(n: usize, seed: u64) -> Vec<f64> {
     let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
     (0..n)
         .map(|_| {
@@ -21,7 +21,7 @@ fn state(n: usize, seed: u64) -> Vec<f64> {
         .collect()
 }
 
-fn assert_passes<O: Vjp + Jvp>(name: &str, op: &O, x: &[f64], p: &[f64]) {
+pub(crate) fn assert_passes<O: Vjp + Jvp>(name: &str, op: &O, x: &[f64], p: &[f64]) {
     let report = check_all(op, x, p, &CheckOptions::default());
     assert!(report.passed(), "{name}:\n{report}");
 }
@@ -164,7 +164,7 @@ fn the_vjp_contract_is_checked() {
 
 /// A seeded P2 state on an `n × n` box: smoke in [0, 1], velocities in
 /// [−0.3, 0.3] (so that the back-traces stay mostly inside cells).
-fn smoke_state(cfg: &diffsim_solvers::smoke::Smoke2d, seed: u64) -> Vec<f64> {
+pub(crate) fn smoke_state(cfg: &diffsim_solvers::smoke::Smoke2d, seed: u64) -> Vec<f64> {
     let raw = state(cfg.n_state(), seed);
     raw.iter().enumerate().map(|(k, r)| if k < cfg.n_s() { r.abs() } else { 0.3 * r }).collect()
 }

@@ -73,19 +73,21 @@ fn an_unstable_explicit_step_is_an_error() {
 #[test]
 fn maccormack_passes_the_checks_and_its_limiter_creates_no_extrema() {
     use diffsim::check::Verdict;
-    use diffsim::fluids::AdvectMacCormack;
+    use diffsim::fluids::Advect;
+    use diffsim_solvers::smoke::Scheme;
     for n in [5, 8] {
         let cfg = Smoke2d::p2(n);
         let x: Vec<f64> = field(cfg.n_state(), 11 + n as u64).iter().enumerate().map(|(k, v)| if k < cfg.n_s() { 1.0 + v } else { 0.3 * v }).collect();
-        let r = check_all(&AdvectMacCormack { cfg, limiter: false }, &x, &[], &CheckOptions::default());
+        let mc = |limiter| Advect::new(cfg, Scheme::MacCormack { limiter });
+        let r = check_all(&mc(false), &x, &[], &CheckOptions::default());
         assert!(r.passed(), "MacCormack n = {n}:\n{r}");
         // With the limiter the map is piecewise smooth: the checks may report
         // a kink, but never a failure.
-        let r = check_all(&AdvectMacCormack { cfg, limiter: true }, &x, &[], &CheckOptions::default());
+        let r = check_all(&mc(true), &x, &[], &CheckOptions::default());
         for v in [&r.fd.verdict, &r.taylor.verdict, &r.dot.verdict] {
             assert!(!matches!(v, Verdict::Fail(_)), "limited MacCormack n = {n}:\n{r}");
         }
-        let y = AdvectMacCormack { cfg, limiter: true }.eval(&x, &[]);
+        let y = mc(true).eval(&x, &[]);
         let (lo, hi) = x[..cfg.n_s()].iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
         assert!(y[..cfg.n_s()].iter().all(|&v| v >= lo - 1e-12 && v <= hi + 1e-12), "limiter let a new extremum through");
     }
@@ -95,7 +97,8 @@ fn maccormack_passes_the_checks_and_its_limiter_creates_no_extrema() {
 fn maccormack_is_more_accurate_than_semi_lagrangian_on_a_smooth_translation() {
     // A smooth bump translated by a constant velocity (0.3, 0.2) for 10
     // steps: compare each scheme with the exactly translated bump.
-    use diffsim::fluids::AdvectMacCormack;
+    use diffsim::fluids::Advect;
+    use diffsim_solvers::smoke::Scheme;
     let n = 32;
     let cfg = Smoke2d::p2(n);
     let bump = |x: f64, y: f64| (-((x - 12.0).powi(2) + (y - 12.0).powi(2)) / 18.0).exp();
@@ -108,23 +111,11 @@ fn maccormack_is_more_accurate_than_semi_lagrangian_on_a_smooth_translation() {
     let (us, vs) = (cfg.n_s(), cfg.n_s() + cfg.n_u());
     x[us..vs].fill(0.3);
     x[vs..].fill(0.2);
-    let run = |limiter: Option<bool>| -> f64 {
+    let run = |scheme: Scheme| -> f64 {
+        let op = Advect { velocity: false, ..Advect::new(cfg, scheme) };
         let mut s = x.clone();
-        let mut y = vec![0.0; cfg.n_state()];
-        let mut scratch = vec![0.0; 2 * cfg.n_s()];
         for _ in 0..10 {
-            match limiter {
-                None => {
-                    // Semi-Lagrangian: MacCormack's first half step.
-                    diffsim_solvers::smoke::advect_maccormack(&cfg, false, &s, &mut y, &mut scratch);
-                    y[..cfg.n_s()].copy_from_slice(&scratch[..cfg.n_s()]);
-                }
-                Some(l) => {
-                    let op = AdvectMacCormack { cfg, limiter: l };
-                    y = op.eval(&s, &[]);
-                }
-            }
-            std::mem::swap(&mut s, &mut y);
+            s = op.eval(&s, &[]);
         }
         let mut err = 0.0f64;
         for j in 0..n {
@@ -134,7 +125,7 @@ fn maccormack_is_more_accurate_than_semi_lagrangian_on_a_smooth_translation() {
         }
         err
     };
-    let (sl, mc, mcl) = (run(None), run(Some(false)), run(Some(true)));
+    let (sl, mc, mcl) = (run(Scheme::SemiLagrangian), run(Scheme::MacCormack { limiter: false }), run(Scheme::MacCormack { limiter: true }));
     eprintln!("max error after 10 steps: semi-Lagrangian {sl:.3e}, MacCormack {mc:.3e}, limited {mcl:.3e}");
     assert!(mc < 0.5 * sl, "MacCormack {mc} vs semi-Lagrangian {sl}");
     assert!(mcl <= sl, "limited MacCormack {mcl} vs semi-Lagrangian {sl}");

@@ -112,7 +112,7 @@ fn obstacles_block_the_flow_and_the_projection_keeps_the_fluid_divergence_free()
         }
     }
     let mut d = vec![0.0; n * n];
-    divergence(n, u, v, &mut d);
+    divergence(&cfg, u, v, &mut d);
     let worst = d.iter().zip(&solid).filter(|(_, s)| !**s).map(|(d, _)| d.abs()).fold(0.0, f64::max);
     assert!(worst < 1e-8, "divergence {worst:e} in the fluid");
     assert!(s.iter().any(|&v| v > 0.1), "the smoke should still be there");

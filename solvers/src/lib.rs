@@ -14,6 +14,7 @@
 // `chunks_exact(8)` keeps the eight-lane reductions readable on stable APIs.
 #![allow(clippy::chunks_exact_to_as_chunks)]
 
+pub mod boundary;
 pub mod burgers;
 pub mod diffusion;
 pub mod multigrid;

@@ -1,13 +1,19 @@
-//! 2D buoyant smoke in a closed box (benchmark P2 `smoke2d`): semi-Lagrangian
-//! advection of a cell-centred scalar and of a staggered (MAC) velocity,
-//! walls, buoyancy, and a pressure projection solved by preconditioned
-//! conjugate gradients.
+//! 2D incompressible smoke on a MAC grid: semi-Lagrangian, MacCormack and
+//! upwind advection of a cell-centred scalar and of a staggered (MAC)
+//! velocity, buoyancy, forces, inflow regions, obstacles, the boundary
+//! conditions of [`crate::boundary`], and a pressure projection solved by
+//! preconditioned conjugate gradients. Benchmark P2 `smoke2d` is the closed
+//! box with semi-Lagrangian advection.
 //!
 //! Conventions (those of P2 in `benchmarks.md`): N×N unit cells, x to the
 //! right, y up, arrays indexed `[j][i]` (y, x) and flattened row by row.
 //! - smoke `s[j][i]` at the cell centre `(i+½, j+½)`: `N·N` values, index `j·N + i`;
 //! - `u[j][i]` at the x-face `(i, j+½)`, `i = 0..=N`: `N·(N+1)` values, index `j·(N+1) + i`;
 //! - `v[j][i]` at the y-face `(i+½, j)`, `j = 0..=N`: `(N+1)·N` values, index `j·N + i`.
+//!
+//! On a periodic axis face `N` is a copy of face `0`: operators never read
+//! it and write it as the copy, so the state keeps one layout whatever the
+//! boundary.
 //!
 //! The step is split where the gradient is split: [`advect_buoyancy`] (explicit,
 //! differentiated by Enzyme in diffsim) and [`project`] (a linear solve, whose
@@ -16,19 +22,30 @@
 
 use std::fmt;
 
-/// Grid of the smoke problem: `n × n` cells, buoyancy coefficient, time step 1.
+use crate::boundary::{Boundary, Side, for_each_face};
+
+/// Grid of the smoke problem: `n × n` unit cells, buoyancy coefficient, and
+/// the boundary conditions.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Smoke2d {
     /// Cells per side.
     pub n: usize,
     /// Buoyancy: `v += buoyancy · (smoke averaged to the y-face)`.
     pub buoyancy: f64,
+    /// The four sides (closed for P2). Check with [`Boundary::validate`]
+    /// before simulating.
+    pub boundary: Boundary,
 }
 
 impl Smoke2d {
-    /// The P2 setting (buoyancy 0.1).
+    /// The P2 setting (buoyancy 0.1, closed box).
     pub fn p2(n: usize) -> Self {
-        Self { n, buoyancy: 0.1 }
+        Self { n, buoyancy: 0.1, boundary: Boundary::CLOSED }
+    }
+
+    /// The same grid with other boundary conditions.
+    pub fn with_boundary(self, boundary: Boundary) -> Self {
+        Self { boundary, ..self }
     }
 
     /// Number of smoke values `N²`.
@@ -61,105 +78,502 @@ impl Smoke2d {
     }
 }
 
-/// P2's rule for a point at `(rx, ry)` in lattice units of an `nx × ny`
-/// lattice: clamp to the lattice, then the lower-left sample `(k0, l0)`
-/// (kept one short of the last) and the fractions `(fx, fy)` past it.
-#[inline(always)]
-fn lattice_position(nx: usize, ny: usize, rx: f64, ry: f64) -> (usize, usize, f64, f64) {
-    let gx = rx.clamp(0.0, (nx - 1) as f64);
-    let gy = ry.clamp(0.0, (ny - 1) as f64);
-    // gx, gy ≥ 0, so truncation is the floor (one instruction, no libm call).
-    let k0 = (gx as usize).min(nx - 2);
-    let l0 = (gy as usize).min(ny - 2);
-    (k0, l0, gx - k0 as f64, gy - l0 as f64)
+/// A lattice of samples `f[l·stride + k]`, `k < nx`, `l < ny`, sample
+/// `(k, l)` at the point `(k + ox, l + oy)`.
+#[derive(Clone, Copy, Debug)]
+pub struct Lattice {
+    /// Distance between rows in the array.
+    pub stride: usize,
+    /// Samples per row (on a wrapping axis: per period).
+    pub nx: usize,
+    /// Rows (on a wrapping axis: per period).
+    pub ny: usize,
+    /// x of sample `(0, 0)`.
+    pub ox: f64,
+    /// y of sample `(0, 0)`.
+    pub oy: f64,
 }
 
-/// Bilinear sample of a lattice `f` of `nx × ny` samples whose sample
-/// `(k, l)` sits at `(k + ox, l + oy)`, at the point `(px, py)`; positions
-/// outside are clamped to the lattice's edge (P2's rule).
+/// Where a coordinate `r` (in samples) falls on an axis of `m` samples: the
+/// two samples it lies between and the fraction past the first. Clamped to
+/// the axis (P2's rule; the lower sample kept one short of the last) or,
+/// when `WRAP`, wrapped around the period `m`.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-pub fn sample(f: &[f64], nx: usize, ny: usize, ox: f64, oy: f64, px: f64, py: f64) -> f64 {
-    let (k0, l0, fx, fy) = lattice_position(nx, ny, px - ox, py - oy);
-    let at = |k: usize, l: usize| f[l * nx + k];
-    at(k0, l0) * (1.0 - fx) * (1.0 - fy) + at(k0 + 1, l0) * fx * (1.0 - fy) + at(k0, l0 + 1) * (1.0 - fx) * fy + at(k0 + 1, l0 + 1) * fx * fy
+fn axis_position<const WRAP: bool>(m: usize, r: f64) -> (usize, usize, f64) {
+    if WRAP {
+        let mf = m as f64;
+        let r = r - mf * (r / mf).floor();
+        let k0 = (r as usize).min(m - 1);
+        (k0, if k0 + 1 == m { 0 } else { k0 + 1 }, r - k0 as f64)
+    } else {
+        let g = r.clamp(0.0, (m - 1) as f64);
+        // g ≥ 0, so truncation is the floor (one instruction, no libm call).
+        let k0 = (g as usize).min(m - 2);
+        (k0, k0 + 1, g - k0 as f64)
+    }
 }
 
-/// Steps 1–4 of P2: semi-Lagrangian advection of smoke and velocity, closed
-/// walls, buoyancy. Reads the packed state `x = [s, u, v]`, overwrites
-/// `y = [s', u', v']` (the velocity not yet divergence-free).
-///
-/// # Panics
-/// If `x` or `y` is not of length [`Smoke2d::n_state`] or `n < 2`.
-pub fn advect_buoyancy(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
-    let n = cfg.n;
-    assert!(n >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
-    let (s, u, v) = cfg.split(x);
-    let (s2, u2, v2) = cfg.split_mut(y);
-    let (nu, clamp) = (n + 1, |k: isize| k.clamp(0, n as isize - 1) as usize);
-    // 1. Smoke, sampled back along the velocity at the cell centre.
-    for j in 0..n {
-        for i in 0..n {
-            let uc = 0.5 * (u[j * nu + i] + u[j * nu + i + 1]);
-            let vc = 0.5 * (v[j * n + i] + v[(j + 1) * n + i]);
-            s2[j * n + i] = sample(s, n, n, 0.5, 0.5, i as f64 + 0.5 - uc, j as f64 + 0.5 - vc);
-        }
-    }
-    // 2. Velocity: each component sampled back along the full velocity at
-    //    its face; the other component averaged from the four nearest faces
-    //    of an edge-extended copy.
-    for j in 0..n {
-        for i in 0..=n {
-            let (a, b) = (clamp(i as isize - 1), clamp(i as isize));
-            let vbar = 0.25 * (v[j * n + a] + v[j * n + b] + v[(j + 1) * n + a] + v[(j + 1) * n + b]);
-            let uu = u[j * nu + i];
-            u2[j * nu + i] = sample(u, n + 1, n, 0.0, 0.5, i as f64 - uu, j as f64 + 0.5 - vbar);
-        }
-    }
-    for j in 0..=n {
-        for i in 0..n {
-            let (a, b) = (clamp(j as isize - 1), clamp(j as isize));
-            let ubar = 0.25 * (u[a * nu + i] + u[a * nu + i + 1] + u[b * nu + i] + u[b * nu + i + 1]);
-            let vv = v[j * n + i];
-            v2[j * n + i] = sample(v, n, n + 1, 0.5, 0.0, i as f64 + 0.5 - ubar, j as f64 - vv);
-        }
-    }
-    // 3. Closed walls.
-    for j in 0..n {
-        u2[j * nu] = 0.0;
-        u2[j * nu + n] = 0.0;
-    }
-    for i in 0..n {
-        v2[i] = 0.0;
-        v2[n * n + i] = 0.0;
-    }
-    // 4. Buoyancy on the interior y-faces.
-    for j in 1..n {
-        for i in 0..n {
-            v2[j * n + i] += cfg.buoyancy * 0.5 * (s2[(j - 1) * n + i] + s2[j * n + i]);
-        }
-    }
+/// The four samples around `(px, py)` (row-major corners `c00, c10, c01,
+/// c11`) and the fractions `(fx, fy)`.
+#[inline(always)]
+fn corners<const WX: bool, const WY: bool>(lat: Lattice, px: f64, py: f64) -> ([usize; 4], f64, f64) {
+    let (k0, k1, fx) = axis_position::<WX>(lat.nx, px - lat.ox);
+    let (l0, l1, fy) = axis_position::<WY>(lat.ny, py - lat.oy);
+    let s = lat.stride;
+    ([l0 * s + k0, l0 * s + k1, l1 * s + k0, l1 * s + k1], fx, fy)
+}
+
+/// Bilinear sample of the lattice `f` at the point `(px, py)`; outside it,
+/// positions are clamped to its edge (P2's rule) or wrap on the axes marked
+/// `WX`, `WY`.
+#[inline(always)]
+pub fn sample<const WX: bool, const WY: bool>(f: &[f64], lat: Lattice, px: f64, py: f64) -> f64 {
+    let ([c00, c10, c01, c11], fx, fy) = corners::<WX, WY>(lat, px, py);
+    f[c00] * (1.0 - fx) * (1.0 - fy) + f[c10] * fx * (1.0 - fy) + f[c01] * (1.0 - fx) * fy + f[c11] * fx * fy
 }
 
 /// Adjoint of [`sample`]: adds `g·∂value/∂f` into `gf` and returns
 /// `(g·∂value/∂px, g·∂value/∂py)`. The clamp passes derivatives where the
 /// position is inside the lattice's range (edges included), as Enzyme's
-/// derivative of `f64::clamp` does.
+/// derivative of `f64::clamp` does; a wrap always passes them.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-pub fn sample_adjoint(f: &[f64], gf: &mut [f64], nx: usize, ny: usize, ox: f64, oy: f64, px: f64, py: f64, g: f64) -> (f64, f64) {
-    let (rx, ry) = (px - ox, py - oy);
-    let (hx, hy) = ((nx - 1) as f64, (ny - 1) as f64);
-    let (k0, l0, fx, fy) = lattice_position(nx, ny, rx, ry);
-    let (c00, c10, c01, c11) = (l0 * nx + k0, l0 * nx + k0 + 1, (l0 + 1) * nx + k0, (l0 + 1) * nx + k0 + 1);
+pub fn sample_adjoint<const WX: bool, const WY: bool>(f: &[f64], gf: &mut [f64], lat: Lattice, px: f64, py: f64, g: f64) -> (f64, f64) {
+    let (rx, ry) = (px - lat.ox, py - lat.oy);
+    let ([c00, c10, c01, c11], fx, fy) = corners::<WX, WY>(lat, px, py);
     gf[c00] += g * (1.0 - fx) * (1.0 - fy);
     gf[c10] += g * fx * (1.0 - fy);
     gf[c01] += g * (1.0 - fx) * fy;
     gf[c11] += g * fx * fy;
     let dfx = (f[c10] - f[c00]) * (1.0 - fy) + (f[c11] - f[c01]) * fy;
     let dfy = (f[c01] - f[c00]) * (1.0 - fx) + (f[c11] - f[c10]) * fx;
-    let inside = |r: f64, h: f64| if r < 0.0 || r > h { 0.0 } else { 1.0 };
-    (g * dfx * inside(rx, hx), g * dfy * inside(ry, hy))
+    let inside = |wrap: bool, r: f64, m: usize| if wrap || (r >= 0.0 && r <= (m - 1) as f64) { 1.0 } else { 0.0 };
+    (g * dfx * inside(WX, rx, lat.nx), g * dfy * inside(WY, ry, lat.ny))
+}
+
+/// The smallest and largest of the four lattice values [`sample`] blends
+/// at this point.
+#[inline(always)]
+fn sample_range<const WX: bool, const WY: bool>(f: &[f64], lat: Lattice, px: f64, py: f64) -> (f64, f64) {
+    let ([c00, c10, c01, c11], _, _) = corners::<WX, WY>(lat, px, py);
+    let a = [f[c00], f[c10], f[c01], f[c11]];
+    (a[0].min(a[1]).min(a[2].min(a[3])), a[0].max(a[1]).max(a[2].max(a[3])))
+}
+
+/// Index rules of the MAC grid of an `n × n` box whose x (y) axis wraps when
+/// `WX` (`WY`), written once for the forward operators and their adjoints.
+#[derive(Clone, Copy, Debug)]
+struct Mac<const WX: bool, const WY: bool> {
+    n: usize,
+}
+
+impl<const WX: bool, const WY: bool> Mac<WX, WY> {
+    /// x-faces per row that hold their own value (`N` when x wraps: face
+    /// `N` is a copy).
+    #[inline(always)]
+    fn nfx(self) -> usize {
+        if WX { self.n } else { self.n + 1 }
+    }
+
+    /// Rows of y-faces that hold their own value.
+    #[inline(always)]
+    fn nfy(self) -> usize {
+        if WY { self.n } else { self.n + 1 }
+    }
+
+    /// The cell (column or row) after cell `k` along a wrapping or bounded
+    /// axis: `k + 1`, or `0` past the last cell of a wrapping axis.
+    #[inline(always)]
+    fn next<const WRAP: bool>(self, k: usize) -> usize {
+        if WRAP && k + 1 == self.n { 0 } else { k + 1 }
+    }
+
+    /// The two cells beside face `k` of an axis: wrapped, or clamped to
+    /// the box (the edge-extended copy of P2).
+    #[inline(always)]
+    fn beside<const WRAP: bool>(self, k: usize) -> (usize, usize) {
+        let n = self.n;
+        if WRAP { (if k == 0 { n - 1 } else { k - 1 }, k) } else { (k.saturating_sub(1).min(n - 1), k.min(n - 1)) }
+    }
+
+    /// The lattice of `at` and the samples per row and rows that hold their
+    /// own value.
+    #[inline(always)]
+    fn lattice(self, at: At) -> (Lattice, usize, usize) {
+        match at {
+            At::Centre => (self.smoke(), self.n, self.n),
+            At::UFace => (self.u(), self.nfx(), self.n),
+            At::VFace => (self.v(), self.n, self.nfy()),
+        }
+    }
+
+    #[inline(always)]
+    fn smoke(self) -> Lattice {
+        Lattice { stride: self.n, nx: self.n, ny: self.n, ox: 0.5, oy: 0.5 }
+    }
+
+    #[inline(always)]
+    fn u(self) -> Lattice {
+        Lattice { stride: self.n + 1, nx: self.nfx(), ny: self.n, ox: 0.0, oy: 0.5 }
+    }
+
+    #[inline(always)]
+    fn v(self) -> Lattice {
+        Lattice { stride: self.n, nx: self.n, ny: self.nfy(), ox: 0.5, oy: 0.0 }
+    }
+
+    /// Velocity at the point `(i, j)` of the lattice `at`.
+    #[inline(always)]
+    fn velocity(self, at: At, u: &[f64], v: &[f64], i: usize, j: usize) -> (f64, f64) {
+        match at {
+            At::Centre => self.at_centre(u, v, i, j),
+            At::UFace => self.at_u(u, v, i, j),
+            At::VFace => self.at_v(u, v, i, j),
+        }
+    }
+
+    /// Velocity at the centre of cell `(i, j)`.
+    #[inline(always)]
+    fn at_centre(self, u: &[f64], v: &[f64], i: usize, j: usize) -> (f64, f64) {
+        let n = self.n;
+        (0.5 * (u[j * (n + 1) + i] + u[j * (n + 1) + self.next::<WX>(i)]), 0.5 * (v[j * n + i] + v[self.next::<WY>(j) * n + i]))
+    }
+
+    /// Velocity at x-face `(i, j)`: its own `u`, the four nearest `v`.
+    #[inline(always)]
+    fn at_u(self, u: &[f64], v: &[f64], i: usize, j: usize) -> (f64, f64) {
+        let n = self.n;
+        let (a, b) = self.beside::<WX>(i);
+        let up = self.next::<WY>(j);
+        (u[j * (n + 1) + i], 0.25 * (v[j * n + a] + v[j * n + b] + v[up * n + a] + v[up * n + b]))
+    }
+
+    /// Velocity at y-face `(i, j)`: the four nearest `u`, its own `v`.
+    #[inline(always)]
+    fn at_v(self, u: &[f64], v: &[f64], i: usize, j: usize) -> (f64, f64) {
+        let nu = self.n + 1;
+        let (a, b) = self.beside::<WY>(j);
+        let r = self.next::<WX>(i);
+        (0.25 * (u[a * nu + i] + u[a * nu + r] + u[b * nu + i] + u[b * nu + r]), v[j * self.n + i])
+    }
+
+    /// Adds `gᵀ·∂(at_centre)/∂(u, v)` into `(gu, gv)`.
+    #[inline(always)]
+    fn at_centre_adjoint(self, gu: &mut [f64], gv: &mut [f64], i: usize, j: usize, (ga, gb): (f64, f64)) {
+        let n = self.n;
+        gu[j * (n + 1) + i] += 0.5 * ga;
+        gu[j * (n + 1) + self.next::<WX>(i)] += 0.5 * ga;
+        gv[j * n + i] += 0.5 * gb;
+        gv[self.next::<WY>(j) * n + i] += 0.5 * gb;
+    }
+
+    /// Adds `gᵀ·∂(at_u)/∂(u, v)` into `(gu, gv)`.
+    #[inline(always)]
+    fn at_u_adjoint(self, gu: &mut [f64], gv: &mut [f64], i: usize, j: usize, (ga, gb): (f64, f64)) {
+        let n = self.n;
+        let (a, b) = self.beside::<WX>(i);
+        let up = self.next::<WY>(j);
+        gu[j * (n + 1) + i] += ga;
+        for c in [j * n + a, j * n + b, up * n + a, up * n + b] {
+            gv[c] += 0.25 * gb;
+        }
+    }
+
+    /// Adds `gᵀ·∂(at_v)/∂(u, v)` into `(gu, gv)`.
+    #[inline(always)]
+    fn at_v_adjoint(self, gu: &mut [f64], gv: &mut [f64], i: usize, j: usize, (ga, gb): (f64, f64)) {
+        let nu = self.n + 1;
+        let (a, b) = self.beside::<WY>(j);
+        let r = self.next::<WX>(i);
+        for c in [a * nu + i, a * nu + r, b * nu + i, b * nu + r] {
+            gu[c] += 0.25 * ga;
+        }
+        gv[j * self.n + i] += gb;
+    }
+}
+
+/// The three lattices of the MAC grid.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum At {
+    /// Cell centres (smoke).
+    Centre,
+    /// x-faces.
+    UFace,
+    /// y-faces.
+    VFace,
+}
+
+/// Calls `$body` with `$mac` bound to the [`Mac`] of the configuration's
+/// wrapping axes (four instantiations, one chosen at run time).
+macro_rules! with_mac {
+    ($cfg:expr, $mac:ident => $body:expr) => {
+        match ($cfg.boundary.periodic_x(), $cfg.boundary.periodic_y()) {
+            (false, false) => {
+                let $mac = Mac::<false, false> { n: $cfg.n };
+                $body
+            }
+            (true, false) => {
+                let $mac = Mac::<true, false> { n: $cfg.n };
+                $body
+            }
+            (false, true) => {
+                let $mac = Mac::<false, true> { n: $cfg.n };
+                $body
+            }
+            (true, true) => {
+                let $mac = Mac::<true, true> { n: $cfg.n };
+                $body
+            }
+        }
+    };
+}
+
+/// Advection scheme.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Scheme {
+    /// One backward trace, bilinear sample (first order).
+    SemiLagrangian,
+    /// A backward trace, a forward trace from its result, half the
+    /// difference as a correction (second order). With `limiter`, each value
+    /// is clamped to the range of the four samples the backward trace blended
+    /// (Selle et al. 2008): no new extrema, first order at extrema.
+    MacCormack {
+        /// Clamp to the local range.
+        limiter: bool,
+    },
+}
+
+/// Points of a lattice traced along the velocity `(u, v)`: `out[l·stride + k]
+/// = f(p − sdt·vel)` for `k < kx`, `l < ly`, `p` the point of sample
+/// `(k, l)` of the lattice `at` and `vel` the velocity there. (The velocity
+/// is looked up by an enum, not a closure: Enzyme cannot type a closure's
+/// returned pair when the closure is not inlined.)
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn trace<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, (u, v): (&[f64], &[f64]), f: &[f64], sdt: f64, out: &mut [f64]) {
+    let (lat, kx, ly) = mac.lattice(at);
+    for l in 0..ly {
+        for k in 0..kx {
+            let (a, b) = mac.velocity(at, u, v, k, l);
+            out[l * lat.stride + k] = sample::<WX, WY>(f, lat, k as f64 + lat.ox - sdt * a, l as f64 + lat.oy - sdt * b);
+        }
+    }
+}
+
+/// One field on the lattice `at` advected by `scheme`; `hat` and `tilde`
+/// are scratch of `f`'s length (MacCormack only).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn advect_field<const WX: bool, const WY: bool>(
+    mac: Mac<WX, WY>,
+    at: At,
+    scheme: Scheme,
+    dt: f64,
+    uv: (&[f64], &[f64]),
+    f: &[f64],
+    out: &mut [f64],
+    hat: &mut [f64],
+    tilde: &mut [f64],
+) {
+    match scheme {
+        Scheme::SemiLagrangian => trace(mac, at, uv, f, dt, out),
+        Scheme::MacCormack { limiter } => {
+            trace(mac, at, uv, f, dt, hat);
+            trace(mac, at, uv, hat, -dt, tilde);
+            let (lat, kx, ly) = mac.lattice(at);
+            for l in 0..ly {
+                for k in 0..kx {
+                    let c = l * lat.stride + k;
+                    let mut val = hat[c] + 0.5 * (f[c] - tilde[c]);
+                    if limiter {
+                        let (a, b) = mac.velocity(at, uv.0, uv.1, k, l);
+                        let (lo, hi) = sample_range::<WX, WY>(f, lat, k as f64 + lat.ox - dt * a, l as f64 + lat.oy - dt * b);
+                        val = val.clamp(lo, hi);
+                    }
+                    out[c] = val;
+                }
+            }
+        }
+    }
+}
+
+/// Advection over a time step `dt` of the smoke (if `smoke`) and of the
+/// velocity by itself (if `velocity`), each sampled back along the velocity
+/// at its own points (the other component averaged from the four nearest
+/// faces); then the velocity boundary conditions. Fields not advected are
+/// copied. Reads `x = [s, u, v]`, overwrites `y`. `scratch` holds
+/// [`advect_scratch_len`] values (none for semi-Lagrangian).
+///
+/// # Panics
+/// If a length is wrong or `n < 2`.
+#[allow(clippy::too_many_arguments)]
+pub fn advect(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+    let n = cfg.n;
+    assert!(n >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+    assert!(scratch.len() >= advect_scratch_len(cfg, scheme), "smoke: advection scratch");
+    with_mac!(cfg, mac => advect_on(mac, scheme, dt, smoke, velocity, x, y, scratch));
+    if velocity {
+        let (_, u2, v2) = cfg.split_mut(y);
+        enforce_boundary(cfg, u2, v2);
+    }
+}
+
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn advect_on<const WX: bool, const WY: bool>(
+    mac: Mac<WX, WY>,
+    scheme: Scheme,
+    dt: f64,
+    smoke: bool,
+    velocity: bool,
+    x: &[f64],
+    y: &mut [f64],
+    scratch: &mut [f64],
+) {
+    let n = mac.n;
+    let (ns, nu) = (n * n, n * (n + 1));
+    let (s, rest) = x.split_at(ns);
+    let (u, v) = rest.split_at(nu);
+    let (s2, rest) = y.split_at_mut(ns);
+    let (u2, v2) = rest.split_at_mut(nu);
+    // Each field's scratch: the first values of each half (none for
+    // semi-Lagrangian).
+    let half = scratch.len() / 2;
+    let (hat, tilde) = scratch.split_at_mut(half);
+    let (ks, ku) = (ns.min(half), nu.min(half));
+    if smoke {
+        advect_field(mac, At::Centre, scheme, dt, (u, v), s, s2, &mut hat[..ks], &mut tilde[..ks]);
+    } else {
+        copy(s, s2);
+    }
+    if velocity {
+        advect_field(mac, At::UFace, scheme, dt, (u, v), u, u2, &mut hat[..ku], &mut tilde[..ku]);
+        advect_field(mac, At::VFace, scheme, dt, (u, v), v, v2, &mut hat[..ku], &mut tilde[..ku]);
+    } else {
+        copy(u, u2);
+        copy(v, v2);
+    }
+}
+
+/// Scratch [`advect`] needs: for MacCormack two fields of the largest
+/// component's size (`2·N·(N+1)`), none for semi-Lagrangian.
+pub fn advect_scratch_len(cfg: &Smoke2d, scheme: Scheme) -> usize {
+    match scheme {
+        Scheme::SemiLagrangian => 0,
+        Scheme::MacCormack { .. } => 2 * cfg.n_u(),
+    }
+}
+
+/// Element-wise copy. An explicit loop: `copy_from_slice` into part of a
+/// buffer Enzyme differentiates has given silently wrong gradients
+/// (ENZYME.md).
+#[inline(always)]
+fn copy(from: &[f64], to: &mut [f64]) {
+    for (o, &a) in to.iter_mut().zip(from) {
+        *o = a;
+    }
+}
+
+/// The velocity boundary conditions, in place: closed sides' faces 0,
+/// inflow sides' faces the profile (inward), outflow faces as they are,
+/// and on periodic axes face `N` the copy of face `0`.
+pub fn enforce_boundary(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
+    let n = cfg.n;
+    let nu = n + 1;
+    let b = &cfg.boundary;
+    let t = |k: usize| (k as f64 + 0.5) / n as f64;
+    for j in 0..n {
+        match b.left {
+            Side::Closed => u[j * nu] = 0.0,
+            Side::Inflow(p) => u[j * nu] = p.at(t(j)),
+            Side::Periodic | Side::Outflow => {}
+        }
+        match b.right {
+            Side::Closed => u[j * nu + n] = 0.0,
+            Side::Inflow(p) => u[j * nu + n] = -p.at(t(j)),
+            Side::Periodic => u[j * nu + n] = u[j * nu],
+            Side::Outflow => {}
+        }
+    }
+    for i in 0..n {
+        match b.bottom {
+            Side::Closed => v[i] = 0.0,
+            Side::Inflow(p) => v[i] = p.at(t(i)),
+            Side::Periodic | Side::Outflow => {}
+        }
+        match b.top {
+            Side::Closed => v[n * n + i] = 0.0,
+            Side::Inflow(p) => v[n * n + i] = -p.at(t(i)),
+            Side::Periodic => v[n * n + i] = v[i],
+            Side::Outflow => {}
+        }
+    }
+}
+
+/// Adjoint of [`enforce_boundary`] on the velocity adjoint, in place: set
+/// faces pass nothing back, copies pass theirs to the original.
+fn enforce_boundary_adjoint(cfg: &Smoke2d, gu: &mut [f64], gv: &mut [f64]) {
+    let n = cfg.n;
+    let nu = n + 1;
+    let b = &cfg.boundary;
+    for j in 0..n {
+        if let Side::Periodic = b.right {
+            gu[j * nu] += gu[j * nu + n];
+            gu[j * nu + n] = 0.0;
+        }
+        if let Side::Closed | Side::Inflow(_) = b.left {
+            gu[j * nu] = 0.0;
+        }
+        if let Side::Closed | Side::Inflow(_) = b.right {
+            gu[j * nu + n] = 0.0;
+        }
+    }
+    for i in 0..n {
+        if let Side::Periodic = b.top {
+            gv[i] += gv[n * n + i];
+            gv[n * n + i] = 0.0;
+        }
+        if let Side::Closed | Side::Inflow(_) = b.bottom {
+            gv[i] = 0.0;
+        }
+        if let Side::Closed | Side::Inflow(_) = b.top {
+            gv[n * n + i] = 0.0;
+        }
+    }
+}
+
+/// Buoyancy, in place: `v += coefficient · (smoke averaged to the y-face)`
+/// on the interior y-faces and, when y wraps, on face row `0` (whose copy,
+/// row `N`, follows).
+pub fn add_buoyancy(cfg: &Smoke2d, coefficient: f64, s: &[f64], v: &mut [f64]) {
+    let n = cfg.n;
+    for j in 1..n {
+        for i in 0..n {
+            v[j * n + i] += coefficient * 0.5 * (s[(j - 1) * n + i] + s[j * n + i]);
+        }
+    }
+    if cfg.boundary.periodic_y() {
+        for i in 0..n {
+            v[i] += coefficient * 0.5 * (s[(n - 1) * n + i] + s[i]);
+            v[n * n + i] = v[i];
+        }
+    }
+}
+
+/// Steps 1–4 of P2, for any boundary: semi-Lagrangian advection of smoke and
+/// velocity (unit time step), buoyancy, the velocity boundary conditions.
+/// Reads the packed state `x = [s, u, v]`, overwrites `y = [s', u', v']`
+/// (the velocity not yet divergence-free).
+///
+/// # Panics
+/// If `x` or `y` is not of length [`Smoke2d::n_state`] or `n < 2`.
+pub fn advect_buoyancy(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
+    advect(cfg, Scheme::SemiLagrangian, 1.0, true, true, x, y, &mut []);
+    let (s2, _, v2) = cfg.split_mut(y);
+    add_buoyancy(cfg, cfg.buoyancy, s2, v2);
+    // The periodic copies and set faces again, after buoyancy (closed and
+    // inflow faces are not touched by it; this re-sets the copies).
+    let (_, u2, v2) = cfg.split_mut(y);
+    enforce_boundary(cfg, u2, v2);
 }
 
 /// Hand-written adjoint of [`advect_buoyancy`]: `gx += Jᵀ·gy` at the state
@@ -171,8 +585,19 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke2d, x: &[f64], gy: &mut [f64], gx: &mu
     let (s, u, v) = cfg.split(x);
     let (gs2, gu2, gv2) = cfg.split_mut(gy);
     let (gs, gu, gv) = cfg.split_mut(gx);
-    let (nu, clamp) = (n + 1, |k: isize| k.clamp(0, n as isize - 1) as usize);
-    // 4. Buoyancy.
+    // Boundary conditions (the second application; the first is then a no-op
+    // on the adjoint except where buoyancy wrote).
+    enforce_boundary_adjoint(cfg, gu2, gv2);
+    // Buoyancy (its own periodic copy came after its addition).
+    if cfg.boundary.periodic_y() {
+        for i in 0..n {
+            gv2[i] += gv2[n * n + i];
+            gv2[n * n + i] = 0.0;
+            let b = cfg.buoyancy * 0.5 * gv2[i];
+            gs2[(n - 1) * n + i] += b;
+            gs2[i] += b;
+        }
+    }
     for j in 1..n {
         for i in 0..n {
             let b = cfg.buoyancy * 0.5 * gv2[j * n + i];
@@ -180,77 +605,79 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke2d, x: &[f64], gy: &mut [f64], gx: &mu
             gs2[j * n + i] += b;
         }
     }
-    // 3. Walls: the wall faces were overwritten with zeros.
-    for j in 0..n {
-        gu2[j * nu] = 0.0;
-        gu2[j * nu + n] = 0.0;
-    }
-    for i in 0..n {
-        gv2[i] = 0.0;
-        gv2[n * n + i] = 0.0;
-    }
-    // 2. Velocity advection.
-    for j in 0..=n {
+    enforce_boundary_adjoint(cfg, gu2, gv2);
+    with_mac!(cfg, mac => semi_lagrangian_adjoint(mac, s, u, v, gs2, gu2, gv2, gs, gu, gv));
+}
+
+/// Adjoint of the semi-Lagrangian advection of smoke and velocity (unit
+/// time step): adds `Jᵀ·g₂` into `(gs, gu, gv)`.
+#[allow(clippy::too_many_arguments)]
+fn semi_lagrangian_adjoint<const WX: bool, const WY: bool>(
+    mac: Mac<WX, WY>,
+    s: &[f64],
+    u: &[f64],
+    v: &[f64],
+    gs2: &[f64],
+    gu2: &[f64],
+    gv2: &[f64],
+    gs: &mut [f64],
+    gu: &mut [f64],
+    gv: &mut [f64],
+) {
+    let n = mac.n;
+    for j in 0..mac.nfy() {
         for i in 0..n {
-            let (a, b) = (clamp(j as isize - 1), clamp(j as isize));
-            let ubar = 0.25 * (u[a * nu + i] + u[a * nu + i + 1] + u[b * nu + i] + u[b * nu + i + 1]);
-            let vv = v[j * n + i];
-            let (dpx, dpy) = sample_adjoint(v, gv, n, n + 1, 0.5, 0.0, i as f64 + 0.5 - ubar, j as f64 - vv, gv2[j * n + i]);
-            gv[j * n + i] -= dpy;
-            for c in [a * nu + i, a * nu + i + 1, b * nu + i, b * nu + i + 1] {
-                gu[c] -= 0.25 * dpx;
-            }
+            let (ub, vv) = mac.at_v(u, v, i, j);
+            let (dpx, dpy) = sample_adjoint::<WX, WY>(v, gv, mac.v(), i as f64 + 0.5 - ub, j as f64 - vv, gv2[j * n + i]);
+            mac.at_v_adjoint(gu, gv, i, j, (-dpx, -dpy));
         }
     }
     for j in 0..n {
-        for i in 0..=n {
-            let (a, b) = (clamp(i as isize - 1), clamp(i as isize));
-            let vbar = 0.25 * (v[j * n + a] + v[j * n + b] + v[(j + 1) * n + a] + v[(j + 1) * n + b]);
-            let uu = u[j * nu + i];
-            let (dpx, dpy) = sample_adjoint(u, gu, n + 1, n, 0.0, 0.5, i as f64 - uu, j as f64 + 0.5 - vbar, gu2[j * nu + i]);
-            gu[j * nu + i] -= dpx;
-            for c in [j * n + a, j * n + b, (j + 1) * n + a, (j + 1) * n + b] {
-                gv[c] -= 0.25 * dpy;
-            }
+        for i in 0..mac.nfx() {
+            let (uu, vb) = mac.at_u(u, v, i, j);
+            let (dpx, dpy) = sample_adjoint::<WX, WY>(u, gu, mac.u(), i as f64 - uu, j as f64 + 0.5 - vb, gu2[j * (n + 1) + i]);
+            mac.at_u_adjoint(gu, gv, i, j, (-dpx, -dpy));
         }
     }
-    // 1. Smoke.
     for j in 0..n {
         for i in 0..n {
-            let uc = 0.5 * (u[j * nu + i] + u[j * nu + i + 1]);
-            let vc = 0.5 * (v[j * n + i] + v[(j + 1) * n + i]);
-            let (dpx, dpy) = sample_adjoint(s, gs, n, n, 0.5, 0.5, i as f64 + 0.5 - uc, j as f64 + 0.5 - vc, gs2[j * n + i]);
-            gu[j * nu + i] -= 0.5 * dpx;
-            gu[j * nu + i + 1] -= 0.5 * dpx;
-            gv[j * n + i] -= 0.5 * dpy;
-            gv[(j + 1) * n + i] -= 0.5 * dpy;
+            let (uc, vc) = mac.at_centre(u, v, i, j);
+            let (dpx, dpy) = sample_adjoint::<WX, WY>(s, gs, mac.smoke(), i as f64 + 0.5 - uc, j as f64 + 0.5 - vc, gs2[j * n + i]);
+            mac.at_centre_adjoint(gu, gv, i, j, (-dpx, -dpy));
         }
     }
 }
 
-/// Divergence of a MAC velocity: `d[j][i] = u[j][i+1] − u[j][i] + v[j+1][i] − v[j][i]`
-/// (overwrites `d`).
-pub fn divergence(n: usize, u: &[f64], v: &[f64], d: &mut [f64]) {
-    let nu = n + 1;
-    for j in 0..n {
-        for i in 0..n {
-            d[j * n + i] = u[j * nu + i + 1] - u[j * nu + i] + v[(j + 1) * n + i] - v[j * n + i];
-        }
+/// Divergence of a MAC velocity, `d[c] = Σ` outward flux over the faces
+/// of cell `c` (overwrites `d`): `u[j][i+1] − u[j][i] + v[j+1][i] − v[j][i]`
+/// inside the box; a periodic axis's face `N` is not read (face `0` wraps).
+pub fn divergence(cfg: &Smoke2d, u: &[f64], v: &[f64], d: &mut [f64]) {
+    d.fill(0.0);
+    for (axis, vel) in [u, v].into_iter().enumerate() {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+            let w = vel[f.index];
+            if let Some(c) = f.lower {
+                d[c] += w;
+            }
+            if let Some(c) = f.upper {
+                d[c] -= w;
+            }
+        });
     }
 }
 
-/// Transpose of [`divergence`]: `u += Dₓᵀ·d`, `v += D_yᵀ·d` (accumulates).
-pub fn divergence_transpose(n: usize, d: &[f64], u: &mut [f64], v: &mut [f64]) {
-    let nu = n + 1;
-    for j in 0..n {
-        for i in 0..n {
-            let dv = d[j * n + i];
-            u[j * nu + i + 1] += dv;
-            u[j * nu + i] -= dv;
-            v[(j + 1) * n + i] += dv;
-            v[j * n + i] -= dv;
-        }
+/// Transpose of [`divergence`]: `(u, v) += Dᵀ·d` (accumulates).
+pub fn divergence_transpose(cfg: &Smoke2d, d: &[f64], u: &mut [f64], v: &mut [f64]) {
+    for (axis, vel) in [u, v].into_iter().enumerate() {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
     }
+}
+
+/// Whether a face lets fluid through: the product of the fluid indicators
+/// of the cells beside it (1 without obstacles).
+#[inline]
+fn open(fluid: Option<&[f64]>, f: &crate::boundary::Face) -> f64 {
+    fluid.map_or(1.0, |w| f.lower.map_or(1.0, |c| w[c]) * f.upper.map_or(1.0, |c| w[c]))
 }
 
 /// The pressure matrix of the closed box: `(A·p)[c] = Σ_{neighbours m of c
@@ -304,54 +731,57 @@ pub fn apply_pressure_matrix(n: usize, p: &[f64], out: &mut [f64]) {
     }
 }
 
-/// The pressure matrix with solid cells (`w[c] = 0`):
-/// `out[c] = w_c·Σ_{m in box} w_m·(p_c − p_m) + (1 − w_c)·p_c`: only
-/// fluid–fluid faces couple, solid rows are the identity. Symmetric.
-pub fn apply_masked_matrix(n: usize, w: &[f64], p: &[f64], out: &mut [f64]) {
+/// The pressure matrix for any [`Boundary`] and solid cells (`w[c] = 0`;
+/// `None`: no solids): `out[c] = w_c·Σ_m w_m·(p_c − p_m) + (1 − w_c)·p_c`
+/// over the neighbours `m` across the cell's faces that the projection
+/// changes (interior, wrapped across a periodic side, and a ghost `p = 0`
+/// across an outflow side); closed and inflow sides add nothing (Neumann).
+/// Only fluid–fluid faces couple; solid rows are the identity. Symmetric.
+pub fn apply_boundary_matrix(n: usize, b: &Boundary, w: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
+    let wt = |c: usize| w.map_or(1.0, |w| w[c]);
     for j in 0..n {
         for i in 0..n {
             let c = j * n + i;
             let pc = p[c];
             let mut acc = 0.0;
-            if i > 0 {
-                acc += w[c - 1] * (pc - p[c - 1]);
-            }
-            if i + 1 < n {
-                acc += w[c + 1] * (pc - p[c + 1]);
-            }
-            if j > 0 {
-                acc += w[c - n] * (pc - p[c - n]);
-            }
-            if j + 1 < n {
-                acc += w[c + n] * (pc - p[c + n]);
-            }
-            out[c] = w[c] * acc + (1.0 - w[c]) * pc;
+            // Each direction: the neighbour inside, or what the side does.
+            let mut across = |inside: bool, m: usize, side: Side, wrapped: usize| {
+                if inside {
+                    acc += wt(m) * (pc - p[m]);
+                } else {
+                    match side {
+                        Side::Periodic => acc += wt(wrapped) * (pc - p[wrapped]),
+                        Side::Outflow => acc += pc,
+                        Side::Closed | Side::Inflow(_) => {}
+                    }
+                }
+            };
+            across(i > 0, c.wrapping_sub(1), b.left, c + n - 1);
+            across(i + 1 < n, c + 1, b.right, (c + 1).wrapping_sub(n));
+            across(j > 0, c.wrapping_sub(n), b.bottom, c + n * (n - 1));
+            across(j + 1 < n, c + n, b.top, i);
+            out[c] = wt(c) * acc + (1.0 - wt(c)) * pc;
         }
     }
 }
 
 /// Zeroes the smoke in solid cells and the velocity on every face that
-/// touches a solid cell (or a wall), in place on a packed state: the
-/// obstacle boundary condition. Linear and self-adjoint (a diagonal 0/1
-/// mask), so the same call is its own VJP.
+/// touches a solid cell, in place on a packed state: the obstacle boundary
+/// condition. Linear and self-adjoint (a diagonal 0/1 mask), so the same
+/// call is its own VJP.
 pub fn apply_obstacle_mask(cfg: &Smoke2d, fluid: &[f64], x: &mut [f64]) {
-    let n = cfg.n;
-    let nu = n + 1;
     let (s, u, v) = cfg.split_mut(x);
     for (sv, &w) in s.iter_mut().zip(fluid) {
         *sv *= w;
     }
-    for j in 0..n {
-        for i in 0..=n {
-            let open = if i == 0 || i == n { 0.0 } else { fluid[j * n + i - 1] * fluid[j * n + i] };
-            u[j * nu + i] *= open;
-        }
-    }
-    for j in 0..=n {
-        for i in 0..n {
-            let open = if j == 0 || j == n { 0.0 } else { fluid[(j - 1) * n + i] * fluid[j * n + i] };
-            v[j * n + i] *= open;
-        }
+    for (axis, vel) in [u, v].into_iter().enumerate() {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+            let o = open(Some(fluid), &f);
+            vel[f.index] *= o;
+            if let Some(k) = f.copy {
+                vel[k] *= o;
+            }
+        });
     }
 }
 
@@ -400,8 +830,12 @@ impl fmt::Display for Preconditioner {
     }
 }
 
-/// Conjugate gradients on the pressure matrix of an `n × n` closed box, with
-/// reusable work buffers and the preconditioner factor computed once.
+/// Conjugate gradients on the pressure matrix of an `n × n` box, with
+/// reusable work buffers and the preconditioner factor computed once. The
+/// closed box without obstacles (P2) has a fused, vectorised matrix product
+/// and the preconditioners; other boundaries and obstacles use the general
+/// matrix [`apply_boundary_matrix`] without a preconditioner (the
+/// preconditioners here know only the closed box).
 #[derive(Clone, Debug)]
 pub struct PressureSolver {
     n: usize,
@@ -415,6 +849,7 @@ pub struct PressureSolver {
     mg: Option<crate::multigrid::Multigrid>,
     /// Fluid indicator per cell (1 fluid, 0 solid) when there are obstacles.
     fluid: Option<Vec<f64>>,
+    boundary: Boundary,
     r: Vec<f64>,
     z: Vec<f64>,
     d: Vec<f64>,
@@ -454,17 +889,20 @@ impl PressureSolver {
         }
         let z = vec![0.0; n * n];
         let mg = (precond == Preconditioner::Multigrid).then(|| crate::multigrid::Multigrid::new(n));
-        Self { n, tolerance, max_iterations, precond, inv_diag, mg, fluid: None, r: z.clone(), z: z.clone(), d: z.clone(), q: z }
+        Self { n, tolerance, max_iterations, precond, inv_diag, mg, fluid: None, boundary: Boundary::CLOSED, r: z.clone(), z: z.clone(), d: z.clone(), q: z }
     }
 
-    /// A solver for the box with solid cells (`fluid[c] = 0`): the matrix
-    /// couples only fluid cells (no flow through solid faces) and is the
-    /// identity on solid cells. Unpreconditioned: the preconditioners here
-    /// do not know the mask yet.
-    pub fn with_obstacles(n: usize, tolerance: f64, max_iterations: usize, fluid: Vec<f64>) -> Self {
-        assert_eq!(fluid.len(), n * n, "fluid mask length");
+    /// A solver for any boundary, with solid cells where `fluid[c] = 0`
+    /// (`None`: no solids): the matrix of [`apply_boundary_matrix`],
+    /// unpreconditioned CG. For the closed box without solids this is the
+    /// same as [`PressureSolver::new`] with [`Preconditioner::None`].
+    pub fn general(n: usize, boundary: Boundary, tolerance: f64, max_iterations: usize, fluid: Option<Vec<f64>>) -> Self {
+        if let Some(w) = &fluid {
+            assert_eq!(w.len(), n * n, "fluid mask length");
+        }
         let mut s = Self::new(n, tolerance, max_iterations, Preconditioner::None);
-        s.fluid = Some(fluid);
+        s.fluid = fluid;
+        s.boundary = boundary;
         s
     }
 
@@ -489,9 +927,10 @@ impl PressureSolver {
     }
 
     /// Solves `A·p = b` from `p = 0` until `‖b − A·p‖₂ ≤ tol·‖b‖₂` (true
-    /// residual); overwrites `p`. `b` must sum to zero (the closed box's
-    /// compatibility condition); it is projected onto that space to remove
-    /// rounding. Returns the number of iterations.
+    /// residual); overwrites `p`. Without an outflow side the matrix is
+    /// singular and `b` must sum to zero over the fluid (the compatibility
+    /// condition); it is projected onto that space to remove rounding.
+    /// Returns the number of iterations.
     pub fn solve(&mut self, b: &[f64], p: &mut [f64]) -> Result<usize, NoConvergence> {
         let n = self.n;
         let nn = n * n;
@@ -500,7 +939,8 @@ impl PressureSolver {
             None => (b.iter().sum::<f64>(), nn as f64),
             Some(w) => (b.iter().zip(w).map(|(b, w)| b * w).sum::<f64>(), w.iter().sum::<f64>()),
         };
-        let mean = total / count.max(1.0);
+        let mean = if self.boundary.has_outflow() { 0.0 } else { total / count.max(1.0) };
+        let special = self.fluid.is_none() && self.boundary == Boundary::CLOSED;
         // The right-hand side minus its mean on the fluid cells.
         let fluid_mean = |c: usize, fluid: &Option<Vec<f64>>| mean * fluid.as_ref().map_or(1.0, |w| w[c]);
         for (c, (r, &bv)) in self.r.iter_mut().zip(b).enumerate() {
@@ -519,9 +959,10 @@ impl PressureSolver {
         loop {
             if rr.sqrt() <= target {
                 // Confirm on the true residual; restart from it if needed.
-                match &self.fluid {
-                    None => apply_pressure_matrix(n, p, &mut self.q),
-                    Some(w) => apply_masked_matrix(n, w, p, &mut self.q),
+                if special {
+                    apply_pressure_matrix(n, p, &mut self.q);
+                } else {
+                    apply_boundary_matrix(n, &self.boundary, self.fluid.as_deref(), p, &mut self.q);
                 }
                 for (c, ((q, &bv), r)) in self.q.iter().zip(b).zip(self.r.iter_mut()).enumerate() {
                     *r = bv - fluid_mean(c, &self.fluid) - q;
@@ -536,12 +977,11 @@ impl PressureSolver {
                 return Err(NoConvergence { iterations: it, relative_residual: rr.sqrt() / bnorm, tolerance: self.tolerance });
             }
             let mut dq = 0.0;
-            match &self.fluid {
-                None => matvec_dot(n, &self.d, &mut self.q, &mut dq),
-                Some(w) => {
-                    apply_masked_matrix(n, w, &self.d, &mut self.q);
-                    dq = dot(&self.d, &self.q);
-                }
+            if special {
+                matvec_dot(n, &self.d, &mut self.q, &mut dq);
+            } else {
+                apply_boundary_matrix(n, &self.boundary, self.fluid.as_deref(), &self.d, &mut self.q);
+                dq = dot(&self.d, &self.q);
             }
             let alpha = rz / dq;
             update(alpha, &self.d, &self.q, p, &mut self.r, &mut rr);
@@ -678,13 +1118,15 @@ impl ProjectScratch {
     }
 }
 
-/// Step 5 of P2, in place on the velocity part of the packed state `y`:
-/// `d = D·(u, v)`, solve `A·p = −d`, `u −= Gₓ·p`, `v −= G_y·p` on the
-/// interior faces. Returns the CG iterations.
+/// Step 5 of P2, for any boundary, in place on the velocity part of the
+/// packed state `y`: `d = D·(u, v)`, solve `A·p = −W·d` (`W` the fluid
+/// mask), `(u, v) −= G·p` on the faces the projection changes (interior,
+/// periodic, outflow; fluid–fluid only), periodic copies refreshed. The
+/// solver must be built for `cfg`'s boundary. Returns the CG iterations.
 pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
-    let n = cfg.n;
+    debug_assert_eq!(solver.boundary, cfg.boundary, "pressure solver built for another boundary");
     let (_, u, v) = cfg.split_mut(y);
-    divergence(n, u, v, &mut scratch.d);
+    divergence(cfg, u, v, &mut scratch.d);
     for d in scratch.d.iter_mut() {
         *d = -*d;
     }
@@ -694,64 +1136,54 @@ pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratc
         }
     }
     let iterations = solver.solve(&scratch.d, &mut scratch.p)?;
-    subtract_gradient(n, &scratch.p, solver.fluid(), u, v);
+    let (p, fluid) = (&scratch.p, solver.fluid());
+    for (axis, vel) in [u, v].into_iter().enumerate() {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+            if f.projected {
+                let grad = f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]);
+                vel[f.index] -= open(fluid, &f) * grad;
+                if let Some(k) = f.copy {
+                    vel[k] = vel[f.index];
+                }
+            }
+        });
+    }
     Ok(iterations)
 }
 
-/// `u[j][i] −= p[j][i] − p[j][i−1]` (i = 1..N−1), `v[j][i] −= p[j][i] − p[j−1][i]` (j = 1..N−1),
-/// on fluid–fluid faces only when there is a mask.
-fn subtract_gradient(n: usize, p: &[f64], fluid: Option<&[f64]>, u: &mut [f64], v: &mut [f64]) {
-    let nu = n + 1;
-    let open = |a: usize, b: usize| fluid.map_or(1.0, |w| w[a] * w[b]);
-    for j in 0..n {
-        for i in 1..n {
-            let (a, b) = (j * n + i, j * n + i - 1);
-            u[j * nu + i] -= open(a, b) * (p[a] - p[b]);
-        }
-    }
-    for j in 1..n {
-        for i in 0..n {
-            let (a, b) = (j * n + i, (j - 1) * n + i);
-            v[j * n + i] -= open(a, b) * (p[a] - p[b]);
-        }
-    }
-}
-
 /// Adjoint of [`project`] (a linear map), in place on the velocity part of
-/// the adjoint `g`: `λ_p = −Gᵀ·λ`; solve `A·μ = λ_p` (the transposed
-/// system — `A` is symmetric — to the same tolerance; never a backward pass
-/// through the iterations); since the solve's right-hand side was `−D·(u, v)`,
-/// `λ_(u,v) += −Dᵀ·μ`. Returns the CG iterations.
+/// the adjoint `g`: periodic copies handed to their originals;
+/// `λ_p = −Gᵀ·λ`; solve `A·μ = λ_p` (the transposed system — `A` is
+/// symmetric — to the same tolerance; never a backward pass through the
+/// iterations); since the solve's right-hand side was `−W·D·(u, v)`,
+/// `λ_(u,v) += −Dᵀ·W·μ`. Returns the CG iterations.
 pub fn project_adjoint(cfg: &Smoke2d, g: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
-    let n = cfg.n;
-    let nu = n + 1;
     let (_, gu, gv) = cfg.split_mut(g);
-    let fluid = solver.fluid().map(<[f64]>::to_vec);
-    let open = |a: usize, b: usize| fluid.as_ref().map_or(1.0, |w| w[a] * w[b]);
-    // λ_p[c] = ∂/∂p of Σ λ·(u − G·p) = −(Gᵀ·λ)[c] (fluid–fluid faces only
-    // when there is a mask).
     let lp = &mut scratch.d;
     lp.fill(0.0);
-    for j in 0..n {
-        for i in 1..n {
-            let l = open(j * n + i, j * n + i - 1) * gu[j * nu + i];
-            lp[j * n + i] -= l;
-            lp[j * n + i - 1] += l;
-        }
+    for (axis, gvel) in [&mut *gu, &mut *gv].into_iter().enumerate() {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+            if !f.projected {
+                return;
+            }
+            if let Some(k) = f.copy {
+                gvel[f.index] += gvel[k];
+                gvel[k] = 0.0;
+            }
+            let l = open(solver.fluid(), &f) * gvel[f.index];
+            if let Some(c) = f.upper {
+                lp[c] -= l;
+            }
+            if let Some(c) = f.lower {
+                lp[c] += l;
+            }
+        });
     }
-    for j in 1..n {
-        for i in 0..n {
-            let l = open(j * n + i, (j - 1) * n + i) * gv[j * n + i];
-            lp[j * n + i] -= l;
-            lp[(j - 1) * n + i] += l;
-        }
-    }
-    // p = A⁻¹·b with b = −W·D·u: λ_b = A⁻ᵀ·λ_p = μ, λ_(u,v) += Dᵀ·(−W·μ).
     let iterations = solver.solve(lp, &mut scratch.p)?;
     for (c, m) in scratch.p.iter_mut().enumerate() {
-        *m = -*m * fluid.as_ref().map_or(1.0, |w| w[c]);
+        *m = -*m * solver.fluid().map_or(1.0, |w| w[c]);
     }
-    divergence_transpose(n, &scratch.p, gu, gv);
+    divergence_transpose(cfg, &scratch.p, gu, gv);
     Ok(iterations)
 }
 
@@ -819,148 +1251,110 @@ pub const P2_SIZES: [P2Reference; 2] = [
 ];
 
 /// First-order upwind advection of the smoke by the MAC velocity, in
-/// conservative (flux) form over one time step `dt`, closed walls (no flux
-/// through the box's sides): reads `x = [s, u, v]`, writes `y = [s', u, v]`.
+/// conservative (flux) form over one time step `dt`: through every interior
+/// face, across periodic sides, and through inflow and outflow sides (with
+/// smoke-free fluid outside); none through closed sides. Reads
+/// `x = [s, u, v]`, writes `y = [s', u, v]`.
 pub fn advect_upwind(cfg: &Smoke2d, dt: f64, x: &[f64], y: &mut [f64]) {
     let n = cfg.n;
     assert!(n >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
     let (s, u, v) = cfg.split(x);
     let nu = n + 1;
     let (s2, rest) = y.split_at_mut(cfg.n_s());
-    // Explicit copy loops: `copy_from_slice` into part of a buffer Enzyme
-    // differentiates has given silently wrong gradients (ENZYME.md).
-    for (o, &a) in s2.iter_mut().zip(s) {
-        *o = a;
-    }
+    copy(s, s2);
     // Interior x-faces: flux from cell (i−1, j) to (i, j).
     for j in 0..n {
         for i in 1..n {
-            let uf = u[j * nu + i];
-            let up = if uf > 0.0 { s[j * n + i - 1] } else { s[j * n + i] };
-            let f = dt * uf * up;
-            s2[j * n + i - 1] -= f;
-            s2[j * n + i] += f;
+            upwind_flux(s, s2, dt * u[j * nu + i], Some(j * n + i - 1), Some(j * n + i));
         }
     }
     // Interior y-faces: flux from cell (i, j−1) to (i, j).
     for j in 1..n {
         for i in 0..n {
-            let vf = v[j * n + i];
-            let up = if vf > 0.0 { s[(j - 1) * n + i] } else { s[j * n + i] };
-            let f = dt * vf * up;
-            s2[(j - 1) * n + i] -= f;
-            s2[j * n + i] += f;
+            upwind_flux(s, s2, dt * v[j * n + i], Some((j - 1) * n + i), Some(j * n + i));
         }
     }
-    for (o, &a) in rest.iter_mut().zip(&x[cfg.n_s()..]) {
-        *o = a;
+    // The sides: wrap, or exchange with the smoke-free outside.
+    let b = &cfg.boundary;
+    for k in 0..n {
+        match b.left {
+            Side::Periodic => upwind_flux(s, s2, dt * u[k * nu], Some(k * n + n - 1), Some(k * n)),
+            Side::Inflow(_) | Side::Outflow => upwind_flux(s, s2, dt * u[k * nu], None, Some(k * n)),
+            Side::Closed => {}
+        }
+        if let Side::Inflow(_) | Side::Outflow = b.right {
+            upwind_flux(s, s2, dt * u[k * nu + n], Some(k * n + n - 1), None);
+        }
+        match b.bottom {
+            Side::Periodic => upwind_flux(s, s2, dt * v[k], Some((n - 1) * n + k), Some(k)),
+            Side::Inflow(_) | Side::Outflow => upwind_flux(s, s2, dt * v[k], None, Some(k)),
+            Side::Closed => {}
+        }
+        if let Side::Inflow(_) | Side::Outflow = b.top {
+            upwind_flux(s, s2, dt * v[n * n + k], Some((n - 1) * n + k), None);
+        }
+    }
+    copy(&x[cfg.n_s()..], rest);
+}
+
+/// The upwind flux `c·s_upwind` (`c` = velocity·dt) from cell `lower` to
+/// cell `upper` (`None`: outside, where the smoke is 0).
+#[inline(always)]
+fn upwind_flux(s: &[f64], s2: &mut [f64], c: f64, lower: Option<usize>, upper: Option<usize>) {
+    let from = if c > 0.0 { lower } else { upper };
+    let f = c * from.map_or(0.0, |k| s[k]);
+    if let Some(k) = lower {
+        s2[k] -= f;
+    }
+    if let Some(k) = upper {
+        s2[k] += f;
     }
 }
 
 /// Distance to the nearest upwind switch of [`advect_upwind`] along `d`: the
-/// smallest `|u_f / d_f|` over the interior faces whose velocity moves.
+/// smallest `|u_f / d_f|` over the faces that carry flux.
 pub fn upwind_radius(cfg: &Smoke2d, x: &[f64], d: &[f64]) -> f64 {
-    let n = cfg.n;
     let (_, u, v) = cfg.split(x);
     let (_, du, dv) = cfg.split(d);
     let mut r = f64::INFINITY;
-    for j in 0..n {
-        for i in 1..n {
-            let k = j * (n + 1) + i;
-            if du[k] != 0.0 {
-                r = r.min((u[k] / du[k]).abs());
+    for (axis, (vel, dvel)) in [(u, du), (v, dv)].into_iter().enumerate() {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+            if f.side != Some(Side::Closed) && dvel[f.index] != 0.0 {
+                r = r.min((vel[f.index] / dvel[f.index]).abs());
             }
-        }
-    }
-    for j in 1..n {
-        for i in 0..n {
-            let k = j * n + i;
-            if dv[k] != 0.0 {
-                r = r.min((v[k] / dv[k]).abs());
-            }
-        }
+        });
     }
     r
 }
 
-/// MacCormack advection of the smoke (second order): a semi-Lagrangian step
-/// back along the velocity, one forward from its result, and half the
-/// difference as a correction, `s' = ŝ + (s − s̃)/2`. With `limiter`, each
-/// corrected value is clamped to the range of the four samples the first
-/// step interpolated from (Selle et al. 2008), which keeps the scheme free
-/// of new extrema; without it the scheme is second order also at extrema.
-/// Reads `x = [s, u, v]`, writes `y = [s', u, v]`; `scratch` holds `ŝ` and
-/// `s̃` (`2·N²` values).
-pub fn advect_maccormack(cfg: &Smoke2d, limiter: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
-    let n = cfg.n;
-    assert!(n >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state() && scratch.len() == 2 * cfg.n_s(), "smoke: state lengths");
-    let (s, u, v) = cfg.split(x);
-    let (hat, tilde) = scratch.split_at_mut(cfg.n_s());
-    let nu = n + 1;
-    let vel = |i: usize, j: usize| (0.5 * (u[j * nu + i] + u[j * nu + i + 1]), 0.5 * (v[j * n + i] + v[(j + 1) * n + i]));
-    for j in 0..n {
-        for i in 0..n {
-            let (uc, vc) = vel(i, j);
-            hat[j * n + i] = sample(s, n, n, 0.5, 0.5, i as f64 + 0.5 - uc, j as f64 + 0.5 - vc);
-        }
-    }
-    for j in 0..n {
-        for i in 0..n {
-            let (uc, vc) = vel(i, j);
-            tilde[j * n + i] = sample(hat, n, n, 0.5, 0.5, i as f64 + 0.5 + uc, j as f64 + 0.5 + vc);
-        }
-    }
-    let (s2, rest) = y.split_at_mut(cfg.n_s());
-    for j in 0..n {
-        for i in 0..n {
-            let c = j * n + i;
-            let mut val = hat[c] + 0.5 * (s[c] - tilde[c]);
-            if limiter {
-                let (uc, vc) = vel(i, j);
-                let (lo, hi) = sample_range(s, n, n, 0.5, 0.5, i as f64 + 0.5 - uc, j as f64 + 0.5 - vc);
-                val = val.clamp(lo, hi);
-            }
-            s2[c] = val;
-        }
-    }
-    // Explicit copy loop (see `advect_upwind`).
-    for (o, &a) in rest.iter_mut().zip(&x[cfg.n_s()..]) {
-        *o = a;
-    }
-}
-
-/// The smallest and largest of the four lattice values [`sample`] blends
-/// at this point.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn sample_range(f: &[f64], nx: usize, ny: usize, ox: f64, oy: f64, px: f64, py: f64) -> (f64, f64) {
-    let (k0, l0, _, _) = lattice_position(nx, ny, px - ox, py - oy);
-    let a = [f[l0 * nx + k0], f[l0 * nx + k0 + 1], f[(l0 + 1) * nx + k0], f[(l0 + 1) * nx + k0 + 1]];
-    (a[0].min(a[1]).min(a[2].min(a[3])), a[0].max(a[1]).max(a[2].max(a[3])))
-}
-
-/// An external force on the interior faces over a time step `dt`:
-/// `[s, u, v] ↦ [s, u + dt·fu, v + dt·fv]`, with the force `f = [fu, fv]`
-/// given per face (`N·(N+1)` values each, the velocity layout); the wall
-/// faces keep their velocity.
+/// An external force over a time step `dt`: `[s, u, v] ↦ [s, u + dt·fu,
+/// v + dt·fv]`, with the force `f = [fu, fv]` given per face (`N·(N+1)`
+/// values each, the velocity layout), on the interior faces and the faces
+/// that wrap across a periodic side (copies refreshed); the faces on other
+/// sides keep their velocity.
 pub fn apply_force(cfg: &Smoke2d, dt: f64, x: &[f64], f: &[f64], y: &mut [f64]) {
     let n = cfg.n;
     assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && f.len() == 2 * cfg.n_u(), "smoke: force lengths");
     let nu = n + 1;
-    for (o, &a) in y.iter_mut().zip(x) {
-        *o = a;
-    }
+    copy(x, y);
     let (fu, fv) = f.split_at(cfg.n_u());
     let (_, u2, v2) = cfg.split_mut(y);
+    let (wx, wy) = (cfg.boundary.periodic_x() as usize, cfg.boundary.periodic_y() as usize);
     for j in 0..n {
-        for i in 1..n {
+        for i in 1 - wx..n {
             u2[j * nu + i] += dt * fu[j * nu + i];
         }
     }
-    for j in 1..n {
+    for j in 1 - wy..n {
         for i in 0..n {
             v2[j * n + i] += dt * fv[j * n + i];
         }
+    }
+    for j in 0..n * wx {
+        u2[j * nu + n] = u2[j * nu];
+    }
+    for i in 0..n * wy {
+        v2[n * n + i] = v2[i];
     }
 }
 

@@ -5,6 +5,7 @@
 
 use std::cell::{Cell, RefCell};
 
+use diffsim_solvers::boundary::Boundary;
 use diffsim_solvers::smoke::{self, NoConvergence, Preconditioner, PressureSolver, ProjectScratch, Smoke2d};
 
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
@@ -86,12 +87,26 @@ impl SmokeStep {
     /// A step of the P2 box `cfg` whose solves stop at relative tolerance
     /// `tolerance` (true residual), fail after `max_iterations`, and use
     /// `precond`.
+    ///
+    /// Boundaries other than the closed box use plain CG (see
+    /// [`PressureSolver`]); `precond` then does not apply.
+    ///
+    /// # Panics
+    /// If `cfg.boundary` does not [validate](diffsim_solvers::boundary::Boundary::validate).
     pub fn new(cfg: Smoke2d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
+        if let Err(e) = cfg.boundary.validate() {
+            panic!("{e}");
+        }
+        let solver = if cfg.boundary == Boundary::CLOSED {
+            PressureSolver::new(cfg.n, tolerance, max_iterations, precond)
+        } else {
+            PressureSolver::general(cfg.n, cfg.boundary, tolerance, max_iterations, None)
+        };
         Self {
             advect: SmokeAdvect(cfg),
             hand: false,
             fluid: None,
-            solver: RefCell::new(PressureSolver::new(cfg.n, tolerance, max_iterations, precond)),
+            solver: RefCell::new(solver),
             scratch: RefCell::new(ProjectScratch::new(cfg.n)),
             error: Cell::new(None),
             cg_forward: Cell::new(0),
@@ -113,7 +128,7 @@ impl SmokeStep {
     pub fn with_obstacles(cfg: Smoke2d, tolerance: f64, max_iterations: usize, solid: &[bool]) -> Self {
         let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
         let mut step = Self::new(cfg, tolerance, max_iterations, Preconditioner::None);
-        step.solver = RefCell::new(PressureSolver::with_obstacles(cfg.n, tolerance, max_iterations, fluid.clone()));
+        step.solver = RefCell::new(PressureSolver::general(cfg.n, cfg.boundary, tolerance, max_iterations, Some(fluid.clone())));
         step.fluid = Some(fluid);
         step
     }

@@ -1,0 +1,207 @@
+//! Boundary conditions of the 2D box, per side: closed walls, periodic
+//! wrap, inflow with a prescribed velocity profile, and free outflow.
+//!
+//! What each kind means for the MAC grid of [`crate::smoke`]:
+//!
+//! | kind | normal velocity on the side's faces | pressure | advection |
+//! |---|---|---|---|
+//! | closed | 0 | no flux (Neumann) | samples clamped to the box |
+//! | periodic | face `N` is a copy of face `0` (never read) | wraps | samples wrap |
+//! | inflow | the profile, inward | no flux (Neumann: the face is given) | clamped |
+//! | outflow | free (advected, then projected) | `p = 0` outside (Dirichlet) | clamped |
+//!
+//! A periodic side needs its opposite side periodic too; inflow needs an
+//! outflow side somewhere (what flows in must leave), checked by
+//! [`Boundary::validate`]. Without an outflow side the pressure matrix is
+//! singular (constants) and the solve works in the space of zero mean; with
+//! one it is definite.
+
+use std::fmt;
+
+/// Velocity profile of an inflow side, as the inward normal speed at the
+/// position `t ∈ (0, 1)` along the side (from its lower-left end).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Profile {
+    /// The same speed everywhere.
+    Uniform(f64),
+    /// `4·peak·t·(1 − t)`: zero at the corners, `peak` in the middle (a
+    /// channel's Poiseuille profile).
+    Parabolic(f64),
+}
+
+impl Profile {
+    /// The inward speed at `t ∈ (0, 1)`.
+    pub fn at(&self, t: f64) -> f64 {
+        match *self {
+            Profile::Uniform(s) => s,
+            Profile::Parabolic(peak) => 4.0 * peak * t * (1.0 - t),
+        }
+    }
+}
+
+/// The condition on one side of the box.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Side {
+    /// No flow through (free slip along it).
+    Closed,
+    /// Wraps to the opposite side.
+    Periodic,
+    /// Fluid enters with this inward normal speed profile.
+    Inflow(Profile),
+    /// Fluid leaves freely; the pressure outside is zero.
+    Outflow,
+}
+
+/// The four sides of the box (x to the right, y up).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Boundary {
+    /// `x = 0`.
+    pub left: Side,
+    /// `x = N`.
+    pub right: Side,
+    /// `y = 0`.
+    pub bottom: Side,
+    /// `y = N`.
+    pub top: Side,
+}
+
+/// A boundary that cannot be simulated.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BoundaryError {
+    /// One side of an axis is periodic and the other is not.
+    HalfPeriodic {
+        /// `"x"` or `"y"`.
+        axis: &'static str,
+    },
+    /// Fluid flows in but no side lets it out.
+    InflowWithoutOutflow,
+}
+
+impl fmt::Display for BoundaryError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            BoundaryError::HalfPeriodic { axis } => write!(f, "boundary: the {axis} axis is periodic on one side only; make both sides periodic or neither"),
+            BoundaryError::InflowWithoutOutflow => {
+                f.write_str("boundary: an inflow side needs an outflow side for the fluid to leave (the pressure solve has no solution otherwise)")
+            }
+        }
+    }
+}
+
+impl std::error::Error for BoundaryError {}
+
+impl Boundary {
+    /// Closed walls all round (P2).
+    pub const CLOSED: Boundary = Boundary::all(Side::Closed);
+
+    /// Every side the same kind.
+    pub const fn all(side: Side) -> Self {
+        Self { left: side, right: side, bottom: side, top: side }
+    }
+
+    /// `x` sides `sx`, `y` sides `sy`.
+    pub const fn axes(sx: Side, sy: Side) -> Self {
+        Self { left: sx, right: sx, bottom: sy, top: sy }
+    }
+
+    /// Whether the x axis wraps.
+    pub fn periodic_x(&self) -> bool {
+        self.left == Side::Periodic
+    }
+
+    /// Whether the y axis wraps.
+    pub fn periodic_y(&self) -> bool {
+        self.bottom == Side::Periodic
+    }
+
+    /// Whether some side is an outflow (the pressure matrix is then definite).
+    pub fn has_outflow(&self) -> bool {
+        self.sides().contains(&Side::Outflow)
+    }
+
+    /// The sides in the order left, right, bottom, top.
+    pub fn sides(&self) -> [Side; 4] {
+        [self.left, self.right, self.bottom, self.top]
+    }
+
+    /// Checks that the sides can be simulated together.
+    pub fn validate(&self) -> Result<(), BoundaryError> {
+        if (self.left == Side::Periodic) != (self.right == Side::Periodic) {
+            return Err(BoundaryError::HalfPeriodic { axis: "x" });
+        }
+        if (self.bottom == Side::Periodic) != (self.top == Side::Periodic) {
+            return Err(BoundaryError::HalfPeriodic { axis: "y" });
+        }
+        if self.sides().iter().any(|s| matches!(s, Side::Inflow(_))) && !self.has_outflow() {
+            return Err(BoundaryError::InflowWithoutOutflow);
+        }
+        Ok(())
+    }
+}
+
+impl Default for Boundary {
+    fn default() -> Self {
+        Self::CLOSED
+    }
+}
+
+/// The two cells a face separates, `None` outside the box, and whether the
+/// pressure projection changes the face's velocity.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Face {
+    /// Index of the face in its velocity array.
+    pub index: usize,
+    /// The cell on the lower side (left of an x-face, below a y-face).
+    pub lower: Option<usize>,
+    /// The cell on the upper side.
+    pub upper: Option<usize>,
+    /// Whether the face is a degree of freedom of the projection (interior,
+    /// periodic or outflow); closed and inflow faces keep their velocity.
+    pub projected: bool,
+    /// The side the face lies on; `None` inside the box.
+    pub side: Option<Side>,
+    /// On a periodic axis, face `0`'s duplicate (face `N`), which holds a
+    /// copy of its velocity.
+    pub copy: Option<usize>,
+}
+
+/// Calls `visit` for each face of one axis that carries flux, in a fixed
+/// order: all x-faces (`axis = 0`, index `j·(N+1) + i`, row by row) or all
+/// y-faces (`axis = 1`, index `j·N + i`, row by row). A periodic axis's
+/// duplicate face `N` is left out (its velocity is a copy of face `0`, which
+/// wraps from cell `N−1` to cell `0`). Plain loops: the projection calls
+/// this every step.
+#[inline]
+pub fn for_each_face(n: usize, b: &Boundary, axis: usize, mut visit: impl FnMut(Face)) {
+    let (lo, hi) = if axis == 0 { (b.left, b.right) } else { (b.bottom, b.top) };
+    let cell = |along: usize, across: usize| if axis == 0 { across * n + along } else { along * n + across };
+    let index = |k: usize, across: usize| if axis == 0 { across * (n + 1) + k } else { k * n + across };
+    let mut at = |k: usize, across: usize| {
+        if k > 0 && k < n {
+            visit(Face { index: index(k, across), lower: Some(cell(k - 1, across)), upper: Some(cell(k, across)), projected: true, side: None, copy: None });
+        } else if k == 0 {
+            let wrap = lo == Side::Periodic;
+            let lower = wrap.then(|| cell(n - 1, across));
+            let copy = wrap.then(|| index(n, across));
+            visit(Face { index: index(0, across), lower, upper: Some(cell(0, across)), projected: wrap || lo == Side::Outflow, side: Some(lo), copy });
+        } else if hi != Side::Periodic {
+            visit(Face { index: index(n, across), lower: Some(cell(n - 1, across)), upper: None, projected: hi == Side::Outflow, side: Some(hi), copy: None });
+        }
+    };
+    // Row by row in memory: x-faces along a row, y-face rows one after another.
+    for outer in 0..=n {
+        for inner in 0..=n {
+            let (k, across) = if axis == 0 { (inner, outer) } else { (outer, inner) };
+            if across < n {
+                at(k, across);
+            }
+        }
+    }
+}
+
+/// The faces of [`for_each_face`], collected.
+pub fn faces(n: usize, b: &Boundary, axis: usize) -> Vec<Face> {
+    let mut all = Vec::with_capacity(n * (n + 1));
+    for_each_face(n, b, axis, |f| all.push(f));
+    all
+}

@@ -1,0 +1,163 @@
+//! Boundary kinds of the 2D fluid (closed, periodic, inflow with a profile,
+//! outflow): validation, the exact behaviour each promises, and the three
+//! gradient checks of every operator under every kind, with and without an
+//! obstacle.
+
+use diffsim::fluids::{Advect, AdvectUpwind, Force};
+use diffsim::op::OperatorExt;
+use diffsim::problems::smoke::{SmokeAdvect, SmokeAdvectHand, SmokeStep};
+use diffsim_solvers::boundary::{Boundary, BoundaryError, Profile, Side};
+use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d, divergence};
+
+use crate::checks::{assert_passes, smoke_state};
+
+/// One boundary of each kind, and mixtures.
+fn boundaries() -> Vec<Boundary> {
+    vec![
+        Boundary::all(Side::Periodic),
+        Boundary::axes(Side::Periodic, Side::Closed),
+        Boundary { left: Side::Inflow(Profile::Uniform(0.4)), right: Side::Outflow, ..Boundary::CLOSED },
+        Boundary { bottom: Side::Inflow(Profile::Parabolic(0.5)), top: Side::Outflow, ..Boundary::axes(Side::Periodic, Side::Closed) },
+        Boundary { top: Side::Outflow, ..Boundary::CLOSED },
+    ]
+}
+
+#[test]
+fn invalid_boundaries_are_refused_with_the_reason() {
+    assert!(Boundary::CLOSED.validate().is_ok());
+    let half = Boundary { left: Side::Periodic, ..Boundary::CLOSED };
+    assert_eq!(half.validate(), Err(BoundaryError::HalfPeriodic { axis: "x" }));
+    let inflow = Boundary { left: Side::Inflow(Profile::Uniform(1.0)), ..Boundary::CLOSED };
+    assert_eq!(inflow.validate(), Err(BoundaryError::InflowWithoutOutflow));
+    assert!(inflow.validate().unwrap_err().to_string().contains("outflow"));
+    for b in boundaries() {
+        assert!(b.validate().is_ok(), "{b:?}");
+    }
+}
+
+#[test]
+fn faces_list_each_flux_once() {
+    use diffsim_solvers::boundary::{Face, faces};
+    let n = 3;
+    let b = Boundary::axes(Side::Periodic, Side::Outflow);
+    let x: Vec<Face> = faces(n, &b, 0);
+    assert_eq!(x.len(), n * n, "periodic x: N faces per row");
+    assert_eq!((x[0].lower, x[0].upper, x[0].projected, x[0].copy), (Some(2), Some(0), true, Some(3)));
+    let y: Vec<Face> = faces(n, &b, 1);
+    assert_eq!(y.len(), n * (n + 1));
+    assert_eq!((y[0].lower, y[0].upper, y[0].projected), (None, Some(0), true));
+    assert_eq!((y[n * n].index, y[n * n].lower, y[n * n].upper), (n * n, Some(6), None));
+    let closed: Vec<Face> = faces(n, &Boundary::CLOSED, 1);
+    assert!(!closed[0].projected && !closed[1].projected && closed[n].projected);
+}
+
+#[test]
+fn every_operator_passes_all_checks_under_every_boundary() {
+    for b in boundaries() {
+        for n in [5, 8] {
+            let cfg = Smoke2d::p2(n).with_boundary(b);
+            let x = smoke_state(&cfg, 90 + n as u64);
+            let name = |op: &str| format!("{op} n={n} {b:?}");
+            assert_passes(&name("SmokeAdvect"), &SmokeAdvect(cfg), &x, &[]);
+            assert_passes(&name("SmokeStep"), &SmokeStep::new(cfg, 1e-13, 4000, Preconditioner::None), &x, &[]);
+            let solid: Vec<bool> = (0..n * n).map(|c| (2..4).contains(&(c % n)) && (2..4).contains(&(c / n))).collect();
+            assert_passes(&name("SmokeStep with obstacle"), &SmokeStep::with_obstacles(cfg, 1e-13, 4000, &solid), &x, &[]);
+            assert_passes(&name("MacCormack"), &Advect::new(cfg, Scheme::MacCormack { limiter: false }), &x, &[]);
+            assert_passes(&name("semi-Lagrangian dt 0.7"), &Advect { dt: 0.7, ..Advect::new(cfg, Scheme::SemiLagrangian) }, &x, &[]);
+            assert_passes(&name("upwind"), &AdvectUpwind { cfg, dt: 0.4 }, &x, &[]);
+            let f = crate::checks::state(2 * cfg.n_u(), 7);
+            assert_passes(&name("force"), &Force { cfg, dt: 0.5 }, &x, &f);
+        }
+    }
+}
+
+#[test]
+fn the_hand_adjoint_matches_enzyme_under_every_boundary() {
+    use diffsim::check::{CheckOptions, dot_product_between};
+    for b in boundaries() {
+        let cfg = Smoke2d::p2(7).with_boundary(b);
+        let x = smoke_state(&cfg, 3);
+        let r = dot_product_between(&SmokeAdvect(cfg), &SmokeAdvectHand(cfg), &x, &[], &CheckOptions { tol: 1e-12, ..Default::default() });
+        assert!(r.verdict.passed(), "{b:?}: {r}");
+    }
+}
+
+#[test]
+fn periodic_advection_wraps_exactly() {
+    // A velocity of exactly one cell per step moves every value one cell,
+    // the last onto the first.
+    let n = 6;
+    let cfg = Smoke2d::p2(n).with_boundary(Boundary::all(Side::Periodic));
+    let mut x = vec![0.0; cfg.n_state()];
+    for (k, s) in x[..cfg.n_s()].iter_mut().enumerate() {
+        *s = k as f64;
+    }
+    let (us, vs) = (cfg.n_s(), cfg.n_s() + cfg.n_u());
+    x[us..vs].fill(1.0);
+    x[vs..].fill(-1.0);
+    for scheme in [Scheme::SemiLagrangian, Scheme::MacCormack { limiter: true }] {
+        let y = Advect { velocity: false, ..Advect::new(cfg, scheme) }.eval(&x, &[]);
+        for j in 0..n {
+            for i in 0..n {
+                let from = ((j + 1) % n) * n + (i + n - 1) % n;
+                assert!((y[j * n + i] - x[from]).abs() < 1e-12, "{scheme:?} ({i},{j}): {} vs {}", y[j * n + i], x[from]);
+            }
+        }
+    }
+    // Upwind conserves the mass through the periodic faces.
+    let y = AdvectUpwind { cfg, dt: 0.3 }.eval(&x, &[]);
+    let mass = |v: &[f64]| v[..cfg.n_s()].iter().sum::<f64>();
+    assert!((mass(&y) - mass(&x)).abs() < 1e-12 * mass(&x));
+}
+
+#[test]
+fn a_channel_with_uniform_inflow_carries_it_through_after_one_projection() {
+    // Uniform inflow on the left, outflow on the right, closed walls: the
+    // only divergence-free field with these boundary values is the uniform
+    // one, so one step from rest gives it everywhere.
+    let (n, speed) = (10, 0.6);
+    let b = Boundary { left: Side::Inflow(Profile::Uniform(speed)), right: Side::Outflow, ..Boundary::CLOSED };
+    let cfg = Smoke2d { buoyancy: 0.0, ..Smoke2d::p2(n).with_boundary(b) };
+    let step = SmokeStep::new(cfg, 1e-12, 2000, Preconditioner::None);
+    let y = step.eval(&vec![0.0; cfg.n_state()], &[]);
+    let (_, u, v) = cfg.split(&y);
+    assert!(u.iter().all(|&w| (w - speed).abs() < 1e-9), "u: {:?}", &u[..n + 1]);
+    assert!(v.iter().all(|&w| w.abs() < 1e-9));
+}
+
+#[test]
+fn projection_leaves_no_divergence_under_every_boundary() {
+    for b in boundaries() {
+        let n = 12;
+        let cfg = Smoke2d::p2(n).with_boundary(b);
+        let solid: Vec<bool> = (0..n * n).map(|c| (4..7).contains(&(c % n)) && (5..7).contains(&(c / n))).collect();
+        let step = SmokeStep::with_obstacles(cfg, 1e-12, 4000, &solid);
+        let mut x = smoke_state(&cfg, 5);
+        for _ in 0..3 {
+            x = step.eval(&x, &[]);
+        }
+        let (_, u, v) = cfg.split(&x);
+        let mut d = vec![0.0; n * n];
+        divergence(&cfg, u, v, &mut d);
+        let worst = d.iter().zip(&solid).filter(|(_, s)| !**s).map(|(d, _)| d.abs()).fold(0.0, f64::max);
+        assert!(worst < 1e-9, "{b:?}: divergence {worst:e}");
+        if b.periodic_x() {
+            assert!((0..n).all(|j| u[j * (n + 1)] == u[j * (n + 1) + n]), "periodic copy");
+        }
+    }
+}
+
+#[test]
+fn smoke_leaves_through_an_outflow_side() {
+    // Upwind flux out of the top: the mass drops by exactly what crossed it.
+    let n = 6;
+    let cfg = Smoke2d::p2(n).with_boundary(Boundary { top: Side::Outflow, ..Boundary::CLOSED });
+    let mut x = vec![0.0; cfg.n_state()];
+    x[..cfg.n_s()].fill(1.0);
+    let vs = cfg.n_s() + cfg.n_u();
+    x[vs..].fill(0.5);
+    let y = AdvectUpwind { cfg, dt: 0.2 }.eval(&x, &[]);
+    let mass = |v: &[f64]| v[..cfg.n_s()].iter().sum::<f64>();
+    // Through the bottom: closed; through the top: n faces × 0.5 × 0.2 × 1.
+    assert!((mass(&x) - mass(&y) - n as f64 * 0.1).abs() < 1e-12, "{} → {}", mass(&x), mass(&y));
+}
