@@ -8,35 +8,40 @@
 
 use std::cell::{Cell, RefCell};
 
-use diffsim_solvers::diffusion::{self, EXPLICIT_LIMIT, ImplicitSolver};
-use diffsim_solvers::smoke::{self, NoConvergence, Scheme, Smoke2d, apply_pressure_matrix};
+use diffsim_solvers::diffusion::{self, EXPLICIT_LIMIT, Grid, ImplicitSolver, laplacian};
+use diffsim_solvers::smoke::{self, NoConvergence, Scheme, Smoke2d};
 
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
-/// Explicit diffusion of a cell-centred scalar, `s' = s − κ·A·s`, with the
-/// parameter `p = [κ]` (κ = ν·dt). Derivatives by Enzyme, with respect to
-/// `s` and κ. A κ beyond the stability limit 1/4 is reported through
-/// [`Forward::take_error`] (the step is still computed).
+/// Explicit diffusion of a field on a lattice ([`Grid`]), `s' = s − κ·A·s`,
+/// with the parameter `p = [κ]` (κ = ν·dt). Derivatives by Enzyme, with
+/// respect to `s` and κ. A κ beyond the stability limit 1/4 is reported
+/// through [`Forward::take_error`] (the step is still computed).
 #[derive(Debug)]
 pub struct DiffuseExplicit {
-    /// Cells per side.
-    pub n: usize,
+    /// The lattice.
+    pub grid: Grid,
     unstable: Cell<Option<f64>>,
 }
 
 impl DiffuseExplicit {
-    /// Explicit diffusion on an `n × n` box.
+    /// Explicit diffusion of the cells of the closed `n × n` box.
     pub fn new(n: usize) -> Self {
-        Self { n, unstable: Cell::new(None) }
+        Self::on(Grid::square(n))
+    }
+
+    /// Explicit diffusion on the lattice `grid`.
+    pub fn on(grid: Grid) -> Self {
+        Self { grid, unstable: Cell::new(None) }
     }
 }
 
 impl Operator for DiffuseExplicit {
     fn n_in(&self) -> usize {
-        self.n * self.n
+        self.grid.len()
     }
     fn n_out(&self) -> usize {
-        self.n * self.n
+        self.grid.len()
     }
     fn n_params(&self) -> usize {
         1
@@ -46,15 +51,15 @@ impl Operator for DiffuseExplicit {
 /// Plain data for Enzyme (the `Cell` of [`DiffuseExplicit`] stays outside).
 #[derive(Clone, Copy, Debug)]
 struct ExplicitMap {
-    n: usize,
+    grid: Grid,
 }
 
 impl Operator for ExplicitMap {
     fn n_in(&self) -> usize {
-        self.n * self.n
+        self.grid.len()
     }
     fn n_out(&self) -> usize {
-        self.n * self.n
+        self.grid.len()
     }
     fn n_params(&self) -> usize {
         1
@@ -62,7 +67,7 @@ impl Operator for ExplicitMap {
 }
 
 fn diffuse_explicit(op: &ExplicitMap, x: &[f64], p: &[f64], y: &mut [f64]) {
-    diffusion::explicit(op.n, p[0], x, y)
+    diffusion::explicit(&op.grid, p[0], x, y)
 }
 
 crate::differentiable!(ExplicitMap => diffuse_explicit);
@@ -73,7 +78,7 @@ impl Forward for DiffuseExplicit {
         if p[0] > EXPLICIT_LIMIT && self.unstable.get().is_none() {
             self.unstable.set(Some(p[0]));
         }
-        ExplicitMap { n: self.n }.forward(x, p, y)
+        ExplicitMap { grid: self.grid }.forward(x, p, y)
     }
 
     fn take_error(&self) -> Option<OpError> {
@@ -83,37 +88,43 @@ impl Forward for DiffuseExplicit {
 
 impl Vjp for DiffuseExplicit {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
-        ExplicitMap { n: self.n }.vjp(x, p, dy, dx, dp)
+        ExplicitMap { grid: self.grid }.vjp(x, p, dy, dx, dp)
     }
 }
 
 impl Jvp for DiffuseExplicit {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
-        ExplicitMap { n: self.n }.jvp(x, p, tx, tp, y, ty)
+        ExplicitMap { grid: self.grid }.jvp(x, p, tx, tp, y, ty)
     }
 }
 
-/// Implicit diffusion, `(I + κ·A)·s' = s`, parameter `p = [κ]`, solved by
-/// conjugate gradients to a relative tolerance. The VJP is the same solve
-/// (the matrix is symmetric): with `M·λ = ḡ`, `x̄ += λ` and
-/// `κ̄ += −λᵀ·A·s'`. A solve that does not converge is reported through
-/// [`Forward::take_error`].
+/// Implicit diffusion on a lattice ([`Grid`]), `(I + κ·A)·s' = s`,
+/// parameter `p = [κ]`, solved by conjugate gradients to a relative
+/// tolerance. The VJP is the same solve (the matrix is symmetric): with
+/// `M·λ = ḡ`, `x̄ += λ` and `κ̄ += −λᵀ·A·s'`. A solve that does not
+/// converge is reported through [`Forward::take_error`].
 #[derive(Debug)]
 pub struct DiffuseImplicit {
-    n: usize,
+    grid: Grid,
     solver: RefCell<ImplicitSolver>,
     scratch: RefCell<(Vec<f64>, Vec<f64>)>,
     error: Cell<Option<NoConvergence>>,
 }
 
 impl DiffuseImplicit {
-    /// Implicit diffusion on an `n × n` box, solves to relative `tolerance`,
-    /// at most `max_iterations` iterations.
+    /// Implicit diffusion of the cells of the closed `n × n` box, solves to
+    /// relative `tolerance`, at most `max_iterations` iterations.
     pub fn new(n: usize, tolerance: f64, max_iterations: usize) -> Self {
+        Self::on(Grid::square(n), tolerance, max_iterations)
+    }
+
+    /// Implicit diffusion on the lattice `grid`.
+    pub fn on(grid: Grid, tolerance: f64, max_iterations: usize) -> Self {
+        let len = grid.len();
         Self {
-            n,
-            solver: RefCell::new(ImplicitSolver::new(n, tolerance, max_iterations)),
-            scratch: RefCell::new((vec![0.0; n * n], vec![0.0; n * n])),
+            grid,
+            solver: RefCell::new(ImplicitSolver::new(grid, tolerance, max_iterations)),
+            scratch: RefCell::new((vec![0.0; len], vec![0.0; len])),
             error: Cell::new(None),
         }
     }
@@ -129,10 +140,10 @@ impl DiffuseImplicit {
 
 impl Operator for DiffuseImplicit {
     fn n_in(&self) -> usize {
-        self.n * self.n
+        self.grid.len()
     }
     fn n_out(&self) -> usize {
-        self.n * self.n
+        self.grid.len()
     }
     fn n_params(&self) -> usize {
         1
@@ -161,7 +172,7 @@ impl Vjp for DiffuseImplicit {
         }
         // κ̄ = −λᵀ·A·y with y = M⁻¹·x (recomputed: the VJP gets only x).
         self.solve(p[0], x, y);
-        apply_pressure_matrix(self.n, y, dy);
+        laplacian(&self.grid, y, dy);
         dp[0] -= lam.iter().zip(dy.iter()).map(|(a, b)| a * b).sum::<f64>();
         dy.fill(0.0);
     }
@@ -174,11 +185,125 @@ impl Jvp for DiffuseImplicit {
         // M·ṫ = ẋ − κ̇·A·y.
         let mut guard = self.scratch.borrow_mut();
         let (rhs, _) = &mut *guard;
-        apply_pressure_matrix(self.n, y, rhs);
+        laplacian(&self.grid, y, rhs);
         for (r, &t) in rhs.iter_mut().zip(tx) {
             *r = t - tp[0] * *r;
         }
         self.solve(p[0], rhs, ty);
+    }
+}
+
+/// Diffusion of the chosen fields of a packed `[s, u, v]` state, each on its
+/// own lattice ([`Grid::of_state`]) with one coefficient `p = [κ]`: smoke
+/// diffusion, viscosity, or both. `D` is [`DiffuseExplicit`] or
+/// [`DiffuseImplicit`]; the velocity boundary conditions are applied after.
+/// Fields not chosen pass through.
+#[derive(Debug)]
+pub struct Diffuse<D> {
+    cfg: Smoke2d,
+    smoke: Option<D>,
+    u: Option<D>,
+    v: Option<D>,
+}
+
+impl Diffuse<DiffuseExplicit> {
+    /// Explicit diffusion of the smoke and/or the velocity.
+    pub fn explicit(cfg: Smoke2d, smoke: bool, velocity: bool) -> Self {
+        let [gs, gu, gv] = Grid::of_state(&cfg);
+        Self { cfg, smoke: smoke.then(|| DiffuseExplicit::on(gs)), u: velocity.then(|| DiffuseExplicit::on(gu)), v: velocity.then(|| DiffuseExplicit::on(gv)) }
+    }
+}
+
+impl Diffuse<DiffuseImplicit> {
+    /// Implicit diffusion of the smoke and/or the velocity, each solve to
+    /// relative `tolerance` in at most `max_iterations` iterations.
+    pub fn implicit(cfg: Smoke2d, smoke: bool, velocity: bool, tolerance: f64, max_iterations: usize) -> Self {
+        let [gs, gu, gv] = Grid::of_state(&cfg);
+        let op = |g| DiffuseImplicit::on(g, tolerance, max_iterations);
+        Self { cfg, smoke: smoke.then(|| op(gs)), u: velocity.then(|| op(gu)), v: velocity.then(|| op(gv)) }
+    }
+}
+
+impl<D> Diffuse<D> {
+    /// The fields with their place in the state: `(start, operator)`.
+    fn parts(&self) -> [(usize, Option<&D>); 3] {
+        let (ns, nu) = (self.cfg.n_s(), self.cfg.n_u());
+        [(0, self.smoke.as_ref()), (ns, self.u.as_ref()), (ns + nu, self.v.as_ref())]
+    }
+}
+
+impl<D> Operator for Diffuse<D> {
+    fn n_in(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_out(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_params(&self) -> usize {
+        1
+    }
+}
+
+impl<D: Forward> Forward for Diffuse<D> {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "Diffuse", x, p, y);
+        y.copy_from_slice(x);
+        for (start, op) in self.parts() {
+            if let Some(op) = op {
+                let r = start..start + op.n_in();
+                op.forward(&x[r.clone()], p, &mut y[r]);
+            }
+        }
+        if self.u.is_some() {
+            let (_, u, v) = self.cfg.split_mut(y);
+            smoke::enforce_boundary(&self.cfg, u, v);
+        }
+    }
+
+    fn take_error(&self) -> Option<OpError> {
+        self.parts().into_iter().filter_map(|(_, op)| op.and_then(Forward::take_error)).next()
+    }
+}
+
+impl<D: Vjp> Vjp for Diffuse<D> {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "Diffuse", x, p, dy, dx, dp);
+        if self.u.is_some() {
+            let (_, gu, gv) = self.cfg.split_mut(dy);
+            smoke::enforce_boundary_adjoint(&self.cfg, gu, gv);
+        }
+        for (start, op) in self.parts() {
+            if let Some(op) = op {
+                let r = start..start + op.n_in();
+                op.vjp(&x[r.clone()], p, &mut dy[r.clone()], &mut dx[r.clone()], dp);
+                dy[r].fill(0.0);
+            }
+        }
+        // What was not diffused passes through.
+        for (d, g) in dx.iter_mut().zip(dy.iter_mut()) {
+            *d += *g;
+            *g = 0.0;
+        }
+    }
+}
+
+impl<D: Jvp> Jvp for Diffuse<D> {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        validate_jvp(self, "Diffuse", x, p, tx, tp, y, ty);
+        y.copy_from_slice(x);
+        ty.copy_from_slice(tx);
+        for (start, op) in self.parts() {
+            if let Some(op) = op {
+                let r = start..start + op.n_in();
+                op.jvp(&x[r.clone()], p, &tx[r.clone()], tp, &mut y[r.clone()], &mut ty[r]);
+            }
+        }
+        if self.u.is_some() {
+            let (_, u, v) = self.cfg.split_mut(y);
+            smoke::enforce_boundary(&self.cfg, u, v);
+            let (_, tu, tv) = self.cfg.split_mut(ty);
+            smoke::enforce_boundary_linear(&self.cfg, tu, tv);
+        }
     }
 }
 

@@ -3,7 +3,7 @@
 //! gradient checks of every operator under every kind, with and without an
 //! obstacle.
 
-use diffsim::fluids::{Advect, AdvectUpwind, Force};
+use diffsim::fluids::{Advect, AdvectUpwind, Diffuse, Force};
 use diffsim::op::OperatorExt;
 use diffsim::problems::smoke::{SmokeAdvect, SmokeAdvectHand, SmokeStep};
 use diffsim_solvers::boundary::{Boundary, BoundaryError, Profile, Side};
@@ -67,6 +67,8 @@ fn every_operator_passes_all_checks_under_every_boundary() {
             assert_passes(&name("upwind"), &AdvectUpwind { cfg, dt: 0.4 }, &x, &[]);
             let f = crate::checks::state(2 * cfg.n_u(), 7);
             assert_passes(&name("force"), &Force { cfg, dt: 0.5 }, &x, &f);
+            assert_passes(&name("explicit diffusion and viscosity"), &Diffuse::explicit(cfg, true, true), &x, &[0.2]);
+            assert_passes(&name("implicit viscosity"), &Diffuse::implicit(cfg, false, true, 1e-13, 2000), &x, &[1.5]);
         }
     }
 }
@@ -160,4 +162,29 @@ fn smoke_leaves_through_an_outflow_side() {
     let mass = |v: &[f64]| v[..cfg.n_s()].iter().sum::<f64>();
     // Through the bottom: closed; through the top: n faces × 0.5 × 0.2 × 1.
     assert!((mass(&x) - mass(&y) - n as f64 * 0.1).abs() < 1e-12, "{} → {}", mass(&x), mass(&y));
+}
+
+#[test]
+fn diffusion_on_a_periodic_box_conserves_mass_and_momentum() {
+    let n = 8;
+    let cfg = Smoke2d::p2(n).with_boundary(Boundary::all(Side::Periodic));
+    let x = smoke_state(&cfg, 17);
+    let ns = cfg.n_s();
+    // Sums over the samples (a periodic axis's copy faces left out).
+    let sums = |y: &[f64]| {
+        let (s, u, v) = cfg.split(y);
+        let su: f64 = (0..n).map(|j| u[j * (n + 1)..j * (n + 1) + n].iter().sum::<f64>()).sum();
+        (s.iter().sum::<f64>(), su, v[..n * n].iter().sum::<f64>())
+    };
+    let before = sums(&x);
+    for y in [Diffuse::explicit(cfg, true, true).eval(&x, &[0.2]), Diffuse::implicit(cfg, true, true, 1e-13, 2000).eval(&x, &[3.0])] {
+        let after = sums(&y);
+        for (a, b) in [(before.0, after.0), (before.1, after.1), (before.2, after.2)] {
+            assert!((a - b).abs() < 1e-10, "{a} → {b}");
+        }
+        // It smooths: the smoke's spread shrinks.
+        let spread = |v: &[f64]| v.iter().fold(0.0f64, |m, &a| m.max(a)) - v.iter().fold(1.0f64, |m, &a| m.min(a));
+        assert!(spread(&y[..ns]) < spread(&x[..ns]));
+        assert_eq!(y[ns + n], y[ns], "periodic copy refreshed");
+    }
 }

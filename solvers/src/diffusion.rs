@@ -1,15 +1,106 @@
-//! Diffusion of a cell-centred scalar on an `n × n` closed box (no flux
-//! through the walls), unit cells: explicit (forward Euler) and implicit
-//! (backward Euler, solved by conjugate gradients).
+//! Diffusion of a field sampled on a lattice ([`Grid`]: the cell centres of
+//! the box, or one velocity component's faces), unit spacing, no flux
+//! through the lattice's edges or wrapping around a periodic axis: explicit
+//! (forward Euler) and implicit (backward Euler, solved by conjugate
+//! gradients). Smoke diffusion and viscosity are both this.
 //!
-//! With `A` the closed-box matrix of [`crate::smoke::apply_pressure_matrix`]
-//! (`A ≈ −Δ` on unit cells) and `κ = ν·dt`:
+//! With `A` the lattice's matrix of [`laplacian`] (`A ≈ −Δ` on unit
+//! spacing; for the closed box of cells that of
+//! [`crate::smoke::apply_pressure_matrix`]) and `κ = ν·dt`:
 //! - explicit: `s' = s − κ·A·s`, stable for `κ ≤ 1/4` (the largest eigenvalue
 //!   of `A` is below 8);
 //! - implicit: `(I + κ·A)·s' = s`, stable for every `κ ≥ 0`. The matrix is
 //!   symmetric positive definite, so its adjoint is the same solve.
 
-use crate::smoke::{NoConvergence, apply_pressure_matrix};
+use crate::smoke::{NoConvergence, Smoke2d, apply_pressure_matrix};
+
+/// A lattice of `nx × ny` samples at `f[l·stride + k]` in a slice of
+/// [`Grid::len`] values; on a wrapping axis the lattice is periodic, on the
+/// others no flux leaves it. Entries of the slice that are not samples (a
+/// periodic velocity's copy column or row) do not diffuse.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Grid {
+    /// Distance between rows in the slice.
+    pub stride: usize,
+    /// Samples per row.
+    pub nx: usize,
+    /// Rows.
+    pub ny: usize,
+    /// The x axis wraps.
+    pub wrap_x: bool,
+    /// The y axis wraps.
+    pub wrap_y: bool,
+}
+
+impl Grid {
+    /// The cells of the closed `n × n` box.
+    pub fn square(n: usize) -> Self {
+        Self { stride: n, nx: n, ny: n, wrap_x: false, wrap_y: false }
+    }
+
+    /// The three lattices of a smoke state `[s, u, v]` for `cfg`'s boundary:
+    /// cell centres, x-faces, y-faces (a periodic axis's copy faces left out).
+    pub fn of_state(cfg: &Smoke2d) -> [Grid; 3] {
+        let (n, wx, wy) = (cfg.n, cfg.boundary.periodic_x(), cfg.boundary.periodic_y());
+        [
+            Grid { stride: n, nx: n, ny: n, wrap_x: wx, wrap_y: wy },
+            Grid { stride: n + 1, nx: if wx { n } else { n + 1 }, ny: n, wrap_x: wx, wrap_y: wy },
+            Grid { stride: n, nx: n, ny: if wy { n } else { n + 1 }, wrap_x: wx, wrap_y: wy },
+        ]
+    }
+
+    /// Length of the slice holding the field.
+    pub fn len(&self) -> usize {
+        if self.stride == self.nx { self.nx * self.ny } else { self.stride * self.ny }
+    }
+
+    /// Whether the lattice has no samples.
+    pub fn is_empty(&self) -> bool {
+        self.nx == 0 || self.ny == 0
+    }
+}
+
+/// `out = A·s` for the lattice `g` (overwrites `out`): `(A·s)_c = Σ_m (s_c −
+/// s_m)` over the neighbours `m` of sample `c` on the lattice (wrapped on a
+/// periodic axis); zero at slice entries that are not samples. Symmetric
+/// positive semi-definite.
+pub fn laplacian(g: &Grid, s: &[f64], out: &mut [f64]) {
+    if !g.wrap_x && !g.wrap_y && g.stride == g.nx && g.nx == g.ny {
+        return apply_pressure_matrix(g.nx, s, out);
+    }
+    for o in out.iter_mut() {
+        *o = 0.0;
+    }
+    let (nx, ny, st) = (g.nx, g.ny, g.stride);
+    for l in 0..ny {
+        for k in 0..nx {
+            let c = l * st + k;
+            let sc = s[c];
+            let mut acc = 0.0;
+            if k > 0 {
+                acc += sc - s[c - 1];
+            } else if g.wrap_x {
+                acc += sc - s[c + nx - 1];
+            }
+            if k + 1 < nx {
+                acc += sc - s[c + 1];
+            } else if g.wrap_x {
+                acc += sc - s[l * st];
+            }
+            if l > 0 {
+                acc += sc - s[c - st];
+            } else if g.wrap_y {
+                acc += sc - s[(ny - 1) * st + k];
+            }
+            if l + 1 < ny {
+                acc += sc - s[c + st];
+            } else if g.wrap_y {
+                acc += sc - s[k];
+            }
+            out[c] = acc;
+        }
+    }
+}
 
 /// Largest stable `κ = ν·dt` of the explicit scheme on unit cells.
 pub const EXPLICIT_LIMIT: f64 = 0.25;
@@ -18,8 +109,8 @@ pub const EXPLICIT_LIMIT: f64 = 0.25;
 /// rescales in place; Enzyme differentiates this correctly with the output
 /// declared `Duplicated`, as diffsim's macros do (tests/user_op.rs keeps
 /// that shape under the checks).
-pub fn explicit(n: usize, kappa: f64, s: &[f64], out: &mut [f64]) {
-    apply_pressure_matrix(n, s, out);
+pub fn explicit(g: &Grid, kappa: f64, s: &[f64], out: &mut [f64]) {
+    laplacian(g, s, out);
     for (o, &v) in out.iter_mut().zip(s) {
         *o = v - kappa * *o;
     }
@@ -28,7 +119,7 @@ pub fn explicit(n: usize, kappa: f64, s: &[f64], out: &mut [f64]) {
 /// Conjugate gradients for `(I + κ·A)·x = b` with reusable buffers.
 #[derive(Clone, Debug)]
 pub struct ImplicitSolver {
-    n: usize,
+    grid: Grid,
     /// Relative tolerance on the true residual.
     pub tolerance: f64,
     /// More iterations than this is an error.
@@ -39,22 +130,22 @@ pub struct ImplicitSolver {
 }
 
 impl ImplicitSolver {
-    /// A solver for the `n × n` box.
-    pub fn new(n: usize, tolerance: f64, max_iterations: usize) -> Self {
-        let z = vec![0.0; n * n];
-        Self { n, tolerance, max_iterations, r: z.clone(), d: z.clone(), q: z }
+    /// A solver for the lattice `grid`.
+    pub fn new(grid: Grid, tolerance: f64, max_iterations: usize) -> Self {
+        let z = vec![0.0; grid.len()];
+        Self { grid, tolerance, max_iterations, r: z.clone(), d: z.clone(), q: z }
     }
 
     /// `out = (I + κ·A)·x`: the explicit step with `−κ`.
-    fn apply(n: usize, kappa: f64, x: &[f64], out: &mut [f64]) {
-        explicit(n, -kappa, x, out)
+    fn apply(g: &Grid, kappa: f64, x: &[f64], out: &mut [f64]) {
+        explicit(g, -kappa, x, out)
     }
 
     /// Solves `(I + κ·A)·x = b`, starting from `x = b` (a good guess for
     /// small `κ`), until `‖b − M·x‖ ≤ tol·‖b‖` on the true residual;
     /// overwrites `x`. Returns the iterations.
     pub fn solve(&mut self, kappa: f64, b: &[f64], x: &mut [f64]) -> Result<usize, NoConvergence> {
-        let n = self.n;
+        let g = self.grid;
         let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
         let bnorm = dot(b, b).sqrt();
         x.copy_from_slice(b);
@@ -63,7 +154,7 @@ impl ImplicitSolver {
         }
         let target = self.tolerance * bnorm;
         let residual = |x: &[f64], r: &mut [f64], q: &mut [f64]| {
-            Self::apply(n, kappa, x, q);
+            Self::apply(&g, kappa, x, q);
             for ((r, &bv), &qv) in r.iter_mut().zip(b).zip(q.iter()) {
                 *r = bv - qv;
             }
@@ -84,7 +175,7 @@ impl ImplicitSolver {
             if it >= self.max_iterations || !rr.is_finite() {
                 return Err(NoConvergence { iterations: it, relative_residual: rr.sqrt() / bnorm, tolerance: self.tolerance });
             }
-            Self::apply(n, kappa, &self.d, &mut self.q);
+            Self::apply(&g, kappa, &self.d, &mut self.q);
             let alpha = rr / dot(&self.d, &self.q);
             for ((xv, &dv), (r, &qv)) in x.iter_mut().zip(&self.d).zip(self.r.iter_mut().zip(&self.q)) {
                 *xv += alpha * dv;

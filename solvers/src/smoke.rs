@@ -509,9 +509,19 @@ pub fn enforce_boundary(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
     }
 }
 
-/// Adjoint of [`enforce_boundary`] on the velocity adjoint, in place: set
-/// faces pass nothing back, copies pass theirs to the original.
-fn enforce_boundary_adjoint(cfg: &Smoke2d, gu: &mut [f64], gv: &mut [f64]) {
+/// The linear part of [`enforce_boundary`] (inflow faces set to 0, not to
+/// the profile), for tangents: closed and inflow faces 0, periodic copies.
+pub fn enforce_boundary_linear(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
+    let homogeneous = |s: Side| if let Side::Inflow(_) = s { Side::Closed } else { s };
+    let b = cfg.boundary;
+    let linear = Boundary { left: homogeneous(b.left), right: homogeneous(b.right), bottom: homogeneous(b.bottom), top: homogeneous(b.top) };
+    enforce_boundary(&cfg.with_boundary(linear), u, v);
+}
+
+/// Adjoint of [`enforce_boundary`] (of its linear part) on the velocity
+/// adjoint, in place: set faces pass nothing back, copies pass theirs to the
+/// original.
+pub fn enforce_boundary_adjoint(cfg: &Smoke2d, gu: &mut [f64], gv: &mut [f64]) {
     let n = cfg.n;
     let nu = n + 1;
     let b = &cfg.boundary;
