@@ -8,8 +8,9 @@
 
 use std::cell::{Cell, RefCell};
 
+use diffsim_solvers::boundary::Boundary;
 use diffsim_solvers::diffusion::{self, EXPLICIT_LIMIT, Grid, ImplicitSolver, laplacian};
-use diffsim_solvers::smoke::{self, NoConvergence, Scheme, Smoke2d};
+use diffsim_solvers::smoke::{self, NoConvergence, Preconditioner, PressureSolver, ProjectScratch, Scheme, Smoke2d};
 
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
@@ -440,3 +441,171 @@ fn inflow(op: &Inflow, x: &[f64], p: &[f64], y: &mut [f64]) {
 }
 
 crate::differentiable!(Inflow => inflow);
+
+/// The pressure projection of a packed `[s, u, v]` state as an operator
+/// (linear): with obstacles, the obstacle mask (smoke in solids and velocity
+/// on faces touching them zeroed), then `(u, v) −= G·A⁻¹·(−D·(u, v))` by
+/// preconditioned CG to a relative tolerance on the true residual
+/// ([`smoke::project`]). The VJP is the implicit adjoint: one solve with the
+/// transposed (same) matrix to the same tolerance, never a pass through the
+/// iterations. A solve that does not converge is recorded and reported
+/// through [`Forward::take_error`].
+#[derive(Debug)]
+pub struct Project {
+    cfg: Smoke2d,
+    /// Fluid indicator per cell when there are obstacles.
+    fluid: Option<Vec<f64>>,
+    solver: RefCell<PressureSolver>,
+    scratch: RefCell<ProjectScratch>,
+    error: Cell<Option<NoConvergence>>,
+    /// CG iterations of all forward (and JVP) solves so far.
+    pub cg_forward: Cell<usize>,
+    /// CG iterations of all adjoint solves so far.
+    pub cg_adjoint: Cell<usize>,
+}
+
+impl Project {
+    /// The projection for `cfg` with solves to relative `tolerance` in at
+    /// most `max_iterations` iterations, preconditioned by `precond` in the
+    /// closed box (other boundaries use plain CG, see [`PressureSolver`]).
+    ///
+    /// # Panics
+    /// If `cfg.boundary` does not [validate](diffsim_solvers::boundary::Boundary::validate).
+    pub fn new(cfg: Smoke2d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
+        if let Err(e) = cfg.boundary.validate() {
+            panic!("{e}");
+        }
+        let solver = if cfg.boundary == Boundary::CLOSED {
+            PressureSolver::new(cfg.n, tolerance, max_iterations, precond)
+        } else {
+            PressureSolver::general(cfg.n, cfg.boundary, tolerance, max_iterations, None)
+        };
+        Self {
+            cfg,
+            fluid: None,
+            solver: RefCell::new(solver),
+            scratch: RefCell::new(ProjectScratch::new(cfg.n)),
+            error: Cell::new(None),
+            cg_forward: Cell::new(0),
+            cg_adjoint: Cell::new(0),
+        }
+    }
+
+    /// The projection with solid cells where `solid[c]` is true: the
+    /// obstacle mask first, then a solve that couples fluid cells only
+    /// (unpreconditioned CG).
+    pub fn with_obstacles(cfg: Smoke2d, tolerance: f64, max_iterations: usize, solid: &[bool]) -> Self {
+        let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
+        let mut op = Self::new(cfg, tolerance, max_iterations, Preconditioner::None);
+        op.solver = RefCell::new(PressureSolver::general(cfg.n, cfg.boundary, tolerance, max_iterations, Some(fluid.clone())));
+        op.fluid = Some(fluid);
+        op
+    }
+
+    /// The preconditioner of the solves.
+    pub fn preconditioner(&self) -> Preconditioner {
+        self.solver.borrow().preconditioner()
+    }
+
+    fn record(&self, r: Result<usize, NoConvergence>, counter: &Cell<usize>) {
+        match r {
+            Ok(it) => counter.set(counter.get() + it),
+            Err(e) => {
+                counter.set(counter.get() + e.iterations);
+                if self.error.get().is_none() {
+                    self.error.set(Some(e));
+                }
+            }
+        }
+    }
+
+    /// The map in place on a packed state (or tangent).
+    pub fn apply(&self, y: &mut [f64]) {
+        if let Some(w) = &self.fluid {
+            smoke::apply_obstacle_mask(&self.cfg, w, y);
+        }
+        let r = smoke::project(&self.cfg, y, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
+        self.record(r, &self.cg_forward);
+    }
+
+    /// The transposed map in place on an adjoint.
+    pub fn apply_adjoint(&self, g: &mut [f64]) {
+        let r = smoke::project_adjoint(&self.cfg, g, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
+        self.record(r, &self.cg_adjoint);
+        if let Some(w) = &self.fluid {
+            smoke::apply_obstacle_mask(&self.cfg, w, g);
+        }
+    }
+}
+
+impl Operator for Project {
+    fn n_in(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_out(&self) -> usize {
+        self.cfg.n_state()
+    }
+}
+
+impl Forward for Project {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "Project", x, p, y);
+        y.copy_from_slice(x);
+        self.apply(y);
+    }
+
+    fn take_error(&self) -> Option<OpError> {
+        self.error.take().map(OpError::from)
+    }
+}
+
+impl Vjp for Project {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "Project", x, p, dy, dx, dp);
+        self.apply_adjoint(dy);
+        for (d, g) in dx.iter_mut().zip(dy.iter_mut()) {
+            *d += *g;
+            *g = 0.0;
+        }
+    }
+}
+
+impl Jvp for Project {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        validate_jvp(self, "Project", x, p, tx, tp, y, ty);
+        y.copy_from_slice(x);
+        self.apply(y);
+        ty.copy_from_slice(tx);
+        self.apply(ty);
+    }
+}
+
+/// Buoyancy over a time step `dt` with the coefficient as the parameter
+/// `p = [b]`: `v += dt·b·(smoke averaged to the y-face)` on the interior y-faces (and the
+/// wrapping ones of a periodic y axis). Derivatives by Enzyme, with respect
+/// to the state and to `b`.
+#[derive(Clone, Copy, Debug)]
+pub struct Buoyancy {
+    /// The grid.
+    pub cfg: Smoke2d,
+    /// Time step.
+    pub dt: f64,
+}
+
+impl Operator for Buoyancy {
+    fn n_in(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_out(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_params(&self) -> usize {
+        1
+    }
+}
+
+fn buoyancy(op: &Buoyancy, x: &[f64], p: &[f64], y: &mut [f64]) {
+    smoke::apply_buoyancy(&op.cfg, op.dt * p[0], x, y)
+}
+
+crate::differentiable!(Buoyancy => buoyancy);

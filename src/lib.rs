@@ -62,3 +62,4 @@ pub mod fluids;
 pub mod op;
 pub mod problems;
 pub mod rollout;
+pub mod scene;

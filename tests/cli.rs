@@ -97,3 +97,23 @@ fn check_command_runs_the_three_checks_on_a_p1_rollout() {
     assert_eq!(out.matches("→ pass").count(), 6, "{out}");
     fails_with(&["check", "--n", "2"], "invalid argument --n");
 }
+
+#[test]
+fn scene_commands_write_their_outputs_and_refuse_bad_scenes() {
+    let out = std::env::temp_dir().join(format!("diffsim-scene-{}", std::process::id()));
+    let o = out.to_str().unwrap();
+    let (code, _, err) = diffsim(&["run", "scenes/heat.toml", "--out", o, "--quiet"]);
+    assert_eq!(code, 0, "{err}");
+    for f in ["smoke.npy", "velocity_u.npy", "smoke.png"] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    let (code, stdout, err) = diffsim(&["grad", "scenes/heat.toml", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    assert!(stdout.contains("d loss / d diffusion.viscosity"), "{stdout}");
+    assert!(out.join("grad_diffusion_viscosity.npy").exists());
+    let (code, stdout, _) = diffsim(&["run", "scenes/heat.toml", "--out", o, "--profile", "--quiet"]);
+    assert_eq!(code, 0);
+    assert!(stdout.contains("diffusion") && !stdout.contains("pressure"), "{stdout}");
+    fails_with(&["run", "tests/scenes_bad/unknown_kind.toml", "--out", o], "did you mean `advection`");
+    std::fs::remove_dir_all(&out).ok();
+}

@@ -10,4 +10,5 @@ mod fluids;
 mod p1;
 mod p2;
 mod rollout;
+mod scenes;
 mod user_op;

@@ -569,6 +569,16 @@ pub fn add_buoyancy(cfg: &Smoke2d, coefficient: f64, s: &[f64], v: &mut [f64]) {
     }
 }
 
+/// [`add_buoyancy`] as a map of packed states: `y = x` with
+/// `v += coefficient · (smoke averaged to the y-face)`.
+pub fn apply_buoyancy(cfg: &Smoke2d, coefficient: f64, x: &[f64], y: &mut [f64]) {
+    assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+    copy(x, y);
+    let (s, _, _) = cfg.split(x);
+    let (_, _, v2) = cfg.split_mut(y);
+    add_buoyancy(cfg, coefficient, s, v2);
+}
+
 /// Steps 1–4 of P2, for any boundary: semi-Lagrangian advection of smoke and
 /// velocity (unit time step), buoyancy, the velocity boundary conditions.
 /// Reads the packed state `x = [s, u, v]`, overwrites `y = [s', u', v']`

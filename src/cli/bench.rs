@@ -167,10 +167,10 @@ fn p2(a: P2Args) -> Result<(), CliError> {
         let (hand_grad_s, h) = median_time(budget, 3, 21, || hand.grad_in(&mut ws_hand, mode));
         let h = h?;
         // Iteration totals of one gradient computation (forward and adjoint solves).
-        p.step.cg_forward.set(0);
-        p.step.cg_adjoint.set(0);
+        p.step.project.cg_forward.set(0);
+        p.step.project.cg_adjoint.set(0);
         let g = p.grad_in(&mut ws, mode)?;
-        let (cg_f, cg_a) = (p.step.cg_forward.get(), p.step.cg_adjoint.get());
+        let (cg_f, cg_a) = (p.step.project.cg_forward.get(), p.step.project.cg_adjoint.get());
         let gs = p.smoke_gradient(&g);
         let grad_l2 = gs.iter().map(|v| v * v).sum::<f64>().sqrt();
         let n2 = a.n * a.n / 2;

@@ -56,13 +56,13 @@ pub(super) fn plume(a: PlumeArgs) -> Result<(), CliError> {
     let path = a.out.join("plume.png");
     write_png(&path, n, &x[..cfg.n_s()], &solid).map_err(|e| CliError::Io { path: path.clone(), source: e })?;
     let mass: f64 = x[..cfg.n_s()].iter().sum();
-    println!("plume: {n}×{n} cells, {} steps, smoke total {mass:.1}, CG iterations {} → {}", a.steps, step.cg_forward.get(), path.display());
+    println!("plume: {n}×{n} cells, {} steps, smoke total {mass:.1}, CG iterations {} → {}", a.steps, step.project.cg_forward.get(), path.display());
     Ok(())
 }
 
 /// Smoke as grey levels (white = 1), solid cells in dark red, y up, each
 /// cell 4×4 pixels.
-fn write_png(path: &std::path::Path, n: usize, s: &[f64], solid: &[bool]) -> std::io::Result<()> {
+pub(super) fn write_png(path: &std::path::Path, n: usize, s: &[f64], solid: &[bool]) -> std::io::Result<()> {
     const SCALE: usize = 4;
     let side = n * SCALE;
     let mut rgb = vec![0u8; side * side * 3];

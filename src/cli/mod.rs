@@ -3,6 +3,7 @@
 mod bench;
 mod demo;
 mod measure;
+mod scene;
 
 use clap::{Parser, Subcommand};
 use thiserror::Error;
@@ -31,6 +32,12 @@ pub enum CliError {
         /// The cause.
         source: std::io::Error,
     },
+    /// A scene file is malformed.
+    #[error(transparent)]
+    Scene(#[from] crate::scene::SceneError),
+    /// A scene run failed.
+    #[error(transparent)]
+    Run(#[from] crate::scene::RunError),
     /// A gradient check did not pass (the report is printed above).
     #[error("a gradient check did not pass (see the report above)")]
     ChecksFailed,
@@ -63,6 +70,11 @@ enum Command {
     /// Gradient checks (finite differences, Taylor, dot product) of a whole
     /// P1 rollout, Enzyme and hand-written.
     Check(CheckArgs),
+    /// Simulate a scene file; writes the fields as .npy and the smoke as PNG.
+    Run(scene::RunArgs),
+    /// The loss of a scene file and its gradient with respect to the inputs
+    /// its [loss] names, as .npy; --check runs the gradient checks.
+    Grad(scene::GradArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -87,6 +99,8 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         Command::Bench(b) => bench::run(b),
         Command::Demo(DemoCommand::Plume(a)) => demo::plume(a),
         Command::Check(a) => check_p1(a),
+        Command::Run(a) => scene::run(a),
+        Command::Grad(a) => scene::grad(a),
     }
 }
 

@@ -23,10 +23,12 @@
 //!
 //! All three are checked against each other by [`crate::check`].
 
+mod chain;
 mod enzyme;
 mod fd;
 pub mod stencil;
 
+pub use chain::{Chain, Effect};
 pub use fd::FiniteDiff;
 
 #[doc(hidden)]

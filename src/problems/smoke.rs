@@ -3,10 +3,9 @@
 //! the full step with the pressure projection's implicit adjoint chained in
 //! between.
 
-use std::cell::{Cell, RefCell};
+use diffsim_solvers::smoke::{self, Preconditioner, Smoke2d};
 
-use diffsim_solvers::boundary::Boundary;
-use diffsim_solvers::smoke::{self, NoConvergence, Preconditioner, PressureSolver, ProjectScratch, Smoke2d};
+use crate::fluids::Project;
 
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 use crate::rollout::{Checkpointing, Gradient, Rollout, RolloutError, Workspace};
@@ -61,7 +60,8 @@ impl Vjp for SmokeAdvectHand {
     }
 }
 
-/// One full P2 step: [`SmokeAdvect`], then the pressure projection.
+/// One full P2 step: [`SmokeAdvect`], then the pressure projection
+/// ([`Project`], with the obstacle mask when there are obstacles).
 ///
 /// The VJP chains the projection's implicit adjoint (one solve with the
 /// transposed matrix, to the same tolerance) with Enzyme's VJP of the
@@ -72,46 +72,19 @@ pub struct SmokeStep {
     advect: SmokeAdvect,
     /// Use the hand-written adjoint of the explicit part instead of Enzyme's.
     hand: bool,
-    /// Fluid indicator per cell when there are obstacles.
-    fluid: Option<Vec<f64>>,
-    solver: RefCell<PressureSolver>,
-    scratch: RefCell<ProjectScratch>,
-    error: Cell<Option<NoConvergence>>,
-    /// CG iterations of all forward solves so far.
-    pub cg_forward: Cell<usize>,
-    /// CG iterations of all adjoint solves so far.
-    pub cg_adjoint: Cell<usize>,
+    /// The projection (owns the solver and its iteration counters).
+    pub project: Project,
 }
 
 impl SmokeStep {
     /// A step of the P2 box `cfg` whose solves stop at relative tolerance
     /// `tolerance` (true residual), fail after `max_iterations`, and use
-    /// `precond`.
-    ///
-    /// Boundaries other than the closed box use plain CG (see
-    /// [`PressureSolver`]); `precond` then does not apply.
+    /// `precond` (see [`Project::new`]).
     ///
     /// # Panics
     /// If `cfg.boundary` does not [validate](diffsim_solvers::boundary::Boundary::validate).
     pub fn new(cfg: Smoke2d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
-        if let Err(e) = cfg.boundary.validate() {
-            panic!("{e}");
-        }
-        let solver = if cfg.boundary == Boundary::CLOSED {
-            PressureSolver::new(cfg.n, tolerance, max_iterations, precond)
-        } else {
-            PressureSolver::general(cfg.n, cfg.boundary, tolerance, max_iterations, None)
-        };
-        Self {
-            advect: SmokeAdvect(cfg),
-            hand: false,
-            fluid: None,
-            solver: RefCell::new(solver),
-            scratch: RefCell::new(ProjectScratch::new(cfg.n)),
-            error: Cell::new(None),
-            cg_forward: Cell::new(0),
-            cg_adjoint: Cell::new(0),
-        }
+        Self { advect: SmokeAdvect(cfg), hand: false, project: Project::new(cfg, tolerance, max_iterations, precond) }
     }
 
     /// The same step with the hand-written adjoint of the explicit part
@@ -121,16 +94,10 @@ impl SmokeStep {
         self
     }
 
-    /// A step of the box `cfg` with solid cells where `solid[c]` is true:
-    /// after the explicit part, smoke in solids and velocity on faces
-    /// touching them are zeroed, and the projection couples fluid cells
-    /// only (unpreconditioned CG).
+    /// A step of the box `cfg` with solid cells where `solid[c]` is true
+    /// (see [`Project::with_obstacles`]).
     pub fn with_obstacles(cfg: Smoke2d, tolerance: f64, max_iterations: usize, solid: &[bool]) -> Self {
-        let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
-        let mut step = Self::new(cfg, tolerance, max_iterations, Preconditioner::None);
-        step.solver = RefCell::new(PressureSolver::general(cfg.n, cfg.boundary, tolerance, max_iterations, Some(fluid.clone())));
-        step.fluid = Some(fluid);
-        step
+        Self { advect: SmokeAdvect(cfg), hand: false, project: Project::with_obstacles(cfg, tolerance, max_iterations, solid) }
     }
 
     /// The grid.
@@ -140,19 +107,7 @@ impl SmokeStep {
 
     /// The preconditioner of the solves.
     pub fn preconditioner(&self) -> Preconditioner {
-        self.solver.borrow().preconditioner()
-    }
-
-    fn record(&self, r: Result<usize, NoConvergence>, counter: &Cell<usize>) {
-        match r {
-            Ok(it) => counter.set(counter.get() + it),
-            Err(e) => {
-                counter.set(counter.get() + e.iterations);
-                if self.error.get().is_none() {
-                    self.error.set(Some(e));
-                }
-            }
-        }
+        self.project.preconditioner()
     }
 }
 
@@ -169,15 +124,11 @@ impl Forward for SmokeStep {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "SmokeStep", x, p, y);
         smoke::advect_buoyancy(&self.advect.0, x, y);
-        if let Some(w) = &self.fluid {
-            smoke::apply_obstacle_mask(&self.advect.0, w, y);
-        }
-        let r = smoke::project(&self.advect.0, y, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
-        self.record(r, &self.cg_forward);
+        self.project.apply(y);
     }
 
     fn take_error(&self) -> Option<OpError> {
-        self.error.take().map(OpError::from)
+        self.project.take_error()
     }
 }
 
@@ -185,11 +136,7 @@ impl Vjp for SmokeStep {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         validate_vjp(self, "SmokeStep", x, p, dy, dx, dp);
         // Through the projection (in place on dy), then the explicit part.
-        let r = smoke::project_adjoint(&self.advect.0, dy, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
-        self.record(r, &self.cg_adjoint);
-        if let Some(w) = &self.fluid {
-            smoke::apply_obstacle_mask(&self.advect.0, w, dy);
-        }
+        self.project.apply_adjoint(dy);
         if self.hand {
             SmokeAdvectHand(self.advect.0).vjp(x, p, dy, dx, dp);
         } else {
@@ -204,15 +151,8 @@ impl Jvp for SmokeStep {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         validate_jvp(self, "SmokeStep", x, p, tx, tp, y, ty);
         self.advect.jvp(x, p, tx, tp, y, ty);
-        if let Some(w) = &self.fluid {
-            smoke::apply_obstacle_mask(&self.advect.0, w, y);
-            smoke::apply_obstacle_mask(&self.advect.0, w, ty);
-        }
-        let (mut solver, mut scratch) = (self.solver.borrow_mut(), self.scratch.borrow_mut());
-        let r = smoke::project(&self.advect.0, y, &mut solver, &mut scratch);
-        self.record(r, &self.cg_forward);
-        let r = smoke::project(&self.advect.0, ty, &mut solver, &mut scratch);
-        self.record(r, &self.cg_forward);
+        self.project.apply(y);
+        self.project.apply(ty);
     }
 }
 

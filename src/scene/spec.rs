@@ -1,0 +1,334 @@
+//! The scene file's shape (TOML, read with serde) and its first-level
+//! checks. Every key is documented in `docs/scenes.md`.
+//!
+//! Effects are read one table at a time (the `kind` key chooses the
+//! table's shape), so that an error names the effect it is in.
+
+use serde::Deserialize;
+
+use super::SceneError;
+
+/// A scene file as written.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneFile {
+    /// The box and its boundary.
+    pub domain: DomainSpec,
+    /// Time step and number of steps.
+    pub time: TimeSpec,
+    /// Initial values of the fields the scene uses.
+    #[serde(default)]
+    pub fields: FieldsSpec,
+    /// The effects, in the order they run each step (parsed by [`effect`]).
+    #[serde(default)]
+    pub effects: Vec<toml::Table>,
+    /// Solid shapes.
+    #[serde(default)]
+    pub obstacles: Vec<ShapeSpec>,
+    /// What `diffsim grad` differentiates.
+    pub loss: Option<LossSpec>,
+}
+
+/// `[domain]`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DomainSpec {
+    /// Cells, x first.
+    pub size: Vec<i64>,
+    /// `"closed"`, `"periodic"`, `"outflow"`, per axis `{ x = …, y = … }`,
+    /// or per side `{ left = …, right = …, bottom = …, top = … }`.
+    #[serde(default)]
+    pub boundary: Option<toml::Value>,
+}
+
+/// `[time]`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TimeSpec {
+    /// Time step.
+    pub dt: f64,
+    /// Number of steps.
+    pub steps: i64,
+}
+
+/// `[fields]`.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FieldsSpec {
+    /// `[fields.smoke]`.
+    pub smoke: Option<FieldSpec>,
+    /// `[fields.velocity]`.
+    pub velocity: Option<FieldSpec>,
+}
+
+/// One field's initial value.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FieldSpec {
+    /// The initial value.
+    pub init: InitSpec,
+}
+
+/// An initial value: `"zero"`, a shape with a value, a uniform vector, or a
+/// sine.
+#[derive(Debug, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InitSpec {
+    /// Zero everywhere.
+    Zero,
+    /// `value` inside the disc (cell centres within `radius` of `center`).
+    Disc {
+        /// Centre, x first, in cells.
+        center: [f64; 2],
+        /// Radius in cells.
+        radius: f64,
+        /// The value inside (default 1).
+        #[serde(default = "one")]
+        value: f64,
+    },
+    /// `value` inside the box `[lower, upper)`.
+    Box {
+        /// Lower corner, x first.
+        lower: [f64; 2],
+        /// Upper corner, x first.
+        upper: [f64; 2],
+        /// The value inside (default 1).
+        #[serde(default = "one")]
+        value: f64,
+    },
+    /// `amplitude·sin(2π·(kx·x/N + ky·y/N))` at cell centres (for the
+    /// velocity: on each face, both components).
+    Sine {
+        /// Amplitude.
+        amplitude: f64,
+        /// Wave numbers, x first.
+        wavenumber: [f64; 2],
+    },
+    /// The same vector on every face (velocity only), x first.
+    Uniform([f64; 2]),
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+/// A solid shape in `[[obstacles]]` (cells whose centre lies inside).
+#[derive(Debug, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ShapeSpec {
+    /// A box `[lower, upper)`, x first.
+    Box {
+        /// Lower corner.
+        lower: [f64; 2],
+        /// Upper corner.
+        upper: [f64; 2],
+    },
+    /// A disc.
+    Disc {
+        /// Centre, x first.
+        center: [f64; 2],
+        /// Radius.
+        radius: f64,
+    },
+}
+
+/// `[loss]`: `½·Σ (field_T − target)²` at the last step.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LossSpec {
+    /// The field compared (`"smoke"`).
+    pub field: String,
+    /// The target, an initial-value shape.
+    pub target: InitSpec,
+    /// What the gradient is taken for: `smoke.init`, `velocity.init`,
+    /// `<effect kind>.<parameter>` (e.g. `buoyancy.coefficient`).
+    pub with_respect_to: Vec<String>,
+}
+
+/// One effect, by its `kind`.
+#[derive(Debug)]
+pub enum EffectSpec {
+    /// `kind = "advection"`.
+    Advection(AdvectionSpec),
+    /// `kind = "diffusion"`.
+    Diffusion(DiffusionSpec),
+    /// `kind = "pressure"`.
+    Pressure(PressureSpec),
+    /// `kind = "buoyancy"`.
+    Buoyancy(BuoyancySpec),
+    /// `kind = "force"`.
+    Force(ForceSpec),
+    /// `kind = "inflow"`.
+    Inflow(InflowSpec),
+}
+
+/// The effect kinds, as written.
+pub const EFFECT_KINDS: [&str; 6] = ["advection", "diffusion", "pressure", "buoyancy", "force", "inflow"];
+
+/// `kind = "advection"`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AdvectionSpec {
+    /// `"semi_lagrangian"` (default), `"maccormack"` or `"upwind"` (smoke only).
+    #[serde(default = "semi_lagrangian")]
+    pub scheme: String,
+    /// MacCormack's limiter (default on).
+    #[serde(default = "yes")]
+    pub limiter: bool,
+    /// The fields advected (default both).
+    #[serde(default = "both_fields")]
+    pub fields: Vec<String>,
+}
+
+fn semi_lagrangian() -> String {
+    "semi_lagrangian".into()
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn both_fields() -> Vec<String> {
+    vec!["smoke".into(), "velocity".into()]
+}
+
+/// `kind = "diffusion"`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DiffusionSpec {
+    /// The fields diffused (`"smoke"`, `"velocity"`: viscosity).
+    pub fields: Vec<String>,
+    /// Diffusivity / kinematic viscosity ν (per unit time; κ = ν·dt).
+    pub viscosity: f64,
+    /// `"implicit"` (default) or `"explicit"`.
+    #[serde(default = "implicit")]
+    pub scheme: String,
+    /// Relative tolerance of the implicit solve (default 1e-8).
+    #[serde(default = "tolerance")]
+    pub tolerance: f64,
+    /// Iteration cap of the implicit solve (default 1000).
+    #[serde(default = "max_iterations")]
+    pub max_iterations: i64,
+}
+
+fn implicit() -> String {
+    "implicit".into()
+}
+
+fn tolerance() -> f64 {
+    1e-8
+}
+
+fn max_iterations() -> i64 {
+    1000
+}
+
+/// `kind = "pressure"`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PressureSpec {
+    /// Relative tolerance on the true residual (default 1e-8).
+    #[serde(default = "tolerance")]
+    pub tolerance: f64,
+    /// Iteration cap (default 1000).
+    #[serde(default = "max_iterations")]
+    pub max_iterations: i64,
+    /// `"multigrid"` (default), `"mic0"` or `"none"` (closed box without
+    /// obstacles; other boxes use plain CG).
+    #[serde(default = "multigrid")]
+    pub preconditioner: String,
+}
+
+fn multigrid() -> String {
+    "multigrid".into()
+}
+
+/// `kind = "buoyancy"`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BuoyancySpec {
+    /// The field that lifts (`"smoke"`).
+    #[serde(default = "smoke")]
+    pub field: String,
+    /// Upward acceleration per unit of smoke.
+    pub coefficient: f64,
+}
+
+fn smoke() -> String {
+    "smoke".into()
+}
+
+/// `kind = "force"`: a uniform acceleration on the velocity.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ForceSpec {
+    /// The acceleration, x first.
+    pub value: [f64; 2],
+}
+
+/// `kind = "inflow"`: a region whose smoke and velocity are set every step.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InflowSpec {
+    /// The region: `{ box = { lower, upper } }` (cells whose centre lies inside).
+    pub region: ShapeSpec,
+    /// The smoke value set there.
+    #[serde(default)]
+    pub smoke: f64,
+    /// The velocity set there, x first.
+    #[serde(default)]
+    pub velocity: [f64; 2],
+}
+
+/// Parses the `k`-th `[[effects]]` table.
+pub fn effect(k: usize, table: &toml::Table) -> Result<EffectSpec, SceneError> {
+    let at = format!("effects[{k}]");
+    let kind = match table.get("kind") {
+        Some(toml::Value::String(s)) => s.as_str(),
+        Some(_) => return Err(SceneError::key(format!("{at}.kind"), "must be a string")),
+        None => return Err(SceneError::key(format!("{at}.kind"), format!("missing; one of {}", EFFECT_KINDS.join(", ")))),
+    };
+    let mut rest = table.clone();
+    rest.remove("kind");
+    let value = toml::Value::Table(rest);
+    let parse = |what: &str| -> Result<EffectSpec, SceneError> {
+        let fail = |e: toml::de::Error| SceneError::key(format!("{at} (kind = \"{what}\")"), suggest_field(&e.to_string()));
+        Ok(match what {
+            "advection" => EffectSpec::Advection(value.clone().try_into().map_err(fail)?),
+            "diffusion" => EffectSpec::Diffusion(value.clone().try_into().map_err(fail)?),
+            "pressure" => EffectSpec::Pressure(value.clone().try_into().map_err(fail)?),
+            "buoyancy" => EffectSpec::Buoyancy(value.clone().try_into().map_err(fail)?),
+            "force" => EffectSpec::Force(value.clone().try_into().map_err(fail)?),
+            "inflow" => EffectSpec::Inflow(value.clone().try_into().map_err(fail)?),
+            other => return Err(SceneError::key(format!("{at}.kind"), unknown("effect kind", other, &EFFECT_KINDS))),
+        })
+    };
+    parse(kind)
+}
+
+/// "unknown X `y`; did you mean `z`?" (or the list of choices).
+pub fn unknown(what: &str, got: &str, choices: &[&str]) -> String {
+    match closest(got, choices) {
+        Some(best) => format!("unknown {what} `{got}`; did you mean `{best}`?"),
+        None => format!("unknown {what} `{got}`; expected one of {}", choices.join(", ")),
+    }
+}
+
+/// The choice nearest to `got` by edit distance, when it is near enough to
+/// be a typo.
+pub fn closest<'a>(got: &str, choices: &[&'a str]) -> Option<&'a str> {
+    choices.iter().map(|c| (strsim::damerau_levenshtein(got, c), *c)).filter(|(d, c)| *d <= 2.max(c.len() / 3)).min_by_key(|(d, _)| *d).map(|(_, c)| c)
+}
+
+/// serde's "unknown field `x`, expected one of `a`, `b`" with the closest
+/// field suggested.
+pub fn suggest_field(message: &str) -> String {
+    let message = message.trim().to_string();
+    let Some(rest) = message.split("unknown field `").nth(1) else { return message };
+    let Some((got, tail)) = rest.split_once('`') else { return message };
+    let expected: Vec<&str> = tail.split('`').skip(1).step_by(2).collect();
+    match closest(got, &expected) {
+        Some(best) => format!("{message}; did you mean `{best}`?"),
+        None => message,
+    }
+}
