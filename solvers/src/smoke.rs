@@ -588,12 +588,10 @@ pub fn apply_buoyancy(cfg: &Smoke2d, coefficient: f64, x: &[f64], y: &mut [f64])
 /// If `x` or `y` is not of length [`Smoke2d::n_state`] or `n < 2`.
 pub fn advect_buoyancy(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
     advect(cfg, Scheme::SemiLagrangian, 1.0, true, true, x, y, &mut []);
+    // Buoyancy touches no closed, inflow or outflow face and refreshes its
+    // own periodic copies, so the boundary conditions of `advect` still hold.
     let (s2, _, v2) = cfg.split_mut(y);
     add_buoyancy(cfg, cfg.buoyancy, s2, v2);
-    // The periodic copies and set faces again, after buoyancy (closed and
-    // inflow faces are not touched by it; this re-sets the copies).
-    let (_, u2, v2) = cfg.split_mut(y);
-    enforce_boundary(cfg, u2, v2);
 }
 
 /// Hand-written adjoint of [`advect_buoyancy`]: `gx += Jᵀ·gy` at the state
@@ -605,9 +603,6 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke2d, x: &[f64], gy: &mut [f64], gx: &mu
     let (s, u, v) = cfg.split(x);
     let (gs2, gu2, gv2) = cfg.split_mut(gy);
     let (gs, gu, gv) = cfg.split_mut(gx);
-    // Boundary conditions (the second application; the first is then a no-op
-    // on the adjoint except where buoyancy wrote).
-    enforce_boundary_adjoint(cfg, gu2, gv2);
     // Buoyancy (its own periodic copy came after its addition).
     if cfg.boundary.periodic_y() {
         for i in 0..n {

@@ -110,20 +110,16 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
 /// Runs the scene timing each effect (and only the declared ones).
 fn profile(scene: &Scene) -> Result<Vec<f64>, CliError> {
     let mut times = vec![0.0f64; scene.effects.len()];
-    let mut x = scene.x0.clone();
-    let mut y = vec![0.0; x.len()];
     let total = std::time::Instant::now();
-    for k in 1..=scene.steps {
-        let mut t = std::time::Instant::now();
-        scene.step.forward_with(&x, &scene.params, &mut y, |e| {
-            times[e] += t.elapsed().as_secs_f64();
-            t = std::time::Instant::now();
-        });
-        if let Some(error) = crate::op::Forward::take_error(&scene.step) {
-            return Err(crate::scene::RunError::Operator { step: k, error }.into());
-        }
-        std::mem::swap(&mut x, &mut y);
-    }
+    // The clock restarts after each effect and after the per-step checks.
+    let t = std::cell::Cell::new(std::time::Instant::now());
+    let x = scene.run_with(
+        |_, _| t.set(std::time::Instant::now()),
+        |e| {
+            times[e] += t.get().elapsed().as_secs_f64();
+            t.set(std::time::Instant::now());
+        },
+    )?;
     let total = total.elapsed().as_secs_f64();
     let sum: f64 = times.iter().sum();
     println!("{:<4} {:<12} {:>10} {:>7}", "#", "effect", "time ms", "share");

@@ -493,11 +493,17 @@ fn velocity_init(key: &str, cfg: &Smoke2d, init: &InitSpec, x: &mut [f64]) -> Re
 impl Scene {
     /// Runs the scene, calling `frame(step, state)` after every step; stops
     /// at the first failed solve, unstable step or non-finite value.
-    pub fn run(&self, mut frame: impl FnMut(usize, &[f64])) -> Result<Vec<f64>, RunError> {
+    pub fn run(&self, frame: impl FnMut(usize, &[f64])) -> Result<Vec<f64>, RunError> {
+        self.run_with(frame, |_| {})
+    }
+
+    /// [`Scene::run`], also calling `after_effect(k)` after the `k`-th
+    /// effect of every step (for profiling).
+    pub fn run_with(&self, mut frame: impl FnMut(usize, &[f64]), mut after_effect: impl FnMut(usize)) -> Result<Vec<f64>, RunError> {
         let mut x = self.x0.clone();
         let mut y = vec![0.0; x.len()];
         for k in 1..=self.steps {
-            self.step.forward(&x, &self.params, &mut y);
+            self.step.forward_with(&x, &self.params, &mut y, &mut after_effect);
             if let Some(error) = self.step.take_error() {
                 return Err(RunError::Operator { step: k, error });
             }

@@ -291,19 +291,16 @@ pub fn effect(k: usize, table: &toml::Table) -> Result<EffectSpec, SceneError> {
     let mut rest = table.clone();
     rest.remove("kind");
     let value = toml::Value::Table(rest);
-    let parse = |what: &str| -> Result<EffectSpec, SceneError> {
-        let fail = |e: toml::de::Error| SceneError::key(format!("{at} (kind = \"{what}\")"), suggest_field(&e.to_string()));
-        Ok(match what {
-            "advection" => EffectSpec::Advection(value.clone().try_into().map_err(fail)?),
-            "diffusion" => EffectSpec::Diffusion(value.clone().try_into().map_err(fail)?),
-            "pressure" => EffectSpec::Pressure(value.clone().try_into().map_err(fail)?),
-            "buoyancy" => EffectSpec::Buoyancy(value.clone().try_into().map_err(fail)?),
-            "force" => EffectSpec::Force(value.clone().try_into().map_err(fail)?),
-            "inflow" => EffectSpec::Inflow(value.clone().try_into().map_err(fail)?),
-            other => return Err(SceneError::key(format!("{at}.kind"), unknown("effect kind", other, &EFFECT_KINDS))),
-        })
-    };
-    parse(kind)
+    let fail = |e: toml::de::Error| SceneError::key(format!("{at} (kind = \"{kind}\")"), suggest_field(&e.to_string()));
+    Ok(match kind {
+        "advection" => EffectSpec::Advection(value.try_into().map_err(fail)?),
+        "diffusion" => EffectSpec::Diffusion(value.try_into().map_err(fail)?),
+        "pressure" => EffectSpec::Pressure(value.try_into().map_err(fail)?),
+        "buoyancy" => EffectSpec::Buoyancy(value.try_into().map_err(fail)?),
+        "force" => EffectSpec::Force(value.try_into().map_err(fail)?),
+        "inflow" => EffectSpec::Inflow(value.try_into().map_err(fail)?),
+        other => return Err(SceneError::key(format!("{at}.kind"), unknown("effect kind", other, &EFFECT_KINDS))),
+    })
 }
 
 /// "unknown X `y`; did you mean `z`?" (or the list of choices).
