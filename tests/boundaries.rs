@@ -3,7 +3,7 @@
 //! gradient checks of every operator under every kind, with and without an
 //! obstacle.
 
-use diffsim::fluids::{Advect, AdvectUpwind, Diffuse, Force};
+use diffsim::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, Force, Project};
 use diffsim::op::OperatorExt;
 use diffsim::problems::smoke::{SmokeAdvect, SmokeAdvectHand, SmokeStep};
 use diffsim_solvers::boundary::{Boundary, BoundaryError, Profile, Side};
@@ -67,6 +67,8 @@ fn every_operator_passes_all_checks_under_every_boundary() {
             assert_passes(&name("upwind"), &AdvectUpwind { cfg, dt: 0.4 }, &x, &[]);
             let f = crate::checks::state(2 * cfg.n_u(), 7);
             assert_passes(&name("force"), &Force { cfg, dt: 0.5 }, &x, &f);
+            assert_passes(&name("buoyancy"), &Buoyancy { cfg, dt: 0.5 }, &x, &[0.3]);
+            assert_passes(&name("projection with obstacle"), &Project::with_obstacles(cfg, 1e-13, 4000, &solid), &x, &[]);
             assert_passes(&name("explicit diffusion and viscosity"), &Diffuse::explicit(cfg, true, true), &x, &[0.2]);
             assert_passes(&name("implicit viscosity"), &Diffuse::implicit(cfg, false, true, 1e-13, 2000), &x, &[1.5]);
         }
