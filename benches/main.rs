@@ -80,7 +80,7 @@ fn p2(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, p1, p1_step, p2, solver_parts);
+criterion_group!(benches, p1, p1_step, p2, solver_parts, scene_effects);
 criterion_main!(benches);
 
 /// One multigrid V-cycle and one plain CG matrix product at 64² and 128²,
@@ -95,6 +95,31 @@ fn solver_parts(c: &mut Criterion) {
         let mut mg = Multigrid::new(n);
         g.bench_function(BenchmarkId::new("vcycle", n), |b| b.iter(|| mg.apply(&r, std::hint::black_box(&mut z))));
         g.bench_function(BenchmarkId::new("matvec", n), |b| b.iter(|| apply_pressure_matrix(n, &r, std::hint::black_box(&mut z))));
+    }
+    g.finish();
+}
+
+/// The plume scene's step against its effects one by one, each at the
+/// state it sees inside the step (after 30 steps of flow): the per-effect
+/// times add up to the step's (`diffsim run --profile` prints the same
+/// split for any scene).
+fn scene_effects(c: &mut Criterion) {
+    use diffsim::op::Forward;
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/plume.toml");
+    let mut scene = diffsim::scene::Scene::load(&path).expect("scenes/plume.toml");
+    scene.steps = 30;
+    let x = scene.run(|_, _| {}).expect("the plume runs");
+    let mut g = c.benchmark_group("scene_effects_plume");
+    g.sample_size(20);
+    let mut y = vec![0.0; x.len()];
+    g.bench_function("whole_step", |b| b.iter(|| scene.step.forward(&x, &scene.params, std::hint::black_box(&mut y))));
+    let mut input = x.clone();
+    for (e, op) in scene.step.ops().iter().enumerate() {
+        let p = &scene.params[scene.step.param_range(e)];
+        let at = input.clone();
+        g.bench_function(BenchmarkId::new("effect", format!("{e}_{}", scene.effects[e])), |b| b.iter(|| op.forward(&at, p, std::hint::black_box(&mut y))));
+        op.forward(&at, p, &mut y);
+        input.copy_from_slice(&y);
     }
     g.finish();
 }

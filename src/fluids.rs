@@ -9,14 +9,14 @@
 use std::cell::{Cell, RefCell};
 
 use diffsim_solvers::boundary::Boundary;
-use diffsim_solvers::diffusion::{self, EXPLICIT_LIMIT, Grid, ImplicitSolver, laplacian};
+use diffsim_solvers::diffusion::{self, Grid, ImplicitSolver, laplacian};
 use diffsim_solvers::smoke::{self, NoConvergence, Preconditioner, PressureSolver, ProjectScratch, Scheme, Smoke2d};
 
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
 /// Explicit diffusion of a field on a lattice ([`Grid`]), `s' = s − κ·A·s`,
 /// with the parameter `p = [κ]` (κ = ν·dt). Derivatives by Enzyme, with
-/// respect to `s` and κ. A κ beyond the stability limit 1/4 is reported
+/// respect to `s` and κ. A κ beyond the stability limit ([`Grid::explicit_limit`]) is reported
 /// through [`Forward::take_error`] (the step is still computed).
 #[derive(Debug)]
 pub struct DiffuseExplicit {
@@ -76,14 +76,14 @@ crate::differentiable!(ExplicitMap => diffuse_explicit);
 impl Forward for DiffuseExplicit {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "DiffuseExplicit", x, p, y);
-        if p[0] > EXPLICIT_LIMIT && self.unstable.get().is_none() {
+        if p[0] > self.grid.explicit_limit() && self.unstable.get().is_none() {
             self.unstable.set(Some(p[0]));
         }
         ExplicitMap { grid: self.grid }.forward(x, p, y)
     }
 
     fn take_error(&self) -> Option<OpError> {
-        self.unstable.take().map(|kappa| OpError::Unstable { value: kappa, limit: EXPLICIT_LIMIT })
+        self.unstable.take().map(|kappa| OpError::Unstable { value: kappa, limit: self.grid.explicit_limit() })
     }
 }
 
@@ -153,6 +153,7 @@ impl Operator for DiffuseImplicit {
 
 impl Forward for DiffuseImplicit {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        crate::op::count::record("DiffuseImplicit", crate::op::count::Method::Forward);
         validate_forward(self, "DiffuseImplicit", x, p, y);
         self.solve(p[0], x, y);
     }
@@ -164,6 +165,7 @@ impl Forward for DiffuseImplicit {
 
 impl Vjp for DiffuseImplicit {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        crate::op::count::record("DiffuseImplicit", crate::op::count::Method::Vjp);
         validate_vjp(self, "DiffuseImplicit", x, p, dy, dx, dp);
         let mut guard = self.scratch.borrow_mut();
         let (lam, y) = &mut *guard;
@@ -181,6 +183,7 @@ impl Vjp for DiffuseImplicit {
 
 impl Jvp for DiffuseImplicit {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        crate::op::count::record("DiffuseImplicit", crate::op::count::Method::Jvp);
         validate_jvp(self, "DiffuseImplicit", x, p, tx, tp, y, ty);
         self.solve(p[0], x, y);
         // M·ṫ = ẋ − κ̇·A·y.
@@ -194,51 +197,75 @@ impl Jvp for DiffuseImplicit {
     }
 }
 
-/// Diffusion of the chosen fields of a packed `[s, u, v]` state, each on its
-/// own lattice ([`Grid::of_state`]) with one coefficient `p = [κ]`: smoke
-/// diffusion, viscosity, or both. `D` is [`DiffuseExplicit`] or
-/// [`DiffuseImplicit`]; the velocity boundary conditions are applied after.
+/// Diffusion of the chosen fields of a packed state, each on its own
+/// lattice with one coefficient `p = [κ]`: smoke diffusion, viscosity, or
+/// both. In a box (`[s, u, v]`, lattices of [`Grid::of_state`]) the velocity
+/// boundary conditions are applied after; on a line (`[s, u]`, [`Diffuse::line`])
+/// each field is one row. `D` is [`DiffuseExplicit`] or [`DiffuseImplicit`].
 /// Fields not chosen pass through.
 #[derive(Debug)]
 pub struct Diffuse<D> {
-    cfg: Smoke2d,
-    smoke: Option<D>,
-    u: Option<D>,
-    v: Option<D>,
+    n: usize,
+    /// `(start in the state, operator)` per diffused lattice.
+    parts: Vec<(usize, D)>,
+    /// The box whose velocity boundary conditions are applied after a
+    /// velocity diffusion.
+    velocity_box: Option<Smoke2d>,
+}
+
+impl<D: Operator> Diffuse<D> {
+    /// The chosen fields of the box `cfg`, each lattice's operator made by `op`.
+    pub fn in_box(cfg: Smoke2d, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self {
+        let [gs, gu, gv] = Grid::of_state(&cfg);
+        let (ns, nu) = (cfg.n_s(), cfg.n_u());
+        let mut parts = Vec::new();
+        if smoke {
+            parts.push((0, op(gs)));
+        }
+        if velocity {
+            parts.push((ns, op(gu)));
+            parts.push((ns + nu, op(gv)));
+        }
+        Self { n: cfg.n_state(), parts, velocity_box: velocity.then_some(cfg) }
+    }
+
+    /// The chosen fields of a line of `n` cells (state `[s, u]`, unit
+    /// spacing: κ = ν·dt/dx²), periodic or closed.
+    pub fn line(n: usize, periodic: bool, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self {
+        let grid = Grid { stride: n, nx: n, ny: 1, wrap_x: periodic, wrap_y: false };
+        let parts = [(smoke, 0), (velocity, n)].into_iter().filter(|(on, _)| *on).map(|(_, start)| (start, op(grid))).collect();
+        Self { n: 2 * n, parts, velocity_box: None }
+    }
 }
 
 impl Diffuse<DiffuseExplicit> {
-    /// Explicit diffusion of the smoke and/or the velocity.
+    /// Explicit diffusion of the smoke and/or the velocity of a box.
     pub fn explicit(cfg: Smoke2d, smoke: bool, velocity: bool) -> Self {
-        let [gs, gu, gv] = Grid::of_state(&cfg);
-        Self { cfg, smoke: smoke.then(|| DiffuseExplicit::on(gs)), u: velocity.then(|| DiffuseExplicit::on(gu)), v: velocity.then(|| DiffuseExplicit::on(gv)) }
+        Self::in_box(cfg, smoke, velocity, DiffuseExplicit::on)
     }
 }
 
 impl Diffuse<DiffuseImplicit> {
-    /// Implicit diffusion of the smoke and/or the velocity, each solve to
-    /// relative `tolerance` in at most `max_iterations` iterations.
+    /// Implicit diffusion of the smoke and/or the velocity of a box, each
+    /// solve to relative `tolerance` in at most `max_iterations` iterations.
     pub fn implicit(cfg: Smoke2d, smoke: bool, velocity: bool, tolerance: f64, max_iterations: usize) -> Self {
-        let [gs, gu, gv] = Grid::of_state(&cfg);
-        let op = |g| DiffuseImplicit::on(g, tolerance, max_iterations);
-        Self { cfg, smoke: smoke.then(|| op(gs)), u: velocity.then(|| op(gu)), v: velocity.then(|| op(gv)) }
+        Self::in_box(cfg, smoke, velocity, |g| DiffuseImplicit::on(g, tolerance, max_iterations))
     }
 }
 
 impl<D> Diffuse<D> {
     /// The fields with their place in the state: `(start, operator)`.
-    fn parts(&self) -> [(usize, Option<&D>); 3] {
-        let (ns, nu) = (self.cfg.n_s(), self.cfg.n_u());
-        [(0, self.smoke.as_ref()), (ns, self.u.as_ref()), (ns + nu, self.v.as_ref())]
+    fn parts(&self) -> impl Iterator<Item = (usize, &D)> {
+        self.parts.iter().map(|(s, d)| (*s, d))
     }
 }
 
 impl<D> Operator for Diffuse<D> {
     fn n_in(&self) -> usize {
-        self.cfg.n_state()
+        self.n
     }
     fn n_out(&self) -> usize {
-        self.cfg.n_state()
+        self.n
     }
     fn n_params(&self) -> usize {
         1
@@ -250,35 +277,31 @@ impl<D: Forward> Forward for Diffuse<D> {
         validate_forward(self, "Diffuse", x, p, y);
         y.copy_from_slice(x);
         for (start, op) in self.parts() {
-            if let Some(op) = op {
-                let r = start..start + op.n_in();
-                op.forward(&x[r.clone()], p, &mut y[r]);
-            }
+            let r = start..start + op.n_in();
+            op.forward(&x[r.clone()], p, &mut y[r]);
         }
-        if self.u.is_some() {
-            let (_, u, v) = self.cfg.split_mut(y);
-            smoke::enforce_boundary(&self.cfg, u, v);
+        if let Some(cfg) = &self.velocity_box {
+            let (_, u, v) = cfg.split_mut(y);
+            smoke::enforce_boundary(cfg, u, v);
         }
     }
 
     fn take_error(&self) -> Option<OpError> {
-        self.parts().into_iter().filter_map(|(_, op)| op.and_then(Forward::take_error)).next()
+        self.parts().filter_map(|(_, op)| op.take_error()).next()
     }
 }
 
 impl<D: Vjp> Vjp for Diffuse<D> {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         validate_vjp(self, "Diffuse", x, p, dy, dx, dp);
-        if self.u.is_some() {
-            let (_, gu, gv) = self.cfg.split_mut(dy);
-            smoke::enforce_boundary_adjoint(&self.cfg, gu, gv);
+        if let Some(cfg) = &self.velocity_box {
+            let (_, gu, gv) = cfg.split_mut(dy);
+            smoke::enforce_boundary_adjoint(cfg, gu, gv);
         }
         for (start, op) in self.parts() {
-            if let Some(op) = op {
-                let r = start..start + op.n_in();
-                op.vjp(&x[r.clone()], p, &mut dy[r.clone()], &mut dx[r.clone()], dp);
-                dy[r].fill(0.0);
-            }
+            let r = start..start + op.n_in();
+            op.vjp(&x[r.clone()], p, &mut dy[r.clone()], &mut dx[r.clone()], dp);
+            dy[r].fill(0.0);
         }
         // What was not diffused passes through.
         for (d, g) in dx.iter_mut().zip(dy.iter_mut()) {
@@ -294,16 +317,14 @@ impl<D: Jvp> Jvp for Diffuse<D> {
         y.copy_from_slice(x);
         ty.copy_from_slice(tx);
         for (start, op) in self.parts() {
-            if let Some(op) = op {
-                let r = start..start + op.n_in();
-                op.jvp(&x[r.clone()], p, &tx[r.clone()], tp, &mut y[r.clone()], &mut ty[r]);
-            }
+            let r = start..start + op.n_in();
+            op.jvp(&x[r.clone()], p, &tx[r.clone()], tp, &mut y[r.clone()], &mut ty[r]);
         }
-        if self.u.is_some() {
-            let (_, u, v) = self.cfg.split_mut(y);
-            smoke::enforce_boundary(&self.cfg, u, v);
-            let (_, tu, tv) = self.cfg.split_mut(ty);
-            smoke::enforce_boundary_linear(&self.cfg, tu, tv);
+        if let Some(cfg) = &self.velocity_box {
+            let (_, u, v) = cfg.split_mut(y);
+            smoke::enforce_boundary(cfg, u, v);
+            let (_, tu, tv) = cfg.split_mut(ty);
+            smoke::enforce_boundary_linear(cfg, tu, tv);
         }
     }
 }
@@ -549,6 +570,7 @@ impl Operator for Project {
 
 impl Forward for Project {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        crate::op::count::record("Project", crate::op::count::Method::Forward);
         validate_forward(self, "Project", x, p, y);
         y.copy_from_slice(x);
         self.apply(y);
@@ -561,6 +583,7 @@ impl Forward for Project {
 
 impl Vjp for Project {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        crate::op::count::record("Project", crate::op::count::Method::Vjp);
         validate_vjp(self, "Project", x, p, dy, dx, dp);
         self.apply_adjoint(dy);
         for (d, g) in dx.iter_mut().zip(dy.iter_mut()) {
@@ -572,6 +595,7 @@ impl Vjp for Project {
 
 impl Jvp for Project {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        crate::op::count::record("Project", crate::op::count::Method::Jvp);
         validate_jvp(self, "Project", x, p, tx, tp, y, ty);
         y.copy_from_slice(x);
         self.apply(y);

@@ -104,9 +104,11 @@ fn scene_commands_write_their_outputs_and_refuse_bad_scenes() {
     let o = out.to_str().unwrap();
     let (code, _, err) = diffsim(&["run", "scenes/heat.toml", "--out", o, "--quiet"]);
     assert_eq!(code, 0, "{err}");
-    for f in ["smoke.npy", "velocity_u.npy", "smoke.png"] {
+    for f in ["smoke.npy", "smoke.png"] {
         assert!(out.join(f).exists(), "{f} missing");
     }
+    // The heat scene declares no velocity: none is written.
+    assert!(!out.join("velocity_u.npy").exists());
     let (code, stdout, err) = diffsim(&["grad", "scenes/heat.toml", "--out", o]);
     assert_eq!(code, 0, "{err}");
     assert!(stdout.contains("d loss / d diffusion.viscosity"), "{stdout}");
@@ -115,5 +117,14 @@ fn scene_commands_write_their_outputs_and_refuse_bad_scenes() {
     assert_eq!(code, 0);
     assert!(stdout.contains("diffusion") && !stdout.contains("pressure"), "{stdout}");
     fails_with(&["run", "tests/scenes_bad/unknown_kind.toml", "--out", o], "did you mean `advection`");
+    // A 1D scene: its field as .npy and a plot; the gradient with a profile
+    // of both passes.
+    let (code, _, err) = diffsim(&["run", "scenes/burgers.toml", "--out", o, "--quiet"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.join("velocity.npy").exists() && out.join("velocity.png").exists());
+    let (code, stdout, err) = diffsim(&["grad", "scenes/burgers.toml", "--out", o, "--profile"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.join("grad_velocity_init.npy").exists());
+    assert!(stdout.contains("forward (diffsim run)") && stdout.contains("backward (VJPs"), "{stdout}");
     std::fs::remove_dir_all(&out).ok();
 }

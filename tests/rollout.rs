@@ -99,3 +99,51 @@ fn bad_inputs_are_errors() {
     assert!("sometimes".parse::<Checkpointing>().is_err());
     assert_eq!("periodic:5".parse::<Checkpointing>(), Ok(Checkpointing::Periodic { every: 5 }));
 }
+
+#[test]
+fn losses_at_listed_steps_and_parameters_per_step_under_every_checkpointing() {
+    use diffsim::op::{AddParams, Chain, Effect};
+    use diffsim::rollout::AtSteps;
+    // A Burgers step followed by a per-step source (a control): the loss
+    // at steps 2, 5 and 7 of 7, differentiated with respect to the initial
+    // state and every step's source.
+    let p1 = P1::new(16, 7);
+    let n = 16;
+    let ops: Vec<Box<dyn Effect>> = vec![Box::new(diffsim::problems::burgers::BurgersHand(p1.cfg)), Box::new(AddParams { n, range: 0..n, scale: 0.1 })];
+    let step = Chain::new(ops);
+    let p: Vec<f64> = (0..7 * n).map(|k| ((k as f64) * 0.37).sin()).collect();
+    let loss = AtSteps {
+        steps: vec![2, 5, 7],
+        f: |t: usize, x: &[f64], g: &mut [f64]| -> f64 {
+            let mut v = 0.0;
+            for (i, (g, x)) in g.iter_mut().zip(x).enumerate() {
+                let d = x - 0.1 * t as f64 * (i as f64).cos();
+                *g = d;
+                v += 0.5 * d * d;
+            }
+            v
+        },
+    };
+    let r = Rollout::per_step(&step, &p, 7).unwrap();
+    let modes = vec![Checkpointing::Store, Checkpointing::Periodic { every: 3 }, Checkpointing::Binomial { snapshots: 2 }];
+    let all: Vec<_> = modes.iter().map(|&m| r.value_and_grad(&p1.u0, &loss, m).unwrap()).collect();
+    for g in &all[1..] {
+        assert_eq!(g.loss, all[0].loss);
+        assert_eq!(g.dx0, all[0].dx0);
+        assert_eq!(g.dp, all[0].dp);
+    }
+    assert_eq!(all[0].dp.len(), 7 * n);
+    assert!((r.loss(&p1.u0, &loss).unwrap() - all[0].loss).abs() < 1e-14 * all[0].loss);
+    // Against central differences, in the first, a middle and the last step.
+    let h = 1e-6;
+    for i in [3, 4 * n + 7, 6 * n + 15] {
+        let (mut up, mut down) = (p.clone(), p.clone());
+        up[i] += h;
+        down[i] -= h;
+        let value = |q: &[f64]| Rollout::per_step(&step, q, 7).unwrap().loss(&p1.u0, &loss).unwrap();
+        let fd = (value(&up) - value(&down)) / (2.0 * h);
+        assert!((fd - all[0].dp[i]).abs() < 1e-6 * fd.abs().max(1e-3), "p[{i}]: {fd} vs {}", all[0].dp[i]);
+    }
+    // A per-step parameter vector of the wrong length is an error.
+    assert!(Rollout::per_step(&step, &p[..n], 7).is_err());
+}

@@ -5,7 +5,7 @@
 
 use std::path::Path;
 
-use diffsim::rollout::{Checkpointing, Rollout};
+use diffsim::rollout::Checkpointing;
 use diffsim::scene::Scene;
 
 /// The scene at `path` with `time.steps` replaced.
@@ -13,7 +13,13 @@ fn with_steps(path: &Path, steps: i64) -> Scene {
     let text = std::fs::read_to_string(path).unwrap();
     let mut table: toml::Table = toml::from_str(&text).unwrap();
     table["time"].as_table_mut().unwrap().insert("steps".into(), toml::Value::Integer(steps));
-    Scene::parse(&toml::to_string(&table).unwrap()).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+    // Loss steps beyond the new end move to it.
+    if let Some(list) = table.get_mut("loss").and_then(|l| l.get_mut("steps")).and_then(|s| s.as_array_mut()) {
+        for t in list.iter_mut() {
+            *t = toml::Value::Integer(t.as_integer().unwrap().min(steps));
+        }
+    }
+    Scene::parse_in(&toml::to_string(&table).unwrap(), path.parent().unwrap()).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
 fn files(dir: &str) -> Vec<std::path::PathBuf> {
@@ -63,23 +69,230 @@ fn only_declared_effects_are_built() {
 fn scene_parameter_gradients_match_finite_differences() {
     // Buoyancy coefficient and the initial smoke of the obstacle scene (a
     // few steps), against central differences of the loss.
-    let scene = with_steps(&Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/smoke_obstacle.toml"), 6);
-    let (target, _) = scene.loss.as_ref().unwrap();
-    let loss = |x: &[f64], g: &mut [f64]| diffsim_solvers::smoke::p2_loss(&scene.cfg, x, target, g);
-    let value = |p: &[f64], x0: &[f64]| Rollout::new(&scene.step, p, scene.steps).unwrap().loss(x0, &loss).unwrap();
-    let g = Rollout::new(&scene.step, &scene.params, scene.steps).unwrap().value_and_grad(&scene.x0, &loss, Checkpointing::Store).unwrap();
-    let (_, index, factor) = scene.named.iter().find(|(n, _, _)| n == "buoyancy.coefficient").unwrap().clone();
+    let scene = with_steps(&root().join("scenes/smoke_obstacle.toml"), 6);
+    let loss = scene.loss.as_ref().unwrap();
+    let g = scene.gradient(loss, Checkpointing::Store).unwrap();
+    let value = |p: &[f64], x0: &[f64]| scene.loss_value(loss, x0, p).unwrap();
+    let (_, index, _) = scene.named.iter().find(|(n, _, _)| n == "buoyancy.coefficient").unwrap().clone();
     let h = 1e-5;
     let (mut up, mut down) = (scene.params.clone(), scene.params.clone());
     up[index] += h;
     down[index] -= h;
     let fd = (value(&up, &scene.x0) - value(&down, &scene.x0)) / (2.0 * h);
-    let ad = g.dp[index] * factor;
+    let ad = grad_of(&g, "buoyancy.coefficient")[0];
     assert!((fd - ad).abs() <= 1e-6 * fd.abs().max(1.0), "buoyancy: finite differences {fd} vs gradient {ad}");
-    let c = scene.cfg.n * 16 + 30;
+    let c = scene.cfg().n * 16 + 30;
     let (mut up, mut down) = (scene.x0.clone(), scene.x0.clone());
     up[c] += h;
     down[c] -= h;
     let fd = (value(&scene.params, &up) - value(&scene.params, &down)) / (2.0 * h);
-    assert!((fd - g.dx0[c]).abs() <= 1e-6 * fd.abs().max(1e-3), "smoke.init[{c}]: {fd} vs {}", g.dx0[c]);
+    let ad = grad_of(&g, "smoke.init")[c];
+    assert!((fd - ad).abs() <= 1e-6 * fd.abs().max(1e-3), "smoke.init[{c}]: {fd} vs {ad}");
+}
+
+fn root() -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).to_path_buf()
+}
+
+/// The gradient with respect to `name`, its arrays concatenated.
+fn grad_of(g: &diffsim::scene::SceneGradient, name: &str) -> Vec<f64> {
+    g.inputs.iter().find(|i| i.name == name).unwrap_or_else(|| panic!("no gradient for {name}")).arrays.iter().flat_map(|(_, _, v)| v.clone()).collect()
+}
+
+#[test]
+fn control_force_gradient_per_step_with_losses_at_listed_steps() {
+    // A time-varying force (one field per step) and a loss at steps 2 and 5:
+    // the per-step gradient against central differences of the loss, for
+    // entries in the first, a middle and the last step.
+    let text = r#"
+        [domain]
+        size = [8, 8]
+        boundary = { x = "periodic", y = "closed" }
+        [time]
+        dt = 0.5
+        steps = 5
+        [fields.smoke]
+        init = { disc = { center = [4.0, 3.0], radius = 2.5 } }
+        [fields.velocity]
+        init = { sine = { amplitude = 0.3, wavenumber = [1.0, 1.0] } }
+        [[effects]]
+        kind = "advection"
+        [[effects]]
+        kind = "force"
+        value = [0.1, 0.05]
+        [[effects]]
+        kind = "pressure"
+        tolerance = 1e-12
+        [loss]
+        field = "smoke"
+        target = { box = { lower = [2.0, 4.0], upper = [6.0, 7.0] } }
+        steps = [2, 5]
+        with_respect_to = ["force.control", "smoke.init"]
+    "#;
+    let scene = Scene::parse(text).unwrap();
+    assert!(scene.per_step());
+    let loss = scene.loss.as_ref().unwrap();
+    assert_eq!(loss.steps, vec![2, 5]);
+    let g = scene.gradient(loss, Checkpointing::periodic_sqrt(scene.steps)).unwrap();
+    let input = g.inputs.iter().find(|i| i.name == "force.control").unwrap();
+    let (nu, np, steps) = (scene.cfg().n_u(), scene.params.len(), scene.steps);
+    assert_eq!(input.arrays[0].1, vec![steps as u64, 8, 9]);
+    assert_eq!(input.arrays[1].1, vec![steps as u64, 9, 8]);
+    let p = scene.rollout_params();
+    let h = 1e-6;
+    let c = scene.controls.iter().find(|c| c.name == "force.control").unwrap();
+    // After the last loss step the control has no effect.
+    for (t, face, comp) in [(0, 3 * 9 + 4, 0), (2, 4 * 8 + 4, 1), (4, 30, 0)] {
+        let i = t * np + c.arrays[comp].range.start + face;
+        let (mut up, mut down) = (p.clone(), p.clone());
+        up[i] += h;
+        down[i] -= h;
+        let fd = (scene.loss_value(loss, &scene.x0, &up).unwrap() - scene.loss_value(loss, &scene.x0, &down).unwrap()) / (2.0 * h);
+        let ad = input.arrays[comp].2[t * nu + face];
+        assert!((fd - ad).abs() <= 1e-6 * fd.abs().max(1e-4), "step {t}, face {face}, component {comp}: {fd} vs {ad}");
+    }
+    // The loss counts both listed steps: it equals the sum of the two
+    // single-step losses.
+    let at = |steps: Vec<usize>| {
+        let l = diffsim::scene::SceneLoss { steps, ..loss.clone() };
+        scene.loss_value(&l, &scene.x0, &p).unwrap()
+    };
+    assert!((at(vec![2, 5]) - at(vec![2]) - at(vec![5])).abs() < 1e-12 * at(vec![2, 5]));
+    assert!((at(vec![2, 5]) - g.loss).abs() < 1e-12 * g.loss);
+}
+
+#[test]
+fn one_d_scenes_burgers_and_heat() {
+    use diffsim::scene::{Domain, Field};
+    // Heat on a periodic line: a sine mode decays by exactly
+    // 1/(1 + κ·λ) per implicit step, λ = 2 − 2·cos(2πk/n) the discrete
+    // Laplacian's eigenvalue, κ = ν·dt/dx².
+    let text = r#"
+        [domain]
+        size = [32]
+        length = 2.0
+        boundary = "periodic"
+        [time]
+        dt = 0.01
+        steps = 7
+        [fields.smoke]
+        init = { sine = { amplitude = 1.0, wavenumber = [3.0] } }
+        [[effects]]
+        kind = "diffusion"
+        fields = ["smoke"]
+        viscosity = 0.3
+        tolerance = 1e-13
+    "#;
+    let scene = Scene::parse(text).unwrap();
+    let Domain::Line(line) = scene.domain else { panic!("a line") };
+    assert!((line.dx - 2.0 / 32.0).abs() < 1e-15);
+    let x = scene.run(|_, _| {}).unwrap();
+    let kappa = 0.3 * 0.01 / (line.dx * line.dx);
+    let lambda = 2.0 - 2.0 * (std::f64::consts::TAU * 3.0 / 32.0).cos();
+    let decay = (1.0 / (1.0 + kappa * lambda)).powi(7);
+    for i in 0..32 {
+        let exact = decay * (std::f64::consts::TAU * 3.0 * i as f64 / 32.0).sin();
+        assert!((x[i] - exact).abs() < 1e-10, "cell {i}: {} vs {exact}", x[i]);
+    }
+    // The velocity was not declared: it stays zero and is not written.
+    assert_eq!(scene.fields, vec![Field::Smoke]);
+
+    // Burgers from the example scene: advection then explicit diffusion,
+    // each step equal to the solver functions called directly.
+    let scene = with_steps(&root().join("scenes/burgers.toml"), 5);
+    let Domain::Line(l) = scene.domain else { panic!("a line") };
+    let mut u = scene.x0[scene.domain.range(Field::Velocity)].to_vec();
+    let cfg = diffsim_solvers::burgers::Burgers1d { n: l.n, dx: l.dx, dt: scene.dt, nu: 0.0 };
+    let grid = diffsim_solvers::diffusion::Grid { stride: l.n, nx: l.n, ny: 1, wrap_x: true, wrap_y: false };
+    let (_, kappa_index, _) = scene.named.iter().find(|(n, _, _)| n == "diffusion.viscosity").unwrap().clone();
+    let mut tmp = vec![0.0; l.n];
+    for _ in 0..5 {
+        diffsim_solvers::burgers::step(&cfg, &u, &mut tmp);
+        diffsim_solvers::diffusion::explicit(&grid, scene.params[kappa_index], &tmp, &mut u);
+    }
+    let x = scene.run(|_, _| {}).unwrap();
+    let got = &x[scene.domain.range(Field::Velocity)];
+    for i in 0..l.n {
+        assert!((got[i] - u[i]).abs() < 1e-14, "cell {i}: {} vs {}", got[i], u[i]);
+    }
+    // Its viscosity gradient against central differences.
+    let loss = scene.loss.as_ref().expect("burgers.toml has a loss");
+    let g = scene.gradient(loss, Checkpointing::Store).unwrap();
+    let (_, index, factor) = scene.named.iter().find(|(n, _, _)| n == "diffusion.viscosity").unwrap().clone();
+    let h = 1e-7;
+    let (mut up, mut down) = (scene.params.clone(), scene.params.clone());
+    up[index] += h * factor;
+    down[index] -= h * factor;
+    let fd = (scene.loss_value(loss, &scene.x0, &up).unwrap() - scene.loss_value(loss, &scene.x0, &down).unwrap()) / (2.0 * h);
+    let ad = grad_of(&g, "diffusion.viscosity")[0];
+    assert!((fd - ad).abs() <= 1e-5 * fd.abs().max(1e-6), "viscosity: {fd} vs {ad}");
+}
+
+#[test]
+fn initial_values_from_npy_files() {
+    use npyz::WriterBuilder;
+    let dir = std::env::temp_dir().join(format!("diffsim-npy-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let write = |name: &str, shape: &[u64], v: &[f64]| {
+        let f = std::fs::File::create(dir.join(name)).unwrap();
+        let mut w = npyz::WriteOptions::new().default_dtype().shape(shape).writer(f).begin_nd().unwrap();
+        w.extend(v.iter().copied()).unwrap();
+        w.finish().unwrap();
+    };
+    let s: Vec<f64> = (0..64).map(|k| k as f64 / 64.0).collect();
+    write("s.npy", &[8, 8], &s);
+    let u: Vec<f64> = (0..72).map(|k| 0.01 * k as f64).collect();
+    write("u.npy", &[8, 9], &u);
+    write("v.npy", &[9, 8], &u);
+    write("wrong.npy", &[8, 9], &u);
+    std::fs::write(dir.join("garbage.npy"), b"not an npy file").unwrap();
+    let scene = |smoke: &str, velocity: &str| {
+        Scene::parse_in(
+            &format!(
+                "[domain]\nsize = [8, 8]\n[time]\ndt = 1.0\nsteps = 1\n[fields.smoke]\ninit = {{ npy = {smoke} }}\n[fields.velocity]\ninit = {{ npy = {velocity} }}\n[[effects]]\nkind = \"advection\"\n"
+            ),
+            &dir,
+        )
+    };
+    let ok = scene("\"s.npy\"", "[\"u.npy\", \"v.npy\"]").unwrap();
+    assert_eq!(&ok.x0[..64], &s[..]);
+    // Interior faces as given; the closed walls are set to zero.
+    let (_, u0, _) = ok.cfg().split(&ok.x0);
+    assert_eq!(u0[9 + 4], u[9 + 4]);
+    assert_eq!(u0[9], 0.0);
+    let cases = vec![("\"missing.npy\"", "cannot read"), ("\"garbage.npy\"", "not a valid .npy"), ("\"wrong.npy\"", "shape [8, 9], expected [8, 8]")];
+    for (smoke, expect) in cases {
+        let err = scene(smoke, "[\"u.npy\", \"v.npy\"]").unwrap_err().to_string();
+        assert!(err.contains(expect) && err.contains("fields.smoke.init.npy") && err.contains("line 6"), "{smoke}: {err}");
+    }
+    let err = scene("\"s.npy\"", "\"u.npy\"").unwrap_err().to_string();
+    assert!(err.contains("expected 2 files [u, v]"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn undeclared_effects_never_run() {
+    // Operation counts over a run and a gradient: only the declared
+    // effects' operators appear.
+    use diffsim::op::count;
+    let heat = with_steps(&root().join("scenes/heat.toml"), 2);
+    count::start();
+    heat.run(|_, _| {}).unwrap();
+    heat.gradient(heat.loss.as_ref().unwrap(), Checkpointing::Store).unwrap();
+    let counts = count::stop();
+    let names: Vec<&str> = counts.iter().map(|c| c.name).collect();
+    assert_eq!(names, vec!["DiffuseImplicit"], "{counts:?}");
+    // Two steps forward in the run, two in the gradient's forward pass, two VJPs.
+    assert_eq!((counts[0].forward, counts[0].vjp, counts[0].jvp), (4, 2, 0));
+
+    // The obstacle scene: advection, buoyancy, pressure; never diffusion,
+    // force or inflow.
+    let scene = with_steps(&root().join("scenes/smoke_obstacle.toml"), 2);
+    count::start();
+    scene.run(|_, _| {}).unwrap();
+    let counts = count::stop();
+    let mut names: Vec<&str> = counts.iter().map(|c| c.name).collect();
+    names.sort_unstable();
+    assert_eq!(names, vec!["Advect", "Buoyancy", "Project"], "{counts:?}");
+    assert!(counts.iter().all(|c| c.forward == 2 && c.vjp == 0));
 }

@@ -54,6 +54,14 @@ impl Grid {
         if self.stride == self.nx { self.nx * self.ny } else { self.stride * self.ny }
     }
 
+    /// Largest stable `κ = ν·dt` of the explicit scheme on this lattice:
+    /// `1/(2·d)` with `d` the number of axes with more than one sample
+    /// (1/4 in a box, 1/2 on a line).
+    pub fn explicit_limit(&self) -> f64 {
+        let axes = usize::from(self.nx > 1) + usize::from(self.ny > 1);
+        0.5 / axes.max(1) as f64
+    }
+
     /// Whether the lattice has no samples.
     pub fn is_empty(&self) -> bool {
         self.nx == 0 || self.ny == 0

@@ -87,3 +87,41 @@ pub(super) fn write_png(path: &std::path::Path, n: usize, s: &[f64], solid: &[bo
     w.write_image_data(&rgb).map_err(std::io::Error::other)?;
     Ok(())
 }
+
+/// Writes a 1D profile as a line plot (PNG, 640×240, auto-scaled, a grey
+/// zero line when zero is in range).
+pub(super) fn write_plot_png(path: &std::path::Path, values: &[f64]) -> std::io::Result<()> {
+    const W: usize = 640;
+    const H: usize = 240;
+    let mut rgb = vec![255u8; W * H * 3];
+    let (lo, hi) = values.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    let pad = ((hi - lo) * 0.05).max(1e-12);
+    let (lo, hi) = (lo - pad, hi + pad);
+    let row = |v: f64| (((hi - v) / (hi - lo)) * (H - 1) as f64).round().clamp(0.0, (H - 1) as f64) as usize;
+    let mut put = |x: usize, y: usize, c: u8| rgb[(y * W + x) * 3..(y * W + x) * 3 + 3].copy_from_slice(&[c, c, c]);
+    if lo < 0.0 && hi > 0.0 {
+        let y0 = row(0.0);
+        for x in 0..W {
+            put(x, y0, 180);
+        }
+    }
+    let n = values.len();
+    let mut last: Option<usize> = None;
+    for x in 0..W {
+        let v = values[(x * n / W).min(n - 1)];
+        let y = row(v);
+        // A vertical stroke from the previous column's row keeps the line connected.
+        let (a, b) = last.map_or((y, y), |l| (l.min(y), l.max(y)));
+        for yy in a..=b {
+            put(x, yy, 0);
+        }
+        last = Some(y);
+    }
+    let file = std::io::BufWriter::new(std::fs::File::create(path)?);
+    let mut enc = png::Encoder::new(file, W as u32, H as u32);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().map_err(std::io::Error::other)?;
+    w.write_image_data(&rgb).map_err(std::io::Error::other)?;
+    Ok(())
+}

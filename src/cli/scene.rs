@@ -6,8 +6,8 @@ use std::path::{Path, PathBuf};
 use npyz::WriterBuilder;
 
 use super::CliError;
-use crate::rollout::{Checkpointing, Rollout};
-use crate::scene::Scene;
+use crate::rollout::{Checkpointing, RolloutOperator};
+use crate::scene::{Domain, Field, Scene};
 
 /// Arguments of `diffsim run`.
 #[derive(Debug, clap::Args)]
@@ -17,13 +17,13 @@ pub struct RunArgs {
     /// Output directory.
     #[arg(long, default_value = "out")]
     out: PathBuf,
-    /// Also write the smoke as PNG every this many steps.
+    /// Also write an image every this many steps.
     #[arg(long)]
     every: Option<usize>,
     /// Print the time and share of each declared effect.
     #[arg(long)]
     profile: bool,
-    /// No progress output.
+    /// No progress bar and no summary.
     #[arg(long)]
     quiet: bool,
 }
@@ -39,6 +39,10 @@ pub struct GradArgs {
     /// Also run the gradient checks on the whole rollout and print them.
     #[arg(long)]
     check: bool,
+    /// Print the time and share of each declared effect in the forward and
+    /// backward passes.
+    #[arg(long)]
+    profile: bool,
 }
 
 fn create_dir(out: &Path) -> Result<(), CliError> {
@@ -54,20 +58,73 @@ fn write_npy(path: &Path, shape: &[u64], values: &[f64]) -> Result<(), CliError>
     w.finish().map_err(io)
 }
 
-/// The fields of a packed state as `.npy` files: smoke `[N, N]`, u `[N, N+1]`, v `[N+1, N]` (row j = y).
-fn write_state(scene: &Scene, out: &Path, prefix: &str, x: &[f64]) -> Result<(), CliError> {
-    let n = scene.cfg.n as u64;
-    let (s, u, v) = scene.cfg.split(x);
-    write_npy(&out.join(format!("{prefix}smoke.npy")), &[n, n], s)?;
-    write_npy(&out.join(format!("{prefix}velocity_u.npy")), &[n, n + 1], u)?;
-    write_npy(&out.join(format!("{prefix}velocity_v.npy")), &[n + 1, n], v)
+/// The declared fields of a state as `.npy` files (`smoke.npy`; a 2D
+/// velocity as `velocity_u.npy` `[N, N+1]` and `velocity_v.npy` `[N+1, N]`,
+/// rows = y). Returns the file names.
+fn write_state(scene: &Scene, out: &Path, x: &[f64]) -> Result<Vec<String>, CliError> {
+    let mut names = Vec::new();
+    for &field in &scene.fields {
+        for a in scene.domain.arrays(field) {
+            let name = format!("{}{}.npy", field.name(), a.suffix);
+            write_npy(&out.join(&name), &a.shape, &x[a.range])?;
+            names.push(name);
+        }
+    }
+    Ok(names)
 }
 
-fn png(scene: &Scene, path: &Path, x: &[f64]) -> Result<(), CliError> {
-    let n = scene.cfg.n;
-    let none = vec![false; n * n];
-    super::demo::write_png(path, n, &x[scene.smoke_range()], scene.solid.as_deref().unwrap_or(&none))
-        .map_err(|source| CliError::Io { path: path.to_path_buf(), source })
+/// An image of a state: the smoke of a box (the speed when it has no smoke),
+/// or a plot of each field of a line. Returns the file names.
+fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64]) -> Result<Vec<String>, CliError> {
+    let io = |path: PathBuf| move |source| CliError::Io { path, source };
+    let mut names = Vec::new();
+    match &scene.domain {
+        Domain::Line(_) => {
+            for &field in &scene.fields {
+                let name = format!("{}{tag}.png", field.name());
+                let path = out.join(&name);
+                super::demo::write_plot_png(&path, &x[scene.domain.range(field)]).map_err(io(path.clone()))?;
+                names.push(name);
+            }
+        }
+        Domain::Box(cfg) => {
+            let n = cfg.n;
+            let none = vec![false; n * n];
+            let solid = scene.solid.as_deref().unwrap_or(&none);
+            let (name, values) = if scene.fields.contains(&Field::Smoke) {
+                (format!("smoke{tag}.png"), x[scene.domain.range(Field::Smoke)].to_vec())
+            } else {
+                // Speed at cell centres, scaled to its maximum.
+                let (_, u, v) = cfg.split(x);
+                let speed: Vec<f64> = (0..n * n)
+                    .map(|c| {
+                        let (i, j) = (c % n, c / n);
+                        let uc = 0.5 * (u[j * (n + 1) + i] + u[j * (n + 1) + i + 1]);
+                        let vc = 0.5 * (v[j * n + i] + v[(j + 1) * n + i]);
+                        uc.hypot(vc)
+                    })
+                    .collect();
+                let max = speed.iter().fold(0.0f64, |m, &s| m.max(s)).max(1e-300);
+                (format!("speed{tag}.png"), speed.iter().map(|s| s / max).collect())
+            };
+            let path = out.join(&name);
+            super::demo::write_png(&path, n, &values, solid).map_err(io(path.clone()))?;
+            names.push(name);
+        }
+    }
+    Ok(names)
+}
+
+fn progress(steps: usize, quiet: bool) -> indicatif::ProgressBar {
+    if quiet {
+        return indicatif::ProgressBar::hidden();
+    }
+    // Drawn only when stderr is a terminal.
+    let bar = indicatif::ProgressBar::new(steps as u64);
+    if let Ok(style) = indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} steps {elapsed} (eta {eta})") {
+        bar.set_style(style);
+    }
+    bar
 }
 
 pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
@@ -76,39 +133,63 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
     let mut frames = Vec::new();
     let start = std::time::Instant::now();
     let x = if a.profile {
-        profile(&scene)?
+        let (x, table) = profile_run(&scene)?;
+        println!("{table}");
+        x
     } else {
-        scene.run(|k, x| {
+        let bar = progress(scene.steps, a.quiet);
+        let x = scene.run(|k, x| {
             if a.every.is_some_and(|e| e > 0 && k % e == 0) {
                 frames.push((k, x.to_vec()));
             }
-            if !a.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr()) {
-                eprint!("\rstep {k}/{}", scene.steps);
-            }
-        })?
+            bar.inc(1);
+        });
+        bar.finish_and_clear();
+        x?
     };
     let elapsed = start.elapsed().as_secs_f64();
     for (k, f) in &frames {
-        png(&scene, &a.out.join(format!("smoke_{k:05}.png")), f)?;
+        write_images(&scene, &a.out, &format!("_{k:05}"), f)?;
     }
-    write_state(&scene, &a.out, "", &x)?;
-    png(&scene, &a.out.join("smoke.png"), &x)?;
+    let mut written = write_state(&scene, &a.out, &x)?;
+    written.extend(write_images(&scene, &a.out, "", &x)?);
     if !a.quiet {
         eprintln!(
-            "\r{}: {n}×{n} cells, {} steps of {} in {elapsed:.2} s; effects: {}; wrote smoke.npy, velocity_u.npy, velocity_v.npy, smoke.png to {}",
+            "{}: {}, {} steps of {} in {elapsed:.2} s; effects: {}; wrote {} to {}",
             a.scene.display(),
+            describe(&scene.domain),
             scene.steps,
             scene.dt,
             scene.effects.join(", "),
+            written.join(", "),
             a.out.display(),
-            n = scene.cfg.n
         );
     }
     Ok(())
 }
 
+fn describe(d: &Domain) -> String {
+    match d {
+        Domain::Line(l) => format!("{} cells on a line of length {}", l.n, l.n as f64 * l.dx),
+        Domain::Box(cfg) => format!("{n}×{n} cells", n = cfg.n),
+    }
+}
+
+/// A table of time per effect: one row per effect, its share, and the sum
+/// of the rows against the whole measured time.
+fn table(names: &[String], times: &[f64], total: f64, title: &str) -> String {
+    use std::fmt::Write;
+    let sum: f64 = times.iter().sum();
+    let mut s = format!("{title}\n{:<4} {:<12} {:>10} {:>7}\n", "#", "effect", "time ms", "share");
+    for (k, (name, t)) in names.iter().zip(times).enumerate() {
+        let _ = writeln!(s, "{k:<4} {name:<12} {:>10.3} {:>6.1}%", t * 1e3, 100.0 * t / sum.max(1e-300));
+    }
+    let _ = write!(s, "sum of effects {:.3} ms, whole pass {:.3} ms", sum * 1e3, total * 1e3);
+    s
+}
+
 /// Runs the scene timing each effect (and only the declared ones).
-fn profile(scene: &Scene) -> Result<Vec<f64>, CliError> {
+fn profile_run(scene: &Scene) -> Result<(Vec<f64>, String), CliError> {
     let mut times = vec![0.0f64; scene.effects.len()];
     let total = std::time::Instant::now();
     // The clock restarts after each effect and after the per-step checks.
@@ -121,50 +202,71 @@ fn profile(scene: &Scene) -> Result<Vec<f64>, CliError> {
         },
     )?;
     let total = total.elapsed().as_secs_f64();
-    let sum: f64 = times.iter().sum();
-    println!("{:<4} {:<12} {:>10} {:>7}", "#", "effect", "time ms", "share");
-    for (k, (name, t)) in scene.effects.iter().zip(&times).enumerate() {
-        println!("{k:<4} {name:<12} {:>10.3} {:>6.1}%", t * 1e3, 100.0 * t / sum);
+    Ok((x, table(&scene.effects, &times, total, "forward (diffsim run)")))
+}
+
+/// The backward pass timed per effect: each effect's VJP at the states of a
+/// stored forward run, in reverse order.
+fn profile_backward(scene: &Scene) -> Result<String, CliError> {
+    let n = scene.x0.len();
+    let mut states = vec![scene.x0.clone()];
+    scene.run(|_, x| states.push(x.to_vec()))?;
+    let ops = scene.step.ops();
+    let mut times = vec![0.0f64; ops.len()];
+    let total = std::time::Instant::now();
+    let mut lam = vec![1.0; n];
+    let (mut inner, mut next) = (vec![0.0; n], vec![0.0; n]);
+    for x in states[..scene.steps].iter().rev() {
+        // The intermediate states of this step, then the effects' VJPs backwards.
+        let mut mids = vec![x.clone()];
+        for (k, op) in ops.iter().enumerate() {
+            let r = scene.step.param_range(k);
+            op.forward(mids.last().expect("starts with x"), &scene.params[r], &mut inner);
+            mids.push(inner.clone());
+        }
+        let mut dp = vec![0.0; scene.params.len()];
+        for (k, op) in ops.iter().enumerate().rev() {
+            let r = scene.step.param_range(k);
+            let t = std::time::Instant::now();
+            next.fill(0.0);
+            op.vjp(&mids[k], &scene.params[r.clone()], &mut lam, &mut next, &mut dp[r]);
+            times[k] += t.elapsed().as_secs_f64();
+            std::mem::swap(&mut lam, &mut next);
+        }
     }
-    println!("sum of effects {:.3} ms, whole run {:.3} ms", sum * 1e3, total * 1e3);
-    Ok(x)
+    let total = total.elapsed().as_secs_f64();
+    Ok(table(&scene.effects, &times, total, "backward (VJPs of each effect; the whole pass includes recomputing the step's intermediate states)"))
 }
 
 pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
     let scene = Scene::load(&a.scene)?;
-    let Some((target, wrt)) = &scene.loss else {
+    let Some(loss) = &scene.loss else {
         return Err(crate::scene::SceneError::key("loss", "`diffsim grad` needs a [loss] table").into());
     };
     create_dir(&a.out)?;
-    let ns = scene.cfg.n_s();
-    let loss = |x: &[f64], g: &mut [f64]| diffsim_solvers::smoke::p2_loss(&scene.cfg, x, target, g);
-    let rollout = Rollout::new(&scene.step, &scene.params, scene.steps)?;
-    let g = rollout.value_and_grad(&scene.x0, &loss, Checkpointing::periodic_sqrt(scene.steps))?;
+    let mode = Checkpointing::periodic_sqrt(scene.steps);
+    let g = scene.gradient(loss, mode)?;
     println!("loss {:.10e}", g.loss);
-    let n = scene.cfg.n as u64;
-    for w in wrt {
-        match w.as_str() {
-            "smoke.init" => {
-                write_npy(&a.out.join("grad_smoke_init.npy"), &[n, n], &g.dx0[..ns])?;
-                println!("d loss / d smoke.init: ‖·‖ = {:.6e} → grad_smoke_init.npy", norm(&g.dx0[..ns]));
-            }
-            "velocity.init" => {
-                write_state(&scene, &a.out, "grad_", &g.dx0)?;
-                println!("d loss / d velocity.init: ‖·‖ = {:.6e} → grad_velocity_u.npy, grad_velocity_v.npy", norm(&g.dx0[ns..]));
-            }
-            name => {
-                let (_, index, factor) = scene.named.iter().find(|(s, _, _)| s == name).expect("checked when the scene was built");
-                let d = g.dp[*index] * factor;
-                println!("d loss / d {name} = {d:.10e}");
-                write_npy(&a.out.join(format!("grad_{}.npy", name.replace(['.', '[', ']'], "_"))), &[1], &[d])?;
-            }
+    for input in &g.inputs {
+        let norm = input.arrays.iter().flat_map(|(_, _, v)| v).map(|a| a * a).sum::<f64>().sqrt();
+        let files: Vec<String> = input.arrays.iter().map(|(stem, _, _)| format!("{stem}.npy")).collect();
+        for (stem, shape, values) in &input.arrays {
+            write_npy(&a.out.join(format!("{stem}.npy")), shape, values)?;
         }
+        match input.arrays.as_slice() {
+            [(_, shape, v)] if shape == &[1] => println!("d loss / d {} = {:.10e} → {}", input.name, v[0], files.join(", ")),
+            _ => println!("d loss / d {}: ‖·‖ = {norm:.6e} → {}", input.name, files.join(", ")),
+        }
+    }
+    if a.profile {
+        println!("{}", profile_run(&scene)?.1);
+        println!("{}", profile_backward(&scene)?);
     }
     if a.check {
         use crate::check::{CheckOptions, check_all};
-        use crate::rollout::RolloutOperator;
         // The rollout x₀ ↦ x_T under the chosen checkpointing.
-        let op = RolloutOperator { rollout, mode: Checkpointing::periodic_sqrt(scene.steps) };
+        let p = scene.rollout_params();
+        let op = RolloutOperator { rollout: scene.rollout(&p)?, mode };
         let report = check_all(&op, &scene.x0, &[], &CheckOptions::default());
         println!("{report}");
         if !report.passed() {
@@ -172,8 +274,4 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
         }
     }
     Ok(())
-}
-
-fn norm(v: &[f64]) -> f64 {
-    v.iter().map(|a| a * a).sum::<f64>().sqrt()
 }

@@ -69,6 +69,7 @@ macro_rules! differentiable {
                 #[track_caller]
                 fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
                     $crate::op::validate_forward(self, ::std::stringify!($ty), x, p, y);
+                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Forward);
                     $f(self, x, p, y)
                 }
 
@@ -82,6 +83,7 @@ macro_rules! differentiable {
                 #[track_caller]
                 fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
+                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
                     // The primal output goes to scratch. `Duplicated`, not
                     // `DuplicatedOnly`: with the latter, a function that reads
                     // back what it wrote to `y` got a wrong derivative (README,
@@ -97,6 +99,7 @@ macro_rules! differentiable {
                 #[track_caller]
                 fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
                     $crate::op::validate_jvp(self, ::std::stringify!($ty), x, p, tx, tp, y, ty);
+                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Jvp);
                     diffsim_generated_jvp(self, x, tx, p, tp, y, ty);
                 }
             }

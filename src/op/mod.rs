@@ -24,12 +24,15 @@
 //! All three are checked against each other by [`crate::check`].
 
 mod chain;
+pub mod count;
 mod enzyme;
 mod fd;
+mod part;
 pub mod stencil;
 
 pub use chain::{Chain, Effect};
 pub use fd::FiniteDiff;
+pub use part::{AddParams, Part};
 
 #[doc(hidden)]
 pub use enzyme::{always_smooth, validate_forward, validate_jvp, validate_vjp, with_scratch};

@@ -57,6 +57,7 @@ macro_rules! stencil3 {
                 fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
                     $crate::op::validate_forward(self, ::std::stringify!($ty), x, p, y);
                     $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
+                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Forward);
                     $crate::op::stencil::forward3(x, y, |l, c, r, out| $f(self, l, c, r, p, out));
                 }
 
@@ -71,6 +72,7 @@ macro_rules! stencil3 {
                 fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
                     $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
+                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
                     $crate::op::stencil::vjp3::<true, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
                         diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g)
                     });
@@ -81,6 +83,7 @@ macro_rules! stencil3 {
                 fn vjp_overwrite(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
                     $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
+                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
                     $crate::op::stencil::vjp3::<false, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
                         diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g)
                     });
@@ -93,6 +96,7 @@ macro_rules! stencil3 {
                 fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
                     $crate::op::validate_jvp(self, ::std::stringify!($ty), x, p, tx, tp, y, ty);
                     $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
+                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Jvp);
                     $crate::op::stencil::jvp3(x, tx, y, ty, |l, tl, c, tc, r, tr, out, tout| {
                         diffsim_map_jvp(self, l, tl, c, tc, r, tr, p, tp, out, tout)
                     });

@@ -92,9 +92,12 @@ impl std::fmt::Display for Checkpointing {
 }
 
 /// State of one backward pass: adjoints, buffer accounting, counters.
-struct Backward<'r, 'a, O> {
+struct Backward<'r, 'a, O, L> {
     rollout: &'r Rollout<'a, O>,
+    loss: &'r L,
     n: usize,
+    /// Gradient of one loss term.
+    term: Vec<f64>,
     /// Adjoint of the current state (the seed of the next VJP).
     lam: Vec<f64>,
     /// Buffer the next VJP overwrites.
@@ -106,7 +109,7 @@ struct Backward<'r, 'a, O> {
     stats: RolloutStats,
 }
 
-impl<'r, 'a, O: Vjp> Backward<'r, 'a, O> {
+impl<'r, 'a, O: Vjp, L: Loss> Backward<'r, 'a, O, L> {
     fn alloc(&mut self) -> Vec<f64> {
         self.live += 1;
         self.stats.peak_states = self.stats.peak_states.max(self.live);
@@ -118,25 +121,52 @@ impl<'r, 'a, O: Vjp> Backward<'r, 'a, O> {
         self.free.push(v);
     }
 
-    fn step(&mut self, x: &[f64], y: &mut [f64]) {
+    /// `y = x_{t+1}` from `x = x_t`.
+    fn step(&mut self, t: usize, x: &[f64], y: &mut [f64]) {
         self.stats.step_evaluations += 1;
-        self.rollout.op.forward(x, self.rollout.p, y);
+        self.rollout.op.forward(x, self.rollout.p_at(t), y);
     }
 
-    /// `λ ← (∂f/∂x at x)ᵀ·λ`, `dp += (∂f/∂p)ᵀ·λ`.
-    fn vjp(&mut self, x: &[f64]) {
-        self.rollout.op.vjp_overwrite(x, self.rollout.p, &mut self.lam, &mut self.lam_next, &mut self.dp);
+    /// `ℓ_t(x_t)` if step `t` has a loss term, else 0; with `seed`, its
+    /// gradient is also added into `λ`.
+    fn loss_term(&mut self, t: usize, x: &[f64], seed: bool) -> f64 {
+        if !self.loss.has_term(t, self.rollout.steps) {
+            return 0.0;
+        }
+        let value = self.loss.term(t, x, &mut self.term);
+        if seed {
+            for (l, g) in self.lam.iter_mut().zip(&self.term) {
+                *l += g;
+            }
+        }
+        value
+    }
+
+    /// `λ_t = (∂f/∂x at x_t)ᵀ·λ_{t+1} + ∂ℓ_t/∂x_t`, `dp_t += (∂f/∂p at
+    /// x_t)ᵀ·λ_{t+1}`.
+    fn vjp(&mut self, t: usize, x: &[f64]) {
+        let r = self.rollout;
+        let dp = if r.per_step {
+            let np = r.op.n_params();
+            &mut self.dp[t * np..(t + 1) * np]
+        } else {
+            &mut self.dp[..]
+        };
+        r.op.vjp_overwrite(x, r.p_at(t), &mut self.lam, &mut self.lam_next, dp);
         std::mem::swap(&mut self.lam, &mut self.lam_next);
+        if t > 0 {
+            self.loss_term(t, x, true);
+        }
     }
 
-    /// A new buffer holding the state `k` steps after `from`.
-    fn advance(&mut self, from: &[f64], k: usize) -> Vec<f64> {
+    /// A new buffer holding `x_{t+k}` from `from = x_t`.
+    fn advance(&mut self, from: &[f64], t: usize, k: usize) -> Vec<f64> {
         let mut out = self.alloc();
         out.copy_from_slice(from);
         if k > 0 {
             let mut tmp = self.alloc();
-            for _ in 0..k {
-                self.step(&out, &mut tmp);
+            for s in t..t + k {
+                self.step(s, &out, &mut tmp);
                 std::mem::swap(&mut out, &mut tmp);
             }
             self.release(tmp);
@@ -148,13 +178,13 @@ impl<'r, 'a, O: Vjp> Backward<'r, 'a, O> {
     fn binomial(&mut self, a: usize, b: usize, xa: &[f64], s: usize) {
         let t = b - a;
         if t == 1 {
-            self.vjp(xa);
+            self.vjp(a, xa);
             return;
         }
         if s == 0 {
             for j in (a..b).rev() {
-                let xj = self.advance(xa, j - a);
-                self.vjp(&xj);
+                let xj = self.advance(xa, a, j - a);
+                self.vjp(j, &xj);
                 self.release(xj);
             }
             return;
@@ -167,7 +197,7 @@ impl<'r, 'a, O: Vjp> Backward<'r, 'a, O> {
         // one repetition fewer: |right| ≤ β(s−1, r), |left| ≤ β(s, r−1).
         let right = (binom(s - 1 + r, s - 1).min(t as u128 - 1)) as usize;
         let m = b - right;
-        let xm = self.advance(xa, m - a);
+        let xm = self.advance(xa, a, m - a);
         self.binomial(m, b, &xm, s - 1);
         self.release(xm);
         self.binomial(a, m, xa, s);
@@ -207,28 +237,42 @@ pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, ws: &mut Workspace, x0: &[f64], lo
     free.retain(|v| v.len() == n);
     let mut bw = Backward {
         rollout: r,
+        loss,
         n,
+        term: vec![0.0; n],
         lam: vec![0.0; n],
         lam_next: vec![0.0; n],
-        dp: vec![0.0; r.op.n_params()],
+        dp: vec![0.0; r.p.len()],
         free,
         live: 0,
         stats: RolloutStats { steps, ..Default::default() },
     };
-    let value = match mode.resolve(steps) {
-        Checkpointing::Store => periodic(&mut bw, &mut ws.store, x0, loss, 1),
-        Checkpointing::Periodic { every } => periodic(&mut bw, &mut ws.store, x0, loss, every),
-        Checkpointing::Binomial { snapshots } => {
-            // Forward once for the loss (two buffers), then reverse.
-            let xt = bw.advance(x0, steps);
-            let value = loss.value_and_grad(&xt, &mut bw.lam);
-            bw.release(xt);
-            if steps > 0 {
-                let x0v = bw.advance(x0, 0);
-                bw.binomial(0, steps, &x0v, snapshots);
-                bw.release(x0v);
+    // With no steps the loss is on x_0 itself.
+    let value = if steps == 0 {
+        bw.loss_term(0, x0, true)
+    } else {
+        match mode.resolve(steps) {
+            Checkpointing::Store => periodic(&mut bw, &mut ws.store, x0, 1),
+            Checkpointing::Periodic { every } => periodic(&mut bw, &mut ws.store, x0, every),
+            Checkpointing::Binomial { snapshots } => {
+                // Forward once for the loss (two buffers), then reverse.
+                let mut x = bw.advance(x0, 0, 0);
+                let mut tmp = bw.alloc();
+                let mut value = 0.0;
+                for t in 0..steps {
+                    bw.step(t, &x, &mut tmp);
+                    std::mem::swap(&mut x, &mut tmp);
+                    value += bw.loss_term(t + 1, &x, t + 1 == steps);
+                }
+                bw.release(tmp);
+                bw.release(x);
+                if steps > 0 {
+                    let x0v = bw.advance(x0, 0, 0);
+                    bw.binomial(0, steps, &x0v, snapshots);
+                    bw.release(x0v);
+                }
+                value
             }
-            value
         }
     };
     bw.stats.peak_state_bytes = bw.stats.peak_states * n * std::mem::size_of::<f64>();
@@ -239,7 +283,7 @@ pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, ws: &mut Workspace, x0: &[f64], lo
 /// Stores `x_0, x_k, x_2k, …` in one flat buffer during the forward pass and
 /// recomputes each segment from its checkpoint in the backward pass. With
 /// `k = 1` nothing is recomputed and each step writes straight into its slot.
-fn periodic<O: Vjp>(bw: &mut Backward<'_, '_, O>, store: &mut Vec<f64>, x0: &[f64], loss: &impl Loss, k: usize) -> f64 {
+fn periodic<O: Vjp, L: Loss>(bw: &mut Backward<'_, '_, O, L>, store: &mut Vec<f64>, x0: &[f64], k: usize) -> f64 {
     let (n, steps) = (bw.n, bw.rollout.steps);
     let n_ckpt = steps.div_ceil(k).max(1);
     if store.len() < n_ckpt * n {
@@ -252,21 +296,23 @@ fn periodic<O: Vjp>(bw: &mut Backward<'_, '_, O>, store: &mut Vec<f64>, x0: &[f6
     let mut last = bw.alloc();
     let mut tmp = bw.alloc();
     last.copy_from_slice(x0);
+    let mut value = 0.0;
     for t in 0..steps {
         if k == 1 && t + 1 < steps {
             let (done, rest) = store.split_at_mut((t + 1) * n);
-            bw.step(&done[t * n..], &mut rest[..n]);
+            bw.step(t, &done[t * n..], &mut rest[..n]);
+            value += bw.loss_term(t + 1, &rest[..n], false);
             continue;
         }
         let src: &[f64] = if k == 1 { &store[t * n..(t + 1) * n] } else { &last };
-        bw.step(src, &mut tmp);
+        bw.step(t, src, &mut tmp);
         std::mem::swap(&mut last, &mut tmp);
+        value += bw.loss_term(t + 1, &last, t + 1 == steps);
         if (t + 1) % k == 0 && t + 1 < steps {
             let c = (t + 1) / k;
             store[c * n..(c + 1) * n].copy_from_slice(&last);
         }
     }
-    let value = loss.value_and_grad(&last, &mut bw.lam);
     bw.release(tmp);
     bw.release(last);
     // Backward, segment by segment from the last.
@@ -282,11 +328,11 @@ fn periodic<O: Vjp>(bw: &mut Backward<'_, '_, O>, store: &mut Vec<f64>, x0: &[f6
         for i in 0..b.saturating_sub(a + 1) {
             let (done, rest) = seg.split_at_mut(i);
             let src: &[f64] = if i == 0 { ckpt } else { &done[i - 1] };
-            bw.step(src, &mut rest[0]);
+            bw.step(a + i, src, &mut rest[0]);
         }
         for t in (a..b).rev() {
             let x: &[f64] = if t == a { ckpt } else { &seg[t - a - 1] };
-            bw.vjp(x);
+            bw.vjp(t, x);
         }
     }
     for s in seg {

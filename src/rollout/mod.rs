@@ -1,5 +1,8 @@
-//! Rollouts: `T` steps of an operator `x_{t+1} = f(x_t, p)`, a loss on the
-//! final state, and its gradient by per-step VJPs chained backwards.
+//! Rollouts: `T` steps of an operator `x_{t+1} = f(x_t, p_t)`, a loss on
+//! the final state or on any listed steps, and its gradient by per-step
+//! VJPs chained backwards. The parameters are the same at every step
+//! ([`Rollout::new`]) or given per step ([`Rollout::per_step`], e.g. a
+//! time-varying control), with the gradient in the same shape.
 //!
 //! The backward pass needs every state `x_t` in reverse order. How they are
 //! kept is a [`Checkpointing`] mode:
@@ -102,15 +105,44 @@ impl std::fmt::Display for Pass {
     }
 }
 
-/// A loss on the final state.
+/// A loss on the states of a rollout: `L = Σ_t ℓ_t(x_t)` over the steps
+/// `t ∈ 1..=T` that have a term.
+///
+/// A closure `Fn(&[f64], &mut [f64]) -> f64` is a loss on the final state
+/// only; [`AtSteps`] puts terms at listed steps.
 pub trait Loss {
-    /// Returns `L(y)` and writes `∂L/∂y` into `grad` (overwrites).
-    fn value_and_grad(&self, y: &[f64], grad: &mut [f64]) -> f64;
+    /// Whether step `t` (of `steps`) has a term.
+    fn has_term(&self, t: usize, steps: usize) -> bool;
+    /// `ℓ_t(x)`, writing `∂ℓ_t/∂x` into `grad` (overwrites); called only
+    /// for steps that [`Loss::has_term`].
+    fn term(&self, t: usize, x: &[f64], grad: &mut [f64]) -> f64;
 }
 
 impl<F: Fn(&[f64], &mut [f64]) -> f64> Loss for F {
-    fn value_and_grad(&self, y: &[f64], grad: &mut [f64]) -> f64 {
+    fn has_term(&self, t: usize, steps: usize) -> bool {
+        t == steps
+    }
+    fn term(&self, _t: usize, y: &[f64], grad: &mut [f64]) -> f64 {
         self(y, grad)
+    }
+}
+
+/// A loss with terms at listed steps: `L = Σ_{t ∈ steps} f(t, x_t)`, where
+/// `f(t, x, grad)` returns `ℓ_t(x)` and writes its gradient (overwrites).
+#[derive(Clone, Debug)]
+pub struct AtSteps<F> {
+    /// The steps (1-based; `T` is the last state) with a term.
+    pub steps: Vec<usize>,
+    /// The term.
+    pub f: F,
+}
+
+impl<F: Fn(usize, &[f64], &mut [f64]) -> f64> Loss for AtSteps<F> {
+    fn has_term(&self, t: usize, _steps: usize) -> bool {
+        self.steps.contains(&t)
+    }
+    fn term(&self, t: usize, x: &[f64], grad: &mut [f64]) -> f64 {
+        (self.f)(t, x, grad)
     }
 }
 
@@ -131,11 +163,11 @@ pub struct RolloutStats {
 /// Loss and gradient of a rollout.
 #[derive(Clone, Debug)]
 pub struct Gradient {
-    /// `L(x_T)`.
+    /// `L`.
     pub loss: f64,
     /// `∂L/∂x_0`.
     pub dx0: Vec<f64>,
-    /// `∂L/∂p`.
+    /// `∂L/∂p`, shaped like the rollout's `p` (per step if it is).
     pub dp: Vec<f64>,
     /// Memory and recomputation of this run.
     pub stats: RolloutStats,
@@ -146,10 +178,13 @@ pub struct Gradient {
 pub struct Rollout<'a, O> {
     /// The step operator.
     pub op: &'a O,
-    /// Its parameters, the same at every step.
+    /// Its parameters: the same at every step, or `steps` blocks of
+    /// `op.n_params()`, block `t` used by the step from `x_t`.
     pub p: &'a [f64],
     /// Number of steps `T`.
     pub steps: usize,
+    /// Whether `p` holds one block per step.
+    pub per_step: bool,
 }
 
 impl<'a, O: Forward> Rollout<'a, O> {
@@ -162,7 +197,30 @@ impl<'a, O: Forward> Rollout<'a, O> {
         if p.len() != op.n_params() {
             return Err(RolloutError::Length { what: Argument::P, got: p.len(), expected: op.n_params() });
         }
-        Ok(Self { op, p, steps })
+        Ok(Self { op, p, steps, per_step: false })
+    }
+
+    /// A rollout whose parameters change from step to step: `p` holds
+    /// `steps` blocks of `op.n_params()` values, block `t` for the step
+    /// `x_t → x_{t+1}`.
+    pub fn per_step(op: &'a O, p: &'a [f64], steps: usize) -> Result<Self, RolloutError> {
+        let mut r = Self::new(op, &p[..op.n_params().min(p.len())], steps)?;
+        if p.len() != steps * op.n_params() {
+            return Err(RolloutError::Length { what: Argument::P, got: p.len(), expected: steps * op.n_params() });
+        }
+        r.p = p;
+        r.per_step = true;
+        Ok(r)
+    }
+
+    /// The parameters of the step from `x_t`.
+    pub fn p_at(&self, t: usize) -> &'a [f64] {
+        if self.per_step {
+            let np = self.op.n_params();
+            &self.p[t * np..(t + 1) * np]
+        } else {
+            self.p
+        }
     }
 
     fn check_state(&self, x0: &[f64]) -> Result<(), RolloutError> {
@@ -173,11 +231,17 @@ impl<'a, O: Forward> Rollout<'a, O> {
     }
 
     fn final_state_unchecked(&self, x0: &[f64]) -> Vec<f64> {
+        self.run_unchecked(x0, |_, _| {})
+    }
+
+    /// Runs all steps, calling `visit(t, x_t)` for `t = 1..=T`.
+    fn run_unchecked(&self, x0: &[f64], mut visit: impl FnMut(usize, &[f64])) -> Vec<f64> {
         let mut x = x0.to_vec();
         let mut y = vec![0.0; x.len()];
-        for _ in 0..self.steps {
-            self.op.forward(&x, self.p, &mut y);
+        for t in 0..self.steps {
+            self.op.forward(&x, self.p_at(t), &mut y);
             std::mem::swap(&mut x, &mut y);
+            visit(t + 1, &x);
         }
         x
     }
@@ -195,11 +259,23 @@ impl<'a, O: Forward> Rollout<'a, O> {
         Ok(x)
     }
 
-    /// `L(x_T)` without gradient.
+    /// The loss without gradient.
     pub fn loss(&self, x0: &[f64], loss: &impl Loss) -> Result<f64, RolloutError> {
-        let x = self.final_state(x0)?;
-        let mut g = vec![0.0; x.len()];
-        Ok(loss.value_and_grad(&x, &mut g))
+        self.check_state(x0)?;
+        let mut g = vec![0.0; x0.len()];
+        let mut value = if self.steps == 0 && loss.has_term(0, 0) { loss.term(0, x0, &mut g) } else { 0.0 };
+        let x = self.run_unchecked(x0, |t, x| {
+            if loss.has_term(t, self.steps) {
+                value += loss.term(t, x, &mut g);
+            }
+        });
+        if let Some(error) = self.op.take_error() {
+            return Err(RolloutError::Operator { pass: Pass::Forward, error });
+        }
+        if !all_finite(&x) || !value.is_finite() {
+            return Err(RolloutError::NonFinite { pass: Pass::Forward, step: self.first_non_finite_step(x0) });
+        }
+        Ok(value)
     }
 
     /// Replays the rollout to find the first step whose output is not
@@ -208,7 +284,7 @@ impl<'a, O: Forward> Rollout<'a, O> {
         let mut x = x0.to_vec();
         let mut y = vec![0.0; x.len()];
         for t in 0..self.steps {
-            self.op.forward(&x, self.p, &mut y);
+            self.op.forward(&x, self.p_at(t), &mut y);
             if !all_finite(&y) {
                 return t;
             }
@@ -219,8 +295,8 @@ impl<'a, O: Forward> Rollout<'a, O> {
 }
 
 impl<O: Vjp> Rollout<'_, O> {
-    /// The loss `L(x_T)` and its gradients with respect to `x_0` and `p`,
-    /// by per-step VJPs over states kept as `mode` says.
+    /// The loss and its gradients with respect to `x_0` and `p`, by
+    /// per-step VJPs over states kept as `mode` says.
     pub fn value_and_grad(&self, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
         self.value_and_grad_in(&mut Workspace::new(), x0, loss, mode)
     }
@@ -296,10 +372,10 @@ impl<O: Vjp> Vjp for RolloutOperator<'_, O> {
 
 impl<O: crate::op::Jvp> crate::op::Jvp for RolloutOperator<'_, O> {
     fn jvp(&self, x: &[f64], _p: &[f64], tx: &[f64], _tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
-        let tp = vec![0.0; self.rollout.p.len()];
+        let tp = vec![0.0; self.rollout.op.n_params()];
         let (mut xc, mut tc) = (x.to_vec(), tx.to_vec());
-        for _ in 0..self.rollout.steps {
-            self.rollout.op.jvp(&xc, self.rollout.p, &tc, &tp, y, ty);
+        for t in 0..self.rollout.steps {
+            self.rollout.op.jvp(&xc, self.rollout.p_at(t), &tc, &tp, y, ty);
             xc.copy_from_slice(y);
             tc.copy_from_slice(ty);
         }

@@ -5,36 +5,40 @@
 //! table's shape), so that an error names the effect it is in.
 
 use serde::Deserialize;
+use toml::Spanned;
 
 use super::SceneError;
 
-/// A scene file as written.
+/// A scene file as written. Tables keep their place in the file
+/// ([`Spanned`]) so that errors found after parsing name the line.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneFile {
     /// The box and its boundary.
-    pub domain: DomainSpec,
+    pub domain: Spanned<DomainSpec>,
     /// Time step and number of steps.
-    pub time: TimeSpec,
+    pub time: Spanned<TimeSpec>,
     /// Initial values of the fields the scene uses.
     #[serde(default)]
     pub fields: FieldsSpec,
     /// The effects, in the order they run each step (parsed by [`effect`]).
     #[serde(default)]
-    pub effects: Vec<toml::Table>,
+    pub effects: Vec<Spanned<toml::Table>>,
     /// Solid shapes.
     #[serde(default)]
-    pub obstacles: Vec<ShapeSpec>,
+    pub obstacles: Vec<Spanned<ShapeSpec>>,
     /// What `diffsim grad` differentiates.
-    pub loss: Option<LossSpec>,
+    pub loss: Option<Spanned<LossSpec>>,
 }
 
 /// `[domain]`.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DomainSpec {
-    /// Cells, x first.
+    /// Cells, x first: `[n]` for a line, `[nx, ny]` for a box.
     pub size: Vec<i64>,
+    /// Length of a 1D domain (default: `n`, unit cells).
+    pub length: Option<f64>,
     /// `"closed"`, `"periodic"`, `"outflow"`, per axis `{ x = …, y = … }`,
     /// or per side `{ left = …, right = …, bottom = …, top = … }`.
     #[serde(default)]
@@ -56,9 +60,9 @@ pub struct TimeSpec {
 #[serde(deny_unknown_fields)]
 pub struct FieldsSpec {
     /// `[fields.smoke]`.
-    pub smoke: Option<FieldSpec>,
+    pub smoke: Option<Spanned<FieldSpec>>,
     /// `[fields.velocity]`.
-    pub velocity: Option<FieldSpec>,
+    pub velocity: Option<Spanned<FieldSpec>>,
 }
 
 /// One field's initial value.
@@ -69,9 +73,9 @@ pub struct FieldSpec {
     pub init: InitSpec,
 }
 
-/// An initial value: `"zero"`, a shape with a value, a uniform vector, or a
-/// sine.
-#[derive(Debug, Deserialize)]
+/// An initial value: `"zero"`, a shape with a value, a uniform vector, a
+/// sine, or `.npy` files. Coordinates have one entry per axis, x first.
+#[derive(Debug, Clone, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum InitSpec {
     /// Zero everywhere.
@@ -79,7 +83,7 @@ pub enum InitSpec {
     /// `value` inside the disc (cell centres within `radius` of `center`).
     Disc {
         /// Centre, x first, in cells.
-        center: [f64; 2],
+        center: Vec<f64>,
         /// Radius in cells.
         radius: f64,
         /// The value inside (default 1).
@@ -89,23 +93,47 @@ pub enum InitSpec {
     /// `value` inside the box `[lower, upper)`.
     Box {
         /// Lower corner, x first.
-        lower: [f64; 2],
+        lower: Vec<f64>,
         /// Upper corner, x first.
-        upper: [f64; 2],
+        upper: Vec<f64>,
         /// The value inside (default 1).
         #[serde(default = "one")]
         value: f64,
     },
-    /// `amplitude·sin(2π·(kx·x/N + ky·y/N))` at cell centres (for the
-    /// velocity: on each face, both components).
+    /// `amplitude·sin(2π·(kx·x + ky·y)/L)` (for a 2D velocity: on each
+    /// face, both components).
     Sine {
         /// Amplitude.
         amplitude: f64,
         /// Wave numbers, x first.
-        wavenumber: [f64; 2],
+        wavenumber: Vec<f64>,
     },
     /// The same vector on every face (velocity only), x first.
-    Uniform([f64; 2]),
+    Uniform(Vec<f64>),
+    /// Values from `.npy` files (float64 or float32), paths relative to the
+    /// scene file: one file for a scalar field or a 1D velocity, two
+    /// (`[u, v]`) for a 2D velocity.
+    Npy(NpyPaths),
+}
+
+/// One `.npy` path or several.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(untagged)]
+pub enum NpyPaths {
+    /// One file.
+    One(String),
+    /// Several files.
+    Many(Vec<String>),
+}
+
+impl NpyPaths {
+    /// The paths as a list.
+    pub fn list(&self) -> Vec<&str> {
+        match self {
+            NpyPaths::One(p) => vec![p.as_str()],
+            NpyPaths::Many(v) => v.iter().map(String::as_str).collect(),
+        }
+    }
 }
 
 fn one() -> f64 {
@@ -113,35 +141,39 @@ fn one() -> f64 {
 }
 
 /// A solid shape in `[[obstacles]]` (cells whose centre lies inside).
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Clone, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ShapeSpec {
     /// A box `[lower, upper)`, x first.
     Box {
         /// Lower corner.
-        lower: [f64; 2],
+        lower: Vec<f64>,
         /// Upper corner.
-        upper: [f64; 2],
+        upper: Vec<f64>,
     },
     /// A disc.
     Disc {
         /// Centre, x first.
-        center: [f64; 2],
+        center: Vec<f64>,
         /// Radius.
         radius: f64,
     },
 }
 
-/// `[loss]`: `½·Σ (field_T − target)²` at the last step.
+/// `[loss]`: `½·Σ_t Σ (field_t − target)²` over the listed steps (default:
+/// the last).
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LossSpec {
-    /// The field compared (`"smoke"`).
+    /// The field compared (`"smoke"` or `"velocity"`).
     pub field: String,
-    /// The target, an initial-value shape.
+    /// The target, an initial value of that field.
     pub target: InitSpec,
+    /// The steps with a term (1 ≤ t ≤ steps; default the last).
+    pub steps: Option<Vec<i64>>,
     /// What the gradient is taken for: `smoke.init`, `velocity.init`,
-    /// `<effect kind>.<parameter>` (e.g. `buoyancy.coefficient`).
+    /// `<effect kind>.<parameter>` (e.g. `buoyancy.coefficient`), and
+    /// `force.control` (the force field of every step).
     pub with_respect_to: Vec<String>,
 }
 
@@ -258,12 +290,13 @@ fn smoke() -> String {
     "smoke".into()
 }
 
-/// `kind = "force"`: a uniform acceleration on the velocity.
+/// `kind = "force"`: an acceleration on the velocity, uniform at the start
+/// (as a control, it may differ per face and step).
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ForceSpec {
-    /// The acceleration, x first.
-    pub value: [f64; 2],
+    /// The acceleration, x first (one entry per axis).
+    pub value: Vec<f64>,
 }
 
 /// `kind = "inflow"`: a region whose smoke and velocity are set every step.

@@ -1,0 +1,517 @@
+//! From a parsed scene file to a [`Scene`]: every value checked, the step
+//! built from exactly the declared effects.
+
+use std::path::Path;
+
+use diffsim_solvers::boundary::{Boundary, Profile, Side};
+use diffsim_solvers::burgers::Burgers1d;
+use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d};
+use toml::Spanned;
+
+use super::init::{field_init, shape_cells};
+use super::spec::{EffectSpec, SceneFile, ShapeSpec, unknown};
+use super::{Array, Control, Domain, Field, Line, Scene, SceneError, SceneLoss};
+use crate::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, DiffuseExplicit, DiffuseImplicit, Force, Inflow, Project};
+use crate::op::{AddParams, Chain, Effect, Part};
+use crate::problems::burgers::BurgersEnzyme;
+
+pub(super) fn positive(key: &str, v: f64) -> Result<f64, SceneError> {
+    if v.is_finite() && v > 0.0 { Ok(v) } else { Err(SceneError::key(key, format!("must be a positive finite number, got {v}"))) }
+}
+
+pub(super) fn finite(key: &str, v: f64) -> Result<f64, SceneError> {
+    if v.is_finite() { Ok(v) } else { Err(SceneError::key(key, format!("must be finite, got {v}"))) }
+}
+
+fn count(key: &str, v: i64) -> Result<usize, SceneError> {
+    if v >= 1 { Ok(v as usize) } else { Err(SceneError::key(key, format!("must be at least 1, got {v}"))) }
+}
+
+/// The 1-based line of byte offset `at` in `text`.
+fn line_of(text: &str, at: usize) -> usize {
+    text[..at.min(text.len())].bytes().filter(|&b| b == b'\n').count() + 1
+}
+
+/// Runs `f`, placing its error at the line where `span` starts.
+fn at<T, S>(text: &str, spanned: &Spanned<S>, f: impl FnOnce(&S) -> Result<T, SceneError>) -> Result<T, SceneError> {
+    f(spanned.get_ref()).map_err(|e| e.at_line(line_of(text, spanned.span().start)))
+}
+
+pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, SceneError> {
+    let domain = at(text, &file.domain, |d| {
+        let size = &d.size;
+        match size.len() {
+            1 => {
+                let n = count("domain.size[0]", size[0])?;
+                if n < 3 {
+                    return Err(SceneError::key("domain.size", format!("need at least 3 cells, got {n}")));
+                }
+                let length = positive("domain.length", d.length.unwrap_or(n as f64))?;
+                let periodic = match &d.boundary {
+                    None => false,
+                    Some(toml::Value::String(s)) if s == "periodic" => true,
+                    Some(toml::Value::String(s)) if s == "closed" => false,
+                    Some(_) => return Err(SceneError::key("domain.boundary", "a line is \"periodic\" or \"closed\" (no flux)")),
+                };
+                Ok(Domain::Line(Line { n, dx: length / n as f64, periodic }))
+            }
+            2 => {
+                let (nx, ny) = (count("domain.size[0]", size[0])?, count("domain.size[1]", size[1])?);
+                if nx != ny {
+                    return Err(SceneError::key("domain.size", format!("only square boxes are supported for now, got [{nx}, {ny}]")));
+                }
+                if nx < 4 {
+                    return Err(SceneError::key("domain.size", format!("need at least 4 cells per side, got {nx}")));
+                }
+                if d.length.is_some() {
+                    return Err(SceneError::key("domain.length", "a box has unit cells; `length` is for 1D domains"));
+                }
+                let boundary = match &d.boundary {
+                    None => Boundary::CLOSED,
+                    Some(v) => boundary(v)?,
+                };
+                boundary.validate().map_err(|e| SceneError::key("domain.boundary", e.to_string()))?;
+                Ok(Domain::Box(Smoke2d { n: nx, buoyancy: 0.0, boundary }))
+            }
+            k => Err(SceneError::key("domain.size", format!("expected [n] (1D) or [nx, ny] (2D), got {k} value(s)"))),
+        }
+    })?;
+    let (dt, steps) = at(text, &file.time, |t| Ok((positive("time.dt", t.dt)?, count("time.steps", t.steps)?)))?;
+
+    // Obstacles.
+    let mut solid: Option<Vec<bool>> = None;
+    for (k, shape) in file.obstacles.iter().enumerate() {
+        let cells = at(text, shape, |shape| {
+            if domain.dims() != 2 {
+                return Err(SceneError::key(format!("obstacles[{k}]"), "obstacles need a 2D domain"));
+            }
+            shape_cells(&format!("obstacles[{k}]"), &domain, shape)
+        })?;
+        let all = solid.get_or_insert_with(|| vec![false; cells.len()]);
+        for (a, c) in all.iter_mut().zip(cells) {
+            *a |= c;
+        }
+    }
+
+    // Initial state.
+    let mut x0 = vec![0.0; domain.n_state()];
+    let mut fields = Vec::new();
+    // (One field at a time: a by-value array of (enum, reference) pairs
+    // crashes Enzyme's type analysis in this crate; README, Enzyme notes.)
+    let mut declare = |field: Field, spec: &Option<Spanned<super::spec::FieldSpec>>| -> Result<(), SceneError> {
+        if let Some(spec) = spec {
+            let values = at(text, spec, |f| field_init(&format!("fields.{}.init", field.name()), &domain, field, &f.init, dir))?;
+            x0[domain.range(field)].copy_from_slice(&values);
+            fields.push(field);
+        }
+        Ok(())
+    };
+    declare(Field::Smoke, &file.fields.smoke)?;
+    declare(Field::Velocity, &file.fields.velocity)?;
+
+    // Effects, in order.
+    let mut b = Builder {
+        domain,
+        dt,
+        x0: &x0,
+        fields: &fields,
+        solid: solid.as_deref(),
+        ops: Vec::new(),
+        params: Vec::new(),
+        named: Vec::new(),
+        controls: Vec::new(),
+        effects: Vec::new(),
+        projected: false,
+    };
+    for (k, table) in file.effects.iter().enumerate() {
+        at(text, table, |table| b.effect(k, table))?;
+    }
+    if b.ops.is_empty() {
+        return Err(SceneError::key("effects", "the scene declares no effect"));
+    }
+    if solid.is_some() && !b.projected {
+        return Err(SceneError::key("obstacles", "obstacles need a pressure effect (no flow through solids is enforced by the projection)"));
+    }
+
+    // Loss.
+    let loss = match &file.loss {
+        None => None,
+        Some(l) => Some(at(text, l, |l| {
+            let field = match l.field.as_str() {
+                "smoke" => Field::Smoke,
+                "velocity" => Field::Velocity,
+                other => return Err(SceneError::key("loss.field", unknown("field", other, &["smoke", "velocity"]))),
+            };
+            let target = field_init("loss.target", &domain, field, &l.target, dir)?;
+            let mut at_steps = match &l.steps {
+                None => vec![steps],
+                Some(list) if list.is_empty() => return Err(SceneError::key("loss.steps", "lists no step")),
+                Some(list) => list
+                    .iter()
+                    .map(|&t| {
+                        if t >= 1 && t as usize <= steps {
+                            Ok(t as usize)
+                        } else {
+                            Err(SceneError::key("loss.steps", format!("step {t} is outside 1..={steps}")))
+                        }
+                    })
+                    .collect::<Result<Vec<_>, _>>()?,
+            };
+            at_steps.sort_unstable();
+            at_steps.dedup();
+            let known: Vec<&str> = ["smoke.init", "velocity.init"]
+                .into_iter()
+                .chain(b.named.iter().map(|(s, _, _)| s.as_str()))
+                .chain(b.controls.iter().map(|c| c.name.as_str()))
+                .collect();
+            for w in &l.with_respect_to {
+                if !known.contains(&w.as_str()) {
+                    return Err(SceneError::key("loss.with_respect_to", unknown("input", w, &known)));
+                }
+            }
+            Ok(SceneLoss { field, target, steps: at_steps, with_respect_to: l.with_respect_to.clone() })
+        })?),
+    };
+    let Builder { ops, params, named, controls, effects, .. } = b;
+    Ok(Scene { domain, dt, steps, step: Chain::new(ops), params, named, controls, effects, fields, x0, solid, loss })
+}
+
+/// The effects built so far and what they need to know.
+struct Builder<'a> {
+    domain: Domain,
+    dt: f64,
+    x0: &'a [f64],
+    fields: &'a [Field],
+    solid: Option<&'a [bool]>,
+    ops: Vec<Box<dyn Effect>>,
+    params: Vec<f64>,
+    named: Vec<(String, usize, f64)>,
+    controls: Vec<Control>,
+    effects: Vec<String>,
+    projected: bool,
+}
+
+impl Builder<'_> {
+    fn has(&self, f: Field) -> bool {
+        self.fields.contains(&f)
+    }
+
+    /// Names the next parameter `kind.param` (first such effect) and
+    /// `effects[k].param`.
+    fn name(&mut self, k: usize, kind: &str, param: &str, factor: f64) {
+        let index = self.params.len();
+        let short = format!("{kind}.{param}");
+        if !self.named.iter().any(|(n, _, _)| *n == short) {
+            self.named.push((short, index, factor));
+        }
+        self.named.push((format!("effects[{k}].{param}"), index, factor));
+    }
+
+    /// The fields an effect names, each declared.
+    fn fields_of(&self, key: &str, names: &[String]) -> Result<(bool, bool), SceneError> {
+        let (mut s, mut v) = (false, false);
+        for f in names {
+            let field = match f.as_str() {
+                "smoke" => Field::Smoke,
+                "velocity" => Field::Velocity,
+                other => return Err(SceneError::key(key, unknown("field", other, &["smoke", "velocity"]))),
+            };
+            if !self.has(field) {
+                return Err(SceneError::key(key, format!("needs the field `{f}`, which the scene does not declare (add [fields.{f}])")));
+            }
+            *(if field == Field::Smoke { &mut s } else { &mut v }) = true;
+        }
+        if !s && !v {
+            return Err(SceneError::key(key, "names no field"));
+        }
+        Ok((s, v))
+    }
+
+    fn need(&self, key: &str, kind: &str, fields: &[Field]) -> Result<(), SceneError> {
+        for f in fields {
+            if !self.has(*f) {
+                return Err(SceneError::key(key, format!("{kind} needs the field `{n}` (add [fields.{n}])", n = f.name())));
+            }
+        }
+        Ok(())
+    }
+
+    fn effect(&mut self, k: usize, table: &toml::Table) -> Result<(), SceneError> {
+        let at = |key: &str| format!("effects[{k}].{key}");
+        let e = super::spec::effect(k, table)?;
+        let (domain, dt) = (self.domain, self.dt);
+        let line = match domain {
+            Domain::Line(l) => Some(l),
+            Domain::Box(_) => None,
+        };
+        let box_only = |kind: &str| SceneError::key(at("kind"), format!("{kind} needs a 2D domain"));
+        match (e, domain) {
+            (EffectSpec::Advection(a), _) => {
+                let (s, v) = self.fields_of(&at("fields"), &a.fields)?;
+                self.effects.push("advection".into());
+                if let Some(l) = line {
+                    if s {
+                        return Err(SceneError::key(at("fields"), "on a line only the velocity is advected (Burgers): fields = [\"velocity\"]"));
+                    }
+                    if a.scheme != "upwind" {
+                        return Err(SceneError::key(at("scheme"), format!("on a line the advection scheme is \"upwind\", got \"{}\"", a.scheme)));
+                    }
+                    if !l.periodic {
+                        return Err(SceneError::key(at("kind"), "advection on a line needs boundary = \"periodic\""));
+                    }
+                    // Upwind is stable for CFL = max|u|·dt/dx ≤ 1; checked on the initial state.
+                    let umax = self.x0[domain.range(Field::Velocity)].iter().fold(0.0f64, |m, u| m.max(u.abs()));
+                    let cfl = umax * dt / l.dx;
+                    if cfl > 1.0 {
+                        return Err(SceneError::key(
+                            at("kind"),
+                            format!("unstable: the CFL number max|u|·dt/dx = {cfl:.3} of the initial velocity exceeds 1; use dt ≤ {:.4e}", l.dx / umax),
+                        ));
+                    }
+                    let op = BurgersEnzyme(Burgers1d { n: l.n, dx: l.dx, dt, nu: 0.0 });
+                    self.ops.push(Box::new(Part::new(op, domain.n_state(), domain.range(Field::Velocity))));
+                    return Ok(());
+                }
+                let cfg = *self_cfg(&domain);
+                match a.scheme.as_str() {
+                    "semi_lagrangian" | "maccormack" => {
+                        let scheme = if a.scheme == "maccormack" { Scheme::MacCormack { limiter: a.limiter } } else { Scheme::SemiLagrangian };
+                        self.ops.push(Box::new(Advect { cfg, scheme, dt, smoke: s, velocity: v }));
+                    }
+                    "upwind" => {
+                        if v {
+                            return Err(SceneError::key(
+                                at("scheme"),
+                                "upwind advects scalars only; advect the velocity in its own effect with semi_lagrangian or maccormack",
+                            ));
+                        }
+                        if !self.has(Field::Velocity) {
+                            return Err(SceneError::key(at("scheme"), "upwind needs a velocity field (add [fields.velocity])"));
+                        }
+                        self.ops.push(Box::new(AdvectUpwind { cfg, dt }));
+                    }
+                    other => return Err(SceneError::key(at("scheme"), unknown("scheme", other, &["semi_lagrangian", "maccormack", "upwind"]))),
+                }
+            }
+            (EffectSpec::Diffusion(d), _) => {
+                let (s, v) = self.fields_of(&at("fields"), &d.fields)?;
+                let nu = finite(&at("viscosity"), d.viscosity)?;
+                if nu < 0.0 {
+                    return Err(SceneError::key(at("viscosity"), format!("must not be negative, got {nu}")));
+                }
+                // κ = ν·dt/dx² (unit cells in a box).
+                let h2 = line.map_or(1.0, |l| l.dx * l.dx);
+                let kappa = nu * dt / h2;
+                self.effects.push("diffusion".into());
+                match d.scheme.as_str() {
+                    "explicit" => {
+                        let limit = if line.is_some() { 0.5 } else { 0.25 };
+                        if kappa > limit {
+                            return Err(SceneError::key(
+                                at("scheme"),
+                                format!(
+                                    "explicit diffusion is unstable here: viscosity·dt/dx² = {kappa} exceeds the limit {limit}; use dt ≤ {:.4e} or scheme = \"implicit\"",
+                                    limit * h2 / nu
+                                ),
+                            ));
+                        }
+                        self.ops.push(match line {
+                            Some(l) => Box::new(Diffuse::line(l.n, l.periodic, s, v, DiffuseExplicit::on)),
+                            None => Box::new(Diffuse::explicit(*self_cfg(&domain), s, v)),
+                        });
+                    }
+                    "implicit" => {
+                        let tol = positive(&at("tolerance"), d.tolerance)?;
+                        let max = count(&at("max_iterations"), d.max_iterations)?;
+                        self.ops.push(match line {
+                            Some(l) => Box::new(Diffuse::line(l.n, l.periodic, s, v, |g| DiffuseImplicit::on(g, tol, max))),
+                            None => Box::new(Diffuse::implicit(*self_cfg(&domain), s, v, tol, max)),
+                        });
+                    }
+                    other => return Err(SceneError::key(at("scheme"), unknown("scheme", other, &["explicit", "implicit"]))),
+                }
+                self.name(k, "diffusion", "viscosity", dt / h2);
+                self.params.push(kappa);
+            }
+            (EffectSpec::Force(f), _) => {
+                self.need(&at("kind"), "force", &[Field::Velocity])?;
+                if f.value.len() != domain.dims() {
+                    return Err(SceneError::key(at("value"), format!("expected {} value(s), one per axis", domain.dims())));
+                }
+                for (i, a) in f.value.iter().enumerate() {
+                    finite(&at(&format!("value[{i}]")), *a)?;
+                }
+                self.effects.push("force".into());
+                let start = self.params.len();
+                // The control: the force on every velocity sample, in the velocity's layout.
+                let velocity = domain.range(Field::Velocity);
+                let arrays: Vec<Array> = domain
+                    .arrays(Field::Velocity)
+                    .into_iter()
+                    .map(|a| Array { range: start + a.range.start - velocity.start..start + a.range.end - velocity.start, ..a })
+                    .collect();
+                for name in vec!["force.control".to_string(), at("control")] {
+                    if !self.controls.iter().any(|c| c.name == name) {
+                        self.controls.push(Control { name, arrays: arrays.clone() });
+                    }
+                }
+                match line {
+                    Some(l) => {
+                        self.ops.push(Box::new(AddParams { n: domain.n_state(), range: domain.range(Field::Velocity), scale: dt }));
+                        self.params.extend(std::iter::repeat_n(f.value[0], l.n));
+                    }
+                    None => {
+                        let cfg = *self_cfg(&domain);
+                        self.ops.push(Box::new(Force { cfg, dt }));
+                        self.params.extend(std::iter::repeat_n(f.value[0], cfg.n_u()));
+                        self.params.extend(std::iter::repeat_n(f.value[1], cfg.n_u()));
+                    }
+                }
+            }
+            (EffectSpec::Pressure(_) | EffectSpec::Buoyancy(_) | EffectSpec::Inflow(_), Domain::Line(_)) => {
+                return Err(box_only(&table.get("kind").and_then(|v| v.as_str()).unwrap_or("this effect").to_string()));
+            }
+            (EffectSpec::Pressure(p), Domain::Box(cfg)) => {
+                self.need(&at("kind"), "pressure", &[Field::Velocity])?;
+                let tol = positive(&at("tolerance"), p.tolerance)?;
+                let max = count(&at("max_iterations"), p.max_iterations)?;
+                let precond = match p.preconditioner.as_str() {
+                    "multigrid" => Preconditioner::Multigrid,
+                    "mic0" => Preconditioner::Mic0,
+                    "none" => Preconditioner::None,
+                    other => return Err(SceneError::key(at("preconditioner"), unknown("preconditioner", other, &["multigrid", "mic0", "none"]))),
+                };
+                self.effects.push("pressure".into());
+                self.ops.push(Box::new(match self.solid {
+                    Some(s) => Project::with_obstacles(cfg, tol, max, s),
+                    None => Project::new(cfg, tol, max, precond),
+                }));
+                self.projected = true;
+            }
+            (EffectSpec::Buoyancy(b), Domain::Box(cfg)) => {
+                if b.field != "smoke" {
+                    return Err(SceneError::key(at("field"), unknown("field", &b.field, &["smoke"])));
+                }
+                self.need(&at("kind"), "buoyancy", &[Field::Smoke, Field::Velocity])?;
+                self.effects.push("buoyancy".into());
+                self.ops.push(Box::new(Buoyancy { cfg, dt }));
+                self.name(k, "buoyancy", "coefficient", 1.0);
+                self.params.push(finite(&at("coefficient"), b.coefficient)?);
+            }
+            (EffectSpec::Inflow(i), Domain::Box(cfg)) => {
+                let n = cfg.n;
+                let region = match i.region {
+                    ShapeSpec::Box { lower, upper } if lower.len() == 2 && upper.len() == 2 => {
+                        let clip = |v: f64| v.clamp(0.0, n as f64);
+                        for v in lower.iter().chain(&upper) {
+                            finite(&at("region"), *v)?;
+                        }
+                        let (i0, j0) = (clip(lower[0]).round() as usize, clip(lower[1]).round() as usize);
+                        let (i1, j1) = (clip(upper[0]).round() as usize, clip(upper[1]).round() as usize);
+                        if i0 >= i1 || j0 >= j1 {
+                            return Err(SceneError::key(at("region"), "the box covers no cell of the domain"));
+                        }
+                        [i0, i1, j0, j1]
+                    }
+                    ShapeSpec::Box { .. } => return Err(SceneError::key(at("region"), "expected lower = [x, y], upper = [x, y]")),
+                    ShapeSpec::Disc { .. } => return Err(SceneError::key(at("region"), "an inflow region must be a box")),
+                };
+                self.effects.push("inflow".into());
+                self.ops.push(Box::new(Inflow { cfg, region }));
+                let values = [finite(&at("smoke"), i.smoke)?, finite(&at("velocity[0]"), i.velocity[0])?, finite(&at("velocity[1]"), i.velocity[1])?];
+                self.params.extend(values);
+            }
+        }
+        Ok(())
+    }
+}
+
+fn self_cfg(domain: &Domain) -> &Smoke2d {
+    match domain {
+        Domain::Box(cfg) => cfg,
+        Domain::Line(_) => unreachable!("2D effects are refused on a line before this"),
+    }
+}
+
+/// The boundary of `domain.boundary`.
+fn boundary(v: &toml::Value) -> Result<Boundary, SceneError> {
+    const KEY: &str = "domain.boundary";
+    match v {
+        toml::Value::String(_) => {
+            let s = side(KEY, v, None)?;
+            if matches!(s, Side::Inflow(_)) {
+                return Err(SceneError::key(KEY, "inflow must be given per side"));
+            }
+            Ok(Boundary::all(s))
+        }
+        toml::Value::Table(t) if t.contains_key("x") || t.contains_key("y") => {
+            for k in t.keys() {
+                if k != "x" && k != "y" {
+                    return Err(SceneError::key(format!("{KEY}.{k}"), unknown("axis", k, &["x", "y"])));
+                }
+            }
+            let axis = |a: &str| t.get(a).map_or(Ok(Side::Closed), |v| side(&format!("{KEY}.{a}"), v, None));
+            Ok(Boundary::axes(axis("x")?, axis("y")?))
+        }
+        toml::Value::Table(t) => {
+            const SIDES: [&str; 4] = ["left", "right", "bottom", "top"];
+            for k in t.keys() {
+                if !SIDES.contains(&k.as_str()) {
+                    return Err(SceneError::key(format!("{KEY}.{k}"), unknown("side", k, &["left", "right", "bottom", "top", "x", "y"])));
+                }
+            }
+            let one = |name: &str, inward: [f64; 2]| t.get(name).map_or(Ok(Side::Closed), |v| side(&format!("{KEY}.{name}"), v, Some(inward)));
+            Ok(Boundary {
+                left: one("left", [1.0, 0.0])?,
+                right: one("right", [-1.0, 0.0])?,
+                bottom: one("bottom", [0.0, 1.0])?,
+                top: one("top", [0.0, -1.0])?,
+            })
+        }
+        _ => Err(SceneError::key(
+            KEY,
+            "expected a kind (\"closed\", \"periodic\", \"outflow\"), { x = …, y = … } or { left = …, right = …, bottom = …, top = … }",
+        )),
+    }
+}
+
+/// One side: a kind, or `{ inflow = [vx, vy], profile = "uniform" | "parabolic" }`
+/// (`inward`: the side's inward normal, for the inflow speed).
+fn side(key: &str, v: &toml::Value, inward: Option<[f64; 2]>) -> Result<Side, SceneError> {
+    const KINDS: [&str; 4] = ["closed", "periodic", "outflow", "inflow"];
+    match v {
+        toml::Value::String(s) => match s.as_str() {
+            "closed" => Ok(Side::Closed),
+            "periodic" => Ok(Side::Periodic),
+            "outflow" => Ok(Side::Outflow),
+            "inflow" => Err(SceneError::key(key, "inflow needs its velocity: { inflow = [vx, vy] }")),
+            other => Err(SceneError::key(key, unknown("boundary kind", other, &KINDS))),
+        },
+        toml::Value::Table(t) => {
+            let Some(normal) = inward else {
+                return Err(SceneError::key(key, "inflow is given per side (left, right, bottom, top)"));
+            };
+            for k in t.keys() {
+                if k != "inflow" && k != "profile" {
+                    return Err(SceneError::key(format!("{key}.{k}"), unknown("key", k, &["inflow", "profile"])));
+                }
+            }
+            let vel: [f64; 2] = t
+                .get("inflow")
+                .ok_or_else(|| SceneError::key(key, "expected { inflow = [vx, vy] }"))?
+                .clone()
+                .try_into()
+                .map_err(|_| SceneError::key(format!("{key}.inflow"), "expected two numbers [vx, vy]"))?;
+            let speed = finite(&format!("{key}.inflow"), vel[0] * normal[0] + vel[1] * normal[1])?;
+            if speed <= 0.0 {
+                return Err(SceneError::key(format!("{key}.inflow"), format!("the velocity {vel:?} does not point into the domain")));
+            }
+            match t.get("profile").and_then(|p| p.as_str()).unwrap_or("uniform") {
+                "uniform" => Ok(Side::Inflow(Profile::Uniform(speed))),
+                "parabolic" => Ok(Side::Inflow(Profile::Parabolic(speed))),
+                other => Err(SceneError::key(format!("{key}.profile"), unknown("profile", other, &["uniform", "parabolic"]))),
+            }
+        }
+        _ => Err(SceneError::key(key, "expected a kind or { inflow = [vx, vy] }")),
+    }
+}

@@ -1,0 +1,175 @@
+//! Initial values and shapes of a scene, on a line or in a box: shapes,
+//! analytic presets and `.npy` files.
+//!
+//! Positions: in a box, cell `(i, j)` has its centre at `(i + ½, j + ½)`
+//! (unit cells); on a line, value `i` sits at `x = i·dx` (the grid points of
+//! a periodic line, as in benchmark P1).
+
+use std::path::Path;
+
+use diffsim_solvers::smoke::{enforce_boundary, obstacle_box, obstacle_disc};
+
+use super::build::{finite, positive};
+use super::spec::{InitSpec, NpyPaths, ShapeSpec};
+use super::{Domain, Field, SceneError};
+
+/// A point with one coordinate per axis of the domain.
+fn point(key: &str, v: &[f64], dims: usize) -> Result<Vec<f64>, SceneError> {
+    if v.len() != dims {
+        let want = if dims == 1 { "[x]" } else { "[x, y]" };
+        return Err(SceneError::key(key, format!("expected {want} for a {dims}D domain, got {} value(s)", v.len())));
+    }
+    for x in v {
+        finite(key, *x)?;
+    }
+    Ok(v.to_vec())
+}
+
+/// The cells (values, on a line) inside a shape, clipped to the domain; a
+/// shape wholly outside is an error.
+pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec) -> Result<Vec<bool>, SceneError> {
+    let dims = domain.dims();
+    let cells = match (domain, shape) {
+        (Domain::Box(cfg), ShapeSpec::Box { lower, upper }) => {
+            let (a, b) = (point(&format!("{key}.lower"), lower, dims)?, point(&format!("{key}.upper"), upper, dims)?);
+            obstacle_box(cfg.n, [a[0], a[1]], [b[0], b[1]])
+        }
+        (Domain::Box(cfg), ShapeSpec::Disc { center, radius }) => {
+            let c = point(&format!("{key}.center"), center, dims)?;
+            positive(&format!("{key}.radius"), *radius)?;
+            obstacle_disc(cfg.n, [c[0], c[1]], *radius)
+        }
+        (Domain::Line(l), ShapeSpec::Box { lower, upper }) => {
+            let (a, b) = (point(&format!("{key}.lower"), lower, dims)?[0], point(&format!("{key}.upper"), upper, dims)?[0]);
+            let cells: Vec<bool> = (0..l.n).map(|i| (a..b).contains(&(i as f64 * l.dx))).collect();
+            cells.iter().any(|&c| c).then_some(cells)
+        }
+        (Domain::Line(l), ShapeSpec::Disc { center, radius }) => {
+            let c = point(&format!("{key}.center"), center, dims)?[0];
+            let r = positive(&format!("{key}.radius"), *radius)?;
+            let cells: Vec<bool> = (0..l.n).map(|i| (i as f64 * l.dx - c).abs() <= r).collect();
+            cells.iter().any(|&c| c).then_some(cells)
+        }
+    };
+    cells.ok_or_else(|| {
+        let size = match domain {
+            Domain::Box(cfg) => format!("{n}×{n} domain", n = cfg.n),
+            Domain::Line(l) => format!("domain [0, {})", l.n as f64 * l.dx),
+        };
+        SceneError::key(key, format!("the shape lies wholly outside the {size}"))
+    })
+}
+
+/// The initial value (or loss target) of `field` from its spec: the
+/// field's slice of the packed state. `dir` is where `.npy` paths start.
+pub(super) fn field_init(key: &str, domain: &Domain, field: Field, init: &InitSpec, dir: &Path) -> Result<Vec<f64>, SceneError> {
+    let len = domain.range(field).len();
+    let dims = domain.dims();
+    let mut values = match (init, field, domain) {
+        (InitSpec::Zero, _, _) => vec![0.0; len],
+        (InitSpec::Npy(paths), _, _) => read_npy(key, domain, field, paths, dir)?,
+        (InitSpec::Disc { center, radius, value }, Field::Smoke, _) | (InitSpec::Disc { center, radius, value }, Field::Velocity, Domain::Line(_)) => {
+            let value = finite(&format!("{key}.value"), *value)?;
+            let cells = shape_cells(key, domain, &ShapeSpec::Disc { center: center.clone(), radius: *radius })?;
+            cells.into_iter().map(|c| if c { value } else { 0.0 }).collect()
+        }
+        (InitSpec::Box { lower, upper, value }, Field::Smoke, _) | (InitSpec::Box { lower, upper, value }, Field::Velocity, Domain::Line(_)) => {
+            let value = finite(&format!("{key}.value"), *value)?;
+            let cells = shape_cells(key, domain, &ShapeSpec::Box { lower: lower.clone(), upper: upper.clone() })?;
+            cells.into_iter().map(|c| if c { value } else { 0.0 }).collect()
+        }
+        (InitSpec::Sine { amplitude, wavenumber }, _, _) => {
+            let a = finite(&format!("{key}.sine.amplitude"), *amplitude)?;
+            let k = point(&format!("{key}.sine.wavenumber"), wavenumber, dims)?;
+            sine(domain, field, a, &k)
+        }
+        (InitSpec::Uniform(v), Field::Velocity, _) => {
+            let v = point(&format!("{key}.uniform"), v, dims)?;
+            match domain {
+                Domain::Line(_) => vec![v[0]; len],
+                Domain::Box(cfg) => {
+                    let mut uv = vec![v[0]; 2 * cfg.n_u()];
+                    uv[cfg.n_u()..].fill(v[1]);
+                    uv
+                }
+            }
+        }
+        (InitSpec::Uniform(_), Field::Smoke, _) => return Err(SceneError::key(key, "`uniform` is for the velocity; use a shape, `sine`, `npy` or \"zero\"")),
+        (InitSpec::Disc { .. } | InitSpec::Box { .. }, Field::Velocity, Domain::Box(_)) => {
+            return Err(SceneError::key(key, "a 2D velocity starts \"zero\", `uniform = [vx, vy]`, `sine` or `npy = [u, v]`"));
+        }
+    };
+    if let (Field::Velocity, Domain::Box(cfg)) = (field, domain) {
+        let (u, v) = values.split_at_mut(cfg.n_u());
+        enforce_boundary(cfg, u, v);
+    }
+    Ok(values)
+}
+
+/// `a·sin(2π·k·x/L)` at the field's sample positions.
+fn sine(domain: &Domain, field: Field, a: f64, k: &[f64]) -> Vec<f64> {
+    use std::f64::consts::TAU;
+    match domain {
+        Domain::Line(l) => {
+            let len = l.n as f64 * l.dx;
+            (0..l.n).map(|i| a * (TAU * k[0] * i as f64 * l.dx / len).sin()).collect()
+        }
+        Domain::Box(cfg) => {
+            let (n, nf) = (cfg.n, cfg.n as f64);
+            let at = |x: f64, y: f64| a * (TAU * (k[0] * x + k[1] * y) / nf).sin();
+            match field {
+                Field::Smoke => (0..n * n).map(|c| at((c % n) as f64 + 0.5, (c / n) as f64 + 0.5)).collect(),
+                Field::Velocity => {
+                    let mut out = Vec::with_capacity(2 * cfg.n_u());
+                    for j in 0..n {
+                        for i in 0..=n {
+                            out.push(at(i as f64, j as f64 + 0.5));
+                        }
+                    }
+                    for j in 0..=n {
+                        for i in 0..n {
+                            out.push(at(i as f64 + 0.5, j as f64));
+                        }
+                    }
+                    out
+                }
+            }
+        }
+    }
+}
+
+/// The field's values from `.npy` files, one per array of the field (C
+/// order, float64 or float32, the shapes of [`Domain::arrays`]).
+fn read_npy(key: &str, domain: &Domain, field: Field, paths: &NpyPaths, dir: &Path) -> Result<Vec<f64>, SceneError> {
+    let arrays = domain.arrays(field);
+    let paths = paths.list();
+    let key = format!("{key}.npy");
+    if paths.len() != arrays.len() {
+        let want = if arrays.len() == 1 { "one file".to_string() } else { format!("{} files [u, v]", arrays.len()) };
+        return Err(SceneError::key(key, format!("expected {want} for the {} of a {}D domain, got {}", field.name(), domain.dims(), paths.len())));
+    }
+    let mut out = Vec::with_capacity(domain.range(field).len());
+    for (path, array) in paths.iter().zip(&arrays) {
+        let full = dir.join(path);
+        let fail = |why: String| SceneError::key(key.clone(), format!("{}: {why}", full.display()));
+        let bytes = std::fs::read(&full).map_err(|e| fail(format!("cannot read: {e}")))?;
+        let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| fail(format!("not a valid .npy file: {e}")))?;
+        if npy.order() == npyz::Order::Fortran {
+            return Err(fail("Fortran order; save it in C order (numpy's default)".into()));
+        }
+        if npy.shape() != array.shape.as_slice() {
+            return Err(fail(format!("shape {:?}, expected {:?} (rows = y, columns = x)", npy.shape(), array.shape)));
+        }
+        let dtype = npy.dtype().descr();
+        let values: Vec<f64> = match dtype.as_str() {
+            "'<f8'" => npy.into_vec::<f64>().map_err(|e| fail(format!("cannot read the values: {e}")))?,
+            "'<f4'" => npy.into_vec::<f32>().map_err(|e| fail(format!("cannot read the values: {e}")))?.into_iter().map(f64::from).collect(),
+            other => return Err(fail(format!("dtype {other}; expected float64 or float32"))),
+        };
+        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+            return Err(fail(format!("value {i} (flat index) is {}", values[i])));
+        }
+        out.extend(values);
+    }
+    Ok(out)
+}
