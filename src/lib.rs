@@ -59,7 +59,9 @@
 pub mod check;
 pub mod cli;
 pub mod fluids;
+pub mod nn;
 pub mod op;
 pub mod problems;
 pub mod rollout;
 pub mod scene;
+pub mod train;

@@ -7,6 +7,7 @@ mod checks;
 mod cli;
 mod doc_examples;
 mod fluids;
+mod nn;
 mod p1;
 mod p2;
 mod rollout;

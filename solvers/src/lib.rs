@@ -18,5 +18,6 @@ pub mod boundary;
 pub mod burgers;
 pub mod diffusion;
 pub mod multigrid;
+pub mod nn;
 pub mod simd;
 pub mod smoke;

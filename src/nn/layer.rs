@@ -1,0 +1,565 @@
+//! Layers and networks with hand-written VJPs and JVPs.
+
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+use diffsim_solvers::nn::{self as kernel, Activation, Conv1d, Conv2d};
+
+use crate::op::{Forward, Jvp, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+
+/// One layer. Feature maps are channel-major (`[c][len]`, `[c][ny][nx]`);
+/// parameters are the weights then the biases.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Layer {
+    /// `y = W·x + b`, `W` of `n_out × n_in`.
+    Dense {
+        /// Inputs.
+        n_in: usize,
+        /// Outputs.
+        n_out: usize,
+    },
+    /// A 1D convolution, same length in and out.
+    Conv1d(Conv1d),
+    /// A 2D convolution, same size in and out.
+    Conv2d(Conv2d),
+    /// `y = f(x)` on `n` values.
+    Act {
+        /// The function.
+        f: Activation,
+        /// Values.
+        n: usize,
+    },
+    /// Average pooling by 2 along positions: `c × len → c × len/2`.
+    AvgPool1d {
+        /// Channels.
+        c: usize,
+        /// Positions in (even).
+        len: usize,
+    },
+    /// Nearest upsampling by 2: `c × len → c × 2·len`.
+    Upsample1d {
+        /// Channels.
+        c: usize,
+        /// Positions in.
+        len: usize,
+    },
+    /// Average pooling by 2×2: `c × ny × nx → c × ny/2 × nx/2`.
+    AvgPool2d {
+        /// Channels.
+        c: usize,
+        /// Columns in (even).
+        nx: usize,
+        /// Rows in (even).
+        ny: usize,
+    },
+    /// Nearest upsampling by 2×2.
+    Upsample2d {
+        /// Channels.
+        c: usize,
+        /// Columns in.
+        nx: usize,
+        /// Rows in.
+        ny: usize,
+    },
+    /// `y = x + f(x)` with `f` the inner net (same size in and out).
+    Residual(Net),
+    /// `y = [x, f(x)]`: the input's channels followed by the inner net's
+    /// (a U-Net's skip connection).
+    Skip(Net),
+}
+
+/// How weights are drawn (biases start at zero).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Init {
+    /// Glorot/Xavier uniform, `±√(6/(fan_in + fan_out))` (for tanh, sigmoid).
+    Glorot,
+    /// He/Kaiming normal, `σ = √(2/fan_in)` (for relu-like activations).
+    He,
+}
+
+/// A network that cannot be built. Pointer-free on purpose (README,
+/// Enzyme notes).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum NetError {
+    /// No layers.
+    #[error("a network needs at least one layer")]
+    Empty,
+    /// A layer's output does not fit the next one's input.
+    #[error("layer {at} outputs {out} values but layer {} takes {next_in}", at + 1)]
+    Mismatch {
+        /// The layer.
+        at: usize,
+        /// Its output size.
+        out: usize,
+        /// The next layer's input size.
+        next_in: usize,
+    },
+    /// A convolution with an even or zero kernel, or a zero size.
+    #[error("layer {at}: kernels must be odd and sizes positive")]
+    Kernel {
+        /// The layer.
+        at: usize,
+    },
+    /// Pooling over an odd length.
+    #[error("layer {at}: pooling needs even sizes")]
+    OddPool {
+        /// The layer.
+        at: usize,
+    },
+    /// A residual block whose inner net changes the size.
+    #[error("layer {at}: a residual block's inner net must keep the size")]
+    Residual {
+        /// The layer.
+        at: usize,
+    },
+}
+
+impl Layer {
+    /// Input size.
+    pub fn n_in(&self) -> usize {
+        match self {
+            Layer::Dense { n_in, .. } => *n_in,
+            Layer::Conv1d(s) => s.c_in * s.len,
+            Layer::Conv2d(s) => s.c_in * s.nx * s.ny,
+            Layer::Act { n, .. } => *n,
+            Layer::AvgPool1d { c, len } | Layer::Upsample1d { c, len } => c * len,
+            Layer::AvgPool2d { c, nx, ny } | Layer::Upsample2d { c, nx, ny } => c * nx * ny,
+            Layer::Residual(net) | Layer::Skip(net) => net.n_in(),
+        }
+    }
+
+    /// Output size.
+    pub fn n_out(&self) -> usize {
+        match self {
+            Layer::Dense { n_out, .. } => *n_out,
+            Layer::Conv1d(s) => s.c_out * s.len,
+            Layer::Conv2d(s) => s.c_out * s.nx * s.ny,
+            Layer::Act { n, .. } => *n,
+            Layer::AvgPool1d { c, len } => c * (len / 2),
+            Layer::Upsample1d { c, len } => c * 2 * len,
+            Layer::AvgPool2d { c, nx, ny } => c * (nx / 2) * (ny / 2),
+            Layer::Upsample2d { c, nx, ny } => c * 4 * nx * ny,
+            Layer::Residual(net) => net.n_out(),
+            Layer::Skip(net) => net.n_in() + net.n_out(),
+        }
+    }
+
+    /// Number of parameters.
+    pub fn n_params(&self) -> usize {
+        match self {
+            Layer::Dense { n_in, n_out } => n_out * (n_in + 1),
+            Layer::Conv1d(s) => s.n_weights() + s.c_out,
+            Layer::Conv2d(s) => s.n_weights() + s.c_out,
+            Layer::Residual(net) | Layer::Skip(net) => net.n_params(),
+            _ => 0,
+        }
+    }
+
+    fn check(&self, at: usize) -> Result<(), NetError> {
+        let bad_kernel = |k: usize, sizes: &[usize]| k % 2 == 0 || sizes.contains(&0);
+        match self {
+            Layer::Dense { n_in, n_out } if *n_in == 0 || *n_out == 0 => Err(NetError::Kernel { at }),
+            Layer::Conv1d(s) if bad_kernel(s.k, &[s.c_in, s.c_out, s.len]) => Err(NetError::Kernel { at }),
+            Layer::Conv2d(s) if bad_kernel(s.k, &[s.c_in, s.c_out, s.nx, s.ny]) => Err(NetError::Kernel { at }),
+            Layer::AvgPool1d { len, .. } if len % 2 != 0 => Err(NetError::OddPool { at }),
+            Layer::AvgPool2d { nx, ny, .. } if nx % 2 != 0 || ny % 2 != 0 => Err(NetError::OddPool { at }),
+            Layer::Residual(net) if net.n_in() != net.n_out() => Err(NetError::Residual { at }),
+            _ => Ok(()),
+        }
+    }
+
+    /// `y = layer(x)` (overwrites `y`).
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        match self {
+            Layer::Dense { n_in, n_out } => {
+                let (w, b) = p.split_at(n_in * n_out);
+                kernel::dense(*n_in, w, b, x, y);
+            }
+            Layer::Conv1d(s) => {
+                let (w, b) = p.split_at(s.n_weights());
+                kernel::conv1d(s, w, b, x, y);
+            }
+            Layer::Conv2d(s) => {
+                let (w, b) = p.split_at(s.n_weights());
+                kernel::conv2d(s, w, b, x, y);
+            }
+            Layer::Act { f, .. } => {
+                for (y, &x) in y.iter_mut().zip(x) {
+                    *y = f.f(x);
+                }
+            }
+            Layer::AvgPool1d { c, len } => kernel::avg_pool1d(*c, *len, x, y),
+            Layer::Upsample1d { c, len } => kernel::upsample1d(*c, *len, x, y),
+            Layer::AvgPool2d { c, nx, ny } => kernel::avg_pool2d(*c, *nx, *ny, x, y),
+            Layer::Upsample2d { c, nx, ny } => kernel::upsample2d(*c, *nx, *ny, x, y),
+            Layer::Residual(net) => {
+                net.forward_into(x, p, y);
+                for (y, x) in y.iter_mut().zip(x) {
+                    *y += x;
+                }
+            }
+            Layer::Skip(net) => {
+                let (a, b) = y.split_at_mut(x.len());
+                a.copy_from_slice(x);
+                net.forward_into(x, p, b);
+            }
+        }
+    }
+
+    /// `gx += J_xᵀ·gy`, `gp += J_pᵀ·gy` (`gy` is read only).
+    fn backprop(&self, x: &[f64], p: &[f64], gy: &[f64], gx: &mut [f64], gp: &mut [f64]) {
+        match self {
+            Layer::Dense { n_in, n_out } => {
+                let (w, _) = p.split_at(n_in * n_out);
+                let (gw, gb) = gp.split_at_mut(n_in * n_out);
+                kernel::dense_adjoint(*n_in, w, x, gy, gx, gw, gb);
+            }
+            Layer::Conv1d(s) => {
+                let (w, _) = p.split_at(s.n_weights());
+                let (gw, gb) = gp.split_at_mut(s.n_weights());
+                kernel::conv1d_adjoint(s, w, x, gy, gx, gw, gb);
+            }
+            Layer::Conv2d(s) => {
+                let (w, _) = p.split_at(s.n_weights());
+                let (gw, gb) = gp.split_at_mut(s.n_weights());
+                kernel::conv2d_adjoint(s, w, x, gy, gx, gw, gb);
+            }
+            Layer::Act { f, .. } => {
+                for ((gx, &g), &x) in gx.iter_mut().zip(gy).zip(x) {
+                    *gx += g * f.df(x);
+                }
+            }
+            Layer::AvgPool1d { c, len } => kernel::avg_pool1d_adjoint(*c, *len, gy, gx),
+            Layer::Upsample1d { c, len } => kernel::upsample1d_adjoint(*c, *len, gy, gx),
+            Layer::AvgPool2d { c, nx, ny } => kernel::avg_pool2d_adjoint(*c, *nx, *ny, gy, gx),
+            Layer::Upsample2d { c, nx, ny } => kernel::upsample2d_adjoint(*c, *nx, *ny, gy, gx),
+            Layer::Residual(net) => {
+                for (gx, g) in gx.iter_mut().zip(gy) {
+                    *gx += g;
+                }
+                net.backprop(x, p, gy, gx, gp);
+            }
+            Layer::Skip(net) => {
+                let (ga, gb) = gy.split_at(x.len());
+                for (gx, g) in gx.iter_mut().zip(ga) {
+                    *gx += g;
+                }
+                net.backprop(x, p, gb, gx, gp);
+            }
+        }
+    }
+
+    /// `y = layer(x)`, `ty = J_x·tx + J_p·tp` (overwrites both).
+    fn tangent(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        match self {
+            Layer::Dense { .. } | Layer::Conv1d(_) | Layer::Conv2d(_) => {
+                // Bilinear in (x, p): ty = layer(x; tp) + layer(tx; p without bias).
+                self.forward(x, p, y);
+                self.forward(x, tp, ty);
+                let mut q = p.to_vec();
+                let nw = self.n_params() - self.n_out_channels();
+                q[nw..].fill(0.0);
+                let mut t = vec![0.0; ty.len()];
+                self.forward(tx, &q, &mut t);
+                for (a, b) in ty.iter_mut().zip(&t) {
+                    *a += b;
+                }
+            }
+            Layer::Act { f, .. } => {
+                for (((y, ty), &x), &t) in y.iter_mut().zip(ty.iter_mut()).zip(x).zip(tx) {
+                    *y = f.f(x);
+                    *ty = f.df(x) * t;
+                }
+            }
+            Layer::AvgPool1d { .. } | Layer::Upsample1d { .. } | Layer::AvgPool2d { .. } | Layer::Upsample2d { .. } => {
+                self.forward(x, p, y);
+                self.forward(tx, p, ty);
+            }
+            Layer::Residual(net) => {
+                net.tangent(x, p, tx, tp, y, ty);
+                for ((y, ty), (x, t)) in y.iter_mut().zip(ty.iter_mut()).zip(x.iter().zip(tx)) {
+                    *y += x;
+                    *ty += t;
+                }
+            }
+            Layer::Skip(net) => {
+                let n = x.len();
+                y[..n].copy_from_slice(x);
+                ty[..n].copy_from_slice(tx);
+                let (_, yb) = y.split_at_mut(n);
+                let (_, tyb) = ty.split_at_mut(n);
+                net.tangent(x, p, tx, tp, yb, tyb);
+            }
+        }
+    }
+
+    /// Biases of a dense or convolution layer (their count).
+    fn n_out_channels(&self) -> usize {
+        match self {
+            Layer::Dense { n_out, .. } => *n_out,
+            Layer::Conv1d(s) => s.c_out,
+            Layer::Conv2d(s) => s.c_out,
+            _ => 0,
+        }
+    }
+
+    /// Distance along the tangent `tx` to the nearest kink of a relu-like
+    /// activation (to first order), `∞` for smooth layers.
+    fn radius(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64]) -> f64 {
+        match self {
+            Layer::Act { f, .. } if f.kinked() => x.iter().zip(tx).filter(|(_, t)| **t != 0.0).map(|(x, t)| (x / t).abs()).fold(f64::INFINITY, f64::min),
+            Layer::Residual(net) | Layer::Skip(net) => net.radius(x, p, tx, tp),
+            _ => f64::INFINITY,
+        }
+    }
+
+    /// Names and shapes of the parameter tensors, in order.
+    fn names(&self, prefix: &str, out: &mut Vec<(String, Vec<usize>)>) {
+        match self {
+            Layer::Dense { n_in, n_out } => {
+                out.push((format!("{prefix}dense.weight"), vec![*n_out, *n_in]));
+                out.push((format!("{prefix}dense.bias"), vec![*n_out]));
+            }
+            Layer::Conv1d(s) => {
+                out.push((format!("{prefix}conv1d.weight"), vec![s.c_out, s.c_in, s.k]));
+                out.push((format!("{prefix}conv1d.bias"), vec![s.c_out]));
+            }
+            Layer::Conv2d(s) => {
+                out.push((format!("{prefix}conv2d.weight"), vec![s.c_out, s.c_in, s.k, s.k]));
+                out.push((format!("{prefix}conv2d.bias"), vec![s.c_out]));
+            }
+            Layer::Residual(net) => net.names_into(&format!("{prefix}residual."), out),
+            Layer::Skip(net) => net.names_into(&format!("{prefix}skip."), out),
+            _ => {}
+        }
+    }
+
+    /// Draws the layer's weights (biases zero).
+    fn init(&self, rng: &mut impl Rng, init: Init, p: &mut [f64]) {
+        let (fan_in, fan_out, nw) = match self {
+            Layer::Dense { n_in, n_out } => (*n_in, *n_out, n_in * n_out),
+            Layer::Conv1d(s) => (s.c_in * s.k, s.c_out * s.k, s.n_weights()),
+            Layer::Conv2d(s) => (s.c_in * s.k * s.k, s.c_out * s.k * s.k, s.n_weights()),
+            Layer::Residual(net) | Layer::Skip(net) => return net.init_into(rng, init, p),
+            _ => return,
+        };
+        p.fill(0.0);
+        for w in &mut p[..nw] {
+            *w = match init {
+                Init::Glorot => {
+                    let a = (6.0 / (fan_in + fan_out) as f64).sqrt();
+                    rng.random_range(-a..a)
+                }
+                Init::He => (2.0 / fan_in as f64).sqrt() * normal(rng),
+            };
+        }
+    }
+}
+
+/// A standard normal sample (Box–Muller).
+fn normal(rng: &mut impl Rng) -> f64 {
+    let u1: f64 = 1.0 - rng.random::<f64>();
+    let u2: f64 = rng.random();
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+/// A sequence of layers: an operator from the first layer's input to the
+/// last layer's output with the layers' parameters concatenated. Plain data
+/// (`Send + Sync`), serialisable as its list of layers.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "Vec<Layer>", into = "Vec<Layer>")]
+pub struct Net {
+    layers: Vec<Layer>,
+    /// Where each layer's parameters start (one more entry: the total).
+    offsets: Vec<usize>,
+}
+
+impl TryFrom<Vec<Layer>> for Net {
+    type Error = NetError;
+    fn try_from(layers: Vec<Layer>) -> Result<Self, NetError> {
+        Net::new(layers)
+    }
+}
+
+impl From<Net> for Vec<Layer> {
+    fn from(net: Net) -> Self {
+        net.layers
+    }
+}
+
+impl Net {
+    /// The network of `layers`, checked: sizes chain, kernels are odd,
+    /// pooled sizes even.
+    pub fn new(layers: Vec<Layer>) -> Result<Self, NetError> {
+        if layers.is_empty() {
+            return Err(NetError::Empty);
+        }
+        for (at, l) in layers.iter().enumerate() {
+            l.check(at)?;
+        }
+        for (at, w) in layers.windows(2).enumerate() {
+            if w[0].n_out() != w[1].n_in() {
+                return Err(NetError::Mismatch { at, out: w[0].n_out(), next_in: w[1].n_in() });
+            }
+        }
+        let mut offsets = vec![0];
+        for l in &layers {
+            offsets.push(offsets.last().copied().unwrap_or(0) + l.n_params());
+        }
+        Ok(Self { layers, offsets })
+    }
+
+    /// The layers.
+    pub fn layers(&self) -> &[Layer] {
+        &self.layers
+    }
+
+    fn range(&self, k: usize) -> std::ops::Range<usize> {
+        self.offsets[k]..self.offsets[k + 1]
+    }
+
+    /// Names and shapes of the parameter tensors, in the order of `p`.
+    pub fn param_names(&self) -> Vec<(String, Vec<usize>)> {
+        let mut out = Vec::new();
+        self.names_into("", &mut out);
+        out
+    }
+
+    fn names_into(&self, prefix: &str, out: &mut Vec<(String, Vec<usize>)>) {
+        for (k, l) in self.layers.iter().enumerate() {
+            l.names(&format!("{prefix}{k}."), out);
+        }
+    }
+
+    /// Fresh parameters: weights drawn by `init`, biases zero.
+    pub fn init(&self, rng: &mut impl Rng, init: Init) -> Vec<f64> {
+        let mut p = vec![0.0; self.n_params()];
+        self.init_into(rng, init, &mut p);
+        p
+    }
+
+    fn init_into(&self, rng: &mut impl Rng, init: Init, p: &mut [f64]) {
+        for (k, l) in self.layers.iter().enumerate() {
+            l.init(rng, init, &mut p[self.range(k)]);
+        }
+    }
+
+    /// Every layer's output, first to last.
+    fn outputs(&self, x: &[f64], p: &[f64]) -> Vec<Vec<f64>> {
+        let mut outs: Vec<Vec<f64>> = Vec::with_capacity(self.layers.len());
+        for (k, l) in self.layers.iter().enumerate() {
+            let mut y = vec![0.0; l.n_out()];
+            l.forward(outs.last().map_or(x, |v| v), &p[self.range(k)], &mut y);
+            outs.push(y);
+        }
+        outs
+    }
+
+    fn forward_into(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        let last = self.layers.len() - 1;
+        if last == 0 {
+            return self.layers[0].forward(x, &p[self.range(0)], y);
+        }
+        let outs = self.outputs_until(x, p, last);
+        self.layers[last].forward(&outs, &p[self.range(last)], y);
+    }
+
+    /// The input of layer `k` (the output of layer `k − 1`).
+    fn outputs_until(&self, x: &[f64], p: &[f64], k: usize) -> Vec<f64> {
+        let mut cur = x.to_vec();
+        for j in 0..k {
+            let mut y = vec![0.0; self.layers[j].n_out()];
+            self.layers[j].forward(&cur, &p[self.range(j)], &mut y);
+            cur = y;
+        }
+        cur
+    }
+
+    fn backprop(&self, x: &[f64], p: &[f64], gy: &[f64], gx: &mut [f64], gp: &mut [f64]) {
+        let outs = self.outputs(x, p);
+        let mut g = gy.to_vec();
+        for k in (0..self.layers.len()).rev() {
+            let input: &[f64] = if k == 0 { x } else { &outs[k - 1] };
+            if k == 0 {
+                self.layers[0].backprop(input, &p[self.range(0)], &g, gx, &mut gp[self.range(0)]);
+            } else {
+                let mut gin = vec![0.0; self.layers[k].n_in()];
+                self.layers[k].backprop(input, &p[self.range(k)], &g, &mut gin, &mut gp[self.range(k)]);
+                g = gin;
+            }
+        }
+    }
+
+    fn tangent(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        let (mut cur, mut tcur) = (x.to_vec(), tx.to_vec());
+        let last = self.layers.len() - 1;
+        for (k, l) in self.layers.iter().enumerate() {
+            let r = self.range(k);
+            if k == last {
+                l.tangent(&cur, &p[r.clone()], &tcur, &tp[r], y, ty);
+            } else {
+                let (mut a, mut b) = (vec![0.0; l.n_out()], vec![0.0; l.n_out()]);
+                l.tangent(&cur, &p[r.clone()], &tcur, &tp[r], &mut a, &mut b);
+                (cur, tcur) = (a, b);
+            }
+        }
+    }
+
+    fn radius(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64]) -> f64 {
+        let mut r = f64::INFINITY;
+        let (mut cur, mut tcur) = (x.to_vec(), tx.to_vec());
+        for (k, l) in self.layers.iter().enumerate() {
+            let range = self.range(k);
+            r = r.min(l.radius(&cur, &p[range.clone()], &tcur, &tp[range.clone()]));
+            let (mut a, mut b) = (vec![0.0; l.n_out()], vec![0.0; l.n_out()]);
+            l.tangent(&cur, &p[range.clone()], &tcur, &tp[range], &mut a, &mut b);
+            (cur, tcur) = (a, b);
+        }
+        r
+    }
+}
+
+impl Operator for Net {
+    fn n_in(&self) -> usize {
+        self.layers[0].n_in()
+    }
+    fn n_out(&self) -> usize {
+        self.layers[self.layers.len() - 1].n_out()
+    }
+    fn n_params(&self) -> usize {
+        self.offsets[self.layers.len()]
+    }
+}
+
+impl Forward for Net {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "Net", x, p, y);
+        crate::op::count::record("Net", crate::op::count::Method::Forward);
+        self.forward_into(x, p, y);
+    }
+
+    /// Kinks of relu-like activations, to first order along the tangent.
+    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+        // Half the first-order distance: the pre-activations are not exactly linear along the tangent.
+        0.5 * self.radius(x, p, dx, dp)
+    }
+}
+
+impl Vjp for Net {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "Net", x, p, dy, dx, dp);
+        crate::op::count::record("Net", crate::op::count::Method::Vjp);
+        self.backprop(x, p, dy, dx, dp);
+        dy.fill(0.0);
+    }
+}
+
+impl Jvp for Net {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        validate_jvp(self, "Net", x, p, tx, tp, y, ty);
+        crate::op::count::record("Net", crate::op::count::Method::Jvp);
+        self.tangent(x, p, tx, tp, y, ty);
+    }
+}

@@ -1,0 +1,101 @@
+//! Ready-made networks: a plain convolution stack (benchmark P3's network),
+//! a multilayer perceptron, a small residual network and small U-Nets.
+
+use diffsim_solvers::nn::{Activation, Conv1d, Conv2d, Padding};
+
+use super::{Layer, Net, NetError};
+
+fn conv1d(c_in: usize, c_out: usize, k: usize, len: usize, padding: Padding) -> Layer {
+    Layer::Conv1d(Conv1d { c_in, c_out, k, len, padding })
+}
+
+fn conv2d(c_in: usize, c_out: usize, k: usize, nx: usize, ny: usize, padding: Padding) -> Layer {
+    Layer::Conv2d(Conv2d { c_in, c_out, k, nx, ny, padding })
+}
+
+/// 1D convolutions through `channels` (e.g. `[1, 32, 32, 1]`), kernel `k`,
+/// the activation between them and none after the last. P3's network is
+/// `conv_stack_1d(32, &[1, 32, 32, 1], 5, Periodic, Tanh)` (5505 parameters).
+pub fn conv_stack_1d(len: usize, channels: &[usize], k: usize, padding: Padding, act: Activation) -> Result<Net, NetError> {
+    let mut layers = Vec::new();
+    for (i, w) in channels.windows(2).enumerate() {
+        layers.push(conv1d(w[0], w[1], k, len, padding));
+        if i + 2 < channels.len() {
+            layers.push(Layer::Act { f: act, n: w[1] * len });
+        }
+    }
+    Net::new(layers)
+}
+
+/// Dense layers through `sizes` (e.g. `[4, 20, 20, 24]`) with the
+/// activation between them and none after the last.
+pub fn mlp(sizes: &[usize], act: Activation) -> Result<Net, NetError> {
+    let mut layers = Vec::new();
+    for (i, w) in sizes.windows(2).enumerate() {
+        layers.push(Layer::Dense { n_in: w[0], n_out: w[1] });
+        if i + 2 < sizes.len() {
+            layers.push(Layer::Act { f: act, n: w[1] });
+        }
+    }
+    Net::new(layers)
+}
+
+/// A small 1D residual network: a convolution to `width` channels, `blocks`
+/// residual blocks (conv, act, conv), the activation, a convolution to
+/// `c_out`.
+pub fn resnet_1d(len: usize, c_in: usize, c_out: usize, width: usize, blocks: usize, k: usize, padding: Padding, act: Activation) -> Result<Net, NetError> {
+    let n = width * len;
+    let mut layers = vec![conv1d(c_in, width, k, len, padding), Layer::Act { f: act, n }];
+    for _ in 0..blocks {
+        let inner = Net::new(vec![conv1d(width, width, k, len, padding), Layer::Act { f: act, n }, conv1d(width, width, k, len, padding)])?;
+        layers.push(Layer::Residual(inner));
+        layers.push(Layer::Act { f: act, n });
+    }
+    layers.push(conv1d(width, c_out, k, len, padding));
+    Net::new(layers)
+}
+
+/// A small 1D U-Net with one level: conv to `width`, then a skip
+/// connection around (pool, conv to `2·width`, act, conv back to `width`,
+/// act, upsample), then on the `2·width` concatenated channels a conv to
+/// `width`, act, and a conv to `c_out`. `len` must be even.
+pub fn unet_1d(len: usize, c_in: usize, c_out: usize, width: usize, k: usize, padding: Padding, act: Activation) -> Result<Net, NetError> {
+    let h = len / 2;
+    let down = Net::new(vec![
+        Layer::AvgPool1d { c: width, len },
+        conv1d(width, 2 * width, k, h, padding),
+        Layer::Act { f: act, n: 2 * width * h },
+        conv1d(2 * width, width, k, h, padding),
+        Layer::Act { f: act, n: width * h },
+        Layer::Upsample1d { c: width, len: h },
+    ])?;
+    Net::new(vec![
+        conv1d(c_in, width, k, len, padding),
+        Layer::Act { f: act, n: width * len },
+        Layer::Skip(down),
+        conv1d(2 * width, width, k, len, padding),
+        Layer::Act { f: act, n: width * len },
+        conv1d(width, c_out, k, len, padding),
+    ])
+}
+
+/// The 2D counterpart of [`unet_1d`] on an `nx × ny` map (both even).
+pub fn unet_2d(nx: usize, ny: usize, c_in: usize, c_out: usize, width: usize, k: usize, padding: Padding, act: Activation) -> Result<Net, NetError> {
+    let (hx, hy) = (nx / 2, ny / 2);
+    let down = Net::new(vec![
+        Layer::AvgPool2d { c: width, nx, ny },
+        conv2d(width, 2 * width, k, hx, hy, padding),
+        Layer::Act { f: act, n: 2 * width * hx * hy },
+        conv2d(2 * width, width, k, hx, hy, padding),
+        Layer::Act { f: act, n: width * hx * hy },
+        Layer::Upsample2d { c: width, nx: hx, ny: hy },
+    ])?;
+    Net::new(vec![
+        conv2d(c_in, width, k, nx, ny, padding),
+        Layer::Act { f: act, n: width * nx * ny },
+        Layer::Skip(down),
+        conv2d(2 * width, width, k, nx, ny, padding),
+        Layer::Act { f: act, n: width * nx * ny },
+        conv2d(width, c_out, k, nx, ny, padding),
+    ])
+}

@@ -1,0 +1,278 @@
+//! Solver-in-the-loop on Burgers (Um et al., NeurIPS 2020): a network
+//! corrects a coarse solver toward a downsampled fine reference.
+//!
+//! - Reference: P1's scheme on `N_f = 256` cells with P1's time step
+//!   `dt_f`; every `4` fine steps it is downsampled to `N = 32` cells by
+//!   averaging each 8 fine cells.
+//! - Source: the same scheme on the coarse grid with `dt = 4·dt_f`.
+//! - Corrected: `u_{t+1} = v + N(v; θ)`, `v = source(u_t)` ([`Coupling::Add`]).
+//! - Training variants (same network, same number of updates): PRE (one
+//!   step, supervised on reference pairs), NOISE (PRE with Gaussian input
+//!   noise), SOL-k (unrolled `k` corrected steps from a reference state,
+//!   loss at every step, gradient through all of them).
+//! - Evaluation: rollouts from held-out reference initial states, relative
+//!   L2 error against the reference per step.
+
+use std::f64::consts::TAU;
+
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+use diffsim_solvers::burgers::Burgers1d;
+
+use super::{Coupled, Coupling, Optimizer, Sample, batch_gradient, clip_by_norm};
+use crate::nn::Net;
+use crate::op::Forward;
+use crate::problems::burgers::BurgersEnzyme;
+use crate::rollout::{Checkpointing, RolloutError};
+
+/// The grids and time steps of the study.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Setup {
+    /// The reference grid.
+    pub fine: Burgers1d,
+    /// The coarse grid (the source solver).
+    pub coarse: Burgers1d,
+    /// Fine steps per coarse step.
+    pub time_factor: usize,
+    /// Sine modes in an initial state.
+    pub modes: usize,
+}
+
+impl Setup {
+    /// Coarse grid of `n` cells on `[0, 2π)`, the reference `factor` times
+    /// finer, viscosity `nu`, `dt_f = min(0.25·dx_f, 0.25·dx_f²/ν)` (P1's
+    /// formula), coarse `dt = time_factor·dt_f`.
+    pub fn new(n: usize, factor: usize, time_factor: usize, nu: f64, modes: usize) -> Self {
+        let nf = n * factor;
+        let dxf = TAU / nf as f64;
+        let dtf = (0.25 * dxf).min(0.25 * dxf * dxf / nu);
+        let fine = Burgers1d { n: nf, dx: dxf, dt: dtf, nu };
+        let coarse = Burgers1d { n, dx: TAU / n as f64, dt: time_factor as f64 * dtf, nu };
+        Self { fine, coarse, time_factor, modes }
+    }
+
+    /// The study's setup: 32 coarse cells, 8× finer reference, 4 fine steps
+    /// per coarse step, ν = 0.01, three sine modes.
+    pub fn standard() -> Self {
+        Self::new(32, 8, 4, 0.01, 3)
+    }
+
+    /// A random fine initial state `Σ_{k=1..modes} a_k·sin(k·x + φ_k)`,
+    /// `a_k ∈ U[−1, 1]`, `φ_k ∈ U[0, 2π)`.
+    pub fn initial(&self, rng: &mut impl Rng) -> Vec<f64> {
+        let coeffs: Vec<(f64, f64)> = (0..self.modes).map(|_| (rng.random_range(-1.0..1.0), rng.random_range(0.0..TAU))).collect();
+        (0..self.fine.n)
+            .map(|i| {
+                let x = i as f64 * self.fine.dx;
+                coeffs.iter().enumerate().map(|(k, (a, phi))| a * ((k + 1) as f64 * x + phi).sin()).sum()
+            })
+            .collect()
+    }
+
+    /// The fine state averaged over each block of fine cells.
+    pub fn downsample(&self, fine: &[f64]) -> Vec<f64> {
+        let f = self.fine.n / self.coarse.n;
+        fine.chunks_exact(f).map(|c| c.iter().sum::<f64>() / f as f64).collect()
+    }
+
+    /// The reference trajectory: coarse states `0..=steps` from a fine
+    /// initial state.
+    pub fn reference(&self, u0: &[f64], steps: usize) -> Vec<Vec<f64>> {
+        let mut u = u0.to_vec();
+        let mut tmp = vec![0.0; u.len()];
+        let mut out = vec![self.downsample(&u)];
+        for _ in 0..steps {
+            for _ in 0..self.time_factor {
+                diffsim_solvers::burgers::step(&self.fine, &u, &mut tmp);
+                std::mem::swap(&mut u, &mut tmp);
+            }
+            out.push(self.downsample(&u));
+        }
+        out
+    }
+
+    /// `count` reference trajectories of `steps` coarse steps from random
+    /// initial states.
+    pub fn dataset(&self, count: usize, steps: usize, rng: &mut impl Rng) -> Vec<Vec<Vec<f64>>> {
+        (0..count).map(|_| self.reference(&self.initial(rng), steps)).collect()
+    }
+
+    /// The source solver as an operator.
+    pub fn source(&self) -> BurgersEnzyme {
+        BurgersEnzyme(self.coarse)
+    }
+}
+
+/// A training variant.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Method {
+    /// One step, supervised on reference pairs.
+    Pre,
+    /// [`Method::Pre`] with Gaussian noise of this standard deviation added
+    /// to the inputs.
+    Noise(f64),
+    /// Unrolled through this many corrected solver steps.
+    Sol(usize),
+}
+
+impl Method {
+    /// The unroll length.
+    pub fn unroll(self) -> usize {
+        match self {
+            Method::Pre | Method::Noise(_) => 1,
+            Method::Sol(k) => k,
+        }
+    }
+
+    /// A short name: `pre`, `noise`, `sol4` …
+    pub fn name(self) -> String {
+        match self {
+            Method::Pre => "pre".into(),
+            Method::Noise(_) => "noise".into(),
+            Method::Sol(k) => format!("sol{k}"),
+        }
+    }
+}
+
+/// Training settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrainSettings {
+    /// The variant.
+    pub method: Method,
+    /// Samples per mini-batch.
+    pub batch: usize,
+    /// Gradient updates (in this call).
+    pub iterations: usize,
+    /// Adam's learning rate.
+    pub lr: f64,
+    /// Gradient clipping by norm (∞: none).
+    pub clip: f64,
+    /// Seed of the batch sampling and the noise.
+    pub seed: u64,
+    /// The number of the first iteration (1, or one past a saved
+    /// checkpoint): the batch of iteration `i` depends only on `seed` and
+    /// `i`, so a resumed run repeats an uninterrupted one exactly.
+    pub first: usize,
+}
+
+/// One logged iteration.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LogRow {
+    /// Iteration (1-based).
+    pub iteration: usize,
+    /// Mini-batch loss.
+    pub loss: f64,
+    /// Gradient norm before clipping.
+    pub grad_norm: f64,
+    /// Seconds since training started.
+    pub seconds: f64,
+}
+
+/// Where the time of training went (seconds, summed over threads for the
+/// solver and network parts).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TimeShares {
+    /// Wall time of all iterations.
+    pub total: f64,
+    /// Solver forward (incl. recomputation), summed over threads.
+    pub solver_fwd: f64,
+    /// Solver VJPs.
+    pub solver_bwd: f64,
+    /// Network forward (incl. recomputation).
+    pub net_fwd: f64,
+    /// Network VJPs.
+    pub net_bwd: f64,
+    /// The optimizer updates (wall).
+    pub optimizer: f64,
+}
+
+/// Trains `theta` in place on the reference trajectories `data`; calls
+/// `progress(row)` after every iteration. Returns the time shares.
+pub fn train(
+    setup: &Setup,
+    net: &Net,
+    theta: &mut [f64],
+    opt: &mut Optimizer,
+    data: &[Vec<Vec<f64>>],
+    s: &TrainSettings,
+    mut progress: impl FnMut(LogRow),
+) -> Result<TimeShares, RolloutError> {
+    let source = setup.source();
+    let k = s.method.unroll();
+    let steps: Vec<usize> = (1..=k).collect();
+    let mut shares = TimeShares::default();
+    let start = std::time::Instant::now();
+    let coupled = Coupled::new(&source, &[], net, Coupling::Add).expect("the study's network fits the solver");
+    for it in s.first..s.first + s.iterations {
+        let mut rng = StdRng::seed_from_u64(s.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ it as u64);
+        let batch: Vec<Sample> = (0..s.batch)
+            .map(|_| {
+                let traj = &data[rng.random_range(0..data.len())];
+                let t0 = rng.random_range(0..traj.len() - k);
+                let mut x0 = traj[t0].clone();
+                if let Method::Noise(sigma) = s.method {
+                    for v in &mut x0 {
+                        *v += sigma * normal(&mut rng);
+                    }
+                }
+                Sample { x0, targets: traj[t0 + 1..=t0 + k].to_vec() }
+            })
+            .collect();
+        let (loss, mut grad) = batch_gradient(&coupled, theta, k, &steps, &batch, Checkpointing::periodic_sqrt(k))?;
+        let grad_norm = clip_by_norm(&mut grad, s.clip);
+        let t = std::time::Instant::now();
+        opt.step(theta, &grad);
+        shares.optimizer += t.elapsed().as_secs_f64();
+        progress(LogRow { iteration: it, loss, grad_norm, seconds: start.elapsed().as_secs_f64() });
+    }
+    shares.total = start.elapsed().as_secs_f64();
+    let [a, b, c, d] = coupled.timers.take();
+    (shares.solver_fwd, shares.solver_bwd, shares.net_fwd, shares.net_bwd) = (a, b, c, d);
+    Ok(shares)
+}
+
+/// Relative L2 error per step (`1..=steps`), averaged over the
+/// trajectories, of the source solver (`theta = None`) or the corrected
+/// one. A rollout that becomes non-finite is an error naming the step.
+pub fn evaluate(setup: &Setup, net: &Net, theta: Option<&[f64]>, data: &[Vec<Vec<f64>>], steps: usize) -> Result<Vec<f64>, EvalError> {
+    let source = setup.source();
+    let coupled = Coupled::new(&source, &[], net, Coupling::Add).expect("the study's network fits the solver");
+    let mut err = vec![0.0; steps];
+    for (j, traj) in data.iter().enumerate() {
+        let mut u = traj[0].clone();
+        let mut y = vec![0.0; u.len()];
+        for (t, e) in err.iter_mut().enumerate() {
+            match theta {
+                Some(th) => coupled.forward(&u, th, &mut y),
+                None => source.forward(&u, &[], &mut y),
+            }
+            std::mem::swap(&mut u, &mut y);
+            if u.iter().any(|v| !v.is_finite()) {
+                return Err(EvalError { trajectory: j, step: t + 1 });
+            }
+            let r = &traj[t + 1];
+            let num: f64 = u.iter().zip(r).map(|(a, b)| (a - b) * (a - b)).sum();
+            let den: f64 = r.iter().map(|b| b * b).sum();
+            *e += (num / den.max(1e-300)).sqrt() / data.len() as f64;
+        }
+    }
+    Ok(err)
+}
+
+/// A rollout that blew up during evaluation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("the rollout of test trajectory {trajectory} became non-finite at step {step}")]
+pub struct EvalError {
+    /// The trajectory.
+    pub trajectory: usize,
+    /// The step.
+    pub step: usize,
+}
+
+/// A standard normal sample (Box–Muller).
+pub fn normal(rng: &mut impl Rng) -> f64 {
+    let u1: f64 = 1.0 - rng.random::<f64>();
+    let u2: f64 = rng.random();
+    (-2.0 * u1.ln()).sqrt() * (TAU * u2).cos()
+}

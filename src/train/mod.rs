@@ -1,0 +1,331 @@
+//! Training networks through solvers: a network acts between solver steps
+//! ([`Coupled`]: adding a correction, scaling the state, or setting the
+//! solver's parameters), the framework's rollouts chain the per-step VJPs
+//! of solver and network, and [`batch_gradient`] averages over a
+//! mini-batch in parallel (rayon over samples, reduced in sample order, so
+//! the result does not depend on the thread count). [`optim`] updates the
+//! parameters; [`burgers`] is the solver-in-the-loop study on Burgers.
+
+pub mod burgers;
+pub mod optim;
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+use crate::rollout::{AtSteps, Checkpointing, Rollout, RolloutError};
+
+pub use optim::{Optimizer, clip_by_norm};
+
+/// How the network acts on each step.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Coupling {
+    /// `y = v + N(v; θ)` with `v = S(x)`: a learned correction.
+    Add,
+    /// `y = v ⊙ N(v; θ)`: a learned pointwise scaling.
+    Scale,
+    /// `y = S(x; N(x; θ))`: the network sets the solver's parameters
+    /// (a force, a viscosity field …).
+    Params,
+}
+
+/// Wall time spent inside the solver and the network, forward and backward
+/// (nanoseconds, summed over threads).
+#[derive(Debug, Default)]
+pub struct Timers {
+    /// Solver forward (including recomputation).
+    pub solver_fwd: AtomicU64,
+    /// Solver VJPs.
+    pub solver_bwd: AtomicU64,
+    /// Network forward (including recomputation).
+    pub net_fwd: AtomicU64,
+    /// Network VJPs.
+    pub net_bwd: AtomicU64,
+}
+
+impl Timers {
+    fn add(counter: &AtomicU64, since: Instant) {
+        counter.fetch_add(since.elapsed().as_nanos() as u64, Ordering::Relaxed);
+    }
+
+    /// The four totals in seconds: solver forward, solver backward,
+    /// network forward, network backward; resets them.
+    pub fn take(&self) -> [f64; 4] {
+        [&self.solver_fwd, &self.solver_bwd, &self.net_fwd, &self.net_bwd].map(|c| c.swap(0, Ordering::Relaxed) as f64 * 1e-9)
+    }
+}
+
+/// A solver step `S(x; s)` and a network `N(·; θ)` as one operator with
+/// parameters `θ`, coupled as [`Coupling`] says. Derivatives chain the two
+/// operators' own (hand-written or generated) ones.
+#[derive(Debug)]
+pub struct Coupled<'a, S, N> {
+    /// The solver step (`n_in == n_out`).
+    pub solver: &'a S,
+    /// Its fixed parameters (unused with [`Coupling::Params`]).
+    pub solver_p: &'a [f64],
+    /// The network.
+    pub net: &'a N,
+    /// How they are joined.
+    pub coupling: Coupling,
+    /// Time inside each part.
+    pub timers: Timers,
+}
+
+/// A coupling whose sizes do not fit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum CouplingError {
+    /// The solver does not map a state to a state.
+    #[error("the solver maps {n_in} values to {n_out}; it must keep the state size")]
+    Solver {
+        /// Input size.
+        n_in: usize,
+        /// Output size.
+        n_out: usize,
+    },
+    /// The network's sizes do not fit the coupling.
+    #[error("the network maps {n_in} → {n_out} values; this coupling needs {want_in} → {want_out}")]
+    Net {
+        /// Its input size.
+        n_in: usize,
+        /// Its output size.
+        n_out: usize,
+        /// The input size needed.
+        want_in: usize,
+        /// The output size needed.
+        want_out: usize,
+    },
+    /// The solver's fixed parameters have the wrong length.
+    #[error("the solver takes {expected} parameters, got {got}")]
+    SolverParams {
+        /// Given.
+        got: usize,
+        /// Needed.
+        expected: usize,
+    },
+}
+
+impl<'a, S: Vjp + Jvp, N: Vjp + Jvp> Coupled<'a, S, N> {
+    /// Couples `solver` (with parameters `solver_p`) and `net`, checking sizes.
+    pub fn new(solver: &'a S, solver_p: &'a [f64], net: &'a N, coupling: Coupling) -> Result<Self, CouplingError> {
+        let n = solver.n_in();
+        if solver.n_out() != n {
+            return Err(CouplingError::Solver { n_in: n, n_out: solver.n_out() });
+        }
+        let (want_in, want_out) = match coupling {
+            Coupling::Add | Coupling::Scale => (n, n),
+            Coupling::Params => (n, solver.n_params()),
+        };
+        if net.n_in() != want_in || net.n_out() != want_out {
+            return Err(CouplingError::Net { n_in: net.n_in(), n_out: net.n_out(), want_in, want_out });
+        }
+        if coupling != Coupling::Params && solver_p.len() != solver.n_params() {
+            return Err(CouplingError::SolverParams { got: solver_p.len(), expected: solver.n_params() });
+        }
+        Ok(Self { solver, solver_p, net, coupling, timers: Timers::default() })
+    }
+
+    fn solve(&self, x: &[f64], s: &[f64], y: &mut [f64]) {
+        let t = Instant::now();
+        self.solver.forward(x, s, y);
+        Timers::add(&self.timers.solver_fwd, t);
+    }
+
+    fn apply_net(&self, x: &[f64], theta: &[f64], y: &mut [f64]) {
+        let t = Instant::now();
+        self.net.forward(x, theta, y);
+        Timers::add(&self.timers.net_fwd, t);
+    }
+}
+
+impl<S: Operator, N: Operator> Operator for Coupled<'_, S, N> {
+    fn n_in(&self) -> usize {
+        self.solver.n_in()
+    }
+    fn n_out(&self) -> usize {
+        self.solver.n_out()
+    }
+    fn n_params(&self) -> usize {
+        self.net.n_params()
+    }
+}
+
+impl<S: Vjp + Jvp, N: Vjp + Jvp> Forward for Coupled<'_, S, N> {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "Coupled", x, p, y);
+        match self.coupling {
+            Coupling::Add | Coupling::Scale => {
+                let mut v = vec![0.0; x.len()];
+                self.solve(x, self.solver_p, &mut v);
+                self.apply_net(&v, p, y);
+                for (y, v) in y.iter_mut().zip(&v) {
+                    *y = if self.coupling == Coupling::Add { *y + v } else { *y * v };
+                }
+            }
+            Coupling::Params => {
+                let mut q = vec![0.0; self.net.n_out()];
+                self.apply_net(x, p, &mut q);
+                self.solve(x, &q, y);
+            }
+        }
+    }
+
+    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+        let n = x.len();
+        match self.coupling {
+            Coupling::Add | Coupling::Scale => {
+                let zero = vec![0.0; self.solver_p.len()];
+                let r = self.solver.smooth_radius(x, self.solver_p, dx, &zero);
+                let (mut v, mut tv) = (vec![0.0; n], vec![0.0; n]);
+                self.solver.jvp(x, self.solver_p, dx, &zero, &mut v, &mut tv);
+                r.min(self.net.smooth_radius(&v, p, &tv, dp))
+            }
+            Coupling::Params => {
+                let r = self.net.smooth_radius(x, p, dx, dp);
+                let (mut q, mut tq) = (vec![0.0; self.net.n_out()], vec![0.0; self.net.n_out()]);
+                self.net.jvp(x, p, dx, dp, &mut q, &mut tq);
+                r.min(self.solver.smooth_radius(x, &q, dx, &tq))
+            }
+        }
+    }
+
+    fn take_error(&self) -> Option<OpError> {
+        self.solver.take_error().or_else(|| self.net.take_error())
+    }
+}
+
+impl<S: Vjp + Jvp, N: Vjp + Jvp> Vjp for Coupled<'_, S, N> {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "Coupled", x, p, dy, dx, dp);
+        let n = x.len();
+        match self.coupling {
+            Coupling::Add | Coupling::Scale => {
+                let mut v = vec![0.0; n];
+                self.solve(x, self.solver_p, &mut v);
+                // gv = ∂y/∂v ᵀ·dy: the identity (Add) or the network's output (Scale), plus the network's VJP.
+                let mut gv = vec![0.0; n];
+                let mut seed = dy.to_vec();
+                if self.coupling == Coupling::Scale {
+                    let mut out = vec![0.0; n];
+                    self.apply_net(&v, p, &mut out);
+                    for ((g, s), (o, vv)) in gv.iter_mut().zip(seed.iter_mut()).zip(out.iter().zip(&v)) {
+                        *g = *s * o;
+                        *s *= vv;
+                    }
+                } else {
+                    gv.copy_from_slice(dy);
+                }
+                let t = Instant::now();
+                self.net.vjp(&v, p, &mut seed, &mut gv, dp);
+                Timers::add(&self.timers.net_bwd, t);
+                let mut ds = vec![0.0; self.solver.n_params()];
+                let t = Instant::now();
+                self.solver.vjp(x, self.solver_p, &mut gv, dx, &mut ds);
+                Timers::add(&self.timers.solver_bwd, t);
+            }
+            Coupling::Params => {
+                let mut q = vec![0.0; self.net.n_out()];
+                self.apply_net(x, p, &mut q);
+                let mut gq = vec![0.0; q.len()];
+                let t = Instant::now();
+                self.solver.vjp(x, &q, dy, dx, &mut gq);
+                Timers::add(&self.timers.solver_bwd, t);
+                let t = Instant::now();
+                self.net.vjp(x, p, &mut gq, dx, dp);
+                Timers::add(&self.timers.net_bwd, t);
+            }
+        }
+        dy.fill(0.0);
+    }
+}
+
+impl<S: Vjp + Jvp, N: Vjp + Jvp> Jvp for Coupled<'_, S, N> {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        validate_jvp(self, "Coupled", x, p, tx, tp, y, ty);
+        let n = x.len();
+        match self.coupling {
+            Coupling::Add | Coupling::Scale => {
+                let zero = vec![0.0; self.solver_p.len()];
+                let (mut v, mut tv) = (vec![0.0; n], vec![0.0; n]);
+                self.solver.jvp(x, self.solver_p, tx, &zero, &mut v, &mut tv);
+                self.net.jvp(&v, p, &tv, tp, y, ty);
+                for ((y, ty), (v, tv)) in y.iter_mut().zip(ty.iter_mut()).zip(v.iter().zip(&tv)) {
+                    if self.coupling == Coupling::Add {
+                        *y += v;
+                        *ty += tv;
+                    } else {
+                        *ty = *ty * v + *y * tv;
+                        *y *= v;
+                    }
+                }
+            }
+            Coupling::Params => {
+                let (mut q, mut tq) = (vec![0.0; self.net.n_out()], vec![0.0; self.net.n_out()]);
+                self.net.jvp(x, p, tx, tp, &mut q, &mut tq);
+                self.solver.jvp(x, &q, tx, &tq, y, ty);
+            }
+        }
+    }
+}
+
+/// One training sample: an initial state and the targets at the loss steps.
+#[derive(Clone, Debug)]
+pub struct Sample {
+    /// The state the unroll starts from.
+    pub x0: Vec<f64>,
+    /// One target per loss step, in the order of the steps.
+    pub targets: Vec<Vec<f64>>,
+}
+
+/// The mean loss and its gradient over a mini-batch: each sample is
+/// unrolled `unroll` steps of `op` from its `x0`, with the loss
+/// `mean over loss_steps and values of (x_t − target_t)²`, and the batch
+/// mean is taken. Samples run in parallel (rayon); the sum runs in sample
+/// order, so the result is the same for any number of threads.
+pub fn batch_gradient<O: Vjp + Sync>(
+    op: &O,
+    theta: &[f64],
+    unroll: usize,
+    loss_steps: &[usize],
+    batch: &[Sample],
+    mode: Checkpointing,
+) -> Result<(f64, Vec<f64>), RolloutError> {
+    let rollout = Rollout::new(op, theta, unroll)?;
+    let scale = 1.0 / (loss_steps.len() * op.n_out()) as f64;
+    let per_sample: Vec<_> = batch
+        .par_iter()
+        .map(|s| {
+            let loss = AtSteps {
+                steps: loss_steps.to_vec(),
+                f: |t: usize, x: &[f64], g: &mut [f64]| {
+                    let i = loss_steps.iter().position(|&k| k == t).expect("a listed step");
+                    let mut v = 0.0;
+                    for ((g, x), r) in g.iter_mut().zip(x).zip(&s.targets[i]) {
+                        let d = x - r;
+                        *g = 2.0 * scale * d;
+                        v += scale * d * d;
+                    }
+                    v
+                },
+            };
+            rollout.value_and_grad(&s.x0, &loss, mode)
+        })
+        .collect();
+    let mut grad = vec![0.0; theta.len()];
+    let mut total = 0.0;
+    for g in per_sample {
+        let g = g?;
+        total += g.loss;
+        for (a, b) in grad.iter_mut().zip(&g.dp) {
+            *a += b;
+        }
+    }
+    let b = batch.len().max(1) as f64;
+    for a in &mut grad {
+        *a /= b;
+    }
+    Ok((total / b, grad))
+}

@@ -1,0 +1,111 @@
+//! Optimizers on a flat parameter vector: SGD (with optional momentum) and
+//! Adam (Kingma & Ba 2015, published defaults), and gradient clipping by
+//! norm. The state is plain data, saved with the parameters to resume.
+
+use serde::{Deserialize, Serialize};
+
+/// An optimizer and its state.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Optimizer {
+    /// `v ← μ·v + g`, `p ← p − η·v` (plain SGD for μ = 0).
+    Sgd {
+        /// Learning rate η.
+        lr: f64,
+        /// Momentum μ.
+        momentum: f64,
+        /// Velocity (empty until the first step).
+        velocity: Vec<f64>,
+    },
+    /// Adam: `m ← β₁m + (1−β₁)g`, `v ← β₂v + (1−β₂)g²`,
+    /// `p ← p − η·m̂/(√v̂ + ε)` with bias-corrected `m̂`, `v̂`.
+    Adam {
+        /// Learning rate η.
+        lr: f64,
+        /// β₁.
+        beta1: f64,
+        /// β₂.
+        beta2: f64,
+        /// ε.
+        eps: f64,
+        /// First moments.
+        m: Vec<f64>,
+        /// Second moments.
+        v: Vec<f64>,
+        /// Steps taken.
+        t: u64,
+    },
+}
+
+impl Optimizer {
+    /// Plain SGD.
+    pub fn sgd(lr: f64) -> Self {
+        Optimizer::Sgd { lr, momentum: 0.0, velocity: Vec::new() }
+    }
+
+    /// Adam with the published defaults β = (0.9, 0.999), ε = 1e-8.
+    pub fn adam(lr: f64) -> Self {
+        Optimizer::Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, m: Vec::new(), v: Vec::new(), t: 0 }
+    }
+
+    /// The learning rate.
+    pub fn lr(&self) -> f64 {
+        match self {
+            Optimizer::Sgd { lr, .. } | Optimizer::Adam { lr, .. } => *lr,
+        }
+    }
+
+    /// One update of `p` along the gradient `g`.
+    ///
+    /// # Panics
+    /// If `g` and `p` differ in length, or the state was made for another length.
+    pub fn step(&mut self, p: &mut [f64], g: &[f64]) {
+        assert_eq!(p.len(), g.len(), "optimizer: parameters and gradient differ in length");
+        match self {
+            Optimizer::Sgd { lr, momentum, velocity } => {
+                if *momentum == 0.0 {
+                    for (p, g) in p.iter_mut().zip(g) {
+                        *p -= *lr * g;
+                    }
+                    return;
+                }
+                if velocity.is_empty() {
+                    velocity.resize(p.len(), 0.0);
+                }
+                assert_eq!(velocity.len(), p.len(), "optimizer state is for another parameter count");
+                for ((p, g), v) in p.iter_mut().zip(g).zip(velocity.iter_mut()) {
+                    *v = *momentum * *v + g;
+                    *p -= *lr * *v;
+                }
+            }
+            Optimizer::Adam { lr, beta1, beta2, eps, m, v, t } => {
+                if m.is_empty() {
+                    m.resize(p.len(), 0.0);
+                    v.resize(p.len(), 0.0);
+                }
+                assert_eq!(m.len(), p.len(), "optimizer state is for another parameter count");
+                *t += 1;
+                let c1 = 1.0 - beta1.powi(*t as i32);
+                let c2 = 1.0 - beta2.powi(*t as i32);
+                for (((p, g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
+                    *m = *beta1 * *m + (1.0 - *beta1) * g;
+                    *v = *beta2 * *v + (1.0 - *beta2) * g * g;
+                    *p -= *lr * (*m / c1) / ((*v / c2).sqrt() + *eps);
+                }
+            }
+        }
+    }
+}
+
+/// Scales `g` so that its Euclidean norm is at most `max`; returns the norm
+/// before scaling.
+pub fn clip_by_norm(g: &mut [f64], max: f64) -> f64 {
+    let norm = g.iter().map(|a| a * a).sum::<f64>().sqrt();
+    if norm > max && norm > 0.0 {
+        let s = max / norm;
+        for a in g.iter_mut() {
+            *a *= s;
+        }
+    }
+    norm
+}
