@@ -80,7 +80,7 @@ fn p2(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, p1, p1_step, p2, solver_parts, scene_effects);
+criterion_group!(benches, p1, p1_step, p2, solver_parts, scene_effects, nn_layers);
 criterion_main!(benches);
 
 /// One multigrid V-cycle and one plain CG matrix product at 64² and 128²,
@@ -121,5 +121,41 @@ fn scene_effects(c: &mut Criterion) {
         op.forward(&at, p, &mut y);
         input.copy_from_slice(&y);
     }
+    g.finish();
+}
+
+/// Dense and 1D convolution layers: forward, hand-written VJP (the default
+/// in `nn::Layer`) and Enzyme-generated VJP, at the sizes of the Burgers
+/// correction network (P3's) and of the oscillator MLP.
+fn nn_layers(c: &mut Criterion) {
+    use diffsim::nn::enzyme::{Conv1dEnzyme, DenseEnzyme};
+    use diffsim::nn::{Conv1d, Layer, Net, Padding};
+    use diffsim::op::{Forward, Operator};
+    let mut g = c.benchmark_group("nn_layers");
+    let vjp_of = |op: &dyn diffsim::op::Effect, x: &[f64], p: &[f64], dx: &mut [f64], dp: &mut [f64]| {
+        let mut seed = vec![1.0; op.n_out()];
+        op.vjp(x, p, &mut seed, dx, dp);
+    };
+    let conv = Conv1d { c_in: 32, c_out: 32, k: 5, len: 32, padding: Padding::Periodic };
+    let dense_sizes = vec![(20usize, 20usize), (256, 256)];
+    for (n_in, n_out) in dense_sizes {
+        let hand = Net::new(vec![Layer::Dense { n_in, n_out }]).unwrap();
+        let enz = DenseEnzyme { n_in, n_out };
+        let p: Vec<f64> = (0..hand.n_params()).map(|k| ((k as f64) * 0.37).sin() * 0.1).collect();
+        let x: Vec<f64> = (0..n_in).map(|k| ((k as f64) * 0.11).cos()).collect();
+        let (mut dx, mut dp, mut y) = (vec![0.0; n_in], vec![0.0; p.len()], vec![0.0; n_out]);
+        let size = format!("{n_in}x{n_out}");
+        g.bench_function(BenchmarkId::new("dense_forward", &size), |b| b.iter(|| hand.forward(&x, &p, std::hint::black_box(&mut y))));
+        g.bench_function(BenchmarkId::new("dense_vjp_hand", &size), |b| b.iter(|| vjp_of(&hand, &x, &p, &mut dx, &mut dp)));
+        g.bench_function(BenchmarkId::new("dense_vjp_enzyme", &size), |b| b.iter(|| vjp_of(&enz, &x, &p, &mut dx, &mut dp)));
+    }
+    let hand = Net::new(vec![Layer::Conv1d(conv)]).unwrap();
+    let enz = Conv1dEnzyme(conv);
+    let p: Vec<f64> = (0..hand.n_params()).map(|k| ((k as f64) * 0.37).sin() * 0.1).collect();
+    let x: Vec<f64> = (0..hand.n_in()).map(|k| ((k as f64) * 0.11).cos()).collect();
+    let (mut dx, mut dp, mut y) = (vec![0.0; x.len()], vec![0.0; p.len()], vec![0.0; hand.n_out()]);
+    g.bench_function("conv1d_32x32_k5_forward", |b| b.iter(|| hand.forward(&x, &p, std::hint::black_box(&mut y))));
+    g.bench_function("conv1d_32x32_k5_vjp_hand", |b| b.iter(|| vjp_of(&hand, &x, &p, &mut dx, &mut dp)));
+    g.bench_function("conv1d_32x32_k5_vjp_enzyme", |b| b.iter(|| vjp_of(&enz, &x, &p, &mut dx, &mut dp)));
     g.finish();
 }

@@ -51,6 +51,13 @@
 //! [`fluids`] holds further 2D operators (diffusion, advection schemes,
 //! forces, inflow).
 //!
+//! **5. Train through it** ([`nn`], [`train`]): a network is an operator
+//! too (its weights are the parameters), so [`train::Coupled`] joins a
+//! solver step and a network (correction, scaling, or solver parameters),
+//! the rollout chains both VJPs, [`train::batch_gradient`] averages a
+//! mini-batch in parallel and [`train::Optimizer`] (Adam, SGD) updates the
+//! weights. [`train::burgers`] is the solver-in-the-loop study.
+//!
 //! Build everything that calls generated gradients in release with fat LTO
 //! and `-Zautodiff=Enable` on this crate only; see the README.
 #![feature(autodiff)]
@@ -61,6 +68,7 @@ pub mod cli;
 pub mod fluids;
 pub mod nn;
 pub mod op;
+pub mod plot;
 pub mod problems;
 pub mod rollout;
 pub mod scene;

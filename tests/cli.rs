@@ -128,3 +128,55 @@ fn scene_commands_write_their_outputs_and_refuse_bad_scenes() {
     assert!(stdout.contains("forward (diffsim run)") && stdout.contains("backward (VJPs"), "{stdout}");
     std::fs::remove_dir_all(&out).ok();
 }
+
+#[test]
+fn train_and_experiment_commands() {
+    let out = std::env::temp_dir().join(format!("diffsim-train-{}", std::process::id()));
+    let o = out.to_str().unwrap();
+    let cfg = out.join("tiny.toml");
+    std::fs::create_dir_all(&out).unwrap();
+    let text = std::fs::read_to_string("configs/sol_burgers.toml").unwrap();
+    let tiny = text
+        .replace("iterations = 200", "iterations = 3")
+        .replace("train = 32", "train = 4")
+        .replace("test = 8", "test = 2")
+        .replace("steps = 144", "steps = 40")
+        .replace("test_steps = 128", "test_steps = 20")
+        .replace("unroll = 16", "unroll = 4");
+    std::fs::write(&cfg, &tiny).unwrap();
+    let c = cfg.to_str().unwrap();
+    let (code, stdout, err) = diffsim(&["train", c, "--out", o, "--quiet"]);
+    assert_eq!(code, 0, "{stdout}\n{err}");
+    assert!(stdout.contains("3 iterations (3 in total)") && stdout.contains("corrected"), "{stdout}");
+    for f in ["loss.csv", "loss.png", "model.json", "checkpoint.json"] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    let (code, stdout, err) = diffsim(&["train", c, "--out", o, "--quiet", "--resume"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(stdout.contains("(6 in total)"), "{stdout}");
+    assert_eq!(std::fs::read_to_string(out.join("loss.csv")).unwrap().lines().count(), 7);
+    // Data generated on the fly with a viscosity range.
+    std::fs::write(&cfg, tiny.replace("viscosity = 0.01", "viscosity = [0.005, 0.02]")).unwrap();
+    let (code, _, err) = diffsim(&["train", c, "--out", o, "--quiet"]);
+    assert_eq!(code, 0, "{err}");
+    // Mistakes name the key.
+    std::fs::write(&cfg, tiny.replace("method = \"sol\"", "method = \"sol2\"")).unwrap();
+    fails_with(&["train", c, "--out", o], "`training.method`: unknown method `sol2`; did you mean `sol`?");
+    std::fs::write(&cfg, tiny.replace("kernel = 5", "kernel = 4")).unwrap();
+    fails_with(&["train", c, "--out", o], "`network.kernel`: must be odd");
+    std::fs::write(&cfg, tiny.replace("lr = 1e-3", "lr = -1")).unwrap();
+    fails_with(&["train", c, "--out", o], "`training.lr`");
+    std::fs::write(&cfg, tiny.replace("batch = 16", "bacth = 16")).unwrap();
+    fails_with(&["train", c, "--out", o], "did you mean `batch`");
+    // The study, reduced to two updates per variant: one JSON object last.
+    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "2", "--json", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    for key in ["source", "pre", "noise", "sol4", "sol16", "train_s_per_iter"] {
+        assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
+    }
+    for f in ["table.md", "errors.csv", "error.png", "loss.png"] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    std::fs::remove_dir_all(&out).ok();
+}

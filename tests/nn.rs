@@ -7,8 +7,8 @@
 use diffsim::check::{CheckOptions, dot_product_between};
 use diffsim::nn::enzyme::{Conv1dEnzyme, DenseEnzyme};
 use diffsim::nn::{Activation, Conv1d, Conv2d, Init, Layer, Net, NetError, Padding, ParamStore, presets};
-use diffsim::op::{Forward, Operator, OperatorExt};
-use diffsim::train::burgers::{Method, Setup, TrainSettings, evaluate, train};
+use diffsim::op::{Operator, OperatorExt};
+use diffsim::train::burgers::{Method, Setup, TrainData, TrainSettings, evaluate, train};
 use diffsim::train::{Coupled, Coupling, Optimizer, Sample, batch_gradient, clip_by_norm};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -260,17 +260,17 @@ fn resumed_training_repeats_an_uninterrupted_run() {
     let setup = Setup::new(16, 2, 2, 0.02, 3);
     let net = presets::conv_stack_1d(16, &[1, 4, 1], 3, Padding::Periodic, Activation::Tanh).unwrap();
     let data = setup.dataset(4, 12, &mut StdRng::seed_from_u64(2));
-    let s = TrainSettings { method: Method::Sol(3), batch: 3, iterations: 6, lr: 1e-3, clip: 1.0, seed: 9, first: 1 };
+    let s = TrainSettings { method: Method::Sol(3), batch: 3, iterations: 6, lr: 1e-3, lr_end: 1e-4, decay_over: 6, clip: 1.0, seed: 9, first: 1 };
     let theta0 = params(&net, 6);
     let (mut a, mut opt_a) = (theta0.clone(), Optimizer::adam(1e-3));
     let mut losses = Vec::new();
-    train(&setup, &net, &mut a, &mut opt_a, &data, &s, |r| losses.push(r.loss)).unwrap();
+    train(&setup, &net, &mut a, &mut opt_a, TrainData::Fixed(&data), &s, |r| losses.push(r.loss)).unwrap();
     // The same in two halves, with the state through JSON in between.
     let (mut b, mut opt_b) = (theta0.clone(), Optimizer::adam(1e-3));
-    train(&setup, &net, &mut b, &mut opt_b, &data, &TrainSettings { iterations: 3, ..s }, |_| {}).unwrap();
+    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, ..s }, |_| {}).unwrap();
     let saved = serde_json::to_string(&(&b, &opt_b)).unwrap();
     let (mut b, mut opt_b): (Vec<f64>, Optimizer) = serde_json::from_str(&saved).unwrap();
-    train(&setup, &net, &mut b, &mut opt_b, &data, &TrainSettings { iterations: 3, first: 4, ..s }, |_| {}).unwrap();
+    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, first: 4, ..s }, |_| {}).unwrap();
     assert_eq!(a, b);
     assert_eq!(opt_a, opt_b);
     assert!(losses.iter().all(|l| l.is_finite()));

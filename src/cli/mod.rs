@@ -4,6 +4,7 @@ mod bench;
 mod demo;
 mod measure;
 mod scene;
+mod train;
 
 use clap::{Parser, Subcommand};
 use thiserror::Error;
@@ -41,6 +42,9 @@ pub enum CliError {
     /// A gradient check did not pass (the report is printed above).
     #[error("a gradient check did not pass (see the report above)")]
     ChecksFailed,
+    /// A training configuration is malformed.
+    #[error(transparent)]
+    Config(#[from] crate::train::config::ConfigError),
     /// The thread pool could not be built.
     #[error("cannot start {threads} threads: {source}")]
     Threads {
@@ -75,6 +79,13 @@ enum Command {
     /// The loss of a scene file and its gradient with respect to the inputs
     /// its [loss] names, as .npy; --check runs the gradient checks.
     Grad(scene::GradArgs),
+    /// Train a correction network through the coarse Burgers solver from a
+    /// TOML configuration; writes the loss log, its plot, the model and a
+    /// checkpoint to resume from.
+    Train(train::TrainArgs),
+    /// Experiments that reproduce published studies.
+    #[command(subcommand)]
+    Experiment(train::ExperimentCommand),
 }
 
 #[derive(Debug, clap::Args)]
@@ -101,6 +112,8 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         Command::Check(a) => check_p1(a),
         Command::Run(a) => scene::run(a),
         Command::Grad(a) => scene::grad(a),
+        Command::Train(a) => train::train_cmd(a),
+        Command::Experiment(e) => train::experiment(e),
     }
 }
 

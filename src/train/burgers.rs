@@ -144,8 +144,14 @@ pub struct TrainSettings {
     pub batch: usize,
     /// Gradient updates (in this call).
     pub iterations: usize,
-    /// Adam's learning rate.
+    /// The learning rate at the start.
     pub lr: f64,
+    /// The learning rate at the end of the schedule: cosine decay from `lr`
+    /// over iterations `1..=decay_over`, `lr_end` after (equal to `lr`:
+    /// constant).
+    pub lr_end: f64,
+    /// Iterations the decay spans.
+    pub decay_over: usize,
     /// Gradient clipping by norm (∞: none).
     pub clip: f64,
     /// Seed of the batch sampling and the noise.
@@ -154,6 +160,14 @@ pub struct TrainSettings {
     /// checkpoint): the batch of iteration `i` depends only on `seed` and
     /// `i`, so a resumed run repeats an uninterrupted one exactly.
     pub first: usize,
+}
+
+impl TrainSettings {
+    /// The learning rate of iteration `it` (1-based).
+    pub fn lr_at(&self, it: usize) -> f64 {
+        let f = (it.saturating_sub(1) as f64 / self.decay_over.max(1) as f64).min(1.0);
+        self.lr_end + 0.5 * (self.lr - self.lr_end) * (1.0 + (std::f64::consts::PI * f).cos())
+    }
 }
 
 /// One logged iteration.
@@ -187,28 +201,45 @@ pub struct TimeShares {
     pub optimizer: f64,
 }
 
-/// Trains `theta` in place on the reference trajectories `data`; calls
-/// `progress(row)` after every iteration. Returns the time shares.
+/// Trains `theta` in place on batches from `data`; calls `progress(row)`
+/// after every iteration. Returns where the time went.
 pub fn train(
     setup: &Setup,
     net: &Net,
     theta: &mut [f64],
     opt: &mut Optimizer,
-    data: &[Vec<Vec<f64>>],
+    data: TrainData<'_>,
     s: &TrainSettings,
     mut progress: impl FnMut(LogRow),
 ) -> Result<TimeShares, RolloutError> {
-    let source = setup.source();
     let k = s.method.unroll();
     let steps: Vec<usize> = (1..=k).collect();
     let mut shares = TimeShares::default();
     let start = std::time::Instant::now();
-    let coupled = Coupled::new(&source, &[], net, Coupling::Add).expect("the study's network fits the solver");
     for it in s.first..s.first + s.iterations {
+        // The batch of iteration `it` depends only on the seed and `it`.
         let mut rng = StdRng::seed_from_u64(s.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ it as u64);
+        let batch_setup: Setup;
+        let generated: Vec<Vec<Vec<f64>>>;
+        let trajectories: &[Vec<Vec<f64>>] = match data {
+            TrainData::Fixed(d) => {
+                batch_setup = *setup;
+                d
+            }
+            TrainData::Random { nu, horizon } => {
+                let nu = if nu.1 > nu.0 { rng.random_range(nu.0..nu.1) } else { nu.0 };
+                let base = *setup;
+                batch_setup = Setup::new(base.coarse.n, base.fine.n / base.coarse.n, base.time_factor, nu, base.modes);
+                generated = batch_setup.dataset(s.batch, horizon + k, &mut rng);
+                &generated
+            }
+        };
         let batch: Vec<Sample> = (0..s.batch)
-            .map(|_| {
-                let traj = &data[rng.random_range(0..data.len())];
+            .map(|b| {
+                let traj = match data {
+                    TrainData::Fixed(_) => &trajectories[rng.random_range(0..trajectories.len())],
+                    TrainData::Random { .. } => &trajectories[b],
+                };
                 let t0 = rng.random_range(0..traj.len() - k);
                 let mut x0 = traj[t0].clone();
                 if let Method::Noise(sigma) = s.method {
@@ -219,16 +250,23 @@ pub fn train(
                 Sample { x0, targets: traj[t0 + 1..=t0 + k].to_vec() }
             })
             .collect();
-        let (loss, mut grad) = batch_gradient(&coupled, theta, k, &steps, &batch, Checkpointing::periodic_sqrt(k))?;
+        let source = batch_setup.source();
+        let coupled = Coupled::new(&source, &[], net, Coupling::Add).expect("the study's network fits the solver");
+        let (loss, mut grad) =
+            batch_gradient(&coupled, theta, k, &steps, &batch, if k <= 64 { Checkpointing::Store } else { Checkpointing::periodic_sqrt(k) })?;
+        let [a, b, c, d] = coupled.timers.take();
+        shares.solver_fwd += a;
+        shares.solver_bwd += b;
+        shares.net_fwd += c;
+        shares.net_bwd += d;
         let grad_norm = clip_by_norm(&mut grad, s.clip);
         let t = std::time::Instant::now();
+        opt.set_lr(s.lr_at(it));
         opt.step(theta, &grad);
         shares.optimizer += t.elapsed().as_secs_f64();
         progress(LogRow { iteration: it, loss, grad_norm, seconds: start.elapsed().as_secs_f64() });
     }
     shares.total = start.elapsed().as_secs_f64();
-    let [a, b, c, d] = coupled.timers.take();
-    (shares.solver_fwd, shares.solver_bwd, shares.net_fwd, shares.net_bwd) = (a, b, c, d);
     Ok(shares)
 }
 
@@ -275,4 +313,144 @@ pub fn normal(rng: &mut impl Rng) -> f64 {
     let u1: f64 = 1.0 - rng.random::<f64>();
     let u2: f64 = rng.random();
     (-2.0 * u1.ln()).sqrt() * (TAU * u2).cos()
+}
+
+/// Where the training batches come from.
+#[derive(Clone, Copy, Debug)]
+pub enum TrainData<'a> {
+    /// Fixed reference trajectories (precomputed).
+    Fixed(&'a [Vec<Vec<f64>>]),
+    /// Drawn afresh for every batch: initial states at random, the
+    /// viscosity uniform in `nu` (one value per batch), start states up to
+    /// `horizon` coarse steps into the trajectory. The solver is the data
+    /// generator.
+    Random {
+        /// Viscosity range.
+        nu: (f64, f64),
+        /// Latest start step.
+        horizon: usize,
+    },
+}
+
+/// The settings of the whole study ([`study`]).
+#[derive(Clone, Debug)]
+pub struct StudyConfig {
+    /// Grids and time steps.
+    pub setup: Setup,
+    /// Training trajectories.
+    pub train: usize,
+    /// Held-out test trajectories.
+    pub test: usize,
+    /// Coarse steps of each training trajectory.
+    pub train_steps: usize,
+    /// Coarse steps of the evaluation rollouts.
+    pub eval_steps: usize,
+    /// The variants trained (the source solver is always evaluated).
+    pub methods: Vec<Method>,
+    /// Batch, iterations, learning rate, clipping, seed (`method` is set per variant).
+    pub settings: TrainSettings,
+    /// The network (P3's convolution stack by default).
+    pub net: Net,
+}
+
+impl StudyConfig {
+    /// The study as specified: 64 training and 16 test trajectories,
+    /// 128-step evaluation, PRE / NOISE / SOL-4 / SOL-16, 6000 updates of
+    /// batch 16 with Adam, learning rate 1e-3 decaying to 1e-5 (cosine).
+    /// `quick`: 1500 updates, 32 + 8 trajectories.
+    pub fn standard(quick: bool) -> Self {
+        let iterations = if quick { 1500 } else { 6000 };
+        let setup = Setup::standard();
+        let net = crate::nn::presets::conv_stack_1d(setup.coarse.n, &[1, 32, 32, 1], 5, crate::nn::Padding::Periodic, crate::nn::Activation::Tanh)
+            .expect("the preset is well formed");
+        Self {
+            setup,
+            train: if quick { 32 } else { 64 },
+            test: if quick { 8 } else { 16 },
+            train_steps: 128 + 16,
+            eval_steps: 128,
+            methods: vec![Method::Pre, Method::Noise(0.02), Method::Sol(4), Method::Sol(16)],
+            settings: TrainSettings {
+                method: Method::Pre,
+                batch: 16,
+                iterations,
+                lr: 1e-3,
+                lr_end: 1e-5,
+                decay_over: iterations,
+                clip: 10.0,
+                seed: 1,
+                first: 1,
+            },
+            net,
+        }
+    }
+}
+
+/// One trained (or source) variant's results.
+#[derive(Clone, Debug)]
+pub struct VariantResult {
+    /// `source`, `pre`, `noise`, `sol4`, `sol16`.
+    pub name: String,
+    /// Relative L2 error per evaluation step, averaged over the test set.
+    pub error: Vec<f64>,
+    /// Its mean over the steps.
+    pub mean_error: f64,
+    /// Training loss per iteration.
+    pub loss: Vec<f64>,
+    /// Time shares of training.
+    pub time: TimeShares,
+    /// Wall seconds per training iteration.
+    pub s_per_iter: f64,
+}
+
+/// Runs the study: builds the data sets, evaluates the source solver,
+/// trains each variant from the same initial network and evaluates it.
+/// `progress(variant, row)` is called after every iteration.
+pub fn study(cfg: &StudyConfig, mut progress: impl FnMut(&str, LogRow)) -> Result<Vec<VariantResult>, StudyError> {
+    let mut rng = StdRng::seed_from_u64(cfg.settings.seed);
+    let train_set = cfg.setup.dataset(cfg.train, cfg.train_steps, &mut rng);
+    let test_set = cfg.setup.dataset(cfg.test, cfg.eval_steps, &mut rng);
+    let theta0 = initial_params(&cfg.net, cfg.settings.seed);
+    let source = evaluate(&cfg.setup, &cfg.net, None, &test_set, cfg.eval_steps)?;
+    let mut out =
+        vec![VariantResult { name: "source".into(), mean_error: mean(&source), error: source, loss: Vec::new(), time: TimeShares::default(), s_per_iter: 0.0 }];
+    for &method in &cfg.methods {
+        let mut theta = theta0.clone();
+        let mut opt = Optimizer::adam(cfg.settings.lr);
+        let s = TrainSettings { method, ..cfg.settings };
+        let name = method.name();
+        let mut loss = Vec::with_capacity(s.iterations);
+        let time = train(&cfg.setup, &cfg.net, &mut theta, &mut opt, TrainData::Fixed(&train_set), &s, |row| {
+            loss.push(row.loss);
+            progress(&name, row);
+        })?;
+        let error = evaluate(&cfg.setup, &cfg.net, Some(&theta), &test_set, cfg.eval_steps)?;
+        out.push(VariantResult { name, mean_error: mean(&error), error, loss, s_per_iter: time.total / s.iterations.max(1) as f64, time });
+    }
+    Ok(out)
+}
+
+/// Fresh parameters for a correction network: Glorot weights, the last
+/// layer zero, so that training starts from the source solver.
+pub fn initial_params(net: &Net, seed: u64) -> Vec<f64> {
+    let mut theta = net.init(&mut StdRng::seed_from_u64(seed), crate::nn::Init::Glorot);
+    let last = net.layers().last().map_or(0, |l| l.n_params());
+    let n = theta.len();
+    theta[n - last..].fill(0.0);
+    theta
+}
+
+fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len().max(1) as f64
+}
+
+/// A study that failed.
+#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
+pub enum StudyError {
+    /// Training failed (a non-finite loss or gradient, with where).
+    #[error("training: {0}")]
+    Train(#[from] RolloutError),
+    /// An evaluation rollout blew up.
+    #[error("evaluation: {0}")]
+    Eval(#[from] EvalError),
 }

@@ -7,6 +7,7 @@
 //! parameters; [`burgers`] is the solver-in-the-loop study on Burgers.
 
 pub mod burgers;
+pub mod config;
 pub mod optim;
 
 use std::sync::atomic::{AtomicU64, Ordering};

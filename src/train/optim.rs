@@ -55,6 +55,13 @@ impl Optimizer {
         }
     }
 
+    /// Sets the learning rate (for schedules).
+    pub fn set_lr(&mut self, rate: f64) {
+        match self {
+            Optimizer::Sgd { lr, .. } | Optimizer::Adam { lr, .. } => *lr = rate,
+        }
+    }
+
     /// One update of `p` along the gradient `g`.
     ///
     /// # Panics

@@ -1,0 +1,284 @@
+//! `diffsim train CONFIG` (one training run through the solver) and
+//! `diffsim experiment sol-burgers` (the PRE / NOISE / SOL study).
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use super::CliError;
+use crate::nn::ParamStore;
+use crate::plot::{Axes, Series, line_plot};
+use crate::train::Optimizer;
+use crate::train::burgers::{LogRow, StudyConfig, TrainData, evaluate, initial_params, study, train};
+use crate::train::config::TrainConfig;
+
+/// Arguments of `diffsim train`.
+#[derive(Debug, clap::Args)]
+pub struct TrainArgs {
+    /// The configuration (TOML; keys in docs/train.md).
+    config: PathBuf,
+    /// Output directory: loss.csv, loss.png, model.json, checkpoint.json.
+    #[arg(long, default_value = "out/train")]
+    out: PathBuf,
+    /// Continue from OUT/checkpoint.json for the configured number of
+    /// further iterations.
+    #[arg(long)]
+    resume: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+/// Experiments.
+#[derive(Debug, clap::Subcommand)]
+pub enum ExperimentCommand {
+    /// Solver-in-the-loop on Burgers: source vs PRE, NOISE, SOL-4, SOL-16.
+    SolBurgers(SolArgs),
+}
+
+/// Arguments of `diffsim experiment sol-burgers`.
+#[derive(Debug, clap::Args)]
+pub struct SolArgs {
+    /// A reduced study (fewer updates and trajectories; same variants).
+    #[arg(long)]
+    quick: bool,
+    /// Print the result as one JSON object on the last line.
+    #[arg(long)]
+    json: bool,
+    /// Output directory: table.md, errors.csv, error.png, loss.png.
+    #[arg(long, default_value = "out/sol-burgers")]
+    out: PathBuf,
+    /// Training iterations per variant (overrides the default).
+    #[arg(long)]
+    iterations: Option<usize>,
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CliError + '_ {
+    move |source| CliError::Io { path: path.to_path_buf(), source }
+}
+
+fn bar(len: usize, quiet: bool, prefix: &str) -> indicatif::ProgressBar {
+    if quiet {
+        return indicatif::ProgressBar::hidden();
+    }
+    let b = indicatif::ProgressBar::new(len as u64);
+    if let Ok(style) = indicatif::ProgressStyle::with_template("{prefix:>8} {bar:30} {pos}/{len} {msg} (eta {eta})") {
+        b.set_style(style);
+    }
+    b.set_prefix(prefix.to_string());
+    b
+}
+
+/// A plot that cannot be drawn (no font) is reported, not fatal: the CSV
+/// holds the numbers.
+fn plot_or_warn(path: &Path, axes: &Axes<'_>, series: &[Series]) {
+    if let Err(e) = line_plot(path, axes, series) {
+        eprintln!("warning: {e}");
+    }
+}
+
+/// The training checkpoint: parameters (named) and optimizer state, with
+/// the number of iterations done.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct Checkpoint {
+    iterations_done: usize,
+    params: ParamStore,
+    optimizer: Optimizer,
+}
+
+pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
+    let text = std::fs::read_to_string(&a.config).map_err(|source| CliError::Io { path: a.config.clone(), source })?;
+    let cfg = TrainConfig::parse(&text)?;
+    std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+    let ckpt_path = a.out.join("checkpoint.json");
+    let names = cfg.net.param_names();
+    let (mut store, mut opt, done) = if a.resume {
+        let text = std::fs::read_to_string(&ckpt_path).map_err(io(&ckpt_path))?;
+        let c: Checkpoint = serde_json::from_str(&text).map_err(|e| CliError::Argument { arg: "--resume", reason: format!("{}: {e}", ckpt_path.display()) })?;
+        let mut fresh = ParamStore::new();
+        fresh.add("net.", &names, &vec![0.0; cfg.net_params()]);
+        fresh.check_layout(&c.params).map_err(|e| CliError::Argument { arg: "--resume", reason: e.to_string() })?;
+        c.params.validate().map_err(|reason| CliError::Argument { arg: "--resume", reason })?;
+        (c.params, c.optimizer, c.iterations_done)
+    } else {
+        let mut store = ParamStore::new();
+        store.add("net.", &names, &initial_params(&cfg.net, cfg.settings.seed));
+        let opt = if cfg.optimizer == "sgd" { Optimizer::sgd(cfg.settings.lr) } else { Optimizer::adam(cfg.settings.lr) };
+        (store, opt, 0)
+    };
+    let mut rng = <rand::rngs::StdRng as rand::SeedableRng>::seed_from_u64(cfg.settings.seed);
+    let train_set = if cfg.nu_range.is_none() { cfg.setup.dataset(cfg.data.train, cfg.data.steps, &mut rng) } else { Vec::new() };
+    let test_set = cfg.setup.dataset(cfg.data.test, cfg.data.test_steps, &mut rng);
+    let data = match cfg.nu_range {
+        None => TrainData::Fixed(&train_set),
+        Some(nu) => TrainData::Random { nu, horizon: cfg.data.steps },
+    };
+    let settings = crate::train::burgers::TrainSettings { first: done + 1, ..cfg.settings };
+    let log_path = a.out.join("loss.csv");
+    let mut log = std::fs::OpenOptions::new().create(true).append(a.resume).write(true).truncate(!a.resume).open(&log_path).map_err(io(&log_path))?;
+    if !a.resume {
+        writeln!(log, "iteration,loss,grad_norm,seconds").map_err(io(&log_path))?;
+    }
+    let progress = bar(settings.iterations, a.quiet, &settings.method.name());
+    let mut rows: Vec<LogRow> = Vec::new();
+    let mut write_err = None;
+    let time = train(&cfg.setup, &cfg.net, &mut store.values, &mut opt, data, &settings, |r| {
+        if let Err(e) = writeln!(log, "{},{:.9e},{:.6e},{:.4}", r.iteration, r.loss, r.grad_norm, r.seconds) {
+            write_err.get_or_insert(e);
+        }
+        progress.set_message(format!("loss {:.3e}", r.loss));
+        progress.inc(1);
+        rows.push(r);
+    })?;
+    progress.finish_and_clear();
+    if let Some(e) = write_err {
+        return Err(io(&log_path)(e));
+    }
+    // The whole loss history (this run and earlier ones) for the plot.
+    let history = std::fs::read_to_string(&log_path).map_err(io(&log_path))?;
+    let points: Vec<(f64, f64)> = history
+        .lines()
+        .skip(1)
+        .filter_map(|l| {
+            let mut f = l.split(',');
+            Some((f.next()?.parse().ok()?, f.next()?.parse().ok()?))
+        })
+        .collect();
+    plot_or_warn(
+        &a.out.join("loss.png"),
+        &Axes { title: "training loss", x: "iteration", y: "loss", log_x: false, log_y: true },
+        &[Series { name: settings.method.name(), points, color: 0 }],
+    );
+    let done = done + settings.iterations;
+    let ckpt = Checkpoint { iterations_done: done, params: store.clone(), optimizer: opt };
+    std::fs::write(&ckpt_path, serde_json::to_string(&ckpt).map_err(|e| CliError::Argument { arg: "checkpoint", reason: e.to_string() })?)
+        .map_err(io(&ckpt_path))?;
+    store.save(&a.out.join("model.json")).map_err(|e| CliError::Argument { arg: "--out", reason: e.to_string() })?;
+    let source =
+        evaluate(&cfg.setup, &cfg.net, None, &test_set, cfg.data.test_steps).map_err(|e| CliError::Argument { arg: "config", reason: e.to_string() })?;
+    let corrected = evaluate(&cfg.setup, &cfg.net, Some(&store.values), &test_set, cfg.data.test_steps)
+        .map_err(|e| CliError::Argument { arg: "config", reason: e.to_string() })?;
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    println!(
+        "{} iterations ({} in total) in {:.1} s ({:.1} ms/iteration); last loss {:.3e}",
+        settings.iterations,
+        done,
+        time.total,
+        1e3 * time.total / settings.iterations as f64,
+        rows.last().map_or(f64::NAN, |r| r.loss)
+    );
+    println!(
+        "test rollouts ({} steps): relative L2 error, mean over steps: source {:.4}, corrected {:.4}",
+        cfg.data.test_steps,
+        mean(&source),
+        mean(&corrected)
+    );
+    println!("wrote loss.csv, loss.png, model.json, checkpoint.json to {}", a.out.display());
+    Ok(())
+}
+
+pub(super) fn experiment(c: ExperimentCommand) -> Result<(), CliError> {
+    let ExperimentCommand::SolBurgers(a) = c;
+    let mut cfg = StudyConfig::standard(a.quick);
+    if let Some(it) = a.iterations {
+        if it == 0 {
+            return Err(CliError::Argument { arg: "--iterations", reason: "must be at least 1".into() });
+        }
+        cfg.settings.iterations = it;
+        cfg.settings.decay_over = it;
+    }
+    std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+    let total = cfg.methods.len() * cfg.settings.iterations;
+    let progress = bar(total, a.json, "train");
+    let results = study(&cfg, |name, r| {
+        progress.set_message(format!("{name} loss {:.3e}", r.loss));
+        progress.inc(1);
+    })
+    .map_err(|e| CliError::Argument { arg: "sol-burgers", reason: e.to_string() })?;
+    progress.finish_and_clear();
+
+    // Table.
+    let source = results[0].mean_error;
+    let mut table = String::from(
+        "| variant | mean rel. L2 error (128 steps) | vs source | error at step 128 | s / iteration | solver | network | chaining + optimizer |\n|---|---|---|---|---|---|---|---|\n",
+    );
+    for r in &results {
+        let t = &r.time;
+        let parts = t.solver_fwd + t.solver_bwd + t.net_fwd + t.net_bwd;
+        // Solver and network times are summed over threads; shares are of that sum plus the rest of the wall time.
+        let (share_s, share_n, share_c) = if t.total > 0.0 {
+            let threads = rayon::current_num_threads() as f64;
+            let rest = (t.total * threads - parts).max(0.0);
+            let all = parts + rest;
+            ((t.solver_fwd + t.solver_bwd) / all, (t.net_fwd + t.net_bwd) / all, rest / all)
+        } else {
+            (0.0, 0.0, 0.0)
+        };
+        let cell = |v: f64| if r.name == "source" { "–".to_string() } else { format!("{:.0}%", 100.0 * v) };
+        table.push_str(&format!(
+            "| {} | {:.4} | {:.2} | {:.4} | {} | {} | {} | {} |\n",
+            r.name,
+            r.mean_error,
+            r.mean_error / source,
+            r.error.last().copied().unwrap_or(f64::NAN),
+            if r.name == "source" { "–".to_string() } else { format!("{:.4}", r.s_per_iter) },
+            cell(share_s),
+            cell(share_n),
+            cell(share_c),
+        ));
+    }
+    let md = a.out.join("table.md");
+    std::fs::write(&md, &table).map_err(io(&md))?;
+    // Errors per step.
+    let csv = a.out.join("errors.csv");
+    let mut s = format!("step,{}\n", results.iter().map(|r| r.name.as_str()).collect::<Vec<_>>().join(","));
+    for t in 0..cfg.eval_steps {
+        s.push_str(&format!("{},{}\n", t + 1, results.iter().map(|r| format!("{:.6e}", r.error[t])).collect::<Vec<_>>().join(",")));
+    }
+    std::fs::write(&csv, s).map_err(io(&csv))?;
+    let err_series: Vec<Series> = results
+        .iter()
+        .enumerate()
+        .map(|(k, r)| Series { name: r.name.clone(), points: r.error.iter().enumerate().map(|(t, e)| ((t + 1) as f64, *e)).collect(), color: k })
+        .collect();
+    plot_or_warn(
+        &a.out.join("error.png"),
+        &Axes { title: "Burgers, 128-step test rollouts", x: "step", y: "relative L2 error", log_x: false, log_y: true },
+        &err_series,
+    );
+    // Loss curves as moving averages over 50 iterations (a batch of 16 is noisy).
+    let loss_series: Vec<Series> =
+        results.iter().enumerate().skip(1).map(|(k, r)| Series { name: r.name.clone(), points: moving_average(&r.loss, 50), color: k }).collect();
+    plot_or_warn(
+        &a.out.join("loss.png"),
+        &Axes { title: "training loss (moving average of 50)", x: "iteration", y: "loss", log_x: false, log_y: true },
+        &loss_series,
+    );
+    if !a.json {
+        print!("{table}");
+        println!("wrote table.md, errors.csv, error.png, loss.png to {}", a.out.display());
+    }
+    let find = |n: &str| results.iter().find(|r| r.name == n).map_or(f64::NAN, |r| r.mean_error);
+    let sol16 = results.iter().find(|r| r.name == "sol16").map_or(f64::NAN, |r| r.s_per_iter);
+    if a.json {
+        let obj = serde_json::json!({
+            "source": find("source"), "pre": find("pre"), "noise": find("noise"), "sol4": find("sol4"), "sol16": find("sol16"),
+            "train_s_per_iter": sol16, "iterations": cfg.settings.iterations, "threads": rayon::current_num_threads(),
+        });
+        println!("{obj}");
+    }
+    Ok(())
+}
+
+/// `(i, mean of v[i+1−w..=i])` for every full window, 1-based iterations.
+fn moving_average(v: &[f64], w: usize) -> Vec<(f64, f64)> {
+    if v.len() < w {
+        return v.iter().enumerate().map(|(i, l)| ((i + 1) as f64, *l)).collect();
+    }
+    let mut sum: f64 = v[..w].iter().sum();
+    let mut out = vec![(w as f64, sum / w as f64)];
+    for i in w..v.len() {
+        sum += v[i] - v[i - w];
+        out.push(((i + 1) as f64, sum / w as f64));
+    }
+    out
+}

@@ -1,0 +1,293 @@
+//! `diffsim train CONFIG`: the TOML file of one training run of a
+//! correction network through the coarse Burgers solver (keys in
+//! `docs/train.md`). Every mistake is a [`ConfigError`] naming the key.
+
+use serde::Deserialize;
+
+use super::burgers::{Method, Setup, TrainSettings};
+use crate::nn::{Activation, Net, Padding, presets};
+
+/// A training configuration as written.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainFile {
+    /// The problem.
+    pub problem: ProblemSpec,
+    /// The data sets.
+    #[serde(default)]
+    pub data: DataSpec,
+    /// The network.
+    #[serde(default)]
+    pub network: NetworkSpec,
+    /// The optimisation.
+    pub training: TrainingSpec,
+}
+
+/// `[problem]`: solver-in-the-loop on Burgers.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProblemSpec {
+    /// `"burgers"`.
+    pub kind: String,
+    /// Coarse cells (default 32).
+    #[serde(default = "d32")]
+    pub cells: usize,
+    /// Fine cells per coarse cell (default 8).
+    #[serde(default = "d8")]
+    pub refinement: usize,
+    /// Fine steps per coarse step (default 4).
+    #[serde(default = "d4")]
+    pub time_refinement: usize,
+    /// Viscosity, or a range `[lo, hi]` sampled per batch (then the data
+    /// is generated on the fly).
+    #[serde(default = "nu")]
+    pub viscosity: Viscosity,
+    /// Sine modes of the initial states (default 3).
+    #[serde(default = "d3")]
+    pub modes: usize,
+}
+
+/// One viscosity or a range.
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+pub enum Viscosity {
+    /// Fixed.
+    One(f64),
+    /// Sampled per batch.
+    Range([f64; 2]),
+}
+
+/// `[data]`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DataSpec {
+    /// Training trajectories (fixed data; default 32).
+    #[serde(default = "d32")]
+    pub train: usize,
+    /// Coarse steps per training trajectory (default 144).
+    #[serde(default = "d144")]
+    pub steps: usize,
+    /// Test trajectories (default 8).
+    #[serde(default = "d8")]
+    pub test: usize,
+    /// Coarse steps of the test rollouts (default 128).
+    #[serde(default = "d128")]
+    pub test_steps: usize,
+}
+
+impl Default for DataSpec {
+    fn default() -> Self {
+        Self { train: 32, steps: 144, test: 8, test_steps: 128 }
+    }
+}
+
+/// `[network]`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NetworkSpec {
+    /// `"conv"` (default), `"resnet"` or `"unet"`.
+    #[serde(default = "conv")]
+    pub preset: String,
+    /// Channels of the conv stack (default `[1, 32, 32, 1]`).
+    #[serde(default = "channels")]
+    pub channels: Vec<usize>,
+    /// Width of the resnet / U-Net (default 16).
+    #[serde(default = "d16")]
+    pub width: usize,
+    /// Residual blocks (default 2).
+    #[serde(default = "d2")]
+    pub blocks: usize,
+    /// Kernel width (odd, default 5).
+    #[serde(default = "d5")]
+    pub kernel: usize,
+    /// `"tanh"` (default), `"relu"`, `"gelu"`, …
+    #[serde(default = "tanh")]
+    pub activation: Activation,
+}
+
+impl Default for NetworkSpec {
+    fn default() -> Self {
+        Self { preset: conv(), channels: channels(), width: 16, blocks: 2, kernel: 5, activation: Activation::Tanh }
+    }
+}
+
+/// `[training]`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainingSpec {
+    /// `"pre"`, `"noise"` or `"sol"`.
+    pub method: String,
+    /// Unrolled steps for `sol` (default 16).
+    #[serde(default = "d16")]
+    pub unroll: usize,
+    /// Input noise for `noise` (default 0.02).
+    #[serde(default = "noise")]
+    pub noise: f64,
+    /// Batch size (default 16).
+    #[serde(default = "d16")]
+    pub batch: usize,
+    /// Gradient updates.
+    pub iterations: usize,
+    /// `"adam"` (default) or `"sgd"`.
+    #[serde(default = "adam")]
+    pub optimizer: String,
+    /// Learning rate (default 1e-3).
+    #[serde(default = "lr")]
+    pub lr: f64,
+    /// Final learning rate of a cosine decay over `iterations` (default: `lr`, constant).
+    pub lr_end: Option<f64>,
+    /// Clip the gradient norm to this (default 10).
+    #[serde(default = "clip")]
+    pub clip: f64,
+    /// Seed (default 1).
+    #[serde(default = "one")]
+    pub seed: u64,
+}
+
+macro_rules! defaults {
+    ($($name:ident: $t:ty = $v:expr;)*) => { $(fn $name() -> $t { $v })* };
+}
+defaults! {
+    d2: usize = 2; d3: usize = 3; d4: usize = 4; d5: usize = 5; d8: usize = 8; d16: usize = 16; d32: usize = 32; d128: usize = 128; d144: usize = 144;
+    nu: Viscosity = Viscosity::One(0.01); conv: String = "conv".into(); channels: Vec<usize> = vec![1, 32, 32, 1]; tanh: Activation = Activation::Tanh;
+    noise: f64 = 0.02; adam: String = "adam".into(); lr: f64 = 1e-3; clip: f64 = 10.0; one: u64 = 1;
+}
+
+/// A configuration that cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// Malformed TOML or a wrong type (the message names the line).
+    #[error("training config: {0}")]
+    Syntax(String),
+    /// A value the run cannot use.
+    #[error("training config: `{key}`: {reason}")]
+    Key {
+        /// The key.
+        key: &'static str,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// A checked configuration.
+#[derive(Debug)]
+pub struct TrainConfig {
+    /// Grids (with the lower viscosity when it is a range).
+    pub setup: Setup,
+    /// The viscosity range when sampled per batch.
+    pub nu_range: Option<(f64, f64)>,
+    /// Data sizes.
+    pub data: DataSpec,
+    /// The network.
+    pub net: Net,
+    /// Optimisation settings.
+    pub settings: TrainSettings,
+    /// `"adam"` or `"sgd"`.
+    pub optimizer: String,
+}
+
+fn positive(key: &'static str, v: usize) -> Result<usize, ConfigError> {
+    if v >= 1 { Ok(v) } else { Err(ConfigError::Key { key, reason: "must be at least 1".into() }) }
+}
+
+fn rate(key: &'static str, v: f64) -> Result<f64, ConfigError> {
+    if v.is_finite() && v > 0.0 { Ok(v) } else { Err(ConfigError::Key { key, reason: format!("must be a positive finite number, got {v}") }) }
+}
+
+impl TrainConfig {
+    /// Number of network parameters.
+    pub fn net_params(&self) -> usize {
+        crate::op::Operator::n_params(&self.net)
+    }
+
+    /// Parses and checks a configuration.
+    pub fn parse(text: &str) -> Result<Self, ConfigError> {
+        let f: TrainFile = toml::from_str(text).map_err(|e| ConfigError::Syntax(crate::scene::spec::suggest_field(&e.to_string())))?;
+        let p = &f.problem;
+        if p.kind != "burgers" {
+            return Err(ConfigError::Key { key: "problem.kind", reason: crate::scene::spec::unknown("problem", &p.kind, &["burgers"]) });
+        }
+        let cells = positive("problem.cells", p.cells)?;
+        if cells < 3 {
+            return Err(ConfigError::Key { key: "problem.cells", reason: "need at least 3".into() });
+        }
+        let (lo, range) = match p.viscosity {
+            Viscosity::One(v) => (rate("problem.viscosity", v)?, None),
+            Viscosity::Range([a, b]) => {
+                let (a, b) = (rate("problem.viscosity", a)?, rate("problem.viscosity", b)?);
+                if a > b {
+                    return Err(ConfigError::Key { key: "problem.viscosity", reason: format!("the range [{a}, {b}] is empty") });
+                }
+                (a, Some((a, b)))
+            }
+        };
+        let setup = Setup::new(
+            cells,
+            positive("problem.refinement", p.refinement)?,
+            positive("problem.time_refinement", p.time_refinement)?,
+            lo,
+            positive("problem.modes", p.modes)?,
+        );
+        let n = &f.network;
+        let k = n.kernel;
+        if k % 2 == 0 || k == 0 {
+            return Err(ConfigError::Key { key: "network.kernel", reason: format!("must be odd, got {k}") });
+        }
+        let net = match n.preset.as_str() {
+            "conv" => {
+                if n.channels.len() < 2 || n.channels[0] != 1 || *n.channels.last().unwrap_or(&0) != 1 {
+                    return Err(ConfigError::Key { key: "network.channels", reason: "must start and end with 1 (the state has one channel)".into() });
+                }
+                presets::conv_stack_1d(cells, &n.channels, k, Padding::Periodic, n.activation)
+            }
+            "resnet" => presets::resnet_1d(cells, 1, 1, positive("network.width", n.width)?, n.blocks, k, Padding::Periodic, n.activation),
+            "unet" => {
+                if cells % 2 != 0 {
+                    return Err(ConfigError::Key { key: "network.preset", reason: format!("a U-Net needs an even number of cells, got {cells}") });
+                }
+                presets::unet_1d(cells, 1, 1, positive("network.width", n.width)?, k, Padding::Periodic, n.activation)
+            }
+            other => return Err(ConfigError::Key { key: "network.preset", reason: crate::scene::spec::unknown("preset", other, &["conv", "resnet", "unet"]) }),
+        }
+        .map_err(|e| ConfigError::Key { key: "network", reason: e.to_string() })?;
+        let t = &f.training;
+        let method = match t.method.as_str() {
+            "pre" => Method::Pre,
+            "noise" => {
+                if !(t.noise.is_finite() && t.noise >= 0.0) {
+                    return Err(ConfigError::Key { key: "training.noise", reason: format!("must be finite and ≥ 0, got {}", t.noise) });
+                }
+                Method::Noise(t.noise)
+            }
+            "sol" => Method::Sol(positive("training.unroll", t.unroll)?),
+            other => return Err(ConfigError::Key { key: "training.method", reason: crate::scene::spec::unknown("method", other, &["pre", "noise", "sol"]) }),
+        };
+        if f.data.steps <= method.unroll() && range.is_none() {
+            return Err(ConfigError::Key {
+                key: "data.steps",
+                reason: format!("trajectories of {} steps are too short to unroll {}", f.data.steps, method.unroll()),
+            });
+        }
+        if t.optimizer != "adam" && t.optimizer != "sgd" {
+            return Err(ConfigError::Key { key: "training.optimizer", reason: crate::scene::spec::unknown("optimizer", &t.optimizer, &["adam", "sgd"]) });
+        }
+        let settings = TrainSettings {
+            method,
+            batch: positive("training.batch", t.batch)?,
+            iterations: positive("training.iterations", t.iterations)?,
+            lr: rate("training.lr", t.lr)?,
+            lr_end: match t.lr_end {
+                Some(v) => rate("training.lr_end", v)?,
+                None => t.lr,
+            },
+            decay_over: t.iterations,
+            clip: rate("training.clip", t.clip)?,
+            seed: t.seed,
+            first: 1,
+        };
+        positive("data.train", f.data.train)?;
+        positive("data.test", f.data.test)?;
+        positive("data.test_steps", f.data.test_steps)?;
+        Ok(Self { setup, nu_range: range, data: f.data, net, settings, optimizer: t.optimizer.clone() })
+    }
+}
