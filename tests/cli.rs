@@ -180,3 +180,18 @@ fn train_and_experiment_commands() {
     }
     std::fs::remove_dir_all(&out).ok();
 }
+
+#[test]
+fn hig_oscillators_experiment_runs_and_reports_json() {
+    let out = std::env::temp_dir().join(format!("diffsim-hig-{}", std::process::id()));
+    let o = out.to_str().unwrap();
+    let (code, stdout, err) = diffsim(&["experiment", "hig-oscillators", "--budget", "0.3", "--json", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    for key in ["hig", "adam", "hig_nonlinear", "adam_nonlinear", "budget_s"] {
+        assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
+    }
+    assert!(out.join("loss.png").exists() && out.join("table.md").exists());
+    fails_with(&["experiment", "hig-oscillators", "--budget", "0", "--out", o], "invalid argument --budget");
+    std::fs::remove_dir_all(&out).ok();
+}

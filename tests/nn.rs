@@ -283,3 +283,83 @@ fn resumed_training_repeats_an_uninterrupted_run() {
     assert_eq!(src, corrected);
     assert!(src[9] > src[0] && src[0] > 0.0);
 }
+
+#[test]
+fn half_inverse_follows_its_definition_and_stays_finite() {
+    use diffsim_solvers::linalg::{pseudo_inverse_power_apply, svd};
+    // A = diag(4, 1, 1e-14) padded: the half-inverse scales by s^-½ and drops
+    // what the relative truncation cuts.
+    let a = vec![4.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1e-14, 0.0];
+    let b = vec![1.0, 1.0, 1.0];
+    let x = pseudo_inverse_power_apply(3, 4, &a, &b, 0.5, 1e-10).unwrap();
+    let want = [0.5, 1.0, 0.0, 0.0];
+    for (u, v) in x.iter().zip(want) {
+        assert!((u - v).abs() < 1e-12, "{x:?}");
+    }
+    // β = 1 without truncation of the kept part is the pseudo-inverse: A·x = b on the range.
+    let m: Vec<f64> = (0..12).map(|k| ((k * 7 % 5) as f64) - 1.5 + 0.1 * k as f64).collect();
+    let x = pseudo_inverse_power_apply(3, 4, &m, &b, 1.0, 1e-12).unwrap();
+    for i in 0..3 {
+        let r: f64 = (0..4).map(|j| m[i * 4 + j] * x[j]).sum();
+        assert!((r - b[i]).abs() < 1e-10);
+    }
+    // The SVD reassembles the matrix.
+    let d = svd(3, 4, &m).unwrap();
+    for i in 0..3 {
+        for j in 0..4 {
+            let v: f64 = (0..3).map(|c| d.u[i * 3 + c] * d.s[c] * d.v[j * 3 + c]).sum();
+            assert!((v - m[i * 4 + j]).abs() < 1e-12);
+        }
+    }
+    // A rank-deficient Jacobian (two equal rows) gives a finite update.
+    let sing = vec![1.0, 2.0, 3.0, 1.0, 2.0, 3.0];
+    let x = pseudo_inverse_power_apply(2, 3, &sing, &[1.0, -1.0], 0.5, 1e-6).unwrap();
+    assert!(x.iter().all(|v| v.is_finite() && v.abs() < 1e-6), "{x:?}");
+}
+
+#[test]
+fn oscillators_and_hig_steps() {
+    use diffsim::problems::oscillators::Oscillators;
+    use diffsim::train::hig::{ControlSample, Hig, HigError, hig_step, loss_and_gradient};
+    use diffsim::train::oscillators::dataset_loss;
+    // The physics through the three checks, linear and nonlinear.
+    let x = vec![0.3, 0.7, 0.1, 0.5];
+    let lin = Oscillators { steps: 6, ..Oscillators::linear() };
+    let non = Oscillators { steps: 8, ..Oscillators::nonlinear() };
+    assert_passes("linear oscillators", &lin, &x, &state(6, 3));
+    assert_passes("nonlinear oscillators", &non, &x, &state(8, 4));
+    // Without coupling and control, one oscillator period returns the state (RK4 error only).
+    let free = Oscillators { steps: 200, dt: std::f64::consts::TAU / 200.0, linear: 0.0, cubic: 0.0 };
+    let y = free.eval(&x, &vec![0.0; 200]);
+    for (a, b) in y.iter().zip(&x) {
+        assert!((a - b).abs() < 1e-6, "{y:?} vs {x:?}");
+    }
+    // HIG steps lower the loss of a small linear problem; the batch
+    // gradient matches central differences; a too-small budget is refused.
+    let net = presets::mlp(&[4, 8, 6], Activation::Tanh).unwrap();
+    let mut theta = params(&net, 2);
+    let data: Vec<ControlSample> = (0..8)
+        .map(|k| {
+            let s = state(4, 40 + k).iter().map(|v| v.abs()).collect::<Vec<_>>();
+            ControlSample { x0: s.clone(), target: s }
+        })
+        .collect();
+    let h = 1e-6;
+    let (_, g) = loss_and_gradient(&lin, &net, &theta, &data);
+    for i in [0, 17, theta.len() - 1] {
+        let (mut up, mut down) = (theta.clone(), theta.clone());
+        up[i] += h;
+        down[i] -= h;
+        let fd = (dataset_loss(&lin, &net, &up, &data) - dataset_loss(&lin, &net, &down, &data)) / (2.0 * h);
+        assert!((fd - g[i]).abs() < 1e-6 * fd.abs().max(1e-3), "θ[{i}]: {fd} vs {}", g[i]);
+    }
+    let hig = Hig { lr: 1.0, truncation: 1e-10, memory_budget: 1 << 20 };
+    let before = dataset_loss(&lin, &net, &theta, &data);
+    for _ in 0..30 {
+        hig_step(&lin, &net, &mut theta, &data, &hig).unwrap();
+    }
+    let after = dataset_loss(&lin, &net, &theta, &data);
+    assert!(after < 0.01 * before, "{before} → {after}");
+    let tight = Hig { memory_budget: 100, ..hig };
+    assert!(matches!(hig_step(&lin, &net, &mut theta, &data, &tight), Err(HigError::Budget { .. })));
+}

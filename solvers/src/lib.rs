@@ -8,7 +8,7 @@
 //!
 //! This crate is compiled **without** `-Zautodiff=Enable`: Enzyme sees its
 //! functions only at the fat-LTO link of the binaries that differentiate them.
-//! Linear algebra (faer) will live here too, behind non-generic functions,
+//! Linear algebra (faer) lives here too ([`linalg`]), behind non-generic functions,
 //! because faer crashes rustc when the autodiff flag is on.
 #![deny(missing_docs)]
 // `chunks_exact(8)` keeps the eight-lane reductions readable on stable APIs.
@@ -17,6 +17,7 @@
 pub mod boundary;
 pub mod burgers;
 pub mod diffusion;
+pub mod linalg;
 pub mod multigrid;
 pub mod nn;
 pub mod simd;

@@ -33,6 +33,23 @@ pub struct TrainArgs {
 pub enum ExperimentCommand {
     /// Solver-in-the-loop on Burgers: source vs PRE, NOISE, SOL-4, SOL-16.
     SolBurgers(SolArgs),
+    /// Half-inverse gradients vs Adam on the linear and nonlinear coupled
+    /// oscillators, in equal wall-clock budgets.
+    HigOscillators(HigArgs),
+}
+
+/// Arguments of `diffsim experiment hig-oscillators`.
+#[derive(Debug, clap::Args)]
+pub struct HigArgs {
+    /// Training seconds per optimizer and problem.
+    #[arg(long, default_value_t = 60.0)]
+    budget: f64,
+    /// Print the result as one JSON object on the last line.
+    #[arg(long)]
+    json: bool,
+    /// Output directory: table.md, loss.csv, loss.png.
+    #[arg(long, default_value = "out/hig-oscillators")]
+    out: PathBuf,
 }
 
 /// Arguments of `diffsim experiment sol-burgers`.
@@ -177,7 +194,59 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
 }
 
 pub(super) fn experiment(c: ExperimentCommand) -> Result<(), CliError> {
-    let ExperimentCommand::SolBurgers(a) = c;
+    match c {
+        ExperimentCommand::SolBurgers(a) => sol_burgers(a),
+        ExperimentCommand::HigOscillators(a) => hig_oscillators(a),
+    }
+}
+
+fn hig_oscillators(a: HigArgs) -> Result<(), CliError> {
+    use crate::train::oscillators::{OscConfig, compare};
+    if !(a.budget.is_finite() && a.budget > 0.0) {
+        return Err(CliError::Argument { arg: "--budget", reason: format!("must be a positive number of seconds, got {}", a.budget) });
+    }
+    std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+    let fail = |e: crate::train::hig::HigError| CliError::Argument { arg: "hig-oscillators", reason: e.to_string() };
+    let linear = compare(&OscConfig::linear(a.budget)).map_err(fail)?;
+    let nonlinear = compare(&OscConfig::nonlinear(a.budget)).map_err(fail)?;
+    let mut table = format!("| problem | optimizer | updates in {:.0} s | final loss |\n|---|---|---|---|\n", a.budget);
+    let mut series = Vec::new();
+    let mut csv = String::from("problem,optimizer,seconds,loss\n");
+    for problem in 0..2 {
+        let curves = if problem == 0 { &linear } else { &nonlinear };
+        let label = if problem == 0 { "linear" } else { "nonlinear" };
+        for (k, c) in curves.iter().enumerate() {
+            table.push_str(&format!("| {label} | {} | {} | {:.3e} |\n", c.name, c.updates, c.final_loss()));
+            for (t, l) in &c.points {
+                csv.push_str(&format!("{label},{},{t:.4},{l:.6e}\n", c.name));
+            }
+            series.push(Series { name: format!("{} ({label})", c.name), points: c.points.clone(), color: 2 * problem + k });
+        }
+    }
+    let md = a.out.join("table.md");
+    std::fs::write(&md, &table).map_err(io(&md))?;
+    let path = a.out.join("loss.csv");
+    std::fs::write(&path, csv).map_err(io(&path))?;
+    plot_or_warn(
+        &a.out.join("loss.png"),
+        &Axes { title: "coupled oscillators: loss vs training time", x: "seconds", y: "loss", log_x: false, log_y: true },
+        &series,
+    );
+    if a.json {
+        let obj = serde_json::json!({
+            "hig": linear[0].final_loss(), "adam": linear[1].final_loss(),
+            "hig_nonlinear": nonlinear[0].final_loss(), "adam_nonlinear": nonlinear[1].final_loss(),
+            "budget_s": a.budget,
+        });
+        println!("{obj}");
+    } else {
+        print!("{table}");
+        println!("wrote table.md, loss.csv, loss.png to {}", a.out.display());
+    }
+    Ok(())
+}
+
+fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
     let mut cfg = StudyConfig::standard(a.quick);
     if let Some(it) = a.iterations {
         if it == 0 {

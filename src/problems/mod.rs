@@ -2,4 +2,5 @@
 //! step with its Enzyme-generated and hand-written derivatives side by side.
 
 pub mod burgers;
+pub mod oscillators;
 pub mod smoke;

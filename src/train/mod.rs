@@ -8,7 +8,9 @@
 
 pub mod burgers;
 pub mod config;
+pub mod hig;
 pub mod optim;
+pub mod oscillators;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;

@@ -1,0 +1,87 @@
+//! Two coupled oscillators with a control on the last one, integrated by
+//! RK4 (the half-inverse-gradients problem of Schnell, Holl & Thuerey, ICLR
+//! 2022, and the Physics-based Deep Learning book).
+//!
+//! State `s = (x₁, x₂, v₁, v₂)`:
+//!
+//! ```text
+//! ẋᵢ = vᵢ
+//! v̇₁ = −x₁ + c·(x₂ − x₁) − κ·(x₁ − x₂)³
+//! v̇₂ = −x₂ + c·(x₁ − x₂) + κ·(x₁ − x₂)³ + u(t)
+//! ```
+//!
+//! with `u` constant over each of the `steps` RK4 steps of `dt`. The
+//! operator maps the initial state `x` (4 values) and the controls `p`
+//! (`steps` values) to the final state. Linear problem: `c = 0.2`, `κ = 0`,
+//! 24 steps of 0.5; nonlinear: `c = 0`, `κ = 1` (the cubic force of the
+//! quartic coupling energy), 96 steps of 0.125. Derivatives by Enzyme
+//! through nalgebra's fixed-size vectors.
+
+use nalgebra::Vector4;
+
+use crate::op::Operator;
+
+/// The oscillator rollout as one operator: `(x₀, u) ↦ s_T`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Oscillators {
+    /// RK4 steps (= controls).
+    pub steps: usize,
+    /// Time step.
+    pub dt: f64,
+    /// Linear coupling `c`.
+    pub linear: f64,
+    /// Cubic coupling `κ`.
+    pub cubic: f64,
+}
+
+impl Oscillators {
+    /// The linear problem: coupling 0.2, 24 steps of 0.5.
+    pub fn linear() -> Self {
+        Self { steps: 24, dt: 0.5, linear: 0.2, cubic: 0.0 }
+    }
+
+    /// The nonlinear problem: cubic coupling 1.0, 96 steps of 0.125.
+    pub fn nonlinear() -> Self {
+        Self { steps: 96, dt: 0.125, linear: 0.0, cubic: 1.0 }
+    }
+}
+
+impl Operator for Oscillators {
+    fn n_in(&self) -> usize {
+        4
+    }
+    fn n_out(&self) -> usize {
+        4
+    }
+    fn n_params(&self) -> usize {
+        self.steps
+    }
+}
+
+#[inline(always)]
+fn rhs(op: &Oscillators, s: &Vector4<f64>, u: f64) -> Vector4<f64> {
+    let d = s[0] - s[1];
+    let f = op.cubic * d * d * d;
+    Vector4::new(s[2], s[3], -s[0] - op.linear * d - f, -s[1] + op.linear * d + f + u)
+}
+
+#[inline(always)]
+fn rk4(op: &Oscillators, s: &Vector4<f64>, u: f64) -> Vector4<f64> {
+    let h = op.dt;
+    let k1 = rhs(op, s, u);
+    let k2 = rhs(op, &(s + k1 * (0.5 * h)), u);
+    let k3 = rhs(op, &(s + k2 * (0.5 * h)), u);
+    let k4 = rhs(op, &(s + k3 * h), u);
+    s + (k1 + k2 * 2.0 + k3 * 2.0 + k4) * (h / 6.0)
+}
+
+/// The plain rollout: `y = s_T` from `x = s₀` under the controls `p`.
+pub fn oscillate(op: &Oscillators, x: &[f64], p: &[f64], y: &mut [f64]) {
+    let mut s = Vector4::new(x[0], x[1], x[2], x[3]);
+    for &u in &p[..op.steps] {
+        s = rk4(op, &s, u);
+    }
+    y[..4].copy_from_slice(s.as_slice());
+}
+
+crate::differentiable!(Oscillators => oscillate);
