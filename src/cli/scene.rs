@@ -79,12 +79,18 @@ fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64]) -> Result<Vec<S
     let io = |path: PathBuf| move |source| CliError::Io { path, source };
     let mut names = Vec::new();
     match &scene.domain {
-        Domain::Line(_) => {
+        Domain::Line(line) => {
+            use crate::plot::{Axes, Series, line_plot};
             for &field in &scene.fields {
                 let name = format!("{}{tag}.png", field.name());
                 let path = out.join(&name);
-                super::demo::write_plot_png(&path, &x[scene.domain.range(field)]).map_err(io(path.clone()))?;
-                names.push(name);
+                let points = x[scene.domain.range(field)].iter().enumerate().map(|(i, v)| (i as f64 * line.dx, *v)).collect();
+                let axes = Axes { title: field.name(), x: "x", y: field.name(), log_x: false, log_y: false };
+                // No font for the labels is a warning: the .npy holds the values.
+                match line_plot(&path, &axes, &[Series { name: field.name().to_string(), points, color: 0 }]) {
+                    Ok(()) => names.push(name),
+                    Err(e) => eprintln!("warning: {e}"),
+                }
             }
         }
         Domain::Box(cfg) => {
