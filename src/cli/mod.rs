@@ -104,6 +104,19 @@ enum DemoCommand {
     Plume(demo::PlumeArgs),
 }
 
+/// Writes a line plot; a plot that cannot be drawn (no font) is a warning,
+/// not an error (the CSV or .npy beside it holds the numbers). Returns
+/// whether it was written.
+fn plot_or_warn(path: &std::path::Path, axes: &crate::plot::Axes<'_>, series: &[crate::plot::Series]) -> bool {
+    match crate::plot::line_plot(path, axes, series) {
+        Ok(()) => true,
+        Err(e) => {
+            eprintln!("warning: {e}");
+            false
+        }
+    }
+}
+
 /// Runs the command line.
 pub fn run(cli: Cli) -> Result<(), CliError> {
     match cli.command {

@@ -80,16 +80,14 @@ fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64]) -> Result<Vec<S
     let mut names = Vec::new();
     match &scene.domain {
         Domain::Line(line) => {
-            use crate::plot::{Axes, Series, line_plot};
+            use crate::plot::{Axes, Series};
             for &field in &scene.fields {
                 let name = format!("{}{tag}.png", field.name());
                 let path = out.join(&name);
                 let points = x[scene.domain.range(field)].iter().enumerate().map(|(i, v)| (i as f64 * line.dx, *v)).collect();
                 let axes = Axes { title: field.name(), x: "x", y: field.name(), log_x: false, log_y: false };
-                // No font for the labels is a warning: the .npy holds the values.
-                match line_plot(&path, &axes, &[Series { name: field.name().to_string(), points, color: 0 }]) {
-                    Ok(()) => names.push(name),
-                    Err(e) => eprintln!("warning: {e}"),
+                if super::plot_or_warn(&path, &axes, &[Series { name: field.name().to_string(), points, color: 0 }]) {
+                    names.push(name);
                 }
             }
         }

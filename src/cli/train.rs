@@ -4,11 +4,11 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use super::CliError;
+use super::{CliError, plot_or_warn};
 use crate::nn::ParamStore;
-use crate::plot::{Axes, Series, line_plot};
+use crate::plot::{Axes, Series};
 use crate::train::Optimizer;
-use crate::train::burgers::{LogRow, StudyConfig, TrainData, evaluate, initial_params, study, train};
+use crate::train::burgers::{LogRow, StudyConfig, TrainData, evaluate, initial_params, mean, study, train};
 use crate::train::config::TrainConfig;
 
 /// Arguments of `diffsim train`.
@@ -83,14 +83,6 @@ fn bar(len: usize, quiet: bool, prefix: &str) -> indicatif::ProgressBar {
     }
     b.set_prefix(prefix.to_string());
     b
-}
-
-/// A plot that cannot be drawn (no font) is reported, not fatal: the CSV
-/// holds the numbers.
-fn plot_or_warn(path: &Path, axes: &Axes<'_>, series: &[Series]) {
-    if let Err(e) = line_plot(path, axes, series) {
-        eprintln!("warning: {e}");
-    }
 }
 
 /// The training checkpoint: parameters (named) and optimizer state, with
@@ -174,7 +166,6 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
         evaluate(&cfg.setup, &cfg.net, None, &test_set, cfg.data.test_steps).map_err(|e| CliError::Argument { arg: "config", reason: e.to_string() })?;
     let corrected = evaluate(&cfg.setup, &cfg.net, Some(&store.values), &test_set, cfg.data.test_steps)
         .map_err(|e| CliError::Argument { arg: "config", reason: e.to_string() })?;
-    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     println!(
         "{} iterations ({} in total) in {:.1} s ({:.1} ms/iteration); last loss {:.3e}",
         settings.iterations,

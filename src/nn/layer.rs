@@ -359,7 +359,7 @@ impl Layer {
 }
 
 /// A standard normal sample (Box–Muller).
-fn normal(rng: &mut impl Rng) -> f64 {
+pub(crate) fn normal(rng: &mut impl Rng) -> f64 {
     let u1: f64 = 1.0 - rng.random::<f64>();
     let u2: f64 = rng.random();
     (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
@@ -446,10 +446,11 @@ impl Net {
         }
     }
 
-    /// Every layer's output, first to last.
-    fn outputs(&self, x: &[f64], p: &[f64]) -> Vec<Vec<f64>> {
-        let mut outs: Vec<Vec<f64>> = Vec::with_capacity(self.layers.len());
-        for (k, l) in self.layers.iter().enumerate() {
+    /// The inputs of layers `1..L` (the outputs of all but the last layer).
+    fn hidden(&self, x: &[f64], p: &[f64]) -> Vec<Vec<f64>> {
+        let last = self.layers.len() - 1;
+        let mut outs: Vec<Vec<f64>> = Vec::with_capacity(last);
+        for (k, l) in self.layers[..last].iter().enumerate() {
             let mut y = vec![0.0; l.n_out()];
             l.forward(outs.last().map_or(x, |v| v), &p[self.range(k)], &mut y);
             outs.push(y);
@@ -458,27 +459,13 @@ impl Net {
     }
 
     fn forward_into(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        let hidden = self.hidden(x, p);
         let last = self.layers.len() - 1;
-        if last == 0 {
-            return self.layers[0].forward(x, &p[self.range(0)], y);
-        }
-        let outs = self.outputs_until(x, p, last);
-        self.layers[last].forward(&outs, &p[self.range(last)], y);
-    }
-
-    /// The input of layer `k` (the output of layer `k − 1`).
-    fn outputs_until(&self, x: &[f64], p: &[f64], k: usize) -> Vec<f64> {
-        let mut cur = x.to_vec();
-        for j in 0..k {
-            let mut y = vec![0.0; self.layers[j].n_out()];
-            self.layers[j].forward(&cur, &p[self.range(j)], &mut y);
-            cur = y;
-        }
-        cur
+        self.layers[last].forward(hidden.last().map_or(x, |v| v), &p[self.range(last)], y);
     }
 
     fn backprop(&self, x: &[f64], p: &[f64], gy: &[f64], gx: &mut [f64], gp: &mut [f64]) {
-        let outs = self.outputs(x, p);
+        let outs = self.hidden(x, p);
         let mut g = gy.to_vec();
         for k in (0..self.layers.len()).rev() {
             let input: &[f64] = if k == 0 { x } else { &outs[k - 1] };

@@ -112,6 +112,13 @@ impl Forward for AddParams {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "AddParams", x, p, y);
         super::count::record("AddParams", super::count::Method::Forward);
+        self.apply(x, p, y);
+    }
+}
+
+impl AddParams {
+    /// `y = x`, `y[range] += scale·p`.
+    fn apply(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         y.copy_from_slice(x);
         for (y, p) in y[self.range.clone()].iter_mut().zip(p) {
             *y += self.scale * p;
@@ -137,7 +144,7 @@ impl Jvp for AddParams {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         validate_jvp(self, "AddParams", x, p, tx, tp, y, ty);
         super::count::record("AddParams", super::count::Method::Jvp);
-        self.forward(x, p, y);
+        self.apply(x, p, y);
         ty.copy_from_slice(tx);
         for (t, v) in ty[self.range.clone()].iter_mut().zip(tp) {
             *t += self.scale * v;

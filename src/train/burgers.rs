@@ -244,7 +244,7 @@ pub fn train(
                 let mut x0 = traj[t0].clone();
                 if let Method::Noise(sigma) = s.method {
                     for v in &mut x0 {
-                        *v += sigma * normal(&mut rng);
+                        *v += sigma * crate::nn::normal(&mut rng);
                     }
                 }
                 Sample { x0, targets: traj[t0 + 1..=t0 + k].to_vec() }
@@ -306,13 +306,6 @@ pub struct EvalError {
     pub trajectory: usize,
     /// The step.
     pub step: usize,
-}
-
-/// A standard normal sample (Box–Muller).
-pub fn normal(rng: &mut impl Rng) -> f64 {
-    let u1: f64 = 1.0 - rng.random::<f64>();
-    let u2: f64 = rng.random();
-    (-2.0 * u1.ln()).sqrt() * (TAU * u2).cos()
 }
 
 /// Where the training batches come from.
@@ -440,7 +433,8 @@ pub fn initial_params(net: &Net, seed: u64) -> Vec<f64> {
     theta
 }
 
-fn mean(v: &[f64]) -> f64 {
+/// The mean of `v`.
+pub fn mean(v: &[f64]) -> f64 {
     v.iter().sum::<f64>() / v.len().max(1) as f64
 }
 
