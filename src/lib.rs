@@ -56,7 +56,11 @@
 //! solver step and a network (correction, scaling, or solver parameters),
 //! the rollout chains both VJPs, [`train::batch_gradient`] averages a
 //! mini-batch in parallel and [`train::Optimizer`] (Adam, SGD) updates the
-//! weights. [`train::burgers`] is the solver-in-the-loop study.
+//! weights. [`train::burgers`] is the solver-in-the-loop study. Beyond
+//! plain gradients: half-inverse gradients ([`train::hig`]) and
+//! scale-invariant physics updates ([`train::pg`]), which use an
+//! operator's [`op::LocalInverse`] (exact, regularised, or a Gauss-Newton
+//! step with [`op::GaussNewton`]) to give the network its target.
 //!
 //! Build everything that calls generated gradients in release with fat LTO
 //! and `-Zautodiff=Enable` on this crate only; see the README.

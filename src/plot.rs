@@ -130,8 +130,13 @@ fn draw_on<DB: DrawingBackend>(root: DrawingArea<DB, plotters::coord::Shift>, ax
     let e = |err: &dyn std::fmt::Display| err.to_string();
     root.fill(&WHITE).map_err(|x| e(&x))?;
     let pts = || series.iter().flat_map(|s| s.points.iter().copied()).filter(|&p| keep(axes, p));
-    let xr = range(pts().map(|p| p.0), axes.log_x);
-    let yr = range(pts().map(|p| p.1), axes.log_y);
+    // plotters labels only whole decades on a log axis: one that spans
+    // less than a decade is drawn linear so that it keeps its labels.
+    let decade = |r: std::ops::Range<f64>| r.end >= 10.0 * r.start;
+    let log_x = axes.log_x && decade(range(pts().map(|p| p.0), true));
+    let log_y = axes.log_y && decade(range(pts().map(|p| p.1), true));
+    let xr = range(pts().map(|p| p.0), log_x);
+    let yr = range(pts().map(|p| p.1), log_y);
     let mut builder = ChartBuilder::on(&root);
     builder.caption(axes.title, ("sans-serif", 22)).margin(12).x_label_area_size(45).y_label_area_size(75);
     // Four axis kinds; the drawing is the same for each.
@@ -159,7 +164,7 @@ fn draw_on<DB: DrawingBackend>(root: DrawingArea<DB, plotters::coord::Shift>, ax
             chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).label_font(("sans-serif", 14)).draw().map_err(|x| e(&x))?;
         }};
     }
-    match (axes.log_x, axes.log_y) {
+    match (log_x, log_y) {
         (false, false) => finish!(builder.build_cartesian_2d(xr, yr)),
         (false, true) => finish!(builder.build_cartesian_2d(xr, yr.log_scale())),
         (true, false) => finish!(builder.build_cartesian_2d(xr.log_scale(), yr)),

@@ -182,6 +182,21 @@ fn train_and_experiment_commands() {
 }
 
 #[test]
+fn sip_heat_experiment_runs_and_reports_json() {
+    let out = std::env::temp_dir().join(format!("diffsim-sip-{}", std::process::id()));
+    let o = out.to_str().unwrap();
+    let (code, stdout, err) = diffsim(&["experiment", "sip-heat", "--iterations", "1", "--json", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    for key in ["sip", "adam", "gd", "budget_s"] {
+        assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
+    }
+    assert!(out.join("error.png").exists() && out.join("table.md").exists() && out.join("error.csv").exists());
+    fails_with(&["experiment", "sip-heat", "--iterations", "0", "--out", o], "invalid argument --iterations");
+    std::fs::remove_dir_all(&out).ok();
+}
+
+#[test]
 fn hig_oscillators_experiment_runs_and_reports_json() {
     let out = std::env::temp_dir().join(format!("diffsim-hig-{}", std::process::id()));
     let o = out.to_str().unwrap();

@@ -10,6 +10,7 @@ mod fluids;
 mod nn;
 mod p1;
 mod p2;
+mod pg;
 mod rollout;
 mod scenes;
 mod user_op;

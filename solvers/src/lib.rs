@@ -22,3 +22,4 @@ pub mod multigrid;
 pub mod nn;
 pub mod simd;
 pub mod smoke;
+pub mod spectral;

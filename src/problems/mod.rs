@@ -2,5 +2,6 @@
 //! step with its Enzyme-generated and hand-written derivatives side by side.
 
 pub mod burgers;
+pub mod heat;
 pub mod oscillators;
 pub mod smoke;

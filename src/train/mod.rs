@@ -8,9 +8,11 @@
 
 pub mod burgers;
 pub mod config;
+pub mod heat;
 pub mod hig;
 pub mod optim;
 pub mod oscillators;
+pub mod pg;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
