@@ -83,8 +83,8 @@ pub fn spectral_multiply(nx: usize, ny: usize, multiplier: &[f64], x: &[f64], y:
     }
 }
 
-/// The transpose of a row-major `rows × cols` matrix whose rows have
-/// length `row_len = cols`: `a[r·cols + c]` → `out[c·rows + r]`.
+/// The transpose of the row-major `rows × cols` matrix `a`:
+/// `a[r·cols + c]` → `out[c·rows + r]`.
 fn transpose(cols: usize, rows: usize, a: &[Complex<f64>]) -> Vec<Complex<f64>> {
     let mut out = vec![Complex::new(0.0, 0.0); a.len()];
     for r in 0..rows {
