@@ -62,11 +62,19 @@
 //! operator's [`op::LocalInverse`] (exact, regularised, or a Gauss-Newton
 //! step with [`op::GaussNewton`]) to give the network its target.
 //!
+//! **6. Know what accuracy costs** ([`accuracy`]): the schemes against exact
+//! solutions (Cole–Hopf Burgers, Taylor–Green, heat modes, translation),
+//! observed orders of convergence, error versus time and memory with the
+//! Pareto front (`diffsim pareto`), and the hard cases that must stay
+//! stable (`diffsim stability`). Rollouts check states and adjoints once
+//! per step and report the pass and the step of a NaN.
+//!
 //! Build everything that calls generated gradients in release with fat LTO
 //! and `-Zautodiff=Enable` on this crate only; see the README.
 #![feature(autodiff)]
 #![deny(missing_docs)]
 
+pub mod accuracy;
 pub mod check;
 pub mod cli;
 pub mod fluids;

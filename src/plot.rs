@@ -18,6 +18,8 @@ pub struct Series {
     /// Colour index in the palette (so that one variant keeps its colour
     /// across plots).
     pub color: usize,
+    /// Draw the points as dots without joining them (a scatter plot).
+    pub markers: bool,
 }
 
 /// Labels and scales of a plot.
@@ -155,11 +157,19 @@ fn draw_on<DB: DrawingBackend>(root: DrawingArea<DB, plotters::coord::Shift>, ax
             for s in series {
                 let color = Palette99::pick(s.color).to_rgba();
                 let line = s.points.iter().copied().filter(|&p| keep(axes, p));
-                chart
-                    .draw_series(LineSeries::new(line, color.stroke_width(2)))
-                    .map_err(|x| e(&x))?
-                    .label(s.name.as_str())
-                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+                if s.markers {
+                    chart
+                        .draw_series(line.map(|p| Circle::new(p, 4, color.filled())))
+                        .map_err(|x| e(&x))?
+                        .label(s.name.as_str())
+                        .legend(move |(x, y)| Circle::new((x + 10, y), 4, color.filled()));
+                } else {
+                    chart
+                        .draw_series(LineSeries::new(line, color.stroke_width(2)))
+                        .map_err(|x| e(&x))?
+                        .label(s.name.as_str())
+                        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+                }
             }
             chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).label_font(("sans-serif", 14)).draw().map_err(|x| e(&x))?;
         }};

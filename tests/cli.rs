@@ -210,3 +210,43 @@ fn hig_oscillators_experiment_runs_and_reports_json() {
     fails_with(&["experiment", "hig-oscillators", "--budget", "0", "--out", o], "invalid argument --budget");
     std::fs::remove_dir_all(&out).ok();
 }
+
+#[test]
+fn pareto_and_stability_commands_report_json() {
+    let out = std::env::temp_dir().join(format!("diffsim-pareto-{}", std::process::id()));
+    let o = out.to_str().unwrap();
+    // Forward sweep: every configuration with its settings and figures,
+    // the front non-empty, all four files written.
+    let (code, stdout, err) = diffsim(&["pareto", "burgers", "--quick", "--budget", "0", "--json", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    let rows: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    let rows = rows.as_array().unwrap();
+    assert!(rows.len() >= 20, "{} configurations", rows.len());
+    for r in rows {
+        assert!(r["error"].as_f64().is_some_and(|e| e > 0.0 && e < 0.5), "{r}");
+        assert!(r["time_s"].as_f64().is_some_and(|t| t > 0.0) && r["peak_rss_bytes"].as_u64().is_some() && r["pareto"].is_boolean(), "{r}");
+        assert!(r["n"].is_u64() && r["advection"].is_string() && r["cfl"].is_f64(), "{r}");
+    }
+    assert!(rows.iter().any(|r| r["pareto"] == true));
+    for f in ["results.csv", "table.md", "error_time.png", "error_time.svg"] {
+        assert!(out.join("burgers").join(f).exists(), "{f}");
+    }
+    // Gradient sweep: the adjoints agree to round-off, the best finite
+    // difference to its truncation/round-off balance.
+    let (code, stdout, err) = diffsim(&["pareto", "taylor-green", "--gradients", "--quick", "--budget", "0", "--json", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    let rows: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    let rows = rows.as_array().unwrap();
+    let adjoint = rows.iter().filter(|r| r["method"] != "finite differences");
+    assert!(adjoint.clone().count() == 6 && adjoint.clone().all(|r| r["error"].as_f64().unwrap() < 1e-8), "{rows:?}");
+    let best_fd = rows.iter().filter(|r| r["method"] == "finite differences").map(|r| r["error"].as_f64().unwrap()).fold(f64::INFINITY, f64::min);
+    assert!(best_fd < 1e-4, "best finite difference error {best_fd}");
+    fails_with(&["pareto", "heat"], "invalid value 'heat'");
+    // Stability report.
+    let (code, stdout, err) = diffsim(&["stability", "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let cases: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    let cases = cases.as_array().unwrap();
+    assert!(cases.len() >= 9 && cases.iter().all(|c| c["case"].is_string() && c["passed"] == true), "{cases:?}");
+    std::fs::remove_dir_all(&out).ok();
+}

@@ -2,6 +2,7 @@
 //! fat-LTO link, so there is exactly one). Each module covers one layer.
 #![feature(autodiff)]
 
+mod accuracy;
 mod boundaries;
 mod checks;
 mod cli;

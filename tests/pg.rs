@@ -4,7 +4,7 @@
 //! and physics-loss gradients against finite differences.
 
 use diffsim::nn::{Activation, Init, Padding, presets};
-use diffsim::op::{Forward, GaussNewton, LocalInverse, OperatorExt};
+use diffsim::op::{GaussNewton, LocalInverse, OperatorExt};
 use diffsim::problems::heat::Heat;
 use diffsim::problems::oscillators::Oscillators;
 use diffsim::train::heat::samples;

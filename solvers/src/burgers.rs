@@ -229,3 +229,65 @@ pub const P1_SIZES: [P1Reference; 3] = [
     P1Reference { name: 'M', n: 2048, steps: 2048, loss: 0.5078725528708, grad_l2: 0.05414400159445, grad_0: 1.237753013381e-3, grad_n2: -3.574446469229e-4 },
     P1Reference { name: 'L', n: 16384, steps: 1000, loss: 0.6520170921227, grad_l2: 0.02234454159575, grad_0: 1.759639889846e-4, grad_n2: -6.266553176260e-5 },
 ];
+
+/// Advection schemes of the operator-split Burgers step ([`advect_line`]),
+/// for accuracy studies beside P1's fused scheme.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Advection1d {
+    /// First-order upwind differences (P1's advection).
+    Upwind,
+    /// One backward trace along `u`, linear interpolation (first order).
+    SemiLagrangian,
+    /// A backward trace, a forward trace from its result, half the
+    /// difference as a correction (second order on smooth solutions).
+    MacCormack,
+}
+
+/// Linear interpolation of the periodic samples `f` at position `r` (in
+/// cells).
+#[inline(always)]
+fn interp_periodic(f: &[f64], r: f64) -> f64 {
+    let n = f.len();
+    let nf = n as f64;
+    let r = r - nf * (r / nf).floor();
+    let k0 = (r as usize).min(n - 1);
+    let k1 = if k0 + 1 == n { 0 } else { k0 + 1 };
+    let w = r - k0 as f64;
+    f[k0] + w * (f[k1] - f[k0])
+}
+
+/// Self-advection `u_t + u·u_x = 0` of a periodic line over one step, with
+/// `c = dt/dx`: writes `out` (overwrites). `scratch` holds `u.len()` values
+/// (MacCormack only; may be empty otherwise).
+///
+/// # Panics
+/// If `u.len() < 3`, `out` has another length, or MacCormack's scratch is
+/// short.
+pub fn advect_line(scheme: Advection1d, c: f64, u: &[f64], out: &mut [f64], scratch: &mut [f64]) {
+    let n = u.len();
+    assert!(n >= 3 && out.len() == n, "advect_line: need n ≥ 3 and matching lengths");
+    match scheme {
+        Advection1d::Upwind => {
+            for i in 0..n {
+                let (l, r) = (u[(i + n - 1) % n], u[(i + 1) % n]);
+                out[i] = cell(l, u[i], r, 0.0, c);
+            }
+        }
+        Advection1d::SemiLagrangian => {
+            for i in 0..n {
+                out[i] = interp_periodic(u, i as f64 - c * u[i]);
+            }
+        }
+        Advection1d::MacCormack => {
+            assert!(scratch.len() >= n, "advect_line: MacCormack needs n scratch values");
+            let hat = &mut scratch[..n];
+            for i in 0..n {
+                hat[i] = interp_periodic(u, i as f64 - c * u[i]);
+            }
+            for i in 0..n {
+                let tilde = interp_periodic(hat, i as f64 + c * u[i]);
+                out[i] = hat[i] + 0.5 * (u[i] - tilde);
+            }
+        }
+    }
+}

@@ -17,6 +17,7 @@
 pub mod boundary;
 pub mod burgers;
 pub mod diffusion;
+pub mod exact;
 pub mod linalg;
 pub mod multigrid;
 pub mod nn;

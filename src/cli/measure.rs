@@ -26,3 +26,10 @@ pub fn peak_rss_bytes() -> u64 {
         .and_then(|s| s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| l.split_whitespace().nth(1)).and_then(|kb| kb.parse::<u64>().ok()))
         .map_or(0, |kb| kb * 1024)
 }
+
+/// Resets the peak resident set size to the current one (Linux: writes `5`
+/// to `/proc/self/clear_refs`), so that [`peak_rss_bytes`] afterwards
+/// measures what runs in between. Returns whether the reset worked.
+pub fn reset_peak_rss() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}

@@ -3,13 +3,14 @@
 mod bench;
 mod demo;
 mod measure;
+mod pareto;
 mod scene;
 mod train;
 
 use clap::{Parser, Subcommand};
 use thiserror::Error;
 
-pub use measure::{median_time, peak_rss_bytes};
+pub use measure::{median_time, peak_rss_bytes, reset_peak_rss};
 
 /// Errors reported by the command line: printed as one message, exit code 1.
 #[derive(Debug, Error)]
@@ -39,6 +40,12 @@ pub enum CliError {
     /// A scene run failed.
     #[error(transparent)]
     Run(#[from] crate::scene::RunError),
+    /// A run against an exact solution failed.
+    #[error(transparent)]
+    Accuracy(#[from] crate::accuracy::AccuracyError),
+    /// A stability case did not pass (the report is printed above).
+    #[error("{0} stability case(s) did not pass (see the report above)")]
+    StabilityFailed(usize),
     /// A gradient check did not pass (the report is printed above).
     #[error("a gradient check did not pass (see the report above)")]
     ChecksFailed,
@@ -86,6 +93,15 @@ enum Command {
     /// Experiments that reproduce published studies.
     #[command(subcommand)]
     Experiment(train::ExperimentCommand),
+    /// Error against exact solutions versus wall time and memory over a
+    /// sweep of resolutions, time steps, schemes and tolerances (or, with
+    /// --gradients, of gradient methods); marks the Pareto front and writes
+    /// a CSV, a markdown table and plots (PNG, SVG).
+    Pareto(pareto::ParetoArgs),
+    /// The hard cases (stiff diffusion, shocks, long rollouts,
+    /// ill-conditioned solves, near-singular Jacobians, NaN detection): a
+    /// report, and a non-zero exit if any case is not stable.
+    Stability(pareto::StabilityArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -127,6 +143,8 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         Command::Grad(a) => scene::grad(a),
         Command::Train(a) => train::train_cmd(a),
         Command::Experiment(e) => train::experiment(e),
+        Command::Pareto(a) => pareto::run(a),
+        Command::Stability(a) => pareto::stability(a),
     }
 }
 

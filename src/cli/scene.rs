@@ -86,7 +86,7 @@ fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64]) -> Result<Vec<S
                 let path = out.join(&name);
                 let points = x[scene.domain.range(field)].iter().enumerate().map(|(i, v)| (i as f64 * line.dx, *v)).collect();
                 let axes = Axes { title: field.name(), x: "x", y: field.name(), log_x: false, log_y: false };
-                if super::plot_or_warn(&path, &axes, &[Series { name: field.name().to_string(), points, color: 0 }]) {
+                if super::plot_or_warn(&path, &axes, &[Series { name: field.name().to_string(), points, color: 0, markers: false }]) {
                     names.push(name);
                 }
             }

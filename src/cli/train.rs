@@ -175,7 +175,7 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
     plot_or_warn(
         &a.out.join("loss.png"),
         &Axes { title: "training loss", x: "iteration", y: "loss", log_x: false, log_y: true },
-        &[Series { name: settings.method.name(), points, color: 0 }],
+        &[Series { name: settings.method.name(), points, color: 0, markers: false }],
     );
     let done = done + settings.iterations;
     let ckpt = Checkpoint { iterations_done: done, params: store.clone(), optimizer: opt };
@@ -246,7 +246,7 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
         for (t, e) in &c.points {
             csv.push_str(&format!("{},{t:.4},{e:.6e}\n", c.name));
         }
-        series.push(Series { name: c.name.clone(), points: c.points.clone(), color: k });
+        series.push(Series { name: c.name.clone(), points: c.points.clone(), color: k, markers: false });
     }
     let md = a.out.join("table.md");
     std::fs::write(&md, &table).map_err(io(&md))?;
@@ -291,7 +291,7 @@ fn hig_oscillators(a: HigArgs) -> Result<(), CliError> {
             for (t, l) in &c.points {
                 csv.push_str(&format!("{label},{},{t:.4},{l:.6e}\n", c.name));
             }
-            series.push(Series { name: format!("{} ({label})", c.name), points: c.points.clone(), color: 2 * problem + k });
+            series.push(Series { name: format!("{} ({label})", c.name), points: c.points.clone(), color: 2 * problem + k, markers: false });
         }
     }
     let md = a.out.join("table.md");
@@ -378,7 +378,12 @@ fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
     let err_series: Vec<Series> = results
         .iter()
         .enumerate()
-        .map(|(k, r)| Series { name: r.name.clone(), points: r.error.iter().enumerate().map(|(t, e)| ((t + 1) as f64, *e)).collect(), color: k })
+        .map(|(k, r)| Series {
+            name: r.name.clone(),
+            points: r.error.iter().enumerate().map(|(t, e)| ((t + 1) as f64, *e)).collect(),
+            color: k,
+            markers: false,
+        })
         .collect();
     plot_or_warn(
         &a.out.join("error.png"),
@@ -386,8 +391,12 @@ fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
         &err_series,
     );
     // Loss curves as moving averages over 50 iterations (a batch of 16 is noisy).
-    let loss_series: Vec<Series> =
-        results.iter().enumerate().skip(1).map(|(k, r)| Series { name: r.name.clone(), points: moving_average(&r.loss, 50), color: k }).collect();
+    let loss_series: Vec<Series> = results
+        .iter()
+        .enumerate()
+        .skip(1)
+        .map(|(k, r)| Series { name: r.name.clone(), points: moving_average(&r.loss, 50), color: k, markers: false })
+        .collect();
     plot_or_warn(
         &a.out.join("loss.png"),
         &Axes { title: "training loss (moving average of 50)", x: "iteration", y: "loss", log_x: false, log_y: true },

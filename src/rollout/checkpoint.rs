@@ -107,6 +107,8 @@ struct Backward<'r, 'a, O, L> {
     free: Vec<Vec<f64>>,
     live: usize,
     stats: RolloutStats,
+    /// The first step (in backward order) whose adjoint was not finite.
+    non_finite: Option<usize>,
 }
 
 impl<'r, 'a, O: Vjp, L: Loss> Backward<'r, 'a, O, L> {
@@ -152,10 +154,18 @@ impl<'r, 'a, O: Vjp, L: Loss> Backward<'r, 'a, O, L> {
         } else {
             &mut self.dp[..]
         };
+        if t + 1 == r.steps && self.non_finite.is_none() && !super::all_finite(&self.lam) {
+            // The seed itself: the loss gradient at x_T.
+            self.non_finite = Some(r.steps);
+        }
         r.op.vjp_overwrite(x, r.p_at(t), &mut self.lam, &mut self.lam_next, dp);
         std::mem::swap(&mut self.lam, &mut self.lam_next);
         if t > 0 {
             self.loss_term(t, x, true);
+        }
+        // Once per step: where a NaN or infinity enters the adjoint.
+        if self.non_finite.is_none() && !super::all_finite(&self.lam) {
+            self.non_finite = Some(t);
         }
     }
 
@@ -246,6 +256,7 @@ pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, ws: &mut Workspace, x0: &[f64], lo
         free,
         live: 0,
         stats: RolloutStats { steps, ..Default::default() },
+        non_finite: None,
     };
     // With no steps the loss is on x_0 itself.
     let value = if steps == 0 {
@@ -277,6 +288,9 @@ pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, ws: &mut Workspace, x0: &[f64], lo
     };
     bw.stats.peak_state_bytes = bw.stats.peak_states * n * std::mem::size_of::<f64>();
     ws.free = std::mem::take(&mut bw.free);
+    if let Some(step) = bw.non_finite {
+        return Err(RolloutError::NonFinite { pass: super::Pass::Backward, step });
+    }
     Ok(Gradient { loss: value, dx0: bw.lam, dp: bw.dp, stats: bw.stats })
 }
 

@@ -64,7 +64,9 @@ pub enum RolloutError {
     NonFinite {
         /// Which pass.
         pass: Pass,
-        /// The step whose output held it.
+        /// Forward: the step whose output held it (0-based). Backward: the
+        /// step `t` whose adjoint `∂L/∂x_t` held it first (checked once per
+        /// step, from the last); `t = T` means the loss gradient itself.
         step: usize,
     },
 }
@@ -306,7 +308,21 @@ impl<O: Vjp> Rollout<'_, O> {
     pub fn value_and_grad_in(&self, ws: &mut Workspace, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
         self.check_state(x0)?;
         self.op.take_error();
-        let g = checkpoint::run(self, ws, x0, loss, mode)?;
+        let g = match checkpoint::run(self, ws, x0, loss, mode) {
+            Err(RolloutError::NonFinite { pass: Pass::Backward, step }) => {
+                // A failed solve or a NaN in the forward pass is the cause.
+                if let Some(error) = self.op.take_error() {
+                    return Err(RolloutError::Operator { pass: Pass::Backward, error });
+                }
+                let forward = self.first_non_finite_step(x0);
+                return Err(if forward < self.steps {
+                    RolloutError::NonFinite { pass: Pass::Forward, step: forward }
+                } else {
+                    RolloutError::NonFinite { pass: Pass::Backward, step }
+                });
+            }
+            g => g?,
+        };
         if let Some(error) = self.op.take_error() {
             return Err(RolloutError::Operator { pass: Pass::Backward, error });
         }
@@ -320,9 +336,19 @@ impl<O: Vjp> Rollout<'_, O> {
     }
 }
 
-fn all_finite(v: &[f64]) -> bool {
-    // A sum is NaN or infinite if any term is; one pass, vectorisable.
-    v.iter().fold(0.0, |s, &a| s + a * 0.0).is_finite()
+/// Whether every value is finite: `a·0` is 0 for a finite `a` and NaN
+/// otherwise, summed in eight independent lanes so that the pass
+/// vectorises (cheap enough to run once per step).
+pub fn all_finite(v: &[f64]) -> bool {
+    let mut acc = [0.0f64; 8];
+    let mut chunks = v.chunks_exact(8);
+    for c in &mut chunks {
+        for k in 0..8 {
+            acc[k] += c[k] * 0.0;
+        }
+    }
+    let rest = chunks.remainder().iter().fold(0.0, |s, &a| s + a * 0.0);
+    (acc.iter().sum::<f64>() + rest).is_finite()
 }
 
 /// A whole rollout `x_0 ↦ x_T` as an operator, so that the gradient checks

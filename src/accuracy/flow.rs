@@ -1,0 +1,298 @@
+//! The 2D schemes of [`crate::fluids`] on the periodic box `[0, 2π)²`
+//! against exact solutions: the Taylor–Green vortex (advection of the
+//! velocity, viscosity, pressure projection), translation of a smooth
+//! profile by a constant velocity (advection of a scalar) and a Fourier
+//! mode of the heat equation (diffusion).
+//!
+//! The solver works on unit cells; a run converts: cell width
+//! `h = 2π/n`, velocities in cells per unit time (`u/h`), diffusion number
+//! `κ = ν·dt/h²`.
+
+use std::f64::consts::PI;
+
+use diffsim_solvers::boundary::{Boundary, Side};
+use diffsim_solvers::exact::{HeatMode, TaylorGreen, Translation};
+use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d};
+
+use super::{AccuracyError, Diffusion, all_finite, positive, relative_l2, steps_to};
+use crate::fluids::{Advect, AdvectUpwind, Diffuse, DiffuseExplicit, DiffuseImplicit, Project};
+use crate::op::{Forward, OpError};
+
+/// Side of the periodic box.
+pub const LENGTH: f64 = 2.0 * PI;
+
+/// The periodic `n × n` box without buoyancy.
+pub fn periodic_box(n: usize) -> Smoke2d {
+    Smoke2d { n, buoyancy: 0.0, boundary: Boundary::all(Side::Periodic) }
+}
+
+/// Name of an advection scheme in reports.
+pub fn scheme_name(scheme: Scheme) -> &'static str {
+    match scheme {
+        Scheme::SemiLagrangian => "semi-lagrangian",
+        Scheme::MacCormack { limiter: false } => "maccormack",
+        Scheme::MacCormack { limiter: true } => "maccormack-limited",
+    }
+}
+
+/// Diffusion of the chosen fields of a box, explicit or implicit.
+enum Diffuser {
+    Explicit(Diffuse<DiffuseExplicit>),
+    Implicit(Diffuse<DiffuseImplicit>),
+}
+
+impl Diffuser {
+    fn new(cfg: Smoke2d, smoke: bool, velocity: bool, diffusion: Diffusion, max_iterations: usize) -> Self {
+        match diffusion {
+            Diffusion::Explicit => Diffuser::Explicit(Diffuse::explicit(cfg, smoke, velocity)),
+            Diffusion::Implicit { tolerance } => Diffuser::Implicit(Diffuse::implicit(cfg, smoke, velocity, tolerance, max_iterations)),
+        }
+    }
+
+    fn forward(&self, x: &[f64], kappa: f64, y: &mut [f64]) -> Option<OpError> {
+        match self {
+            Diffuser::Explicit(d) => {
+                d.forward(x, &[kappa], y);
+                d.take_error()
+            }
+            Diffuser::Implicit(d) => {
+                d.forward(x, &[kappa], y);
+                d.take_error()
+            }
+        }
+    }
+}
+
+/// Checks an operator's error and the state after a stage.
+fn after(stage: &'static str, step: usize, error: Option<OpError>, state: &[f64]) -> Result<(), AccuracyError> {
+    if let Some(error) = error {
+        return Err(AccuracyError::Operator { stage, step, error });
+    }
+    if !all_finite(state) {
+        return Err(AccuracyError::NonFinite { stage, step });
+    }
+    Ok(())
+}
+
+/// Relative L2 error of the velocity samples of a packed state against
+/// `(u, v)` (a periodic axis's copy faces left out).
+fn velocity_error(cfg: &Smoke2d, x: &[f64], u: &[f64], v: &[f64]) -> f64 {
+    let n = cfg.n;
+    let (_, xu, xv) = cfg.split(x);
+    let (mut a, mut b) = (Vec::with_capacity(2 * n * n), Vec::with_capacity(2 * n * n));
+    for j in 0..n {
+        for i in 0..n {
+            a.push(xu[j * (n + 1) + i]);
+            b.push(u[j * (n + 1) + i]);
+            a.push(xv[j * n + i]);
+            b.push(v[j * n + i]);
+        }
+    }
+    relative_l2(&a, &b)
+}
+
+/// The Taylor–Green vortex (amplitude 1, period 2π) on an `n × n` MAC grid:
+/// per step the velocity advects itself, diffuses (if `nu > 0`) and is
+/// projected to be divergence-free. Time step `cfl·h`, for explicit
+/// diffusion at most `0.2·h²/ν` (the limit is 0.25).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TaylorGreenRun {
+    /// Cells per side.
+    pub n: usize,
+    /// Viscosity ν (0: the steady inviscid vortex).
+    pub nu: f64,
+    /// Final time.
+    pub t_end: f64,
+    /// Courant number.
+    pub cfl: f64,
+    /// Advection of the velocity.
+    pub scheme: Scheme,
+    /// Viscosity in time.
+    pub diffusion: Diffusion,
+    /// Relative tolerance of the pressure solve.
+    pub pressure_tolerance: f64,
+}
+
+impl TaylorGreenRun {
+    /// The exact solution.
+    pub fn exact_solution(&self) -> TaylorGreen {
+        TaylorGreen { length: LENGTH, amplitude: 1.0, nu: self.nu }
+    }
+
+    /// Number of steps and the time step.
+    pub fn steps(&self) -> (usize, f64) {
+        let h = LENGTH / self.n as f64;
+        let mut dt = self.cfl * h;
+        if self.diffusion == Diffusion::Explicit && self.nu > 0.0 {
+            dt = dt.min(0.2 * h * h / self.nu);
+        }
+        steps_to(self.t_end, dt)
+    }
+
+    /// The packed state `[s, u, v]` at `t_end` (the smoke is zero).
+    pub fn run(&self) -> Result<Vec<f64>, AccuracyError> {
+        if self.n < 4 {
+            return Err(AccuracyError::Invalid { what: "n", reason: format!("need at least 4 cells per side, got {}", self.n) });
+        }
+        if !(self.nu >= 0.0 && self.nu.is_finite()) {
+            return Err(AccuracyError::Invalid { what: "nu", reason: format!("must be ≥ 0 and finite, got {}", self.nu) });
+        }
+        positive("t_end", self.t_end)?;
+        positive("cfl", self.cfl)?;
+        positive("pressure_tolerance", self.pressure_tolerance)?;
+        let n = self.n;
+        let cfg = periodic_box(n);
+        let h = LENGTH / n as f64;
+        let (steps, dt) = self.steps();
+        let kappa = self.nu * dt / (h * h);
+        let (u, v) = self.exact_solution().mac(n, 0.0);
+        let mut x = vec![0.0; cfg.n_s()];
+        x.extend(u);
+        x.extend(v);
+        let mut y = vec![0.0; x.len()];
+        let advect = Advect { cfg, scheme: self.scheme, dt, smoke: false, velocity: true };
+        let diffuse = (self.nu > 0.0).then(|| Diffuser::new(cfg, false, true, self.diffusion, 100 * n));
+        let project = Project::new(cfg, self.pressure_tolerance, 100 * n * n, Preconditioner::None);
+        for step in 0..steps {
+            advect.forward(&x, &[], &mut y);
+            after("advection", step, None, &y)?;
+            match &diffuse {
+                Some(d) => {
+                    let e = d.forward(&y, kappa, &mut x);
+                    after("diffusion", step, e, &x)?;
+                }
+                None => std::mem::swap(&mut x, &mut y),
+            }
+            project.apply(&mut x);
+            after("pressure projection", step, project.take_error(), &x)?;
+        }
+        Ok(x)
+    }
+
+    /// Relative L2 error of the velocity of `x` (a result of
+    /// [`TaylorGreenRun::run`]) against the exact one at `t_end`.
+    pub fn error_of(&self, x: &[f64]) -> f64 {
+        let (u, v) = self.exact_solution().mac(self.n, self.t_end);
+        velocity_error(&periodic_box(self.n), x, &u, &v)
+    }
+
+    /// Runs and returns the relative L2 error of the velocity at `t_end`.
+    pub fn error(&self) -> Result<f64, AccuracyError> {
+        Ok(self.error_of(&self.run()?))
+    }
+}
+
+/// Advection of a scalar.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ScalarScheme {
+    /// Conservative first-order upwind fluxes ([`AdvectUpwind`]).
+    Upwind,
+    /// Semi-Lagrangian or MacCormack ([`Advect`]).
+    Traced(Scheme),
+}
+
+impl ScalarScheme {
+    /// Name in reports.
+    pub fn name(&self) -> &'static str {
+        match self {
+            ScalarScheme::Upwind => "upwind",
+            ScalarScheme::Traced(s) => scheme_name(*s),
+        }
+    }
+}
+
+/// Translation of `exp(sin x)·cos y` by the constant velocity `(1, 0.5)`
+/// on an `n × n` periodic grid, time step `cfl·h/1`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TranslationRun {
+    /// Cells per side.
+    pub n: usize,
+    /// Final time.
+    pub t_end: f64,
+    /// Courant number along x.
+    pub cfl: f64,
+    /// The scheme.
+    pub scheme: ScalarScheme,
+}
+
+impl TranslationRun {
+    /// The exact solution.
+    pub fn exact_solution(&self) -> Translation {
+        Translation { length: LENGTH, velocity: (1.0, 0.5) }
+    }
+
+    /// Relative L2 error of the scalar at `t_end`.
+    pub fn error(&self) -> Result<f64, AccuracyError> {
+        if self.n < 4 {
+            return Err(AccuracyError::Invalid { what: "n", reason: format!("need at least 4 cells per side, got {}", self.n) });
+        }
+        positive("t_end", self.t_end)?;
+        positive("cfl", self.cfl)?;
+        let (n, h) = (self.n, LENGTH / self.n as f64);
+        let cfg = periodic_box(n);
+        let exact = self.exact_solution();
+        let (steps, dt) = steps_to(self.t_end, self.cfl * h);
+        let mut x = exact.cells(n, 0.0);
+        x.extend(std::iter::repeat_n(exact.velocity.0 / h, cfg.n_u()));
+        x.extend(std::iter::repeat_n(exact.velocity.1 / h, cfg.n_u()));
+        let mut y = vec![0.0; x.len()];
+        for step in 0..steps {
+            match self.scheme {
+                ScalarScheme::Upwind => AdvectUpwind { cfg, dt }.forward(&x, &[], &mut y),
+                ScalarScheme::Traced(scheme) => Advect { cfg, scheme, dt, smoke: true, velocity: false }.forward(&x, &[], &mut y),
+            }
+            after("advection", step, None, &y)?;
+            std::mem::swap(&mut x, &mut y);
+        }
+        Ok(relative_l2(&x[..cfg.n_s()], &exact.cells(n, self.t_end)))
+    }
+}
+
+/// The heat mode `sin(x + 0.3)·cos(2y)` diffusing with `nu` on an `n × n`
+/// periodic grid, time step `dt_factor·h²/ν`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HeatRun {
+    /// Cells per side.
+    pub n: usize,
+    /// Diffusivity ν.
+    pub nu: f64,
+    /// Final time.
+    pub t_end: f64,
+    /// The diffusion number `ν·dt/h²` (at most this; explicit: ≤ 0.25).
+    pub dt_factor: f64,
+    /// Explicit or implicit.
+    pub diffusion: Diffusion,
+}
+
+impl HeatRun {
+    /// The exact solution.
+    pub fn exact_solution(&self) -> HeatMode {
+        HeatMode { length: LENGTH, modes: (1.0, 2.0), phase: 0.3, nu: self.nu }
+    }
+
+    /// Relative L2 error at `t_end`. The explicit scheme beyond its limit is
+    /// refused ([`AccuracyError::Operator`] with [`OpError::Unstable`]).
+    pub fn error(&self) -> Result<f64, AccuracyError> {
+        if self.n < 4 {
+            return Err(AccuracyError::Invalid { what: "n", reason: format!("need at least 4 cells per side, got {}", self.n) });
+        }
+        positive("nu", self.nu)?;
+        positive("t_end", self.t_end)?;
+        positive("dt_factor", self.dt_factor)?;
+        let (n, h) = (self.n, LENGTH / self.n as f64);
+        let cfg = periodic_box(n);
+        let (steps, dt) = steps_to(self.t_end, self.dt_factor * h * h / self.nu);
+        let kappa = self.nu * dt / (h * h);
+        let exact = self.exact_solution();
+        let mut x = exact.cells(n, 0.0);
+        x.resize(cfg.n_state(), 0.0);
+        let mut y = vec![0.0; x.len()];
+        let diffuse = Diffuser::new(cfg, true, false, self.diffusion, 100 * n);
+        for step in 0..steps {
+            let e = diffuse.forward(&x, kappa, &mut y);
+            after("diffusion", step, e, &y)?;
+            std::mem::swap(&mut x, &mut y);
+        }
+        Ok(relative_l2(&x[..cfg.n_s()], &exact.cells(n, self.t_end)))
+    }
+}
