@@ -3,6 +3,7 @@
 
 use std::time::Instant;
 
+use diffsim::op::{OpName, Operator};
 use diffsim::problems::burgers::P1;
 use diffsim::rollout::{Argument, Checkpointing, Pass, Rollout, RolloutError};
 
@@ -94,7 +95,15 @@ fn bad_inputs_are_errors() {
     let mut u0 = p.u0.clone();
     u0[3] = f64::NAN;
     let err = r.value_and_grad(&u0, &p.loss(), Checkpointing::Store).unwrap_err();
-    assert_eq!(err, RolloutError::NonFinite { pass: Pass::Forward, step: 0 });
+    assert_eq!(err, RolloutError::NonFinite { pass: Pass::Forward, step: 0, operator: OpName::new("BurgersHand") });
+    assert!(err.to_string().contains("forward pass at step 0 (operator BurgersHand)"), "{err}");
+    // In a solver coupled to a network, the part that produced it is named.
+    let net = diffsim::nn::presets::mlp(&[16, 8, 16], diffsim::nn::Activation::Tanh).unwrap();
+    let mut theta = vec![0.0; net.n_params()];
+    theta[0] = f64::NAN;
+    let coupled = diffsim::train::Coupled::new(&op, &[], &net, diffsim::train::Coupling::Add).unwrap();
+    let err = Rollout::new(&coupled, &theta, 4).unwrap().final_state(&p.u0).unwrap_err();
+    assert_eq!(err, RolloutError::NonFinite { pass: Pass::Forward, step: 0, operator: OpName::new("Net") });
     assert!("binomial:0".parse::<Checkpointing>().is_err());
     assert!("sometimes".parse::<Checkpointing>().is_err());
     assert_eq!("periodic:5".parse::<Checkpointing>(), Ok(Checkpointing::Periodic { every: 5 }));

@@ -355,9 +355,12 @@ pub fn nan_forward_detected() -> Case {
     let hand = BurgersHand(p.cfg);
     let r = Rollout::new(&hand, &[], p.steps).and_then(|r| r.final_state(&p.u0));
     match r {
-        Err(RolloutError::NonFinite { pass: Pass::Forward, step }) => {
-            Case::new("nan-forward", step > 0, figures(vec![("step", json!(step))]), format!("reported: non-finite output of step {step} (BurgersHand)"))
-        }
+        Err(e @ RolloutError::NonFinite { pass: Pass::Forward, step, operator }) => Case::new(
+            "nan-forward",
+            step > 0 && operator.as_str() == "BurgersHand",
+            figures(vec![("step", json!(step)), ("operator", json!(operator.as_str()))]),
+            format!("reported: {e}"),
+        ),
         other => Case::new("nan-forward", false, Map::new(), format!("not reported: {:?}", other.map(|x| x[0]))),
     }
 }
@@ -378,8 +381,8 @@ pub fn nan_backward_detected() -> Case {
     };
     let r = Rollout::new(&hand, &[], p.steps).and_then(|r| r.value_and_grad(&p.u0, &loss, Checkpointing::Store));
     match r {
-        Err(RolloutError::NonFinite { pass: Pass::Backward, step }) => {
-            Case::new("nan-backward", step == 5, figures(vec![("step", json!(step))]), format!("reported: non-finite adjoint at step {step}"))
+        Err(e @ RolloutError::NonFinite { pass: Pass::Backward, step, .. }) => {
+            Case::new("nan-backward", step == 5, figures(vec![("step", json!(step))]), format!("reported: {e}"))
         }
         other => Case::new("nan-backward", false, Map::new(), format!("not reported: {:?}", other.map(|g| g.loss))),
     }

@@ -5,7 +5,7 @@
 use std::cell::RefCell;
 use std::fmt;
 
-use super::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+use super::{Forward, Jvp, OpError, OpName, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
 /// An operator with all three capabilities, as a trait object.
 pub trait Effect: Vjp + Jvp + fmt::Debug {}
@@ -128,6 +128,21 @@ impl Forward for Chain {
     /// The first error any operator recorded (all are taken).
     fn take_error(&self) -> Option<OpError> {
         self.ops.iter().map(|op| op.take_error()).fold(None, |first, e| first.or(e))
+    }
+
+    /// The first operator whose output is not finite (e.g. the effect of a
+    /// scene that blew up).
+    fn locate_non_finite(&self, x: &[f64], p: &[f64]) -> OpName {
+        let mut xs = x.to_vec();
+        for (k, op) in self.ops.iter().enumerate() {
+            let mut y = vec![0.0; op.n_out()];
+            op.forward(&xs, &p[self.param_range(k)], &mut y);
+            if !crate::rollout::all_finite(&y) {
+                return op.locate_non_finite(&xs, &p[self.param_range(k)]);
+            }
+            xs = y;
+        }
+        self.name()
     }
 }
 

@@ -80,6 +80,83 @@ pub trait Forward: Operator {
     fn take_error(&self) -> Option<OpError> {
         None
     }
+
+    /// The operator's name in error messages: its type without module
+    /// paths (`Coupled<BurgersEnzyme, Net>`).
+    fn name(&self) -> OpName {
+        OpName::of::<Self>()
+    }
+
+    /// Which operator made `f(x, p)` non-finite, for an error message; only
+    /// called once a rollout found a NaN or infinity after this step.
+    /// Composites (a [`Chain`] of effects, a solver coupled to a network)
+    /// name the part that produced it; others name themselves.
+    fn locate_non_finite(&self, _x: &[f64], _p: &[f64]) -> OpName {
+        self.name()
+    }
+}
+
+/// An operator's name for error messages, kept in a fixed buffer so that
+/// errors carrying it stay pointer-free (see the README's Enzyme notes on
+/// type trees). Longer names are cut at 63 bytes.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub struct OpName {
+    bytes: [u8; 63],
+    len: u8,
+}
+
+impl OpName {
+    /// The name of `T` without module paths.
+    pub fn of<T: ?Sized>() -> Self {
+        Self::new(&short_type_name(std::any::type_name::<T>()))
+    }
+
+    /// A name from text (cut at 63 bytes, on a character boundary).
+    pub fn new(text: &str) -> Self {
+        let mut end = text.len().min(63);
+        while !text.is_char_boundary(end) {
+            end -= 1;
+        }
+        let mut bytes = [0u8; 63];
+        bytes[..end].copy_from_slice(&text.as_bytes()[..end]);
+        Self { bytes, len: end as u8 }
+    }
+
+    /// The name.
+    pub fn as_str(&self) -> &str {
+        std::str::from_utf8(&self.bytes[..self.len as usize]).unwrap_or("?")
+    }
+}
+
+impl std::fmt::Display for OpName {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::fmt::Debug for OpName {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:?}", self.as_str())
+    }
+}
+
+/// `a::b::C<d::E, f::G>` → `C<E, G>`: every path prefix dropped.
+fn short_type_name(full: &str) -> String {
+    let mut out = String::with_capacity(full.len());
+    let mut segment_start = 0;
+    let mut chars = full.char_indices().peekable();
+    while let Some((_, c)) = chars.next() {
+        if c == ':' && chars.peek().is_some_and(|&(_, d)| d == ':') {
+            chars.next();
+            out.truncate(segment_start);
+            continue;
+        }
+        out.push(c);
+        if !(c.is_alphanumeric() || c == '_') {
+            segment_start = out.len();
+        }
+    }
+    out
 }
 
 /// Why an operator could not compute its result. Pointer-free on purpose

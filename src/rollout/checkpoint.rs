@@ -289,7 +289,7 @@ pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, ws: &mut Workspace, x0: &[f64], lo
     bw.stats.peak_state_bytes = bw.stats.peak_states * n * std::mem::size_of::<f64>();
     ws.free = std::mem::take(&mut bw.free);
     if let Some(step) = bw.non_finite {
-        return Err(RolloutError::NonFinite { pass: super::Pass::Backward, step });
+        return Err(RolloutError::NonFinite { pass: super::Pass::Backward, step, operator: crate::op::Forward::name(r.op) });
     }
     Ok(Gradient { loss: value, dx0: bw.lam, dp: bw.dp, stats: bw.stats })
 }

@@ -60,10 +60,13 @@ pub enum RolloutError {
         error: crate::op::OpError,
     },
     /// A non-finite value appeared in the forward or backward pass.
-    #[error("non-finite value (NaN or infinity) in the {pass} pass at step {step}")]
+    #[error("non-finite value (NaN or infinity) in the {pass} pass at step {step} (operator {operator})")]
     NonFinite {
         /// Which pass.
         pass: Pass,
+        /// Forward: the operator (or the part of a composite one) whose
+        /// output held it; backward: the rollout's step operator.
+        operator: crate::op::OpName,
         /// Forward: the step whose output held it (0-based). Backward: the
         /// step `t` whose adjoint `∂L/∂x_t` held it first (checked once per
         /// step, from the last); `t = T` means the loss gradient itself.
@@ -256,7 +259,7 @@ impl<'a, O: Forward> Rollout<'a, O> {
             return Err(RolloutError::Operator { pass: Pass::Forward, error });
         }
         if !all_finite(&x) {
-            return Err(RolloutError::NonFinite { pass: Pass::Forward, step: self.first_non_finite_step(x0) });
+            return Err(self.non_finite_forward(x0));
         }
         Ok(x)
     }
@@ -275,24 +278,26 @@ impl<'a, O: Forward> Rollout<'a, O> {
             return Err(RolloutError::Operator { pass: Pass::Forward, error });
         }
         if !all_finite(&x) || !value.is_finite() {
-            return Err(RolloutError::NonFinite { pass: Pass::Forward, step: self.first_non_finite_step(x0) });
+            return Err(self.non_finite_forward(x0));
         }
         Ok(value)
     }
 
     /// Replays the rollout to find the first step whose output is not
-    /// finite (only called once something already went wrong).
-    fn first_non_finite_step(&self, x0: &[f64]) -> usize {
+    /// finite and the operator that produced it (only called once something
+    /// already went wrong); step `T` if every state is finite (the loss is
+    /// not).
+    fn non_finite_forward(&self, x0: &[f64]) -> RolloutError {
         let mut x = x0.to_vec();
         let mut y = vec![0.0; x.len()];
         for t in 0..self.steps {
             self.op.forward(&x, self.p_at(t), &mut y);
             if !all_finite(&y) {
-                return t;
+                return RolloutError::NonFinite { pass: Pass::Forward, step: t, operator: self.op.locate_non_finite(&x, self.p_at(t)) };
             }
             std::mem::swap(&mut x, &mut y);
         }
-        self.steps
+        RolloutError::NonFinite { pass: Pass::Forward, step: self.steps, operator: self.op.name() }
     }
 }
 
@@ -309,16 +314,14 @@ impl<O: Vjp> Rollout<'_, O> {
         self.check_state(x0)?;
         self.op.take_error();
         let g = match checkpoint::run(self, ws, x0, loss, mode) {
-            Err(RolloutError::NonFinite { pass: Pass::Backward, step }) => {
+            Err(RolloutError::NonFinite { pass: Pass::Backward, step, .. }) => {
                 // A failed solve or a NaN in the forward pass is the cause.
                 if let Some(error) = self.op.take_error() {
                     return Err(RolloutError::Operator { pass: Pass::Backward, error });
                 }
-                let forward = self.first_non_finite_step(x0);
-                return Err(if forward < self.steps {
-                    RolloutError::NonFinite { pass: Pass::Forward, step: forward }
-                } else {
-                    RolloutError::NonFinite { pass: Pass::Backward, step }
+                return Err(match self.non_finite_forward(x0) {
+                    e @ RolloutError::NonFinite { step: s, .. } if s < self.steps => e,
+                    _ => RolloutError::NonFinite { pass: Pass::Backward, step, operator: self.op.name() },
                 });
             }
             g => g?,
@@ -327,10 +330,10 @@ impl<O: Vjp> Rollout<'_, O> {
             return Err(RolloutError::Operator { pass: Pass::Backward, error });
         }
         if !g.loss.is_finite() {
-            return Err(RolloutError::NonFinite { pass: Pass::Forward, step: self.first_non_finite_step(x0) });
+            return Err(self.non_finite_forward(x0));
         }
         if !all_finite(&g.dx0) || !all_finite(&g.dp) {
-            return Err(RolloutError::NonFinite { pass: Pass::Backward, step: 0 });
+            return Err(RolloutError::NonFinite { pass: Pass::Backward, step: 0, operator: self.op.name() });
         }
         Ok(g)
     }

@@ -197,6 +197,28 @@ impl<S: Vjp + Jvp, N: Vjp + Jvp> Forward for Coupled<'_, S, N> {
         }
     }
 
+    /// The solver or the network, whichever first produced the non-finite value.
+    fn locate_non_finite(&self, x: &[f64], p: &[f64]) -> crate::op::OpName {
+        let finite = crate::rollout::all_finite;
+        match self.coupling {
+            Coupling::Add | Coupling::Scale => {
+                let mut v = vec![0.0; x.len()];
+                self.solver.forward(x, self.solver_p, &mut v);
+                if !finite(&v) {
+                    return self.solver.locate_non_finite(x, self.solver_p);
+                }
+                let mut y = vec![0.0; self.net.n_out()];
+                self.net.forward(&v, p, &mut y);
+                if !finite(&y) { self.net.locate_non_finite(&v, p) } else { self.name() }
+            }
+            Coupling::Params => {
+                let mut q = vec![0.0; self.net.n_out()];
+                self.net.forward(x, p, &mut q);
+                if !finite(&q) { self.net.locate_non_finite(x, p) } else { self.solver.locate_non_finite(x, &q) }
+            }
+        }
+    }
+
     fn take_error(&self) -> Option<OpError> {
         self.solver.take_error().or_else(|| self.net.take_error())
     }
