@@ -80,7 +80,16 @@ fn p2(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, p1, p1_step, p2, solver_parts, scene_effects, nn_layers);
+/// P3 sol1d: one training iteration (16 coupled steps, batch 32, Adam).
+fn p3(c: &mut Criterion) {
+    let mut g = c.benchmark_group("p3_sol1d");
+    g.sample_size(20);
+    let mut p = diffsim::train::p3::P3::new(0);
+    g.bench_function("iteration_f64", |b| b.iter(|| std::hint::black_box(p.iteration().unwrap())));
+    g.finish();
+}
+
+criterion_group!(benches, p1, p1_step, p2, p3, solver_parts, scene_effects, nn_layers);
 criterion_main!(benches);
 
 /// One multigrid V-cycle and one plain CG matrix product at 64² and 128²,

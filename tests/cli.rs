@@ -250,3 +250,23 @@ fn pareto_and_stability_commands_report_json() {
     assert!(cases.len() >= 9 && cases.iter().all(|c| c["case"].is_string() && c["passed"] == true), "{cases:?}");
     std::fs::remove_dir_all(&out).ok();
 }
+
+#[test]
+fn bench_p3_json_line() {
+    let (code, stdout, err) = diffsim(&["bench", "p3", "--iterations", "2", "--threads", "2", "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert_eq!(v["problem"], "p3");
+    assert_eq!(v["dtype"], "f64");
+    assert_eq!((v["threads"].as_u64(), v["params"].as_u64(), v["batch"].as_u64(), v["unroll"].as_u64()), (Some(2), Some(5505), Some(32), Some(16)));
+    assert!(v["s_per_iter"].as_f64().is_some_and(|s| s > 0.0));
+    let mut total = 0.0;
+    for key in ["solver_fwd", "solver_bwd", "net_fwd", "net_bwd", "optimizer"] {
+        let share = v[key].as_f64().unwrap_or(-1.0);
+        assert!((0.0..=1.0).contains(&share), "{key} = {share}");
+        total += share;
+    }
+    assert!(total <= 1.0 + 1e-9 && total > 0.5, "shares sum to {total}");
+    fails_with(&["bench", "p3", "--dtype", "f16"], "invalid argument --dtype");
+    fails_with(&["bench", "p3", "--iterations", "0"], "invalid argument --iterations");
+}

@@ -363,3 +363,79 @@ fn oscillators_and_hig_steps() {
     let tight = Hig { memory_budget: 100, ..hig };
     assert!(matches!(hig_step(&lin, &net, &mut theta, &data, &tight), Err(HigError::Budget { .. })));
 }
+
+#[test]
+fn blocked_conv1d_kernels_match_the_plain_loops() {
+    use diffsim_solvers::nn as kernel;
+    // Shapes around the blocking: 4-channel blocks, 8- and 32-position
+    // tiles, the tails, kernel widths with and without a specialisation.
+    let lens: Vec<usize> = vec![1, 3, 7, 8, 13, 32, 37, 40, 64];
+    let ks: Vec<usize> = vec![1, 3, 5, 7, 9];
+    let chans: Vec<usize> = vec![1, 3, 4, 5, 9, 33];
+    let mut case = 0u64;
+    for &len in &lens {
+        for &k in &ks {
+            for (j, &c_out) in chans.iter().enumerate() {
+                let c_in = chans[(j + len) % chans.len()];
+                let padding = if case % 2 == 0 { Padding::Periodic } else { Padding::Zero };
+                case += 1;
+                let s = Conv1d { c_in, c_out, k, len, padding };
+                let w = state(s.n_weights(), case);
+                let b = state(c_out, case + 100);
+                let x = state(c_in * len, case + 200);
+                let (mut y, mut y_ref) = (vec![0.0; c_out * len], vec![0.0; c_out * len]);
+                kernel::conv1d(&s, &w, &b, &x, &mut y);
+                kernel::conv1d_simple(&s, &w, &b, &x, &mut y_ref);
+                assert_eq!(y, y_ref, "forward {s:?}");
+                let gy = state(c_out * len, case + 300);
+                let (mut gx, mut gw, mut gb) = (state(c_in * len, 1), state(s.n_weights(), 2), state(c_out, 3));
+                let (mut gx_ref, mut gw_ref, mut gb_ref) = (gx.clone(), gw.clone(), gb.clone());
+                kernel::conv1d_adjoint(&s, &w, &x, &gy, &mut gx, &mut gw, &mut gb);
+                kernel::conv1d_adjoint_simple(&s, &w, &x, &gy, &mut gx_ref, &mut gw_ref, &mut gb_ref);
+                for (a, b) in gx.iter().zip(&gx_ref).chain(gw.iter().zip(&gw_ref)).chain(gb.iter().zip(&gb_ref)) {
+                    assert!((a - b).abs() <= 1e-12 * (1.0 + b.abs()), "adjoint {s:?}: {a} vs {b}");
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn fast_tanh_matches_the_library_tanh() {
+    use diffsim_solvers::nn::tanh_slice;
+    let mut x: Vec<f64> = (-40_000..=40_000).map(|i| i as f64 * 6e-4).collect();
+    x.extend([1e-300, -1e-300, 1e-20, 5e-9, 0.4999999999, 0.5, 0.5000000001, 19.99, 20.0, 700.0, -700.0, f64::MAX, -f64::MAX]);
+    let mut y = vec![0.0; x.len()];
+    tanh_slice(&x, &mut y);
+    let mut worst: f64 = 0.0;
+    for (&x, &y) in x.iter().zip(&y) {
+        let want = x.tanh();
+        let rel = (y - want).abs() / want.abs().max(1e-300);
+        worst = worst.max(rel);
+        assert!(rel <= 1.5e-15, "tanh({x}) = {y}, want {want} (relative error {rel:.2e})");
+    }
+    println!("fast tanh: largest relative error {worst:.2e}");
+    assert!(y.iter().all(|v| v.abs() <= 1.0));
+    let mut nan = vec![0.0];
+    tanh_slice(&[f64::NAN], &mut nan);
+    assert!(nan[0].is_nan(), "a NaN stays NaN");
+}
+
+#[test]
+fn p3_iteration_does_not_depend_on_the_thread_count() {
+    use diffsim::train::p3::P3;
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(|| {
+            let mut p = P3::new(7);
+            let (l1, _) = p.iteration().unwrap();
+            let (l2, _) = p.iteration().unwrap();
+            (l1, l2, p.theta)
+        })
+    };
+    let (a1, a2, ta) = run(1);
+    let (b1, b2, tb) = run(2);
+    assert_eq!((a1.to_bits(), a2.to_bits()), (b1.to_bits(), b2.to_bits()));
+    assert_eq!(ta, tb);
+    assert!(a2 < a1, "one Adam step lowers the loss: {a1} → {a2}");
+    assert_eq!(ta.len(), 5505);
+}

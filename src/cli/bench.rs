@@ -17,6 +17,25 @@ pub(super) enum BenchCommand {
     /// P2 smoke2d: loss and gradient of buoyant smoke with pressure
     /// projection, forward vs gradient (Enzyme + implicit adjoint solves).
     P2(P2Args),
+    /// P3 sol1d: one training iteration (loss, gradient through 16 coupled
+    /// solver + network steps for a batch of 32, Adam update).
+    P3(P3Args),
+}
+
+#[derive(Debug, Args)]
+pub(super) struct P3Args {
+    /// Precision: f64 (everything in float64).
+    #[arg(long, default_value = "f64")]
+    dtype: String,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Timed iterations (after one warm-up); the median is reported.
+    #[arg(long, default_value_t = 30)]
+    iterations: usize,
+    /// Print one JSON line instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -67,7 +86,81 @@ pub(super) fn run(cmd: BenchCommand) -> Result<(), CliError> {
     match cmd {
         BenchCommand::P1(a) => p1(a),
         BenchCommand::P2(a) => p2(a),
+        BenchCommand::P3(a) => p3(a),
     }
+}
+
+/// The JSON key of P3's `k`-th time share.
+fn share_name(k: usize) -> &'static str {
+    match k {
+        0 => "solver_fwd",
+        1 => "solver_bwd",
+        2 => "net_fwd",
+        3 => "net_bwd",
+        _ => "optimizer",
+    }
+}
+
+fn p3(a: P3Args) -> Result<(), CliError> {
+    use crate::train::p3::{BATCH, Breakdown, P3, UNROLL};
+    if a.dtype != "f64" {
+        return Err(CliError::Argument { arg: "--dtype", reason: format!("supported: f64 (float32 is not built yet), got {:?}", a.dtype) });
+    }
+    if a.iterations < 1 {
+        return Err(CliError::Argument { arg: "--iterations", reason: "need at least 1".into() });
+    }
+    let threads = threads(a.threads)?;
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|source| CliError::Threads { threads, source })?;
+    pool.install(|| -> Result<(), CliError> {
+        let mut p = P3::new(0);
+        p.iteration()?;
+        let mut runs: Vec<(f64, Breakdown)> = Vec::with_capacity(a.iterations);
+        let mut loss = 0.0;
+        for _ in 0..a.iterations {
+            let (l, b) = p.iteration()?;
+            loss = l;
+            runs.push((b.total, b));
+        }
+        runs.sort_by(|x, y| x.0.total_cmp(&y.0));
+        let (s_per_iter, _) = runs[runs.len() / 2];
+        // Shares over all timed iterations: thread-seconds of the parallel
+        // parts over thread-seconds available, the optimizer over wall time.
+        let total: f64 = runs.iter().map(|r| r.1.total).sum();
+        let sum = |f: fn(&Breakdown) -> f64| runs.iter().map(|r| f(&r.1)).sum::<f64>();
+        let par = total * threads.min(BATCH) as f64;
+        // (Names by index, not a table of (&str, f64) pairs: such by-value
+        // arrays crash Enzyme's type analysis in this crate; README.)
+        let shares: Vec<f64> =
+            vec![sum(|b| b.solver_fwd) / par, sum(|b| b.solver_bwd) / par, sum(|b| b.net_fwd) / par, sum(|b| b.net_bwd) / par, sum(|b| b.optimizer) / total];
+        if a.json {
+            let mut m = serde_json::Map::new();
+            m.insert("problem".into(), json!("p3"));
+            m.insert("dtype".into(), json!(a.dtype));
+            m.insert("threads".into(), json!(threads));
+            m.insert("s_per_iter".into(), json!(s_per_iter));
+            m.insert("params".into(), json!(p.params()));
+            m.insert("batch".into(), json!(BATCH));
+            m.insert("unroll".into(), json!(UNROLL));
+            for (k, v) in shares.iter().enumerate() {
+                m.insert(share_name(k).into(), json!(v));
+            }
+            m.insert("loss".into(), json!(loss));
+            println!("{}", serde_json::Value::Object(m));
+        } else {
+            println!(
+                "P3 sol1d ({}, {threads} threads): {:.2} ms per iteration (median of {}), {} parameters, batch {BATCH}, unroll {UNROLL}",
+                a.dtype,
+                s_per_iter * 1e3,
+                a.iterations,
+                p.params()
+            );
+            for (k, v) in shares.iter().enumerate() {
+                println!("  {:<11} {:5.1} %", share_name(k), 100.0 * v);
+            }
+            println!("  rest        {:5.1} % (chaining, loss, reduction, idle threads)", 100.0 * (1.0 - shares.iter().sum::<f64>()));
+        }
+        Ok(())
+    })
 }
 
 fn p1(a: P1Args) -> Result<(), CliError> {

@@ -77,6 +77,8 @@ pub enum Init {
     Glorot,
     /// He/Kaiming normal, `σ = √(2/fan_in)` (for relu-like activations).
     He,
+    /// LeCun normal, `σ = √(1/fan_in)` (benchmark P3's initialisation).
+    LeCun,
 }
 
 /// A network that cannot be built. Pointer-free on purpose (README,
@@ -185,11 +187,7 @@ impl Layer {
                 let (w, b) = p.split_at(s.n_weights());
                 kernel::conv2d(s, w, b, x, y);
             }
-            Layer::Act { f, .. } => {
-                for (y, &x) in y.iter_mut().zip(x) {
-                    *y = f.f(x);
-                }
-            }
+            Layer::Act { f, .. } => kernel::activate(*f, x, y),
             Layer::AvgPool1d { c, len } => kernel::avg_pool1d(*c, *len, x, y),
             Layer::Upsample1d { c, len } => kernel::upsample1d(*c, *len, x, y),
             Layer::AvgPool2d { c, nx, ny } => kernel::avg_pool2d(*c, *nx, *ny, x, y),
@@ -226,11 +224,7 @@ impl Layer {
                 let (gw, gb) = gp.split_at_mut(s.n_weights());
                 kernel::conv2d_adjoint(s, w, x, gy, gx, gw, gb);
             }
-            Layer::Act { f, .. } => {
-                for ((gx, &g), &x) in gx.iter_mut().zip(gy).zip(x) {
-                    *gx += g * f.df(x);
-                }
-            }
+            Layer::Act { f, .. } => kernel::activate_adjoint(*f, x, gy, gx),
             Layer::AvgPool1d { c, len } => kernel::avg_pool1d_adjoint(*c, *len, gy, gx),
             Layer::Upsample1d { c, len } => kernel::upsample1d_adjoint(*c, *len, gy, gx),
             Layer::AvgPool2d { c, nx, ny } => kernel::avg_pool2d_adjoint(*c, *nx, *ny, gy, gx),
@@ -353,6 +347,7 @@ impl Layer {
                     rng.random_range(-a..a)
                 }
                 Init::He => (2.0 / fan_in as f64).sqrt() * normal(rng),
+                Init::LeCun => (1.0 / fan_in as f64).sqrt() * normal(rng),
             };
         }
     }

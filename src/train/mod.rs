@@ -12,6 +12,7 @@ pub mod heat;
 pub mod hig;
 pub mod optim;
 pub mod oscillators;
+pub mod p3;
 pub mod pg;
 
 use std::sync::atomic::{AtomicU64, Ordering};
