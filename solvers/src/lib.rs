@@ -11,6 +11,8 @@
 //! Linear algebra (faer) lives here too ([`linalg`]), behind non-generic functions,
 //! because faer crashes rustc when the autodiff flag is on.
 #![deny(missing_docs)]
+// Explicit eight-lane vectors in the network kernels (`nn`).
+#![feature(portable_simd)]
 // `chunks_exact(8)` keeps the eight-lane reductions readable on stable APIs.
 #![allow(clippy::chunks_exact_to_as_chunks)]
 

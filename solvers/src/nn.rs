@@ -7,6 +7,8 @@
 //! (1D) / `[c_out][c_in][k][k]` (2D, rows = y); feature maps channel-major,
 //! `[c][len]` or `[c][ny][nx]`. Adjoints **add** into their outputs.
 
+use std::simd::f64x8;
+
 /// How a convolution reads beyond the edges.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -233,7 +235,9 @@ fn correlate_rows<const K: usize, const Q: usize>(
 }
 
 /// `Q` rows × `P`·8 positions from `(q0, i0)`, summed in registers over
-/// `r` and `t` (in that order, as the plain loops).
+/// `r` and `t` (in that order, as the plain loops). `P` is 1 or 4; the
+/// position chunks are written out so that the accumulators are plain
+/// vector values (a loop over them left them on the stack).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn correlate_tile<const K: usize, const Q: usize, const P: usize>(
@@ -249,15 +253,14 @@ fn correlate_tile<const K: usize, const Q: usize, const P: usize>(
     i0: usize,
 ) {
     let np = n + K - 1;
-    let mut acc = [[[0.0f64; 8]; P]; Q];
+    let zero = f64x8::splat(0.0);
+    let mut acc = [[zero; 4]; Q];
     for (q, aq) in acc.iter_mut().enumerate() {
-        let b = bias.map_or(0.0, |b| b[q0 + q]);
-        for (p, a) in aq.iter_mut().enumerate() {
+        let b = f64x8::splat(bias.map_or(0.0, |b| b[q0 + q]));
+        for p in 0..P {
             let at = (q0 + q) * n + i0 + 8 * p;
-            let start: [f64; 8] = if add { out[at..at + 8].try_into().unwrap() } else { [0.0; 8] };
-            for l in 0..8 {
-                a[l] = start[l] + b;
-            }
+            let start = if add { f64x8::from_slice(&out[at..at + 8]) } else { zero };
+            aq[p] = start + b;
         }
     }
     for r in 0..nr {
@@ -269,21 +272,30 @@ fn correlate_tile<const K: usize, const Q: usize, const P: usize>(
         }
         let row = &inp[r * np + i0..r * np + i0 + 8 * P + K - 1];
         for t in 0..K {
-            for p in 0..P {
-                let xs: &[f64; 8] = row[t + 8 * p..t + 8 * p + 8].try_into().unwrap();
+            if P == 4 {
+                let x0 = f64x8::from_slice(&row[t..t + 8]);
+                let x1 = f64x8::from_slice(&row[t + 8..t + 16]);
+                let x2 = f64x8::from_slice(&row[t + 16..t + 24]);
+                let x3 = f64x8::from_slice(&row[t + 24..t + 32]);
                 for q in 0..Q {
-                    let wq = wl[q][t];
-                    for l in 0..8 {
-                        acc[q][p][l] += wq * xs[l];
-                    }
+                    let wq = f64x8::splat(wl[q][t]);
+                    acc[q][0] += wq * x0;
+                    acc[q][1] += wq * x1;
+                    acc[q][2] += wq * x2;
+                    acc[q][3] += wq * x3;
+                }
+            } else {
+                let x0 = f64x8::from_slice(&row[t..t + 8]);
+                for q in 0..Q {
+                    acc[q][0] += f64x8::splat(wl[q][t]) * x0;
                 }
             }
         }
     }
     for (q, aq) in acc.iter().enumerate() {
-        for (p, a) in aq.iter().enumerate() {
+        for p in 0..P {
             let at = (q0 + q) * n + i0 + 8 * p;
-            out[at..at + 8].copy_from_slice(a);
+            aq[p].copy_to_slice(&mut out[at..at + 8]);
         }
     }
 }
@@ -363,24 +375,34 @@ fn weight_gradient_k<const K: usize>(s: &Conv1d, gy: &[f64], xp: &[f64], gw: &mu
 #[inline(always)]
 fn weight_gradient_tile<const K: usize, const V: usize>(s: &Conv1d, gyt: &[f64], stride: usize, o0: usize, xp: &[f64], np: usize, gw: &mut [f64]) {
     let (n, ci) = (s.len, s.c_in);
+    let zero = f64x8::splat(0.0);
     for c in 0..ci {
         let row = &xp[c * np..(c + 1) * np];
-        let mut acc = [[[0.0f64; 8]; V]; K];
+        let mut acc = [[zero; 4]; K];
         for i in 0..n {
             let g = &gyt[i * stride + o0..i * stride + o0 + 8 * V];
-            for t in 0..K {
-                let xv = row[i + t];
-                for v in 0..V {
-                    let gv: &[f64; 8] = g[8 * v..8 * v + 8].try_into().unwrap();
-                    for l in 0..8 {
-                        acc[t][v][l] += gv[l] * xv;
-                    }
+            if V == 4 {
+                let g0 = f64x8::from_slice(&g[0..8]);
+                let g1 = f64x8::from_slice(&g[8..16]);
+                let g2 = f64x8::from_slice(&g[16..24]);
+                let g3 = f64x8::from_slice(&g[24..32]);
+                for t in 0..K {
+                    let xv = f64x8::splat(row[i + t]);
+                    acc[t][0] += g0 * xv;
+                    acc[t][1] += g1 * xv;
+                    acc[t][2] += g2 * xv;
+                    acc[t][3] += g3 * xv;
+                }
+            } else {
+                let g0 = f64x8::from_slice(&g[0..8]);
+                for t in 0..K {
+                    acc[t][0] += g0 * f64x8::splat(row[i + t]);
                 }
             }
         }
         for (t, at) in acc.iter().enumerate() {
-            for (v, a) in at.iter().enumerate() {
-                for (l, &val) in a.iter().enumerate() {
+            for v in 0..V {
+                for (l, &val) in at[v].as_array().iter().enumerate() {
                     gw[((o0 + 8 * v + l) * ci + c) * K + t] += val;
                 }
             }
@@ -795,11 +817,10 @@ pub fn activate_adjoint(f: Activation, x: &[f64], gy: &[f64], gx: &mut [f64]) {
 crate::simd_dispatch! {
     /// `y[i] = tanh(x[i])` in vector instructions, to within a few units in
     /// the last place (relative error below 1.5e-15, tested against
-    /// `f64::tanh`; a NaN stays NaN): `|x| < 0.5` by Lambert's continued fraction (depth 9,
-    /// as one rational function), otherwise `(e^{2|x|} − 1)/(e^{2|x|} + 1)` with
-    /// `e^{2|x|}` by range reduction and a degree-13 polynomial (`|x|` capped
-    /// at 20, where tanh is 1 in double precision). Branch-free, so that the
-    /// loop vectorises; the libm call it replaces dominated small networks.
+    /// `f64::tanh`; a NaN stays NaN): `e/(e + 2)` with `e = e^{2|x|} − 1` by
+    /// range reduction and a polynomial ([`tanh_fast`]; `|x|` capped at 20,
+    /// where tanh is 1 in double precision). Branch-free, so that the loop
+    /// vectorises; the libm call it replaces dominated small networks.
     pub fn tanh_slice(x: &[f64], y: &mut [f64]) => tanh_slice_body
 }
 
@@ -810,27 +831,14 @@ fn tanh_slice_body(x: &[f64], y: &mut [f64]) {
     }
 }
 
-/// One value of [`tanh_slice`].
+/// One value of [`tanh_slice`]: `sign(x)·e/(e + 2)` with `e = expm1(2|x|)`,
+/// free of cancellation for every `x`.
 #[inline(always)]
 pub fn tanh_fast(x: f64) -> f64 {
     // (A comparison, not `min`: `f64::min` would turn a NaN into 20.)
     let a = if x.abs() > 20.0 { 20.0 } else { x.abs() };
-    // Small |x|: x / (1 + x²/(3 + x²/(5 + …))) through its convergents
-    // A_n = b_n·A_{n−1} + x²·A_{n−2} (b_n = 2n + 1), same for B.
-    let x2 = a * a;
-    let (mut a1, mut a0) = (1.0, 1.0); // A_0 = 1, A_{−1} = 1 (so A_1 = 3 + x²)
-    let (mut b1, mut b0) = (1.0, 0.0);
-    let mut bn = 1.0;
-    for _ in 0..9 {
-        bn += 2.0;
-        let an = bn * a1 + x2 * a0;
-        let bn_ = bn * b1 + x2 * b0;
-        (a0, a1, b0, b1) = (a1, an, b1, bn_);
-    }
-    // Large |x|: (e^{2a} − 1)/(e^{2a} + 1). One division for both.
-    let e = exp_fast(2.0 * a);
-    let (num, den) = if a < 0.5 { (a * b1, a1) } else { (e - 1.0, e + 1.0) };
-    let t = num / den;
+    let e = expm1_fast(2.0 * a);
+    let t = e / (e + 2.0);
     if x < 0.0 { -t } else { t }
 }
 
@@ -847,10 +855,13 @@ const INV_FACTORIAL: [f64; 14] = {
     t
 };
 
-/// `e^z` for `0 ≤ z ≤ 40`: `z = n·ln2 + r`, `|r| ≤ ln2/2`, `e^r` by its
-/// Taylor polynomial to degree 13, `2^n` from the exponent bits.
+/// `e^z − 1` for `0 ≤ z ≤ 40`: `z = n·ln2 + r`, `|r| ≤ ln2/2`,
+/// `e^r − 1 = r·q(r)` with `q` the Taylor polynomial of degree 12
+/// (Estrin's scheme: a short dependency chain), then
+/// `2^n·(e^r − 1) + (2^n − 1)` (`2^n` from the exponent bits; for `n = 0`
+/// simply `e^r − 1`, accurate for tiny `z`).
 #[inline(always)]
-fn exp_fast(z: f64) -> f64 {
+fn expm1_fast(z: f64) -> f64 {
     const SHIFT: f64 = 6755399441055744.0; // 1.5·2^52: adding it rounds to an integer
     const LN2_HI: f64 = 0.693_147_180_369_123_816_49;
     const LN2_LO: f64 = 1.908_214_929_270_587_7e-10;
@@ -858,10 +869,14 @@ fn exp_fast(z: f64) -> f64 {
     let ki = kd.to_bits();
     let n = kd - SHIFT;
     let r = (z - n * LN2_HI) - n * LN2_LO;
-    let mut p = INV_FACTORIAL[13];
-    for k in (0..13).rev() {
-        p = p * r + INV_FACTORIAL[k];
-    }
+    // q(r) = Σ_{j=0}^{12} r^j/(j+1)!, c_j = INV_FACTORIAL[j + 1].
+    let c = |j: usize| INV_FACTORIAL[j + 1];
+    let (r2, r4) = (r * r, (r * r) * (r * r));
+    let r8 = r4 * r4;
+    let q03 = (c(0) + c(1) * r) + (c(2) + c(3) * r) * r2;
+    let q47 = (c(4) + c(5) * r) + (c(6) + c(7) * r) * r2;
+    let q812 = ((c(8) + c(9) * r) + (c(10) + c(11) * r) * r2) + c(12) * r4;
+    let q = (q03 + q47 * r4) + q812 * r8;
     let scale = f64::from_bits((ki.wrapping_sub(SHIFT.to_bits()).wrapping_add(1023)) << 52);
-    p * scale
+    scale * (r * q) + (scale - 1.0)
 }
