@@ -350,7 +350,7 @@ fn weight_gradient_body(s: &Conv1d, gy: &[f64], xp: &[f64], gw: &mut [f64]) {
 /// the positions in registers, and added into `gw` at the end.
 #[inline(always)]
 fn weight_gradient_k<const K: usize>(s: &Conv1d, gy: &[f64], xp: &[f64], gw: &mut [f64]) {
-    let (n, co, ci) = (s.len, s.c_out, s.c_in);
+    let (n, co) = (s.len, s.c_out);
     let np = n + K - 1;
     let full = co - co % 8;
     let mut gyt = vec![0.0; n * full];
@@ -368,7 +368,6 @@ fn weight_gradient_k<const K: usize>(s: &Conv1d, gy: &[f64], xp: &[f64], gw: &mu
         weight_gradient_tile::<K, 1>(s, &gyt, full, o0, xp, np, gw);
         o0 += 8;
     }
-    let _ = ci;
     weight_gradient_scalar(s, full..co, gy, xp, gw);
 }
 
