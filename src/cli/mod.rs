@@ -1,9 +1,9 @@
 //! The `diffsim` command line: argument parsing and the subcommands.
 
+mod accuracy;
 mod bench;
 mod demo;
 mod measure;
-mod pareto;
 mod scene;
 mod train;
 
@@ -97,11 +97,11 @@ enum Command {
     /// sweep of resolutions, time steps, schemes and tolerances (or, with
     /// --gradients, of gradient methods); marks the Pareto front and writes
     /// a CSV, a markdown table and plots (PNG, SVG).
-    Pareto(pareto::ParetoArgs),
+    Pareto(accuracy::ParetoArgs),
     /// The hard cases (stiff diffusion, shocks, long rollouts,
     /// ill-conditioned solves, near-singular Jacobians, NaN detection): a
     /// report, and a non-zero exit if any case is not stable.
-    Stability(pareto::StabilityArgs),
+    Stability(accuracy::StabilityArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -143,8 +143,8 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         Command::Grad(a) => scene::grad(a),
         Command::Train(a) => train::train_cmd(a),
         Command::Experiment(e) => train::experiment(e),
-        Command::Pareto(a) => pareto::run(a),
-        Command::Stability(a) => pareto::stability(a),
+        Command::Pareto(a) => accuracy::pareto(a),
+        Command::Stability(a) => accuracy::stability(a),
     }
 }
 

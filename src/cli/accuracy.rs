@@ -1,5 +1,6 @@
-//! `diffsim pareto PROBLEM [--gradients]`: error versus time and memory over
-//! a sweep of configurations, with the Pareto front marked.
+//! The accuracy commands: `diffsim pareto PROBLEM [--gradients]` (error
+//! versus time and memory over a sweep of configurations, with the Pareto
+//! front marked) and `diffsim stability` (the hard cases).
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -75,7 +76,7 @@ fn accuracy_row(family: String, params: Map<String, Value>, r: (Result<f64, Accu
 }
 
 /// Runs `diffsim pareto`.
-pub fn run(a: ParetoArgs) -> Result<(), CliError> {
+pub fn pareto(a: ParetoArgs) -> Result<(), CliError> {
     if !(a.budget.is_finite() && a.budget >= 0.0) {
         return Err(CliError::Argument { arg: "--budget", reason: format!("must be ≥ 0 seconds, got {}", a.budget) });
     }
