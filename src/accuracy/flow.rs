@@ -15,7 +15,7 @@ use diffsim_solvers::exact::{HeatMode, TaylorGreen, Translation};
 use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d};
 
 use super::{AccuracyError, Diffusion, all_finite, positive, relative_l2, steps_to};
-use crate::fluids::{Advect, AdvectUpwind, Diffuse, DiffuseExplicit, DiffuseImplicit, Project};
+use crate::fluids::{Advect, AdvectUpwind, Diffuse, Project};
 use crate::op::{Forward, OpError};
 
 /// Side of the periodic box.
@@ -35,32 +35,19 @@ pub fn scheme_name(scheme: Scheme) -> &'static str {
     }
 }
 
-/// Diffusion of the chosen fields of a box, explicit or implicit.
-enum Diffuser {
-    Explicit(Diffuse<DiffuseExplicit>),
-    Implicit(Diffuse<DiffuseImplicit>),
+/// Diffusion of the chosen fields of a box, explicit or implicit
+/// (parameter `p = [κ]`).
+fn diffuser(cfg: Smoke2d, smoke: bool, velocity: bool, diffusion: Diffusion, max_iterations: usize) -> Box<dyn Forward> {
+    match diffusion {
+        Diffusion::Explicit => Box::new(Diffuse::explicit(cfg, smoke, velocity)),
+        Diffusion::Implicit { tolerance } => Box::new(Diffuse::implicit(cfg, smoke, velocity, tolerance, max_iterations)),
+    }
 }
 
-impl Diffuser {
-    fn new(cfg: Smoke2d, smoke: bool, velocity: bool, diffusion: Diffusion, max_iterations: usize) -> Self {
-        match diffusion {
-            Diffusion::Explicit => Diffuser::Explicit(Diffuse::explicit(cfg, smoke, velocity)),
-            Diffusion::Implicit { tolerance } => Diffuser::Implicit(Diffuse::implicit(cfg, smoke, velocity, tolerance, max_iterations)),
-        }
-    }
-
-    fn forward(&self, x: &[f64], kappa: f64, y: &mut [f64]) -> Option<OpError> {
-        match self {
-            Diffuser::Explicit(d) => {
-                d.forward(x, &[kappa], y);
-                d.take_error()
-            }
-            Diffuser::Implicit(d) => {
-                d.forward(x, &[kappa], y);
-                d.take_error()
-            }
-        }
-    }
+/// One diffusion step `y = D(x; κ)` and the error it recorded.
+fn diffuse_step(d: &dyn Forward, x: &[f64], kappa: f64, y: &mut [f64]) -> Option<OpError> {
+    d.forward(x, &[kappa], y);
+    d.take_error()
 }
 
 /// Checks an operator's error and the state after a stage.
@@ -151,14 +138,14 @@ impl TaylorGreenRun {
         x.extend(v);
         let mut y = vec![0.0; x.len()];
         let advect = Advect { cfg, scheme: self.scheme, dt, smoke: false, velocity: true };
-        let diffuse = (self.nu > 0.0).then(|| Diffuser::new(cfg, false, true, self.diffusion, 100 * n));
+        let diffuse = (self.nu > 0.0).then(|| diffuser(cfg, false, true, self.diffusion, 100 * n));
         let project = Project::new(cfg, self.pressure_tolerance, 100 * n * n, Preconditioner::None);
         for step in 0..steps {
             advect.forward(&x, &[], &mut y);
             after("advection", step, None, &y)?;
             match &diffuse {
                 Some(d) => {
-                    let e = d.forward(&y, kappa, &mut x);
+                    let e = diffuse_step(d.as_ref(), &y, kappa, &mut x);
                     after("diffusion", step, e, &x)?;
                 }
                 None => std::mem::swap(&mut x, &mut y),
@@ -287,9 +274,9 @@ impl HeatRun {
         let mut x = exact.cells(n, 0.0);
         x.resize(cfg.n_state(), 0.0);
         let mut y = vec![0.0; x.len()];
-        let diffuse = Diffuser::new(cfg, true, false, self.diffusion, 100 * n);
+        let diffuse = diffuser(cfg, true, false, self.diffusion, 100 * n);
         for step in 0..steps {
-            let e = diffuse.forward(&x, kappa, &mut y);
+            let e = diffuse_step(diffuse.as_ref(), &x, kappa, &mut y);
             after("diffusion", step, e, &y)?;
             std::mem::swap(&mut x, &mut y);
         }

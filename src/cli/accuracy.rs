@@ -204,6 +204,8 @@ fn central_differences(f: impl Fn(&[f64]) -> f64, x: &[f64], eps: f64) -> Vec<f6
 /// drift, carrying a smoke blob; loss `½‖x_T − x*‖²` with `x*` the exact vortex at `T` and no smoke.
 struct TaylorGreenGradient {
     step: SmokeStep,
+    /// The same step with the hand-written adjoint.
+    hand: SmokeStep,
     steps: usize,
     x0: Vec<f64>,
     target: Vec<f64>,
@@ -234,7 +236,8 @@ impl TaylorGreenGradient {
             *a += if k < n * (n + 1) { 0.137 } else { 0.071 };
         }
         let target = pack(steps as f64, &vec![0.0; n * n]);
-        Self { step: SmokeStep::new(cfg, 1e-10, 10_000, Preconditioner::None), steps, x0, target }
+        let step = || SmokeStep::new(cfg, 1e-10, 10_000, Preconditioner::None);
+        Self { step: step(), hand: step().with_hand_adjoint(), steps, x0, target }
     }
 
     fn loss(&self) -> impl Fn(&[f64], &mut [f64]) -> f64 + '_ {
@@ -249,12 +252,8 @@ impl TaylorGreenGradient {
     }
 
     fn gradient(&self, enzyme: bool, mode: Checkpointing) -> Result<Gradient, RolloutError> {
-        if enzyme {
-            Rollout::new(&self.step, &[], self.steps)?.value_and_grad(&self.x0, &self.loss(), mode)
-        } else {
-            let hand = SmokeStep::new(*self.step.cfg(), 1e-10, 10_000, Preconditioner::None).with_hand_adjoint();
-            Rollout::new(&hand, &[], self.steps)?.value_and_grad(&self.x0, &self.loss(), mode)
-        }
+        let step = if enzyme { &self.step } else { &self.hand };
+        Rollout::new(step, &[], self.steps)?.value_and_grad(&self.x0, &self.loss(), mode)
     }
 
     fn value(&self, x0: &[f64]) -> f64 {

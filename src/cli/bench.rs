@@ -102,7 +102,8 @@ fn share_name(k: usize) -> &'static str {
 }
 
 fn p3(a: P3Args) -> Result<(), CliError> {
-    use crate::train::p3::{BATCH, Breakdown, P3, UNROLL};
+    use crate::train::TimeShares;
+    use crate::train::p3::{BATCH, P3, UNROLL};
     if a.dtype != "f64" {
         return Err(CliError::Argument { arg: "--dtype", reason: format!("supported: f64 (float32 is not built yet), got {:?}", a.dtype) });
     }
@@ -114,7 +115,7 @@ fn p3(a: P3Args) -> Result<(), CliError> {
     pool.install(|| -> Result<(), CliError> {
         let mut p = P3::new(0);
         p.iteration()?;
-        let mut runs: Vec<(f64, Breakdown)> = Vec::with_capacity(a.iterations);
+        let mut runs: Vec<(f64, TimeShares)> = Vec::with_capacity(a.iterations);
         let mut loss = 0.0;
         for _ in 0..a.iterations {
             let (l, b) = p.iteration()?;
@@ -126,7 +127,7 @@ fn p3(a: P3Args) -> Result<(), CliError> {
         // Shares over all timed iterations: thread-seconds of the parallel
         // parts over thread-seconds available, the optimizer over wall time.
         let total: f64 = runs.iter().map(|r| r.1.total).sum();
-        let sum = |f: fn(&Breakdown) -> f64| runs.iter().map(|r| f(&r.1)).sum::<f64>();
+        let sum = |f: fn(&TimeShares) -> f64| runs.iter().map(|r| f(&r.1)).sum::<f64>();
         let par = total * threads.min(BATCH) as f64;
         // (Names by index, not a table of (&str, f64) pairs: such by-value
         // arrays crash Enzyme's type analysis in this crate; README.)

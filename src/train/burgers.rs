@@ -20,6 +20,7 @@ use rand::{Rng, SeedableRng};
 
 use diffsim_solvers::burgers::Burgers1d;
 
+pub use super::TimeShares;
 use super::{Coupled, Coupling, Optimizer, Sample, batch_gradient, clip_by_norm};
 use crate::nn::Net;
 use crate::op::Forward;
@@ -183,24 +184,6 @@ pub struct LogRow {
     pub seconds: f64,
 }
 
-/// Where the time of training went (seconds, summed over threads for the
-/// solver and network parts).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct TimeShares {
-    /// Wall time of all iterations.
-    pub total: f64,
-    /// Solver forward (incl. recomputation), summed over threads.
-    pub solver_fwd: f64,
-    /// Solver VJPs.
-    pub solver_bwd: f64,
-    /// Network forward (incl. recomputation).
-    pub net_fwd: f64,
-    /// Network VJPs.
-    pub net_bwd: f64,
-    /// The optimizer updates (wall).
-    pub optimizer: f64,
-}
-
 /// Trains `theta` in place on batches from `data`; calls `progress(row)`
 /// after every iteration. Returns where the time went.
 pub fn train(
@@ -254,11 +237,7 @@ pub fn train(
         let coupled = Coupled::new(&source, &[], net, Coupling::Add).expect("the study's network fits the solver");
         let (loss, mut grad) =
             batch_gradient(&coupled, theta, k, &steps, &batch, if k <= 64 { Checkpointing::Store } else { Checkpointing::periodic_sqrt(k) })?;
-        let [a, b, c, d] = coupled.timers.take();
-        shares.solver_fwd += a;
-        shares.solver_bwd += b;
-        shares.net_fwd += c;
-        shares.net_bwd += d;
+        shares.add_timers(&coupled.timers);
         let grad_norm = clip_by_norm(&mut grad, s.clip);
         let t = std::time::Instant::now();
         opt.set_lr(s.lr_at(it));

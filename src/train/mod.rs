@@ -64,6 +64,35 @@ impl Timers {
     }
 }
 
+/// Where the time of training went (seconds, summed over threads for the
+/// solver and network parts).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TimeShares {
+    /// Wall time of the iterations it covers.
+    pub total: f64,
+    /// Solver forward (incl. recomputation), summed over threads.
+    pub solver_fwd: f64,
+    /// Solver VJPs.
+    pub solver_bwd: f64,
+    /// Network forward (incl. recomputation).
+    pub net_fwd: f64,
+    /// Network VJPs.
+    pub net_bwd: f64,
+    /// The optimizer updates (wall).
+    pub optimizer: f64,
+}
+
+impl TimeShares {
+    /// Adds the solver and network times of `timers` (and resets them).
+    pub fn add_timers(&mut self, timers: &Timers) {
+        let [a, b, c, d] = timers.take();
+        self.solver_fwd += a;
+        self.solver_bwd += b;
+        self.net_fwd += c;
+        self.net_bwd += d;
+    }
+}
+
 /// A solver step `S(x; s)` and a network `N(·; θ)` as one operator with
 /// parameters `θ`, coupled as [`Coupling`] says. Derivatives chain the two
 /// operators' own (hand-written or generated) ones.

@@ -16,7 +16,7 @@ use rand::{Rng, SeedableRng};
 use diffsim_solvers::burgers::Burgers1d;
 use diffsim_solvers::nn::Padding;
 
-use super::{Coupled, Coupling, Optimizer, Sample, batch_gradient};
+use super::{Coupled, Coupling, Optimizer, Sample, TimeShares, batch_gradient};
 use crate::nn::{Activation, Init, Net, presets};
 use crate::problems::burgers::BurgersEnzyme;
 use crate::rollout::{Checkpointing, RolloutError};
@@ -56,24 +56,6 @@ pub struct P3 {
     pub adam: Optimizer,
 }
 
-/// Seconds spent in each part of the last iteration (solver and network
-/// parts summed over threads).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct Breakdown {
-    /// Whole iteration, wall time.
-    pub total: f64,
-    /// Solver steps forward (recomputation included), thread-seconds.
-    pub solver_fwd: f64,
-    /// Solver VJPs, thread-seconds.
-    pub solver_bwd: f64,
-    /// Network forward, thread-seconds.
-    pub net_fwd: f64,
-    /// Network VJPs, thread-seconds.
-    pub net_bwd: f64,
-    /// The Adam update, wall time.
-    pub optimizer: f64,
-}
-
 impl P3 {
     /// The problem with data and weights drawn from `seed`.
     pub fn new(seed: u64) -> Self {
@@ -95,15 +77,16 @@ impl P3 {
     /// `(u_t − ref_t)²`), its gradient through the 16 coupled steps of
     /// every sample, and one Adam update. Returns the loss before the
     /// update and where the time went.
-    pub fn iteration(&mut self) -> Result<(f64, Breakdown), RolloutError> {
+    pub fn iteration(&mut self) -> Result<(f64, TimeShares), RolloutError> {
         let start = Instant::now();
         let coupled = Coupled::new(&self.step, &[], &self.net, Coupling::Add).expect("the network fits the solver");
         let steps: Vec<usize> = (1..=UNROLL).collect();
         let (loss, grad) = batch_gradient(&coupled, &self.theta, UNROLL, &steps, &self.batch, Checkpointing::Store)?;
         let t = Instant::now();
         self.adam.step(&mut self.theta, &grad);
-        let optimizer = t.elapsed().as_secs_f64();
-        let [solver_fwd, solver_bwd, net_fwd, net_bwd] = coupled.timers.take();
-        Ok((loss, Breakdown { total: start.elapsed().as_secs_f64(), solver_fwd, solver_bwd, net_fwd, net_bwd, optimizer }))
+        let mut shares = TimeShares { optimizer: t.elapsed().as_secs_f64(), ..Default::default() };
+        shares.add_timers(&coupled.timers);
+        shares.total = start.elapsed().as_secs_f64();
+        Ok((loss, shares))
     }
 }
