@@ -15,6 +15,8 @@
 
 use std::f64::consts::PI;
 
+use crate::real::Real;
+
 /// Grid and parameters of one Burgers step. Plain data: it is passed as a
 /// constant to generated derivatives.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -57,9 +59,9 @@ impl Burgers1d {
 /// `c + a·(r − 2c + l) − b·c·(c − l or r − c)`, the upwind difference
 /// chosen by a select (no branch), so that the loop vectorises.
 #[inline(always)]
-pub fn cell(l: f64, c: f64, r: f64, a: f64, b: f64) -> f64 {
+pub fn cell<R: Real>(l: R, c: R, r: R, a: R, b: R) -> R {
     let (d1, d2) = (c - l, r - c);
-    let up = if c > 0.0 { d1 } else { d2 };
+    let up = if c > R::zero() { d1 } else { d2 };
     c + a * (d2 - d1) - b * c * up
 }
 
@@ -89,8 +91,9 @@ pub fn step_body(cfg: &Burgers1d, u: &[f64], out: &mut [f64]) {
 /// form diffsim's stencil operators differentiate). Loops over the shortest
 /// of the slices; no bounds checks, vectorises.
 #[inline(always)]
-pub fn step_map(cfg: &Burgers1d, l: &[f64], c: &[f64], r: &[f64], out: &mut [f64]) {
+pub fn step_map<R: Real>(cfg: &Burgers1d, l: &[R], c: &[R], r: &[R], out: &mut [R]) {
     let (a, b) = cfg.coefficients();
+    let (a, b) = (R::of(a), R::of(b));
     for (((o, &l), &c), &r) in out.iter_mut().zip(l).zip(c).zip(r) {
         *o = cell(l, c, r, a, b);
     }
@@ -178,8 +181,8 @@ pub fn step_tangent(cfg: &Burgers1d, u: &[f64], t: &[f64], out: &mut [f64]) {
 
 /// Distance to the nearest upwind switch along `d`: the largest `s` such
 /// that no `u[i] + σ·d[i]`, `|σ| ≤ s`, changes sign (`∞` when `d = 0`).
-pub fn smooth_radius(u: &[f64], d: &[f64]) -> f64 {
-    u.iter().zip(d).filter(|(_, d)| **d != 0.0).map(|(u, d)| (u / d).abs()).fold(f64::INFINITY, f64::min)
+pub fn smooth_radius<R: Real>(u: &[R], d: &[R]) -> f64 {
+    u.iter().zip(d).filter(|(_, d)| !d.is_zero()).map(|(u, d)| (u.as_f64() / d.as_f64()).abs()).fold(f64::INFINITY, f64::min)
 }
 
 /// Initial state of P1: `u0_i = sin(x_i) + 0.5·sin(2·x_i + 0.3)`.

@@ -11,7 +11,7 @@
 //! Linear algebra (faer) lives here too ([`linalg`]), behind non-generic functions,
 //! because faer crashes rustc when the autodiff flag is on.
 #![deny(missing_docs)]
-// Explicit eight-lane vectors in the network kernels (`nn`).
+// Explicit 512-bit vectors in the network kernels (`nn`, `real`).
 #![feature(portable_simd)]
 // `chunks_exact(8)` keeps the eight-lane reductions readable on stable APIs.
 #![allow(clippy::chunks_exact_to_as_chunks)]
@@ -23,6 +23,7 @@ pub mod exact;
 pub mod linalg;
 pub mod multigrid;
 pub mod nn;
+pub mod real;
 pub mod simd;
 pub mod smoke;
 pub mod spectral;

@@ -24,7 +24,8 @@ pub(super) enum BenchCommand {
 
 #[derive(Debug, Args)]
 pub(super) struct P3Args {
-    /// Precision: f64 (everything in float64).
+    /// Precision: f64 (everything in float64), f32 (everything in float32)
+    /// or mixed (the network in float32, the solver in float64).
     #[arg(long, default_value = "f64")]
     dtype: String,
     /// Worker threads (default: all cores).
@@ -103,17 +104,15 @@ fn share_name(k: usize) -> &'static str {
 
 fn p3(a: P3Args) -> Result<(), CliError> {
     use crate::train::TimeShares;
-    use crate::train::p3::{BATCH, P3, UNROLL};
-    if a.dtype != "f64" {
-        return Err(CliError::Argument { arg: "--dtype", reason: format!("supported: f64 (float32 is not built yet), got {:?}", a.dtype) });
-    }
+    use crate::train::p3::{BATCH, Dtype, P3, UNROLL};
+    let dtype: Dtype = a.dtype.parse().map_err(|reason| CliError::Argument { arg: "--dtype", reason })?;
     if a.iterations < 1 {
         return Err(CliError::Argument { arg: "--iterations", reason: "need at least 1".into() });
     }
     let threads = threads(a.threads)?;
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|source| CliError::Threads { threads, source })?;
     pool.install(|| -> Result<(), CliError> {
-        let mut p = P3::new(0);
+        let mut p = P3::new(0, dtype);
         p.iteration()?;
         let mut runs: Vec<(f64, TimeShares)> = Vec::with_capacity(a.iterations);
         let mut loss = 0.0;
@@ -136,7 +135,7 @@ fn p3(a: P3Args) -> Result<(), CliError> {
         if a.json {
             let mut m = serde_json::Map::new();
             m.insert("problem".into(), json!("p3"));
-            m.insert("dtype".into(), json!(a.dtype));
+            m.insert("dtype".into(), json!(dtype.name()));
             m.insert("threads".into(), json!(threads));
             m.insert("s_per_iter".into(), json!(s_per_iter));
             m.insert("params".into(), json!(p.params()));
@@ -150,7 +149,7 @@ fn p3(a: P3Args) -> Result<(), CliError> {
         } else {
             println!(
                 "P3 sol1d ({}, {threads} threads): {:.2} ms per iteration (median of {}), {} parameters, batch {BATCH}, unroll {UNROLL}",
-                a.dtype,
+                dtype.name(),
                 s_per_iter * 1e3,
                 a.iterations,
                 p.params()

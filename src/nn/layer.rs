@@ -4,6 +4,7 @@ use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use diffsim_solvers::nn::{self as kernel, Activation, Conv1d, Conv2d};
+use diffsim_solvers::real::Real;
 
 use crate::op::{Forward, Jvp, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
@@ -173,7 +174,7 @@ impl Layer {
     }
 
     /// `y = layer(x)` (overwrites `y`).
-    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+    fn forward<R: Real>(&self, x: &[R], p: &[R], y: &mut [R]) {
         match self {
             Layer::Dense { n_in, n_out } => {
                 let (w, b) = p.split_at(n_in * n_out);
@@ -195,7 +196,7 @@ impl Layer {
             Layer::Residual(net) => {
                 net.forward_into(x, p, y);
                 for (y, x) in y.iter_mut().zip(x) {
-                    *y += x;
+                    *y += *x;
                 }
             }
             Layer::Skip(net) => {
@@ -206,8 +207,10 @@ impl Layer {
         }
     }
 
-    /// `gx += J_xᵀ·gy`, `gp += J_pᵀ·gy` (`gy` is read only).
-    fn backprop(&self, x: &[f64], p: &[f64], gy: &[f64], gx: &mut [f64], gp: &mut [f64]) {
+    /// `gx += J_xᵀ·gy`, `gp += J_pᵀ·gy` (`gy` is read only); `y` is the
+    /// layer's output where the caller kept it (an activation whose
+    /// derivative follows from its output then skips recomputing it).
+    fn backprop<R: Real>(&self, x: &[R], y: Option<&[R]>, p: &[R], gy: &[R], gx: &mut [R], gp: &mut [R]) {
         match self {
             Layer::Dense { n_in, n_out } => {
                 let (w, _) = p.split_at(n_in * n_out);
@@ -224,21 +227,24 @@ impl Layer {
                 let (gw, gb) = gp.split_at_mut(s.n_weights());
                 kernel::conv2d_adjoint(s, w, x, gy, gx, gw, gb);
             }
-            Layer::Act { f, .. } => kernel::activate_adjoint(*f, x, gy, gx),
+            Layer::Act { f, .. } => match y {
+                Some(y) if f.df_from_output(R::zero()).is_some() => kernel::activate_adjoint_from_output(*f, y, gy, gx),
+                _ => kernel::activate_adjoint(*f, x, gy, gx),
+            },
             Layer::AvgPool1d { c, len } => kernel::avg_pool1d_adjoint(*c, *len, gy, gx),
             Layer::Upsample1d { c, len } => kernel::upsample1d_adjoint(*c, *len, gy, gx),
             Layer::AvgPool2d { c, nx, ny } => kernel::avg_pool2d_adjoint(*c, *nx, *ny, gy, gx),
             Layer::Upsample2d { c, nx, ny } => kernel::upsample2d_adjoint(*c, *nx, *ny, gy, gx),
             Layer::Residual(net) => {
                 for (gx, g) in gx.iter_mut().zip(gy) {
-                    *gx += g;
+                    *gx += *g;
                 }
                 net.backprop(x, p, gy, gx, gp);
             }
             Layer::Skip(net) => {
                 let (ga, gb) = gy.split_at(x.len());
                 for (gx, g) in gx.iter_mut().zip(ga) {
-                    *gx += g;
+                    *gx += *g;
                 }
                 net.backprop(x, p, gb, gx, gp);
             }
@@ -246,7 +252,7 @@ impl Layer {
     }
 
     /// `y = layer(x)`, `ty = J_x·tx + J_p·tp` (overwrites both).
-    fn tangent(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+    fn tangent<R: Real>(&self, x: &[R], p: &[R], tx: &[R], tp: &[R], y: &mut [R], ty: &mut [R]) {
         match self {
             Layer::Dense { .. } | Layer::Conv1d(_) | Layer::Conv2d(_) => {
                 // Bilinear in (x, p): ty = layer(x; tp) + layer(tx; p without bias).
@@ -254,11 +260,11 @@ impl Layer {
                 self.forward(x, tp, ty);
                 let mut q = p.to_vec();
                 let nw = self.n_params() - self.n_out_channels();
-                q[nw..].fill(0.0);
-                let mut t = vec![0.0; ty.len()];
+                q[nw..].fill(R::zero());
+                let mut t = vec![R::zero(); ty.len()];
                 self.forward(tx, &q, &mut t);
                 for (a, b) in ty.iter_mut().zip(&t) {
-                    *a += b;
+                    *a += *b;
                 }
             }
             Layer::Act { f, .. } => {
@@ -274,8 +280,8 @@ impl Layer {
             Layer::Residual(net) => {
                 net.tangent(x, p, tx, tp, y, ty);
                 for ((y, ty), (x, t)) in y.iter_mut().zip(ty.iter_mut()).zip(x.iter().zip(tx)) {
-                    *y += x;
-                    *ty += t;
+                    *y += *x;
+                    *ty += *t;
                 }
             }
             Layer::Skip(net) => {
@@ -301,9 +307,11 @@ impl Layer {
 
     /// Distance along the tangent `tx` to the nearest kink of a relu-like
     /// activation (to first order), `∞` for smooth layers.
-    fn radius(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64]) -> f64 {
+    fn radius<R: Real>(&self, x: &[R], p: &[R], tx: &[R], tp: &[R]) -> f64 {
         match self {
-            Layer::Act { f, .. } if f.kinked() => x.iter().zip(tx).filter(|(_, t)| **t != 0.0).map(|(x, t)| (x / t).abs()).fold(f64::INFINITY, f64::min),
+            Layer::Act { f, .. } if f.kinked() => {
+                x.iter().zip(tx).filter(|(_, t)| !t.is_zero()).map(|(x, t)| (x.as_f64() / t.as_f64()).abs()).fold(f64::INFINITY, f64::min)
+            }
             Layer::Residual(net) | Layer::Skip(net) => net.radius(x, p, tx, tp),
             _ => f64::INFINITY,
         }
@@ -442,39 +450,40 @@ impl Net {
     }
 
     /// The inputs of layers `1..L` (the outputs of all but the last layer).
-    fn hidden(&self, x: &[f64], p: &[f64]) -> Vec<Vec<f64>> {
+    fn hidden<R: Real>(&self, x: &[R], p: &[R]) -> Vec<Vec<R>> {
         let last = self.layers.len() - 1;
-        let mut outs: Vec<Vec<f64>> = Vec::with_capacity(last);
+        let mut outs: Vec<Vec<R>> = Vec::with_capacity(last);
         for (k, l) in self.layers[..last].iter().enumerate() {
-            let mut y = vec![0.0; l.n_out()];
+            let mut y = vec![R::zero(); l.n_out()];
             l.forward(outs.last().map_or(x, |v| v), &p[self.range(k)], &mut y);
             outs.push(y);
         }
         outs
     }
 
-    fn forward_into(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+    fn forward_into<R: Real>(&self, x: &[R], p: &[R], y: &mut [R]) {
         let hidden = self.hidden(x, p);
         let last = self.layers.len() - 1;
         self.layers[last].forward(hidden.last().map_or(x, |v| v), &p[self.range(last)], y);
     }
 
-    fn backprop(&self, x: &[f64], p: &[f64], gy: &[f64], gx: &mut [f64], gp: &mut [f64]) {
+    fn backprop<R: Real>(&self, x: &[R], p: &[R], gy: &[R], gx: &mut [R], gp: &mut [R]) {
         let outs = self.hidden(x, p);
         let mut g = gy.to_vec();
         for k in (0..self.layers.len()).rev() {
-            let input: &[f64] = if k == 0 { x } else { &outs[k - 1] };
+            let input: &[R] = if k == 0 { x } else { &outs[k - 1] };
+            let output = outs.get(k).map(|v| v.as_slice());
             if k == 0 {
-                self.layers[0].backprop(input, &p[self.range(0)], &g, gx, &mut gp[self.range(0)]);
+                self.layers[0].backprop(input, output, &p[self.range(0)], &g, gx, &mut gp[self.range(0)]);
             } else {
-                let mut gin = vec![0.0; self.layers[k].n_in()];
-                self.layers[k].backprop(input, &p[self.range(k)], &g, &mut gin, &mut gp[self.range(k)]);
+                let mut gin = vec![R::zero(); self.layers[k].n_in()];
+                self.layers[k].backprop(input, output, &p[self.range(k)], &g, &mut gin, &mut gp[self.range(k)]);
                 g = gin;
             }
         }
     }
 
-    fn tangent(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+    fn tangent<R: Real>(&self, x: &[R], p: &[R], tx: &[R], tp: &[R], y: &mut [R], ty: &mut [R]) {
         let (mut cur, mut tcur) = (x.to_vec(), tx.to_vec());
         let last = self.layers.len() - 1;
         for (k, l) in self.layers.iter().enumerate() {
@@ -482,20 +491,20 @@ impl Net {
             if k == last {
                 l.tangent(&cur, &p[r.clone()], &tcur, &tp[r], y, ty);
             } else {
-                let (mut a, mut b) = (vec![0.0; l.n_out()], vec![0.0; l.n_out()]);
+                let (mut a, mut b) = (vec![R::zero(); l.n_out()], vec![R::zero(); l.n_out()]);
                 l.tangent(&cur, &p[r.clone()], &tcur, &tp[r], &mut a, &mut b);
                 (cur, tcur) = (a, b);
             }
         }
     }
 
-    fn radius(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64]) -> f64 {
+    fn radius<R: Real>(&self, x: &[R], p: &[R], tx: &[R], tp: &[R]) -> f64 {
         let mut r = f64::INFINITY;
         let (mut cur, mut tcur) = (x.to_vec(), tx.to_vec());
         for (k, l) in self.layers.iter().enumerate() {
             let range = self.range(k);
             r = r.min(l.radius(&cur, &p[range.clone()], &tcur, &tp[range.clone()]));
-            let (mut a, mut b) = (vec![0.0; l.n_out()], vec![0.0; l.n_out()]);
+            let (mut a, mut b) = (vec![R::zero(); l.n_out()], vec![R::zero(); l.n_out()]);
             l.tangent(&cur, &p[range.clone()], &tcur, &tp[range], &mut a, &mut b);
             (cur, tcur) = (a, b);
         }
@@ -515,31 +524,31 @@ impl Operator for Net {
     }
 }
 
-impl Forward for Net {
-    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+impl<R: Real> Forward<R> for Net {
+    fn forward(&self, x: &[R], p: &[R], y: &mut [R]) {
         validate_forward(self, "Net", x, p, y);
         crate::op::count::record("Net", crate::op::count::Method::Forward);
         self.forward_into(x, p, y);
     }
 
     /// Kinks of relu-like activations, to first order along the tangent.
-    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+    fn smooth_radius(&self, x: &[R], p: &[R], dx: &[R], dp: &[R]) -> f64 {
         // Half the first-order distance: the pre-activations are not exactly linear along the tangent.
         0.5 * self.radius(x, p, dx, dp)
     }
 }
 
-impl Vjp for Net {
-    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+impl<R: Real> Vjp<R> for Net {
+    fn vjp(&self, x: &[R], p: &[R], dy: &mut [R], dx: &mut [R], dp: &mut [R]) {
         validate_vjp(self, "Net", x, p, dy, dx, dp);
         crate::op::count::record("Net", crate::op::count::Method::Vjp);
         self.backprop(x, p, dy, dx, dp);
-        dy.fill(0.0);
+        dy.fill(R::zero());
     }
 }
 
-impl Jvp for Net {
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+impl<R: Real> Jvp<R> for Net {
+    fn jvp(&self, x: &[R], p: &[R], tx: &[R], tp: &[R], y: &mut [R], ty: &mut [R]) {
         validate_jvp(self, "Net", x, p, tx, tp, y, ty);
         crate::op::count::record("Net", crate::op::count::Method::Jvp);
         self.tangent(x, p, tx, tp, y, ty);

@@ -43,6 +43,7 @@ pub fn mlp(sizes: &[usize], act: Activation) -> Result<Net, NetError> {
 /// A small 1D residual network: a convolution to `width` channels, `blocks`
 /// residual blocks (conv, act, conv), the activation, a convolution to
 /// `c_out`.
+#[allow(clippy::too_many_arguments)]
 pub fn resnet_1d(len: usize, c_in: usize, c_out: usize, width: usize, blocks: usize, k: usize, padding: Padding, act: Activation) -> Result<Net, NetError> {
     let n = width * len;
     let mut layers = vec![conv1d(c_in, width, k, len, padding), Layer::Act { f: act, n }];
@@ -80,6 +81,7 @@ pub fn unet_1d(len: usize, c_in: usize, c_out: usize, width: usize, k: usize, pa
 }
 
 /// The 2D counterpart of [`unet_1d`] on an `nx × ny` map (both even).
+#[allow(clippy::too_many_arguments)]
 pub fn unet_2d(nx: usize, ny: usize, c_in: usize, c_out: usize, width: usize, k: usize, padding: Padding, act: Activation) -> Result<Net, NetError> {
     let (hx, hy) = (nx / 2, ny / 2);
     let down = Net::new(vec![

@@ -109,7 +109,7 @@ macro_rules! differentiable {
 
 /// The smoothness radius of a smooth operator: `∞`.
 #[doc(hidden)]
-pub fn always_smooth<O: ?Sized>(_: &O, _: &[f64], _: &[f64], _: &[f64], _: &[f64]) -> f64 {
+pub fn always_smooth<O: ?Sized, T>(_: &O, _: &[T], _: &[T], _: &[T], _: &[T]) -> f64 {
     f64::INFINITY
 }
 
@@ -144,7 +144,7 @@ fn check_len(op: &str, what: &str, got: usize, want: usize) {
 /// Checks the slice lengths of a forward call.
 #[doc(hidden)]
 #[track_caller]
-pub fn validate_forward<O: Operator + ?Sized>(op: &O, name: &str, x: &[f64], p: &[f64], y: &[f64]) {
+pub fn validate_forward<O: Operator + ?Sized, T>(op: &O, name: &str, x: &[T], p: &[T], y: &[T]) {
     check_len(name, "x", x.len(), op.n_in());
     check_len(name, "p", p.len(), op.n_params());
     check_len(name, "y", y.len(), op.n_out());
@@ -153,7 +153,7 @@ pub fn validate_forward<O: Operator + ?Sized>(op: &O, name: &str, x: &[f64], p: 
 /// Checks the slice lengths of a VJP call.
 #[doc(hidden)]
 #[track_caller]
-pub fn validate_vjp<O: Operator + ?Sized>(op: &O, name: &str, x: &[f64], p: &[f64], dy: &[f64], dx: &[f64], dp: &[f64]) {
+pub fn validate_vjp<O: Operator + ?Sized, T>(op: &O, name: &str, x: &[T], p: &[T], dy: &[T], dx: &[T], dp: &[T]) {
     check_len(name, "x", x.len(), op.n_in());
     check_len(name, "p", p.len(), op.n_params());
     check_len(name, "dy", dy.len(), op.n_out());
@@ -165,7 +165,7 @@ pub fn validate_vjp<O: Operator + ?Sized>(op: &O, name: &str, x: &[f64], p: &[f6
 #[doc(hidden)]
 #[track_caller]
 #[allow(clippy::too_many_arguments)]
-pub fn validate_jvp<O: Operator + ?Sized>(op: &O, name: &str, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &[f64], ty: &[f64]) {
+pub fn validate_jvp<O: Operator + ?Sized, T>(op: &O, name: &str, x: &[T], p: &[T], tx: &[T], tp: &[T], y: &[T], ty: &[T]) {
     check_len(name, "x", x.len(), op.n_in());
     check_len(name, "p", p.len(), op.n_params());
     check_len(name, "tx", tx.len(), op.n_in());

@@ -30,12 +30,17 @@ mod enzyme;
 mod fd;
 mod inverse;
 mod part;
+mod precision;
 pub mod stencil;
 
 pub use chain::{Chain, Effect};
 pub use fd::FiniteDiff;
 pub use inverse::{GaussNewton, LocalInverse};
 pub use part::{AddParams, Part};
+pub use precision::Float32;
+
+/// The element types operators run in: `f64` (the default) and `f32`.
+pub use diffsim_solvers::real::Real;
 
 #[doc(hidden)]
 pub use enzyme::{always_smooth, validate_forward, validate_jvp, validate_vjp, with_scratch};
@@ -52,13 +57,14 @@ pub trait Operator {
     }
 }
 
-/// Evaluation `y = f(x, p)`.
-pub trait Forward: Operator {
+/// Evaluation `y = f(x, p)` on values of type `R` (`f64` unless said
+/// otherwise; `f32` where an operator implements it, see [`Real`]).
+pub trait Forward<R: Real = f64>: Operator {
     /// Writes `y = f(x, p)` (overwrites `y`).
     ///
     /// # Panics
     /// If `x`, `p`, `y` do not have lengths `n_in`, `n_params`, `n_out`.
-    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]);
+    fn forward(&self, x: &[R], p: &[R], y: &mut [R]);
 
     /// For piecewise-smooth operators (upwind switches, clamps, cell
     /// crossings of an interpolation, relu): the largest `t` such that `f`
@@ -67,7 +73,7 @@ pub trait Forward: Operator {
     ///
     /// Gradient checks keep their finite-difference and Taylor steps inside
     /// this radius and report when no usable step fits (see [`crate::check`]).
-    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+    fn smooth_radius(&self, x: &[R], p: &[R], dx: &[R], dp: &[R]) -> f64 {
         let _ = (x, p, dx, dp);
         f64::INFINITY
     }
@@ -91,7 +97,7 @@ pub trait Forward: Operator {
     /// called once a rollout found a NaN or infinity after this step.
     /// Composites (a [`Chain`] of effects, a solver coupled to a network)
     /// name the part that produced it; others name themselves.
-    fn locate_non_finite(&self, _x: &[f64], _p: &[f64]) -> OpName {
+    fn locate_non_finite(&self, _x: &[R], _p: &[R]) -> OpName {
         self.name()
     }
 }
@@ -185,7 +191,7 @@ pub enum OpError {
 }
 
 /// Reverse mode: the vector–Jacobian product.
-pub trait Vjp: Forward {
+pub trait Vjp<R: Real = f64>: Forward<R> {
     /// Computes, at the point `(x, p)`,
     ///
     /// ```text
@@ -200,7 +206,7 @@ pub trait Vjp: Forward {
     ///
     /// # Panics
     /// If a slice length does not match the operator's sizes.
-    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]);
+    fn vjp(&self, x: &[R], p: &[R], dy: &mut [R], dx: &mut [R], dp: &mut [R]);
 
     /// Like [`Vjp::vjp`] but **overwrites** `dx` and leaves `dy` unspecified:
     ///
@@ -212,14 +218,14 @@ pub trait Vjp: Forward {
     /// two of the five passes over memory a stencil adjoint makes. The
     /// default clears `dx` and calls [`Vjp::vjp`]; implementations override it
     /// when overwriting is cheaper.
-    fn vjp_overwrite(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
-        dx.fill(0.0);
+    fn vjp_overwrite(&self, x: &[R], p: &[R], dy: &mut [R], dx: &mut [R], dp: &mut [R]) {
+        dx.fill(R::zero());
         self.vjp(x, p, dy, dx, dp);
     }
 }
 
 /// Forward mode: the Jacobian–vector product.
-pub trait Jvp: Forward {
+pub trait Jvp<R: Real = f64>: Forward<R> {
     /// Computes, at the point `(x, p)` along the tangent `(tx, tp)`,
     ///
     /// ```text
@@ -230,7 +236,7 @@ pub trait Jvp: Forward {
     ///
     /// # Panics
     /// If a slice length does not match the operator's sizes.
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]);
+    fn jvp(&self, x: &[R], p: &[R], tx: &[R], tp: &[R], y: &mut [R], ty: &mut [R]);
 }
 
 impl From<diffsim_solvers::smoke::NoConvergence> for OpError {

@@ -27,6 +27,8 @@
 /// stay in L1.
 pub const CHUNK: usize = 512;
 
+use super::Real;
+
 /// Implements [`Forward`](crate::op::Forward), [`Vjp`](crate::op::Vjp) and
 /// [`Jvp`](crate::op::Jvp) for a periodic three-point stencil operator `Op`
 /// from its pointwise map `fn(&Op, l, c, r, p, out)` (see the
@@ -34,66 +36,65 @@ pub const CHUNK: usize = 512;
 /// [`Operator`](crate::op::Operator) with `n_in == n_out ≥ 3` and is plain
 /// data. An optional `smooth_radius = g` names the operator's
 /// [`Forward::smooth_radius`](crate::op::Forward::smooth_radius).
+/// `stencil3!(f32: Op => map32)` does the same in single precision
+/// (`Forward<f32>` etc., from a map on `f32` slices).
 #[macro_export]
 macro_rules! stencil3 {
-    ($ty:ty => $f:path) => {
-        $crate::stencil3!($ty => $f, smooth_radius = $crate::op::always_smooth);
-    };
-    ($ty:ty => $f:path, smooth_radius = $radius:path) => {
+    (@impl $r:ty, $ty:ty => $f:path, $radius:path) => {
         #[allow(clippy::too_many_arguments)]
         const _: () = {
             #[::std::autodiff::autodiff_reverse(diffsim_map_vjp, Const, Duplicated, Duplicated, Duplicated, Duplicated, Duplicated)]
-            fn diffsim_map_reverse(op: &$ty, l: &[f64], c: &[f64], r: &[f64], p: &[f64], out: &mut [f64]) {
+            fn diffsim_map_reverse(op: &$ty, l: &[$r], c: &[$r], r: &[$r], p: &[$r], out: &mut [$r]) {
                 $f(op, l, c, r, p, out)
             }
 
             #[::std::autodiff::autodiff_forward(diffsim_map_jvp, Const, Dual, Dual, Dual, Dual, Dual)]
-            fn diffsim_map_forward(op: &$ty, l: &[f64], c: &[f64], r: &[f64], p: &[f64], out: &mut [f64]) {
+            fn diffsim_map_forward(op: &$ty, l: &[$r], c: &[$r], r: &[$r], p: &[$r], out: &mut [$r]) {
                 $f(op, l, c, r, p, out)
             }
 
-            impl $crate::op::Forward for $ty {
+            impl $crate::op::Forward<$r> for $ty {
                 #[track_caller]
-                fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+                fn forward(&self, x: &[$r], p: &[$r], y: &mut [$r]) {
                     $crate::op::validate_forward(self, ::std::stringify!($ty), x, p, y);
                     $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
                     $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Forward);
                     $crate::op::stencil::forward3(x, y, |l, c, r, out| $f(self, l, c, r, p, out));
                 }
 
-                fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+                fn smooth_radius(&self, x: &[$r], p: &[$r], dx: &[$r], dp: &[$r]) -> f64 {
                     $radius(self, x, p, dx, dp)
                 }
             }
 
-            impl $crate::op::Vjp for $ty {
+            impl $crate::op::Vjp<$r> for $ty {
                 #[inline(never)]
                 #[track_caller]
-                fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+                fn vjp(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
                     $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
                     $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
-                    $crate::op::stencil::vjp3::<true, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
+                    $crate::op::stencil::vjp3::<true, $r, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
                         diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g)
                     });
                 }
 
                 #[inline(never)]
                 #[track_caller]
-                fn vjp_overwrite(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+                fn vjp_overwrite(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
                     $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
                     $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
-                    $crate::op::stencil::vjp3::<false, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
+                    $crate::op::stencil::vjp3::<false, $r, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
                         diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g)
                     });
                 }
             }
 
-            impl $crate::op::Jvp for $ty {
+            impl $crate::op::Jvp<$r> for $ty {
                 #[inline(never)]
                 #[track_caller]
-                fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+                fn jvp(&self, x: &[$r], p: &[$r], tx: &[$r], tp: &[$r], y: &mut [$r], ty: &mut [$r]) {
                     $crate::op::validate_jvp(self, ::std::stringify!($ty), x, p, tx, tp, y, ty);
                     $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
                     $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Jvp);
@@ -103,6 +104,18 @@ macro_rules! stencil3 {
                 }
             }
         };
+    };
+    ($ty:ty => $f:path) => {
+        $crate::stencil3!($ty => $f, smooth_radius = $crate::op::always_smooth);
+    };
+    ($ty:ty => $f:path, smooth_radius = $radius:path) => {
+        $crate::stencil3!(@impl f64, $ty => $f, $radius);
+    };
+    (f32: $ty:ty => $f:path) => {
+        $crate::stencil3!(@impl f32, $ty => $f, $crate::op::always_smooth);
+    };
+    (f32: $ty:ty => $f:path, smooth_radius = $radius:path) => {
+        $crate::stencil3!(@impl f32, $ty => $f, $radius);
     };
 }
 
@@ -146,27 +159,27 @@ macro_rules! dispatch_generic {
 
 /// The map of a forward step.
 #[doc(hidden)]
-pub trait MapForward: FnMut(&[f64], &[f64], &[f64], &mut [f64]) {}
-impl<F: FnMut(&[f64], &[f64], &[f64], &mut [f64])> MapForward for F {}
+pub trait MapForward<R>: FnMut(&[R], &[R], &[R], &mut [R]) {}
+impl<R, F: FnMut(&[R], &[R], &[R], &mut [R])> MapForward<R> for F {}
 
 /// The map's forward-mode pass.
 #[doc(hidden)]
-pub trait MapJvp: FnMut(&[f64], &[f64], &[f64], &[f64], &[f64], &[f64], &mut [f64], &mut [f64]) {}
-impl<F: FnMut(&[f64], &[f64], &[f64], &[f64], &[f64], &[f64], &mut [f64], &mut [f64])> MapJvp for F {}
+pub trait MapJvp<R>: FnMut(&[R], &[R], &[R], &[R], &[R], &[R], &mut [R], &mut [R]) {}
+impl<R, F: FnMut(&[R], &[R], &[R], &[R], &[R], &[R], &mut [R], &mut [R])> MapJvp<R> for F {}
 
 /// `y[i] = k(x[i−1], x[i], x[i+1])` on a periodic grid, through the map `f`.
 #[doc(hidden)]
 #[inline]
-pub fn forward3<F: MapForward>(x: &[f64], y: &mut [f64], f: F) {
-    dispatch_generic!(forward3_body, [F: MapForward], x: &[f64], y: &mut [f64], f: F)
+pub fn forward3<R: Real, F: MapForward<R>>(x: &[R], y: &mut [R], f: F) {
+    dispatch_generic!(forward3_body, [R: Real, F: MapForward<R>], x: &[R], y: &mut [R], f: F)
 }
 
 #[inline(always)]
-fn forward3_body(x: &[f64], y: &mut [f64], mut f: impl MapForward) {
+fn forward3_body<R: Real>(x: &[R], y: &mut [R], mut f: impl MapForward<R>) {
     let n = x.len();
     f(&x[..n - 2], &x[1..n - 1], &x[2..], &mut y[1..n - 1]);
     for (i, il, ir) in [(0, n - 1, 1), (n - 1, n - 2, 0)] {
-        let mut out = [0.0];
+        let mut out = [R::zero()];
         f(&[x[il]], &[x[i]], &[x[ir]], &mut out);
         y[i] = out[0];
     }
@@ -176,16 +189,16 @@ fn forward3_body(x: &[f64], y: &mut [f64], mut f: impl MapForward) {
 /// state and of the tangent.
 #[doc(hidden)]
 #[inline]
-pub fn jvp3<F: MapJvp>(x: &[f64], t: &[f64], y: &mut [f64], ty: &mut [f64], f: F) {
-    dispatch_generic!(jvp3_body, [F: MapJvp], x: &[f64], t: &[f64], y: &mut [f64], ty: &mut [f64], f: F)
+pub fn jvp3<R: Real, F: MapJvp<R>>(x: &[R], t: &[R], y: &mut [R], ty: &mut [R], f: F) {
+    dispatch_generic!(jvp3_body, [R: Real, F: MapJvp<R>], x: &[R], t: &[R], y: &mut [R], ty: &mut [R], f: F)
 }
 
 #[inline(always)]
-fn jvp3_body(x: &[f64], t: &[f64], y: &mut [f64], ty: &mut [f64], mut f: impl MapJvp) {
+fn jvp3_body<R: Real>(x: &[R], t: &[R], y: &mut [R], ty: &mut [R], mut f: impl MapJvp<R>) {
     let n = x.len();
     f(&x[..n - 2], &t[..n - 2], &x[1..n - 1], &t[1..n - 1], &x[2..], &t[2..], &mut y[1..n - 1], &mut ty[1..n - 1]);
     for (i, il, ir) in [(0, n - 1, 1), (n - 1, n - 2, 0)] {
-        let (mut out, mut tout) = ([0.0], [0.0]);
+        let (mut out, mut tout) = ([R::zero()], [R::zero()]);
         f(&[x[il]], &[t[il]], &[x[i]], &[t[i]], &[x[ir]], &[t[ir]], &mut out, &mut tout);
         y[i] = out[0];
         ty[i] = tout[0];
@@ -196,54 +209,54 @@ fn jvp3_body(x: &[f64], t: &[f64], y: &mut [f64], ty: &mut [f64], mut f: impl Ma
 /// adjoints of its three inputs into `dl, dc, dr` (and of the parameters into
 /// `dp`) and consumes the seed `g`.
 #[doc(hidden)]
-pub trait MapVjp: FnMut(&[f64], &mut [f64], &[f64], &mut [f64], &[f64], &mut [f64], &mut [f64], &mut [f64], &mut [f64]) {}
-impl<F: FnMut(&[f64], &mut [f64], &[f64], &mut [f64], &[f64], &mut [f64], &mut [f64], &mut [f64], &mut [f64])> MapVjp for F {}
+pub trait MapVjp<R>: FnMut(&[R], &mut [R], &[R], &mut [R], &[R], &mut [R], &mut [R], &mut [R], &mut [R]) {}
+impl<R, F: FnMut(&[R], &mut [R], &[R], &mut [R], &[R], &mut [R], &mut [R], &mut [R], &mut [R])> MapVjp<R> for F {}
 
 /// `dx += Jᵀ·g` (`ADD`) or `dx = Jᵀ·g`, and `dp += J_pᵀ·g`, for a periodic
 /// three-point stencil, from the reverse pass of its map; consumes `g`.
 #[doc(hidden)]
 #[inline]
-pub fn vjp3<const ADD: bool, F: MapVjp>(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: F) {
+pub fn vjp3<const ADD: bool, R: Real, F: MapVjp<R>>(x: &[R], g: &mut [R], dx: &mut [R], dp: &mut [R], f: F) {
     if ADD {
-        dispatch_generic!(vjp3_add, [F: MapVjp], x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: F)
+        dispatch_generic!(vjp3_add, [R: Real, F: MapVjp<R>], x: &[R], g: &mut [R], dx: &mut [R], dp: &mut [R], f: F)
     } else {
-        dispatch_generic!(vjp3_overwrite, [F: MapVjp], x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: F)
+        dispatch_generic!(vjp3_overwrite, [R: Real, F: MapVjp<R>], x: &[R], g: &mut [R], dx: &mut [R], dp: &mut [R], f: F)
     }
 }
 
 #[inline(always)]
-fn vjp3_add(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: impl MapVjp) {
-    vjp3_body::<true>(x, g, dx, dp, f)
+fn vjp3_add<R: Real>(x: &[R], g: &mut [R], dx: &mut [R], dp: &mut [R], f: impl MapVjp<R>) {
+    vjp3_body::<true, R>(x, g, dx, dp, f)
 }
 
 #[inline(always)]
-fn vjp3_overwrite(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], f: impl MapVjp) {
-    vjp3_body::<false>(x, g, dx, dp, f)
+fn vjp3_overwrite<R: Real>(x: &[R], g: &mut [R], dx: &mut [R], dp: &mut [R], f: impl MapVjp<R>) {
+    vjp3_body::<false, R>(x, g, dx, dp, f)
 }
 
 /// Adds `src` into `dst` and zeroes `src` (one pass).
 #[inline(always)]
-fn drain_into(dst: &mut [f64], src: &mut [f64]) {
+fn drain_into<R: Real>(dst: &mut [R], src: &mut [R]) {
     for (d, s) in dst.iter_mut().zip(src.iter_mut()) {
         *d += *s;
-        *s = 0.0;
+        *s = R::zero();
     }
 }
 
 #[inline(always)]
-fn vjp3_body<const ADD: bool>(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut [f64], mut f: impl MapVjp) {
+fn vjp3_body<const ADD: bool, R: Real>(x: &[R], g: &mut [R], dx: &mut [R], dp: &mut [R], mut f: impl MapVjp<R>) {
     let n = x.len();
-    let mut buf = [0.0f64; 4 * CHUNK];
+    let mut buf = [R::zero(); 4 * CHUNK];
     let (dl, rest) = buf.split_at_mut(CHUNK);
     let (dc, rest) = rest.split_at_mut(CHUNK);
     let (dr, y) = rest.split_at_mut(CHUNK);
     if !ADD {
         // Written only by accumulation below (the wrap-around cells).
-        dx[0] = 0.0;
-        dx[n - 1] = 0.0;
+        dx[0] = R::zero();
+        dx[n - 1] = R::zero();
     }
     // Interior cells 1..n−1 in chunks: the views are plain shifts of x.
-    let mut carry = 0.0; // dr of the previous chunk's last cell, owed to dx[s]
+    let mut carry = R::zero(); // dr of the previous chunk's last cell, owed to dx[s]
     let mut s = 1;
     while s < n - 1 {
         let e = (s + CHUNK).min(n - 1);
@@ -258,7 +271,7 @@ fn vjp3_body<const ADD: bool>(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut
             // dx[s+i] = dc[i] + dl[i+1] + dr[i−1], with the chunk's edges
             // patched from its neighbours.
             let out = &mut dx[s..e];
-            out[0] = dc[0] + carry + if m > 1 { dl[1] } else { 0.0 };
+            out[0] = dc[0] + carry + if m > 1 { dl[1] } else { R::zero() };
             if m > 1 {
                 for (((o, &c), &l), &r) in out[1..m - 1].iter_mut().zip(&dc[1..m - 1]).zip(&dl[2..m]).zip(&dr[..m - 2]) {
                     *o = c + l + r;
@@ -267,9 +280,9 @@ fn vjp3_body<const ADD: bool>(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut
             }
             dx[s - 1] += dl[0];
             carry = dr[m - 1];
-            dl[..m].fill(0.0);
-            dc[..m].fill(0.0);
-            dr[..m].fill(0.0);
+            dl[..m].fill(R::zero());
+            dc[..m].fill(R::zero());
+            dr[..m].fill(R::zero());
         }
         s = e;
     }
@@ -278,11 +291,12 @@ fn vjp3_body<const ADD: bool>(x: &[f64], g: &mut [f64], dx: &mut [f64], dp: &mut
     }
     // The two boundary cells wrap around.
     for (i, il, ir) in [(0, n - 1, 1), (n - 1, n - 2, 0)] {
-        let (mut a, mut b, mut c, mut yy, mut gi) = ([0.0], [0.0], [0.0], [0.0], [g[i]]);
+        let z = R::zero();
+        let (mut a, mut b, mut c, mut yy, mut gi) = ([z], [z], [z], [z], [g[i]]);
         f(&[x[il]], &mut a, &[x[i]], &mut b, &[x[ir]], &mut c, dp, &mut yy, &mut gi);
         dx[il] += a[0];
         dx[i] += b[0];
         dx[ir] += c[0];
-        g[i] = 0.0;
+        g[i] = R::zero();
     }
 }

@@ -45,11 +45,17 @@ fn burgers_map(op: &BurgersEnzyme, l: &[f64], c: &[f64], r: &[f64], _p: &[f64], 
     burgers::step_map(&op.0, l, c, r, out)
 }
 
-fn burgers_radius<T>(_: &T, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+/// The same map in single precision (coefficients rounded to `f32`).
+fn burgers_map_f32(op: &BurgersEnzyme, l: &[f32], c: &[f32], r: &[f32], _p: &[f32], out: &mut [f32]) {
+    burgers::step_map(&op.0, l, c, r, out)
+}
+
+fn burgers_radius<T, R: crate::op::Real>(_: &T, x: &[R], _p: &[R], dx: &[R], _dp: &[R]) -> f64 {
     burgers::smooth_radius(x, dx)
 }
 
 crate::stencil3!(BurgersEnzyme => burgers_map, smooth_radius = burgers_radius);
+crate::stencil3!(f32: BurgersEnzyme => burgers_map_f32, smooth_radius = burgers_radius);
 
 /// The thin wrapper Enzyme differentiates: the solver step, unchanged.
 fn burgers_step(op: &BurgersEnzymeWholeStep, x: &[f64], _p: &[f64], y: &mut [f64]) {

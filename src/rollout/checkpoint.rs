@@ -3,7 +3,7 @@
 use std::str::FromStr;
 
 use super::{Gradient, Loss, Rollout, RolloutError, RolloutStats};
-use crate::op::Vjp;
+use crate::op::{Real, Vjp};
 
 /// How the states of a rollout are kept for its backward pass.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -92,53 +92,53 @@ impl std::fmt::Display for Checkpointing {
 }
 
 /// State of one backward pass: adjoints, buffer accounting, counters.
-struct Backward<'r, 'a, O, L> {
-    rollout: &'r Rollout<'a, O>,
+struct Backward<'r, 'a, O, L, R> {
+    rollout: &'r Rollout<'a, O, R>,
     loss: &'r L,
     n: usize,
     /// Gradient of one loss term.
-    term: Vec<f64>,
+    term: Vec<R>,
     /// Adjoint of the current state (the seed of the next VJP).
-    lam: Vec<f64>,
+    lam: Vec<R>,
     /// Buffer the next VJP overwrites.
-    lam_next: Vec<f64>,
-    dp: Vec<f64>,
+    lam_next: Vec<R>,
+    dp: Vec<R>,
     /// Recycled state buffers.
-    free: Vec<Vec<f64>>,
+    free: Vec<Vec<R>>,
     live: usize,
     stats: RolloutStats,
     /// The first step (in backward order) whose adjoint was not finite.
     non_finite: Option<usize>,
 }
 
-impl<'r, 'a, O: Vjp, L: Loss> Backward<'r, 'a, O, L> {
-    fn alloc(&mut self) -> Vec<f64> {
+impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
+    fn alloc(&mut self) -> Vec<R> {
         self.live += 1;
         self.stats.peak_states = self.stats.peak_states.max(self.live);
-        self.free.pop().unwrap_or_else(|| vec![0.0; self.n])
+        self.free.pop().unwrap_or_else(|| vec![R::zero(); self.n])
     }
 
-    fn release(&mut self, v: Vec<f64>) {
+    fn release(&mut self, v: Vec<R>) {
         self.live -= 1;
         self.free.push(v);
     }
 
     /// `y = x_{t+1}` from `x = x_t`.
-    fn step(&mut self, t: usize, x: &[f64], y: &mut [f64]) {
+    fn step(&mut self, t: usize, x: &[R], y: &mut [R]) {
         self.stats.step_evaluations += 1;
         self.rollout.op.forward(x, self.rollout.p_at(t), y);
     }
 
     /// `ℓ_t(x_t)` if step `t` has a loss term, else 0; with `seed`, its
     /// gradient is also added into `λ`.
-    fn loss_term(&mut self, t: usize, x: &[f64], seed: bool) -> f64 {
+    fn loss_term(&mut self, t: usize, x: &[R], seed: bool) -> f64 {
         if !self.loss.has_term(t, self.rollout.steps) {
             return 0.0;
         }
         let value = self.loss.term(t, x, &mut self.term);
         if seed {
             for (l, g) in self.lam.iter_mut().zip(&self.term) {
-                *l += g;
+                *l += *g;
             }
         }
         value
@@ -146,7 +146,7 @@ impl<'r, 'a, O: Vjp, L: Loss> Backward<'r, 'a, O, L> {
 
     /// `λ_t = (∂f/∂x at x_t)ᵀ·λ_{t+1} + ∂ℓ_t/∂x_t`, `dp_t += (∂f/∂p at
     /// x_t)ᵀ·λ_{t+1}`.
-    fn vjp(&mut self, t: usize, x: &[f64]) {
+    fn vjp(&mut self, t: usize, x: &[R]) {
         let r = self.rollout;
         let dp = if r.per_step {
             let np = r.op.n_params();
@@ -170,7 +170,7 @@ impl<'r, 'a, O: Vjp, L: Loss> Backward<'r, 'a, O, L> {
     }
 
     /// A new buffer holding `x_{t+k}` from `from = x_t`.
-    fn advance(&mut self, from: &[f64], t: usize, k: usize) -> Vec<f64> {
+    fn advance(&mut self, from: &[R], t: usize, k: usize) -> Vec<R> {
         let mut out = self.alloc();
         out.copy_from_slice(from);
         if k > 0 {
@@ -185,7 +185,7 @@ impl<'r, 'a, O: Vjp, L: Loss> Backward<'r, 'a, O, L> {
     }
 
     /// Reverses steps `a..b`, given `x_a`, with `s` snapshots to spare.
-    fn binomial(&mut self, a: usize, b: usize, xa: &[f64], s: usize) {
+    fn binomial(&mut self, a: usize, b: usize, xa: &[R], s: usize) {
         let t = b - a;
         if t == 1 {
             self.vjp(a, xa);
@@ -227,20 +227,32 @@ fn binom(n: usize, k: usize) -> u128 {
 /// checkpoint store and the state buffers. Reusing them (as a training loop
 /// does) saves the allocation and first-touch page faults of every call,
 /// which for a stored trajectory can cost as much as the arithmetic.
-#[derive(Debug, Default)]
-pub struct Workspace {
-    store: Vec<f64>,
-    free: Vec<Vec<f64>>,
+#[derive(Debug)]
+pub struct Workspace<R = f64> {
+    store: Vec<R>,
+    free: Vec<Vec<R>>,
 }
 
-impl Workspace {
+impl<R> Default for Workspace<R> {
+    fn default() -> Self {
+        Self { store: Vec::new(), free: Vec::new() }
+    }
+}
+
+impl<R> Workspace<R> {
     /// An empty workspace; it grows to what the rollouts run in it need.
     pub fn new() -> Self {
         Self::default()
     }
 }
 
-pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, ws: &mut Workspace, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
+pub(super) fn run<R: Real, O: Vjp<R>>(
+    r: &Rollout<'_, O, R>,
+    ws: &mut Workspace<R>,
+    x0: &[R],
+    loss: &impl Loss<R>,
+    mode: Checkpointing,
+) -> Result<Gradient<R>, RolloutError> {
     let n = x0.len();
     let steps = r.steps;
     let mut free = std::mem::take(&mut ws.free);
@@ -249,10 +261,10 @@ pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, ws: &mut Workspace, x0: &[f64], lo
         rollout: r,
         loss,
         n,
-        term: vec![0.0; n],
-        lam: vec![0.0; n],
-        lam_next: vec![0.0; n],
-        dp: vec![0.0; r.p.len()],
+        term: vec![R::zero(); n],
+        lam: vec![R::zero(); n],
+        lam_next: vec![R::zero(); n],
+        dp: vec![R::zero(); r.p.len()],
         free,
         live: 0,
         stats: RolloutStats { steps, ..Default::default() },
@@ -286,10 +298,10 @@ pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, ws: &mut Workspace, x0: &[f64], lo
             }
         }
     };
-    bw.stats.peak_state_bytes = bw.stats.peak_states * n * std::mem::size_of::<f64>();
+    bw.stats.peak_state_bytes = bw.stats.peak_states * n * std::mem::size_of::<R>();
     ws.free = std::mem::take(&mut bw.free);
     if let Some(step) = bw.non_finite {
-        return Err(RolloutError::NonFinite { pass: super::Pass::Backward, step, operator: crate::op::Forward::name(r.op) });
+        return Err(RolloutError::NonFinite { pass: super::Pass::Backward, step, operator: crate::op::Forward::<R>::name(r.op) });
     }
     Ok(Gradient { loss: value, dx0: bw.lam, dp: bw.dp, stats: bw.stats })
 }
@@ -297,11 +309,11 @@ pub(super) fn run<O: Vjp>(r: &Rollout<'_, O>, ws: &mut Workspace, x0: &[f64], lo
 /// Stores `x_0, x_k, x_2k, …` in one flat buffer during the forward pass and
 /// recomputes each segment from its checkpoint in the backward pass. With
 /// `k = 1` nothing is recomputed and each step writes straight into its slot.
-fn periodic<O: Vjp, L: Loss>(bw: &mut Backward<'_, '_, O, L>, store: &mut Vec<f64>, x0: &[f64], k: usize) -> f64 {
+fn periodic<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_, O, L, R>, store: &mut Vec<R>, x0: &[R], k: usize) -> f64 {
     let (n, steps) = (bw.n, bw.rollout.steps);
     let n_ckpt = steps.div_ceil(k).max(1);
     if store.len() < n_ckpt * n {
-        store.resize(n_ckpt * n, 0.0);
+        store.resize(n_ckpt * n, R::zero());
     }
     let store = &mut store[..n_ckpt * n];
     bw.live += n_ckpt;
@@ -318,7 +330,7 @@ fn periodic<O: Vjp, L: Loss>(bw: &mut Backward<'_, '_, O, L>, store: &mut Vec<f6
             value += bw.loss_term(t + 1, &rest[..n], false);
             continue;
         }
-        let src: &[f64] = if k == 1 { &store[t * n..(t + 1) * n] } else { &last };
+        let src: &[R] = if k == 1 { &store[t * n..(t + 1) * n] } else { &last };
         bw.step(t, src, &mut tmp);
         std::mem::swap(&mut last, &mut tmp);
         value += bw.loss_term(t + 1, &last, t + 1 == steps);
@@ -330,7 +342,7 @@ fn periodic<O: Vjp, L: Loss>(bw: &mut Backward<'_, '_, O, L>, store: &mut Vec<f6
     bw.release(tmp);
     bw.release(last);
     // Backward, segment by segment from the last.
-    let mut seg: Vec<Vec<f64>> = Vec::new();
+    let mut seg: Vec<Vec<R>> = Vec::new();
     for c in (0..n_ckpt).rev() {
         let (a, b) = (c * k, ((c + 1) * k).min(steps));
         let ckpt = &store[c * n..(c + 1) * n];
@@ -341,11 +353,11 @@ fn periodic<O: Vjp, L: Loss>(bw: &mut Backward<'_, '_, O, L>, store: &mut Vec<f6
         }
         for i in 0..b.saturating_sub(a + 1) {
             let (done, rest) = seg.split_at_mut(i);
-            let src: &[f64] = if i == 0 { ckpt } else { &done[i - 1] };
+            let src: &[R] = if i == 0 { ckpt } else { &done[i - 1] };
             bw.step(a + i, src, &mut rest[0]);
         }
         for t in (a..b).rev() {
-            let x: &[f64] = if t == a { ckpt } else { &seg[t - a - 1] };
+            let x: &[R] = if t == a { ckpt } else { &seg[t - a - 1] };
             bw.vjp(t, x);
         }
     }

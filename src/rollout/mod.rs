@@ -21,7 +21,7 @@ mod checkpoint;
 
 use thiserror::Error;
 
-use crate::op::{Forward, Vjp};
+use crate::op::{Forward, Real, Vjp};
 
 pub use checkpoint::{Checkpointing, Workspace};
 
@@ -114,20 +114,21 @@ impl std::fmt::Display for Pass {
 /// `t ∈ 1..=T` that have a term.
 ///
 /// A closure `Fn(&[f64], &mut [f64]) -> f64` is a loss on the final state
-/// only; [`AtSteps`] puts terms at listed steps.
-pub trait Loss {
+/// only; [`AtSteps`] puts terms at listed steps. States may be `f32`
+/// (`Loss<f32>`); the loss value is always `f64`.
+pub trait Loss<R = f64> {
     /// Whether step `t` (of `steps`) has a term.
     fn has_term(&self, t: usize, steps: usize) -> bool;
     /// `ℓ_t(x)`, writing `∂ℓ_t/∂x` into `grad` (overwrites); called only
     /// for steps that [`Loss::has_term`].
-    fn term(&self, t: usize, x: &[f64], grad: &mut [f64]) -> f64;
+    fn term(&self, t: usize, x: &[R], grad: &mut [R]) -> f64;
 }
 
-impl<F: Fn(&[f64], &mut [f64]) -> f64> Loss for F {
+impl<R: Real, F: Fn(&[R], &mut [R]) -> f64> Loss<R> for F {
     fn has_term(&self, t: usize, steps: usize) -> bool {
         t == steps
     }
-    fn term(&self, _t: usize, y: &[f64], grad: &mut [f64]) -> f64 {
+    fn term(&self, _t: usize, y: &[R], grad: &mut [R]) -> f64 {
         self(y, grad)
     }
 }
@@ -142,11 +143,11 @@ pub struct AtSteps<F> {
     pub f: F,
 }
 
-impl<F: Fn(usize, &[f64], &mut [f64]) -> f64> Loss for AtSteps<F> {
+impl<R: Real, F: Fn(usize, &[R], &mut [R]) -> f64> Loss<R> for AtSteps<F> {
     fn has_term(&self, t: usize, _steps: usize) -> bool {
         self.steps.contains(&t)
     }
-    fn term(&self, t: usize, x: &[f64], grad: &mut [f64]) -> f64 {
+    fn term(&self, t: usize, x: &[R], grad: &mut [R]) -> f64 {
         (self.f)(t, x, grad)
     }
 }
@@ -167,35 +168,36 @@ pub struct RolloutStats {
 
 /// Loss and gradient of a rollout.
 #[derive(Clone, Debug)]
-pub struct Gradient {
+pub struct Gradient<R = f64> {
     /// `L`.
     pub loss: f64,
     /// `∂L/∂x_0`.
-    pub dx0: Vec<f64>,
+    pub dx0: Vec<R>,
     /// `∂L/∂p`, shaped like the rollout's `p` (per step if it is).
-    pub dp: Vec<f64>,
+    pub dp: Vec<R>,
     /// Memory and recomputation of this run.
     pub stats: RolloutStats,
 }
 
-/// A rollout of `steps` steps of `op` with parameters `p`.
+/// A rollout of `steps` steps of `op` with parameters `p`, on values of
+/// type `R` (`f64` unless said otherwise).
 #[derive(Clone, Copy, Debug)]
-pub struct Rollout<'a, O> {
+pub struct Rollout<'a, O, R = f64> {
     /// The step operator.
     pub op: &'a O,
     /// Its parameters: the same at every step, or `steps` blocks of
     /// `op.n_params()`, block `t` used by the step from `x_t`.
-    pub p: &'a [f64],
+    pub p: &'a [R],
     /// Number of steps `T`.
     pub steps: usize,
     /// Whether `p` holds one block per step.
     pub per_step: bool,
 }
 
-impl<'a, O: Forward> Rollout<'a, O> {
+impl<'a, R: Real, O: Forward<R>> Rollout<'a, O, R> {
     /// A rollout of `steps` steps; checks that `op` maps states to states and
     /// that `p` has the operator's parameter length.
-    pub fn new(op: &'a O, p: &'a [f64], steps: usize) -> Result<Self, RolloutError> {
+    pub fn new(op: &'a O, p: &'a [R], steps: usize) -> Result<Self, RolloutError> {
         if op.n_in() != op.n_out() {
             return Err(RolloutError::NotAStateMap { n_in: op.n_in(), n_out: op.n_out() });
         }
@@ -208,7 +210,7 @@ impl<'a, O: Forward> Rollout<'a, O> {
     /// A rollout whose parameters change from step to step: `p` holds
     /// `steps` blocks of `op.n_params()` values, block `t` for the step
     /// `x_t → x_{t+1}`.
-    pub fn per_step(op: &'a O, p: &'a [f64], steps: usize) -> Result<Self, RolloutError> {
+    pub fn per_step(op: &'a O, p: &'a [R], steps: usize) -> Result<Self, RolloutError> {
         let mut r = Self::new(op, &p[..op.n_params().min(p.len())], steps)?;
         if p.len() != steps * op.n_params() {
             return Err(RolloutError::Length { what: Argument::P, got: p.len(), expected: steps * op.n_params() });
@@ -219,7 +221,7 @@ impl<'a, O: Forward> Rollout<'a, O> {
     }
 
     /// The parameters of the step from `x_t`.
-    pub fn p_at(&self, t: usize) -> &'a [f64] {
+    pub fn p_at(&self, t: usize) -> &'a [R] {
         if self.per_step {
             let np = self.op.n_params();
             &self.p[t * np..(t + 1) * np]
@@ -228,21 +230,21 @@ impl<'a, O: Forward> Rollout<'a, O> {
         }
     }
 
-    fn check_state(&self, x0: &[f64]) -> Result<(), RolloutError> {
+    fn check_state(&self, x0: &[R]) -> Result<(), RolloutError> {
         if x0.len() != self.op.n_in() {
             return Err(RolloutError::Length { what: Argument::X0, got: x0.len(), expected: self.op.n_in() });
         }
         Ok(())
     }
 
-    fn final_state_unchecked(&self, x0: &[f64]) -> Vec<f64> {
+    fn final_state_unchecked(&self, x0: &[R]) -> Vec<R> {
         self.run_unchecked(x0, |_, _| {})
     }
 
     /// Runs all steps, calling `visit(t, x_t)` for `t = 1..=T`.
-    fn run_unchecked(&self, x0: &[f64], mut visit: impl FnMut(usize, &[f64])) -> Vec<f64> {
+    fn run_unchecked(&self, x0: &[R], mut visit: impl FnMut(usize, &[R])) -> Vec<R> {
         let mut x = x0.to_vec();
-        let mut y = vec![0.0; x.len()];
+        let mut y = vec![R::zero(); x.len()];
         for t in 0..self.steps {
             self.op.forward(&x, self.p_at(t), &mut y);
             std::mem::swap(&mut x, &mut y);
@@ -252,10 +254,10 @@ impl<'a, O: Forward> Rollout<'a, O> {
     }
 
     /// The final state `x_T` (two state buffers, nothing stored).
-    pub fn final_state(&self, x0: &[f64]) -> Result<Vec<f64>, RolloutError> {
+    pub fn final_state(&self, x0: &[R]) -> Result<Vec<R>, RolloutError> {
         self.check_state(x0)?;
         let x = self.final_state_unchecked(x0);
-        if let Some(error) = self.op.take_error() {
+        if let Some(error) = Forward::<R>::take_error(self.op) {
             return Err(RolloutError::Operator { pass: Pass::Forward, error });
         }
         if !all_finite(&x) {
@@ -265,16 +267,16 @@ impl<'a, O: Forward> Rollout<'a, O> {
     }
 
     /// The loss without gradient.
-    pub fn loss(&self, x0: &[f64], loss: &impl Loss) -> Result<f64, RolloutError> {
+    pub fn loss(&self, x0: &[R], loss: &impl Loss<R>) -> Result<f64, RolloutError> {
         self.check_state(x0)?;
-        let mut g = vec![0.0; x0.len()];
+        let mut g = vec![R::zero(); x0.len()];
         let mut value = if self.steps == 0 && loss.has_term(0, 0) { loss.term(0, x0, &mut g) } else { 0.0 };
         let x = self.run_unchecked(x0, |t, x| {
             if loss.has_term(t, self.steps) {
                 value += loss.term(t, x, &mut g);
             }
         });
-        if let Some(error) = self.op.take_error() {
+        if let Some(error) = Forward::<R>::take_error(self.op) {
             return Err(RolloutError::Operator { pass: Pass::Forward, error });
         }
         if !all_finite(&x) || !value.is_finite() {
@@ -287,53 +289,53 @@ impl<'a, O: Forward> Rollout<'a, O> {
     /// finite and the operator that produced it (only called once something
     /// already went wrong); step `T` if every state is finite (the loss is
     /// not).
-    fn non_finite_forward(&self, x0: &[f64]) -> RolloutError {
+    fn non_finite_forward(&self, x0: &[R]) -> RolloutError {
         let mut x = x0.to_vec();
-        let mut y = vec![0.0; x.len()];
+        let mut y = vec![R::zero(); x.len()];
         for t in 0..self.steps {
             self.op.forward(&x, self.p_at(t), &mut y);
             if !all_finite(&y) {
-                return RolloutError::NonFinite { pass: Pass::Forward, step: t, operator: self.op.locate_non_finite(&x, self.p_at(t)) };
+                return RolloutError::NonFinite { pass: Pass::Forward, step: t, operator: Forward::<R>::locate_non_finite(self.op, &x, self.p_at(t)) };
             }
             std::mem::swap(&mut x, &mut y);
         }
-        RolloutError::NonFinite { pass: Pass::Forward, step: self.steps, operator: self.op.name() }
+        RolloutError::NonFinite { pass: Pass::Forward, step: self.steps, operator: Forward::<R>::name(self.op) }
     }
 }
 
-impl<O: Vjp> Rollout<'_, O> {
+impl<R: Real, O: Vjp<R>> Rollout<'_, O, R> {
     /// The loss and its gradients with respect to `x_0` and `p`, by
     /// per-step VJPs over states kept as `mode` says.
-    pub fn value_and_grad(&self, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
+    pub fn value_and_grad(&self, x0: &[R], loss: &impl Loss<R>, mode: Checkpointing) -> Result<Gradient<R>, RolloutError> {
         self.value_and_grad_in(&mut Workspace::new(), x0, loss, mode)
     }
 
     /// [`Rollout::value_and_grad`] reusing the buffers of `ws` (for repeated
     /// gradients, as in training).
-    pub fn value_and_grad_in(&self, ws: &mut Workspace, x0: &[f64], loss: &impl Loss, mode: Checkpointing) -> Result<Gradient, RolloutError> {
+    pub fn value_and_grad_in(&self, ws: &mut Workspace<R>, x0: &[R], loss: &impl Loss<R>, mode: Checkpointing) -> Result<Gradient<R>, RolloutError> {
         self.check_state(x0)?;
-        self.op.take_error();
+        Forward::<R>::take_error(self.op);
         let g = match checkpoint::run(self, ws, x0, loss, mode) {
             Err(RolloutError::NonFinite { pass: Pass::Backward, step, .. }) => {
                 // A failed solve or a NaN in the forward pass is the cause.
-                if let Some(error) = self.op.take_error() {
+                if let Some(error) = Forward::<R>::take_error(self.op) {
                     return Err(RolloutError::Operator { pass: Pass::Backward, error });
                 }
                 return Err(match self.non_finite_forward(x0) {
                     e @ RolloutError::NonFinite { step: s, .. } if s < self.steps => e,
-                    _ => RolloutError::NonFinite { pass: Pass::Backward, step, operator: self.op.name() },
+                    _ => RolloutError::NonFinite { pass: Pass::Backward, step, operator: Forward::<R>::name(self.op) },
                 });
             }
             g => g?,
         };
-        if let Some(error) = self.op.take_error() {
+        if let Some(error) = Forward::<R>::take_error(self.op) {
             return Err(RolloutError::Operator { pass: Pass::Backward, error });
         }
         if !g.loss.is_finite() {
             return Err(self.non_finite_forward(x0));
         }
         if !all_finite(&g.dx0) || !all_finite(&g.dp) {
-            return Err(RolloutError::NonFinite { pass: Pass::Backward, step: 0, operator: self.op.name() });
+            return Err(RolloutError::NonFinite { pass: Pass::Backward, step: 0, operator: Forward::<R>::name(self.op) });
         }
         Ok(g)
     }
@@ -342,16 +344,17 @@ impl<O: Vjp> Rollout<'_, O> {
 /// Whether every value is finite: `a·0` is 0 for a finite `a` and NaN
 /// otherwise, summed in eight independent lanes so that the pass
 /// vectorises (cheap enough to run once per step).
-pub fn all_finite(v: &[f64]) -> bool {
-    let mut acc = [0.0f64; 8];
-    let mut chunks = v.chunks_exact(8);
-    for c in &mut chunks {
+pub fn all_finite<R: Real>(v: &[R]) -> bool {
+    let zero = R::zero();
+    let mut acc = [zero; 8];
+    let (chunks, rest) = v.as_chunks::<8>();
+    for c in chunks {
         for k in 0..8 {
-            acc[k] += c[k] * 0.0;
+            acc[k] += c[k] * zero;
         }
     }
-    let rest = chunks.remainder().iter().fold(0.0, |s, &a| s + a * 0.0);
-    (acc.iter().sum::<f64>() + rest).is_finite()
+    let rest = rest.iter().fold(zero, |s, &a| s + a * zero);
+    (acc.iter().copied().sum::<R>() + rest).is_finite()
 }
 
 /// A whole rollout `x_0 ↦ x_T` as an operator, so that the gradient checks

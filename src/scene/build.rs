@@ -350,7 +350,7 @@ impl Builder<'_> {
                     .into_iter()
                     .map(|a| Array { range: start + a.range.start - velocity.start..start + a.range.end - velocity.start, ..a })
                     .collect();
-                for name in vec!["force.control".to_string(), at("control")] {
+                for name in ["force.control".to_string(), at("control")] {
                     if !self.controls.iter().any(|c| c.name == name) {
                         self.controls.push(Control { name, arrays: arrays.clone() });
                     }
@@ -369,7 +369,7 @@ impl Builder<'_> {
                 }
             }
             (EffectSpec::Pressure(_) | EffectSpec::Buoyancy(_) | EffectSpec::Inflow(_), Domain::Line(_)) => {
-                return Err(box_only(&table.get("kind").and_then(|v| v.as_str()).unwrap_or("this effect").to_string()));
+                return Err(box_only(table.get("kind").and_then(|v| v.as_str()).unwrap_or("this effect")));
             }
             (EffectSpec::Pressure(p), Domain::Box(cfg)) => {
                 self.need(&at("kind"), "pressure", &[Field::Velocity])?;

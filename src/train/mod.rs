@@ -20,7 +20,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+use crate::op::{Forward, Jvp, OpError, Operator, Real, Vjp, validate_forward, validate_jvp, validate_vjp};
 use crate::rollout::{AtSteps, Checkpointing, Rollout, RolloutError};
 
 pub use optim::{Optimizer, clip_by_norm};
@@ -97,11 +97,11 @@ impl TimeShares {
 /// parameters `θ`, coupled as [`Coupling`] says. Derivatives chain the two
 /// operators' own (hand-written or generated) ones.
 #[derive(Debug)]
-pub struct Coupled<'a, S, N> {
+pub struct Coupled<'a, S, N, R = f64> {
     /// The solver step (`n_in == n_out`).
     pub solver: &'a S,
     /// Its fixed parameters (unused with [`Coupling::Params`]).
-    pub solver_p: &'a [f64],
+    pub solver_p: &'a [R],
     /// The network.
     pub net: &'a N,
     /// How they are joined.
@@ -143,9 +143,9 @@ pub enum CouplingError {
     },
 }
 
-impl<'a, S: Vjp + Jvp, N: Vjp + Jvp> Coupled<'a, S, N> {
+impl<'a, R: Real, S: Vjp<R> + Jvp<R>, N: Vjp<R> + Jvp<R>> Coupled<'a, S, N, R> {
     /// Couples `solver` (with parameters `solver_p`) and `net`, checking sizes.
-    pub fn new(solver: &'a S, solver_p: &'a [f64], net: &'a N, coupling: Coupling) -> Result<Self, CouplingError> {
+    pub fn new(solver: &'a S, solver_p: &'a [R], net: &'a N, coupling: Coupling) -> Result<Self, CouplingError> {
         let n = solver.n_in();
         if solver.n_out() != n {
             return Err(CouplingError::Solver { n_in: n, n_out: solver.n_out() });
@@ -163,20 +163,20 @@ impl<'a, S: Vjp + Jvp, N: Vjp + Jvp> Coupled<'a, S, N> {
         Ok(Self { solver, solver_p, net, coupling, timers: Timers::default() })
     }
 
-    fn solve(&self, x: &[f64], s: &[f64], y: &mut [f64]) {
+    fn solve(&self, x: &[R], s: &[R], y: &mut [R]) {
         let t = Instant::now();
         self.solver.forward(x, s, y);
         Timers::add(&self.timers.solver_fwd, t);
     }
 
-    fn apply_net(&self, x: &[f64], theta: &[f64], y: &mut [f64]) {
+    fn apply_net(&self, x: &[R], theta: &[R], y: &mut [R]) {
         let t = Instant::now();
         self.net.forward(x, theta, y);
         Timers::add(&self.timers.net_fwd, t);
     }
 }
 
-impl<S: Operator, N: Operator> Operator for Coupled<'_, S, N> {
+impl<S: Operator, N: Operator, R> Operator for Coupled<'_, S, N, R> {
     fn n_in(&self) -> usize {
         self.solver.n_in()
     }
@@ -188,39 +188,39 @@ impl<S: Operator, N: Operator> Operator for Coupled<'_, S, N> {
     }
 }
 
-impl<S: Vjp + Jvp, N: Vjp + Jvp> Forward for Coupled<'_, S, N> {
-    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+impl<R: Real, S: Vjp<R> + Jvp<R>, N: Vjp<R> + Jvp<R>> Forward<R> for Coupled<'_, S, N, R> {
+    fn forward(&self, x: &[R], p: &[R], y: &mut [R]) {
         validate_forward(self, "Coupled", x, p, y);
         match self.coupling {
             Coupling::Add | Coupling::Scale => {
-                let mut v = vec![0.0; x.len()];
+                let mut v = vec![R::zero(); x.len()];
                 self.solve(x, self.solver_p, &mut v);
                 self.apply_net(&v, p, y);
                 for (y, v) in y.iter_mut().zip(&v) {
-                    *y = if self.coupling == Coupling::Add { *y + v } else { *y * v };
+                    *y = if self.coupling == Coupling::Add { *y + *v } else { *y * *v };
                 }
             }
             Coupling::Params => {
-                let mut q = vec![0.0; self.net.n_out()];
+                let mut q = vec![R::zero(); self.net.n_out()];
                 self.apply_net(x, p, &mut q);
                 self.solve(x, &q, y);
             }
         }
     }
 
-    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+    fn smooth_radius(&self, x: &[R], p: &[R], dx: &[R], dp: &[R]) -> f64 {
         let n = x.len();
         match self.coupling {
             Coupling::Add | Coupling::Scale => {
-                let zero = vec![0.0; self.solver_p.len()];
+                let zero = vec![R::zero(); self.solver_p.len()];
                 let r = self.solver.smooth_radius(x, self.solver_p, dx, &zero);
-                let (mut v, mut tv) = (vec![0.0; n], vec![0.0; n]);
+                let (mut v, mut tv) = (vec![R::zero(); n], vec![R::zero(); n]);
                 self.solver.jvp(x, self.solver_p, dx, &zero, &mut v, &mut tv);
                 r.min(self.net.smooth_radius(&v, p, &tv, dp))
             }
             Coupling::Params => {
                 let r = self.net.smooth_radius(x, p, dx, dp);
-                let (mut q, mut tq) = (vec![0.0; self.net.n_out()], vec![0.0; self.net.n_out()]);
+                let (mut q, mut tq) = (vec![R::zero(); self.net.n_out()], vec![R::zero(); self.net.n_out()]);
                 self.net.jvp(x, p, dx, dp, &mut q, &mut tq);
                 r.min(self.solver.smooth_radius(x, &q, dx, &tq))
             }
@@ -228,21 +228,21 @@ impl<S: Vjp + Jvp, N: Vjp + Jvp> Forward for Coupled<'_, S, N> {
     }
 
     /// The solver or the network, whichever first produced the non-finite value.
-    fn locate_non_finite(&self, x: &[f64], p: &[f64]) -> crate::op::OpName {
+    fn locate_non_finite(&self, x: &[R], p: &[R]) -> crate::op::OpName {
         let finite = crate::rollout::all_finite;
         match self.coupling {
             Coupling::Add | Coupling::Scale => {
-                let mut v = vec![0.0; x.len()];
+                let mut v = vec![R::zero(); x.len()];
                 self.solver.forward(x, self.solver_p, &mut v);
                 if !finite(&v) {
                     return self.solver.locate_non_finite(x, self.solver_p);
                 }
-                let mut y = vec![0.0; self.net.n_out()];
+                let mut y = vec![R::zero(); self.net.n_out()];
                 self.net.forward(&v, p, &mut y);
                 if !finite(&y) { self.net.locate_non_finite(&v, p) } else { self.name() }
             }
             Coupling::Params => {
-                let mut q = vec![0.0; self.net.n_out()];
+                let mut q = vec![R::zero(); self.net.n_out()];
                 self.net.forward(x, p, &mut q);
                 if !finite(&q) { self.net.locate_non_finite(x, p) } else { self.solver.locate_non_finite(x, &q) }
             }
@@ -254,23 +254,23 @@ impl<S: Vjp + Jvp, N: Vjp + Jvp> Forward for Coupled<'_, S, N> {
     }
 }
 
-impl<S: Vjp + Jvp, N: Vjp + Jvp> Vjp for Coupled<'_, S, N> {
-    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+impl<R: Real, S: Vjp<R> + Jvp<R>, N: Vjp<R> + Jvp<R>> Vjp<R> for Coupled<'_, S, N, R> {
+    fn vjp(&self, x: &[R], p: &[R], dy: &mut [R], dx: &mut [R], dp: &mut [R]) {
         validate_vjp(self, "Coupled", x, p, dy, dx, dp);
         let n = x.len();
         match self.coupling {
             Coupling::Add | Coupling::Scale => {
-                let mut v = vec![0.0; n];
+                let mut v = vec![R::zero(); n];
                 self.solve(x, self.solver_p, &mut v);
                 // gv = ∂y/∂v ᵀ·dy: the identity (Add) or the network's output (Scale), plus the network's VJP.
-                let mut gv = vec![0.0; n];
+                let mut gv = vec![R::zero(); n];
                 let mut seed = dy.to_vec();
                 if self.coupling == Coupling::Scale {
-                    let mut out = vec![0.0; n];
+                    let mut out = vec![R::zero(); n];
                     self.apply_net(&v, p, &mut out);
                     for ((g, s), (o, vv)) in gv.iter_mut().zip(seed.iter_mut()).zip(out.iter().zip(&v)) {
-                        *g = *s * o;
-                        *s *= vv;
+                        *g = *s * *o;
+                        *s *= *vv;
                     }
                 } else {
                     gv.copy_from_slice(dy);
@@ -278,15 +278,15 @@ impl<S: Vjp + Jvp, N: Vjp + Jvp> Vjp for Coupled<'_, S, N> {
                 let t = Instant::now();
                 self.net.vjp(&v, p, &mut seed, &mut gv, dp);
                 Timers::add(&self.timers.net_bwd, t);
-                let mut ds = vec![0.0; self.solver.n_params()];
+                let mut ds = vec![R::zero(); self.solver.n_params()];
                 let t = Instant::now();
                 self.solver.vjp(x, self.solver_p, &mut gv, dx, &mut ds);
                 Timers::add(&self.timers.solver_bwd, t);
             }
             Coupling::Params => {
-                let mut q = vec![0.0; self.net.n_out()];
+                let mut q = vec![R::zero(); self.net.n_out()];
                 self.apply_net(x, p, &mut q);
-                let mut gq = vec![0.0; q.len()];
+                let mut gq = vec![R::zero(); q.len()];
                 let t = Instant::now();
                 self.solver.vjp(x, &q, dy, dx, &mut gq);
                 Timers::add(&self.timers.solver_bwd, t);
@@ -295,32 +295,32 @@ impl<S: Vjp + Jvp, N: Vjp + Jvp> Vjp for Coupled<'_, S, N> {
                 Timers::add(&self.timers.net_bwd, t);
             }
         }
-        dy.fill(0.0);
+        dy.fill(R::zero());
     }
 }
 
-impl<S: Vjp + Jvp, N: Vjp + Jvp> Jvp for Coupled<'_, S, N> {
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+impl<R: Real, S: Vjp<R> + Jvp<R>, N: Vjp<R> + Jvp<R>> Jvp<R> for Coupled<'_, S, N, R> {
+    fn jvp(&self, x: &[R], p: &[R], tx: &[R], tp: &[R], y: &mut [R], ty: &mut [R]) {
         validate_jvp(self, "Coupled", x, p, tx, tp, y, ty);
         let n = x.len();
         match self.coupling {
             Coupling::Add | Coupling::Scale => {
-                let zero = vec![0.0; self.solver_p.len()];
-                let (mut v, mut tv) = (vec![0.0; n], vec![0.0; n]);
+                let zero = vec![R::zero(); self.solver_p.len()];
+                let (mut v, mut tv) = (vec![R::zero(); n], vec![R::zero(); n]);
                 self.solver.jvp(x, self.solver_p, tx, &zero, &mut v, &mut tv);
                 self.net.jvp(&v, p, &tv, tp, y, ty);
                 for ((y, ty), (v, tv)) in y.iter_mut().zip(ty.iter_mut()).zip(v.iter().zip(&tv)) {
                     if self.coupling == Coupling::Add {
-                        *y += v;
-                        *ty += tv;
+                        *y += *v;
+                        *ty += *tv;
                     } else {
-                        *ty = *ty * v + *y * tv;
-                        *y *= v;
+                        *ty = *ty * *v + *y * *tv;
+                        *y *= *v;
                     }
                 }
             }
             Coupling::Params => {
-                let (mut q, mut tq) = (vec![0.0; self.net.n_out()], vec![0.0; self.net.n_out()]);
+                let (mut q, mut tq) = (vec![R::zero(); self.net.n_out()], vec![R::zero(); self.net.n_out()]);
                 self.net.jvp(x, p, tx, tp, &mut q, &mut tq);
                 self.solver.jvp(x, &q, tx, &tq, y, ty);
             }
@@ -330,26 +330,27 @@ impl<S: Vjp + Jvp, N: Vjp + Jvp> Jvp for Coupled<'_, S, N> {
 
 /// One training sample: an initial state and the targets at the loss steps.
 #[derive(Clone, Debug)]
-pub struct Sample {
+pub struct Sample<R = f64> {
     /// The state the unroll starts from.
-    pub x0: Vec<f64>,
+    pub x0: Vec<R>,
     /// One target per loss step, in the order of the steps.
-    pub targets: Vec<Vec<f64>>,
+    pub targets: Vec<Vec<R>>,
 }
 
 /// The mean loss and its gradient over a mini-batch: each sample is
 /// unrolled `unroll` steps of `op` from its `x0`, with the loss
 /// `mean over loss_steps and values of (x_t − target_t)²`, and the batch
 /// mean is taken. Samples run in parallel (rayon); the sum runs in sample
-/// order, so the result is the same for any number of threads.
-pub fn batch_gradient<O: Vjp + Sync>(
+/// order, so the result is the same for any number of threads. In `f32`
+/// the loss is summed in `f64`, the gradient in `f32`.
+pub fn batch_gradient<R: Real, O: Vjp<R> + Sync>(
     op: &O,
-    theta: &[f64],
+    theta: &[R],
     unroll: usize,
     loss_steps: &[usize],
-    batch: &[Sample],
+    batch: &[Sample<R>],
     mode: Checkpointing,
-) -> Result<(f64, Vec<f64>), RolloutError> {
+) -> Result<(f64, Vec<R>), RolloutError> {
     let rollout = Rollout::new(op, theta, unroll)?;
     let scale = 1.0 / (loss_steps.len() * op.n_out()) as f64;
     let per_sample: Vec<_> = batch
@@ -357,13 +358,14 @@ pub fn batch_gradient<O: Vjp + Sync>(
         .map(|s| {
             let loss = AtSteps {
                 steps: loss_steps.to_vec(),
-                f: |t: usize, x: &[f64], g: &mut [f64]| {
+                f: |t: usize, x: &[R], g: &mut [R]| {
                     let i = loss_steps.iter().position(|&k| k == t).expect("a listed step");
                     let mut v = 0.0;
-                    for ((g, x), r) in g.iter_mut().zip(x).zip(&s.targets[i]) {
+                    let two_scale = R::of(2.0 * scale);
+                    for ((g, &x), &r) in g.iter_mut().zip(x).zip(&s.targets[i]) {
                         let d = x - r;
-                        *g = 2.0 * scale * d;
-                        v += scale * d * d;
+                        *g = two_scale * d;
+                        v += scale * (d * d).as_f64();
                     }
                     v
                 },
@@ -371,18 +373,19 @@ pub fn batch_gradient<O: Vjp + Sync>(
             rollout.value_and_grad(&s.x0, &loss, mode)
         })
         .collect();
-    let mut grad = vec![0.0; theta.len()];
+    let mut grad = vec![R::zero(); theta.len()];
     let mut total = 0.0;
     for g in per_sample {
         let g = g?;
         total += g.loss;
         for (a, b) in grad.iter_mut().zip(&g.dp) {
-            *a += b;
+            *a += *b;
         }
     }
     let b = batch.len().max(1) as f64;
+    let inv = R::of(1.0 / b);
     for a in &mut grad {
-        *a /= b;
+        *a *= inv;
     }
     Ok((total / b, grad))
 }

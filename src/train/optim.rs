@@ -4,6 +4,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::op::Real;
+
 /// An optimizer and its state.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -62,17 +64,19 @@ impl Optimizer {
         }
     }
 
-    /// One update of `p` along the gradient `g`.
+    /// One update of `p` along the gradient `g`. For `f32` parameters the
+    /// state (velocity, moments) and the update are computed in `f64` and
+    /// the result rounded once.
     ///
     /// # Panics
     /// If `g` and `p` differ in length, or the state was made for another length.
-    pub fn step(&mut self, p: &mut [f64], g: &[f64]) {
+    pub fn step<R: Real>(&mut self, p: &mut [R], g: &[R]) {
         assert_eq!(p.len(), g.len(), "optimizer: parameters and gradient differ in length");
         match self {
             Optimizer::Sgd { lr, momentum, velocity } => {
                 if *momentum == 0.0 {
                     for (p, g) in p.iter_mut().zip(g) {
-                        *p -= *lr * g;
+                        *p = R::of(p.as_f64() - *lr * g.as_f64());
                     }
                     return;
                 }
@@ -81,8 +85,8 @@ impl Optimizer {
                 }
                 assert_eq!(velocity.len(), p.len(), "optimizer state is for another parameter count");
                 for ((p, g), v) in p.iter_mut().zip(g).zip(velocity.iter_mut()) {
-                    *v = *momentum * *v + g;
-                    *p -= *lr * *v;
+                    *v = *momentum * *v + g.as_f64();
+                    *p = R::of(p.as_f64() - *lr * *v);
                 }
             }
             Optimizer::Adam { lr, beta1, beta2, eps, m, v, t } => {
@@ -95,9 +99,10 @@ impl Optimizer {
                 let c1 = 1.0 - beta1.powi(*t as i32);
                 let c2 = 1.0 - beta2.powi(*t as i32);
                 for (((p, g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
+                    let g = g.as_f64();
                     *m = *beta1 * *m + (1.0 - *beta1) * g;
                     *v = *beta2 * *v + (1.0 - *beta2) * g * g;
-                    *p -= *lr * (*m / c1) / ((*v / c2).sqrt() + *eps);
+                    *p = R::of(p.as_f64() - *lr * (*m / c1) / ((*v / c2).sqrt() + *eps));
                 }
             }
         }
