@@ -62,6 +62,11 @@
 //! operator's [`op::LocalInverse`] (exact, regularised, or a Gauss-Newton
 //! step with [`op::GaussNewton`]) to give the network its target.
 //!
+//! **Precision.** Operators, rollouts and training run in `f64` by default
+//! and in `f32` where an operator implements `Forward<f32>` (networks, the
+//! Burgers step; see [`op::Real`]); [`op::Float32`] runs an `f32` network
+//! inside an `f64` rollout (mixed precision). [`train::p3`] times all three.
+//!
 //! **6. Know what accuracy costs** ([`accuracy`]): the schemes against exact
 //! solutions (Cole–Hopf Burgers, Taylor–Green, heat modes, translation),
 //! observed orders of convergence, error versus time and memory with the
