@@ -169,5 +169,16 @@ fn nn_layers(c: &mut Criterion) {
     g.bench_function("conv1d_32x32_k5_forward", |b| b.iter(|| hand.forward(&x, &p, std::hint::black_box(&mut y))));
     g.bench_function("conv1d_32x32_k5_vjp_hand", |b| b.iter(|| vjp_of(&hand, &x, &p, &mut dx, &mut dp)));
     g.bench_function("conv1d_32x32_k5_vjp_enzyme", |b| b.iter(|| vjp_of(&enz, &x, &p, &mut dx, &mut dp)));
+    // conv2d: the blocked kernels against the plain loops they replaced.
+    use diffsim_solvers::nn as kernel;
+    let s = diffsim::nn::Conv2d { c_in: 16, c_out: 16, k: 3, nx: 32, ny: 32, padding: Padding::Zero };
+    let w: Vec<f64> = (0..s.n_weights()).map(|k| ((k as f64) * 0.37).sin() * 0.1).collect();
+    let b = vec![0.1; 16];
+    let x: Vec<f64> = (0..16 * 32 * 32).map(|k| ((k as f64) * 0.11).cos()).collect();
+    let (mut y, mut gx, mut gw, mut gb) = (vec![0.0; x.len()], vec![0.0; x.len()], vec![0.0; w.len()], vec![0.0; 16]);
+    g.bench_function("conv2d_16x16_k3_32x32_forward", |bch| bch.iter(|| kernel::conv2d(&s, &w, &b, &x, std::hint::black_box(&mut y))));
+    g.bench_function("conv2d_16x16_k3_32x32_forward_plain", |bch| bch.iter(|| kernel::conv2d_simple(&s, &w, &b, &x, std::hint::black_box(&mut y))));
+    g.bench_function("conv2d_16x16_k3_32x32_vjp", |bch| bch.iter(|| kernel::conv2d_adjoint(&s, &w, &x, &y, &mut gx, &mut gw, &mut gb)));
+    g.bench_function("conv2d_16x16_k3_32x32_vjp_plain", |bch| bch.iter(|| kernel::conv2d_adjoint_simple(&s, &w, &x, &y, &mut gx, &mut gw, &mut gb)));
     g.finish();
 }

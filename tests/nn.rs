@@ -404,8 +404,52 @@ fn blocked_conv1d_matches_plain<R: diffsim::op::Real>(tol: f64) {
     }
 }
 
+/// The blocked conv2d kernels against the plain loops in precision `R`,
+/// to `tol` relative (the sums run in another order).
+fn blocked_conv2d_matches_plain<R: diffsim::op::Real>(tol: f64) {
+    use diffsim_solvers::nn as kernel;
+    let r = |v: Vec<f64>| v.into_iter().map(R::of).collect::<Vec<R>>();
+    let close = |a: &[R], b: &[R], what: &str| {
+        for (a, b) in a.iter().zip(b) {
+            let (a, b) = (a.as_f64(), b.as_f64());
+            assert!((a - b).abs() <= tol * (1.0 + b.abs()), "{} {what}: {a} vs {b}", R::NAME);
+        }
+    };
+    let mut case = 0u64;
+    // Non-square maps, odd and even sizes, kernels wider than the map, both
+    // paddings, channel counts around the vector blocks.
+    let maps: Vec<usize> = vec![1, 2, 5, 8, 13, 32];
+    for &nx in &maps {
+        for (m, &ny) in maps.iter().enumerate() {
+            for &k in &[1usize, 3, 5] {
+                case += 1;
+                let padding = if case % 2 == 0 { Padding::Periodic } else { Padding::Zero };
+                let (c_in, c_out) = ([1usize, 3, 8][m % 3], [2usize, 9, 17][(m + k) % 3]);
+                let s = Conv2d { c_in, c_out, k, nx, ny, padding };
+                let w = r(state(s.n_weights(), case));
+                let b = r(state(c_out, case + 100));
+                let x = r(state(c_in * nx * ny, case + 200));
+                let (mut y, mut y_ref) = (vec![R::zero(); c_out * nx * ny], vec![R::zero(); c_out * nx * ny]);
+                kernel::conv2d(&s, &w, &b, &x, &mut y);
+                kernel::conv2d_simple(&s, &w, &b, &x, &mut y_ref);
+                close(&y, &y_ref, &format!("conv2d forward {s:?}"));
+                let gy = r(state(c_out * nx * ny, case + 300));
+                let (mut gx, mut gw, mut gb) = (r(state(c_in * nx * ny, 1)), r(state(s.n_weights(), 2)), r(state(c_out, 3)));
+                let (mut gx_ref, mut gw_ref, mut gb_ref) = (gx.clone(), gw.clone(), gb.clone());
+                kernel::conv2d_adjoint(&s, &w, &x, &gy, &mut gx, &mut gw, &mut gb);
+                kernel::conv2d_adjoint_simple(&s, &w, &x, &gy, &mut gx_ref, &mut gw_ref, &mut gb_ref);
+                close(&gx, &gx_ref, &format!("conv2d gx {s:?}"));
+                close(&gw, &gw_ref, &format!("conv2d gw {s:?}"));
+                close(&gb, &gb_ref, &format!("conv2d gb {s:?}"));
+            }
+        }
+    }
+}
+
 #[test]
-fn blocked_conv1d_kernels_match_the_plain_loops() {
+fn blocked_conv_kernels_match_the_plain_loops() {
+    blocked_conv2d_matches_plain::<f64>(1e-12);
+    blocked_conv2d_matches_plain::<f32>(2e-5);
     blocked_conv1d_matches_plain::<f64>(1e-12);
     // f32: the sums run in another order in the adjoint; a few ulps of a
     // sum of up to 33·9 products of size ~1.

@@ -121,7 +121,7 @@ impl Conv1d {
 pub fn conv1d<R: Real>(s: &Conv1d, w: &[R], b: &[R], x: &[R], y: &mut [R]) {
     assert!(w.len() >= s.n_weights() && b.len() >= s.c_out && x.len() >= s.c_in * s.len && y.len() >= s.c_out * s.len, "conv1d: lengths");
     let xp = pad(s, s.c_in, x);
-    let taps = Taps { base: 0, q: (s.c_in * s.k) as isize, r: s.k as isize, t: 1 };
+    let taps = Taps { base: 0, q: (s.c_in * s.k) as isize, r: s.k as isize, t: 1, inp: s.len + s.k - 1, out: s.len };
     R::correlate(s.len, s.k, s.c_out, s.c_in, w, taps, Some(b), &xp, y, false);
 }
 
@@ -138,15 +138,18 @@ pub fn conv1d_adjoint<R: Real>(s: &Conv1d, w: &[R], x: &[R], gy: &[R], gx: &mut 
     }
     // gx[c][m] += Σ_o Σ_t w[o][c][k−1−t]·gyp[o][m + t].
     let gyp = pad(s, s.c_out, gy);
-    let taps = Taps { base: (k - 1) as isize, q: k as isize, r: (s.c_in * k) as isize, t: -1 };
+    let taps = Taps { base: (k - 1) as isize, q: k as isize, r: (s.c_in * k) as isize, t: -1, inp: n + k - 1, out: n };
     R::correlate(n, k, s.c_in, s.c_out, w, taps, None, &gyp, gx, true);
     // gw[o][c][t] += Σ_i gy[o][i]·xp[c][i + t].
     let xp = pad(s, s.c_in, x);
-    R::weight_gradient(s, gy, &xp, gw);
+    let wg = WeightGrad { n, k, c_in: s.c_in, c_out: s.c_out, gy: n, xp: n + k - 1, gw_o: s.c_in * k, gw_c: k, gw_base: 0 };
+    R::weight_gradient(&wg, gy, &xp, gw);
 }
 
-/// Where weight `(q, r, t)` of a correlation sits: `base + q·q + r·r + t·t`
-/// (an argument of [`Real`]'s kernel hooks; not for use outside).
+/// Where weight `(q, r, t)` of a correlation sits (`base + q·q + r·r +
+/// t·t`) and how far apart the rows of its input (`inp`, per `r`) and output
+/// (`out`, per `q`) are (an argument of [`Real`]'s kernel hooks; not for use
+/// outside).
 #[doc(hidden)]
 #[derive(Clone, Copy, Debug)]
 pub struct Taps {
@@ -154,6 +157,33 @@ pub struct Taps {
     q: isize,
     r: isize,
     t: isize,
+    inp: usize,
+    out: usize,
+}
+
+/// The shape of a weight gradient `gw[o][c][t] += Σ_i gy[o][i]·xp[c][i + t]`
+/// for `i < n`, `t < k`: rows of `gy` `gy` apart, of `xp` `xp` apart, and
+/// weight `(o, c, t)` at `gw_base + o·gw_o + c·gw_c + t` (an argument of
+/// [`Real`]'s kernel hooks; not for use outside).
+#[doc(hidden)]
+#[derive(Clone, Copy, Debug)]
+pub struct WeightGrad {
+    n: usize,
+    k: usize,
+    c_in: usize,
+    c_out: usize,
+    gy: usize,
+    xp: usize,
+    gw_o: usize,
+    gw_c: usize,
+    gw_base: usize,
+}
+
+impl WeightGrad {
+    #[inline(always)]
+    fn at(&self, o: usize, c: usize, t: usize) -> usize {
+        self.gw_base + o * self.gw_o + c * self.gw_c + t
+    }
 }
 
 impl Taps {
@@ -211,7 +241,7 @@ macro_rules! kernels_for {
             pub(crate) fn $correlate(n: usize, k: usize, nq: usize, nr: usize, w: &[$t], taps: Taps, bias: Option<&[$t]>, inp: &[$t], out: &mut [$t], add: bool) => correlate_body::<$t>
         }
         crate::simd_dispatch! {
-            pub(crate) fn $weight_gradient(s: &Conv1d, gy: &[$t], xp: &[$t], gw: &mut [$t]) => weight_gradient_body::<$t>
+            pub(crate) fn $weight_gradient(s: &WeightGrad, gy: &[$t], xp: &[$t], gw: &mut [$t]) => weight_gradient_body::<$t>
         }
         crate::simd_dispatch! {
             pub(crate) fn $tanh(x: &[$t], y: &mut [$t]) => tanh_slice_body::<$t>
@@ -222,7 +252,8 @@ kernels_for!(f64, correlate_f64, weight_gradient_f64, tanh_slice_f64);
 kernels_for!(f32, correlate_f32, weight_gradient_f32, tanh_slice_f32);
 
 /// `out[q][i] (= or +=) bias[q] + Σ_r Σ_t W(q, r, t)·inp[r][i + t]` for
-/// `q < nq`, `r < nr`, `t < k`, `i < n`, with `inp` rows of `n + k − 1`.
+/// `q < nq`, `r < nr`, `t < k`, `i < n`, with input rows `taps.inp` and
+/// output rows `taps.out` apart.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn correlate_body<R: Real>(n: usize, k: usize, nq: usize, nr: usize, w: &[R], taps: Taps, bias: Option<&[R]>, inp: &[R], out: &mut [R], add: bool) {
@@ -276,15 +307,15 @@ fn correlate_rows<R: Real, const K: usize, const Q: usize>(
     let mut i0 = 0;
     // At most sixteen accumulators: four vectors for up to four rows.
     while Q <= 4 && i0 + 4 * l <= n {
-        correlate_tile::<R, K, Q, 4>(n, nr, w, taps, bias, inp, out, add, q0, i0);
+        correlate_tile::<R, K, Q, 4>(nr, w, taps, bias, inp, out, add, q0, i0);
         i0 += 4 * l;
     }
     while i0 + 2 * l <= n {
-        correlate_tile::<R, K, Q, 2>(n, nr, w, taps, bias, inp, out, add, q0, i0);
+        correlate_tile::<R, K, Q, 2>(nr, w, taps, bias, inp, out, add, q0, i0);
         i0 += 2 * l;
     }
     if i0 + l <= n {
-        correlate_tile::<R, K, Q, 1>(n, nr, w, taps, bias, inp, out, add, q0, i0);
+        correlate_tile::<R, K, Q, 1>(nr, w, taps, bias, inp, out, add, q0, i0);
         i0 += l;
     }
     correlate_scalar(n, K, q0..q0 + Q, i0, nr, w, taps, bias, inp, out, add);
@@ -297,7 +328,6 @@ fn correlate_rows<R: Real, const K: usize, const Q: usize>(
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn correlate_tile<R: Real, const K: usize, const Q: usize, const P: usize>(
-    n: usize,
     nr: usize,
     w: &[R],
     taps: Taps,
@@ -308,13 +338,13 @@ fn correlate_tile<R: Real, const K: usize, const Q: usize, const P: usize>(
     q0: usize,
     i0: usize,
 ) {
-    let (l, np) = (R::LANES, n + K - 1);
+    let (l, np, no) = (R::LANES, taps.inp, taps.out);
     let zero = R::splat(R::zero());
     let mut acc = [[zero; P]; Q];
     for (q, aq) in acc.iter_mut().enumerate() {
         let b = R::splat(bias.map_or(R::zero(), |b| b[q0 + q]));
         for (p, a) in aq.iter_mut().enumerate() {
-            let at = (q0 + q) * n + i0 + l * p;
+            let at = (q0 + q) * no + i0 + l * p;
             let start = if add { R::load(&out[at..at + l]) } else { zero };
             *a = start + b;
         }
@@ -335,7 +365,7 @@ fn correlate_tile<R: Real, const K: usize, const Q: usize, const P: usize>(
     }
     for (q, aq) in acc.iter().enumerate() {
         for (p, a) in aq.iter().enumerate() {
-            let at = (q0 + q) * n + i0 + l * p;
+            let at = (q0 + q) * no + i0 + l * p;
             R::store(*a, &mut out[at..at + l]);
         }
     }
@@ -357,23 +387,23 @@ fn correlate_scalar<R: Real>(
     out: &mut [R],
     add: bool,
 ) {
-    let np = n + k - 1;
+    let (np, no) = (taps.inp, taps.out);
     for q in qs {
         for i in i0..n {
-            let mut a = if add { out[q * n + i] } else { R::zero() } + bias.map_or(R::zero(), |b| b[q]);
+            let mut a = if add { out[q * no + i] } else { R::zero() } + bias.map_or(R::zero(), |b| b[q]);
             for r in 0..nr {
                 for t in 0..k {
                     a += w[taps.at(q, r, t)] * inp[r * np + i + t];
                 }
             }
-            out[q * n + i] = a;
+            out[q * no + i] = a;
         }
     }
 }
 
-/// `gw[o][c][t] += Σ_i gy[o][i]·xp[c][i + t]`.
+/// `gw[o][c][t] += Σ_i gy[o][i]·xp[c][i + t]` (shape and strides in `s`).
 #[inline(always)]
-fn weight_gradient_body<R: Real>(s: &Conv1d, gy: &[R], xp: &[R], gw: &mut [R]) {
+fn weight_gradient_body<R: Real>(s: &WeightGrad, gy: &[R], xp: &[R], gw: &mut [R]) {
     match s.k {
         3 => weight_gradient_k::<R, 3>(s, gy, xp, gw),
         5 => weight_gradient_k::<R, 5>(s, gy, xp, gw),
@@ -387,46 +417,45 @@ fn weight_gradient_body<R: Real>(s: &Conv1d, gy: &[R], xp: &[R], gw: &mut [R]) {
 /// channels summed over the positions in registers, and added into `gw` at
 /// the end.
 #[inline(always)]
-fn weight_gradient_k<R: Real, const K: usize>(s: &Conv1d, gy: &[R], xp: &[R], gw: &mut [R]) {
-    let (n, co, l) = (s.len, s.c_out, R::LANES);
-    let np = n + K - 1;
+fn weight_gradient_k<R: Real, const K: usize>(s: &WeightGrad, gy: &[R], xp: &[R], gw: &mut [R]) {
+    let (n, co, l) = (s.n, s.c_out, R::LANES);
     let full = co - co % l;
     let mut gyt = vec![R::zero(); n * full];
     for o in 0..full {
         for i in 0..n {
-            gyt[i * full + o] = gy[o * n + i];
+            gyt[i * full + o] = gy[o * s.gy + i];
         }
     }
     let mut o0 = 0;
     while o0 + 4 * l <= full {
-        weight_gradient_tile::<R, K, 4>(s, &gyt, full, o0, xp, np, gw);
+        weight_gradient_tile::<R, K, 4>(s, &gyt, full, o0, xp, gw);
         o0 += 4 * l;
     }
     if o0 + 2 * l <= full {
-        weight_gradient_tile::<R, K, 2>(s, &gyt, full, o0, xp, np, gw);
+        weight_gradient_tile::<R, K, 2>(s, &gyt, full, o0, xp, gw);
         o0 += 2 * l;
     }
     if o0 + l <= full {
-        weight_gradient_tile::<R, K, 1>(s, &gyt, full, o0, xp, np, gw);
+        weight_gradient_tile::<R, K, 1>(s, &gyt, full, o0, xp, gw);
     }
     weight_gradient_scalar(s, full..co, gy, xp, gw);
 }
 
 #[inline(always)]
-fn weight_gradient_tile<R: Real, const K: usize, const V: usize>(s: &Conv1d, gyt: &[R], stride: usize, o0: usize, xp: &[R], np: usize, gw: &mut [R]) {
-    let (n, ci, l) = (s.len, s.c_in, R::LANES);
+fn weight_gradient_tile<R: Real, const K: usize, const V: usize>(s: &WeightGrad, gyt: &[R], stride: usize, o0: usize, xp: &[R], gw: &mut [R]) {
+    let (n, ci, l) = (s.n, s.c_in, R::LANES);
     let zero = R::splat(R::zero());
     let mut lanes = [R::zero(); 16];
     for c in 0..ci {
-        let row = &xp[c * np..(c + 1) * np];
+        let row = &xp[c * s.xp..c * s.xp + n + K - 1];
         let mut acc = [[zero; V]; K];
         for i in 0..n {
             let g = &gyt[i * stride + o0..i * stride + o0 + l * V];
             let gs: [R::V; V] = std::array::from_fn(|v| R::load(&g[l * v..l * (v + 1)]));
-            for t in 0..K {
+            for (t, at) in acc.iter_mut().enumerate() {
                 let xv = R::splat(row[i + t]);
-                for v in 0..V {
-                    acc[t][v] += gs[v] * xv;
+                for (a, g) in at.iter_mut().zip(&gs) {
+                    *a += *g * xv;
                 }
             }
         }
@@ -434,7 +463,7 @@ fn weight_gradient_tile<R: Real, const K: usize, const V: usize>(s: &Conv1d, gyt
             for (v, a) in at.iter().enumerate() {
                 R::store(*a, &mut lanes[..l]);
                 for (j, &val) in lanes[..l].iter().enumerate() {
-                    gw[((o0 + l * v + j) * ci + c) * K + t] += val;
+                    gw[s.at(o0 + l * v + j, c, t)] += val;
                 }
             }
         }
@@ -443,15 +472,14 @@ fn weight_gradient_tile<R: Real, const K: usize, const V: usize>(s: &Conv1d, gyt
 
 /// Output channels `os` of the weight gradient, one weight at a time.
 #[inline(always)]
-fn weight_gradient_scalar<R: Real>(s: &Conv1d, os: std::ops::Range<usize>, gy: &[R], xp: &[R], gw: &mut [R]) {
-    let (n, k) = (s.len, s.k);
-    let np = n + k - 1;
+fn weight_gradient_scalar<R: Real>(s: &WeightGrad, os: std::ops::Range<usize>, gy: &[R], xp: &[R], gw: &mut [R]) {
+    let (n, k) = (s.n, s.k);
     for o in os {
-        let g = &gy[o * n..(o + 1) * n];
+        let g = &gy[o * s.gy..o * s.gy + n];
         for c in 0..s.c_in {
-            let row = &xp[c * np..(c + 1) * np];
+            let row = &xp[c * s.xp..c * s.xp + n + k - 1];
             for t in 0..k {
-                gw[(o * s.c_in + c) * k + t] += dot(g, &row[t..t + n]);
+                gw[s.at(o, c, t)] += dot(g, &row[t..t + n]);
             }
         }
     }
@@ -560,8 +588,124 @@ fn wrap(i: usize, t: usize, k: usize, n: usize, padding: Padding) -> Option<usiz
     }
 }
 
-/// `y[o][j][i] = b[o] + Σ_c Σ_{ty,tx} w[o][c][ty][tx]·x[c][j+ty−k/2][i+tx−k/2]`.
+/// `y[o][j][i] = b[o] + Σ_c Σ_{ty,tx} w[o][c][ty][tx]·x[c][j+ty−k/2][i+tx−k/2]`
+/// (overwrites `y`).
+///
+/// The input is padded once to `(ny + k − 1) × (nx + k − 1)` per channel
+/// and read as one long row (`ny` padded rows back to back): for each kernel
+/// row `ty` the sum over channels and `tx` is then the 1D blocked
+/// correlation of [`conv1d`] over `ny·(nx + k − 1)` positions shifted by
+/// `ty` rows, whose outputs in the `k − 1` padding columns of each row are
+/// computed and dropped. The sums run in another order than
+/// [`conv2d_simple`] (equal to rounding, tested).
 pub fn conv2d<R: Real>(s: &Conv2d, w: &[R], b: &[R], x: &[R], y: &mut [R]) {
+    let (nx, ny, k) = (s.nx, s.ny, s.k);
+    assert!(w.len() >= s.n_weights() && b.len() >= s.c_out && x.len() >= s.c_in * nx * ny && y.len() >= s.c_out * nx * ny, "conv2d: lengths");
+    let g = Grid2::new(s);
+    let xp = g.pad(s, s.c_in, x);
+    let mut yp = vec![R::zero(); s.c_out * g.len];
+    for ty in 0..k {
+        let taps = Taps { base: (ty * k) as isize, q: (s.c_in * k * k) as isize, r: (k * k) as isize, t: 1, inp: g.stride, out: g.len };
+        R::correlate(g.len, k, s.c_out, s.c_in, w, taps, (ty == 0).then_some(b), &xp[ty * g.npx..], &mut yp, ty > 0);
+    }
+    for o in 0..s.c_out {
+        for j in 0..ny {
+            y[(o * ny + j) * nx..(o * ny + j + 1) * nx].copy_from_slice(&yp[o * g.len + j * g.npx..o * g.len + j * g.npx + nx]);
+        }
+    }
+}
+
+/// Adjoint of [`conv2d`] (adds into `gx`, `gw`, `gb`): the input gradient
+/// is the forward kernel on the padded `gy` with the flipped, transposed
+/// weights, the weight gradient the 1D one over the long rows, both in the
+/// layout of [`conv2d`].
+pub fn conv2d_adjoint<R: Real>(s: &Conv2d, w: &[R], x: &[R], gy: &[R], gx: &mut [R], gw: &mut [R], gb: &mut [R]) {
+    let (nx, ny, k) = (s.nx, s.ny, s.k);
+    assert!(w.len() >= s.n_weights() && gw.len() >= s.n_weights() && gb.len() >= s.c_out, "conv2d_adjoint: lengths");
+    assert!(x.len() >= s.c_in * nx * ny && gx.len() >= s.c_in * nx * ny && gy.len() >= s.c_out * nx * ny, "conv2d_adjoint: lengths");
+    let g = Grid2::new(s);
+    for o in 0..s.c_out {
+        gb[o] += gy[o * nx * ny..(o + 1) * nx * ny].iter().copied().sum::<R>();
+    }
+    // gx[c][m] = Σ_o Σ_{ty,tx} w[o][c][k−1−ty][k−1−tx]·gyp[o][m + ty·npx + tx].
+    let gyp = g.pad(s, s.c_out, gy);
+    let mut gxp = vec![R::zero(); s.c_in * g.len];
+    for ty in 0..k {
+        let base = ((k - 1 - ty) * k + k - 1) as isize;
+        let taps = Taps { base, q: (k * k) as isize, r: (s.c_in * k * k) as isize, t: -1, inp: g.stride, out: g.len };
+        R::correlate(g.len, k, s.c_in, s.c_out, w, taps, None, &gyp[ty * g.npx..], &mut gxp, ty > 0);
+    }
+    for c in 0..s.c_in {
+        for j in 0..ny {
+            let src = &gxp[c * g.len + j * g.npx..c * g.len + j * g.npx + nx];
+            for (a, &v) in gx[(c * ny + j) * nx..(c * ny + j + 1) * nx].iter_mut().zip(src) {
+                *a += v;
+            }
+        }
+    }
+    // gw[o][c][ty][tx] = Σ_m gyz[o][m]·xp[c][m + ty·npx + tx], gyz = gy with
+    // zeros in the padding columns (so that those positions add nothing).
+    let mut gyz = vec![R::zero(); s.c_out * g.len];
+    for o in 0..s.c_out {
+        for j in 0..ny {
+            gyz[o * g.len + j * g.npx..o * g.len + j * g.npx + nx].copy_from_slice(&gy[(o * ny + j) * nx..(o * ny + j + 1) * nx]);
+        }
+    }
+    let xp = g.pad(s, s.c_in, x);
+    for ty in 0..k {
+        let wg = WeightGrad { n: g.len, k, c_in: s.c_in, c_out: s.c_out, gy: g.len, xp: g.stride, gw_o: s.c_in * k * k, gw_c: k * k, gw_base: ty * k };
+        R::weight_gradient(&wg, &gyz, &xp[ty * g.npx..], gw);
+    }
+}
+
+/// The padded layout of [`conv2d`]: rows of `npx = nx + k − 1`, `len =
+/// ny·npx` output positions per channel (the padding columns included),
+/// `stride` between padded channels (`(ny + k − 1)·npx` and `k` to spare,
+/// so that the long rows shifted by `ty` rows and `tx` columns stay inside).
+struct Grid2 {
+    npx: usize,
+    len: usize,
+    stride: usize,
+}
+
+impl Grid2 {
+    fn new(s: &Conv2d) -> Self {
+        let npx = s.nx + s.k - 1;
+        Self { npx, len: s.ny * npx, stride: (s.ny + s.k - 1) * npx + s.k }
+    }
+
+    /// `c` channels of `x` padded by `k/2` on every side (wrapped or zeros).
+    fn pad<R: Real>(&self, s: &Conv2d, c: usize, x: &[R]) -> Vec<R> {
+        let (nx, ny, h) = (s.nx, s.ny, (s.k / 2) as isize);
+        let mut xp = vec![R::zero(); c * self.stride];
+        for ch in 0..c {
+            for py in 0..ny + s.k - 1 {
+                let Some(j) = wrap_index(py as isize - h, ny, s.padding) else { continue };
+                let dst = &mut xp[ch * self.stride + py * self.npx..ch * self.stride + (py + 1) * self.npx];
+                let src = &x[(ch * ny + j) * nx..(ch * ny + j + 1) * nx];
+                for (px, d) in dst.iter_mut().enumerate() {
+                    if let Some(i) = wrap_index(px as isize - h, nx, s.padding) {
+                        *d = src[i];
+                    }
+                }
+            }
+        }
+        xp
+    }
+}
+
+/// Index `i` of a signal of `n` values: wrapped, or `None` outside for zero
+/// padding.
+#[inline(always)]
+fn wrap_index(i: isize, n: usize, padding: Padding) -> Option<usize> {
+    match padding {
+        Padding::Periodic => Some(i.rem_euclid(n as isize) as usize),
+        Padding::Zero => (0..n as isize).contains(&i).then_some(i as usize),
+    }
+}
+
+/// [`conv2d`] as plain loops (the reference for the blocked one).
+pub fn conv2d_simple<R: Real>(s: &Conv2d, w: &[R], b: &[R], x: &[R], y: &mut [R]) {
     let (nx, ny, k) = (s.nx, s.ny, s.k);
     let row = Conv1d { c_in: 1, c_out: 1, k, len: nx, padding: s.padding };
     for o in 0..s.c_out {
@@ -593,8 +737,8 @@ pub fn conv2d<R: Real>(s: &Conv2d, w: &[R], b: &[R], x: &[R], y: &mut [R]) {
     }
 }
 
-/// Adjoint of [`conv2d`] (adds into `gx`, `gw`, `gb`).
-pub fn conv2d_adjoint<R: Real>(s: &Conv2d, w: &[R], x: &[R], gy: &[R], gx: &mut [R], gw: &mut [R], gb: &mut [R]) {
+/// [`conv2d_adjoint`] as plain loops (the reference for the blocked one).
+pub fn conv2d_adjoint_simple<R: Real>(s: &Conv2d, w: &[R], x: &[R], gy: &[R], gx: &mut [R], gw: &mut [R], gb: &mut [R]) {
     let (nx, ny, k) = (s.nx, s.ny, s.k);
     let row = Conv1d { c_in: 1, c_out: 1, k, len: nx, padding: s.padding };
     for o in 0..s.c_out {

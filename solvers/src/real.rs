@@ -11,7 +11,7 @@ use std::iter::Sum;
 use std::ops::{Add, AddAssign, DivAssign, Mul, MulAssign, SubAssign};
 use std::simd::{f32x16, f64x8};
 
-use crate::nn::{self, Conv1d, Taps};
+use crate::nn::{self, Taps, WeightGrad};
 
 mod sealed {
     pub trait Sealed {}
@@ -52,7 +52,7 @@ pub trait Real:
     fn correlate(n: usize, k: usize, nq: usize, nr: usize, w: &[Self], taps: Taps, bias: Option<&[Self]>, inp: &[Self], out: &mut [Self], add: bool);
     /// The weight gradient of [`crate::nn::conv1d_adjoint`].
     #[doc(hidden)]
-    fn weight_gradient(s: &Conv1d, gy: &[Self], xp: &[Self], gw: &mut [Self]);
+    fn weight_gradient(s: &WeightGrad, gy: &[Self], xp: &[Self], gw: &mut [Self]);
 }
 
 /// The kernel hooks of [`Real`], forwarded to the instances compiled in
@@ -68,7 +68,7 @@ macro_rules! hooks {
             nn::$correlate(n, k, nq, nr, w, taps, bias, inp, out, add)
         }
         #[inline]
-        fn weight_gradient(s: &Conv1d, gy: &[Self], xp: &[Self], gw: &mut [Self]) {
+        fn weight_gradient(s: &WeightGrad, gy: &[Self], xp: &[Self], gw: &mut [Self]) {
             nn::$weight_gradient(s, gy, xp, gw)
         }
     };
