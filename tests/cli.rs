@@ -168,8 +168,9 @@ fn train_and_experiment_commands() {
     fails_with(&["train", c, "--out", o], "`training.lr`");
     std::fs::write(&cfg, tiny.replace("batch = 16", "bacth = 16")).unwrap();
     fails_with(&["train", c, "--out", o], "did you mean `batch`");
-    // The study, reduced to two updates per variant: one JSON object last.
-    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "2", "--json", "--out", o]);
+    fails_with(&["experiment", "sol-burgers", "--net", "transformer", "--out", o], "invalid argument --net: expected conv-stack, unet or resnet");
+    // The study, reduced to two updates per variant (with the U-Net): one JSON object last.
+    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "2", "--net", "unet", "--json", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     for key in ["source", "pre", "noise", "sol4", "sol16", "train_s_per_iter"] {

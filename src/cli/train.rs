@@ -87,6 +87,11 @@ pub struct SolArgs {
     /// Training iterations per variant (overrides the default).
     #[arg(long)]
     iterations: Option<usize>,
+    /// The correction network: conv-stack (P3's, 5505 parameters, 13 cells
+    /// of receptive field), unet (one level, 32/64 channels, about 31 000
+    /// parameters, most of the domain) or resnet (width 32, 3 blocks).
+    #[arg(long, default_value = "conv-stack")]
+    net: String,
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CliError + '_ {
@@ -319,6 +324,7 @@ fn hig_oscillators(a: HigArgs) -> Result<(), CliError> {
 
 fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
     let mut cfg = StudyConfig::standard(a.quick);
+    cfg.net = crate::train::burgers::correction_net(&a.net, cfg.setup.coarse.n).map_err(|reason| CliError::Argument { arg: "--net", reason })?;
     if let Some(it) = a.iterations {
         if it == 0 {
             return Err(CliError::Argument { arg: "--iterations", reason: "must be at least 1".into() });

@@ -333,8 +333,7 @@ impl StudyConfig {
     pub fn standard(quick: bool) -> Self {
         let iterations = if quick { 1500 } else { 6000 };
         let setup = Setup::standard();
-        let net = crate::nn::presets::conv_stack_1d(setup.coarse.n, &[1, 32, 32, 1], 5, crate::nn::Padding::Periodic, crate::nn::Activation::Tanh)
-            .expect("the preset is well formed");
+        let net = correction_net("conv-stack", setup.coarse.n).expect("the preset is well formed");
         Self {
             setup,
             train: if quick { 32 } else { 64 },
@@ -400,6 +399,24 @@ pub fn study(cfg: &StudyConfig, mut progress: impl FnMut(&str, LogRow)) -> Resul
         out.push(VariantResult { name, mean_error: mean(&error), error, loss, s_per_iter: time.total / s.iterations.max(1) as f64, time });
     }
     Ok(out)
+}
+
+/// A correction network for `n` cells by name: `conv-stack` (P3's: 1 → 32
+/// → 32 → 1 channels, kernel 5, tanh), `unet` ([`presets::unet_1d`], width
+/// 32, kernel 5) or `resnet` ([`presets::resnet_1d`], width 32, 3 blocks,
+/// kernel 5); periodic padding throughout.
+///
+/// [`presets::unet_1d`]: crate::nn::presets::unet_1d
+/// [`presets::resnet_1d`]: crate::nn::presets::resnet_1d
+pub fn correction_net(name: &str, n: usize) -> Result<Net, String> {
+    use crate::nn::{Activation::Tanh, Padding::Periodic, presets};
+    let net = match name {
+        "conv-stack" => presets::conv_stack_1d(n, &[1, 32, 32, 1], 5, Periodic, Tanh),
+        "unet" => presets::unet_1d(n, 1, 1, 32, 5, Periodic, Tanh),
+        "resnet" => presets::resnet_1d(n, 1, 1, 32, 3, 5, Periodic, Tanh),
+        _ => return Err(format!("expected conv-stack, unet or resnet, got {name:?}")),
+    };
+    net.map_err(|e| e.to_string())
 }
 
 /// Fresh parameters for a correction network: Glorot weights, the last
