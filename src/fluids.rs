@@ -1,5 +1,5 @@
 //! 2D fluid operators on the P2 grid conventions (unit cells, MAC velocity,
-//! any [`Boundary`](diffsim_solvers::boundary::Boundary); see
+//! any [`diffsim_solvers::boundary::Boundary`]; see
 //! [`diffsim_solvers::smoke`]): diffusion, explicit and implicit (closed
 //! box); semi-Lagrangian, MacCormack and upwind advection; forces and
 //! inflow regions. Each wraps a

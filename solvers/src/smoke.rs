@@ -1401,8 +1401,8 @@ pub fn apply_inflow(cfg: &Smoke2d, region: [usize; 4], x: &[f64], p: &[f64], y: 
 }
 
 /// Solid cells of an axis-aligned box `[lower, upper)` in cell units (x
-/// first), for [`PressureSolver::with_obstacles`] and the fluid operators: a
-/// cell is solid when its centre lies inside. The box is clipped to the
+/// first), for the fluid operators and, complemented, as the fluid mask of
+/// [`PressureSolver::general`]: a cell is solid when its centre lies inside. The box is clipped to the
 /// domain; `None` when no cell centre lies inside (a box wholly outside).
 pub fn obstacle_box(n: usize, lower: [f64; 2], upper: [f64; 2]) -> Option<Vec<bool>> {
     obstacle(n, |x, y| x >= lower[0] && x < upper[0] && y >= lower[1] && y < upper[1])
