@@ -53,12 +53,58 @@ pub trait Real:
     /// The weight gradient of [`crate::nn::conv1d_adjoint`].
     #[doc(hidden)]
     fn weight_gradient(s: &WeightGrad, gy: &[Self], xp: &[Self], gw: &mut [Self]);
+    /// Whether every value of `v` is finite ([`all_finite`]).
+    #[doc(hidden)]
+    fn all_finite_slice(v: &[Self]) -> bool;
+}
+
+/// Whether every value of `v` is finite (no NaN, no infinity), in one
+/// vectorised pass with the widest instructions the CPU has: `x·0` is 0 for
+/// finite `x` and NaN otherwise, summed in independent vector accumulators.
+/// Cheap enough to run after every step of a rollout.
+#[inline]
+pub fn all_finite<R: Real>(v: &[R]) -> bool {
+    R::all_finite_slice(v)
+}
+
+#[inline(always)]
+fn all_finite_body<R: Real>(v: &[R]) -> bool {
+    let zero = R::splat(R::zero());
+    let mut acc = [zero; 4];
+    let mut chunks = v.chunks_exact(4 * R::LANES);
+    for c in &mut chunks {
+        for (k, a) in acc.iter_mut().enumerate() {
+            *a += R::load(&c[k * R::LANES..]) * zero;
+        }
+    }
+    let mut rest = R::zero();
+    for &x in chunks.remainder() {
+        rest += x * R::zero();
+    }
+    let mut lanes = [R::zero(); 64];
+    let mut total = rest;
+    for a in acc {
+        R::store(a, &mut lanes);
+        total += lanes[..R::LANES].iter().copied().sum::<R>();
+    }
+    total.is_finite()
+}
+
+crate::simd_dispatch! {
+    fn all_finite_f64(v: &[f64]) -> bool => all_finite_body::<f64>
+}
+crate::simd_dispatch! {
+    fn all_finite_f32(v: &[f32]) -> bool => all_finite_body::<f32>
 }
 
 /// The kernel hooks of [`Real`], forwarded to the instances compiled in
 /// [`crate::nn`].
 macro_rules! hooks {
-    ($tanh:ident, $correlate:ident, $weight_gradient:ident) => {
+    ($tanh:ident, $correlate:ident, $weight_gradient:ident, $finite:ident) => {
+        #[inline]
+        fn all_finite_slice(v: &[Self]) -> bool {
+            $finite(v)
+        }
         #[inline]
         fn tanh_slice(x: &[Self], y: &mut [Self]) {
             nn::$tanh(x, y)
@@ -78,7 +124,7 @@ impl Real for f64 {
     type V = f64x8;
     const LANES: usize = 8;
     const NAME: &'static str = "f64";
-    hooks!(tanh_slice_f64, correlate_f64, weight_gradient_f64);
+    hooks!(tanh_slice_f64, correlate_f64, weight_gradient_f64, all_finite_f64);
     #[inline(always)]
     fn of(x: f64) -> Self {
         x
@@ -113,7 +159,7 @@ impl Real for f32 {
     type V = f32x16;
     const LANES: usize = 16;
     const NAME: &'static str = "f32";
-    hooks!(tanh_slice_f32, correlate_f32, weight_gradient_f32);
+    hooks!(tanh_slice_f32, correlate_f32, weight_gradient_f32, all_finite_f32);
     #[inline(always)]
     fn of(x: f64) -> Self {
         x as f32

@@ -18,6 +18,36 @@ pub fn median_time<T>(budget_s: f64, min: usize, max: usize, mut f: impl FnMut()
     (times[times.len() / 2], out)
 }
 
+/// Wall times of several computations measured in interleaved rounds (one
+/// call of each per round, after one warm-up call of each), so that all of
+/// them see the same machine state; on a shared, noisy machine this keeps
+/// their ratios stable where back-to-back medians drift apart. Repeats
+/// rounds until `budget_s` seconds are spent, at least `min` and at most
+/// `max` rounds. Returns, per computation, the median time, and, per
+/// computation, the median over rounds of its time divided by the first
+/// computation's time in the same round.
+pub fn interleaved_times(budget_s: f64, min: usize, max: usize, fs: &mut [&mut dyn FnMut()]) -> (Vec<f64>, Vec<f64>) {
+    for f in fs.iter_mut() {
+        f();
+    }
+    let k = fs.len();
+    let mut times: Vec<Vec<f64>> = vec![Vec::new(); k];
+    let start = Instant::now();
+    while times[0].len() < min || (times[0].len() < max && start.elapsed().as_secs_f64() < budget_s) {
+        for (f, t) in fs.iter_mut().zip(times.iter_mut()) {
+            let s = Instant::now();
+            f();
+            t.push(s.elapsed().as_secs_f64());
+        }
+    }
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let ratios = (0..k).map(|j| median(times[j].iter().zip(&times[0]).map(|(t, t0)| t / t0).collect())).collect();
+    (times.into_iter().map(median).collect(), ratios)
+}
+
 /// Peak resident set size of this process in bytes (`VmHWM` from
 /// `/proc/self/status`; 0 where that is not available).
 pub fn peak_rss_bytes() -> u64 {

@@ -10,7 +10,7 @@ mod train;
 use clap::{Parser, Subcommand};
 use thiserror::Error;
 
-pub use measure::{median_time, peak_rss_bytes, reset_peak_rss};
+pub use measure::{interleaved_times, median_time, peak_rss_bytes, reset_peak_rss};
 
 /// Errors reported by the command line: printed as one message, exit code 1.
 #[derive(Debug, Error)]

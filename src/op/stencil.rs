@@ -22,10 +22,23 @@
 //! [`stencil3!`](crate::stencil3) generates [`Forward`](super::Forward),
 //! [`Vjp`](super::Vjp) and [`Jvp`](super::Jvp) for an operator type from its
 //! map.
+//!
+//! **Cell form** (faster, for operators without run-time parameters): the
+//! step given as a scalar *cell function* `fn(op: &Op, l, c, r) -> f64`,
+//! `stencil3!(cell: Op => cell)`. Enzyme differentiates the scalar
+//! function (reverse mode with `Active` arguments, seed 1: the Jacobian row
+//! `(∂k/∂l, ∂k/∂c, ∂k/∂r)` of one cell; forward mode with `Dual` arguments
+//! for the JVP); the framework's loop scales the rows by the seed and
+//! gathers them ([`vjp3_rows`]). The generated code is inlined into that
+//! loop and vectorised, and nothing else runs: no primal recomputation, no
+//! reversed loop, no accumulation into zeroed arrays. On P1 (size M) this
+//! took the Enzyme gradient from ≈ 1.7× to ≈ 1.2× the hand-written one.
 
 /// Cells per chunk of the VJP: four scratch arrays of this many `f64` (16 KiB)
 /// stay in L1.
 pub const CHUNK: usize = 512;
+
+use std::mem::MaybeUninit;
 
 use super::Real;
 
@@ -38,6 +51,11 @@ use super::Real;
 /// [`Forward::smooth_radius`](crate::op::Forward::smooth_radius).
 /// `stencil3!(f32: Op => map32)` does the same in single precision
 /// (`Forward<f32>` etc., from a map on `f32` slices).
+///
+/// `stencil3!(cell: Op => k)` (and `cell f32:`) takes the scalar cell
+/// function `fn(&Op, l, c, r) -> f64` instead: faster derivatives, for an
+/// operator without run-time parameters (`n_params() == 0`, its constants
+/// live in `Op`).
 #[macro_export]
 macro_rules! stencil3 {
     (@impl $r:ty, $ty:ty => $f:path, $radius:path) => {
@@ -105,6 +123,96 @@ macro_rules! stencil3 {
             }
         };
     };
+    (@cell $r:ty, $ty:ty => $f:path, $radius:path) => {
+        #[allow(clippy::too_many_arguments)]
+        const _: () = {
+            #[::std::autodiff::autodiff_reverse(diffsim_cell_vjp, Const, Active, Active, Active, Active)]
+            fn diffsim_cell_reverse(op: &$ty, l: $r, c: $r, r: $r) -> $r {
+                $f(op, l, c, r)
+            }
+
+            #[::std::autodiff::autodiff_forward(diffsim_cell_jvp, Const, Dual, Dual, Dual, Dual)]
+            fn diffsim_cell_forward(op: &$ty, l: $r, c: $r, r: $r) -> $r {
+                $f(op, l, c, r)
+            }
+
+            impl $crate::op::Forward<$r> for $ty {
+                #[track_caller]
+                fn forward(&self, x: &[$r], p: &[$r], y: &mut [$r]) {
+                    $crate::op::validate_forward(self, ::std::stringify!($ty), x, p, y);
+                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
+                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Forward);
+                    $crate::op::stencil::forward3(x, y, |l, c, r, out| {
+                        for (((o, &l), &c), &r) in out.iter_mut().zip(l).zip(c).zip(r) {
+                            *o = $f(self, l, c, r);
+                        }
+                    });
+                }
+
+                fn smooth_radius(&self, x: &[$r], p: &[$r], dx: &[$r], dp: &[$r]) -> f64 {
+                    $radius(self, x, p, dx, dp)
+                }
+            }
+
+            impl $crate::op::Vjp<$r> for $ty {
+                #[inline(never)]
+                #[track_caller]
+                fn vjp(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
+                    $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
+                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
+                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
+                    $crate::op::stencil::check_no_params(self, ::std::stringify!($ty));
+                    $crate::op::stencil::vjp3_rows::<true, $r, _>(x, dy, dx, |l, c, r| {
+                        let (_, jl, jc, jr) = diffsim_cell_vjp(self, l, c, r, 1.0);
+                        (jl, jc, jr)
+                    });
+                    // The seed is consumed (the `Vjp::vjp` contract).
+                    dy.fill(0.0);
+                }
+
+                #[inline(never)]
+                #[track_caller]
+                fn vjp_overwrite(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
+                    $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
+                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
+                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
+                    $crate::op::stencil::check_no_params(self, ::std::stringify!($ty));
+                    $crate::op::stencil::vjp3_rows::<false, $r, _>(x, dy, dx, |l, c, r| {
+                        let (_, jl, jc, jr) = diffsim_cell_vjp(self, l, c, r, 1.0);
+                        (jl, jc, jr)
+                    });
+                }
+            }
+
+            impl $crate::op::Jvp<$r> for $ty {
+                #[inline(never)]
+                #[track_caller]
+                fn jvp(&self, x: &[$r], p: &[$r], tx: &[$r], tp: &[$r], y: &mut [$r], ty: &mut [$r]) {
+                    $crate::op::validate_jvp(self, ::std::stringify!($ty), x, p, tx, tp, y, ty);
+                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
+                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Jvp);
+                    $crate::op::stencil::jvp3(x, tx, y, ty, |l, tl, c, tc, r, tr, out, tout| {
+                        let m = out.len();
+                        let (l, tl, c, tc, r, tr, tout) = (&l[..m], &tl[..m], &c[..m], &tc[..m], &r[..m], &tr[..m], &mut tout[..m]);
+                        for i in 0..m {
+                            let (v, t) = diffsim_cell_jvp(self, l[i], tl[i], c[i], tc[i], r[i], tr[i]);
+                            out[i] = v;
+                            tout[i] = t;
+                        }
+                    });
+                }
+            }
+        };
+    };
+    (cell: $ty:ty => $f:path) => {
+        $crate::stencil3!(@cell f64, $ty => $f, $crate::op::always_smooth);
+    };
+    (cell: $ty:ty => $f:path, smooth_radius = $radius:path) => {
+        $crate::stencil3!(@cell f64, $ty => $f, $radius);
+    };
+    (cell f32: $ty:ty => $f:path, smooth_radius = $radius:path) => {
+        $crate::stencil3!(@cell f32, $ty => $f, $radius);
+    };
     ($ty:ty => $f:path) => {
         $crate::stencil3!($ty => $f, smooth_radius = $crate::op::always_smooth);
     };
@@ -125,6 +233,16 @@ macro_rules! stencil3 {
 pub fn check_stencil<O: super::Operator + ?Sized>(op: &O, name: &str) {
     if op.n_in() != op.n_out() || op.n_in() < 3 {
         panic!("{name}: a three-point stencil needs n_in == n_out ≥ 3 (got {} → {})", op.n_in(), op.n_out());
+    }
+}
+
+/// Panics if a cell-form stencil operator declares run-time parameters
+/// (the cell function has none; their gradient would silently be zero).
+#[doc(hidden)]
+#[track_caller]
+pub fn check_no_params<O: super::Operator + ?Sized>(op: &O, name: &str) {
+    if op.n_params() != 0 {
+        panic!("{name}: a cell-form stencil (`stencil3!(cell: …)`) has no run-time parameters (n_params() = {}); use the map form", op.n_params());
     }
 }
 
@@ -232,6 +350,99 @@ fn vjp3_add<R: Real>(x: &[R], g: &mut [R], dx: &mut [R], dp: &mut [R], f: impl M
 #[inline(always)]
 fn vjp3_overwrite<R: Real>(x: &[R], g: &mut [R], dx: &mut [R], dp: &mut [R], f: impl MapVjp<R>) {
     vjp3_body::<false, R>(x, g, dx, dp, f)
+}
+
+/// `dx += Jᵀ·g` (`ADD`) or `dx = Jᵀ·g` for a periodic three-point stencil
+/// from its Jacobian rows: `f(l, c, r)` returns `(∂k/∂l, ∂k/∂c, ∂k/∂r)` of
+/// the cell function at one cell. The rows are scaled by `g` chunk by chunk
+/// into L1-resident scratch and gathered, `dx[j] (+)= g[j+1]·∂_l k_{j+1} +
+/// g[j]·∂_c k_j + g[j−1]·∂_r k_{j−1}`; `g` is left unchanged.
+#[doc(hidden)]
+#[inline]
+pub fn vjp3_rows<const ADD: bool, R: Real, F: FnMut(R, R, R) -> (R, R, R)>(x: &[R], g: &mut [R], dx: &mut [R], f: F) {
+    if ADD {
+        dispatch_generic!(vjp3_rows_add, [R: Real, F: FnMut(R, R, R) -> (R, R, R)], x: &[R], g: &mut [R], dx: &mut [R], f: F)
+    } else {
+        dispatch_generic!(vjp3_rows_overwrite, [R: Real, F: FnMut(R, R, R) -> (R, R, R)], x: &[R], g: &mut [R], dx: &mut [R], f: F)
+    }
+}
+
+#[inline(always)]
+fn vjp3_rows_add<R: Real>(x: &[R], g: &mut [R], dx: &mut [R], f: impl FnMut(R, R, R) -> (R, R, R)) {
+    vjp3_rows_body::<true, R>(x, g, dx, f)
+}
+
+#[inline(always)]
+fn vjp3_rows_overwrite<R: Real>(x: &[R], g: &mut [R], dx: &mut [R], f: impl FnMut(R, R, R) -> (R, R, R)) {
+    vjp3_rows_body::<false, R>(x, g, dx, f)
+}
+
+#[inline(always)]
+fn vjp3_rows_body<const ADD: bool, R: Real>(x: &[R], g: &[R], dx: &mut [R], mut f: impl FnMut(R, R, R) -> (R, R, R)) {
+    let n = x.len();
+    // Scratch left uninitialised (zeroing 12 KiB per call would cost about
+    // a tenth of the step): each chunk writes its first `m` values before
+    // reading them.
+    let mut buf = [const { MaybeUninit::<R>::uninit() }; 3 * CHUNK];
+    let (dl_buf, rest) = buf.split_at_mut(CHUNK);
+    let (dc_buf, dr_buf) = rest.split_at_mut(CHUNK);
+    // The two wrap-around cells first (their rows reach across the ends).
+    let (l0, c0, r0) = {
+        let (jl, jc, jr) = f(x[n - 1], x[0], x[1]);
+        (g[0] * jl, g[0] * jc, g[0] * jr)
+    };
+    let (ln, cn, rn) = {
+        let (jl, jc, jr) = f(x[n - 2], x[n - 1], x[0]);
+        (g[n - 1] * jl, g[n - 1] * jc, g[n - 1] * jr)
+    };
+    let put = |d: &mut R, v: R| if ADD { *d += v } else { *d = v };
+    // Interior cells s..e (1 ≤ s, e ≤ n − 1) in chunks; dx[j] for j in s..e
+    // needs the rows of j − 1, j, j + 1: the chunk's own plus one on each side.
+    let mut s = 1;
+    let mut prev_r = r0; // g·∂_r of cell s − 1
+    while s < n - 1 {
+        let e = (s + CHUNK).min(n - 1);
+        let m = e - s;
+        let (xl, xc, xr, gc) = (&x[s - 1..e - 1], &x[s..e], &x[s + 1..e + 1], &g[s..e]);
+        let (dl, dc, dr) = (&mut dl_buf[..m], &mut dc_buf[..m], &mut dr_buf[..m]);
+        for i in 0..m {
+            let (jl, jc, jr) = f(xl[i], xc[i], xr[i]);
+            let gi = gc[i];
+            dl[i].write(gi * jl);
+            dc[i].write(gi * jc);
+            dr[i].write(gi * jr);
+        }
+        // SAFETY: the loop above wrote all `m` values of each slice.
+        let (dl, dc, dr) = unsafe { (dl.assume_init_ref(), dc.assume_init_ref(), dr.assume_init_ref()) };
+        // dx[s + i] = dc[i] + dl[i + 1] + dr[i − 1]; the chunk's last cell
+        // takes dl of cell e (the next chunk's first, or cell n − 1).
+        let next_l = if e < n - 1 {
+            let (jl, _, _) = f(x[e - 1], x[e], x[e + 1]);
+            g[e] * jl
+        } else {
+            ln
+        };
+        let out = &mut dx[s..e];
+        if m > 1 {
+            put(&mut out[0], dc[0] + dl[1] + prev_r);
+            for (((o, &c), &l), &r) in out[1..m - 1].iter_mut().zip(&dc[1..m - 1]).zip(&dl[2..m]).zip(&dr[..m - 2]) {
+                put(o, c + l + r);
+            }
+            put(&mut out[m - 1], dc[m - 1] + next_l + dr[m - 2]);
+        } else {
+            put(&mut out[0], dc[0] + next_l + prev_r);
+        }
+        prev_r = dr[m - 1];
+        s = e;
+    }
+    // Cell 0: its own row, the left row of cell 1, the right row of cell n − 1.
+    let l1 = {
+        let (jl, _, _) = f(x[0], x[1], x[2 % n]);
+        g[1] * jl
+    };
+    put(&mut dx[0], c0 + l1 + rn);
+    // Cell n − 1: its own row, the left row of cell 0, the right row of n − 2.
+    put(&mut dx[n - 1], cn + l0 + prev_r);
 }
 
 /// Adds `src` into `dst` and zeroes `src` (one pass).

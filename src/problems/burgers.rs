@@ -40,22 +40,26 @@ burgers_sizes!(BurgersEnzyme);
 burgers_sizes!(BurgersEnzymeWholeStep);
 burgers_sizes!(BurgersHand);
 
-/// The thin wrapper Enzyme differentiates: the solver's pointwise map.
-fn burgers_map(op: &BurgersEnzyme, l: &[f64], c: &[f64], r: &[f64], _p: &[f64], out: &mut [f64]) {
-    burgers::step_map(&op.0, l, c, r, out)
+/// The thin wrapper Enzyme differentiates: the solver's cell function.
+#[inline(always)]
+fn burgers_cell(op: &BurgersEnzyme, l: f64, c: f64, r: f64) -> f64 {
+    let (a, b) = op.0.coefficients();
+    burgers::cell(l, c, r, a, b)
 }
 
-/// The same map in single precision (coefficients rounded to `f32`).
-fn burgers_map_f32(op: &BurgersEnzyme, l: &[f32], c: &[f32], r: &[f32], _p: &[f32], out: &mut [f32]) {
-    burgers::step_map(&op.0, l, c, r, out)
+/// The same cell in single precision (coefficients rounded to `f32`).
+#[inline(always)]
+fn burgers_cell_f32(op: &BurgersEnzyme, l: f32, c: f32, r: f32) -> f32 {
+    let (a, b) = op.0.coefficients();
+    burgers::cell(l, c, r, a as f32, b as f32)
 }
 
 fn burgers_radius<T, R: crate::op::Real>(_: &T, x: &[R], _p: &[R], dx: &[R], _dp: &[R]) -> f64 {
     burgers::smooth_radius(x, dx)
 }
 
-crate::stencil3!(BurgersEnzyme => burgers_map, smooth_radius = burgers_radius);
-crate::stencil3!(f32: BurgersEnzyme => burgers_map_f32, smooth_radius = burgers_radius);
+crate::stencil3!(cell: BurgersEnzyme => burgers_cell, smooth_radius = burgers_radius);
+crate::stencil3!(cell f32: BurgersEnzyme => burgers_cell_f32, smooth_radius = burgers_radius);
 
 /// The thin wrapper Enzyme differentiates: the solver step, unchanged.
 fn burgers_step(op: &BurgersEnzymeWholeStep, x: &[f64], _p: &[f64], y: &mut [f64]) {

@@ -315,7 +315,13 @@ impl<R: Real, O: Vjp<R>> Rollout<'_, O, R> {
     pub fn value_and_grad_in(&self, ws: &mut Workspace<R>, x0: &[R], loss: &impl Loss<R>, mode: Checkpointing) -> Result<Gradient<R>, RolloutError> {
         self.check_state(x0)?;
         Forward::<R>::take_error(self.op);
-        let g = match checkpoint::run(self, ws, x0, loss, mode) {
+        let g = checkpoint::run(self, ws, x0, loss, mode);
+        self.finish(g, x0)
+    }
+
+    /// The errors of a gradient computation, traced to their cause.
+    fn finish(&self, g: Result<Gradient<R>, RolloutError>, x0: &[R]) -> Result<Gradient<R>, RolloutError> {
+        let g = match g {
             Err(RolloutError::NonFinite { pass: Pass::Backward, step, .. }) => {
                 // A failed solve or a NaN in the forward pass is the cause.
                 if let Some(error) = Forward::<R>::take_error(self.op) {
@@ -341,20 +347,13 @@ impl<R: Real, O: Vjp<R>> Rollout<'_, O, R> {
     }
 }
 
-/// Whether every value is finite: `a·0` is 0 for a finite `a` and NaN
-/// otherwise, summed in eight independent lanes so that the pass
-/// vectorises (cheap enough to run once per step).
+/// Whether every value is finite (no NaN, no infinity): one vectorised
+/// pass with the widest vector instructions the CPU has
+/// ([`diffsim_solvers::real::all_finite`]), cheap enough to run once per
+/// step.
+#[inline]
 pub fn all_finite<R: Real>(v: &[R]) -> bool {
-    let zero = R::zero();
-    let mut acc = [zero; 8];
-    let (chunks, rest) = v.as_chunks::<8>();
-    for c in chunks {
-        for k in 0..8 {
-            acc[k] += c[k] * zero;
-        }
-    }
-    let rest = rest.iter().fold(zero, |s, &a| s + a * zero);
-    (acc.iter().copied().sum::<R>() + rest).is_finite()
+    diffsim_solvers::real::all_finite(v)
 }
 
 /// A whole rollout `x_0 ↦ x_T` as an operator, so that the gradient checks
