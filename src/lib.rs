@@ -12,7 +12,8 @@
 //! [`op::Operator`] for a plain-data type and let
 //! [`differentiable!`] generate [`op::Forward`], [`op::Vjp`] and
 //! [`op::Jvp`] with Enzyme (or [`stencil3!`] for an explicit three-point
-//! stencil written as a pointwise map: faster), or write them by hand, or
+//! stencil written as a cell function or a pointwise map: faster), or write
+//! them by hand, or
 //! take finite differences with [`op::FiniteDiff`]. Linear solves are
 //! operators too: their VJP is the solve with the transposed matrix
 //! ([`problems::smoke::SmokeStep`], [`fluids::DiffuseImplicit`]). All three obey one contract: a VJP
