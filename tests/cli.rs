@@ -170,12 +170,24 @@ fn train_and_experiment_commands() {
     fails_with(&["train", c, "--out", o], "did you mean `batch`");
     fails_with(&["experiment", "sol-burgers", "--net", "transformer", "--out", o], "invalid argument --net: expected conv-stack, unet or resnet");
     // The study, reduced to two updates per variant (with the U-Net): one JSON object last.
-    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "2", "--net", "unet", "--json", "--out", o]);
+    fails_with(&["experiment", "sol-burgers", "--train", "0", "--out", o], "invalid argument --train: need at least one training trajectory");
+    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "2", "--net", "unet", "--train", "4", "--json", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     for key in ["source", "pre", "noise", "sol4", "sol16", "train_s_per_iter"] {
         assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
+        if key != "train_s_per_iter" {
+            assert!(last["train_set"][key].as_f64().is_some_and(f64::is_finite), "train_set.{key} in {last}");
+        }
     }
+    assert_eq!(last["train_trajectories"], 4);
+    // The test set does not depend on the number of training trajectories
+    // (fewer or more than the standard count).
+    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "1", "--train", "40", "--json", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    let more: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert_eq!(more["source"], last["source"]);
+    assert_ne!(more["train_set"]["source"], last["train_set"]["source"]);
     for f in ["table.md", "errors.csv", "error.png", "loss.png"] {
         assert!(out.join(f).exists(), "{f} missing");
     }

@@ -311,6 +311,11 @@ pub struct StudyConfig {
     pub setup: Setup,
     /// Training trajectories.
     pub train: usize,
+    /// Training trajectories drawn before the test set (the standard
+    /// count): with more, the rest are drawn after it, with fewer, the first
+    /// `train` are used, so that the test set stays the same whatever
+    /// `train` is.
+    pub train_base: usize,
     /// Held-out test trajectories.
     pub test: usize,
     /// Coarse steps of each training trajectory.
@@ -337,6 +342,7 @@ impl StudyConfig {
         Self {
             setup,
             train: if quick { 32 } else { 64 },
+            train_base: if quick { 32 } else { 64 },
             test: if quick { 8 } else { 16 },
             train_steps: 128 + 16,
             eval_steps: 128,
@@ -366,6 +372,10 @@ pub struct VariantResult {
     pub error: Vec<f64>,
     /// Its mean over the steps.
     pub mean_error: f64,
+    /// The same mean on the training trajectories' first steps (a gap to
+    /// `mean_error` means the network fits its data better than it
+    /// generalises).
+    pub train_mean_error: f64,
     /// Training loss per iteration.
     pub loss: Vec<f64>,
     /// Time shares of training.
@@ -379,12 +389,24 @@ pub struct VariantResult {
 /// `progress(variant, row)` is called after every iteration.
 pub fn study(cfg: &StudyConfig, mut progress: impl FnMut(&str, LogRow)) -> Result<Vec<VariantResult>, StudyError> {
     let mut rng = StdRng::seed_from_u64(cfg.settings.seed);
-    let train_set = cfg.setup.dataset(cfg.train, cfg.train_steps, &mut rng);
+    let mut train_set = cfg.setup.dataset(cfg.train_base, cfg.train_steps, &mut rng);
     let test_set = cfg.setup.dataset(cfg.test, cfg.eval_steps, &mut rng);
+    if cfg.train > cfg.train_base {
+        train_set.extend(cfg.setup.dataset(cfg.train - cfg.train_base, cfg.train_steps, &mut rng));
+    }
+    train_set.truncate(cfg.train);
     let theta0 = initial_params(&cfg.net, cfg.settings.seed);
     let source = evaluate(&cfg.setup, &cfg.net, None, &test_set, cfg.eval_steps)?;
-    let mut out =
-        vec![VariantResult { name: "source".into(), mean_error: mean(&source), error: source, loss: Vec::new(), time: TimeShares::default(), s_per_iter: 0.0 }];
+    let source_train = mean(&evaluate(&cfg.setup, &cfg.net, None, &train_set, cfg.eval_steps)?);
+    let mut out = vec![VariantResult {
+        name: "source".into(),
+        mean_error: mean(&source),
+        train_mean_error: source_train,
+        error: source,
+        loss: Vec::new(),
+        time: TimeShares::default(),
+        s_per_iter: 0.0,
+    }];
     for &method in &cfg.methods {
         let mut theta = theta0.clone();
         let mut opt = Optimizer::adam(cfg.settings.lr);
@@ -396,7 +418,8 @@ pub fn study(cfg: &StudyConfig, mut progress: impl FnMut(&str, LogRow)) -> Resul
             progress(&name, row);
         })?;
         let error = evaluate(&cfg.setup, &cfg.net, Some(&theta), &test_set, cfg.eval_steps)?;
-        out.push(VariantResult { name, mean_error: mean(&error), error, loss, s_per_iter: time.total / s.iterations.max(1) as f64, time });
+        let train_mean_error = mean(&evaluate(&cfg.setup, &cfg.net, Some(&theta), &train_set, cfg.eval_steps)?);
+        out.push(VariantResult { name, mean_error: mean(&error), train_mean_error, error, loss, s_per_iter: time.total / s.iterations.max(1) as f64, time });
     }
     Ok(out)
 }
