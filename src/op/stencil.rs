@@ -75,8 +75,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn forward(&self, x: &[$r], p: &[$r], y: &mut [$r]) {
                     $crate::op::validate_forward(self, ::std::stringify!($ty), x, p, y);
-                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
-                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Forward);
+                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Forward);
                     $crate::op::stencil::forward3(x, y, |l, c, r, out| $f(self, l, c, r, p, out));
                 }
 
@@ -90,8 +89,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn vjp(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
-                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
-                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
+                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Vjp);
                     $crate::op::stencil::vjp3::<true, $r, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
                         diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g)
                     });
@@ -101,8 +99,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn vjp_overwrite(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
-                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
-                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
+                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Vjp);
                     $crate::op::stencil::vjp3::<false, $r, _>(x, dy, dx, dp, |l, dl, c, dc, r, dr, dp, y, g| {
                         diffsim_map_vjp(self, l, dl, c, dc, r, dr, p, dp, y, g)
                     });
@@ -114,8 +111,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn jvp(&self, x: &[$r], p: &[$r], tx: &[$r], tp: &[$r], y: &mut [$r], ty: &mut [$r]) {
                     $crate::op::validate_jvp(self, ::std::stringify!($ty), x, p, tx, tp, y, ty);
-                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
-                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Jvp);
+                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Jvp);
                     $crate::op::stencil::jvp3(x, tx, y, ty, |l, tl, c, tc, r, tr, out, tout| {
                         diffsim_map_jvp(self, l, tl, c, tc, r, tr, p, tp, out, tout)
                     });
@@ -140,8 +136,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn forward(&self, x: &[$r], p: &[$r], y: &mut [$r]) {
                     $crate::op::validate_forward(self, ::std::stringify!($ty), x, p, y);
-                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
-                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Forward);
+                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Forward);
                     $crate::op::stencil::forward3(x, y, |l, c, r, out| {
                         for (((o, &l), &c), &r) in out.iter_mut().zip(l).zip(c).zip(r) {
                             *o = $f(self, l, c, r);
@@ -159,8 +154,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn vjp(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
-                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
-                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
+                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Vjp);
                     $crate::op::stencil::check_no_params(self, ::std::stringify!($ty));
                     $crate::op::stencil::vjp3_rows::<true, $r, _>(x, dy, dx, |l, c, r| {
                         let (_, jl, jc, jr) = diffsim_cell_vjp(self, l, c, r, 1.0);
@@ -174,8 +168,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn vjp_overwrite(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
-                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
-                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
+                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Vjp);
                     $crate::op::stencil::check_no_params(self, ::std::stringify!($ty));
                     $crate::op::stencil::vjp3_rows::<false, $r, _>(x, dy, dx, |l, c, r| {
                         let (_, jl, jc, jr) = diffsim_cell_vjp(self, l, c, r, 1.0);
@@ -189,8 +182,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn jvp(&self, x: &[$r], p: &[$r], tx: &[$r], tp: &[$r], y: &mut [$r], ty: &mut [$r]) {
                     $crate::op::validate_jvp(self, ::std::stringify!($ty), x, p, tx, tp, y, ty);
-                    $crate::op::stencil::check_stencil(self, ::std::stringify!($ty));
-                    $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Jvp);
+                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Jvp);
                     $crate::op::stencil::jvp3(x, tx, y, ty, |l, tl, c, tc, r, tr, out, tout| {
                         let m = out.len();
                         let (l, tl, c, tc, r, tr, tout) = (&l[..m], &tl[..m], &c[..m], &tc[..m], &r[..m], &tr[..m], &mut tout[..m]);
@@ -225,6 +217,15 @@ macro_rules! stencil3 {
     (f32: $ty:ty => $f:path, smooth_radius = $radius:path) => {
         $crate::stencil3!(@impl f32, $ty => $f, $radius);
     };
+}
+
+/// Entry of every generated stencil method: the stencil check and the call
+/// count.
+#[doc(hidden)]
+#[track_caller]
+pub fn enter<O: super::Operator + ?Sized>(op: &O, name: &'static str, method: super::count::Method) {
+    check_stencil(op, name);
+    super::count::record(name, method);
 }
 
 /// Panics unless `op` maps a grid of at least 3 cells to itself.
