@@ -136,7 +136,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn forward(&self, x: &[$r], p: &[$r], y: &mut [$r]) {
                     $crate::op::validate_forward(self, ::std::stringify!($ty), x, p, y);
-                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Forward);
+                    $crate::op::stencil::enter_cell(self, ::std::stringify!($ty), $crate::op::count::Method::Forward);
                     $crate::op::stencil::forward3(x, y, |l, c, r, out| {
                         for (((o, &l), &c), &r) in out.iter_mut().zip(l).zip(c).zip(r) {
                             *o = $f(self, l, c, r);
@@ -154,8 +154,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn vjp(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
-                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Vjp);
-                    $crate::op::stencil::check_no_params(self, ::std::stringify!($ty));
+                    $crate::op::stencil::enter_cell(self, ::std::stringify!($ty), $crate::op::count::Method::Vjp);
                     $crate::op::stencil::vjp3_rows::<true, $r, _>(x, dy, dx, |l, c, r| {
                         let (_, jl, jc, jr) = diffsim_cell_vjp(self, l, c, r, 1.0);
                         (jl, jc, jr)
@@ -168,8 +167,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn vjp_overwrite(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
-                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Vjp);
-                    $crate::op::stencil::check_no_params(self, ::std::stringify!($ty));
+                    $crate::op::stencil::enter_cell(self, ::std::stringify!($ty), $crate::op::count::Method::Vjp);
                     $crate::op::stencil::vjp3_rows::<false, $r, _>(x, dy, dx, |l, c, r| {
                         let (_, jl, jc, jr) = diffsim_cell_vjp(self, l, c, r, 1.0);
                         (jl, jc, jr)
@@ -182,7 +180,7 @@ macro_rules! stencil3 {
                 #[track_caller]
                 fn jvp(&self, x: &[$r], p: &[$r], tx: &[$r], tp: &[$r], y: &mut [$r], ty: &mut [$r]) {
                     $crate::op::validate_jvp(self, ::std::stringify!($ty), x, p, tx, tp, y, ty);
-                    $crate::op::stencil::enter(self, ::std::stringify!($ty), $crate::op::count::Method::Jvp);
+                    $crate::op::stencil::enter_cell(self, ::std::stringify!($ty), $crate::op::count::Method::Jvp);
                     $crate::op::stencil::jvp3(x, tx, y, ty, |l, tl, c, tc, r, tr, out, tout| {
                         let m = out.len();
                         let (l, tl, c, tc, r, tr, tout) = (&l[..m], &tl[..m], &c[..m], &tc[..m], &r[..m], &tr[..m], &mut tout[..m]);
@@ -237,11 +235,13 @@ pub fn check_stencil<O: super::Operator + ?Sized>(op: &O, name: &str) {
     }
 }
 
-/// Panics if a cell-form stencil operator declares run-time parameters
-/// (the cell function has none; their gradient would silently be zero).
+/// [`enter`] for the cell form, which also panics if the operator declares
+/// run-time parameters (the cell function has none: they would be ignored
+/// and their gradient silently zero).
 #[doc(hidden)]
 #[track_caller]
-pub fn check_no_params<O: super::Operator + ?Sized>(op: &O, name: &str) {
+pub fn enter_cell<O: super::Operator + ?Sized>(op: &O, name: &'static str, method: super::count::Method) {
+    enter(op, name, method);
     if op.n_params() != 0 {
         panic!("{name}: a cell-form stencil (`stencil3!(cell: …)`) has no run-time parameters (n_params() = {}); use the map form", op.n_params());
     }
@@ -360,21 +360,21 @@ fn vjp3_overwrite<R: Real>(x: &[R], g: &mut [R], dx: &mut [R], dp: &mut [R], f: 
 /// g[j]·∂_c k_j + g[j−1]·∂_r k_{j−1}`; `g` is left unchanged.
 #[doc(hidden)]
 #[inline]
-pub fn vjp3_rows<const ADD: bool, R: Real, F: FnMut(R, R, R) -> (R, R, R)>(x: &[R], g: &mut [R], dx: &mut [R], f: F) {
+pub fn vjp3_rows<const ADD: bool, R: Real, F: FnMut(R, R, R) -> (R, R, R)>(x: &[R], g: &[R], dx: &mut [R], f: F) {
     if ADD {
-        dispatch_generic!(vjp3_rows_add, [R: Real, F: FnMut(R, R, R) -> (R, R, R)], x: &[R], g: &mut [R], dx: &mut [R], f: F)
+        dispatch_generic!(vjp3_rows_add, [R: Real, F: FnMut(R, R, R) -> (R, R, R)], x: &[R], g: &[R], dx: &mut [R], f: F)
     } else {
-        dispatch_generic!(vjp3_rows_overwrite, [R: Real, F: FnMut(R, R, R) -> (R, R, R)], x: &[R], g: &mut [R], dx: &mut [R], f: F)
+        dispatch_generic!(vjp3_rows_overwrite, [R: Real, F: FnMut(R, R, R) -> (R, R, R)], x: &[R], g: &[R], dx: &mut [R], f: F)
     }
 }
 
 #[inline(always)]
-fn vjp3_rows_add<R: Real>(x: &[R], g: &mut [R], dx: &mut [R], f: impl FnMut(R, R, R) -> (R, R, R)) {
+fn vjp3_rows_add<R: Real>(x: &[R], g: &[R], dx: &mut [R], f: impl FnMut(R, R, R) -> (R, R, R)) {
     vjp3_rows_body::<true, R>(x, g, dx, f)
 }
 
 #[inline(always)]
-fn vjp3_rows_overwrite<R: Real>(x: &[R], g: &mut [R], dx: &mut [R], f: impl FnMut(R, R, R) -> (R, R, R)) {
+fn vjp3_rows_overwrite<R: Real>(x: &[R], g: &[R], dx: &mut [R], f: impl FnMut(R, R, R) -> (R, R, R)) {
     vjp3_rows_body::<false, R>(x, g, dx, f)
 }
 

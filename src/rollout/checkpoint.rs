@@ -3,7 +3,7 @@
 use std::str::FromStr;
 
 use super::{Gradient, Loss, Rollout, RolloutError, RolloutStats};
-use crate::op::{Forward, Real, Vjp};
+use crate::op::{Real, Vjp};
 
 /// How the states of a rollout are kept for its backward pass.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -169,15 +169,6 @@ impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
         }
     }
 
-    /// The adjoint backward through steps `a..b`, given `ckpt = x_a` and
-    /// `seg[i] = x_{a+1+i}`.
-    fn reverse(&mut self, a: usize, b: usize, ckpt: &[R], seg: &[Vec<R>]) {
-        for t in (a..b).rev() {
-            let x: &[R] = if t == a { ckpt } else { &seg[t - a - 1] };
-            self.vjp(t, x);
-        }
-    }
-
     /// A new buffer holding `x_{t+k}` from `from = x_t`.
     fn advance(&mut self, from: &[R], t: usize, k: usize) -> Vec<R> {
         let mut out = self.alloc();
@@ -319,33 +310,6 @@ pub(super) fn run<R: Real, O: Vjp<R>>(
 /// recomputes each segment from its checkpoint in the backward pass. With
 /// `k = 1` nothing is recomputed and each step writes straight into its slot.
 fn periodic<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_, O, L, R>, store: &mut Vec<R>, x0: &[R], k: usize) -> f64 {
-    let value = checkpointed_forward(bw, store, x0, k);
-    let (n, steps) = (bw.n, bw.rollout.steps);
-    let n_ckpt = steps.div_ceil(k).max(1);
-    let store = &store[..n_ckpt * n];
-    // Backward, segment by segment from the last.
-    let mut seg: Vec<Vec<R>> = (1..k.min(steps)).map(|_| bw.alloc()).collect();
-    for c in (0..n_ckpt).rev() {
-        let (a, b) = segment(c, k, steps);
-        let ckpt = &store[c * n..(c + 1) * n];
-        bw.stats.step_evaluations += recompute(bw.rollout, ckpt, a, b, &mut seg);
-        bw.reverse(a, b, ckpt, &seg);
-    }
-    for s in seg {
-        bw.release(s);
-    }
-    bw.live -= n_ckpt;
-    value
-}
-
-/// Steps `a..b` of segment `c` with checkpoints every `k` steps.
-fn segment(c: usize, k: usize, steps: usize) -> (usize, usize) {
-    (c * k, ((c + 1) * k).min(steps))
-}
-
-/// The forward pass of periodic checkpointing: stores `x_0, x_k, x_2k, …`
-/// in `store` and returns the loss. Counts the checkpoints as live states.
-fn checkpointed_forward<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_, O, L, R>, store: &mut Vec<R>, x0: &[R], k: usize) -> f64 {
     let (n, steps) = (bw.n, bw.rollout.steps);
     let n_ckpt = steps.div_ceil(k).max(1);
     if store.len() < n_ckpt * n {
@@ -377,17 +341,29 @@ fn checkpointed_forward<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_
     }
     bw.release(tmp);
     bw.release(last);
-    value
-}
-
-/// Recomputes `seg[i] = x_{a+1+i}` for the steps `a..b−1` from `ckpt = x_a`;
-/// returns the number of step evaluations.
-fn recompute<R: Real, O: Forward<R>>(r: &Rollout<'_, O, R>, ckpt: &[R], a: usize, b: usize, seg: &mut [Vec<R>]) -> usize {
-    let m = b.saturating_sub(a + 1);
-    for i in 0..m {
-        let (done, rest) = seg.split_at_mut(i);
-        let src: &[R] = if i == 0 { ckpt } else { &done[i - 1] };
-        r.op.forward(src, r.p_at(a + i), &mut rest[0]);
+    // Backward, segment by segment from the last.
+    let mut seg: Vec<Vec<R>> = Vec::new();
+    for c in (0..n_ckpt).rev() {
+        let (a, b) = (c * k, ((c + 1) * k).min(steps));
+        let ckpt = &store[c * n..(c + 1) * n];
+        // seg[i] holds x_{a+1+i}.
+        while seg.len() + a + 1 < b {
+            let buf = bw.alloc();
+            seg.push(buf);
+        }
+        for i in 0..b.saturating_sub(a + 1) {
+            let (done, rest) = seg.split_at_mut(i);
+            let src: &[R] = if i == 0 { ckpt } else { &done[i - 1] };
+            bw.step(a + i, src, &mut rest[0]);
+        }
+        for t in (a..b).rev() {
+            let x: &[R] = if t == a { ckpt } else { &seg[t - a - 1] };
+            bw.vjp(t, x);
+        }
     }
-    m
+    for s in seg {
+        bw.release(s);
+    }
+    bw.live -= n_ckpt;
+    value
 }

@@ -315,13 +315,7 @@ impl<R: Real, O: Vjp<R>> Rollout<'_, O, R> {
     pub fn value_and_grad_in(&self, ws: &mut Workspace<R>, x0: &[R], loss: &impl Loss<R>, mode: Checkpointing) -> Result<Gradient<R>, RolloutError> {
         self.check_state(x0)?;
         Forward::<R>::take_error(self.op);
-        let g = checkpoint::run(self, ws, x0, loss, mode);
-        self.finish(g, x0)
-    }
-
-    /// The errors of a gradient computation, traced to their cause.
-    fn finish(&self, g: Result<Gradient<R>, RolloutError>, x0: &[R]) -> Result<Gradient<R>, RolloutError> {
-        let g = match g {
+        let g = match checkpoint::run(self, ws, x0, loss, mode) {
             Err(RolloutError::NonFinite { pass: Pass::Backward, step, .. }) => {
                 // A failed solve or a NaN in the forward pass is the cause.
                 if let Some(error) = Forward::<R>::take_error(self.op) {
@@ -348,13 +342,9 @@ impl<R: Real, O: Vjp<R>> Rollout<'_, O, R> {
 }
 
 /// Whether every value is finite (no NaN, no infinity): one vectorised
-/// pass with the widest vector instructions the CPU has
-/// ([`diffsim_solvers::real::all_finite`]), cheap enough to run once per
-/// step.
-#[inline]
-pub fn all_finite<R: Real>(v: &[R]) -> bool {
-    diffsim_solvers::real::all_finite(v)
-}
+/// pass with the widest vector instructions the CPU has, cheap enough to run
+/// once per step.
+pub use diffsim_solvers::real::all_finite;
 
 /// A whole rollout `x_0 ↦ x_T` as an operator, so that the gradient checks
 /// apply to it: its VJP is the chained per-step VJP (under the chosen
