@@ -106,7 +106,7 @@ fn solver_parts(c: &mut Criterion) {
         let mut z = vec![0.0; n * n];
         let mut mg = Multigrid::new(n);
         g.bench_function(BenchmarkId::new("vcycle", n), |b| b.iter(|| mg.apply(&r, std::hint::black_box(&mut z))));
-        g.bench_function(BenchmarkId::new("matvec", n), |b| b.iter(|| apply_pressure_matrix(n, &r, std::hint::black_box(&mut z))));
+        g.bench_function(BenchmarkId::new("matvec", n), |b| b.iter(|| apply_pressure_matrix(n, n, &r, std::hint::black_box(&mut z))));
     }
     g.finish();
 }

@@ -404,8 +404,8 @@ fn advect(op: &Advect, x: &[f64], _p: &[f64], y: &mut [f64]) {
 crate::differentiable!(Advect => advect);
 
 /// An external force field on the faces as the parameters:
-/// `[s, u, v] ↦ [s, u + dt·fu, v + dt·fv]`, `p = [fu, fv]` (`2·N·(N+1)`
-/// values, the velocity layout; wall faces are not forced). The parameter
+/// `[s, u, v] ↦ [s, u + dt·fu, v + dt·fv]`, `p = [fu, fv]`
+/// ([`Smoke2d::n_vel`] values, the velocity layout; wall faces are not forced). The parameter
 /// gradient is the gradient with respect to the force, for control.
 /// Derivatives by Enzyme.
 #[derive(Clone, Copy, Debug)]
@@ -424,7 +424,7 @@ impl Operator for Force {
         self.cfg.n_state()
     }
     fn n_params(&self) -> usize {
-        2 * self.cfg.n_u()
+        self.cfg.n_vel()
     }
 }
 
@@ -488,7 +488,8 @@ pub struct Project {
 impl Project {
     /// The projection for `cfg` with solves to relative `tolerance` in at
     /// most `max_iterations` iterations, preconditioned by `precond` in the
-    /// closed box (other boundaries use plain CG, see [`PressureSolver`]).
+    /// closed square box (other boxes use MIC(0) of their matrix, see
+    /// [`PressureSolver`]).
     ///
     /// # Panics
     /// If `cfg.boundary` does not [validate](diffsim_solvers::boundary::Boundary::validate).
@@ -496,16 +497,16 @@ impl Project {
         if let Err(e) = cfg.boundary.validate() {
             panic!("{e}");
         }
-        let solver = if cfg.boundary == Boundary::CLOSED {
-            PressureSolver::new(cfg.n, tolerance, max_iterations, precond)
+        let solver = if cfg.boundary == Boundary::CLOSED && cfg.is_square() {
+            PressureSolver::new(cfg.nx, tolerance, max_iterations, precond)
         } else {
-            PressureSolver::general(cfg.n, cfg.boundary, tolerance, max_iterations, None)
+            PressureSolver::general(cfg.nx, cfg.ny, cfg.boundary, tolerance, max_iterations, None)
         };
         Self {
             cfg,
             fluid: None,
             solver: RefCell::new(solver),
-            scratch: RefCell::new(ProjectScratch::new(cfg.n)),
+            scratch: RefCell::new(ProjectScratch::new(cfg.n_s())),
             error: Cell::new(None),
             cg_forward: Cell::new(0),
             cg_adjoint: Cell::new(0),
@@ -514,11 +515,11 @@ impl Project {
 
     /// The projection with solid cells where `solid[c]` is true: the
     /// obstacle mask first, then a solve that couples fluid cells only
-    /// (unpreconditioned CG).
+    /// (CG preconditioned by MIC(0) of that matrix).
     pub fn with_obstacles(cfg: Smoke2d, tolerance: f64, max_iterations: usize, solid: &[bool]) -> Self {
         let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
         let mut op = Self::new(cfg, tolerance, max_iterations, Preconditioner::None);
-        op.solver = RefCell::new(PressureSolver::general(cfg.n, cfg.boundary, tolerance, max_iterations, Some(fluid.clone())));
+        op.solver = RefCell::new(PressureSolver::general(cfg.nx, cfg.ny, cfg.boundary, tolerance, max_iterations, Some(fluid.clone())));
         op.fluid = Some(fluid);
         op
     }

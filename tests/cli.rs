@@ -195,6 +195,27 @@ fn train_and_experiment_commands() {
 }
 
 #[test]
+fn sol_wake_experiment_runs_reduced_and_reports_json() {
+    let out = std::env::temp_dir().join(format!("diffsim-wake-{}", std::process::id()));
+    let o = out.to_str().unwrap();
+    fails_with(&["experiment", "sol-wake", "--train", "0", "--out", o], "invalid argument --train: need at least one training trajectory");
+    fails_with(&["experiment", "sol-wake", "--steps", "0", "--out", o], "invalid argument --steps: must be at least 1");
+    // One update per variant, one training trajectory, 2-step test rollouts.
+    let (code, stdout, err) = diffsim(&["experiment", "sol-wake", "--quick", "--iterations", "1", "--train", "1", "--steps", "2", "--json", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    for key in ["source", "pre", "noise", "sol4", "sol16", "train_s_per_iter"] {
+        assert!(last[key].as_f64().is_some_and(|v| v.is_finite() && v >= 0.0), "{key} in {last}");
+    }
+    // The coarse solver drifts from the 4× finer reference.
+    assert!(last["source"].as_f64().unwrap() > 1e-4, "{last}");
+    for f in ["table.md", "errors.csv", "error.png", "loss.png"] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    std::fs::remove_dir_all(&out).ok();
+}
+
+#[test]
 fn sip_heat_experiment_runs_and_reports_json() {
     let out = std::env::temp_dir().join(format!("diffsim-sip-{}", std::process::id()));
     let o = out.to_str().unwrap();

@@ -137,7 +137,7 @@ fn force_and_inflow_pass_all_checks() {
     for n in [4, 7] {
         let cfg = Smoke2d::p2(n);
         let x = field(cfg.n_state(), 21 + n as u64);
-        let f = field(2 * cfg.n_u(), 5);
+        let f = field(cfg.n_vel(), 5);
         let r = check_all(&Force { cfg, dt: 0.5 }, &x, &f, &CheckOptions::default());
         assert!(r.passed(), "force n = {n}:\n{r}");
         let op = Inflow { cfg, region: [1, 3, 0, 2] };

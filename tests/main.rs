@@ -15,3 +15,4 @@ mod pg;
 mod rollout;
 mod scenes;
 mod user_op;
+mod wake;

@@ -228,6 +228,7 @@ fn coupled_solver_and_network_pass_the_gradient_checks() {
 
 #[test]
 fn batch_gradients_do_not_depend_on_the_thread_count_and_match_finite_differences() {
+    use diffsim::train::sol::SolProblem;
     let setup = Setup::new(16, 2, 2, 0.02, 3);
     let solver = setup.source();
     let net = presets::conv_stack_1d(16, &[1, 4, 1], 3, Padding::Periodic, Activation::Tanh).unwrap();

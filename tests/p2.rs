@@ -120,14 +120,17 @@ fn obstacles_block_the_flow_and_the_projection_keeps_the_fluid_divergence_free()
 
 #[test]
 fn obstacle_shapes() {
-    use diffsim_solvers::smoke::{obstacle_box, obstacle_disc};
-    let b = obstacle_box(8, [2.0, 3.0], [5.0, 4.0]).unwrap();
+    use diffsim_solvers::smoke::{Smoke2d, obstacle_box, obstacle_disc};
+    let b = obstacle_box(&Smoke2d::p2(8), [2.0, 3.0], [5.0, 4.0]).unwrap();
     let cells: Vec<usize> = (0..64).filter(|&c| b[c]).collect();
     assert_eq!(cells, vec![3 * 8 + 2, 3 * 8 + 3, 3 * 8 + 4]);
     // Partly outside: clipped; wholly outside: none.
-    assert_eq!(obstacle_box(8, [6.0, 6.0], [20.0, 20.0]).unwrap().iter().filter(|&&s| s).count(), 4);
-    assert!(obstacle_box(8, [9.0, 9.0], [12.0, 12.0]).is_none());
-    let d = obstacle_disc(16, [8.0, 8.0], 2.0).unwrap();
+    assert_eq!(obstacle_box(&Smoke2d::p2(8), [6.0, 6.0], [20.0, 20.0]).unwrap().iter().filter(|&&s| s).count(), 4);
+    assert!(obstacle_box(&Smoke2d::p2(8), [9.0, 9.0], [12.0, 12.0]).is_none());
+    let d = obstacle_disc(&Smoke2d::p2(16), [8.0, 8.0], 2.0).unwrap();
     assert_eq!(d.iter().filter(|&&s| s).count(), 12);
-    assert!(obstacle_disc(16, [40.0, 40.0], 2.0).is_none());
+    assert!(obstacle_disc(&Smoke2d::p2(16), [40.0, 40.0], 2.0).is_none());
+    // On an oblong box cells are counted along rows of `nx`.
+    let r = obstacle_box(&Smoke2d::new(8, 4), [6.0, 1.0], [20.0, 2.0]).unwrap();
+    assert_eq!((r.len(), (0..32).filter(|&c| r[c]).collect::<Vec<_>>()), (32, vec![14, 15]));
 }

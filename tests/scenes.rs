@@ -81,7 +81,7 @@ fn scene_parameter_gradients_match_finite_differences() {
     let fd = (value(&up, &scene.x0) - value(&down, &scene.x0)) / (2.0 * h);
     let ad = grad_of(&g, "buoyancy.coefficient")[0];
     assert!((fd - ad).abs() <= 1e-6 * fd.abs().max(1.0), "buoyancy: finite differences {fd} vs gradient {ad}");
-    let c = scene.cfg().n * 16 + 30;
+    let c = scene.cfg().nx * 16 + 30;
     let (mut up, mut down) = (scene.x0.clone(), scene.x0.clone());
     up[c] += h;
     down[c] -= h;

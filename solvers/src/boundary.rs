@@ -165,17 +165,19 @@ pub struct Face {
     pub copy: Option<usize>,
 }
 
-/// Calls `visit` for each face of one axis that carries flux, in a fixed
-/// order: all x-faces (`axis = 0`, index `j·(N+1) + i`, row by row) or all
-/// y-faces (`axis = 1`, index `j·N + i`, row by row). A periodic axis's
-/// duplicate face `N` is left out (its velocity is a copy of face `0`, which
-/// wraps from cell `N−1` to cell `0`). Plain loops: the projection calls
-/// this every step.
+/// Calls `visit` for each face of one axis of an `nx × ny` box that carries
+/// flux, in a fixed order: all x-faces (`axis = 0`, index `j·(Nx+1) + i`, row
+/// by row) or all y-faces (`axis = 1`, index `j·Nx + i`, row by row). A
+/// periodic axis's duplicate last face is left out (its velocity is a copy
+/// of face `0`, which wraps from the last cell to cell `0`). Plain loops:
+/// the projection calls this every step.
 #[inline]
-pub fn for_each_face(n: usize, b: &Boundary, axis: usize, mut visit: impl FnMut(Face)) {
+pub fn for_each_face(nx: usize, ny: usize, b: &Boundary, axis: usize, mut visit: impl FnMut(Face)) {
     let (lo, hi) = if axis == 0 { (b.left, b.right) } else { (b.bottom, b.top) };
-    let cell = |along: usize, across: usize| if axis == 0 { across * n + along } else { along * n + across };
-    let index = |k: usize, across: usize| if axis == 0 { across * (n + 1) + k } else { k * n + across };
+    // Cells along the axis and across it.
+    let (n, m) = if axis == 0 { (nx, ny) } else { (ny, nx) };
+    let cell = |along: usize, across: usize| if axis == 0 { across * nx + along } else { along * nx + across };
+    let index = |k: usize, across: usize| if axis == 0 { across * (nx + 1) + k } else { k * nx + across };
     let mut at = |k: usize, across: usize| {
         if k > 0 && k < n {
             visit(Face { index: index(k, across), lower: Some(cell(k - 1, across)), upper: Some(cell(k, across)), projected: true, side: None, copy: None });
@@ -189,10 +191,15 @@ pub fn for_each_face(n: usize, b: &Boundary, axis: usize, mut visit: impl FnMut(
         }
     };
     // Row by row in memory: x-faces along a row, y-face rows one after another.
-    for outer in 0..=n {
-        for inner in 0..=n {
-            let (k, across) = if axis == 0 { (inner, outer) } else { (outer, inner) };
-            if across < n {
+    if axis == 0 {
+        for across in 0..m {
+            for k in 0..=n {
+                at(k, across);
+            }
+        }
+    } else {
+        for k in 0..=n {
+            for across in 0..m {
                 at(k, across);
             }
         }
@@ -200,8 +207,8 @@ pub fn for_each_face(n: usize, b: &Boundary, axis: usize, mut visit: impl FnMut(
 }
 
 /// The faces of [`for_each_face`], collected.
-pub fn faces(n: usize, b: &Boundary, axis: usize) -> Vec<Face> {
-    let mut all = Vec::with_capacity(n * (n + 1));
-    for_each_face(n, b, axis, |f| all.push(f));
+pub fn faces(nx: usize, ny: usize, b: &Boundary, axis: usize) -> Vec<Face> {
+    let mut all = Vec::with_capacity((nx + 1) * (ny + 1));
+    for_each_face(nx, ny, b, axis, |f| all.push(f));
     all
 }

@@ -41,11 +41,11 @@ impl Grid {
     /// The three lattices of a smoke state `[s, u, v]` for `cfg`'s boundary:
     /// cell centres, x-faces, y-faces (a periodic axis's copy faces left out).
     pub fn of_state(cfg: &Smoke2d) -> [Grid; 3] {
-        let (n, wx, wy) = (cfg.n, cfg.boundary.periodic_x(), cfg.boundary.periodic_y());
+        let (nx, ny, wx, wy) = (cfg.nx, cfg.ny, cfg.boundary.periodic_x(), cfg.boundary.periodic_y());
         [
-            Grid { stride: n, nx: n, ny: n, wrap_x: wx, wrap_y: wy },
-            Grid { stride: n + 1, nx: if wx { n } else { n + 1 }, ny: n, wrap_x: wx, wrap_y: wy },
-            Grid { stride: n, nx: n, ny: if wy { n } else { n + 1 }, wrap_x: wx, wrap_y: wy },
+            Grid { stride: nx, nx, ny, wrap_x: wx, wrap_y: wy },
+            Grid { stride: nx + 1, nx: if wx { nx } else { nx + 1 }, ny, wrap_x: wx, wrap_y: wy },
+            Grid { stride: nx, nx, ny: if wy { ny } else { ny + 1 }, wrap_x: wx, wrap_y: wy },
         ]
     }
 
@@ -73,8 +73,8 @@ impl Grid {
 /// periodic axis); zero at slice entries that are not samples. Symmetric
 /// positive semi-definite.
 pub fn laplacian(g: &Grid, s: &[f64], out: &mut [f64]) {
-    if !g.wrap_x && !g.wrap_y && g.stride == g.nx && g.nx == g.ny {
-        return apply_pressure_matrix(g.nx, s, out);
+    if !g.wrap_x && !g.wrap_y && g.stride == g.nx && g.nx >= 2 {
+        return apply_pressure_matrix(g.nx, g.ny, s, out);
     }
     for o in out.iter_mut() {
         *o = 0.0;

@@ -44,7 +44,7 @@ impl Level {
     /// `sweeps` damped-Jacobi sweeps on `scale·A·e = r`, from the current `e`.
     fn smooth(&mut self, sweeps: usize) {
         for _ in 0..sweeps {
-            apply_pressure_matrix(self.n, &self.e, &mut self.t);
+            apply_pressure_matrix(self.n, self.n, &self.e, &mut self.t);
             for (((e, &t), &r), &w) in self.e.iter_mut().zip(&self.t).zip(&self.r).zip(&self.omega_inv_diag) {
                 *e += w * (r - self.scale * t);
             }
@@ -93,7 +93,7 @@ impl Multigrid {
             let (f, c) = (&mut fine[k], &mut coarse[0]);
             f.e.fill(0.0);
             f.smooth(SWEEPS);
-            apply_pressure_matrix(f.n, &f.e, &mut f.t);
+            apply_pressure_matrix(f.n, f.n, &f.e, &mut f.t);
             for (t, &r) in f.t.iter_mut().zip(&f.r) {
                 *t = r - f.scale * *t;
             }

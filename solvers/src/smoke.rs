@@ -5,15 +5,16 @@
 //! preconditioned conjugate gradients. Benchmark P2 `smoke2d` is the closed
 //! box with semi-Lagrangian advection.
 //!
-//! Conventions (those of P2 in `benchmarks.md`): N×N unit cells, x to the
-//! right, y up, arrays indexed `[j][i]` (y, x) and flattened row by row.
-//! - smoke `s[j][i]` at the cell centre `(i+½, j+½)`: `N·N` values, index `j·N + i`;
-//! - `u[j][i]` at the x-face `(i, j+½)`, `i = 0..=N`: `N·(N+1)` values, index `j·(N+1) + i`;
-//! - `v[j][i]` at the y-face `(i+½, j)`, `j = 0..=N`: `(N+1)·N` values, index `j·N + i`.
+//! Conventions (those of P2 in `benchmarks.md`, which has `Nx = Ny = N`):
+//! `Nx × Ny` unit cells, x to the right, y up, arrays indexed `[j][i]` (y, x)
+//! and flattened row by row.
+//! - smoke `s[j][i]` at the cell centre `(i+½, j+½)`: `Nx·Ny` values, index `j·Nx + i`;
+//! - `u[j][i]` at the x-face `(i, j+½)`, `i = 0..=Nx`: `Ny·(Nx+1)` values, index `j·(Nx+1) + i`;
+//! - `v[j][i]` at the y-face `(i+½, j)`, `j = 0..=Ny`: `(Ny+1)·Nx` values, index `j·Nx + i`.
 //!
-//! On a periodic axis face `N` is a copy of face `0`: operators never read
-//! it and write it as the copy, so the state keeps one layout whatever the
-//! boundary.
+//! On a periodic axis face `Nx` (`Ny`) is a copy of face `0`: operators never
+//! read it and write it as the copy, so the state keeps one layout whatever
+//! the boundary.
 //!
 //! The step is split where the gradient is split: [`advect_buoyancy`] (explicit,
 //! differentiated by Enzyme in diffsim) and [`project`] (a linear solve, whose
@@ -24,12 +25,14 @@ use std::fmt;
 
 use crate::boundary::{Boundary, Side, for_each_face};
 
-/// Grid of the smoke problem: `n × n` unit cells, buoyancy coefficient, and
-/// the boundary conditions.
+/// Grid of the smoke problem: `nx × ny` unit cells, buoyancy coefficient,
+/// and the boundary conditions.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Smoke2d {
-    /// Cells per side.
-    pub n: usize,
+    /// Cells along x (columns).
+    pub nx: usize,
+    /// Cells along y (rows).
+    pub ny: usize,
     /// Buoyancy: `v += buoyancy · (smoke averaged to the y-face)`.
     pub buoyancy: f64,
     /// The four sides (closed for P2). Check with [`Boundary::validate`]
@@ -40,7 +43,17 @@ pub struct Smoke2d {
 impl Smoke2d {
     /// The P2 setting (buoyancy 0.1, closed box).
     pub fn p2(n: usize) -> Self {
-        Self { n, buoyancy: 0.1, boundary: Boundary::CLOSED }
+        Self { nx: n, ny: n, buoyancy: 0.1, boundary: Boundary::CLOSED }
+    }
+
+    /// A closed box of `nx × ny` cells without buoyancy.
+    pub fn new(nx: usize, ny: usize) -> Self {
+        Self { nx, ny, buoyancy: 0.0, boundary: Boundary::CLOSED }
+    }
+
+    /// Whether the box is square (`nx = ny`).
+    pub fn is_square(&self) -> bool {
+        self.nx == self.ny
     }
 
     /// The same grid with other boundary conditions.
@@ -48,19 +61,29 @@ impl Smoke2d {
         Self { boundary, ..self }
     }
 
-    /// Number of smoke values `N²`.
+    /// Number of smoke values (cells) `Nx·Ny`.
     pub fn n_s(&self) -> usize {
-        self.n * self.n
+        self.nx * self.ny
     }
 
-    /// Number of x-face velocities `N·(N+1)`.
+    /// Number of x-face velocities `Ny·(Nx+1)`.
     pub fn n_u(&self) -> usize {
-        self.n * (self.n + 1)
+        self.ny * (self.nx + 1)
     }
 
-    /// Length of the packed state `[s, u, v]`: `N² + 2·N·(N+1)`.
+    /// Number of y-face velocities `(Ny+1)·Nx`.
+    pub fn n_v(&self) -> usize {
+        (self.ny + 1) * self.nx
+    }
+
+    /// Number of velocities `n_u + n_v`.
+    pub fn n_vel(&self) -> usize {
+        self.n_u() + self.n_v()
+    }
+
+    /// Length of the packed state `[s, u, v]`: `Nx·Ny + Ny·(Nx+1) + (Ny+1)·Nx`.
     pub fn n_state(&self) -> usize {
-        self.n_s() + 2 * self.n_u()
+        self.n_s() + self.n_vel()
     }
 
     /// Splits a packed state `[s, u, v]`.
@@ -159,11 +182,13 @@ fn sample_range<const WX: bool, const WY: bool>(f: &[f64], lat: Lattice, px: f64
     (a[0].min(a[1]).min(a[2].min(a[3])), a[0].max(a[1]).max(a[2].max(a[3])))
 }
 
-/// Index rules of the MAC grid of an `n × n` box whose x (y) axis wraps when
-/// `WX` (`WY`), written once for the forward operators and their adjoints.
+/// Index rules of the MAC grid of an `nx × ny` box whose x (y) axis wraps
+/// when `WX` (`WY`), written once for the forward operators and their
+/// adjoints.
 #[derive(Clone, Copy, Debug)]
 struct Mac<const WX: bool, const WY: bool> {
-    n: usize,
+    nx: usize,
+    ny: usize,
 }
 
 impl<const WX: bool, const WY: bool> Mac<WX, WY> {
@@ -171,27 +196,27 @@ impl<const WX: bool, const WY: bool> Mac<WX, WY> {
     /// `N` is a copy).
     #[inline(always)]
     fn nfx(self) -> usize {
-        if WX { self.n } else { self.n + 1 }
+        if WX { self.nx } else { self.nx + 1 }
     }
 
     /// Rows of y-faces that hold their own value.
     #[inline(always)]
     fn nfy(self) -> usize {
-        if WY { self.n } else { self.n + 1 }
+        if WY { self.ny } else { self.ny + 1 }
     }
 
     /// The cell (column or row) after cell `k` along a wrapping or bounded
-    /// axis: `k + 1`, or `0` past the last cell of a wrapping axis.
+    /// axis of `n` cells: `k + 1`, or `0` past the last cell of a wrapping
+    /// axis.
     #[inline(always)]
-    fn next<const WRAP: bool>(self, k: usize) -> usize {
-        if WRAP && k + 1 == self.n { 0 } else { k + 1 }
+    fn next<const WRAP: bool>(n: usize, k: usize) -> usize {
+        if WRAP && k + 1 == n { 0 } else { k + 1 }
     }
 
-    /// The two cells beside face `k` of an axis: wrapped, or clamped to
-    /// the box (the edge-extended copy of P2).
+    /// The two cells beside face `k` of an axis of `n` cells: wrapped, or
+    /// clamped to the box (the edge-extended copy of P2).
     #[inline(always)]
-    fn beside<const WRAP: bool>(self, k: usize) -> (usize, usize) {
-        let n = self.n;
+    fn beside<const WRAP: bool>(n: usize, k: usize) -> (usize, usize) {
         if WRAP { (if k == 0 { n - 1 } else { k - 1 }, k) } else { (k.saturating_sub(1).min(n - 1), k.min(n - 1)) }
     }
 
@@ -200,25 +225,25 @@ impl<const WX: bool, const WY: bool> Mac<WX, WY> {
     #[inline(always)]
     fn lattice(self, at: At) -> (Lattice, usize, usize) {
         match at {
-            At::Centre => (self.smoke(), self.n, self.n),
-            At::UFace => (self.u(), self.nfx(), self.n),
-            At::VFace => (self.v(), self.n, self.nfy()),
+            At::Centre => (self.smoke(), self.nx, self.ny),
+            At::UFace => (self.u(), self.nfx(), self.ny),
+            At::VFace => (self.v(), self.nx, self.nfy()),
         }
     }
 
     #[inline(always)]
     fn smoke(self) -> Lattice {
-        Lattice { stride: self.n, nx: self.n, ny: self.n, ox: 0.5, oy: 0.5 }
+        Lattice { stride: self.nx, nx: self.nx, ny: self.ny, ox: 0.5, oy: 0.5 }
     }
 
     #[inline(always)]
     fn u(self) -> Lattice {
-        Lattice { stride: self.n + 1, nx: self.nfx(), ny: self.n, ox: 0.0, oy: 0.5 }
+        Lattice { stride: self.nx + 1, nx: self.nfx(), ny: self.ny, ox: 0.0, oy: 0.5 }
     }
 
     #[inline(always)]
     fn v(self) -> Lattice {
-        Lattice { stride: self.n, nx: self.n, ny: self.nfy(), ox: 0.5, oy: 0.0 }
+        Lattice { stride: self.nx, nx: self.nx, ny: self.nfy(), ox: 0.5, oy: 0.0 }
     }
 
     /// Velocity at the point `(i, j)` of the lattice `at`.
@@ -234,44 +259,44 @@ impl<const WX: bool, const WY: bool> Mac<WX, WY> {
     /// Velocity at the centre of cell `(i, j)`.
     #[inline(always)]
     fn at_centre(self, u: &[f64], v: &[f64], i: usize, j: usize) -> (f64, f64) {
-        let n = self.n;
-        (0.5 * (u[j * (n + 1) + i] + u[j * (n + 1) + self.next::<WX>(i)]), 0.5 * (v[j * n + i] + v[self.next::<WY>(j) * n + i]))
+        let (nx, ny) = (self.nx, self.ny);
+        (0.5 * (u[j * (nx + 1) + i] + u[j * (nx + 1) + Self::next::<WX>(nx, i)]), 0.5 * (v[j * nx + i] + v[Self::next::<WY>(ny, j) * nx + i]))
     }
 
     /// Velocity at x-face `(i, j)`: its own `u`, the four nearest `v`.
     #[inline(always)]
     fn at_u(self, u: &[f64], v: &[f64], i: usize, j: usize) -> (f64, f64) {
-        let n = self.n;
-        let (a, b) = self.beside::<WX>(i);
-        let up = self.next::<WY>(j);
+        let n = self.nx;
+        let (a, b) = Self::beside::<WX>(n, i);
+        let up = Self::next::<WY>(self.ny, j);
         (u[j * (n + 1) + i], 0.25 * (v[j * n + a] + v[j * n + b] + v[up * n + a] + v[up * n + b]))
     }
 
     /// Velocity at y-face `(i, j)`: the four nearest `u`, its own `v`.
     #[inline(always)]
     fn at_v(self, u: &[f64], v: &[f64], i: usize, j: usize) -> (f64, f64) {
-        let nu = self.n + 1;
-        let (a, b) = self.beside::<WY>(j);
-        let r = self.next::<WX>(i);
-        (0.25 * (u[a * nu + i] + u[a * nu + r] + u[b * nu + i] + u[b * nu + r]), v[j * self.n + i])
+        let nu = self.nx + 1;
+        let (a, b) = Self::beside::<WY>(self.ny, j);
+        let r = Self::next::<WX>(self.nx, i);
+        (0.25 * (u[a * nu + i] + u[a * nu + r] + u[b * nu + i] + u[b * nu + r]), v[j * self.nx + i])
     }
 
     /// Adds `gᵀ·∂(at_centre)/∂(u, v)` into `(gu, gv)`.
     #[inline(always)]
     fn at_centre_adjoint(self, gu: &mut [f64], gv: &mut [f64], i: usize, j: usize, (ga, gb): (f64, f64)) {
-        let n = self.n;
+        let n = self.nx;
         gu[j * (n + 1) + i] += 0.5 * ga;
-        gu[j * (n + 1) + self.next::<WX>(i)] += 0.5 * ga;
+        gu[j * (n + 1) + Self::next::<WX>(n, i)] += 0.5 * ga;
         gv[j * n + i] += 0.5 * gb;
-        gv[self.next::<WY>(j) * n + i] += 0.5 * gb;
+        gv[Self::next::<WY>(self.ny, j) * n + i] += 0.5 * gb;
     }
 
     /// Adds `gᵀ·∂(at_u)/∂(u, v)` into `(gu, gv)`.
     #[inline(always)]
     fn at_u_adjoint(self, gu: &mut [f64], gv: &mut [f64], i: usize, j: usize, (ga, gb): (f64, f64)) {
-        let n = self.n;
-        let (a, b) = self.beside::<WX>(i);
-        let up = self.next::<WY>(j);
+        let n = self.nx;
+        let (a, b) = Self::beside::<WX>(n, i);
+        let up = Self::next::<WY>(self.ny, j);
         gu[j * (n + 1) + i] += ga;
         for c in [j * n + a, j * n + b, up * n + a, up * n + b] {
             gv[c] += 0.25 * gb;
@@ -281,13 +306,13 @@ impl<const WX: bool, const WY: bool> Mac<WX, WY> {
     /// Adds `gᵀ·∂(at_v)/∂(u, v)` into `(gu, gv)`.
     #[inline(always)]
     fn at_v_adjoint(self, gu: &mut [f64], gv: &mut [f64], i: usize, j: usize, (ga, gb): (f64, f64)) {
-        let nu = self.n + 1;
-        let (a, b) = self.beside::<WY>(j);
-        let r = self.next::<WX>(i);
+        let nu = self.nx + 1;
+        let (a, b) = Self::beside::<WY>(self.ny, j);
+        let r = Self::next::<WX>(self.nx, i);
         for c in [a * nu + i, a * nu + r, b * nu + i, b * nu + r] {
             gu[c] += 0.25 * ga;
         }
-        gv[j * self.n + i] += gb;
+        gv[j * self.nx + i] += gb;
     }
 }
 
@@ -308,19 +333,19 @@ macro_rules! with_mac {
     ($cfg:expr, $mac:ident => $body:expr) => {
         match ($cfg.boundary.periodic_x(), $cfg.boundary.periodic_y()) {
             (false, false) => {
-                let $mac = Mac::<false, false> { n: $cfg.n };
+                let $mac = Mac::<false, false> { nx: $cfg.nx, ny: $cfg.ny };
                 $body
             }
             (true, false) => {
-                let $mac = Mac::<true, false> { n: $cfg.n };
+                let $mac = Mac::<true, false> { nx: $cfg.nx, ny: $cfg.ny };
                 $body
             }
             (false, true) => {
-                let $mac = Mac::<false, true> { n: $cfg.n };
+                let $mac = Mac::<false, true> { nx: $cfg.nx, ny: $cfg.ny };
                 $body
             }
             (true, true) => {
-                let $mac = Mac::<true, true> { n: $cfg.n };
+                let $mac = Mac::<true, true> { nx: $cfg.nx, ny: $cfg.ny };
                 $body
             }
         }
@@ -404,11 +429,10 @@ fn advect_field<const WX: bool, const WY: bool>(
 /// [`advect_scratch_len`] values (none for semi-Lagrangian).
 ///
 /// # Panics
-/// If a length is wrong or `n < 2`.
+/// If a length is wrong or a side has fewer than 2 cells.
 #[allow(clippy::too_many_arguments)]
 pub fn advect(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
-    let n = cfg.n;
-    assert!(n >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+    assert!(cfg.nx.min(cfg.ny) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
     assert!(scratch.len() >= advect_scratch_len(cfg, scheme), "smoke: advection scratch");
     with_mac!(cfg, mac => advect_on(mac, scheme, dt, smoke, velocity, x, y, scratch));
     if velocity {
@@ -429,8 +453,7 @@ fn advect_on<const WX: bool, const WY: bool>(
     y: &mut [f64],
     scratch: &mut [f64],
 ) {
-    let n = mac.n;
-    let (ns, nu) = (n * n, n * (n + 1));
+    let (ns, nu) = (mac.nx * mac.ny, mac.ny * (mac.nx + 1));
     let (s, rest) = x.split_at(ns);
     let (u, v) = rest.split_at(nu);
     let (s2, rest) = y.split_at_mut(ns);
@@ -439,7 +462,7 @@ fn advect_on<const WX: bool, const WY: bool>(
     // semi-Lagrangian).
     let half = scratch.len() / 2;
     let (hat, tilde) = scratch.split_at_mut(half);
-    let (ks, ku) = (ns.min(half), nu.min(half));
+    let (ks, ku, kv) = (ns.min(half), nu.min(half), v.len().min(half));
     if smoke {
         advect_field(mac, At::Centre, scheme, dt, (u, v), s, s2, &mut hat[..ks], &mut tilde[..ks]);
     } else {
@@ -447,7 +470,7 @@ fn advect_on<const WX: bool, const WY: bool>(
     }
     if velocity {
         advect_field(mac, At::UFace, scheme, dt, (u, v), u, u2, &mut hat[..ku], &mut tilde[..ku]);
-        advect_field(mac, At::VFace, scheme, dt, (u, v), v, v2, &mut hat[..ku], &mut tilde[..ku]);
+        advect_field(mac, At::VFace, scheme, dt, (u, v), v, v2, &mut hat[..kv], &mut tilde[..kv]);
     } else {
         copy(u, u2);
         copy(v, v2);
@@ -455,11 +478,11 @@ fn advect_on<const WX: bool, const WY: bool>(
 }
 
 /// Scratch [`advect`] needs: for MacCormack two fields of the largest
-/// component's size (`2·N·(N+1)`), none for semi-Lagrangian.
+/// component's size (`2·max(n_u, n_v)`), none for semi-Lagrangian.
 pub fn advect_scratch_len(cfg: &Smoke2d, scheme: Scheme) -> usize {
     match scheme {
         Scheme::SemiLagrangian => 0,
-        Scheme::MacCormack { .. } => 2 * cfg.n_u(),
+        Scheme::MacCormack { .. } => 2 * cfg.n_u().max(cfg.n_v()),
     }
 }
 
@@ -477,33 +500,35 @@ fn copy(from: &[f64], to: &mut [f64]) {
 /// inflow sides' faces the profile (inward), outflow faces as they are,
 /// and on periodic axes face `N` the copy of face `0`.
 pub fn enforce_boundary(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
-    let n = cfg.n;
-    let nu = n + 1;
+    let (nx, ny) = (cfg.nx, cfg.ny);
+    let nu = nx + 1;
     let b = &cfg.boundary;
-    let t = |k: usize| (k as f64 + 0.5) / n as f64;
-    for j in 0..n {
+    // Position along the side, 0..1: a profile spans the whole side.
+    let t = |k: usize, n: usize| (k as f64 + 0.5) / n as f64;
+    for j in 0..ny {
         match b.left {
             Side::Closed => u[j * nu] = 0.0,
-            Side::Inflow(p) => u[j * nu] = p.at(t(j)),
+            Side::Inflow(p) => u[j * nu] = p.at(t(j, ny)),
             Side::Periodic | Side::Outflow => {}
         }
         match b.right {
-            Side::Closed => u[j * nu + n] = 0.0,
-            Side::Inflow(p) => u[j * nu + n] = -p.at(t(j)),
-            Side::Periodic => u[j * nu + n] = u[j * nu],
+            Side::Closed => u[j * nu + nx] = 0.0,
+            Side::Inflow(p) => u[j * nu + nx] = -p.at(t(j, ny)),
+            Side::Periodic => u[j * nu + nx] = u[j * nu],
             Side::Outflow => {}
         }
     }
-    for i in 0..n {
+    let top = ny * nx;
+    for i in 0..nx {
         match b.bottom {
             Side::Closed => v[i] = 0.0,
-            Side::Inflow(p) => v[i] = p.at(t(i)),
+            Side::Inflow(p) => v[i] = p.at(t(i, nx)),
             Side::Periodic | Side::Outflow => {}
         }
         match b.top {
-            Side::Closed => v[n * n + i] = 0.0,
-            Side::Inflow(p) => v[n * n + i] = -p.at(t(i)),
-            Side::Periodic => v[n * n + i] = v[i],
+            Side::Closed => v[top + i] = 0.0,
+            Side::Inflow(p) => v[top + i] = -p.at(t(i, nx)),
+            Side::Periodic => v[top + i] = v[i],
             Side::Outflow => {}
         }
     }
@@ -522,49 +547,50 @@ pub fn enforce_boundary_linear(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
 /// adjoint, in place: set faces pass nothing back, copies pass theirs to the
 /// original.
 pub fn enforce_boundary_adjoint(cfg: &Smoke2d, gu: &mut [f64], gv: &mut [f64]) {
-    let n = cfg.n;
-    let nu = n + 1;
+    let (nx, ny) = (cfg.nx, cfg.ny);
+    let nu = nx + 1;
     let b = &cfg.boundary;
-    for j in 0..n {
+    for j in 0..ny {
         if let Side::Periodic = b.right {
-            gu[j * nu] += gu[j * nu + n];
-            gu[j * nu + n] = 0.0;
+            gu[j * nu] += gu[j * nu + nx];
+            gu[j * nu + nx] = 0.0;
         }
         if let Side::Closed | Side::Inflow(_) = b.left {
             gu[j * nu] = 0.0;
         }
         if let Side::Closed | Side::Inflow(_) = b.right {
-            gu[j * nu + n] = 0.0;
+            gu[j * nu + nx] = 0.0;
         }
     }
-    for i in 0..n {
+    let top = ny * nx;
+    for i in 0..nx {
         if let Side::Periodic = b.top {
-            gv[i] += gv[n * n + i];
-            gv[n * n + i] = 0.0;
+            gv[i] += gv[top + i];
+            gv[top + i] = 0.0;
         }
         if let Side::Closed | Side::Inflow(_) = b.bottom {
             gv[i] = 0.0;
         }
         if let Side::Closed | Side::Inflow(_) = b.top {
-            gv[n * n + i] = 0.0;
+            gv[top + i] = 0.0;
         }
     }
 }
 
 /// Buoyancy, in place: `v += coefficient · (smoke averaged to the y-face)`
 /// on the interior y-faces and, when y wraps, on face row `0` (whose copy,
-/// row `N`, follows).
+/// row `Ny`, follows).
 pub fn add_buoyancy(cfg: &Smoke2d, coefficient: f64, s: &[f64], v: &mut [f64]) {
-    let n = cfg.n;
-    for j in 1..n {
+    let (n, ny) = (cfg.nx, cfg.ny);
+    for j in 1..ny {
         for i in 0..n {
             v[j * n + i] += coefficient * 0.5 * (s[(j - 1) * n + i] + s[j * n + i]);
         }
     }
     if cfg.boundary.periodic_y() {
         for i in 0..n {
-            v[i] += coefficient * 0.5 * (s[(n - 1) * n + i] + s[i]);
-            v[n * n + i] = v[i];
+            v[i] += coefficient * 0.5 * (s[(ny - 1) * n + i] + s[i]);
+            v[ny * n + i] = v[i];
         }
     }
 }
@@ -585,7 +611,8 @@ pub fn apply_buoyancy(cfg: &Smoke2d, coefficient: f64, x: &[f64], y: &mut [f64])
 /// (the velocity not yet divergence-free).
 ///
 /// # Panics
-/// If `x` or `y` is not of length [`Smoke2d::n_state`] or `n < 2`.
+/// If `x` or `y` is not of length [`Smoke2d::n_state`] or a side has fewer
+/// than 2 cells.
 pub fn advect_buoyancy(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
     advect(cfg, Scheme::SemiLagrangian, 1.0, true, true, x, y, &mut []);
     // Buoyancy touches no closed, inflow or outflow face and refreshes its
@@ -598,22 +625,22 @@ pub fn advect_buoyancy(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
 /// `x` (accumulates into `gx`; `gy` is used as scratch and left
 /// unspecified). The reference for Enzyme's generated adjoint.
 pub fn advect_buoyancy_adjoint(cfg: &Smoke2d, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
-    let n = cfg.n;
-    assert!(n >= 2 && x.len() == cfg.n_state() && gy.len() == cfg.n_state() && gx.len() == cfg.n_state(), "smoke: state lengths");
+    let (n, ny) = (cfg.nx, cfg.ny);
+    assert!(n.min(ny) >= 2 && x.len() == cfg.n_state() && gy.len() == cfg.n_state() && gx.len() == cfg.n_state(), "smoke: state lengths");
     let (s, u, v) = cfg.split(x);
     let (gs2, gu2, gv2) = cfg.split_mut(gy);
     let (gs, gu, gv) = cfg.split_mut(gx);
     // Buoyancy (its own periodic copy came after its addition).
     if cfg.boundary.periodic_y() {
         for i in 0..n {
-            gv2[i] += gv2[n * n + i];
-            gv2[n * n + i] = 0.0;
+            gv2[i] += gv2[ny * n + i];
+            gv2[ny * n + i] = 0.0;
             let b = cfg.buoyancy * 0.5 * gv2[i];
-            gs2[(n - 1) * n + i] += b;
+            gs2[(ny - 1) * n + i] += b;
             gs2[i] += b;
         }
     }
-    for j in 1..n {
+    for j in 1..ny {
         for i in 0..n {
             let b = cfg.buoyancy * 0.5 * gv2[j * n + i];
             gs2[(j - 1) * n + i] += b;
@@ -639,7 +666,7 @@ fn semi_lagrangian_adjoint<const WX: bool, const WY: bool>(
     gu: &mut [f64],
     gv: &mut [f64],
 ) {
-    let n = mac.n;
+    let (n, ny) = (mac.nx, mac.ny);
     for j in 0..mac.nfy() {
         for i in 0..n {
             let (ub, vv) = mac.at_v(u, v, i, j);
@@ -647,14 +674,14 @@ fn semi_lagrangian_adjoint<const WX: bool, const WY: bool>(
             mac.at_v_adjoint(gu, gv, i, j, (-dpx, -dpy));
         }
     }
-    for j in 0..n {
+    for j in 0..ny {
         for i in 0..mac.nfx() {
             let (uu, vb) = mac.at_u(u, v, i, j);
             let (dpx, dpy) = sample_adjoint::<WX, WY>(u, gu, mac.u(), i as f64 - uu, j as f64 + 0.5 - vb, gu2[j * (n + 1) + i]);
             mac.at_u_adjoint(gu, gv, i, j, (-dpx, -dpy));
         }
     }
-    for j in 0..n {
+    for j in 0..ny {
         for i in 0..n {
             let (uc, vc) = mac.at_centre(u, v, i, j);
             let (dpx, dpy) = sample_adjoint::<WX, WY>(s, gs, mac.smoke(), i as f64 + 0.5 - uc, j as f64 + 0.5 - vc, gs2[j * n + i]);
@@ -669,7 +696,7 @@ fn semi_lagrangian_adjoint<const WX: bool, const WY: bool>(
 pub fn divergence(cfg: &Smoke2d, u: &[f64], v: &[f64], d: &mut [f64]) {
     d.fill(0.0);
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
             let w = vel[f.index];
             if let Some(c) = f.lower {
                 d[c] += w;
@@ -684,7 +711,7 @@ pub fn divergence(cfg: &Smoke2d, u: &[f64], v: &[f64], d: &mut [f64]) {
 /// Transpose of [`divergence`]: `(u, v) += Dᵀ·d` (accumulates).
 pub fn divergence_transpose(cfg: &Smoke2d, d: &[f64], u: &mut [f64], v: &mut [f64]) {
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.n, &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
+        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
     }
 }
 
@@ -695,16 +722,17 @@ fn open(fluid: Option<&[f64]>, f: &crate::boundary::Face) -> f64 {
     fluid.map_or(1.0, |w| f.lower.map_or(1.0, |c| w[c]) * f.upper.map_or(1.0, |c| w[c]))
 }
 
-/// The pressure matrix of the closed box: `(A·p)[c] = Σ_{neighbours m of c
-/// inside the box} (p[c] − p[m])` (overwrites `out`). Symmetric positive
-/// semi-definite, constants in its null space. Row by row, branch-free
-/// inside each row, so that it vectorises.
+/// The pressure matrix of the closed `nx × ny` box (`nx ≥ 2`): `(A·p)[c] =
+/// Σ_{neighbours m of c inside the box} (p[c] − p[m])` (overwrites `out`).
+/// Symmetric positive semi-definite, constants in its null space. Row by
+/// row, branch-free inside each row, so that it vectorises.
 #[inline(always)]
-pub fn apply_pressure_matrix(n: usize, p: &[f64], out: &mut [f64]) {
-    for j in 0..n {
+pub fn apply_pressure_matrix(nx: usize, ny: usize, p: &[f64], out: &mut [f64]) {
+    let n = nx;
+    for j in 0..ny {
         let row = &p[j * n..(j + 1) * n];
         let dn = (j > 0).then(|| &p[(j - 1) * n..j * n]);
-        let up = (j + 1 < n).then(|| &p[(j + 1) * n..(j + 2) * n]);
+        let up = (j + 1 < ny).then(|| &p[(j + 1) * n..(j + 2) * n]);
         let o = &mut out[j * n..(j + 1) * n];
         // The two end cells, with their neighbour count.
         for i in [0, n - 1] {
@@ -752,9 +780,10 @@ pub fn apply_pressure_matrix(n: usize, p: &[f64], out: &mut [f64]) {
 /// changes (interior, wrapped across a periodic side, and a ghost `p = 0`
 /// across an outflow side); closed and inflow sides add nothing (Neumann).
 /// Only fluid–fluid faces couple; solid rows are the identity. Symmetric.
-pub fn apply_boundary_matrix(n: usize, b: &Boundary, w: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
+pub fn apply_boundary_matrix(nx: usize, ny: usize, b: &Boundary, w: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
     let wt = |c: usize| w.map_or(1.0, |w| w[c]);
-    for j in 0..n {
+    let n = nx;
+    for j in 0..ny {
         for i in 0..n {
             let c = j * n + i;
             let pc = p[c];
@@ -773,8 +802,8 @@ pub fn apply_boundary_matrix(n: usize, b: &Boundary, w: Option<&[f64]>, p: &[f64
             };
             across(i > 0, c.wrapping_sub(1), b.left, c + n - 1);
             across(i + 1 < n, c + 1, b.right, (c + 1).wrapping_sub(n));
-            across(j > 0, c.wrapping_sub(n), b.bottom, c + n * (n - 1));
-            across(j + 1 < n, c + n, b.top, i);
+            across(j > 0, c.wrapping_sub(n), b.bottom, c + n * (ny - 1));
+            across(j + 1 < ny, c + n, b.top, i);
             out[c] = wt(c) * acc + (1.0 - wt(c)) * pc;
         }
     }
@@ -790,7 +819,7 @@ pub fn apply_obstacle_mask(cfg: &Smoke2d, fluid: &[f64], x: &mut [f64]) {
         *sv *= w;
     }
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
             let o = open(Some(fluid), &f);
             vel[f.index] *= o;
             if let Some(k) = f.copy {
@@ -845,15 +874,16 @@ impl fmt::Display for Preconditioner {
     }
 }
 
-/// Conjugate gradients on the pressure matrix of an `n × n` box, with
+/// Conjugate gradients on the pressure matrix of an `nx × ny` box, with
 /// reusable work buffers and the preconditioner factor computed once. The
-/// closed box without obstacles (P2) has a fused, vectorised matrix product
-/// and the preconditioners; other boundaries and obstacles use the general
-/// matrix [`apply_boundary_matrix`] without a preconditioner (the
-/// preconditioners here know only the closed box).
+/// closed square box without obstacles (P2, [`PressureSolver::new`]) has a
+/// fused, vectorised matrix product and a choice of preconditioners; other
+/// boundaries, obstacles and rectangles ([`PressureSolver::general`]) use
+/// the general matrix [`apply_boundary_matrix`] with MIC(0) built for it.
 #[derive(Clone, Debug)]
 pub struct PressureSolver {
-    n: usize,
+    nx: usize,
+    ny: usize,
     /// Relative tolerance on the true residual, `‖b − A·p‖ ≤ tol·‖b‖`.
     pub tolerance: f64,
     /// More iterations than this is an error.
@@ -861,6 +891,10 @@ pub struct PressureSolver {
     precond: Preconditioner,
     /// MIC(0) inverse diagonal.
     inv_diag: Vec<f64>,
+    /// The general matrix's couplings to the right and upper neighbour
+    /// (`A[c][c+1]`, `A[c][c+nx]`, wrap-arounds left out) for its MIC(0);
+    /// empty for the closed box, whose couplings are all −1.
+    couple: Vec<[f64; 2]>,
     mg: Option<crate::multigrid::Multigrid>,
     /// Fluid indicator per cell (1 fluid, 0 solid) when there are obstacles.
     fluid: Option<Vec<f64>>,
@@ -904,21 +938,104 @@ impl PressureSolver {
         }
         let z = vec![0.0; n * n];
         let mg = (precond == Preconditioner::Multigrid).then(|| crate::multigrid::Multigrid::new(n));
-        Self { n, tolerance, max_iterations, precond, inv_diag, mg, fluid: None, boundary: Boundary::CLOSED, r: z.clone(), z: z.clone(), d: z.clone(), q: z }
+        Self {
+            nx: n,
+            ny: n,
+            tolerance,
+            max_iterations,
+            precond,
+            inv_diag,
+            couple: Vec::new(),
+            mg,
+            fluid: None,
+            boundary: Boundary::CLOSED,
+            r: z.clone(),
+            z: z.clone(),
+            d: z.clone(),
+            q: z,
+        }
     }
 
-    /// A solver for any boundary, with solid cells where `fluid[c] = 0`
-    /// (`None`: no solids): the matrix of [`apply_boundary_matrix`],
-    /// unpreconditioned CG. For the closed box without solids this is the
-    /// same as [`PressureSolver::new`] with [`Preconditioner::None`].
-    pub fn general(n: usize, boundary: Boundary, tolerance: f64, max_iterations: usize, fluid: Option<Vec<f64>>) -> Self {
+    /// A solver for an `nx × ny` box with any boundary and solid cells
+    /// where `fluid[c] = 0` (`None`: no solids): the matrix of
+    /// [`apply_boundary_matrix`], CG preconditioned by MIC(0) of that
+    /// matrix (couplings across a periodic side left out of the factor).
+    pub fn general(nx: usize, ny: usize, boundary: Boundary, tolerance: f64, max_iterations: usize, fluid: Option<Vec<f64>>) -> Self {
+        let nn = nx * ny;
         if let Some(w) = &fluid {
-            assert_eq!(w.len(), n * n, "fluid mask length");
+            assert_eq!(w.len(), nn, "fluid mask length");
         }
-        let mut s = Self::new(n, tolerance, max_iterations, Preconditioner::None);
-        s.fluid = fluid;
-        s.boundary = boundary;
+        let z = vec![0.0; nn];
+        let mut s = Self {
+            nx,
+            ny,
+            tolerance,
+            max_iterations,
+            precond: Preconditioner::Mic0,
+            inv_diag: z.clone(),
+            couple: vec![[0.0; 2]; nn],
+            mg: None,
+            fluid,
+            boundary,
+            r: z.clone(),
+            z: z.clone(),
+            d: z.clone(),
+            q: z,
+        };
+        s.factor_general();
         s
+    }
+
+    /// MIC(0) of the general matrix (Bridson, §5, with its couplings):
+    /// diagonal and couplings read off [`apply_boundary_matrix`] applied to
+    /// unit vectors' closed forms.
+    fn factor_general(&mut self) {
+        const TAU: f64 = 0.97;
+        const SIGMA: f64 = 0.25;
+        let (nx, ny, b) = (self.nx, self.ny, self.boundary);
+        let w = |c: usize| self.fluid.as_ref().map_or(1.0, |w| w[c]);
+        let mut diag = vec![0.0; nx * ny];
+        for j in 0..ny {
+            for i in 0..nx {
+                let c = j * nx + i;
+                // What each side adds to the diagonal: a neighbour's fluid
+                // weight, 1 for the ghost of an outflow side, 0 for a wall.
+                let side = |inside: bool, m: usize, s: Side, wrapped: usize| {
+                    if inside {
+                        w(m)
+                    } else {
+                        match s {
+                            Side::Periodic => w(wrapped),
+                            Side::Outflow => 1.0,
+                            Side::Closed | Side::Inflow(_) => 0.0,
+                        }
+                    }
+                };
+                let sum = side(i > 0, c.wrapping_sub(1), b.left, c + nx - 1)
+                    + side(i + 1 < nx, c + 1, b.right, (c + 1).wrapping_sub(nx))
+                    + side(j > 0, c.wrapping_sub(nx), b.bottom, c + nx * (ny - 1))
+                    + side(j + 1 < ny, c + nx, b.top, i);
+                diag[c] = w(c) * sum + (1.0 - w(c));
+                self.couple[c] = [if i + 1 < nx { -w(c) * w(c + 1) } else { 0.0 }, if j + 1 < ny { -w(c) * w(c + nx) } else { 0.0 }];
+            }
+        }
+        let (pc, a) = (&mut self.inv_diag, &self.couple);
+        for c in 0..nx * ny {
+            let mut e = diag[c];
+            if c % nx > 0 {
+                let (ax, ay, p) = (a[c - 1][0], a[c - 1][1], pc[c - 1]);
+                e -= (ax * p) * (ax * p) + TAU * ax * ay * p * p;
+            }
+            if c >= nx {
+                let (ay, ax, p) = (a[c - nx][1], a[c - nx][0], pc[c - nx]);
+                e -= (ay * p) * (ay * p) + TAU * ay * ax * p * p;
+            }
+            if e < SIGMA * diag[c] {
+                e = diag[c];
+            }
+            // A cell coupled to nothing (walled in): leave its residual as is.
+            pc[c] = if e > 0.0 { 1.0 / e.sqrt() } else { 1.0 };
+        }
     }
 
     /// The fluid indicator, when there are obstacles.
@@ -933,9 +1050,10 @@ impl PressureSolver {
 
     /// `z = M⁻¹·r` (MIC(0): forward then backward substitution).
     fn precondition(&mut self) {
-        let n = self.n;
+        let n = self.nx;
         match self.precond {
             Preconditioner::None => self.z.copy_from_slice(&self.r),
+            Preconditioner::Mic0 if !self.couple.is_empty() => mic0_general(self.nx, &self.couple, &self.inv_diag, &self.r, &mut self.z),
             Preconditioner::Mic0 => mic0_apply(n, &self.inv_diag, &self.r, &mut self.z),
             Preconditioner::Multigrid => self.mg.as_mut().expect("multigrid hierarchy").apply(&self.r, &mut self.z),
         }
@@ -944,18 +1062,19 @@ impl PressureSolver {
     /// Solves `A·p = b` from `p = 0` until `‖b − A·p‖₂ ≤ tol·‖b‖₂` (true
     /// residual); overwrites `p`. Without an outflow side the matrix is
     /// singular and `b` must sum to zero over the fluid (the compatibility
-    /// condition); it is projected onto that space to remove rounding.
+    /// condition); it is projected onto that space to remove rounding, and
+    /// the solution returned is the one with zero mean on the fluid.
     /// Returns the number of iterations.
     pub fn solve(&mut self, b: &[f64], p: &mut [f64]) -> Result<usize, NoConvergence> {
-        let n = self.n;
-        let nn = n * n;
+        let (nx, ny) = (self.nx, self.ny);
+        let nn = nx * ny;
         // Remove the component along the null vector (constant on the fluid).
         let (total, count) = match &self.fluid {
             None => (b.iter().sum::<f64>(), nn as f64),
             Some(w) => (b.iter().zip(w).map(|(b, w)| b * w).sum::<f64>(), w.iter().sum::<f64>()),
         };
         let mean = if self.boundary.has_outflow() { 0.0 } else { total / count.max(1.0) };
-        let special = self.fluid.is_none() && self.boundary == Boundary::CLOSED;
+        let special = self.fluid.is_none() && self.boundary == Boundary::CLOSED && nx >= 2;
         // The right-hand side minus its mean on the fluid cells.
         let fluid_mean = |c: usize, fluid: &Option<Vec<f64>>| mean * fluid.as_ref().map_or(1.0, |w| w[c]);
         for (c, (r, &bv)) in self.r.iter_mut().zip(b).enumerate() {
@@ -975,15 +1094,18 @@ impl PressureSolver {
             if rr.sqrt() <= target {
                 // Confirm on the true residual; restart from it if needed.
                 if special {
-                    apply_pressure_matrix(n, p, &mut self.q);
+                    apply_pressure_matrix(nx, ny, p, &mut self.q);
                 } else {
-                    apply_boundary_matrix(n, &self.boundary, self.fluid.as_deref(), p, &mut self.q);
+                    apply_boundary_matrix(nx, ny, &self.boundary, self.fluid.as_deref(), p, &mut self.q);
                 }
                 for (c, ((q, &bv), r)) in self.q.iter().zip(b).zip(self.r.iter_mut()).enumerate() {
                     *r = bv - fluid_mean(c, &self.fluid) - q;
                 }
                 rr = dot(&self.r, &self.r);
                 if rr.sqrt() <= target {
+                    if !self.boundary.has_outflow() {
+                        self.remove_null_component(p);
+                    }
                     return Ok(it);
                 }
                 rz = self.restart();
@@ -993,9 +1115,9 @@ impl PressureSolver {
             }
             let mut dq = 0.0;
             if special {
-                matvec_dot(n, &self.d, &mut self.q, &mut dq);
+                matvec_dot(nx, ny, &self.d, &mut self.q, &mut dq);
             } else {
-                apply_boundary_matrix(n, &self.boundary, self.fluid.as_deref(), &self.d, &mut self.q);
+                apply_boundary_matrix(nx, ny, &self.boundary, self.fluid.as_deref(), &self.d, &mut self.q);
                 dq = dot(&self.d, &self.q);
             }
             let alpha = rz / dq;
@@ -1013,6 +1135,25 @@ impl PressureSolver {
         }
     }
 
+    /// Removes the component of `p` along the null vector (constant on the
+    /// fluid): the solution becomes the pseudo-inverse's, whatever the
+    /// preconditioner added along the null space. The velocity does not
+    /// see the constant, but the projection's adjoint does (through faces
+    /// on walls and solids), so forward and adjoint must agree on it.
+    fn remove_null_component(&self, p: &mut [f64]) {
+        match &self.fluid {
+            None => {
+                let mean = p.iter().sum::<f64>() / p.len().max(1) as f64;
+                p.iter_mut().for_each(|v| *v -= mean);
+            }
+            Some(w) => {
+                let count = w.iter().sum::<f64>().max(1.0);
+                let mean = p.iter().zip(w).map(|(p, w)| p * w).sum::<f64>() / count;
+                p.iter_mut().zip(w).for_each(|(v, w)| *v -= mean * w);
+            }
+        }
+    }
+
     /// `d = M⁻¹·r`; returns `r·M⁻¹·r`.
     fn restart(&mut self) -> f64 {
         self.precondition();
@@ -1023,12 +1164,12 @@ impl PressureSolver {
 
 crate::simd_dispatch! {
     /// `q = A·d` and `*dq = d·q` in one pass.
-    fn matvec_dot(n: usize, d: &[f64], q: &mut [f64], dq: &mut f64) => matvec_dot_body
+    fn matvec_dot(nx: usize, ny: usize, d: &[f64], q: &mut [f64], dq: &mut f64) => matvec_dot_body
 }
 
 #[inline(always)]
-fn matvec_dot_body(n: usize, d: &[f64], q: &mut [f64], dq: &mut f64) {
-    apply_pressure_matrix(n, d, q);
+fn matvec_dot_body(nx: usize, ny: usize, d: &[f64], q: &mut [f64], dq: &mut f64) {
+    apply_pressure_matrix(nx, ny, d, q);
     *dq = dot(d, q);
 }
 
@@ -1104,6 +1245,33 @@ fn mic0_apply(n: usize, pc: &[f64], r: &[f64], z: &mut [f64]) {
     }
 }
 
+/// `z = (L·Lᵀ)⁻¹·r` for the general MIC(0) factor (couplings `a[c] =
+/// [A[c][c+1], A[c][c+nx]]`, inverse diagonal `pc`): forward then backward
+/// substitution in row order.
+fn mic0_general(nx: usize, a: &[[f64; 2]], pc: &[f64], r: &[f64], z: &mut [f64]) {
+    let nn = r.len();
+    for c in 0..nn {
+        let mut t = r[c];
+        if c % nx > 0 {
+            t -= a[c - 1][0] * pc[c - 1] * z[c - 1];
+        }
+        if c >= nx {
+            t -= a[c - nx][1] * pc[c - nx] * z[c - nx];
+        }
+        z[c] = t * pc[c];
+    }
+    for c in (0..nn).rev() {
+        let mut t = z[c];
+        if c % nx + 1 < nx {
+            t -= a[c][0] * pc[c] * z[c + 1];
+        }
+        if c + nx < nn {
+            t -= a[c][1] * pc[c] * z[c + nx];
+        }
+        z[c] = t * pc[c];
+    }
+}
+
 /// Dot product with eight independent partial sums (vectorises; a fixed
 /// summation order, so results do not depend on the machine).
 #[inline(always)]
@@ -1127,9 +1295,9 @@ pub struct ProjectScratch {
 }
 
 impl ProjectScratch {
-    /// Scratch for an `n × n` box.
-    pub fn new(n: usize) -> Self {
-        Self { d: vec![0.0; n * n], p: vec![0.0; n * n] }
+    /// Scratch for a box of `cells` cells.
+    pub fn new(cells: usize) -> Self {
+        Self { d: vec![0.0; cells], p: vec![0.0; cells] }
     }
 }
 
@@ -1153,7 +1321,7 @@ pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratc
     let iterations = solver.solve(&scratch.d, &mut scratch.p)?;
     let (p, fluid) = (&scratch.p, solver.fluid());
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
             if f.projected {
                 let grad = f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]);
                 vel[f.index] -= open(fluid, &f) * grad;
@@ -1177,7 +1345,7 @@ pub fn project_adjoint(cfg: &Smoke2d, g: &mut [f64], solver: &mut PressureSolver
     let lp = &mut scratch.d;
     lp.fill(0.0);
     for (axis, gvel) in [&mut *gu, &mut *gv].into_iter().enumerate() {
-        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
             if !f.projected {
                 return;
             }
@@ -1206,13 +1374,13 @@ pub fn project_adjoint(cfg: &Smoke2d, g: &mut [f64], solver: &mut PressureSolver
 /// within `N/8` of `(N/2, N/4)`, packed as `[s, u, v]`.
 pub fn p2_initial(cfg: &Smoke2d) -> Vec<f64> {
     let mut x = vec![0.0; cfg.n_state()];
-    x[..cfg.n_s()].copy_from_slice(&disc(cfg.n, 0.25));
+    x[..cfg.n_s()].copy_from_slice(&disc(cfg.nx, 0.25));
     x
 }
 
 /// P2's target smoke: the same disc centred at `(N/2, 3N/4)`.
 pub fn p2_target(cfg: &Smoke2d) -> Vec<f64> {
-    disc(cfg.n, 0.75)
+    disc(cfg.nx, 0.75)
 }
 
 fn disc(n: usize, cy: f64) -> Vec<f64> {
@@ -1271,27 +1439,27 @@ pub const P2_SIZES: [P2Reference; 2] = [
 /// smoke-free fluid outside); none through closed sides. Reads
 /// `x = [s, u, v]`, writes `y = [s', u, v]`.
 pub fn advect_upwind(cfg: &Smoke2d, dt: f64, x: &[f64], y: &mut [f64]) {
-    let n = cfg.n;
-    assert!(n >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+    let (n, ny) = (cfg.nx, cfg.ny);
+    assert!(n.min(ny) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
     let (s, u, v) = cfg.split(x);
     let nu = n + 1;
     let (s2, rest) = y.split_at_mut(cfg.n_s());
     copy(s, s2);
     // Interior x-faces: flux from cell (i−1, j) to (i, j).
-    for j in 0..n {
+    for j in 0..ny {
         for i in 1..n {
             upwind_flux(s, s2, dt * u[j * nu + i], Some(j * n + i - 1), Some(j * n + i));
         }
     }
     // Interior y-faces: flux from cell (i, j−1) to (i, j).
-    for j in 1..n {
+    for j in 1..ny {
         for i in 0..n {
             upwind_flux(s, s2, dt * v[j * n + i], Some((j - 1) * n + i), Some(j * n + i));
         }
     }
     // The sides: wrap, or exchange with the smoke-free outside.
     let b = &cfg.boundary;
-    for k in 0..n {
+    for k in 0..ny {
         match b.left {
             Side::Periodic => upwind_flux(s, s2, dt * u[k * nu], Some(k * n + n - 1), Some(k * n)),
             Side::Inflow(_) | Side::Outflow => upwind_flux(s, s2, dt * u[k * nu], None, Some(k * n)),
@@ -1300,13 +1468,15 @@ pub fn advect_upwind(cfg: &Smoke2d, dt: f64, x: &[f64], y: &mut [f64]) {
         if let Side::Inflow(_) | Side::Outflow = b.right {
             upwind_flux(s, s2, dt * u[k * nu + n], Some(k * n + n - 1), None);
         }
+    }
+    for k in 0..n {
         match b.bottom {
-            Side::Periodic => upwind_flux(s, s2, dt * v[k], Some((n - 1) * n + k), Some(k)),
+            Side::Periodic => upwind_flux(s, s2, dt * v[k], Some((ny - 1) * n + k), Some(k)),
             Side::Inflow(_) | Side::Outflow => upwind_flux(s, s2, dt * v[k], None, Some(k)),
             Side::Closed => {}
         }
         if let Side::Inflow(_) | Side::Outflow = b.top {
-            upwind_flux(s, s2, dt * v[n * n + k], Some((n - 1) * n + k), None);
+            upwind_flux(s, s2, dt * v[ny * n + k], Some((ny - 1) * n + k), None);
         }
     }
     copy(&x[cfg.n_s()..], rest);
@@ -1333,7 +1503,7 @@ pub fn upwind_radius(cfg: &Smoke2d, x: &[f64], d: &[f64]) -> f64 {
     let (_, du, dv) = cfg.split(d);
     let mut r = f64::INFINITY;
     for (axis, (vel, dvel)) in [(u, du), (v, dv)].into_iter().enumerate() {
-        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
             if f.side != Some(Side::Closed) && dvel[f.index] != 0.0 {
                 r = r.min((vel[f.index] / dvel[f.index]).abs());
             }
@@ -1343,33 +1513,33 @@ pub fn upwind_radius(cfg: &Smoke2d, x: &[f64], d: &[f64]) -> f64 {
 }
 
 /// An external force over a time step `dt`: `[s, u, v] ↦ [s, u + dt·fu,
-/// v + dt·fv]`, with the force `f = [fu, fv]` given per face (`N·(N+1)`
-/// values each, the velocity layout), on the interior faces and the faces
+/// v + dt·fv]`, with the force `f = [fu, fv]` given per face (the velocity
+/// layout, [`Smoke2d::n_vel`] values), on the interior faces and the faces
 /// that wrap across a periodic side (copies refreshed); the faces on other
 /// sides keep their velocity.
 pub fn apply_force(cfg: &Smoke2d, dt: f64, x: &[f64], f: &[f64], y: &mut [f64]) {
-    let n = cfg.n;
-    assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && f.len() == 2 * cfg.n_u(), "smoke: force lengths");
+    let (n, ny) = (cfg.nx, cfg.ny);
+    assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && f.len() == cfg.n_vel(), "smoke: force lengths");
     let nu = n + 1;
     copy(x, y);
     let (fu, fv) = f.split_at(cfg.n_u());
     let (_, u2, v2) = cfg.split_mut(y);
     let (wx, wy) = (cfg.boundary.periodic_x() as usize, cfg.boundary.periodic_y() as usize);
-    for j in 0..n {
+    for j in 0..ny {
         for i in 1 - wx..n {
             u2[j * nu + i] += dt * fu[j * nu + i];
         }
     }
-    for j in 1 - wy..n {
+    for j in 1 - wy..ny {
         for i in 0..n {
             v2[j * n + i] += dt * fv[j * n + i];
         }
     }
-    for j in 0..n * wx {
+    for j in 0..ny * wx {
         u2[j * nu + n] = u2[j * nu];
     }
     for i in 0..n * wy {
-        v2[n * n + i] = v2[i];
+        v2[ny * n + i] = v2[i];
     }
 }
 
@@ -1377,9 +1547,9 @@ pub fn apply_force(cfg: &Smoke2d, dt: f64, x: &[f64], f: &[f64], y: &mut [f64]) 
 /// velocity on the faces of those cells (walls excepted) to `(p[1], p[2])`;
 /// everything else passes through.
 pub fn apply_inflow(cfg: &Smoke2d, region: [usize; 4], x: &[f64], p: &[f64], y: &mut [f64]) {
-    let n = cfg.n;
+    let (n, ny) = (cfg.nx, cfg.ny);
     let [i0, i1, j0, j1] = region;
-    assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && p.len() == 3 && i0 < i1 && i1 <= n && j0 < j1 && j1 <= n, "smoke: inflow");
+    assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && p.len() == 3 && i0 < i1 && i1 <= n && j0 < j1 && j1 <= ny, "smoke: inflow");
     let nu = n + 1;
     for (o, &a) in y.iter_mut().zip(x) {
         *o = a;
@@ -1393,7 +1563,7 @@ pub fn apply_inflow(cfg: &Smoke2d, region: [usize; 4], x: &[f64], p: &[f64], y: 
             u2[j * nu + i] = p[1];
         }
     }
-    for j in j0.max(1)..=j1.min(n - 1) {
+    for j in j0.max(1)..=j1.min(ny - 1) {
         for i in i0..i1 {
             v2[j * n + i] = p[2];
         }
@@ -1404,17 +1574,18 @@ pub fn apply_inflow(cfg: &Smoke2d, region: [usize; 4], x: &[f64], p: &[f64], y: 
 /// first), for the fluid operators and, complemented, as the fluid mask of
 /// [`PressureSolver::general`]: a cell is solid when its centre lies inside. The box is clipped to the
 /// domain; `None` when no cell centre lies inside (a box wholly outside).
-pub fn obstacle_box(n: usize, lower: [f64; 2], upper: [f64; 2]) -> Option<Vec<bool>> {
-    obstacle(n, |x, y| x >= lower[0] && x < upper[0] && y >= lower[1] && y < upper[1])
+pub fn obstacle_box(cfg: &Smoke2d, lower: [f64; 2], upper: [f64; 2]) -> Option<Vec<bool>> {
+    obstacle(cfg, |x, y| x >= lower[0] && x < upper[0] && y >= lower[1] && y < upper[1])
 }
 
 /// Solid cells of a disc (centre in cell units, x first): a cell is solid
 /// when its centre lies within `radius`. `None` when no cell is covered.
-pub fn obstacle_disc(n: usize, center: [f64; 2], radius: f64) -> Option<Vec<bool>> {
-    obstacle(n, |x, y| (x - center[0]).powi(2) + (y - center[1]).powi(2) <= radius * radius)
+pub fn obstacle_disc(cfg: &Smoke2d, center: [f64; 2], radius: f64) -> Option<Vec<bool>> {
+    obstacle(cfg, |x, y| (x - center[0]).powi(2) + (y - center[1]).powi(2) <= radius * radius)
 }
 
-fn obstacle(n: usize, inside: impl Fn(f64, f64) -> bool) -> Option<Vec<bool>> {
-    let solid: Vec<bool> = (0..n * n).map(|c| inside((c % n) as f64 + 0.5, (c / n) as f64 + 0.5)).collect();
+fn obstacle(cfg: &Smoke2d, inside: impl Fn(f64, f64) -> bool) -> Option<Vec<bool>> {
+    let n = cfg.nx;
+    let solid: Vec<bool> = (0..cfg.n_s()).map(|c| inside((c % n) as f64 + 0.5, (c / n) as f64 + 0.5)).collect();
     solid.iter().any(|&s| s).then_some(solid)
 }

@@ -23,7 +23,7 @@ pub const LENGTH: f64 = 2.0 * PI;
 
 /// The periodic `n × n` box without buoyancy.
 pub fn periodic_box(n: usize) -> Smoke2d {
-    Smoke2d { n, buoyancy: 0.0, boundary: Boundary::all(Side::Periodic) }
+    Smoke2d { nx: n, ny: n, buoyancy: 0.0, boundary: Boundary::all(Side::Periodic) }
 }
 
 /// Name of an advection scheme in reports.
@@ -64,7 +64,8 @@ fn after(stage: &'static str, step: usize, error: Option<OpError>, state: &[f64]
 /// Relative L2 error of the velocity samples of a packed state against
 /// `(u, v)` (a periodic axis's copy faces left out).
 fn velocity_error(cfg: &Smoke2d, x: &[f64], u: &[f64], v: &[f64]) -> f64 {
-    let n = cfg.n;
+    debug_assert!(cfg.is_square(), "the periodic box is square");
+    let n = cfg.nx;
     let (_, xu, xv) = cfg.split(x);
     let (mut a, mut b) = (Vec::with_capacity(2 * n * n), Vec::with_capacity(2 * n * n));
     for j in 0..n {
@@ -221,7 +222,7 @@ impl TranslationRun {
         let (steps, dt) = steps_to(self.t_end, self.cfl * h);
         let mut x = exact.cells(n, 0.0);
         x.extend(std::iter::repeat_n(exact.velocity.0 / h, cfg.n_u()));
-        x.extend(std::iter::repeat_n(exact.velocity.1 / h, cfg.n_u()));
+        x.extend(std::iter::repeat_n(exact.velocity.1 / h, cfg.n_v()));
         let mut y = vec![0.0; x.len()];
         for step in 0..steps {
             match self.scheme {

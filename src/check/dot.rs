@@ -50,7 +50,12 @@ pub fn dot_product_between<A: Jvp, B: Vjp>(a: &A, b: &B, x: &[f64], p: &[f64], o
     let (gx, gp) = b.vjp_new(x, p, &w);
     let jvp_side = dot(&jv, &w);
     let vjp_side = dot(&vx, &gx) + dot(&vp, &gp);
-    let rel_error = (jvp_side - vjp_side).abs() / jvp_side.abs().max(vjp_side.abs()).max(f64::MIN_POSITIVE);
+    // Relative to the Cauchy–Schwarz bounds ‖Jv‖·‖w‖ and ‖v‖·‖Jᵀw‖ (each
+    // side's size before cancellation): rounding in either product is a
+    // fraction of these, while a wrong adjoint misses by as much.
+    let norm = |a: &[f64]| dot(a, a).sqrt();
+    let bound = (norm(&jv) * norm(&w)).max(norm(&vx).hypot(norm(&vp)) * norm(&gx).hypot(norm(&gp)));
+    let rel_error = (jvp_side - vjp_side).abs() / jvp_side.abs().max(vjp_side.abs()).max(bound).max(f64::MIN_POSITIVE);
 
     // Contract: starting from dx = r, dp = q the VJP must leave r + Jᵀw, q + Jᵀw,
     // and the seed must come back zero.

@@ -5,9 +5,8 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use diffsim_solvers::boundary::{Boundary, Side};
 use diffsim_solvers::exact::TaylorGreen;
-use diffsim_solvers::smoke::{Preconditioner, Smoke2d};
+use diffsim_solvers::smoke::Preconditioner;
 use serde_json::{Map, Value, json};
 
 use super::{CliError, median_time, peak_rss_bytes, plot_or_warn, reset_peak_rss};
@@ -213,7 +212,7 @@ struct TaylorGreenGradient {
 
 impl TaylorGreenGradient {
     fn new(n: usize, steps: usize) -> Self {
-        let cfg = Smoke2d { n, buoyancy: 0.0, boundary: Boundary::all(Side::Periodic) };
+        let cfg = crate::accuracy::flow::periodic_box(n);
         let h = crate::accuracy::flow::LENGTH / n as f64;
         // Half a cell per unit step at most.
         let tg = TaylorGreen { length: crate::accuracy::flow::LENGTH, amplitude: 0.5 * h, nu: 0.0 };

@@ -54,7 +54,7 @@ pub(super) fn plume(a: PlumeArgs) -> Result<(), CliError> {
     }
     std::fs::create_dir_all(&a.out).map_err(|e| CliError::Io { path: a.out.clone(), source: e })?;
     let path = a.out.join("plume.png");
-    write_png(&path, n, &x[..cfg.n_s()], &solid).map_err(|e| CliError::Io { path: path.clone(), source: e })?;
+    write_png(&path, (n, n), &x[..cfg.n_s()], &solid).map_err(|e| CliError::Io { path: path.clone(), source: e })?;
     let mass: f64 = x[..cfg.n_s()].iter().sum();
     println!("plume: {n}×{n} cells, {} steps, smoke total {mass:.1}, CG iterations {} → {}", a.steps, step.project.cg_forward.get(), path.display());
     Ok(())
@@ -62,25 +62,25 @@ pub(super) fn plume(a: PlumeArgs) -> Result<(), CliError> {
 
 /// Smoke as grey levels (white = 1), solid cells in dark red, y up, each
 /// cell 4×4 pixels.
-pub(super) fn write_png(path: &std::path::Path, n: usize, s: &[f64], solid: &[bool]) -> std::io::Result<()> {
+pub(super) fn write_png(path: &std::path::Path, (nx, ny): (usize, usize), s: &[f64], solid: &[bool]) -> std::io::Result<()> {
     const SCALE: usize = 4;
-    let side = n * SCALE;
-    let mut rgb = vec![0u8; side * side * 3];
-    for py in 0..side {
-        for px in 0..side {
-            let (i, j) = (px / SCALE, n - 1 - py / SCALE);
-            let c = j * n + i;
+    let (width, height) = (nx * SCALE, ny * SCALE);
+    let mut rgb = vec![0u8; width * height * 3];
+    for py in 0..height {
+        for px in 0..width {
+            let (i, j) = (px / SCALE, ny - 1 - py / SCALE);
+            let c = j * nx + i;
             let pixel = if solid[c] {
                 [140, 30, 30]
             } else {
                 let g = (s[c].clamp(0.0, 1.0) * 255.0).round() as u8;
                 [g, g, g]
             };
-            rgb[(py * side + px) * 3..(py * side + px) * 3 + 3].copy_from_slice(&pixel);
+            rgb[(py * width + px) * 3..(py * width + px) * 3 + 3].copy_from_slice(&pixel);
         }
     }
     let file = std::io::BufWriter::new(std::fs::File::create(path)?);
-    let mut enc = png::Encoder::new(file, side as u32, side as u32);
+    let mut enc = png::Encoder::new(file, width as u32, height as u32);
     enc.set_color(png::ColorType::Rgb);
     enc.set_depth(png::BitDepth::Eight);
     let mut w = enc.write_header().map_err(std::io::Error::other)?;

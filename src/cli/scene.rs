@@ -92,15 +92,15 @@ fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64]) -> Result<Vec<S
             }
         }
         Domain::Box(cfg) => {
-            let n = cfg.n;
-            let none = vec![false; n * n];
+            let (n, ny) = (cfg.nx, cfg.ny);
+            let none = vec![false; cfg.n_s()];
             let solid = scene.solid.as_deref().unwrap_or(&none);
             let (name, values) = if scene.fields.contains(&Field::Smoke) {
                 (format!("smoke{tag}.png"), x[scene.domain.range(Field::Smoke)].to_vec())
             } else {
                 // Speed at cell centres, scaled to its maximum.
                 let (_, u, v) = cfg.split(x);
-                let speed: Vec<f64> = (0..n * n)
+                let speed: Vec<f64> = (0..cfg.n_s())
                     .map(|c| {
                         let (i, j) = (c % n, c / n);
                         let uc = 0.5 * (u[j * (n + 1) + i] + u[j * (n + 1) + i + 1]);
@@ -112,7 +112,7 @@ fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64]) -> Result<Vec<S
                 (format!("speed{tag}.png"), speed.iter().map(|s| s / max).collect())
             };
             let path = out.join(&name);
-            super::demo::write_png(&path, n, &values, solid).map_err(io(path.clone()))?;
+            super::demo::write_png(&path, (n, ny), &values, solid).map_err(io(path.clone()))?;
             names.push(name);
         }
     }
@@ -175,7 +175,7 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
 fn describe(d: &Domain) -> String {
     match d {
         Domain::Line(l) => format!("{} cells on a line of length {}", l.n, l.n as f64 * l.dx),
-        Domain::Box(cfg) => format!("{n}×{n} cells", n = cfg.n),
+        Domain::Box(cfg) => format!("{}×{} cells", cfg.nx, cfg.ny),
     }
 }
 

@@ -1,5 +1,6 @@
 //! `diffsim train CONFIG` (one training run through the solver) and
-//! `diffsim experiment sol-burgers` (the PRE / NOISE / SOL study).
+//! `diffsim experiment sol-burgers` and `sol-wake` (the PRE / NOISE / SOL
+//! studies).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -10,6 +11,7 @@ use crate::plot::{Axes, Series};
 use crate::train::Optimizer;
 use crate::train::burgers::{LogRow, StudyConfig, TrainData, evaluate, initial_params, mean, study, train};
 use crate::train::config::TrainConfig;
+use crate::train::sol::SolProblem;
 
 /// Arguments of `diffsim train`.
 #[derive(Debug, clap::Args)]
@@ -33,6 +35,9 @@ pub struct TrainArgs {
 pub enum ExperimentCommand {
     /// Solver-in-the-loop on Burgers: source vs PRE, NOISE, SOL-4, SOL-16.
     SolBurgers(SolArgs),
+    /// Solver-in-the-loop in 2D: flow past a disc (64 × 32, 4× finer
+    /// reference), source vs PRE, NOISE, SOL-4, SOL-16.
+    SolWake(SolWakeArgs),
     /// Half-inverse gradients vs Adam on the linear and nonlinear coupled
     /// oscillators, in equal wall-clock budgets.
     HigOscillators(HigArgs),
@@ -95,6 +100,29 @@ pub struct SolArgs {
     /// Training trajectories (overrides the default: 64, quick 32).
     #[arg(long)]
     train: Option<usize>,
+}
+
+/// Arguments of `diffsim experiment sol-wake`.
+#[derive(Debug, clap::Args)]
+pub struct SolWakeArgs {
+    /// A reduced study (fewer updates and trajectories; same variants).
+    #[arg(long)]
+    quick: bool,
+    /// Print the result as one JSON object on the last line.
+    #[arg(long)]
+    json: bool,
+    /// Output directory: table.md, errors.csv, error.png, loss.png.
+    #[arg(long, default_value = "out/sol-wake")]
+    out: PathBuf,
+    /// Training iterations per variant (overrides the default: 1000, quick 300).
+    #[arg(long)]
+    iterations: Option<usize>,
+    /// Training trajectories (overrides the default: 16, quick 6).
+    #[arg(long)]
+    train: Option<usize>,
+    /// Coarse steps of each test rollout (overrides the default: 64, quick 32).
+    #[arg(long)]
+    steps: Option<usize>,
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CliError + '_ {
@@ -215,6 +243,7 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
 pub(super) fn experiment(c: ExperimentCommand) -> Result<(), CliError> {
     match c {
         ExperimentCommand::SolBurgers(a) => sol_burgers(a),
+        ExperimentCommand::SolWake(a) => sol_wake(a),
         ExperimentCommand::HigOscillators(a) => hig_oscillators(a),
         ExperimentCommand::SipHeat(a) => sip_heat(a),
     }
@@ -341,20 +370,56 @@ fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
         }
         cfg.train = n;
     }
-    std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+    run_sol_study(&cfg, "sol-burgers", "Burgers", a.json, &a.out)
+}
+
+fn sol_wake(a: SolWakeArgs) -> Result<(), CliError> {
+    let mut cfg = StudyConfig::wake(a.quick);
+    if let Some(it) = a.iterations {
+        if it == 0 {
+            return Err(CliError::Argument { arg: "--iterations", reason: "must be at least 1".into() });
+        }
+        cfg.settings.iterations = it;
+        cfg.settings.decay_over = it;
+    }
+    if let Some(n) = a.train {
+        if n == 0 {
+            return Err(CliError::Argument { arg: "--train", reason: "need at least one training trajectory".into() });
+        }
+        cfg.train = n;
+    }
+    if let Some(t) = a.steps {
+        if t == 0 {
+            return Err(CliError::Argument { arg: "--steps", reason: "must be at least 1".into() });
+        }
+        cfg.eval_steps = t;
+        cfg.train_steps = t + 16;
+    }
+    if !a.json {
+        let fine = cfg.setup.fine();
+        println!("computing {} reference trajectories on the {}×{} grid …", cfg.train + cfg.test, fine.nx, fine.ny);
+    }
+    run_sol_study(&cfg, "sol-wake", "flow past a disc", a.json, &a.out)
+}
+
+/// Runs a solver-in-the-loop study; writes its table, errors per step,
+/// plots and (with `json`) the one-line result.
+fn run_sol_study<P: SolProblem>(cfg: &StudyConfig<P>, command: &'static str, title: &str, json: bool, out: &Path) -> Result<(), CliError> {
+    std::fs::create_dir_all(out).map_err(io(out))?;
     let total = cfg.methods.len() * cfg.settings.iterations;
-    let progress = bar(total, a.json, "train");
-    let results = study(&cfg, |name, r| {
+    let progress = bar(total, json, "train");
+    let results = study(cfg, |name, r| {
         progress.set_message(format!("{name} loss {:.3e}", r.loss));
         progress.inc(1);
     })
-    .map_err(|e| CliError::Argument { arg: "sol-burgers", reason: e.to_string() })?;
+    .map_err(|e| CliError::Argument { arg: command, reason: e.to_string() })?;
     progress.finish_and_clear();
 
     // Table.
     let source = results[0].mean_error;
-    let mut table = String::from(
-        "| variant | mean rel. L2 error (128 steps) | vs source | error at step 128 | same on training trajectories | s / iteration | solver | network | chaining + optimizer |\n|---|---|---|---|---|---|---|---|---|\n",
+    let mut table = format!(
+        "| variant | mean rel. L2 error ({n} steps) | vs source | error at step {n} | same on training trajectories | s / iteration | solver | network | chaining + optimizer |\n|---|---|---|---|---|---|---|---|---|\n",
+        n = cfg.eval_steps
     );
     for r in &results {
         let t = &r.time;
@@ -382,10 +447,10 @@ fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
             cell(share_c),
         ));
     }
-    let md = a.out.join("table.md");
+    let md = out.join("table.md");
     std::fs::write(&md, &table).map_err(io(&md))?;
     // Errors per step.
-    let csv = a.out.join("errors.csv");
+    let csv = out.join("errors.csv");
     let mut s = format!("step,{}\n", results.iter().map(|r| r.name.as_str()).collect::<Vec<_>>().join(","));
     for t in 0..cfg.eval_steps {
         s.push_str(&format!("{},{}\n", t + 1, results.iter().map(|r| format!("{:.6e}", r.error[t])).collect::<Vec<_>>().join(",")));
@@ -402,8 +467,8 @@ fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
         })
         .collect();
     plot_or_warn(
-        &a.out.join("error.png"),
-        &Axes { title: "Burgers, 128-step test rollouts", x: "step", y: "relative L2 error", log_x: false, log_y: true },
+        &out.join("error.png"),
+        &Axes { title: &format!("{title}, {}-step test rollouts", cfg.eval_steps), x: "step", y: "relative L2 error", log_x: false, log_y: true },
         &err_series,
     );
     // Loss curves as moving averages over 50 iterations (a batch of 16 is noisy).
@@ -414,17 +479,17 @@ fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
         .map(|(k, r)| Series { name: r.name.clone(), points: moving_average(&r.loss, 50), color: k, markers: false })
         .collect();
     plot_or_warn(
-        &a.out.join("loss.png"),
+        &out.join("loss.png"),
         &Axes { title: "training loss (moving average of 50)", x: "iteration", y: "loss", log_x: false, log_y: true },
         &loss_series,
     );
-    if !a.json {
+    if !json {
         print!("{table}");
-        println!("wrote table.md, errors.csv, error.png, loss.png to {}", a.out.display());
+        println!("wrote table.md, errors.csv, error.png, loss.png to {}", out.display());
     }
     let find = |n: &str| results.iter().find(|r| r.name == n).map_or(f64::NAN, |r| r.mean_error);
     let sol16 = results.iter().find(|r| r.name == "sol16").map_or(f64::NAN, |r| r.s_per_iter);
-    if a.json {
+    if json {
         let obj = serde_json::json!({
             "source": find("source"), "pre": find("pre"), "noise": find("noise"), "sol4": find("sol4"), "sol16": find("sol16"),
             "train_s_per_iter": sol16, "iterations": cfg.settings.iterations, "threads": rayon::current_num_threads(),

@@ -63,6 +63,15 @@ pub enum Layer {
         /// Rows in.
         ny: usize,
     },
+    /// `y[k] = x[from[k]]`, or 0 where `from[k]` is [`Layer::ZERO`]: a fixed
+    /// selection (crop, pad, permute, reshape), e.g. a MAC state's faces to
+    /// image channels and back ([`crate::nn::presets::mac_to_channels`]).
+    Gather {
+        /// Inputs.
+        n_in: usize,
+        /// The input index of each output.
+        from: Vec<usize>,
+    },
     /// `y = x + f(x)` with `f` the inner net (same size in and out).
     Residual(Net),
     /// `y = [x, f(x)]`: the input's channels followed by the inner net's
@@ -117,9 +126,18 @@ pub enum NetError {
         /// The layer.
         at: usize,
     },
+    /// A gather that selects nothing or reads past its input.
+    #[error("layer {at}: a gather needs outputs, each reading an input index below n_in (or Layer::ZERO)")]
+    Gather {
+        /// The layer.
+        at: usize,
+    },
 }
 
 impl Layer {
+    /// The index of [`Layer::Gather`] that yields 0.
+    pub const ZERO: usize = usize::MAX;
+
     /// Input size.
     pub fn n_in(&self) -> usize {
         match self {
@@ -129,6 +147,7 @@ impl Layer {
             Layer::Act { n, .. } => *n,
             Layer::AvgPool1d { c, len } | Layer::Upsample1d { c, len } => c * len,
             Layer::AvgPool2d { c, nx, ny } | Layer::Upsample2d { c, nx, ny } => c * nx * ny,
+            Layer::Gather { n_in, .. } => *n_in,
             Layer::Residual(net) | Layer::Skip(net) => net.n_in(),
         }
     }
@@ -144,6 +163,7 @@ impl Layer {
             Layer::Upsample1d { c, len } => c * 2 * len,
             Layer::AvgPool2d { c, nx, ny } => c * (nx / 2) * (ny / 2),
             Layer::Upsample2d { c, nx, ny } => c * 4 * nx * ny,
+            Layer::Gather { from, .. } => from.len(),
             Layer::Residual(net) => net.n_out(),
             Layer::Skip(net) => net.n_in() + net.n_out(),
         }
@@ -169,6 +189,7 @@ impl Layer {
             Layer::AvgPool1d { len, .. } if len % 2 != 0 => Err(NetError::OddPool { at }),
             Layer::AvgPool2d { nx, ny, .. } if nx % 2 != 0 || ny % 2 != 0 => Err(NetError::OddPool { at }),
             Layer::Residual(net) if net.n_in() != net.n_out() => Err(NetError::Residual { at }),
+            Layer::Gather { n_in, from } if from.is_empty() || from.iter().any(|&k| k != Layer::ZERO && k >= *n_in) => Err(NetError::Gather { at }),
             _ => Ok(()),
         }
     }
@@ -193,6 +214,11 @@ impl Layer {
             Layer::Upsample1d { c, len } => kernel::upsample1d(*c, *len, x, y),
             Layer::AvgPool2d { c, nx, ny } => kernel::avg_pool2d(*c, *nx, *ny, x, y),
             Layer::Upsample2d { c, nx, ny } => kernel::upsample2d(*c, *nx, *ny, x, y),
+            Layer::Gather { from, .. } => {
+                for (y, &k) in y.iter_mut().zip(from) {
+                    *y = if k == Layer::ZERO { R::zero() } else { x[k] };
+                }
+            }
             Layer::Residual(net) => {
                 net.forward_into(x, p, y);
                 for (y, x) in y.iter_mut().zip(x) {
@@ -235,6 +261,13 @@ impl Layer {
             Layer::Upsample1d { c, len } => kernel::upsample1d_adjoint(*c, *len, gy, gx),
             Layer::AvgPool2d { c, nx, ny } => kernel::avg_pool2d_adjoint(*c, *nx, *ny, gy, gx),
             Layer::Upsample2d { c, nx, ny } => kernel::upsample2d_adjoint(*c, *nx, *ny, gy, gx),
+            Layer::Gather { from, .. } => {
+                for (&g, &k) in gy.iter().zip(from) {
+                    if k != Layer::ZERO {
+                        gx[k] += g;
+                    }
+                }
+            }
             Layer::Residual(net) => {
                 for (gx, g) in gx.iter_mut().zip(gy) {
                     *gx += *g;
@@ -273,7 +306,7 @@ impl Layer {
                     *ty = f.df(x) * t;
                 }
             }
-            Layer::AvgPool1d { .. } | Layer::Upsample1d { .. } | Layer::AvgPool2d { .. } | Layer::Upsample2d { .. } => {
+            Layer::AvgPool1d { .. } | Layer::Upsample1d { .. } | Layer::AvgPool2d { .. } | Layer::Upsample2d { .. } | Layer::Gather { .. } => {
                 self.forward(x, p, y);
                 self.forward(tx, p, ty);
             }

@@ -1,5 +1,6 @@
 //! Ready-made networks: a plain convolution stack (benchmark P3's network),
-//! a multilayer perceptron, a small residual network and small U-Nets.
+//! a multilayer perceptron, a small residual network, small U-Nets, and
+//! the gathers that put a 2D MAC velocity into image channels and back.
 
 use diffsim_solvers::nn::{Activation, Conv1d, Conv2d, Padding};
 
@@ -100,4 +101,46 @@ pub fn unet_2d(nx: usize, ny: usize, c_in: usize, c_out: usize, width: usize, k:
         Layer::Act { f: act, n: width * nx * ny },
         conv2d(width, c_out, k, nx, ny, padding),
     ])
+}
+
+/// A [`Layer::Gather`] from a packed MAC state `[s, u, v]` of an `nx × ny`
+/// box ([`diffsim_solvers::smoke`]'s layout) to two `ny × nx` image
+/// channels: `u` on each cell's left face, `v` on its bottom face (the
+/// smoke and the last face of each row and column are left out).
+pub fn mac_to_channels(nx: usize, ny: usize) -> Layer {
+    let (ns, nu) = (nx * ny, ny * (nx + 1));
+    let mut from = Vec::with_capacity(2 * ns);
+    from.extend((0..ns).map(|c| ns + (c / nx) * (nx + 1) + c % nx));
+    from.extend((0..ns).map(|c| ns + nu + c));
+    Layer::Gather { n_in: ns + nu + (ny + 1) * nx, from }
+}
+
+/// The inverse placement of [`mac_to_channels`]: two `ny × nx` channels to
+/// a packed MAC state, zero smoke and zero on each row's last x-face and the
+/// top row of y-faces.
+pub fn channels_to_mac(nx: usize, ny: usize) -> Layer {
+    let (ns, nu, nv) = (nx * ny, ny * (nx + 1), (ny + 1) * nx);
+    let mut from = vec![Layer::ZERO; ns + nu + nv];
+    for j in 0..ny {
+        for i in 0..nx {
+            from[ns + j * (nx + 1) + i] = j * nx + i;
+            from[ns + nu + j * nx + i] = ns + j * nx + i;
+        }
+    }
+    Layer::Gather { n_in: 2 * ns, from }
+}
+
+/// A 2D convolution stack on a MAC state: [`mac_to_channels`], convolutions
+/// of kernel `k` through `channels` (first 2, last 2) with `act` between,
+/// zero padding (the walls), [`channels_to_mac`].
+pub fn mac_conv_stack(nx: usize, ny: usize, channels: &[usize], k: usize, act: Activation) -> Result<Net, NetError> {
+    let mut layers = vec![mac_to_channels(nx, ny)];
+    for (w, pair) in channels.windows(2).enumerate() {
+        layers.push(conv2d(pair[0], pair[1], k, nx, ny, Padding::Zero));
+        if w + 2 < channels.len() {
+            layers.push(Layer::Act { f: act, n: pair[1] * nx * ny });
+        }
+    }
+    layers.push(channels_to_mac(nx, ny));
+    Net::new(layers)
 }

@@ -30,6 +30,7 @@ mod enzyme;
 mod fd;
 mod inverse;
 mod part;
+mod per_thread;
 mod precision;
 pub mod stencil;
 
@@ -37,6 +38,7 @@ pub use chain::{Chain, Effect};
 pub use fd::FiniteDiff;
 pub use inverse::{GaussNewton, LocalInverse};
 pub use part::{AddParams, Part};
+pub use per_thread::PerThread;
 pub use precision::Float32;
 
 /// The element types operators run in: `f64` (the default) and `f32`.

@@ -57,11 +57,8 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
             }
             2 => {
                 let (nx, ny) = (count("domain.size[0]", size[0])?, count("domain.size[1]", size[1])?);
-                if nx != ny {
-                    return Err(SceneError::key("domain.size", format!("only square boxes are supported for now, got [{nx}, {ny}]")));
-                }
-                if nx < 4 {
-                    return Err(SceneError::key("domain.size", format!("need at least 4 cells per side, got {nx}")));
+                if nx.min(ny) < 4 {
+                    return Err(SceneError::key("domain.size", format!("need at least 4 cells per side, got [{nx}, {ny}]")));
                 }
                 if d.length.is_some() {
                     return Err(SceneError::key("domain.length", "a box has unit cells; `length` is for 1D domains"));
@@ -71,7 +68,7 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
                     Some(v) => boundary(v)?,
                 };
                 boundary.validate().map_err(|e| SceneError::key("domain.boundary", e.to_string()))?;
-                Ok(Domain::Box(Smoke2d { n: nx, buoyancy: 0.0, boundary }))
+                Ok(Domain::Box(Smoke2d { boundary, ..Smoke2d::new(nx, ny) }))
             }
             k => Err(SceneError::key("domain.size", format!("expected [n] (1D) or [nx, ny] (2D), got {k} value(s)"))),
         }
@@ -364,7 +361,7 @@ impl Builder<'_> {
                         let cfg = *self_cfg(&domain);
                         self.ops.push(Box::new(Force { cfg, dt }));
                         self.params.extend(std::iter::repeat_n(f.value[0], cfg.n_u()));
-                        self.params.extend(std::iter::repeat_n(f.value[1], cfg.n_u()));
+                        self.params.extend(std::iter::repeat_n(f.value[1], cfg.n_v()));
                     }
                 }
             }
@@ -399,15 +396,14 @@ impl Builder<'_> {
                 self.params.push(finite(&at("coefficient"), b.coefficient)?);
             }
             (EffectSpec::Inflow(i), Domain::Box(cfg)) => {
-                let n = cfg.n;
                 let region = match i.region {
                     ShapeSpec::Box { lower, upper } if lower.len() == 2 && upper.len() == 2 => {
-                        let clip = |v: f64| v.clamp(0.0, n as f64);
+                        let clip = |v: f64, n: usize| v.clamp(0.0, n as f64).round() as usize;
                         for v in lower.iter().chain(&upper) {
                             finite(&at("region"), *v)?;
                         }
-                        let (i0, j0) = (clip(lower[0]).round() as usize, clip(lower[1]).round() as usize);
-                        let (i1, j1) = (clip(upper[0]).round() as usize, clip(upper[1]).round() as usize);
+                        let (i0, j0) = (clip(lower[0], cfg.nx), clip(lower[1], cfg.ny));
+                        let (i1, j1) = (clip(upper[0], cfg.nx), clip(upper[1], cfg.ny));
                         if i0 >= i1 || j0 >= j1 {
                             return Err(SceneError::key(at("region"), "the box covers no cell of the domain"));
                         }

@@ -32,12 +32,12 @@ pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec) -> Resu
     let cells = match (domain, shape) {
         (Domain::Box(cfg), ShapeSpec::Box { lower, upper }) => {
             let (a, b) = (point(&format!("{key}.lower"), lower, dims)?, point(&format!("{key}.upper"), upper, dims)?);
-            obstacle_box(cfg.n, [a[0], a[1]], [b[0], b[1]])
+            obstacle_box(cfg, [a[0], a[1]], [b[0], b[1]])
         }
         (Domain::Box(cfg), ShapeSpec::Disc { center, radius }) => {
             let c = point(&format!("{key}.center"), center, dims)?;
             positive(&format!("{key}.radius"), *radius)?;
-            obstacle_disc(cfg.n, [c[0], c[1]], *radius)
+            obstacle_disc(cfg, [c[0], c[1]], *radius)
         }
         (Domain::Line(l), ShapeSpec::Box { lower, upper }) => {
             let (a, b) = (point(&format!("{key}.lower"), lower, dims)?[0], point(&format!("{key}.upper"), upper, dims)?[0]);
@@ -53,7 +53,7 @@ pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec) -> Resu
     };
     cells.ok_or_else(|| {
         let size = match domain {
-            Domain::Box(cfg) => format!("{n}×{n} domain", n = cfg.n),
+            Domain::Box(cfg) => format!("{}×{} domain", cfg.nx, cfg.ny),
             Domain::Line(l) => format!("domain [0, {})", l.n as f64 * l.dx),
         };
         SceneError::key(key, format!("the shape lies wholly outside the {size}"))
@@ -88,7 +88,7 @@ pub(super) fn field_init(key: &str, domain: &Domain, field: Field, init: &InitSp
             match domain {
                 Domain::Line(_) => vec![v[0]; len],
                 Domain::Box(cfg) => {
-                    let mut uv = vec![v[0]; 2 * cfg.n_u()];
+                    let mut uv = vec![v[0]; cfg.n_vel()];
                     uv[cfg.n_u()..].fill(v[1]);
                     uv
                 }
@@ -115,18 +115,19 @@ fn sine(domain: &Domain, field: Field, a: f64, k: &[f64]) -> Vec<f64> {
             (0..l.n).map(|i| a * (TAU * k[0] * i as f64 * l.dx / len).sin()).collect()
         }
         Domain::Box(cfg) => {
-            let (n, nf) = (cfg.n, cfg.n as f64);
-            let at = |x: f64, y: f64| a * (TAU * (k[0] * x + k[1] * y) / nf).sin();
+            let (n, ny) = (cfg.nx, cfg.ny);
+            // `k` periods across the box along each axis.
+            let at = |x: f64, y: f64| a * (TAU * (k[0] * x / n as f64 + k[1] * y / ny as f64)).sin();
             match field {
-                Field::Smoke => (0..n * n).map(|c| at((c % n) as f64 + 0.5, (c / n) as f64 + 0.5)).collect(),
+                Field::Smoke => (0..cfg.n_s()).map(|c| at((c % n) as f64 + 0.5, (c / n) as f64 + 0.5)).collect(),
                 Field::Velocity => {
-                    let mut out = Vec::with_capacity(2 * cfg.n_u());
-                    for j in 0..n {
+                    let mut out = Vec::with_capacity(cfg.n_vel());
+                    for j in 0..ny {
                         for i in 0..=n {
                             out.push(at(i as f64, j as f64 + 0.5));
                         }
                     }
-                    for j in 0..=n {
+                    for j in 0..=ny {
                         for i in 0..n {
                             out.push(at(i as f64 + 0.5, j as f64));
                         }

@@ -98,7 +98,7 @@ pub struct Line {
 pub enum Domain {
     /// A line (1D scenes: Burgers, heat).
     Line(Line),
-    /// A square box of unit cells with its boundary (2D).
+    /// A box of `nx × ny` unit cells with its boundary (2D).
     Box(Smoke2d),
 }
 
@@ -149,12 +149,12 @@ impl Domain {
         let r = self.range(field);
         match (self, field) {
             (Domain::Line(l), _) => vec![Array { suffix: "", range: r, shape: vec![l.n as u64] }],
-            (Domain::Box(cfg), Field::Smoke) => vec![Array { suffix: "", range: r, shape: vec![cfg.n as u64; 2] }],
+            (Domain::Box(cfg), Field::Smoke) => vec![Array { suffix: "", range: r, shape: vec![cfg.ny as u64, cfg.nx as u64] }],
             (Domain::Box(cfg), Field::Velocity) => {
-                let (n, nu) = (cfg.n as u64, cfg.n_u());
+                let (nx, ny, nu) = (cfg.nx as u64, cfg.ny as u64, cfg.n_u());
                 vec![
-                    Array { suffix: "_u", range: r.start..r.start + nu, shape: vec![n, n + 1] },
-                    Array { suffix: "_v", range: r.start + nu..r.end, shape: vec![n + 1, n] },
+                    Array { suffix: "_u", range: r.start..r.start + nu, shape: vec![ny, nx + 1] },
+                    Array { suffix: "_v", range: r.start + nu..r.end, shape: vec![ny + 1, nx] },
                 ]
             }
         }

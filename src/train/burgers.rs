@@ -1,5 +1,6 @@
 //! Solver-in-the-loop on Burgers (Um et al., NeurIPS 2020): a network
-//! corrects a coarse solver toward a downsampled fine reference.
+//! corrects a coarse solver toward a downsampled fine reference (the study
+//! itself, generic over the problem, is [`super::sol`]).
 //!
 //! - Reference: P1's scheme on `N_f = 256` cells with P1's time step
 //!   `dt_f`; every `4` fine steps it is downsampled to `N = 32` cells by
@@ -15,17 +16,18 @@
 
 use std::f64::consts::TAU;
 
+use rand::Rng;
 use rand::rngs::StdRng;
-use rand::{Rng, SeedableRng};
 
 use diffsim_solvers::burgers::Burgers1d;
 
-pub use super::TimeShares;
-use super::{Coupled, Coupling, Optimizer, Sample, batch_gradient, clip_by_norm};
+use super::sol::SolProblem;
+pub use super::sol::{
+    EvalError, LogRow, Method, StudyConfig, StudyError, TimeShares, TrainData, TrainSettings, Trajectory, VariantResult, evaluate, initial_params, mean, study,
+    train,
+};
 use crate::nn::Net;
-use crate::op::Forward;
 use crate::problems::burgers::BurgersEnzyme;
-use crate::rollout::{Checkpointing, RolloutError};
 
 /// The grids and time steps of the study.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -98,239 +100,26 @@ impl Setup {
     pub fn dataset(&self, count: usize, steps: usize, rng: &mut impl Rng) -> Vec<Vec<Vec<f64>>> {
         (0..count).map(|_| self.reference(&self.initial(rng), steps)).collect()
     }
+}
+
+impl SolProblem for Setup {
+    type Solver = BurgersEnzyme;
 
     /// The source solver as an operator.
-    pub fn source(&self) -> BurgersEnzyme {
+    fn source(&self) -> BurgersEnzyme {
         BurgersEnzyme(self.coarse)
     }
-}
 
-/// A training variant.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Method {
-    /// One step, supervised on reference pairs.
-    Pre,
-    /// [`Method::Pre`] with Gaussian noise of this standard deviation added
-    /// to the inputs.
-    Noise(f64),
-    /// Unrolled through this many corrected solver steps.
-    Sol(usize),
-}
-
-impl Method {
-    /// The unroll length.
-    pub fn unroll(self) -> usize {
-        match self {
-            Method::Pre | Method::Noise(_) => 1,
-            Method::Sol(k) => k,
-        }
+    fn dataset(&self, count: usize, steps: usize, rng: &mut StdRng) -> Vec<Trajectory> {
+        Setup::dataset(self, count, steps, rng)
     }
 
-    /// A short name: `pre`, `noise`, `sol4` …
-    pub fn name(self) -> String {
-        match self {
-            Method::Pre => "pre".into(),
-            Method::Noise(_) => "noise".into(),
-            Method::Sol(k) => format!("sol{k}"),
-        }
+    fn with_viscosity(&self, nu: f64) -> Self {
+        Setup::new(self.coarse.n, self.fine.n / self.coarse.n, self.time_factor, nu, self.modes)
     }
 }
 
-/// Training settings.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct TrainSettings {
-    /// The variant.
-    pub method: Method,
-    /// Samples per mini-batch.
-    pub batch: usize,
-    /// Gradient updates (in this call).
-    pub iterations: usize,
-    /// The learning rate at the start.
-    pub lr: f64,
-    /// The learning rate at the end of the schedule: cosine decay from `lr`
-    /// over iterations `1..=decay_over`, `lr_end` after (equal to `lr`:
-    /// constant).
-    pub lr_end: f64,
-    /// Iterations the decay spans.
-    pub decay_over: usize,
-    /// Gradient clipping by norm (∞: none).
-    pub clip: f64,
-    /// Seed of the batch sampling and the noise.
-    pub seed: u64,
-    /// The number of the first iteration (1, or one past a saved
-    /// checkpoint): the batch of iteration `i` depends only on `seed` and
-    /// `i`, so a resumed run repeats an uninterrupted one exactly.
-    pub first: usize,
-}
-
-impl TrainSettings {
-    /// The learning rate of iteration `it` (1-based).
-    pub fn lr_at(&self, it: usize) -> f64 {
-        let f = (it.saturating_sub(1) as f64 / self.decay_over.max(1) as f64).min(1.0);
-        self.lr_end + 0.5 * (self.lr - self.lr_end) * (1.0 + (std::f64::consts::PI * f).cos())
-    }
-}
-
-/// One logged iteration.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct LogRow {
-    /// Iteration (1-based).
-    pub iteration: usize,
-    /// Mini-batch loss.
-    pub loss: f64,
-    /// Gradient norm before clipping.
-    pub grad_norm: f64,
-    /// Seconds since training started.
-    pub seconds: f64,
-}
-
-/// Trains `theta` in place on batches from `data`; calls `progress(row)`
-/// after every iteration. Returns where the time went.
-pub fn train(
-    setup: &Setup,
-    net: &Net,
-    theta: &mut [f64],
-    opt: &mut Optimizer,
-    data: TrainData<'_>,
-    s: &TrainSettings,
-    mut progress: impl FnMut(LogRow),
-) -> Result<TimeShares, RolloutError> {
-    let k = s.method.unroll();
-    let steps: Vec<usize> = (1..=k).collect();
-    let mut shares = TimeShares::default();
-    let start = std::time::Instant::now();
-    for it in s.first..s.first + s.iterations {
-        // The batch of iteration `it` depends only on the seed and `it`.
-        let mut rng = StdRng::seed_from_u64(s.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ it as u64);
-        let batch_setup: Setup;
-        let generated: Vec<Vec<Vec<f64>>>;
-        let trajectories: &[Vec<Vec<f64>>] = match data {
-            TrainData::Fixed(d) => {
-                batch_setup = *setup;
-                d
-            }
-            TrainData::Random { nu, horizon } => {
-                let nu = if nu.1 > nu.0 { rng.random_range(nu.0..nu.1) } else { nu.0 };
-                let base = *setup;
-                batch_setup = Setup::new(base.coarse.n, base.fine.n / base.coarse.n, base.time_factor, nu, base.modes);
-                generated = batch_setup.dataset(s.batch, horizon + k, &mut rng);
-                &generated
-            }
-        };
-        let batch: Vec<Sample> = (0..s.batch)
-            .map(|b| {
-                let traj = match data {
-                    TrainData::Fixed(_) => &trajectories[rng.random_range(0..trajectories.len())],
-                    TrainData::Random { .. } => &trajectories[b],
-                };
-                let t0 = rng.random_range(0..traj.len() - k);
-                let mut x0 = traj[t0].clone();
-                if let Method::Noise(sigma) = s.method {
-                    for v in &mut x0 {
-                        *v += sigma * crate::nn::normal(&mut rng);
-                    }
-                }
-                Sample { x0, targets: traj[t0 + 1..=t0 + k].to_vec() }
-            })
-            .collect();
-        let source = batch_setup.source();
-        let coupled = Coupled::new(&source, &[], net, Coupling::Add).expect("the study's network fits the solver");
-        let (loss, mut grad) =
-            batch_gradient(&coupled, theta, k, &steps, &batch, if k <= 64 { Checkpointing::Store } else { Checkpointing::periodic_sqrt(k) })?;
-        shares.add_timers(&coupled.timers);
-        let grad_norm = clip_by_norm(&mut grad, s.clip);
-        let t = std::time::Instant::now();
-        opt.set_lr(s.lr_at(it));
-        opt.step(theta, &grad);
-        shares.optimizer += t.elapsed().as_secs_f64();
-        progress(LogRow { iteration: it, loss, grad_norm, seconds: start.elapsed().as_secs_f64() });
-    }
-    shares.total = start.elapsed().as_secs_f64();
-    Ok(shares)
-}
-
-/// Relative L2 error per step (`1..=steps`), averaged over the
-/// trajectories, of the source solver (`theta = None`) or the corrected
-/// one. A rollout that becomes non-finite is an error naming the step.
-pub fn evaluate(setup: &Setup, net: &Net, theta: Option<&[f64]>, data: &[Vec<Vec<f64>>], steps: usize) -> Result<Vec<f64>, EvalError> {
-    let source = setup.source();
-    let coupled = Coupled::new(&source, &[], net, Coupling::Add).expect("the study's network fits the solver");
-    let mut err = vec![0.0; steps];
-    for (j, traj) in data.iter().enumerate() {
-        let mut u = traj[0].clone();
-        let mut y = vec![0.0; u.len()];
-        for (t, e) in err.iter_mut().enumerate() {
-            match theta {
-                Some(th) => coupled.forward(&u, th, &mut y),
-                None => source.forward(&u, &[], &mut y),
-            }
-            std::mem::swap(&mut u, &mut y);
-            if u.iter().any(|v| !v.is_finite()) {
-                return Err(EvalError { trajectory: j, step: t + 1 });
-            }
-            let r = &traj[t + 1];
-            let num: f64 = u.iter().zip(r).map(|(a, b)| (a - b) * (a - b)).sum();
-            let den: f64 = r.iter().map(|b| b * b).sum();
-            *e += (num / den.max(1e-300)).sqrt() / data.len() as f64;
-        }
-    }
-    Ok(err)
-}
-
-/// A rollout that blew up during evaluation.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("the rollout of test trajectory {trajectory} became non-finite at step {step}")]
-pub struct EvalError {
-    /// The trajectory.
-    pub trajectory: usize,
-    /// The step.
-    pub step: usize,
-}
-
-/// Where the training batches come from.
-#[derive(Clone, Copy, Debug)]
-pub enum TrainData<'a> {
-    /// Fixed reference trajectories (precomputed).
-    Fixed(&'a [Vec<Vec<f64>>]),
-    /// Drawn afresh for every batch: initial states at random, the
-    /// viscosity uniform in `nu` (one value per batch), start states up to
-    /// `horizon` coarse steps into the trajectory. The solver is the data
-    /// generator.
-    Random {
-        /// Viscosity range.
-        nu: (f64, f64),
-        /// Latest start step.
-        horizon: usize,
-    },
-}
-
-/// The settings of the whole study ([`study`]).
-#[derive(Clone, Debug)]
-pub struct StudyConfig {
-    /// Grids and time steps.
-    pub setup: Setup,
-    /// Training trajectories.
-    pub train: usize,
-    /// Training trajectories drawn before the test set (the standard
-    /// count): with more, the rest are drawn after it, with fewer, the first
-    /// `train` are used, so that the test set stays the same whatever
-    /// `train` is.
-    pub train_base: usize,
-    /// Held-out test trajectories.
-    pub test: usize,
-    /// Coarse steps of each training trajectory.
-    pub train_steps: usize,
-    /// Coarse steps of the evaluation rollouts.
-    pub eval_steps: usize,
-    /// The variants trained (the source solver is always evaluated).
-    pub methods: Vec<Method>,
-    /// Batch, iterations, learning rate, clipping, seed (`method` is set per variant).
-    pub settings: TrainSettings,
-    /// The network (P3's convolution stack by default).
-    pub net: Net,
-}
-
-impl StudyConfig {
+impl StudyConfig<Setup> {
     /// The study as specified: 64 training and 16 test trajectories,
     /// 128-step evaluation, PRE / NOISE / SOL-4 / SOL-16, 6000 updates of
     /// batch 16 with Adam, learning rate 1e-3 decaying to 1e-5 (cosine).
@@ -363,67 +152,6 @@ impl StudyConfig {
     }
 }
 
-/// One trained (or source) variant's results.
-#[derive(Clone, Debug)]
-pub struct VariantResult {
-    /// `source`, `pre`, `noise`, `sol4`, `sol16`.
-    pub name: String,
-    /// Relative L2 error per evaluation step, averaged over the test set.
-    pub error: Vec<f64>,
-    /// Its mean over the steps.
-    pub mean_error: f64,
-    /// The same mean on the training trajectories' first steps (a gap to
-    /// `mean_error` means the network fits its data better than it
-    /// generalises).
-    pub train_mean_error: f64,
-    /// Training loss per iteration.
-    pub loss: Vec<f64>,
-    /// Time shares of training.
-    pub time: TimeShares,
-    /// Wall seconds per training iteration.
-    pub s_per_iter: f64,
-}
-
-/// Runs the study: builds the data sets, evaluates the source solver,
-/// trains each variant from the same initial network and evaluates it.
-/// `progress(variant, row)` is called after every iteration.
-pub fn study(cfg: &StudyConfig, mut progress: impl FnMut(&str, LogRow)) -> Result<Vec<VariantResult>, StudyError> {
-    let mut rng = StdRng::seed_from_u64(cfg.settings.seed);
-    let mut train_set = cfg.setup.dataset(cfg.train_base, cfg.train_steps, &mut rng);
-    let test_set = cfg.setup.dataset(cfg.test, cfg.eval_steps, &mut rng);
-    if cfg.train > cfg.train_base {
-        train_set.extend(cfg.setup.dataset(cfg.train - cfg.train_base, cfg.train_steps, &mut rng));
-    }
-    train_set.truncate(cfg.train);
-    let theta0 = initial_params(&cfg.net, cfg.settings.seed);
-    let source = evaluate(&cfg.setup, &cfg.net, None, &test_set, cfg.eval_steps)?;
-    let source_train = mean(&evaluate(&cfg.setup, &cfg.net, None, &train_set, cfg.eval_steps)?);
-    let mut out = vec![VariantResult {
-        name: "source".into(),
-        mean_error: mean(&source),
-        train_mean_error: source_train,
-        error: source,
-        loss: Vec::new(),
-        time: TimeShares::default(),
-        s_per_iter: 0.0,
-    }];
-    for &method in &cfg.methods {
-        let mut theta = theta0.clone();
-        let mut opt = Optimizer::adam(cfg.settings.lr);
-        let s = TrainSettings { method, ..cfg.settings };
-        let name = method.name();
-        let mut loss = Vec::with_capacity(s.iterations);
-        let time = train(&cfg.setup, &cfg.net, &mut theta, &mut opt, TrainData::Fixed(&train_set), &s, |row| {
-            loss.push(row.loss);
-            progress(&name, row);
-        })?;
-        let error = evaluate(&cfg.setup, &cfg.net, Some(&theta), &test_set, cfg.eval_steps)?;
-        let train_mean_error = mean(&evaluate(&cfg.setup, &cfg.net, Some(&theta), &train_set, cfg.eval_steps)?);
-        out.push(VariantResult { name, mean_error: mean(&error), train_mean_error, error, loss, s_per_iter: time.total / s.iterations.max(1) as f64, time });
-    }
-    Ok(out)
-}
-
 /// A correction network for `n` cells by name: `conv-stack` (P3's: 1 → 32
 /// → 32 → 1 channels, kernel 5, tanh), `unet` ([`presets::unet_1d`], width
 /// 32, kernel 5) or `resnet` ([`presets::resnet_1d`], width 32, 3 blocks,
@@ -440,30 +168,4 @@ pub fn correction_net(name: &str, n: usize) -> Result<Net, String> {
         _ => return Err(format!("expected conv-stack, unet or resnet, got {name:?}")),
     };
     net.map_err(|e| e.to_string())
-}
-
-/// Fresh parameters for a correction network: Glorot weights, the last
-/// layer zero, so that training starts from the source solver.
-pub fn initial_params(net: &Net, seed: u64) -> Vec<f64> {
-    let mut theta = net.init(&mut StdRng::seed_from_u64(seed), crate::nn::Init::Glorot);
-    let last = net.layers().last().map_or(0, |l| l.n_params());
-    let n = theta.len();
-    theta[n - last..].fill(0.0);
-    theta
-}
-
-/// The mean of `v`.
-pub fn mean(v: &[f64]) -> f64 {
-    v.iter().sum::<f64>() / v.len().max(1) as f64
-}
-
-/// A study that failed.
-#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
-pub enum StudyError {
-    /// Training failed (a non-finite loss or gradient, with where).
-    #[error("training: {0}")]
-    Train(#[from] RolloutError),
-    /// An evaluation rollout blew up.
-    #[error("evaluation: {0}")]
-    Eval(#[from] EvalError),
 }

@@ -4,7 +4,8 @@
 //! of solver and network, and [`batch_gradient`] averages over a
 //! mini-batch in parallel (rayon over samples, reduced in sample order, so
 //! the result does not depend on the thread count). [`optim`] updates the
-//! parameters; [`burgers`] is the solver-in-the-loop study on Burgers.
+//! parameters; [`sol`] is the solver-in-the-loop study, on Burgers
+//! ([`burgers`]) and on 2D flow past a disc ([`wake`]).
 
 pub mod burgers;
 pub mod config;
@@ -14,6 +15,8 @@ pub mod optim;
 pub mod oscillators;
 pub mod p3;
 pub mod pg;
+pub mod sol;
+pub mod wake;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
