@@ -56,8 +56,10 @@
 //! too (its weights are the parameters), so [`train::Coupled`] joins a
 //! solver step and a network (correction, scaling, or solver parameters),
 //! the rollout chains both VJPs, [`train::batch_gradient`] averages a
-//! mini-batch in parallel and [`train::Optimizer`] (Adam, SGD) updates the
-//! weights. [`train::burgers`] is the solver-in-the-loop study. Beyond
+//! mini-batch in parallel (solvers with work buffers once per thread:
+//! [`op::PerThread`]) and [`train::Optimizer`] (Adam, SGD) updates the
+//! weights. [`train::sol`] is the solver-in-the-loop study, on Burgers
+//! ([`train::burgers`]) and on 2D flow past a disc ([`train::wake`]). Beyond
 //! plain gradients: half-inverse gradients ([`train::hig`]) and
 //! scale-invariant physics updates ([`train::pg`]), which use an
 //! operator's [`op::LocalInverse`] (exact, regularised, or a Gauss-Newton

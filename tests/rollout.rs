@@ -134,7 +134,7 @@ fn losses_at_listed_steps_and_parameters_per_step_under_every_checkpointing() {
         },
     };
     let r = Rollout::per_step(&step, &p, 7).unwrap();
-    let modes = vec![Checkpointing::Store, Checkpointing::Periodic { every: 3 }, Checkpointing::Binomial { snapshots: 2 }];
+    let modes = [Checkpointing::Store, Checkpointing::Periodic { every: 3 }, Checkpointing::Binomial { snapshots: 2 }];
     let all: Vec<_> = modes.iter().map(|&m| r.value_and_grad(&p1.u0, &loss, m).unwrap()).collect();
     for g in &all[1..] {
         assert_eq!(g.loss, all[0].loss);

@@ -190,9 +190,9 @@ fn one_d_scenes_burgers_and_heat() {
     let kappa = 0.3 * 0.01 / (line.dx * line.dx);
     let lambda = 2.0 - 2.0 * (std::f64::consts::TAU * 3.0 / 32.0).cos();
     let decay = (1.0 / (1.0 + kappa * lambda)).powi(7);
-    for i in 0..32 {
+    for (i, &xi) in x.iter().enumerate().take(32) {
         let exact = decay * (std::f64::consts::TAU * 3.0 * i as f64 / 32.0).sin();
-        assert!((x[i] - exact).abs() < 1e-10, "cell {i}: {} vs {exact}", x[i]);
+        assert!((xi - exact).abs() < 1e-10, "cell {i}: {xi} vs {exact}");
     }
     // The velocity was not declared: it stays zero and is not written.
     assert_eq!(scene.fields, vec![Field::Smoke]);

@@ -67,7 +67,7 @@ fn mac_gathers_and_the_correction_network_pass_all_checks() {
     let (nx, ny) = (6, 4);
     let cfg = Smoke2d::new(nx, ny);
     let to = presets::mac_to_channels(nx, ny);
-    let back = presets::channels_to_mac(nx, ny);
+    let back = presets::channels_to_mac(nx, ny, None);
     let net = diffsim::nn::Net::new(vec![to, back]).unwrap();
     // The round trip keeps u on each cell's left face and v on its bottom face.
     let x = smoke_state(&cfg, 7);
@@ -76,7 +76,12 @@ fn mac_gathers_and_the_correction_network_pass_all_checks() {
     let (_, xu, xv) = cfg.split(&x);
     assert!(y[..cfg.n_s()].iter().all(|&s| s == 0.0));
     assert_eq!((u[nx + 1 + 2], u[nx + 1 + nx], v[nx + 3], v[ny * nx + 3]), (xu[nx + 1 + 2], 0.0, xv[nx + 3], 0.0));
-    let stack = presets::mac_conv_stack(nx, ny, &[2, 3, 2], 3, Activation::Tanh).unwrap();
+    let stack = presets::mac_conv_stack(nx, ny, &[2, 3, 2], 3, Activation::Tanh, None).unwrap();
+    // A fresh correction network starts from the source solver: it outputs
+    // zero although its last layer is a parameter-free gather.
+    let zero = diffsim::train::sol::initial_params(&stack, 1);
+    assert!(zero.iter().any(|&w| w != 0.0));
+    assert!(stack.eval(&x, &zero).iter().all(|&c| c == 0.0));
     let theta = crate::checks::state(diffsim::op::Operator::n_params(&stack), 5);
     assert_passes("mac_conv_stack", &stack, &x, &theta);
 }
@@ -86,7 +91,7 @@ fn one_operator_per_thread_gives_the_single_operators_batch_gradient() {
     let (cfg, solid) = channel(10, 6);
     let single = WakeStep::new(cfg, Scheme::SemiLagrangian, 0.5, 0.05, &solid, 1e-10);
     let shared = PerThread::new(|| WakeStep::new(cfg, Scheme::SemiLagrangian, 0.5, 0.05, &solid, 1e-10));
-    let net = presets::mac_conv_stack(10, 6, &[2, 3, 2], 3, Activation::Tanh).unwrap();
+    let net = presets::mac_conv_stack(10, 6, &[2, 3, 2], 3, Activation::Tanh, None).unwrap();
     let theta = crate::checks::state(diffsim::op::Operator::n_params(&net), 9);
     let batch: Vec<Sample> = (0..6)
         .map(|k| {

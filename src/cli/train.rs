@@ -77,52 +77,76 @@ pub struct HigArgs {
     out: PathBuf,
 }
 
-/// Arguments of `diffsim experiment sol-burgers`.
+/// Options of every solver-in-the-loop study.
 #[derive(Debug, clap::Args)]
-pub struct SolArgs {
+pub struct StudyArgs {
     /// A reduced study (fewer updates and trajectories; same variants).
     #[arg(long)]
     quick: bool,
     /// Print the result as one JSON object on the last line.
     #[arg(long)]
     json: bool,
+    /// Training iterations per variant (overrides the study's default).
+    #[arg(long)]
+    iterations: Option<usize>,
+    /// Training trajectories (overrides the study's default; the test set
+    /// does not depend on it).
+    #[arg(long)]
+    train: Option<usize>,
+}
+
+impl StudyArgs {
+    /// Sets the overridden values, refusing zeros.
+    fn apply<P>(&self, cfg: &mut StudyConfig<P>) -> Result<(), CliError> {
+        if let Some(it) = self.iterations {
+            if it == 0 {
+                return Err(CliError::Argument { arg: "--iterations", reason: "must be at least 1".into() });
+            }
+            cfg.settings.iterations = it;
+            cfg.settings.decay_over = it;
+        }
+        if let Some(n) = self.train {
+            if n == 0 {
+                return Err(CliError::Argument { arg: "--train", reason: "need at least one training trajectory".into() });
+            }
+            cfg.train = n;
+        }
+        Ok(())
+    }
+}
+
+/// Arguments of `diffsim experiment sol-burgers` (defaults: 6000 updates,
+/// 64 training trajectories; quick 1500 and 32).
+#[derive(Debug, clap::Args)]
+pub struct SolArgs {
+    #[command(flatten)]
+    study: StudyArgs,
     /// Output directory: table.md, errors.csv, error.png, loss.png.
     #[arg(long, default_value = "out/sol-burgers")]
     out: PathBuf,
-    /// Training iterations per variant (overrides the default).
-    #[arg(long)]
-    iterations: Option<usize>,
     /// The correction network: conv-stack (P3's, 5505 parameters, 13 cells
     /// of receptive field), unet (one level, 32/64 channels, about 31 000
     /// parameters, most of the domain) or resnet (width 32, 3 blocks).
     #[arg(long, default_value = "conv-stack")]
     net: String,
-    /// Training trajectories (overrides the default: 64, quick 32).
-    #[arg(long)]
-    train: Option<usize>,
 }
 
-/// Arguments of `diffsim experiment sol-wake`.
+/// Arguments of `diffsim experiment sol-wake` (defaults: 1000 updates, 16
+/// training trajectories, 64-step test rollouts; quick 300, 6 and 32).
 #[derive(Debug, clap::Args)]
 pub struct SolWakeArgs {
-    /// A reduced study (fewer updates and trajectories; same variants).
-    #[arg(long)]
-    quick: bool,
-    /// Print the result as one JSON object on the last line.
-    #[arg(long)]
-    json: bool,
+    #[command(flatten)]
+    study: StudyArgs,
     /// Output directory: table.md, errors.csv, error.png, loss.png.
     #[arg(long, default_value = "out/sol-wake")]
     out: PathBuf,
-    /// Training iterations per variant (overrides the default: 1000, quick 300).
-    #[arg(long)]
-    iterations: Option<usize>,
-    /// Training trajectories (overrides the default: 16, quick 6).
-    #[arg(long)]
-    train: Option<usize>,
-    /// Coarse steps of each test rollout (overrides the default: 64, quick 32).
+    /// Coarse steps of each test rollout (overrides the default).
     #[arg(long)]
     steps: Option<usize>,
+    /// Initial learning rate of Adam (overrides the default; the cosine
+    /// schedule ends at a hundredth of it).
+    #[arg(long)]
+    lr: Option<f64>,
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CliError + '_ {
@@ -355,39 +379,15 @@ fn hig_oscillators(a: HigArgs) -> Result<(), CliError> {
 }
 
 fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
-    let mut cfg = StudyConfig::standard(a.quick);
+    let mut cfg = StudyConfig::standard(a.study.quick);
     cfg.net = crate::train::burgers::correction_net(&a.net, cfg.setup.coarse.n).map_err(|reason| CliError::Argument { arg: "--net", reason })?;
-    if let Some(it) = a.iterations {
-        if it == 0 {
-            return Err(CliError::Argument { arg: "--iterations", reason: "must be at least 1".into() });
-        }
-        cfg.settings.iterations = it;
-        cfg.settings.decay_over = it;
-    }
-    if let Some(n) = a.train {
-        if n == 0 {
-            return Err(CliError::Argument { arg: "--train", reason: "need at least one training trajectory".into() });
-        }
-        cfg.train = n;
-    }
-    run_sol_study(&cfg, "sol-burgers", "Burgers", a.json, &a.out)
+    a.study.apply(&mut cfg)?;
+    run_sol_study(&cfg, "sol-burgers", "Burgers", a.study.json, &a.out)
 }
 
 fn sol_wake(a: SolWakeArgs) -> Result<(), CliError> {
-    let mut cfg = StudyConfig::wake(a.quick);
-    if let Some(it) = a.iterations {
-        if it == 0 {
-            return Err(CliError::Argument { arg: "--iterations", reason: "must be at least 1".into() });
-        }
-        cfg.settings.iterations = it;
-        cfg.settings.decay_over = it;
-    }
-    if let Some(n) = a.train {
-        if n == 0 {
-            return Err(CliError::Argument { arg: "--train", reason: "need at least one training trajectory".into() });
-        }
-        cfg.train = n;
-    }
+    let mut cfg = StudyConfig::wake(a.study.quick);
+    a.study.apply(&mut cfg)?;
     if let Some(t) = a.steps {
         if t == 0 {
             return Err(CliError::Argument { arg: "--steps", reason: "must be at least 1".into() });
@@ -395,11 +395,18 @@ fn sol_wake(a: SolWakeArgs) -> Result<(), CliError> {
         cfg.eval_steps = t;
         cfg.train_steps = t + 16;
     }
-    if !a.json {
+    if let Some(lr) = a.lr {
+        if !(lr.is_finite() && lr > 0.0) {
+            return Err(CliError::Argument { arg: "--lr", reason: format!("must be a positive number, got {lr}") });
+        }
+        cfg.settings.lr = lr;
+        cfg.settings.lr_end = lr / 100.0;
+    }
+    if !a.study.json {
         let fine = cfg.setup.fine();
         println!("computing {} reference trajectories on the {}×{} grid …", cfg.train + cfg.test, fine.nx, fine.ny);
     }
-    run_sol_study(&cfg, "sol-wake", "flow past a disc", a.json, &a.out)
+    run_sol_study(&cfg, "sol-wake", "flow past a disc", a.study.json, &a.out)
 }
 
 /// Runs a solver-in-the-loop study; writes its table, errors per step,

@@ -117,8 +117,10 @@ pub fn mac_to_channels(nx: usize, ny: usize) -> Layer {
 
 /// The inverse placement of [`mac_to_channels`]: two `ny × nx` channels to
 /// a packed MAC state, zero smoke and zero on each row's last x-face and the
-/// top row of y-faces.
-pub fn channels_to_mac(nx: usize, ny: usize) -> Layer {
+/// top row of y-faces. With `keep`, only the state entries where `keep` is
+/// true receive a value (a correction then leaves boundary and obstacle
+/// faces alone).
+pub fn channels_to_mac(nx: usize, ny: usize, keep: Option<&[bool]>) -> Layer {
     let (ns, nu, nv) = (nx * ny, ny * (nx + 1), (ny + 1) * nx);
     let mut from = vec![Layer::ZERO; ns + nu + nv];
     for j in 0..ny {
@@ -127,13 +129,21 @@ pub fn channels_to_mac(nx: usize, ny: usize) -> Layer {
             from[ns + nu + j * nx + i] = ns + j * nx + i;
         }
     }
+    if let Some(keep) = keep {
+        for (f, &k) in from.iter_mut().zip(keep) {
+            if !k {
+                *f = Layer::ZERO;
+            }
+        }
+    }
     Layer::Gather { n_in: 2 * ns, from }
 }
 
 /// A 2D convolution stack on a MAC state: [`mac_to_channels`], convolutions
 /// of kernel `k` through `channels` (first 2, last 2) with `act` between,
-/// zero padding (the walls), [`channels_to_mac`].
-pub fn mac_conv_stack(nx: usize, ny: usize, channels: &[usize], k: usize, act: Activation) -> Result<Net, NetError> {
+/// zero padding (the walls), [`channels_to_mac`] (writing only where `keep`
+/// says, when given).
+pub fn mac_conv_stack(nx: usize, ny: usize, channels: &[usize], k: usize, act: Activation, keep: Option<&[bool]>) -> Result<Net, NetError> {
     let mut layers = vec![mac_to_channels(nx, ny)];
     for (w, pair) in channels.windows(2).enumerate() {
         layers.push(conv2d(pair[0], pair[1], k, nx, ny, Padding::Zero));
@@ -141,6 +151,6 @@ pub fn mac_conv_stack(nx: usize, ny: usize, channels: &[usize], k: usize, act: A
             layers.push(Layer::Act { f: act, n: pair[1] * nx * ny });
         }
     }
-    layers.push(channels_to_mac(nx, ny));
+    layers.push(channels_to_mac(nx, ny, keep));
     Net::new(layers)
 }

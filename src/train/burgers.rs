@@ -6,7 +6,7 @@
 //!   `dt_f`; every `4` fine steps it is downsampled to `N = 32` cells by
 //!   averaging each 8 fine cells.
 //! - Source: the same scheme on the coarse grid with `dt = 4·dt_f`.
-//! - Corrected: `u_{t+1} = v + N(v; θ)`, `v = source(u_t)` ([`Coupling::Add`]).
+//! - Corrected: `u_{t+1} = v + N(v; θ)`, `v = source(u_t)` ([`super::Coupling::Add`]).
 //! - Training variants (same network, same number of updates): PRE (one
 //!   step, supervised on reference pairs), NOISE (PRE with Gaussian input
 //!   noise), SOL-k (unrolled `k` corrected steps from a reference state,
@@ -135,18 +135,8 @@ impl StudyConfig<Setup> {
             test: if quick { 8 } else { 16 },
             train_steps: 128 + 16,
             eval_steps: 128,
-            methods: vec![Method::Pre, Method::Noise(0.02), Method::Sol(4), Method::Sol(16)],
-            settings: TrainSettings {
-                method: Method::Pre,
-                batch: 16,
-                iterations,
-                lr: 1e-3,
-                lr_end: 1e-5,
-                decay_over: iterations,
-                clip: 10.0,
-                seed: 1,
-                first: 1,
-            },
+            methods: Method::standard(),
+            settings: TrainSettings::adam(16, iterations),
             net,
         }
     }

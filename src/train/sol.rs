@@ -101,6 +101,13 @@ pub struct TrainSettings {
 }
 
 impl TrainSettings {
+    /// The studies' schedule: Adam from learning rate 1e-3, cosine decay to
+    /// 1e-5 over all `iterations`, clipping at norm 10, seed 1, starting at
+    /// iteration 1 (`method` to be set per variant).
+    pub fn adam(batch: usize, iterations: usize) -> Self {
+        Self { method: Method::Pre, batch, iterations, lr: 1e-3, lr_end: 1e-5, decay_over: iterations, clip: 10.0, seed: 1, first: 1 }
+    }
+
     /// The learning rate of iteration `it` (1-based).
     pub fn lr_at(&self, it: usize) -> f64 {
         let f = (it.saturating_sub(1) as f64 / self.decay_over.max(1) as f64).min(1.0);
@@ -273,6 +280,13 @@ pub struct StudyConfig<P> {
     pub net: Net,
 }
 
+impl Method {
+    /// The studies' variants: PRE, NOISE (σ = 0.02), SOL-4, SOL-16.
+    pub fn standard() -> Vec<Method> {
+        vec![Method::Pre, Method::Noise(0.02), Method::Sol(4), Method::Sol(16)]
+    }
+}
+
 /// One trained (or source) variant's results.
 #[derive(Clone, Debug)]
 pub struct VariantResult {
@@ -335,10 +349,11 @@ pub fn study<P: SolProblem>(cfg: &StudyConfig<P>, mut progress: impl FnMut(&str,
 }
 
 /// Fresh parameters for a correction network: Glorot weights, the last
-/// layer zero, so that training starts from the source solver.
+/// layer *with parameters* zero (layers after it, such as a gather, have
+/// none), so that training starts from the source solver.
 pub fn initial_params(net: &Net, seed: u64) -> Vec<f64> {
     let mut theta = net.init(&mut StdRng::seed_from_u64(seed), crate::nn::Init::Glorot);
-    let last = net.layers().last().map_or(0, |l| l.n_params());
+    let last = net.layers().iter().rev().map(|l| l.n_params()).find(|&k| k > 0).unwrap_or(0);
     let n = theta.len();
     theta[n - last..].fill(0.0);
     theta

@@ -27,7 +27,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
-use diffsim_solvers::boundary::{Boundary, Profile, Side};
+use diffsim_solvers::boundary::{Boundary, Profile, Side, for_each_face};
 use diffsim_solvers::smoke::{Scheme, Smoke2d, obstacle_disc};
 
 use super::sol::{Method, SolProblem, StudyConfig, TrainSettings, Trajectory};
@@ -87,8 +87,12 @@ impl Forward for WakeStep {
         self.diffuse.forward(a, &self.kappa, y);
         self.project.apply(y);
     }
+    /// The viscosity's (an unstable κ) or else the projection's; both are
+    /// cleared.
     fn take_error(&self) -> Option<OpError> {
-        self.diffuse.take_error().or_else(|| self.project.take_error())
+        let viscosity = self.diffuse.take_error();
+        let projection = self.project.take_error();
+        viscosity.or(projection)
     }
 }
 
@@ -267,10 +271,28 @@ impl WakeSetup {
         Ok(out)
     }
 
+    /// The state entries a correction may change: the velocity faces the
+    /// projection owns (interior and outflow) that touch no solid cell; not
+    /// the smoke, the inflow faces or the walls, whose values the solver sets.
+    pub fn correctable(&self) -> Vec<bool> {
+        let c = &self.coarse;
+        let solid = self.solid(c, 1.0);
+        let mut keep = vec![false; c.n_state()];
+        for (axis, start) in [(0, c.n_s()), (1, c.n_s() + c.n_u())] {
+            for_each_face(c.nx, c.ny, &c.boundary, axis, |f| {
+                let open = [f.lower, f.upper].iter().all(|cell| cell.is_none_or(|k| !solid[k]));
+                keep[start + f.index] = f.projected && open;
+            });
+        }
+        keep
+    }
+
     /// The correction network: [`presets::mac_conv_stack`] with channels
-    /// 2 → 16 → 16 → 2, kernel 3, tanh (2 898 parameters).
+    /// 2 → 16 → 16 → 2, kernel 3, tanh (2 898 parameters), writing only the
+    /// [correctable](Self::correctable) faces.
     pub fn network(&self) -> Net {
-        presets::mac_conv_stack(self.coarse.nx, self.coarse.ny, &[2, 16, 16, 2], 3, Activation::Tanh).expect("the preset is well formed")
+        let keep = self.correctable();
+        presets::mac_conv_stack(self.coarse.nx, self.coarse.ny, &[2, 16, 16, 2], 3, Activation::Tanh, Some(&keep)).expect("the preset is well formed")
     }
 }
 
@@ -319,18 +341,8 @@ impl StudyConfig<WakeSetup> {
             test: if quick { 3 } else { 8 },
             train_steps: eval_steps + 16,
             eval_steps,
-            methods: vec![Method::Pre, Method::Noise(0.02), Method::Sol(4), Method::Sol(16)],
-            settings: TrainSettings {
-                method: Method::Pre,
-                batch: 8,
-                iterations,
-                lr: 1e-3,
-                lr_end: 1e-5,
-                decay_over: iterations,
-                clip: 10.0,
-                seed: 1,
-                first: 1,
-            },
+            methods: Method::standard(),
+            settings: TrainSettings::adam(8, iterations),
             net: setup.network(),
         }
     }
