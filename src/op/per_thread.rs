@@ -16,13 +16,25 @@ use super::{Forward, Jvp, OpError, Operator, Vjp};
 #[derive(Debug)]
 pub struct PerThread<O> {
     slots: Vec<Mutex<O>>,
+    /// `(n_in, n_out, n_params)`, read without locking (size checks run on
+    /// every call; locking slot 0 for them would wait for whichever thread
+    /// is computing with it).
+    sizes: (usize, usize, usize),
 }
 
 impl<O: Send> PerThread<O> {
     /// Calls `make` once per slot: the current rayon pool's threads, plus one.
-    pub fn new(make: impl Fn() -> O) -> Self {
+    pub fn new(make: impl Fn() -> O) -> Self
+    where
+        O: Operator,
+    {
         let n = rayon::current_num_threads() + 1;
-        Self { slots: (0..n).map(|_| Mutex::new(make())).collect() }
+        let slots: Vec<Mutex<O>> = (0..n).map(|_| Mutex::new(make())).collect();
+        let sizes = {
+            let o = slots[0].lock().unwrap_or_else(|e| e.into_inner());
+            (o.n_in(), o.n_out(), o.n_params())
+        };
+        Self { slots, sizes }
     }
 
     /// The calling thread's instance: its rayon index, or the last slot
@@ -36,7 +48,7 @@ impl<O: Send> PerThread<O> {
         self.slots[k].lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Slot 0, for sizes and inspection.
+    /// Slot 0, for inspection (it may wait for a thread computing with it).
     pub fn first(&self) -> MutexGuard<'_, O> {
         self.slots[0].lock().unwrap_or_else(|e| e.into_inner())
     }
@@ -44,13 +56,13 @@ impl<O: Send> PerThread<O> {
 
 impl<O: Operator + Send> Operator for PerThread<O> {
     fn n_in(&self) -> usize {
-        self.first().n_in()
+        self.sizes.0
     }
     fn n_out(&self) -> usize {
-        self.first().n_out()
+        self.sizes.1
     }
     fn n_params(&self) -> usize {
-        self.first().n_params()
+        self.sizes.2
     }
 }
 
@@ -62,7 +74,7 @@ impl<O: Forward + Send> Forward for PerThread<O> {
         self.mine().smooth_radius(x, p, dx, dp)
     }
     fn name(&self) -> super::OpName {
-        self.first().name()
+        self.mine().name()
     }
     fn locate_non_finite(&self, x: &[f64], p: &[f64]) -> super::OpName {
         self.mine().locate_non_finite(x, p)
