@@ -19,6 +19,6 @@ done
 target/release/diffsim demo plume --out out
 
 # Training through the solver: a correction network trained through 16
-# unrolled steps of the coarse Burgers solver (200 updates, about 20 s);
+# unrolled steps of the coarse Burgers solver (600 updates, about 20 s);
 # writes out/train/loss.csv, loss.png, model.json, checkpoint.json.
 target/release/diffsim train configs/sol_burgers.toml --out out/train

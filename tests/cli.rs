@@ -137,7 +137,7 @@ fn train_and_experiment_commands() {
     std::fs::create_dir_all(&out).unwrap();
     let text = std::fs::read_to_string("configs/sol_burgers.toml").unwrap();
     let tiny = text
-        .replace("iterations = 200", "iterations = 3")
+        .replace("iterations = 600", "iterations = 3")
         .replace("train = 32", "train = 4")
         .replace("test = 8", "test = 2")
         .replace("steps = 144", "steps = 40")
@@ -183,6 +183,46 @@ fn train_and_experiment_commands() {
     assert_eq!(last["train_trajectories"], 4);
     // The test set does not depend on the number of training trajectories
     // (fewer or more than the standard count).
+    // A subset of variants, another unroll length, activation and width.
+    fails_with(
+        &["experiment", "sol-burgers", "--methods", "pre,sol0", "--out", o],
+        "invalid argument --methods: expected pre, noise or solK (K ≥ 1), got \"sol0\"",
+    );
+    fails_with(&["experiment", "sol-burgers", "--activation", "sigmoidal", "--out", o], "invalid argument --activation: unknown variant `sigmoidal`");
+    fails_with(&["experiment", "sol-burgers", "--lr", "0", "--out", o], "invalid argument --lr: must be a positive number");
+    fails_with(&["experiment", "sol-burgers", "--noise=-1", "--out", o], "invalid argument --noise: must be a non-negative number");
+    fails_with(&["experiment", "sol-burgers", "--width", "0", "--out", o], "invalid argument --width: must be at least 1");
+    let (code, stdout, err) = diffsim(&[
+        "experiment",
+        "sol-burgers",
+        "--quick",
+        "--iterations",
+        "2",
+        "--methods",
+        "pre,noise,sol3",
+        "--noise",
+        "0.01",
+        "--activation",
+        "tanh",
+        "--width",
+        "8",
+        "--train",
+        "4",
+        "--json",
+        "--out",
+        o,
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let subset: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert!(subset["sol3"].as_f64().is_some_and(f64::is_finite) && subset["pre"].as_f64().is_some(), "{subset}");
+    assert!(subset["sol16"].is_null() && subset["noise"].as_f64().is_some(), "{subset}");
+    assert_eq!(subset["source"], last["source"]);
+    // Another seed draws other test trajectories.
+    let (code, stdout, err) =
+        diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "1", "--methods", "pre", "--train", "4", "--seed", "7", "--json", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    let seeded: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert_ne!(seeded["source"], last["source"]);
     let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "1", "--train", "40", "--json", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let more: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();

@@ -5,11 +5,14 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use serde::Deserialize;
+use serde::de::IntoDeserializer;
+
 use super::{CliError, plot_or_warn};
-use crate::nn::ParamStore;
+use crate::nn::{Activation, ParamStore};
 use crate::plot::{Axes, Series};
 use crate::train::Optimizer;
-use crate::train::burgers::{LogRow, StudyConfig, TrainData, evaluate, initial_params, mean, study, train};
+use crate::train::burgers::{LogRow, Method, StudyConfig, TrainData, evaluate, initial_params, mean, study, train};
 use crate::train::config::TrainConfig;
 use crate::train::sol::SolProblem;
 
@@ -93,9 +96,34 @@ pub struct StudyArgs {
     /// does not depend on it).
     #[arg(long)]
     train: Option<usize>,
+    /// Initial learning rate of Adam (overrides the default; the cosine
+    /// schedule ends at a hundredth of it).
+    #[arg(long)]
+    lr: Option<f64>,
+    /// The variants to train, comma-separated from pre, noise, sol4, sol16
+    /// (or any solK); default all four.
+    #[arg(long, value_delimiter = ',')]
+    methods: Option<Vec<String>>,
+    /// Seed of the data sets, the initial network and the batches (default 1).
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Input noise σ of the NOISE variant (default 0.02).
+    #[arg(long)]
+    noise: Option<f64>,
+    /// The network's activation: relu, leaky_relu, tanh, gelu, swish or
+    /// sigmoid (default: the study's).
+    #[arg(long)]
+    activation: Option<String>,
 }
 
 impl StudyArgs {
+    /// The activation asked for, or `default`.
+    fn activation(&self, default: Activation) -> Result<Activation, CliError> {
+        let Some(name) = &self.activation else { return Ok(default) };
+        let de: serde::de::value::StrDeserializer<'_, serde::de::value::Error> = name.as_str().into_deserializer();
+        Activation::deserialize(de).map_err(|e| CliError::Argument { arg: "--activation", reason: e.to_string() })
+    }
+
     /// Sets the overridden values, refusing zeros.
     fn apply<P>(&self, cfg: &mut StudyConfig<P>) -> Result<(), CliError> {
         if let Some(it) = self.iterations {
@@ -110,6 +138,44 @@ impl StudyArgs {
                 return Err(CliError::Argument { arg: "--train", reason: "need at least one training trajectory".into() });
             }
             cfg.train = n;
+        }
+        if let Some(lr) = self.lr {
+            if !(lr.is_finite() && lr > 0.0) {
+                return Err(CliError::Argument { arg: "--lr", reason: format!("must be a positive number, got {lr}") });
+            }
+            cfg.settings.lr = lr;
+            cfg.settings.lr_end = lr / 100.0;
+        }
+        if let Some(seed) = self.seed {
+            cfg.settings.seed = seed;
+        }
+        if let Some(names) = &self.methods {
+            cfg.methods = names
+                .iter()
+                .map(|name| match name.trim() {
+                    "pre" => Ok(Method::Pre),
+                    "noise" => Ok(Method::Noise(Method::STANDARD_NOISE)),
+                    s => s
+                        .strip_prefix("sol")
+                        .and_then(|k| k.parse::<usize>().ok())
+                        .filter(|&k| k >= 1)
+                        .map(Method::Sol)
+                        .ok_or_else(|| CliError::Argument { arg: "--methods", reason: format!("expected pre, noise or solK (K ≥ 1), got {s:?}") }),
+                })
+                .collect::<Result<_, _>>()?;
+            if cfg.methods.is_empty() {
+                return Err(CliError::Argument { arg: "--methods", reason: "name at least one variant".into() });
+            }
+        }
+        if let Some(sigma) = self.noise {
+            if !(sigma.is_finite() && sigma >= 0.0) {
+                return Err(CliError::Argument { arg: "--noise", reason: format!("must be a non-negative number, got {sigma}") });
+            }
+            for m in &mut cfg.methods {
+                if let Method::Noise(s) = m {
+                    *s = sigma;
+                }
+            }
         }
         Ok(())
     }
@@ -129,6 +195,9 @@ pub struct SolArgs {
     /// parameters, most of the domain) or resnet (width 32, 3 blocks).
     #[arg(long, default_value = "conv-stack")]
     net: String,
+    /// Channels of the network's hidden layers.
+    #[arg(long, default_value_t = 32)]
+    width: usize,
 }
 
 /// Arguments of `diffsim experiment sol-wake` (defaults: 1000 updates, 16
@@ -143,10 +212,6 @@ pub struct SolWakeArgs {
     /// Coarse steps of each test rollout (overrides the default).
     #[arg(long)]
     steps: Option<usize>,
-    /// Initial learning rate of Adam (overrides the default; the cosine
-    /// schedule ends at a hundredth of it).
-    #[arg(long)]
-    lr: Option<f64>,
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CliError + '_ {
@@ -380,13 +445,18 @@ fn hig_oscillators(a: HigArgs) -> Result<(), CliError> {
 
 fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
     let mut cfg = StudyConfig::standard(a.study.quick);
-    cfg.net = crate::train::burgers::correction_net(&a.net, cfg.setup.coarse.n).map_err(|reason| CliError::Argument { arg: "--net", reason })?;
+    if a.width == 0 {
+        return Err(CliError::Argument { arg: "--width", reason: "must be at least 1".into() });
+    }
+    let act = a.study.activation(crate::train::burgers::STUDY_ACTIVATION)?;
+    cfg.net = crate::train::burgers::correction_net(&a.net, cfg.setup.coarse.n, a.width, act).map_err(|reason| CliError::Argument { arg: "--net", reason })?;
     a.study.apply(&mut cfg)?;
     run_sol_study(&cfg, "sol-burgers", "Burgers", a.study.json, &a.out)
 }
 
 fn sol_wake(a: SolWakeArgs) -> Result<(), CliError> {
     let mut cfg = StudyConfig::wake(a.study.quick);
+    cfg.net = cfg.setup.network(a.study.activation(crate::train::wake::STUDY_ACTIVATION)?);
     a.study.apply(&mut cfg)?;
     if let Some(t) = a.steps {
         if t == 0 {
@@ -394,13 +464,6 @@ fn sol_wake(a: SolWakeArgs) -> Result<(), CliError> {
         }
         cfg.eval_steps = t;
         cfg.train_steps = t + 16;
-    }
-    if let Some(lr) = a.lr {
-        if !(lr.is_finite() && lr > 0.0) {
-            return Err(CliError::Argument { arg: "--lr", reason: format!("must be a positive number, got {lr}") });
-        }
-        cfg.settings.lr = lr;
-        cfg.settings.lr_end = lr / 100.0;
     }
     if !a.study.json {
         let fine = cfg.setup.fine();
@@ -497,12 +560,16 @@ fn run_sol_study<P: SolProblem>(cfg: &StudyConfig<P>, command: &'static str, tit
     let find = |n: &str| results.iter().find(|r| r.name == n).map_or(f64::NAN, |r| r.mean_error);
     let sol16 = results.iter().find(|r| r.name == "sol16").map_or(f64::NAN, |r| r.s_per_iter);
     if json {
-        let obj = serde_json::json!({
+        let mut obj = serde_json::json!({
             "source": find("source"), "pre": find("pre"), "noise": find("noise"), "sol4": find("sol4"), "sol16": find("sol16"),
             "train_s_per_iter": sol16, "iterations": cfg.settings.iterations, "threads": rayon::current_num_threads(),
             "train_trajectories": cfg.train,
             "train_set": results.iter().map(|r| (r.name.clone(), serde_json::Value::from(r.train_mean_error))).collect::<serde_json::Map<_, _>>(),
         });
+        // Variants beyond the standard four (`--methods sol8`) under their own names.
+        for r in &results {
+            obj[r.name.as_str()] = serde_json::Value::from(r.mean_error);
+        }
         println!("{obj}");
     }
     Ok(())

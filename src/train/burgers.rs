@@ -26,7 +26,7 @@ pub use super::sol::{
     EvalError, LogRow, Method, StudyConfig, StudyError, TimeShares, TrainData, TrainSettings, Trajectory, VariantResult, evaluate, initial_params, mean, study,
     train,
 };
-use crate::nn::Net;
+use crate::nn::{Activation, Net};
 use crate::problems::burgers::BurgersEnzyme;
 
 /// The grids and time steps of the study.
@@ -119,6 +119,9 @@ impl SolProblem for Setup {
     }
 }
 
+/// The activation of the study's network.
+pub const STUDY_ACTIVATION: Activation = Activation::Relu;
+
 impl StudyConfig<Setup> {
     /// The study as specified: 64 training and 16 test trajectories,
     /// 128-step evaluation, PRE / NOISE / SOL-4 / SOL-16, 6000 updates of
@@ -127,7 +130,7 @@ impl StudyConfig<Setup> {
     pub fn standard(quick: bool) -> Self {
         let iterations = if quick { 1500 } else { 6000 };
         let setup = Setup::standard();
-        let net = correction_net("conv-stack", setup.coarse.n).expect("the preset is well formed");
+        let net = correction_net("conv-stack", setup.coarse.n, 32, STUDY_ACTIVATION).expect("the preset is well formed");
         Self {
             setup,
             train: if quick { 32 } else { 64 },
@@ -142,19 +145,23 @@ impl StudyConfig<Setup> {
     }
 }
 
-/// A correction network for `n` cells by name: `conv-stack` (P3's: 1 → 32
-/// → 32 → 1 channels, kernel 5, tanh), `unet` ([`presets::unet_1d`], width
-/// 32, kernel 5) or `resnet` ([`presets::resnet_1d`], width 32, 3 blocks,
-/// kernel 5); periodic padding throughout.
+/// A correction network for `n` cells by name: `conv-stack` (P3's with
+/// width 32 and tanh: 1 → `width` → `width` → 1 channels, kernel 5),
+/// `unet` ([`presets::unet_1d`], kernel 5) or `resnet`
+/// ([`presets::resnet_1d`], 3 blocks, kernel 5); periodic padding
+/// throughout, activation `act`.
 ///
 /// [`presets::unet_1d`]: crate::nn::presets::unet_1d
 /// [`presets::resnet_1d`]: crate::nn::presets::resnet_1d
-pub fn correction_net(name: &str, n: usize) -> Result<Net, String> {
-    use crate::nn::{Activation::Tanh, Padding::Periodic, presets};
+pub fn correction_net(name: &str, n: usize, width: usize, act: Activation) -> Result<Net, String> {
+    use crate::nn::{Padding::Periodic, presets};
+    if width == 0 {
+        return Err("the width must be at least 1".into());
+    }
     let net = match name {
-        "conv-stack" => presets::conv_stack_1d(n, &[1, 32, 32, 1], 5, Periodic, Tanh),
-        "unet" => presets::unet_1d(n, 1, 1, 32, 5, Periodic, Tanh),
-        "resnet" => presets::resnet_1d(n, 1, 1, 32, 3, 5, Periodic, Tanh),
+        "conv-stack" => presets::conv_stack_1d(n, &[1, width, width, 1], 5, Periodic, act),
+        "unet" => presets::unet_1d(n, 1, 1, width, 5, Periodic, act),
+        "resnet" => presets::resnet_1d(n, 1, 1, width, 3, 5, Periodic, act),
         _ => return Err(format!("expected conv-stack, unet or resnet, got {name:?}")),
     };
     net.map_err(|e| e.to_string())

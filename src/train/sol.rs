@@ -281,9 +281,12 @@ pub struct StudyConfig<P> {
 }
 
 impl Method {
+    /// The studies' input noise σ of NOISE.
+    pub const STANDARD_NOISE: f64 = 0.02;
+
     /// The studies' variants: PRE, NOISE (σ = 0.02), SOL-4, SOL-16.
     pub fn standard() -> Vec<Method> {
-        vec![Method::Pre, Method::Noise(0.02), Method::Sol(4), Method::Sol(16)]
+        vec![Method::Pre, Method::Noise(Self::STANDARD_NOISE), Method::Sol(4), Method::Sol(16)]
     }
 }
 

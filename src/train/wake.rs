@@ -288,11 +288,11 @@ impl WakeSetup {
     }
 
     /// The correction network: [`presets::mac_conv_stack`] with channels
-    /// 2 → 16 → 16 → 2, kernel 3, tanh (2 898 parameters), writing only the
-    /// [correctable](Self::correctable) faces.
-    pub fn network(&self) -> Net {
+    /// 2 → 16 → 16 → 2, kernel 3, activation `act` (2 898 parameters),
+    /// writing only the [correctable](Self::correctable) faces.
+    pub fn network(&self, act: Activation) -> Net {
         let keep = self.correctable();
-        presets::mac_conv_stack(self.coarse.nx, self.coarse.ny, &[2, 16, 16, 2], 3, Activation::Tanh, Some(&keep)).expect("the preset is well formed")
+        presets::mac_conv_stack(self.coarse.nx, self.coarse.ny, &[2, 16, 16, 2], 3, act, Some(&keep)).expect("the preset is well formed")
     }
 }
 
@@ -325,6 +325,9 @@ impl SolProblem for WakeSetup {
     }
 }
 
+/// The activation of the study's network.
+pub const STUDY_ACTIVATION: Activation = Activation::Relu;
+
 impl StudyConfig<WakeSetup> {
     /// The 2D study: 16 training and 8 test trajectories, 64-step
     /// evaluation, PRE / NOISE / SOL-4 / SOL-16, 1000 updates of batch 8
@@ -343,7 +346,7 @@ impl StudyConfig<WakeSetup> {
             eval_steps,
             methods: Method::standard(),
             settings: TrainSettings::adam(8, iterations),
-            net: setup.network(),
+            net: setup.network(STUDY_ACTIVATION),
         }
     }
 }
