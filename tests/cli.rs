@@ -234,6 +234,21 @@ fn train_and_experiment_commands() {
     std::fs::remove_dir_all(&out).ok();
 }
 
+/// Issue 5's promise for the reduced Burgers study: SOL-16 below both PRE
+/// and the source solver (and within a third of the source's error). The
+/// study is deterministic (fixed seeds, sums in sample order, no fused
+/// multiply-add), so this is the same run on every machine; about 35 s.
+#[test]
+fn quick_burgers_study_puts_sol16_below_pre_and_source() {
+    let out = std::env::temp_dir().join(format!("diffsim-quick-sol-{}", std::process::id()));
+    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--json", "--out", out.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let r: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    let e = |k: &str| r[k].as_f64().unwrap_or_else(|| panic!("{k} in {r}"));
+    assert!(e("sol16") < e("pre") && e("sol16") < e("source") / 3.0, "{r}");
+    std::fs::remove_dir_all(&out).ok();
+}
+
 #[test]
 fn sol_wake_experiment_runs_reduced_and_reports_json() {
     let out = std::env::temp_dir().join(format!("diffsim-wake-{}", std::process::id()));
