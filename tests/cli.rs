@@ -181,8 +181,6 @@ fn train_and_experiment_commands() {
         }
     }
     assert_eq!(last["train_trajectories"], 4);
-    // The test set does not depend on the number of training trajectories
-    // (fewer or more than the standard count).
     // A subset of variants, another unroll length, activation and width.
     fails_with(
         &["experiment", "sol-burgers", "--methods", "pre,sol0", "--out", o],
@@ -223,6 +221,8 @@ fn train_and_experiment_commands() {
     assert_eq!(code, 0, "{err}");
     let seeded: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     assert_ne!(seeded["source"], last["source"]);
+    // The test set does not depend on the number of training trajectories
+    // (fewer or more than the standard count).
     let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "1", "--train", "40", "--json", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let more: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();

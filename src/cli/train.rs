@@ -124,7 +124,8 @@ impl StudyArgs {
         Activation::deserialize(de).map_err(|e| CliError::Argument { arg: "--activation", reason: e.to_string() })
     }
 
-    /// Sets the overridden values, refusing zeros.
+    /// Sets the overridden values, refusing zeros, non-positive learning
+    /// rates, negative noise and unknown variants.
     fn apply<P>(&self, cfg: &mut StudyConfig<P>) -> Result<(), CliError> {
         if let Some(it) = self.iterations {
             if it == 0 {
@@ -557,16 +558,16 @@ fn run_sol_study<P: SolProblem>(cfg: &StudyConfig<P>, command: &'static str, tit
         print!("{table}");
         println!("wrote table.md, errors.csv, error.png, loss.png to {}", out.display());
     }
-    let find = |n: &str| results.iter().find(|r| r.name == n).map_or(f64::NAN, |r| r.mean_error);
     let sol16 = results.iter().find(|r| r.name == "sol16").map_or(f64::NAN, |r| r.s_per_iter);
     if json {
+        // The standard variants' keys are always there (null when not run);
+        // every variant that ran, `--methods sol8` too, under its name.
         let mut obj = serde_json::json!({
-            "source": find("source"), "pre": find("pre"), "noise": find("noise"), "sol4": find("sol4"), "sol16": find("sol16"),
+            "source": null, "pre": null, "noise": null, "sol4": null, "sol16": null,
             "train_s_per_iter": sol16, "iterations": cfg.settings.iterations, "threads": rayon::current_num_threads(),
             "train_trajectories": cfg.train,
             "train_set": results.iter().map(|r| (r.name.clone(), serde_json::Value::from(r.train_mean_error))).collect::<serde_json::Map<_, _>>(),
         });
-        // Variants beyond the standard four (`--methods sol8`) under their own names.
         for r in &results {
             obj[r.name.as_str()] = serde_json::Value::from(r.mean_error);
         }

@@ -145,19 +145,16 @@ impl StudyConfig<Setup> {
     }
 }
 
-/// A correction network for `n` cells by name: `conv-stack` (P3's with
-/// width 32 and tanh: 1 → `width` → `width` → 1 channels, kernel 5),
-/// `unet` ([`presets::unet_1d`], kernel 5) or `resnet`
-/// ([`presets::resnet_1d`], 3 blocks, kernel 5); periodic padding
-/// throughout, activation `act`.
+/// A correction network for `n` cells by name: `conv-stack` (P3's shape
+/// at width 32: 1 → `width` → `width` → 1 channels, kernel 5), `unet`
+/// ([`presets::unet_1d`], kernel 5) or `resnet` ([`presets::resnet_1d`], 3
+/// blocks, kernel 5); periodic padding throughout, activation `act`. A zero
+/// width is refused by [`Net::new`].
 ///
 /// [`presets::unet_1d`]: crate::nn::presets::unet_1d
 /// [`presets::resnet_1d`]: crate::nn::presets::resnet_1d
 pub fn correction_net(name: &str, n: usize, width: usize, act: Activation) -> Result<Net, String> {
     use crate::nn::{Padding::Periodic, presets};
-    if width == 0 {
-        return Err("the width must be at least 1".into());
-    }
     let net = match name {
         "conv-stack" => presets::conv_stack_1d(n, &[1, width, width, 1], 5, Periodic, act),
         "unet" => presets::unet_1d(n, 1, 1, width, 5, Periodic, act),
