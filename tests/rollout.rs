@@ -104,6 +104,20 @@ fn bad_inputs_are_errors() {
     let coupled = diffsim::train::Coupled::new(&op, &[], &net, diffsim::train::Coupling::Add).unwrap();
     let err = Rollout::new(&coupled, &theta, 4).unwrap().final_state(&p.u0).unwrap_err();
     assert_eq!(err, RolloutError::NonFinite { pass: Pass::Forward, step: 0, operator: OpName::new("Net") });
+    // A NaN entering the adjoint is found at the backward pass's periodic
+    // check and then named exactly, under every checkpointing mode.
+    let nan_at = |t: usize, x: &[f64], g: &mut [f64]| {
+        for (g, &a) in g.iter_mut().zip(x) {
+            *g = if t == 37 { f64::NAN } else { a };
+        }
+        0.0
+    };
+    let loss = diffsim::rollout::AtSteps { steps: vec![37, 100], f: nan_at };
+    let r100 = Rollout::new(&op, &[], 100).unwrap();
+    for mode in [Checkpointing::Store, Checkpointing::Periodic { every: 10 }, Checkpointing::binomial_log(100)] {
+        let err = r100.value_and_grad(&p.u0, &loss, mode).unwrap_err();
+        assert_eq!(err, RolloutError::NonFinite { pass: Pass::Backward, step: 37, operator: OpName::new("BurgersHand") }, "{mode}");
+    }
     assert!("binomial:0".parse::<Checkpointing>().is_err());
     assert!("sometimes".parse::<Checkpointing>().is_err());
     assert_eq!("periodic:5".parse::<Checkpointing>(), Ok(Checkpointing::Periodic { every: 5 }));

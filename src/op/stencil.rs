@@ -28,8 +28,8 @@
 //! `stencil3!(cell: Op => cell)`. Enzyme differentiates the scalar
 //! function (reverse mode with `Active` arguments, seed 1: the Jacobian row
 //! `(∂k/∂l, ∂k/∂c, ∂k/∂r)` of one cell; forward mode with `Dual` arguments
-//! for the JVP); the framework's loop scales the rows by the seed and
-//! gathers them ([`vjp3_rows`]). The generated code is inlined into that
+//! for the JVP); the framework's loop gathers each cell's adjoint from the
+//! entries of three rows ([`vjp3_rows`]). The generated code is inlined into that
 //! loop and vectorised, and nothing else runs: no primal recomputation, no
 //! reversed loop, no accumulation into zeroed arrays. On P1 (size M) this
 //! took the Enzyme gradient from ≈ 1.7× to ≈ 1.2× the hand-written one.
@@ -37,8 +37,6 @@
 /// Cells per chunk of the VJP: four scratch arrays of this many `f64` (16 KiB)
 /// stay in L1.
 pub const CHUNK: usize = 512;
-
-use std::mem::MaybeUninit;
 
 use super::Real;
 
@@ -355,9 +353,9 @@ fn vjp3_overwrite<R: Real>(x: &[R], g: &mut [R], dx: &mut [R], dp: &mut [R], f: 
 
 /// `dx += Jᵀ·g` (`ADD`) or `dx = Jᵀ·g` for a periodic three-point stencil
 /// from its Jacobian rows: `f(l, c, r)` returns `(∂k/∂l, ∂k/∂c, ∂k/∂r)` of
-/// the cell function at one cell. The rows are scaled by `g` chunk by chunk
-/// into L1-resident scratch and gathered, `dx[j] (+)= g[j+1]·∂_l k_{j+1} +
-/// g[j]·∂_c k_j + g[j−1]·∂_r k_{j−1}`; `g` is left unchanged.
+/// the cell function at one cell, and `dx[j] (+)= g[j]·∂_c k_j +
+/// g[j+1]·∂_l k_{j+1} + g[j−1]·∂_r k_{j−1}` is gathered in one pass; `g` is
+/// left unchanged.
 #[doc(hidden)]
 #[inline]
 pub fn vjp3_rows<const ADD: bool, R: Real, F: FnMut(R, R, R) -> (R, R, R)>(x: &[R], g: &[R], dx: &mut [R], f: F) {
@@ -381,69 +379,42 @@ fn vjp3_rows_overwrite<R: Real>(x: &[R], g: &[R], dx: &mut [R], f: impl FnMut(R,
 #[inline(always)]
 fn vjp3_rows_body<const ADD: bool, R: Real>(x: &[R], g: &[R], dx: &mut [R], mut f: impl FnMut(R, R, R) -> (R, R, R)) {
     let n = x.len();
-    // Scratch left uninitialised (zeroing 12 KiB per call would cost about
-    // a tenth of the step): each chunk writes its first `m` values before
-    // reading them.
-    let mut buf = [const { MaybeUninit::<R>::uninit() }; 3 * CHUNK];
-    let (dl_buf, rest) = buf.split_at_mut(CHUNK);
-    let (dc_buf, dr_buf) = rest.split_at_mut(CHUNK);
-    // The two wrap-around cells first (their rows reach across the ends).
-    let (l0, c0, r0) = {
-        let (jl, jc, jr) = f(x[n - 1], x[0], x[1]);
-        (g[0] * jl, g[0] * jc, g[0] * jr)
-    };
-    let (ln, cn, rn) = {
-        let (jl, jc, jr) = f(x[n - 2], x[n - 1], x[0]);
-        (g[n - 1] * jl, g[n - 1] * jc, g[n - 1] * jr)
-    };
     let put = |d: &mut R, v: R| if ADD { *d += v } else { *d = v };
-    // Interior cells s..e (1 ≤ s, e ≤ n − 1) in chunks; dx[j] for j in s..e
-    // needs the rows of j − 1, j, j + 1: the chunk's own plus one on each side.
-    let mut s = 1;
-    let mut prev_r = r0; // g·∂_r of cell s − 1
-    while s < n - 1 {
-        let e = (s + CHUNK).min(n - 1);
-        let m = e - s;
-        let (xl, xc, xr, gc) = (&x[s - 1..e - 1], &x[s..e], &x[s + 1..e + 1], &g[s..e]);
-        let (dl, dc, dr) = (&mut dl_buf[..m], &mut dc_buf[..m], &mut dr_buf[..m]);
-        for i in 0..m {
-            let (jl, jc, jr) = f(xl[i], xc[i], xr[i]);
-            let gi = gc[i];
-            dl[i].write(gi * jl);
-            dc[i].write(gi * jc);
-            dr[i].write(gi * jr);
-        }
-        // SAFETY: the loop above wrote all `m` values of each slice.
-        let (dl, dc, dr) = unsafe { (dl.assume_init_ref(), dc.assume_init_ref(), dr.assume_init_ref()) };
-        // dx[s + i] = dc[i] + dl[i + 1] + dr[i − 1]; the chunk's last cell
-        // takes dl of cell e (the next chunk's first, or cell n − 1).
-        let next_l = if e < n - 1 {
-            let (jl, _, _) = f(x[e - 1], x[e], x[e + 1]);
-            g[e] * jl
-        } else {
-            ln
-        };
-        let out = &mut dx[s..e];
-        if m > 1 {
-            put(&mut out[0], dc[0] + dl[1] + prev_r);
-            for (((o, &c), &l), &r) in out[1..m - 1].iter_mut().zip(&dc[1..m - 1]).zip(&dl[2..m]).zip(&dr[..m - 2]) {
-                put(o, c + l + r);
-            }
-            put(&mut out[m - 1], dc[m - 1] + next_l + dr[m - 2]);
-        } else {
-            put(&mut out[0], dc[0] + next_l + prev_r);
-        }
-        prev_r = dr[m - 1];
-        s = e;
-    }
-    // Cell 0: its own row, the left row of cell 1, the right row of cell n − 1.
-    let l1 = {
-        let (jl, _, _) = f(x[0], x[1], x[2 % n]);
-        g[1] * jl
+    // Gather form: dx[j] takes the centre entry of row j, the left entry of
+    // row j + 1 and the right entry of row j − 1, each row evaluated where
+    // it is needed. After inlining, the compiler keeps only the arithmetic
+    // of the entry each call uses (the left and right entries of a typical
+    // row are much cheaper than the centre one), so this costs about one row
+    // per cell and needs no scratch: measured 1.6× faster than scaling whole
+    // rows into a buffer and gathering from it (README, P1).
+    let mut at = |j: usize| -> R {
+        let m = |k: isize| (j as isize + k).rem_euclid(n as isize) as usize;
+        let (_, jc, _) = f(x[m(-1)], x[j], x[m(1)]);
+        let (jl, _, _) = f(x[j], x[m(1)], x[m(2)]);
+        let (_, _, jr) = f(x[m(-2)], x[m(-1)], x[j]);
+        g[j] * jc + g[m(1)] * jl + g[m(-1)] * jr
     };
-    put(&mut dx[0], c0 + l1 + rn);
-    // Cell n − 1: its own row, the left row of cell 0, the right row of n − 2.
-    put(&mut dx[n - 1], cn + l0 + prev_r);
+    if n < 5 {
+        for j in 0..n {
+            let v = at(j);
+            put(&mut dx[j], v);
+        }
+        return;
+    }
+    for j in [0, 1, n - 2, n - 1] {
+        let v = at(j);
+        put(&mut dx[j], v);
+    }
+    // Cells 2..n−2: five shifted views of the state, three of the seed.
+    let m = n - 4;
+    let (xm2, xm1, x0, xp1, xp2) = (&x[..m], &x[1..m + 1], &x[2..m + 2], &x[3..m + 3], &x[4..m + 4]);
+    let (gm1, g0, gp1) = (&g[1..m + 1], &g[2..m + 2], &g[3..m + 3]);
+    for (i, d) in dx[2..m + 2].iter_mut().enumerate() {
+        let (_, jc, _) = f(xm1[i], x0[i], xp1[i]);
+        let (jl, _, _) = f(x0[i], xp1[i], xp2[i]);
+        let (_, _, jr) = f(xm2[i], xm1[i], x0[i]);
+        put(d, g0[i] * jc + gp1[i] * jl + gm1[i] * jr);
+    }
 }
 
 /// Adds `src` into `dst` and zeroes `src` (one pass).

@@ -107,8 +107,13 @@ struct Backward<'r, 'a, O, L, R> {
     free: Vec<Vec<R>>,
     live: usize,
     stats: RolloutStats,
-    /// The first step (in backward order) whose adjoint was not finite.
+    /// The first step (in backward order) whose adjoint was found not
+    /// finite.
     non_finite: Option<usize>,
+    /// Check the adjoint after every `check_every`-th VJP (and the last).
+    check_every: usize,
+    /// VJPs run so far.
+    vjps: usize,
 }
 
 impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
@@ -163,8 +168,11 @@ impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
         if t > 0 {
             self.loss_term(t, x, true);
         }
-        // Once per step: where a NaN or infinity enters the adjoint.
-        if self.non_finite.is_none() && !super::all_finite(&self.lam) {
+        // Where a NaN or infinity enters the adjoint: checked every
+        // `check_every` steps and after the last (a NaN, once in the adjoint,
+        // stays in it); `run` is called again with 1 to name the exact step.
+        self.vjps += 1;
+        if self.non_finite.is_none() && (t == 0 || self.vjps % self.check_every == 0) && !super::all_finite(&self.lam) {
             self.non_finite = Some(t);
         }
     }
@@ -246,12 +254,21 @@ impl<R> Workspace<R> {
     }
 }
 
+/// How often the backward pass checks its adjoint for NaN and infinity:
+/// every this many steps. A check reads the whole adjoint (about a quarter
+/// of a P1 step at 16384 cells); once a NaN is found, the backward pass is
+/// run again checking every step to name the step where it entered.
+pub(super) const CHECK_EVERY: usize = 16;
+
+/// The loss and gradient of `r` from `x0`, checking the adjoint every
+/// `check_every` steps (see [`CHECK_EVERY`]).
 pub(super) fn run<R: Real, O: Vjp<R>>(
     r: &Rollout<'_, O, R>,
     ws: &mut Workspace<R>,
     x0: &[R],
     loss: &impl Loss<R>,
     mode: Checkpointing,
+    check_every: usize,
 ) -> Result<Gradient<R>, RolloutError> {
     let n = x0.len();
     let steps = r.steps;
@@ -269,6 +286,8 @@ pub(super) fn run<R: Real, O: Vjp<R>>(
         live: 0,
         stats: RolloutStats { steps, ..Default::default() },
         non_finite: None,
+        check_every: check_every.max(1),
+        vjps: 0,
     };
     // With no steps the loss is on x_0 itself.
     let value = if steps == 0 {
@@ -307,8 +326,11 @@ pub(super) fn run<R: Real, O: Vjp<R>>(
 }
 
 /// Stores `x_0, x_k, x_2k, …` in one flat buffer during the forward pass and
-/// recomputes each segment from its checkpoint in the backward pass. With
-/// `k = 1` nothing is recomputed and each step writes straight into its slot.
+/// recomputes each segment from its checkpoint in the backward pass. The
+/// forward pass writes each checkpoint in place (no copy) and keeps the
+/// states of the last segment, which is therefore not recomputed. With
+/// `k = 1` nothing is recomputed and each step writes straight into its
+/// slot.
 fn periodic<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_, O, L, R>, store: &mut Vec<R>, x0: &[R], k: usize) -> f64 {
     let (n, steps) = (bw.n, bw.rollout.steps);
     let n_ckpt = steps.div_ceil(k).max(1);
@@ -318,43 +340,57 @@ fn periodic<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_, O, L, R>, 
     let store = &mut store[..n_ckpt * n];
     bw.live += n_ckpt;
     store[..n].copy_from_slice(x0);
-    // Forward: x_T lands in `last`.
-    let mut last = bw.alloc();
-    let mut tmp = bw.alloc();
-    last.copy_from_slice(x0);
+    // seg[i] holds x_{a+1+i} for the segment a..b being reversed.
+    let mut seg: Vec<Vec<R>> = (0..k.min(steps) - 1).map(|_| bw.alloc()).collect();
+    let (mut x, mut y) = (bw.alloc(), bw.alloc());
+    let a_last = (n_ckpt - 1) * k;
     let mut value = 0.0;
-    for t in 0..steps {
-        if k == 1 && t + 1 < steps {
+    // Forward up to the last checkpoint: x_t lives in its checkpoint slot
+    // (t a multiple of k) or in `x`.
+    for t in 0..a_last {
+        let next = (t + 1) % k == 0;
+        if t % k == 0 && next {
+            // k = 1: slot to slot.
             let (done, rest) = store.split_at_mut((t + 1) * n);
             bw.step(t, &done[t * n..], &mut rest[..n]);
             value += bw.loss_term(t + 1, &rest[..n], false);
-            continue;
-        }
-        let src: &[R] = if k == 1 { &store[t * n..(t + 1) * n] } else { &last };
-        bw.step(t, src, &mut tmp);
-        std::mem::swap(&mut last, &mut tmp);
-        value += bw.loss_term(t + 1, &last, t + 1 == steps);
-        if (t + 1) % k == 0 && t + 1 < steps {
+        } else if next {
             let c = (t + 1) / k;
-            store[c * n..(c + 1) * n].copy_from_slice(&last);
+            bw.step(t, &x, &mut store[c * n..(c + 1) * n]);
+            value += bw.loss_term(t + 1, &store[c * n..(c + 1) * n], false);
+        } else {
+            let c = t / k;
+            let src: &[R] = if t % k == 0 { &store[c * n..(c + 1) * n] } else { &x };
+            bw.step(t, src, &mut y);
+            std::mem::swap(&mut x, &mut y);
+            value += bw.loss_term(t + 1, &x, false);
         }
     }
-    bw.release(tmp);
-    bw.release(last);
+    // The last segment: its states go straight into `seg`, x_T into `y`.
+    for t in a_last..steps {
+        let i = t - a_last;
+        let (done, rest) = seg.split_at_mut(i);
+        let src: &[R] = if i == 0 { &store[(n_ckpt - 1) * n..] } else { &done[i - 1] };
+        if t + 1 < steps {
+            bw.step(t, src, &mut rest[0]);
+            value += bw.loss_term(t + 1, &rest[0], false);
+        } else {
+            bw.step(t, src, &mut y);
+            value += bw.loss_term(t + 1, &y, true);
+        }
+    }
+    bw.release(y);
+    bw.release(x);
     // Backward, segment by segment from the last.
-    let mut seg: Vec<Vec<R>> = Vec::new();
     for c in (0..n_ckpt).rev() {
         let (a, b) = (c * k, ((c + 1) * k).min(steps));
         let ckpt = &store[c * n..(c + 1) * n];
-        // seg[i] holds x_{a+1+i}.
-        while seg.len() + a + 1 < b {
-            let buf = bw.alloc();
-            seg.push(buf);
-        }
-        for i in 0..b.saturating_sub(a + 1) {
-            let (done, rest) = seg.split_at_mut(i);
-            let src: &[R] = if i == 0 { ckpt } else { &done[i - 1] };
-            bw.step(a + i, src, &mut rest[0]);
+        if c + 1 < n_ckpt {
+            for i in 0..b - a - 1 {
+                let (done, rest) = seg.split_at_mut(i);
+                let src: &[R] = if i == 0 { ckpt } else { &done[i - 1] };
+                bw.step(a + i, src, &mut rest[0]);
+            }
         }
         for t in (a..b).rev() {
             let x: &[R] = if t == a { ckpt } else { &seg[t - a - 1] };

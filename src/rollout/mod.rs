@@ -315,16 +315,24 @@ impl<R: Real, O: Vjp<R>> Rollout<'_, O, R> {
     pub fn value_and_grad_in(&self, ws: &mut Workspace<R>, x0: &[R], loss: &impl Loss<R>, mode: Checkpointing) -> Result<Gradient<R>, RolloutError> {
         self.check_state(x0)?;
         Forward::<R>::take_error(self.op);
-        let g = match checkpoint::run(self, ws, x0, loss, mode) {
-            Err(RolloutError::NonFinite { pass: Pass::Backward, step, .. }) => {
+        let g = match checkpoint::run(self, ws, x0, loss, mode, checkpoint::CHECK_EVERY) {
+            Err(RolloutError::NonFinite { pass: Pass::Backward, .. }) => {
                 // A failed solve or a NaN in the forward pass is the cause.
                 if let Some(error) = Forward::<R>::take_error(self.op) {
                     return Err(RolloutError::Operator { pass: Pass::Backward, error });
                 }
-                return Err(match self.non_finite_forward(x0) {
-                    e @ RolloutError::NonFinite { step: s, .. } if s < self.steps => e,
-                    _ => RolloutError::NonFinite { pass: Pass::Backward, step, operator: Forward::<R>::name(self.op) },
-                });
+                if let e @ RolloutError::NonFinite { step, .. } = self.non_finite_forward(x0)
+                    && step < self.steps
+                {
+                    return Err(e);
+                }
+                // Found at a periodic check: run again checking every step
+                // to name the step where it entered the adjoint.
+                let step = match checkpoint::run(self, ws, x0, loss, mode, 1) {
+                    Err(RolloutError::NonFinite { pass: Pass::Backward, step, .. }) => step,
+                    _ => 0,
+                };
+                return Err(RolloutError::NonFinite { pass: Pass::Backward, step, operator: Forward::<R>::name(self.op) });
             }
             g => g?,
         };
@@ -383,7 +391,7 @@ impl<O: Vjp> Vjp for RolloutOperator<'_, O> {
             y.iter().zip(&seed).map(|(a, b)| a * b).sum()
         };
         self.rollout.check_state(x).expect("RolloutOperator::vjp: x has the wrong length");
-        let g = checkpoint::run(&self.rollout, &mut Workspace::new(), x, &linear, self.mode).expect("rollout");
+        let g = checkpoint::run(&self.rollout, &mut Workspace::new(), x, &linear, self.mode, checkpoint::CHECK_EVERY).expect("rollout");
         for (d, v) in dx.iter_mut().zip(&g.dx0) {
             *d += v;
         }
