@@ -138,7 +138,7 @@ impl P1 {
 
     /// [`P1::grad_enzyme`] reusing the buffers of `ws`.
     pub fn grad_enzyme_in(&self, ws: &mut Workspace, mode: Checkpointing) -> Result<Gradient, RolloutError> {
-        Rollout::new(&BurgersEnzyme(self.cfg), &[], self.steps)?.value_and_grad_in(ws, &self.u0, &self.loss(), mode)
+        Rollout::new(&BurgersEnzyme(self.cfg), &[], self.steps)?.value_and_grad_pipelined_in(ws, &self.u0, &self.loss(), mode)
     }
 
     /// `L` and `∂L/∂u0` through the Enzyme-generated VJP of the whole step.
@@ -158,6 +158,6 @@ impl P1 {
 
     /// [`P1::grad_hand`] reusing the buffers of `ws`.
     pub fn grad_hand_in(&self, ws: &mut Workspace, mode: Checkpointing) -> Result<Gradient, RolloutError> {
-        Rollout::new(&BurgersHand(self.cfg), &[], self.steps)?.value_and_grad_in(ws, &self.u0, &self.loss(), mode)
+        Rollout::new(&BurgersHand(self.cfg), &[], self.steps)?.value_and_grad_pipelined_in(ws, &self.u0, &self.loss(), mode)
     }
 }

@@ -114,6 +114,23 @@ struct Backward<'r, 'a, O, L, R> {
     check_every: usize,
     /// VJPs run so far.
     vjps: usize,
+    /// Recomputes a segment on another thread while the previous one is
+    /// reversed ([`Recompute`]); `None`: on this thread, in turn.
+    pipeline: Option<&'r Recompute<'r, R>>,
+}
+
+/// `f(a, x_a, seg)` fills `seg[i]` with `x_{a+1+i}`: the recomputation of
+/// one segment, shareable with another thread (the rollout's operator is
+/// `Sync`).
+pub(super) type Recompute<'r, R> = dyn Fn(usize, &[R], &mut [Vec<R>]) + Sync + 'r;
+
+/// `seg[i] = x_{a+1+i}` from `ckpt = x_a`, by the rollout's steps.
+pub(super) fn recompute<R: Real, O: Vjp<R>>(r: &Rollout<'_, O, R>, a: usize, ckpt: &[R], seg: &mut [Vec<R>]) {
+    for i in 0..seg.len() {
+        let (done, rest) = seg.split_at_mut(i);
+        let src: &[R] = if i == 0 { ckpt } else { &done[i - 1] };
+        r.op.forward(src, r.p_at(a + i), &mut rest[0]);
+    }
 }
 
 impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
@@ -269,6 +286,7 @@ pub(super) fn run<R: Real, O: Vjp<R>>(
     loss: &impl Loss<R>,
     mode: Checkpointing,
     check_every: usize,
+    pipeline: Option<&Recompute<'_, R>>,
 ) -> Result<Gradient<R>, RolloutError> {
     let n = x0.len();
     let steps = r.steps;
@@ -288,6 +306,7 @@ pub(super) fn run<R: Real, O: Vjp<R>>(
         non_finite: None,
         check_every: check_every.max(1),
         vjps: 0,
+        pipeline,
     };
     // With no steps the loss is on x_0 itself.
     let value = if steps == 0 {
@@ -381,23 +400,40 @@ fn periodic<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_, O, L, R>, 
     }
     bw.release(y);
     bw.release(x);
-    // Backward, segment by segment from the last.
+    // Backward, segment by segment from the last. Pipelined: `seg` holds
+    // the segment being reversed while another thread recomputes the one
+    // before it into `next` (the two then swap); otherwise each segment is
+    // recomputed here, in turn.
+    let pipeline = bw.pipeline.filter(|_| n_ckpt > 1 && k > 1);
+    let mut next: Vec<Vec<R>> = if pipeline.is_some() { (0..k - 1).map(|_| bw.alloc()).collect() } else { Vec::new() };
     for c in (0..n_ckpt).rev() {
         let (a, b) = (c * k, ((c + 1) * k).min(steps));
         let ckpt = &store[c * n..(c + 1) * n];
-        if c + 1 < n_ckpt {
-            for i in 0..b - a - 1 {
-                let (done, rest) = seg.split_at_mut(i);
-                let src: &[R] = if i == 0 { ckpt } else { &done[i - 1] };
-                bw.step(a + i, src, &mut rest[0]);
-            }
+        if c + 1 < n_ckpt && pipeline.is_none() {
+            recompute(bw.rollout, a, ckpt, &mut seg[..b - a - 1]);
+            bw.stats.step_evaluations += b - a - 1;
         }
-        for t in (a..b).rev() {
-            let x: &[R] = if t == a { ckpt } else { &seg[t - a - 1] };
-            bw.vjp(t, x);
+        let reverse = |bw: &mut Backward<'_, '_, O, L, R>| {
+            for t in (a..b).rev() {
+                let x: &[R] = if t == a { ckpt } else { &seg[t - a - 1] };
+                bw.vjp(t, x);
+            }
+        };
+        match pipeline {
+            Some(f) if c > 0 => {
+                let prev = &store[(c - 1) * n..c * n];
+                let fill = &mut next[..];
+                rayon::in_place_scope(|s| {
+                    s.spawn(move |_| f((c - 1) * k, prev, fill));
+                    reverse(bw);
+                });
+                bw.stats.step_evaluations += k - 1;
+                std::mem::swap(&mut seg, &mut next);
+            }
+            _ => reverse(bw),
         }
     }
-    for s in seg {
+    for s in seg.into_iter().chain(next) {
         bw.release(s);
     }
     bw.live -= n_ckpt;
