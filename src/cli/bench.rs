@@ -71,7 +71,9 @@ pub(super) struct P1Args {
     /// Number of steps T (≥ 1).
     #[arg(long, default_value_t = 2048)]
     steps: usize,
-    /// Worker threads (default: all cores).
+    /// Worker threads (default: all cores). With two or more, the gradients
+    /// are pipelined (a second thread recomputes the next checkpoint
+    /// segment while one is reversed); the forward runs on one thread.
     #[arg(long)]
     threads: Option<usize>,
     /// How states are kept for the backward pass: store, periodic[:K],

@@ -395,9 +395,8 @@ fn vjp3_rows_body<const ADD: bool, R: Real>(x: &[R], g: &[R], dx: &mut [R], mut 
         g[j] * jc + g[m(1)] * jl + g[m(-1)] * jr
     };
     if n < 5 {
-        for j in 0..n {
-            let v = at(j);
-            put(&mut dx[j], v);
+        for (j, d) in dx.iter_mut().enumerate() {
+            put(d, at(j));
         }
         return;
     }

@@ -189,7 +189,7 @@ impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
         // `check_every` steps and after the last (a NaN, once in the adjoint,
         // stays in it); `run` is called again with 1 to name the exact step.
         self.vjps += 1;
-        if self.non_finite.is_none() && (t == 0 || self.vjps % self.check_every == 0) && !super::all_finite(&self.lam) {
+        if self.non_finite.is_none() && (t == 0 || self.vjps.is_multiple_of(self.check_every)) && !super::all_finite(&self.lam) {
             self.non_finite = Some(t);
         }
     }
@@ -367,8 +367,8 @@ fn periodic<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_, O, L, R>, 
     // Forward up to the last checkpoint: x_t lives in its checkpoint slot
     // (t a multiple of k) or in `x`.
     for t in 0..a_last {
-        let next = (t + 1) % k == 0;
-        if t % k == 0 && next {
+        let next = (t + 1).is_multiple_of(k);
+        if t.is_multiple_of(k) && next {
             // k = 1: slot to slot.
             let (done, rest) = store.split_at_mut((t + 1) * n);
             bw.step(t, &done[t * n..], &mut rest[..n]);
@@ -379,7 +379,7 @@ fn periodic<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_, O, L, R>, 
             value += bw.loss_term(t + 1, &store[c * n..(c + 1) * n], false);
         } else {
             let c = t / k;
-            let src: &[R] = if t % k == 0 { &store[c * n..(c + 1) * n] } else { &x };
+            let src: &[R] = if t.is_multiple_of(k) { &store[c * n..(c + 1) * n] } else { &x };
             bw.step(t, src, &mut y);
             std::mem::swap(&mut x, &mut y);
             value += bw.loss_term(t + 1, &x, false);
