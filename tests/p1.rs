@@ -36,3 +36,23 @@ fn reference_table_enzyme_and_hand() {
         compare(r, value, &p.grad_hand(mode).unwrap());
     }
 }
+
+#[test]
+fn forward_split_over_two_threads_is_bit_identical() {
+    use diffsim::op::Forward;
+    use diffsim::problems::burgers::{BurgersEnzyme, BurgersHand};
+    // Large enough to split (and odd, so that the halves differ in length).
+    let n = diffsim::op::stencil::PAR_MIN_CELLS + 3;
+    let p = P1::new(n, 1);
+    let mut want = vec![0.0; n];
+    diffsim_solvers::burgers::step(&p.cfg, &p.u0, &mut want);
+    let two = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    let (mut hand, mut enzyme) = (vec![0.0; n], vec![0.0; n]);
+    two.install(|| {
+        assert_eq!(rayon::current_num_threads(), 2);
+        BurgersHand(p.cfg).forward(&p.u0, &[], &mut hand);
+        BurgersEnzyme(p.cfg).forward(&p.u0, &[], &mut enzyme);
+    });
+    assert_eq!(hand, want);
+    assert_eq!(enzyme, want);
+}

@@ -58,7 +58,7 @@ fn burgers_radius<T, R: crate::op::Real>(_: &T, x: &[R], _p: &[R], dx: &[R], _dp
     burgers::smooth_radius(x, dx)
 }
 
-crate::stencil3!(cell: BurgersEnzyme => burgers_cell, smooth_radius = burgers_radius);
+crate::stencil3!(cell: BurgersEnzyme => burgers_cell, smooth_radius = burgers_radius, parallel);
 crate::stencil3!(cell f32: BurgersEnzyme => burgers_cell_f32, smooth_radius = burgers_radius);
 
 /// The thin wrapper Enzyme differentiates: the solver step, unchanged.
@@ -71,7 +71,8 @@ crate::differentiable!(BurgersEnzymeWholeStep => burgers_step, smooth_radius = b
 impl Forward for BurgersHand {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "BurgersHand", x, p, y);
-        burgers::step(&self.0, x, y)
+        // The solver's step map, split over two threads on large grids.
+        crate::op::stencil::forward3_par(x, y, |l, c, r, out| burgers::step_map(&self.0, l, c, r, out))
     }
 
     fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
