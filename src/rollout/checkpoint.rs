@@ -186,8 +186,11 @@ impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
             self.loss_term(t, x, true);
         }
         // Where a NaN or infinity enters the adjoint: checked every
-        // `check_every` steps and after the last (a NaN, once in the adjoint,
-        // stays in it); `run` is called again with 1 to name the exact step.
+        // `check_every` steps and after the last, since a NaN, once in the
+        // adjoint, stays in it through every VJP that multiplies (one that
+        // selects, like a clamp's, could drop it between two checks: then
+        // it is not reported, and did not reach the gradient). `run` is
+        // called again with 1 to name the exact step.
         self.vjps += 1;
         if self.non_finite.is_none() && (t == 0 || self.vjps.is_multiple_of(self.check_every)) && !super::all_finite(&self.lam) {
             self.non_finite = Some(t);
