@@ -38,7 +38,7 @@ fn reference_table_enzyme_and_hand() {
 }
 
 #[test]
-fn forward_split_over_two_threads_is_bit_identical() {
+fn forward_and_vjp_split_over_two_threads_are_bit_identical() {
     use diffsim::op::Forward;
     use diffsim::problems::burgers::{BurgersEnzyme, BurgersHand};
     // Large enough to split (and odd, so that the halves differ in length).
@@ -55,4 +55,23 @@ fn forward_split_over_two_threads_is_bit_identical() {
     });
     assert_eq!(hand, want);
     assert_eq!(enzyme, want);
+    // The VJPs split the same way: equal to one thread's, bit for bit.
+    use diffsim::op::Vjp;
+    let g: Vec<f64> = p.u0.iter().map(|u| u * u - 0.3).collect();
+    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let vjp = |pool: &rayon::ThreadPool, enzyme_op: bool| {
+        let (mut dy, mut dx) = (g.clone(), vec![0.0; n]);
+        pool.install(|| {
+            if enzyme_op {
+                BurgersEnzyme(p.cfg).vjp_overwrite(&p.u0, &[], &mut dy, &mut dx, &mut []);
+            } else {
+                BurgersHand(p.cfg).vjp_overwrite(&p.u0, &[], &mut dy, &mut dx, &mut []);
+            }
+        });
+        dx
+    };
+    let mut want = vec![0.0; n];
+    diffsim_solvers::burgers::step_adjoint_overwrite(&p.cfg, &p.u0, &g, &mut want);
+    assert_eq!(vjp(&two, false), want);
+    assert_eq!(vjp(&two, true), vjp(&one, true));
 }

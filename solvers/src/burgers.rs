@@ -162,6 +162,37 @@ fn adjoint<const ADD: bool>(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64
     put(&mut du[n - 1], at(n - 1));
 }
 
+crate::simd_dispatch! {
+    /// [`step_adjoint_overwrite`] for the cells `s..s + du.len()` only, all
+    /// inside (`1 ≤ s`, `s + du.len() ≤ n − 1`): `du[i] = ((∂step/∂u)ᵀ·g)[s + i]`,
+    /// so that a caller can split the cells over threads (the two end cells
+    /// by [`step_adjoint_cell`]).
+    ///
+    /// # Panics
+    /// If the range is not inside or `u` and `g` differ in length.
+    pub fn step_adjoint_overwrite_cells(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64], s: usize) => adjoint_cells_body
+}
+
+#[inline(always)]
+fn adjoint_cells_body(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64], s: usize) {
+    let (n, m) = (cfg.n, du.len());
+    assert!(u.len() == n && g.len() == n && s >= 1 && s + m < n, "burgers adjoint cells: range {s}..{} not inside 1..{}", s + m, n - 1);
+    let (a, b) = cfg.coefficients();
+    let (l, c, r) = (&u[s - 1..s - 1 + m], &u[s..s + m], &u[s + 1..s + 1 + m]);
+    let (gl, gc, gr) = (&g[s - 1..s - 1 + m], &g[s..s + m], &g[s + 1..s + 1 + m]);
+    for (i, d) in du.iter_mut().enumerate() {
+        *d = cell_adjoint(l[i], c[i], r[i], gl[i], gc[i], gr[i], a, b);
+    }
+}
+
+/// One cell of the adjoint, `((∂step/∂u)ᵀ·g)[j]`, any `j < n` (periodic).
+pub fn step_adjoint_cell(cfg: &Burgers1d, u: &[f64], g: &[f64], j: usize) -> f64 {
+    let n = cfg.n;
+    let (a, b) = cfg.coefficients();
+    let m = |k: isize| ((j as isize + k).rem_euclid(n as isize)) as usize;
+    cell_adjoint(u[m(-1)], u[j], u[m(1)], g[m(-1)], g[j], g[m(1)], a, b)
+}
+
 /// Tangent-linear model of [`step`]: `out = (∂step/∂u)·t` at the state `u`
 /// (overwrites `out`).
 ///

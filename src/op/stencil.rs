@@ -119,7 +119,7 @@ macro_rules! stencil3 {
             }
         };
     };
-    (@cell $r:ty, $ty:ty => $f:path, $radius:path, $forward:ident) => {
+    (@cell $r:ty, $ty:ty => $f:path, $radius:path, $forward:ident, $rows:ident) => {
         #[allow(clippy::too_many_arguments)]
         const _: () = {
             #[::std::autodiff::autodiff_reverse(diffsim_cell_vjp, Const, Active, Active, Active, Active)]
@@ -155,7 +155,7 @@ macro_rules! stencil3 {
                 fn vjp(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
                     $crate::op::stencil::enter_cell(self, ::std::stringify!($ty), $crate::op::count::Method::Vjp);
-                    $crate::op::stencil::vjp3_rows::<true, $r, _>(x, dy, dx, |l, c, r| {
+                    $crate::op::stencil::$rows::<true, $r, _>(x, dy, dx, |l, c, r| {
                         let (_, jl, jc, jr) = diffsim_cell_vjp(self, l, c, r, 1.0);
                         (jl, jc, jr)
                     });
@@ -168,7 +168,7 @@ macro_rules! stencil3 {
                 fn vjp_overwrite(&self, x: &[$r], p: &[$r], dy: &mut [$r], dx: &mut [$r], dp: &mut [$r]) {
                     $crate::op::validate_vjp(self, ::std::stringify!($ty), x, p, dy, dx, dp);
                     $crate::op::stencil::enter_cell(self, ::std::stringify!($ty), $crate::op::count::Method::Vjp);
-                    $crate::op::stencil::vjp3_rows::<false, $r, _>(x, dy, dx, |l, c, r| {
+                    $crate::op::stencil::$rows::<false, $r, _>(x, dy, dx, |l, c, r| {
                         let (_, jl, jc, jr) = diffsim_cell_vjp(self, l, c, r, 1.0);
                         (jl, jc, jr)
                     });
@@ -195,16 +195,16 @@ macro_rules! stencil3 {
         };
     };
     (cell: $ty:ty => $f:path) => {
-        $crate::stencil3!(@cell f64, $ty => $f, $crate::op::always_smooth, forward3);
+        $crate::stencil3!(@cell f64, $ty => $f, $crate::op::always_smooth, forward3, vjp3_rows);
     };
     (cell: $ty:ty => $f:path, smooth_radius = $radius:path) => {
-        $crate::stencil3!(@cell f64, $ty => $f, $radius, forward3);
+        $crate::stencil3!(@cell f64, $ty => $f, $radius, forward3, vjp3_rows);
     };
     (cell: $ty:ty => $f:path, smooth_radius = $radius:path, parallel) => {
-        $crate::stencil3!(@cell f64, $ty => $f, $radius, forward3_par);
+        $crate::stencil3!(@cell f64, $ty => $f, $radius, forward3_par, vjp3_rows_par);
     };
     (cell f32: $ty:ty => $f:path, smooth_radius = $radius:path) => {
-        $crate::stencil3!(@cell f32, $ty => $f, $radius, forward3);
+        $crate::stencil3!(@cell f32, $ty => $f, $radius, forward3, vjp3_rows);
     };
     ($ty:ty => $f:path) => {
         $crate::stencil3!($ty => $f, smooth_radius = $crate::op::always_smooth);
@@ -449,16 +449,80 @@ fn vjp3_rows_body<const ADD: bool, R: Real>(x: &[R], g: &[R], dx: &mut [R], mut 
         let v = at(j);
         put(&mut dx[j], v);
     }
-    // Cells 2..n−2: five shifted views of the state, three of the seed.
-    let m = n - 4;
-    let (xm2, xm1, x0, xp1, xp2) = (&x[..m], &x[1..m + 1], &x[2..m + 2], &x[3..m + 3], &x[4..m + 4]);
-    let (gm1, g0, gp1) = (&g[1..m + 1], &g[2..m + 2], &g[3..m + 3]);
-    for (i, d) in dx[2..m + 2].iter_mut().enumerate() {
+    rows_range_body::<ADD, R>(x, g, &mut dx[2..n - 2], 2, f);
+}
+
+/// The gather of [`vjp3_rows`] for the cells `s..s + out.len()`, all at
+/// least two cells from either end (`2 ≤ s`, `s + out.len() ≤ n − 2`):
+/// five shifted views of the state, three of the seed.
+#[inline(always)]
+fn rows_range_body<const ADD: bool, R: Real>(x: &[R], g: &[R], out: &mut [R], s: usize, mut f: impl FnMut(R, R, R) -> (R, R, R)) {
+    let m = out.len();
+    let (xm2, xm1, x0, xp1, xp2) = (&x[s - 2..s - 2 + m], &x[s - 1..s - 1 + m], &x[s..s + m], &x[s + 1..s + 1 + m], &x[s + 2..s + 2 + m]);
+    let (gm1, g0, gp1) = (&g[s - 1..s - 1 + m], &g[s..s + m], &g[s + 1..s + 1 + m]);
+    for (i, d) in out.iter_mut().enumerate() {
         let (_, jc, _) = f(xm1[i], x0[i], xp1[i]);
         let (jl, _, _) = f(x0[i], xp1[i], xp2[i]);
         let (_, _, jr) = f(xm2[i], xm1[i], x0[i]);
-        put(d, g0[i] * jc + gp1[i] * jl + gm1[i] * jr);
+        let v = g0[i] * jc + gp1[i] * jl + gm1[i] * jr;
+        if ADD {
+            *d += v;
+        } else {
+            *d = v;
+        }
     }
+}
+
+/// [`vjp3_rows`] with the cells split in two halves run by `rayon::join`
+/// when the grid has at least [`PAR_MIN_CELLS`] cells and the current rayon
+/// pool more than one thread; the same code per cell, so the same result
+/// bit for bit.
+#[doc(hidden)]
+pub fn vjp3_rows_par<const ADD: bool, R: Real, F: Fn(R, R, R) -> (R, R, R) + Sync>(x: &[R], g: &[R], dx: &mut [R], f: F) {
+    let n = x.len();
+    if n < PAR_MIN_CELLS.max(8) || rayon::current_num_threads() < 2 {
+        return vjp3_rows::<ADD, R, _>(x, g, dx, &f);
+    }
+    // The four cells next to the ends, through the whole-grid function on
+    // a copy would cost a pass: compute them here, periodic.
+    let at = |j: usize| -> R {
+        let m = |k: isize| (j as isize + k).rem_euclid(n as isize) as usize;
+        let (_, jc, _) = f(x[m(-1)], x[j], x[m(1)]);
+        let (jl, _, _) = f(x[j], x[m(1)], x[m(2)]);
+        let (_, _, jr) = f(x[m(-2)], x[m(-1)], x[j]);
+        g[j] * jc + g[m(1)] * jl + g[m(-1)] * jr
+    };
+    for j in [0, 1, n - 2, n - 1] {
+        let v = at(j);
+        if ADD {
+            dx[j] += v;
+        } else {
+            dx[j] = v;
+        }
+    }
+    let mid = n / 2;
+    let (lo, hi) = dx.split_at_mut(mid);
+    rayon::join(|| rows_range::<ADD, R, _>(x, g, &mut lo[2..], 2, &f), || rows_range::<ADD, R, _>(x, g, &mut hi[..n - 2 - mid], mid, &f));
+}
+
+/// [`rows_range_body`] compiled for the widest vectors the CPU has.
+#[inline]
+fn rows_range<const ADD: bool, R: Real, F: Fn(R, R, R) -> (R, R, R)>(x: &[R], g: &[R], out: &mut [R], s: usize, f: F) {
+    if ADD {
+        dispatch_generic!(rows_range_add, [R: Real, F: Fn(R, R, R) -> (R, R, R)], x: &[R], g: &[R], out: &mut [R], s: usize, f: F)
+    } else {
+        dispatch_generic!(rows_range_overwrite, [R: Real, F: Fn(R, R, R) -> (R, R, R)], x: &[R], g: &[R], out: &mut [R], s: usize, f: F)
+    }
+}
+
+#[inline(always)]
+fn rows_range_add<R: Real>(x: &[R], g: &[R], out: &mut [R], s: usize, f: impl Fn(R, R, R) -> (R, R, R)) {
+    rows_range_body::<true, R>(x, g, out, s, f)
+}
+
+#[inline(always)]
+fn rows_range_overwrite<R: Real>(x: &[R], g: &[R], out: &mut [R], s: usize, f: impl Fn(R, R, R) -> (R, R, R)) {
+    rows_range_body::<false, R>(x, g, out, s, f)
 }
 
 /// Adds `src` into `dst` and zeroes `src` (one pass).

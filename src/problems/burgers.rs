@@ -89,7 +89,19 @@ impl Vjp for BurgersHand {
 
     fn vjp_overwrite(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         validate_vjp(self, "BurgersHand", x, p, dy, dx, dp);
-        burgers::step_adjoint_overwrite(&self.0, x, dy, dx);
+        let n = self.0.n;
+        if n < crate::op::stencil::PAR_MIN_CELLS || rayon::current_num_threads() < 2 {
+            return burgers::step_adjoint_overwrite(&self.0, x, dy, dx);
+        }
+        // Split over two threads like the forward (same cells, same result).
+        let (cfg, g, mid) = (&self.0, &*dy, n / 2);
+        let (lo, hi) = dx.split_at_mut(mid);
+        rayon::join(
+            || burgers::step_adjoint_overwrite_cells(cfg, x, g, &mut lo[1..], 1),
+            || burgers::step_adjoint_overwrite_cells(cfg, x, g, &mut hi[..n - 1 - mid], mid),
+        );
+        dx[0] = burgers::step_adjoint_cell(cfg, x, g, 0);
+        dx[n - 1] = burgers::step_adjoint_cell(cfg, x, g, n - 1);
     }
 }
 
