@@ -54,8 +54,9 @@ use super::Real;
 /// function `fn(&Op, l, c, r) -> f64` instead: faster derivatives, for an
 /// operator without run-time parameters (`n_params() == 0`, its constants
 /// live in `Op`). `stencil3!(cell: Op => k, smooth_radius = g, parallel)`
-/// also splits each forward step over two of rayon's threads on grids of at
-/// least [`PAR_MIN_CELLS`] cells ([`forward3_par`]; `Op` must be `Sync`).
+/// also splits each forward and VJP step over two of rayon's threads on
+/// grids of at least [`PAR_MIN_CELLS`] cells ([`forward3_par`],
+/// [`vjp3_rows_par`]; `Op` must be `Sync`).
 #[macro_export]
 macro_rules! stencil3 {
     (@impl $r:ty, $ty:ty => $f:path, $radius:path) => {
@@ -307,8 +308,8 @@ fn forward3_body<R: Real>(x: &[R], y: &mut [R], mut f: impl MapForward<R>) {
     }
 }
 
-/// Grids at least this large split a forward step over two threads in
-/// [`forward3_par`]. A `rayon::join` per step costs about 2 µs; P1's
+/// Grids at least this large split a step over two threads in
+/// [`forward3_par`] and [`vjp3_rows_par`]. A `rayon::join` per step costs about 2 µs; P1's
 /// forward on two threads against one (AVX2, 2 cores, best of 15 runs):
 /// 1.12× at 4096 cells, 1.19× at 8192, 1.45× at 16384, 1.89× at 65536
 /// (medians inside `diffsim bench p1` at 16384: 1.1–1.4×).
