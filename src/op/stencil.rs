@@ -301,6 +301,13 @@ pub fn forward3<R: Real, F: MapForward<R>>(x: &[R], y: &mut [R], f: F) {
 fn forward3_body<R: Real>(x: &[R], y: &mut [R], mut f: impl MapForward<R>) {
     let n = x.len();
     f(&x[..n - 2], &x[1..n - 1], &x[2..], &mut y[1..n - 1]);
+    forward3_ends(x, y, &mut f);
+}
+
+/// The two end cells of [`forward3`], whose neighbours wrap around.
+#[inline(always)]
+fn forward3_ends<R: Real>(x: &[R], y: &mut [R], f: &mut impl MapForward<R>) {
+    let n = x.len();
     for (i, il, ir) in [(0, n - 1, 1), (n - 1, n - 2, 0)] {
         let mut out = [R::zero()];
         f(&[x[il]], &[x[i]], &[x[ir]], &mut out);
@@ -328,11 +335,7 @@ pub fn forward3_par<R: Real, F: Fn(&[R], &[R], &[R], &mut [R]) + Sync>(x: &[R], 
     let mid = n / 2;
     let (lo, hi) = y.split_at_mut(mid);
     rayon::join(|| map_range(x, 1, &mut lo[1..], &f), || map_range(x, mid, &mut hi[..n - 1 - mid], &f));
-    for (i, il, ir) in [(0, n - 1, 1), (n - 1, n - 2, 0)] {
-        let mut out = [R::zero()];
-        f(&[x[il]], &[x[i]], &[x[ir]], &mut out);
-        y[i] = out[0];
-    }
+    forward3_ends(x, y, &mut &f);
 }
 
 /// `out[i] = k(x[s+i−1], x[s+i], x[s+i+1])` for the cells `s..s+out.len()`
@@ -433,24 +436,27 @@ fn vjp3_rows_body<const ADD: bool, R: Real>(x: &[R], g: &[R], dx: &mut [R], mut 
     // row are much cheaper than the centre one), so this costs about one row
     // per cell and needs no scratch: measured 1.6× faster than scaling whole
     // rows into a buffer and gathering from it (README, P1).
-    let mut at = |j: usize| -> R {
-        let m = |k: isize| (j as isize + k).rem_euclid(n as isize) as usize;
-        let (_, jc, _) = f(x[m(-1)], x[j], x[m(1)]);
-        let (jl, _, _) = f(x[j], x[m(1)], x[m(2)]);
-        let (_, _, jr) = f(x[m(-2)], x[m(-1)], x[j]);
-        g[j] * jc + g[m(1)] * jl + g[m(-1)] * jr
-    };
     if n < 5 {
         for (j, d) in dx.iter_mut().enumerate() {
-            put(d, at(j));
+            put(d, gather_at(x, g, j, &mut f));
         }
         return;
     }
     for j in [0, 1, n - 2, n - 1] {
-        let v = at(j);
-        put(&mut dx[j], v);
+        put(&mut dx[j], gather_at(x, g, j, &mut f));
     }
     rows_range_body::<ADD, R>(x, g, &mut dx[2..n - 2], 2, f);
+}
+
+/// The gather of [`vjp3_rows`] at one cell `j` (neighbours periodic).
+#[inline(always)]
+fn gather_at<R: Real>(x: &[R], g: &[R], j: usize, f: &mut impl FnMut(R, R, R) -> (R, R, R)) -> R {
+    let n = x.len();
+    let m = |k: isize| (j as isize + k).rem_euclid(n as isize) as usize;
+    let (_, jc, _) = f(x[m(-1)], x[j], x[m(1)]);
+    let (jl, _, _) = f(x[j], x[m(1)], x[m(2)]);
+    let (_, _, jr) = f(x[m(-2)], x[m(-1)], x[j]);
+    g[j] * jc + g[m(1)] * jl + g[m(-1)] * jr
 }
 
 /// The gather of [`vjp3_rows`] for the cells `s..s + out.len()`, all at
@@ -484,17 +490,9 @@ pub fn vjp3_rows_par<const ADD: bool, R: Real, F: Fn(R, R, R) -> (R, R, R) + Syn
     if n < PAR_MIN_CELLS.max(8) || rayon::current_num_threads() < 2 {
         return vjp3_rows::<ADD, R, _>(x, g, dx, &f);
     }
-    // The four cells next to the ends, through the whole-grid function on
-    // a copy would cost a pass: compute them here, periodic.
-    let at = |j: usize| -> R {
-        let m = |k: isize| (j as isize + k).rem_euclid(n as isize) as usize;
-        let (_, jc, _) = f(x[m(-1)], x[j], x[m(1)]);
-        let (jl, _, _) = f(x[j], x[m(1)], x[m(2)]);
-        let (_, _, jr) = f(x[m(-2)], x[m(-1)], x[j]);
-        g[j] * jc + g[m(1)] * jl + g[m(-1)] * jr
-    };
+    // The four cells next to the ends, whose neighbours wrap around.
     for j in [0, 1, n - 2, n - 1] {
-        let v = at(j);
+        let v = gather_at(x, g, j, &mut &f);
         if ADD {
             dx[j] += v;
         } else {
