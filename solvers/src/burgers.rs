@@ -147,19 +147,29 @@ fn step_adjoint_overwrite_body(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [
 fn adjoint<const ADD: bool>(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64]) {
     let n = cfg.n;
     assert!(n >= 3 && u.len() == n && g.len() == n && du.len() == n, "burgers adjoint: need n ≥ 3 and matching lengths");
+    put::<ADD>(&mut du[0], step_adjoint_cell(cfg, u, g, 0));
+    adjoint_cells::<ADD>(cfg, u, g, &mut du[1..n - 1], 1);
+    put::<ADD>(&mut du[n - 1], step_adjoint_cell(cfg, u, g, n - 1));
+}
+
+/// `*d += v` when `ADD`, else `*d = v`.
+#[inline(always)]
+fn put<const ADD: bool>(d: &mut f64, v: f64) {
+    if ADD { *d += v } else { *d = v }
+}
+
+/// The gather for the inside cells `s..s + du.len()` (`1 ≤ s`,
+/// `s + du.len() ≤ n − 1`): three shifted views of the state and the seed.
+#[inline(always)]
+fn adjoint_cells<const ADD: bool>(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64], s: usize) {
+    let (n, m) = (cfg.n, du.len());
+    assert!(u.len() == n && g.len() == n && s >= 1 && s + m < n, "burgers adjoint cells: range {s}..{} not inside 1..{}", s + m, n - 1);
     let (a, b) = cfg.coefficients();
-    let put = |d: &mut f64, v: f64| if ADD { *d += v } else { *d = v };
-    let at = |j: usize| -> f64 {
-        let m = |k: isize| ((j as isize + k).rem_euclid(n as isize)) as usize;
-        cell_adjoint(u[m(-1)], u[j], u[m(1)], g[m(-1)], g[j], g[m(1)], a, b)
-    };
-    put(&mut du[0], at(0));
-    let (l, c, r) = (&u[..n - 2], &u[1..n - 1], &u[2..]);
-    let (gl, gc, gr) = (&g[..n - 2], &g[1..n - 1], &g[2..]);
-    for (i, d) in du[1..n - 1].iter_mut().enumerate() {
-        put(d, cell_adjoint(l[i], c[i], r[i], gl[i], gc[i], gr[i], a, b));
+    let (l, c, r) = (&u[s - 1..s - 1 + m], &u[s..s + m], &u[s + 1..s + 1 + m]);
+    let (gl, gc, gr) = (&g[s - 1..s - 1 + m], &g[s..s + m], &g[s + 1..s + 1 + m]);
+    for (i, d) in du.iter_mut().enumerate() {
+        put::<ADD>(d, cell_adjoint(l[i], c[i], r[i], gl[i], gc[i], gr[i], a, b));
     }
-    put(&mut du[n - 1], at(n - 1));
 }
 
 crate::simd_dispatch! {
@@ -170,19 +180,12 @@ crate::simd_dispatch! {
     ///
     /// # Panics
     /// If the range is not inside or `u` and `g` differ in length.
-    pub fn step_adjoint_overwrite_cells(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64], s: usize) => adjoint_cells_body
+    pub fn step_adjoint_overwrite_cells(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64], s: usize) => adjoint_cells_overwrite
 }
 
 #[inline(always)]
-fn adjoint_cells_body(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64], s: usize) {
-    let (n, m) = (cfg.n, du.len());
-    assert!(u.len() == n && g.len() == n && s >= 1 && s + m < n, "burgers adjoint cells: range {s}..{} not inside 1..{}", s + m, n - 1);
-    let (a, b) = cfg.coefficients();
-    let (l, c, r) = (&u[s - 1..s - 1 + m], &u[s..s + m], &u[s + 1..s + 1 + m]);
-    let (gl, gc, gr) = (&g[s - 1..s - 1 + m], &g[s..s + m], &g[s + 1..s + 1 + m]);
-    for (i, d) in du.iter_mut().enumerate() {
-        *d = cell_adjoint(l[i], c[i], r[i], gl[i], gc[i], gr[i], a, b);
-    }
+fn adjoint_cells_overwrite(cfg: &Burgers1d, u: &[f64], g: &[f64], du: &mut [f64], s: usize) {
+    adjoint_cells::<false>(cfg, u, g, du, s)
 }
 
 /// One cell of the adjoint, `((∂step/∂u)ᵀ·g)[j]`, any `j < n` (periodic).

@@ -73,7 +73,8 @@ pub(super) struct P1Args {
     steps: usize,
     /// Worker threads (default: all cores). With two or more, the gradients
     /// are pipelined (a second thread recomputes the next checkpoint
-    /// segment while one is reversed); the forward runs on one thread.
+    /// segment while one is reversed), and on grids of at least 16384 cells
+    /// each forward and VJP step is split over two threads.
     #[arg(long)]
     threads: Option<usize>,
     /// How states are kept for the backward pass: store, periodic[:K],

@@ -319,8 +319,29 @@ fn forward3_ends<R: Real>(x: &[R], y: &mut [R], f: &mut impl MapForward<R>) {
 /// [`forward3_par`] and [`vjp3_rows_par`]. A `rayon::join` per step costs about 2 µs; P1's
 /// forward on two threads against one (AVX2, 2 cores, best of 15 runs):
 /// 1.12× at 4096 cells, 1.19× at 8192, 1.45× at 16384, 1.89× at 65536
-/// (medians inside `diffsim bench p1` at 16384: 1.1–1.4×).
+/// (medians inside `diffsim bench p1` at 16384: 1.0–1.46×, depending on how
+/// busy the machine is).
 pub const PAR_MIN_CELLS: usize = 16384;
+// The split paths handle the four cells next to the ends apart.
+const _: () = assert!(PAR_MIN_CELLS >= 8);
+
+/// Whether a step on `n` cells is split over two threads: at least
+/// [`PAR_MIN_CELLS`] cells and more than one thread in the current rayon
+/// pool.
+#[doc(hidden)]
+pub fn split_pays(n: usize) -> bool {
+    n >= PAR_MIN_CELLS && rayon::current_num_threads() >= 2
+}
+
+/// Runs `f(part, start)` on the two halves of `out[from..to]` (split at
+/// `out.len() / 2`) with `rayon::join`; `start` is the index in `out` of the
+/// half's first element.
+#[doc(hidden)]
+pub fn join_halves<R: Send>(out: &mut [R], from: usize, to: usize, f: impl Fn(&mut [R], usize) + Sync) {
+    let mid = out.len() / 2;
+    let (lo, hi) = out.split_at_mut(mid);
+    rayon::join(|| f(&mut lo[from..], from), || f(&mut hi[..to - mid], mid));
+}
 
 /// [`forward3`] with the interior split in two halves run by
 /// `rayon::join` when the grid has at least [`PAR_MIN_CELLS`] cells and the
@@ -329,12 +350,10 @@ pub const PAR_MIN_CELLS: usize = 16384;
 #[doc(hidden)]
 pub fn forward3_par<R: Real, F: Fn(&[R], &[R], &[R], &mut [R]) + Sync>(x: &[R], y: &mut [R], f: F) {
     let n = x.len();
-    if n < PAR_MIN_CELLS.max(5) || rayon::current_num_threads() < 2 {
+    if !split_pays(n) {
         return forward3(x, y, &f);
     }
-    let mid = n / 2;
-    let (lo, hi) = y.split_at_mut(mid);
-    rayon::join(|| map_range(x, 1, &mut lo[1..], &f), || map_range(x, mid, &mut hi[..n - 1 - mid], &f));
+    join_halves(y, 1, n - 1, |part, s| map_range(x, s, part, &f));
     forward3_ends(x, y, &mut &f);
 }
 
@@ -487,7 +506,7 @@ fn rows_range_body<const ADD: bool, R: Real>(x: &[R], g: &[R], out: &mut [R], s:
 #[doc(hidden)]
 pub fn vjp3_rows_par<const ADD: bool, R: Real, F: Fn(R, R, R) -> (R, R, R) + Sync>(x: &[R], g: &[R], dx: &mut [R], f: F) {
     let n = x.len();
-    if n < PAR_MIN_CELLS.max(8) || rayon::current_num_threads() < 2 {
+    if !split_pays(n) {
         return vjp3_rows::<ADD, R, _>(x, g, dx, &f);
     }
     // The four cells next to the ends, whose neighbours wrap around.
@@ -499,9 +518,7 @@ pub fn vjp3_rows_par<const ADD: bool, R: Real, F: Fn(R, R, R) -> (R, R, R) + Syn
             dx[j] = v;
         }
     }
-    let mid = n / 2;
-    let (lo, hi) = dx.split_at_mut(mid);
-    rayon::join(|| rows_range::<ADD, R, _>(x, g, &mut lo[2..], 2, &f), || rows_range::<ADD, R, _>(x, g, &mut hi[..n - 2 - mid], mid, &f));
+    join_halves(dx, 2, n - 2, |part, s| rows_range::<ADD, R, _>(x, g, part, s, &f));
 }
 
 /// [`rows_range_body`] compiled for the widest vectors the CPU has.
