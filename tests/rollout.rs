@@ -95,6 +95,70 @@ fn pipelined_gradient_equals_the_one_thread_gradient_bit_for_bit() {
     }
 }
 
+/// Burgers' hand step whose VJP panics on its `n`-th call (counted from
+/// 1), or whose recomputation panics at that forward call.
+struct PanicsAt {
+    op: diffsim::problems::burgers::BurgersHand,
+    calls: std::sync::atomic::AtomicUsize,
+    at: usize,
+    in_vjp: bool,
+}
+
+impl PanicsAt {
+    fn tick(&self, vjp: bool) {
+        if vjp == self.in_vjp && self.calls.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1 == self.at {
+            panic!("deliberate panic in call {}", self.at);
+        }
+    }
+}
+
+impl Operator for PanicsAt {
+    fn n_in(&self) -> usize {
+        self.op.n_in()
+    }
+    fn n_out(&self) -> usize {
+        self.op.n_out()
+    }
+}
+
+impl diffsim::op::Forward for PanicsAt {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        self.tick(false);
+        self.op.forward(x, p, y)
+    }
+}
+
+impl diffsim::op::Vjp for PanicsAt {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        self.tick(true);
+        self.op.vjp(x, p, dy, dx, dp)
+    }
+}
+
+#[test]
+fn a_panic_on_either_thread_of_the_two_thread_backward_pass_reaches_the_caller() {
+    // Both threads wait on each other once per segment: a panic in one must
+    // stop the other rather than leave it waiting for ever.
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    let p = P1::new(64, 200);
+    let mode = Checkpointing::Periodic { every: 10 };
+    // Forward calls: 200 in the forward pass, then recomputations; VJP calls
+    // 1..=200. Early, middle and late in the backward pass.
+    for (at, in_vjp) in [(205, false), (290, false), (3, true), (95, true), (199, true)] {
+        let op = PanicsAt { op: diffsim::problems::burgers::BurgersHand(p.cfg), calls: 0.into(), at, in_vjp };
+        let r = Rollout::new(&op, &[], p.steps).unwrap();
+        let out = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            pool.install(|| r.value_and_grad_pipelined_in(&mut Default::default(), &p.u0, &p.loss(), mode))
+        }));
+        let err = out.expect_err("the panic reaches the caller");
+        let msg = err.downcast_ref::<String>().map(String::as_str).unwrap_or("");
+        assert_eq!(msg, format!("deliberate panic in call {at}"), "at {at}, vjp {in_vjp}");
+    }
+    // And the pool still works afterwards.
+    let g = pool.install(|| p.grad_hand_in(&mut Default::default(), mode)).unwrap();
+    assert!(g.loss.is_finite());
+}
+
 #[test]
 fn rollout_edge_cases() {
     let p = P1::new(5, 1);

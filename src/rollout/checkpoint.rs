@@ -92,7 +92,7 @@ impl std::fmt::Display for Checkpointing {
 }
 
 /// State of one backward pass: adjoints, buffer accounting, counters.
-struct Backward<'r, 'a, O, L, R> {
+pub(super) struct Backward<'r, 'a, O, L, R> {
     rollout: &'r Rollout<'a, O, R>,
     loss: &'r L,
     n: usize,
@@ -114,15 +114,18 @@ struct Backward<'r, 'a, O, L, R> {
     check_every: usize,
     /// VJPs run so far.
     vjps: usize,
-    /// Recomputes a segment on another thread while the previous one is
-    /// reversed ([`Recompute`]); `None`: on this thread, in turn.
-    pipeline: Option<&'r Recompute<'r, R>>,
+    /// Reverses the segments of a periodic schedule on two threads
+    /// ([`reverse_two_threads`]); `None`: on this thread, in turn.
+    two_threads: Option<TwoThreads<O, L, R>>,
 }
 
-/// `f(a, x_a, seg)` fills `seg[i]` with `x_{a+1+i}`: the recomputation of
-/// one segment, shareable with another thread (the rollout's operator is
-/// `Sync`).
-pub(super) type Recompute<'r, R> = dyn Fn(usize, &[R], &mut [Vec<R>]) + Sync + 'r;
+/// [`reverse_two_threads`] for one operator and loss, as a function pointer:
+/// it needs both to be `Sync`, which the generic backward pass does not ask
+/// of every rollout, so the caller that knows it passes this in.
+/// Arguments: the backward pass, the checkpoint store, the distance `k`,
+/// the last segment's states (kept by the forward pass) and a spare buffer
+/// of `k − 1` states; returns the two buffers.
+pub(super) type TwoThreads<O, L, R> = for<'r, 'a, 's> fn(&mut Backward<'r, 'a, O, L, R>, &'s [R], usize, Vec<Vec<R>>, Vec<Vec<R>>) -> [Vec<Vec<R>>; 2];
 
 /// `seg[i] = x_{a+1+i}` from `ckpt = x_a`, by the rollout's steps.
 pub(super) fn recompute<R: Real, O: Vjp<R>>(r: &Rollout<'_, O, R>, a: usize, ckpt: &[R], seg: &mut [Vec<R>]) {
@@ -194,6 +197,15 @@ impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
         self.vjps += 1;
         if self.non_finite.is_none() && (t == 0 || self.vjps.is_multiple_of(self.check_every)) && !super::all_finite(&self.lam) {
             self.non_finite = Some(t);
+        }
+    }
+
+    /// Reverses steps `a..b` of a periodic segment from `x_a = ckpt` and
+    /// `seg[i] = x_{a+1+i}`.
+    fn reverse(&mut self, a: usize, b: usize, ckpt: &[R], seg: &[Vec<R>]) {
+        for t in (a..b).rev() {
+            let x: &[R] = if t == a { ckpt } else { &seg[t - a - 1] };
+            self.vjp(t, x);
         }
     }
 
@@ -282,14 +294,14 @@ pub(super) const CHECK_EVERY: usize = 16;
 
 /// The loss and gradient of `r` from `x0`, checking the adjoint every
 /// `check_every` steps (see [`CHECK_EVERY`]).
-pub(super) fn run<R: Real, O: Vjp<R>>(
+pub(super) fn run<R: Real, O: Vjp<R>, L: Loss<R>>(
     r: &Rollout<'_, O, R>,
     ws: &mut Workspace<R>,
     x0: &[R],
-    loss: &impl Loss<R>,
+    loss: &L,
     mode: Checkpointing,
     check_every: usize,
-    pipeline: Option<&Recompute<'_, R>>,
+    two_threads: Option<TwoThreads<O, L, R>>,
 ) -> Result<Gradient<R>, RolloutError> {
     let n = x0.len();
     let steps = r.steps;
@@ -309,7 +321,7 @@ pub(super) fn run<R: Real, O: Vjp<R>>(
         non_finite: None,
         check_every: check_every.max(1),
         vjps: 0,
-        pipeline,
+        two_threads,
     };
     // With no steps the loss is on x_0 itself.
     let value = if steps == 0 {
@@ -403,42 +415,105 @@ fn periodic<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_, O, L, R>, 
     }
     bw.release(y);
     bw.release(x);
-    // Backward, segment by segment from the last. Pipelined: `seg` holds
-    // the segment being reversed while another thread recomputes the one
-    // before it into `next` (the two then swap); otherwise each segment is
-    // recomputed here, in turn.
-    let pipeline = bw.pipeline.filter(|_| n_ckpt > 1 && k > 1);
-    let mut next: Vec<Vec<R>> = if pipeline.is_some() { (0..k - 1).map(|_| bw.alloc()).collect() } else { Vec::new() };
+    // Backward, segment by segment from the last: on two threads, or here,
+    // each segment recomputed from its checkpoint in turn.
+    if let Some(two) = bw.two_threads.filter(|_| n_ckpt > 1 && k > 1) {
+        let spare = (0..k - 1).map(|_| bw.alloc()).collect();
+        for s in two(bw, store, k, seg, spare).into_iter().flatten() {
+            bw.release(s);
+        }
+        bw.live -= n_ckpt;
+        return value;
+    }
     for c in (0..n_ckpt).rev() {
         let (a, b) = (c * k, ((c + 1) * k).min(steps));
         let ckpt = &store[c * n..(c + 1) * n];
-        if c + 1 < n_ckpt && pipeline.is_none() {
+        if c + 1 < n_ckpt {
             recompute(bw.rollout, a, ckpt, &mut seg[..b - a - 1]);
             bw.stats.step_evaluations += b - a - 1;
         }
-        let reverse = |bw: &mut Backward<'_, '_, O, L, R>| {
-            for t in (a..b).rev() {
-                let x: &[R] = if t == a { ckpt } else { &seg[t - a - 1] };
-                bw.vjp(t, x);
-            }
-        };
-        match pipeline {
-            Some(f) if c > 0 => {
-                let prev = &store[(c - 1) * n..c * n];
-                let fill = &mut next[..];
-                rayon::in_place_scope(|s| {
-                    s.spawn(move |_| f((c - 1) * k, prev, fill));
-                    reverse(bw);
-                });
-                bw.stats.step_evaluations += k - 1;
-                std::mem::swap(&mut seg, &mut next);
-            }
-            _ => reverse(bw),
-        }
+        bw.reverse(a, b, ckpt, &seg);
     }
-    for s in seg.into_iter().chain(next) {
+    for s in seg {
         bw.release(s);
     }
     bw.live -= n_ckpt;
     value
+}
+
+/// The backward pass of a periodic schedule on two threads of the current
+/// rayon pool. Each thread in turn claims the next segment (from the last
+/// down), recomputes its states from the checkpoint into its own buffer,
+/// waits until the segment after it has been reversed, then reverses it:
+/// the states are read by the core that wrote them (from its own cache),
+/// and one thread's recomputation overlaps the other's reversal. The
+/// adjoint passes from thread to thread once per segment. The steps run in
+/// the same order on the same states as on one thread, so the result is the
+/// same bit for bit. While waiting, a thread runs other jobs of the pool
+/// (the halves of split steps, see `op::stencil`).
+///
+/// If the second thread never starts, the first does every segment in
+/// order (it then never waits); a panic in either thread stops the other.
+pub(super) fn reverse_two_threads<R: Real, O: Vjp<R> + Sync, L: Loss<R> + Sync>(
+    bw: &mut Backward<'_, '_, O, L, R>,
+    store: &[R],
+    k: usize,
+    last: Vec<Vec<R>>,
+    spare: Vec<Vec<R>>,
+) -> [Vec<Vec<R>>; 2] {
+    use std::sync::Mutex;
+    use std::sync::atomic::{AtomicBool, AtomicIsize, AtomicUsize, Ordering};
+    let (n, steps, rollout) = (bw.n, bw.rollout.steps, bw.rollout);
+    let n_ckpt = steps.div_ceil(k);
+    // Segments c < next_claim + 1 are not yet claimed; segments ≥ reversed
+    // are reversed.
+    let next_claim = AtomicIsize::new(n_ckpt as isize - 2);
+    let reversed = AtomicUsize::new(n_ckpt);
+    let stop = AtomicBool::new(false);
+    let shared = Mutex::new(bw);
+    /// Sets `stop` when its thread unwinds.
+    struct StopOnPanic<'s>(&'s AtomicBool);
+    impl Drop for StopOnPanic<'_> {
+        fn drop(&mut self) {
+            if std::thread::panicking() {
+                self.0.store(true, Ordering::Release);
+            }
+        }
+    }
+    let work = |mut seg: Vec<Vec<R>>, mut first: Option<usize>| -> Vec<Vec<R>> {
+        let _guard = StopOnPanic(&stop);
+        loop {
+            let c = match first.take() {
+                Some(c) => c,
+                None => {
+                    let c = next_claim.fetch_sub(1, Ordering::Relaxed);
+                    if c < 0 {
+                        return seg;
+                    }
+                    let c = c as usize;
+                    let (a, b) = (c * k, ((c + 1) * k).min(steps));
+                    recompute(rollout, a, &store[c * n..(c + 1) * n], &mut seg[..b - a - 1]);
+                    c
+                }
+            };
+            while reversed.load(Ordering::Acquire) != c + 1 {
+                if stop.load(Ordering::Acquire) {
+                    return seg;
+                }
+                if rayon::yield_now() != Some(rayon::Yield::Executed) {
+                    std::hint::spin_loop();
+                }
+            }
+            let Ok(mut bw) = shared.lock() else { return seg };
+            let (a, b) = (c * k, ((c + 1) * k).min(steps));
+            if c + 1 < n_ckpt {
+                bw.stats.step_evaluations += b - a - 1;
+            }
+            bw.reverse(a, b, &store[c * n..(c + 1) * n], &seg);
+            drop(bw);
+            reversed.store(c, Ordering::Release);
+        }
+    };
+    let (x, y) = rayon::join(|| work(last, Some(n_ckpt - 1)), || work(spare, None));
+    [x, y]
 }

@@ -16,11 +16,12 @@
 //! All modes compute the same floating-point operations on the same states,
 //! so their gradients agree to rounding (in practice bit for bit).
 //!
-//! With two or more rayon threads and a `Sync` operator,
-//! [`Rollout::value_and_grad_pipelined_in`] recomputes the next periodic
-//! segment on a second thread while the current one is reversed (same
-//! result, bit for bit, one more segment of `k − 1` states held; P1's hand
-//! gradient at 16384 cells: 14–17 ms instead of 20 ms).
+//! With two or more rayon threads and a `Sync` operator and loss,
+//! [`Rollout::value_and_grad_pipelined_in`] runs the periodic backward pass
+//! on two threads: each recomputes a segment and then reverses it, while
+//! the other does the same with the next one (same result, bit for bit;
+//! one more segment of `k − 1` states held; P1's hand gradient at 16384
+//! cells: 14–17 ms instead of 20 ms).
 //! [`RolloutStats`] reports what each run held and recomputed.
 
 mod checkpoint;
@@ -323,36 +324,43 @@ impl<R: Real, O: Vjp<R>> Rollout<'_, O, R> {
     }
 
     /// [`Rollout::value_and_grad_in`] on two threads of the current rayon
-    /// pool: under periodic checkpointing, one thread recomputes the next
-    /// segment's states while the other reverses the current one, so that
-    /// the recomputation costs no time when it is shorter than the backward
-    /// steps. Same floating-point operations on the same states as the
-    /// one-thread version, so the same result bit for bit; needs an
-    /// operator that can be shared between threads (`Sync`) and one more
-    /// segment of memory. With one thread in the pool, or in the other
-    /// modes, it is [`Rollout::value_and_grad_in`].
-    pub fn value_and_grad_pipelined_in(&self, ws: &mut Workspace<R>, x0: &[R], loss: &impl Loss<R>, mode: Checkpointing) -> Result<Gradient<R>, RolloutError>
+    /// pool: under periodic checkpointing each thread in turn recomputes a
+    /// segment's states and reverses them, so that one thread's
+    /// recomputation overlaps the other's reversal and each reads the
+    /// states from its own cache (the adjoint passes between the threads
+    /// once per segment). Same floating-point operations on the same states
+    /// as the one-thread version, so the same result bit for bit; needs an
+    /// operator and a loss that can be shared between threads (`Sync`) and
+    /// one more segment of memory. A panic on either thread reaches the
+    /// caller. With one thread in the pool, or in the other modes, it is
+    /// [`Rollout::value_and_grad_in`].
+    pub fn value_and_grad_pipelined_in<L: Loss<R> + Sync>(
+        &self,
+        ws: &mut Workspace<R>,
+        x0: &[R],
+        loss: &L,
+        mode: Checkpointing,
+    ) -> Result<Gradient<R>, RolloutError>
     where
         O: Sync,
     {
         if rayon::current_num_threads() < 2 {
             return self.grad_with(ws, x0, loss, mode, None);
         }
-        let f = |a: usize, ckpt: &[R], seg: &mut [Vec<R>]| checkpoint::recompute(self, a, ckpt, seg);
-        self.grad_with(ws, x0, loss, mode, Some(&f))
+        self.grad_with(ws, x0, loss, mode, Some(checkpoint::reverse_two_threads::<R, O, L>))
     }
 
-    fn grad_with(
+    fn grad_with<L: Loss<R>>(
         &self,
         ws: &mut Workspace<R>,
         x0: &[R],
-        loss: &impl Loss<R>,
+        loss: &L,
         mode: Checkpointing,
-        pipeline: Option<&checkpoint::Recompute<'_, R>>,
+        two_threads: Option<checkpoint::TwoThreads<O, L, R>>,
     ) -> Result<Gradient<R>, RolloutError> {
         self.check_state(x0)?;
         Forward::<R>::take_error(self.op);
-        let g = match checkpoint::run(self, ws, x0, loss, mode, checkpoint::CHECK_EVERY, pipeline) {
+        let g = match checkpoint::run(self, ws, x0, loss, mode, checkpoint::CHECK_EVERY, two_threads) {
             Err(RolloutError::NonFinite { pass: Pass::Backward, .. }) => {
                 // A failed solve or a NaN in the forward pass is the cause.
                 if let Some(error) = Forward::<R>::take_error(self.op) {
