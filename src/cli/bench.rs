@@ -71,10 +71,11 @@ pub(super) struct P1Args {
     /// Number of steps T (≥ 1).
     #[arg(long, default_value_t = 2048)]
     steps: usize,
-    /// Worker threads (default: all cores). With two or more, the gradients
-    /// are pipelined (a second thread recomputes the next checkpoint
-    /// segment while one is reversed), and on grids of at least 16384 cells
-    /// each forward and VJP step is split over two threads.
+    /// Worker threads (default: all cores). With two or more, the
+    /// gradients' backward passes run on two threads (each recomputes a
+    /// checkpoint segment and reverses it while the other does the next),
+    /// and on grids of at least 16384 cells each forward and VJP step is
+    /// split over two threads.
     #[arg(long)]
     threads: Option<usize>,
     /// How states are kept for the backward pass: store, periodic[:K],
