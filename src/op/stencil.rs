@@ -447,7 +447,6 @@ fn vjp3_rows_overwrite<R: Real>(x: &[R], g: &[R], dx: &mut [R], f: impl FnMut(R,
 #[inline(always)]
 fn vjp3_rows_body<const ADD: bool, R: Real>(x: &[R], g: &[R], dx: &mut [R], mut f: impl FnMut(R, R, R) -> (R, R, R)) {
     let n = x.len();
-    let put = |d: &mut R, v: R| if ADD { *d += v } else { *d = v };
     // Gather form: dx[j] takes the centre entry of row j, the left entry of
     // row j + 1 and the right entry of row j − 1, each row evaluated where
     // it is needed. After inlining, the compiler keeps only the arithmetic
@@ -457,14 +456,28 @@ fn vjp3_rows_body<const ADD: bool, R: Real>(x: &[R], g: &[R], dx: &mut [R], mut 
     // rows into a buffer and gathering from it (README, P1).
     if n < 5 {
         for (j, d) in dx.iter_mut().enumerate() {
-            put(d, gather_at(x, g, j, &mut f));
+            put::<ADD, R>(d, gather_at(x, g, j, &mut f));
         }
         return;
     }
-    for j in [0, 1, n - 2, n - 1] {
-        put(&mut dx[j], gather_at(x, g, j, &mut f));
-    }
+    gather_ends::<ADD, R>(x, g, dx, &mut f);
     rows_range_body::<ADD, R>(x, g, &mut dx[2..n - 2], 2, f);
+}
+
+/// `*d += v` when `ADD`, else `*d = v`.
+#[inline(always)]
+fn put<const ADD: bool, R: Real>(d: &mut R, v: R) {
+    if ADD { *d += v } else { *d = v }
+}
+
+/// The gather of [`vjp3_rows`] at the four cells next to the ends (`n ≥
+/// 5`), whose neighbours wrap around.
+#[inline(always)]
+fn gather_ends<const ADD: bool, R: Real>(x: &[R], g: &[R], dx: &mut [R], f: &mut impl FnMut(R, R, R) -> (R, R, R)) {
+    let n = x.len();
+    for j in [0, 1, n - 2, n - 1] {
+        put::<ADD, R>(&mut dx[j], gather_at(x, g, j, f));
+    }
 }
 
 /// The gather of [`vjp3_rows`] at one cell `j` (neighbours periodic).
@@ -490,12 +503,7 @@ fn rows_range_body<const ADD: bool, R: Real>(x: &[R], g: &[R], out: &mut [R], s:
         let (_, jc, _) = f(xm1[i], x0[i], xp1[i]);
         let (jl, _, _) = f(x0[i], xp1[i], xp2[i]);
         let (_, _, jr) = f(xm2[i], xm1[i], x0[i]);
-        let v = g0[i] * jc + gp1[i] * jl + gm1[i] * jr;
-        if ADD {
-            *d += v;
-        } else {
-            *d = v;
-        }
+        put::<ADD, R>(d, g0[i] * jc + gp1[i] * jl + gm1[i] * jr);
     }
 }
 
@@ -509,15 +517,7 @@ pub fn vjp3_rows_par<const ADD: bool, R: Real, F: Fn(R, R, R) -> (R, R, R) + Syn
     if !split_pays(n) {
         return vjp3_rows::<ADD, R, _>(x, g, dx, &f);
     }
-    // The four cells next to the ends, whose neighbours wrap around.
-    for j in [0, 1, n - 2, n - 1] {
-        let v = gather_at(x, g, j, &mut &f);
-        if ADD {
-            dx[j] += v;
-        } else {
-            dx[j] = v;
-        }
-    }
+    gather_ends::<ADD, R>(x, g, dx, &mut &f);
     join_halves(dx, 2, n - 2, |part, s| rows_range::<ADD, R, _>(x, g, part, s, &f));
 }
 

@@ -483,19 +483,20 @@ pub(super) fn reverse_two_threads<R: Real, O: Vjp<R> + Sync, L: Loss<R> + Sync>(
     let work = |mut seg: Vec<Vec<R>>, mut first: Option<usize>| -> Vec<Vec<R>> {
         let _guard = StopOnPanic(&stop);
         loop {
-            let c = match first.take() {
-                Some(c) => c,
-                None => {
-                    let c = next_claim.fetch_sub(1, Ordering::Relaxed);
-                    if c < 0 {
-                        return seg;
-                    }
-                    let c = c as usize;
-                    let (a, b) = (c * k, ((c + 1) * k).min(steps));
-                    recompute(rollout, a, &store[c * n..(c + 1) * n], &mut seg[..b - a - 1]);
-                    c
-                }
+            // The last segment's states come from the forward pass; any
+            // other segment is claimed and recomputed.
+            let (c, recomputed) = match first.take() {
+                Some(c) => (c, false),
+                None => match usize::try_from(next_claim.fetch_sub(1, Ordering::Relaxed)) {
+                    Ok(c) => (c, true),
+                    Err(_) => return seg,
+                },
             };
+            let (a, b) = (c * k, ((c + 1) * k).min(steps));
+            let ckpt = &store[c * n..(c + 1) * n];
+            if recomputed {
+                recompute(rollout, a, ckpt, &mut seg[..b - a - 1]);
+            }
             while reversed.load(Ordering::Acquire) != c + 1 {
                 if stop.load(Ordering::Acquire) {
                     return seg;
@@ -505,11 +506,10 @@ pub(super) fn reverse_two_threads<R: Real, O: Vjp<R> + Sync, L: Loss<R> + Sync>(
                 }
             }
             let Ok(mut bw) = shared.lock() else { return seg };
-            let (a, b) = (c * k, ((c + 1) * k).min(steps));
-            if c + 1 < n_ckpt {
+            if recomputed {
                 bw.stats.step_evaluations += b - a - 1;
             }
-            bw.reverse(a, b, &store[c * n..(c + 1) * n], &seg);
+            bw.reverse(a, b, ckpt, &seg);
             drop(bw);
             reversed.store(c, Ordering::Release);
         }
