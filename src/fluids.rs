@@ -396,12 +396,16 @@ impl Operator for Advect {
     }
 }
 
-fn advect(op: &Advect, x: &[f64], _p: &[f64], y: &mut [f64]) {
-    let mut scratch = vec![0.0; smoke::advect_scratch_len(&op.cfg, op.scheme)];
-    smoke::advect(&op.cfg, op.scheme, op.dt, op.smoke, op.velocity, x, y, &mut scratch)
+fn advect(op: &Advect, x: &[f64], _p: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+    smoke::advect(&op.cfg, op.scheme, op.dt, op.smoke, op.velocity, x, y, scratch)
 }
 
-crate::differentiable!(Advect => advect);
+/// MacCormack's intermediate fields.
+fn advect_scratch(op: &Advect) -> usize {
+    smoke::advect_scratch_len(&op.cfg, op.scheme)
+}
+
+crate::differentiable!(Advect => advect, scratch = advect_scratch);
 
 /// An external force field on the faces as the parameters:
 /// `[s, u, v] ↦ [s, u + dt·fu, v + dt·fv]`, `p = [fu, fv]`

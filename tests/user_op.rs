@@ -104,6 +104,62 @@ fn an_operator_that_reads_back_its_output_gets_the_right_gradient() {
     assert!(report.passed(), "{report}");
 }
 
+/// Two reaction–diffusion steps, the state between them kept in the
+/// scratch the framework lends (`differentiable!(… , scratch = len)`).
+pub struct TwoSteps {
+    pub n: usize,
+}
+
+impl Operator for TwoSteps {
+    fn n_in(&self) -> usize {
+        self.n
+    }
+    fn n_out(&self) -> usize {
+        self.n
+    }
+    fn n_params(&self) -> usize {
+        2
+    }
+}
+
+fn two_steps(op: &TwoSteps, x: &[f64], p: &[f64], y: &mut [f64], h: &mut [f64]) {
+    let one = ReactionDiffusion { n: op.n };
+    reaction_diffusion(&one, x, p, h);
+    reaction_diffusion(&one, h, p, y);
+}
+
+fn two_steps_scratch(op: &TwoSteps) -> usize {
+    op.n
+}
+
+diffsim::differentiable!(TwoSteps => two_steps, scratch = two_steps_scratch);
+
+#[test]
+fn a_function_with_lent_scratch_equals_its_steps_chained() {
+    let n = 7;
+    let (op, one) = (TwoSteps { n }, ReactionDiffusion { n });
+    let x: Vec<f64> = (0..n).map(|i| (0.9 * i as f64).sin()).collect();
+    let w: Vec<f64> = (0..n).map(|i| (0.4 * i as f64).cos()).collect();
+    let p = [0.2, 0.5];
+    // Leave non-zero values in this thread's scratch where the scratch's
+    // shadow will lie: the shadow must be zeroed before each generated call.
+    let big = ReadsBackOutput { n: 4 * n };
+    let _ = big.vjp_new(&vec![1.0; 4 * n], &[0.3], &vec![1.0; 4 * n]);
+    // Independent computation: the one-step operator twice.
+    let h = one.eval(&x, &p);
+    assert_eq!(op.eval(&x, &p), one.eval(&h, &p));
+    let (dh, dp2) = one.vjp_new(&h, &p, &w);
+    let (dx, dp1) = one.vjp_new(&x, &p, &dh);
+    for _ in 0..2 {
+        let (gx, gp) = op.vjp_new(&x, &p, &w);
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-13 * (1.0 + b.abs());
+        assert!(gx.iter().zip(&dx).all(|(&a, &b)| close(a, b)), "{gx:?} vs {dx:?}");
+        assert!(close(gp[0], dp1[0] + dp2[0]) && close(gp[1], dp1[1] + dp2[1]), "{gp:?}");
+    }
+    let report = check_all(&op, &x, &p, &CheckOptions::default());
+    assert!(report.passed(), "{report}");
+}
+
 /// The same reaction–diffusion step as a stencil *map* (with its
 /// parameters) and as a *cell* function (parameters fixed in the type):
 /// the two forms of `stencil3!`.

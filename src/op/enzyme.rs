@@ -21,8 +21,18 @@ use super::Operator;
 /// the fields of `Op`. Use preallocated buffers, not `Vec` growth, inside.
 ///
 /// A piecewise-smooth operator names its [`Forward::smooth_radius`](crate::op::Forward::smooth_radius)
-/// function as a second argument: `differentiable!(Op => f, smooth_radius = g)`
-/// with `fn g(&Op, x, p, dx, dp) -> f64`.
+/// function: `differentiable!(Op => f, smooth_radius = g)` with
+/// `fn g(&Op, x, p, dx, dp) -> f64`.
+///
+/// A function that needs working memory for intermediate fields takes it as
+/// a fifth argument, `fn f(&Op, x, p, y, scratch: &mut [f64])`, and names the
+/// length it needs: `differentiable!(Op => f, scratch = len)` with
+/// `fn len(&Op) -> usize` (after `smooth_radius = g` when both are given).
+/// The framework lends a per-thread buffer of that length (contents
+/// unspecified: `f` writes an element before reading it) and, for the
+/// derivatives, its zeroed shadow. An allocation inside the differentiated
+/// function works too, but Enzyme then differentiates the allocator calls
+/// (it warns `freeing without malloc` for `vec![0.0; n]`).
 ///
 /// The crate that invokes this macro needs `#![feature(autodiff)]`, the
 /// `-Zautodiff=Enable` flag and a fat-LTO release build (see the README).
@@ -50,19 +60,38 @@ use super::Operator;
 #[macro_export]
 macro_rules! differentiable {
     ($ty:ty => $f:path) => {
-        $crate::differentiable!($ty => $f, smooth_radius = $crate::op::always_smooth);
+        $crate::differentiable!(@impl $ty => $f, $crate::op::always_smooth, plain, $crate::op::no_scratch);
     };
     ($ty:ty => $f:path, smooth_radius = $radius:path) => {
+        $crate::differentiable!(@impl $ty => $f, $radius, plain, $crate::op::no_scratch);
+    };
+    ($ty:ty => $f:path, scratch = $len:path) => {
+        $crate::differentiable!(@impl $ty => $f, $crate::op::always_smooth, scratch, $len);
+    };
+    ($ty:ty => $f:path, smooth_radius = $radius:path, scratch = $len:path) => {
+        $crate::differentiable!(@impl $ty => $f, $radius, scratch, $len);
+    };
+    // The user's function, with or without its scratch argument.
+    (@call plain $f:path, $op:ident, $x:ident, $p:ident, $y:ident, $s:ident) => {{
+        let _ = $s;
+        $f($op, $x, $p, $y)
+    }};
+    (@call scratch $f:path, $op:ident, $x:ident, $p:ident, $y:ident, $s:ident) => {
+        $f($op, $x, $p, $y, $s)
+    };
+    (@impl $ty:ty => $f:path, $radius:path, $mode:ident, $len:path) => {
         #[allow(clippy::too_many_arguments)]
         const _: () = {
-            #[::std::autodiff::autodiff_reverse(diffsim_generated_vjp, Const, Duplicated, Duplicated, Duplicated)]
-            fn diffsim_reverse_wrapper(op: &$ty, x: &[f64], p: &[f64], y: &mut [f64]) {
-                $f(op, x, p, y)
+            // Both wrappers take the scratch (empty for a plain function), so
+            // that one generated signature serves both forms.
+            #[::std::autodiff::autodiff_reverse(diffsim_generated_vjp, Const, Duplicated, Duplicated, Duplicated, Duplicated)]
+            fn diffsim_reverse_wrapper(op: &$ty, x: &[f64], p: &[f64], y: &mut [f64], s: &mut [f64]) {
+                $crate::differentiable!(@call $mode $f, op, x, p, y, s)
             }
 
-            #[::std::autodiff::autodiff_forward(diffsim_generated_jvp, Const, Dual, Dual, Dual)]
-            fn diffsim_forward_wrapper(op: &$ty, x: &[f64], p: &[f64], y: &mut [f64]) {
-                $f(op, x, p, y)
+            #[::std::autodiff::autodiff_forward(diffsim_generated_jvp, Const, Dual, Dual, Dual, Dual)]
+            fn diffsim_forward_wrapper(op: &$ty, x: &[f64], p: &[f64], y: &mut [f64], s: &mut [f64]) {
+                $crate::differentiable!(@call $mode $f, op, x, p, y, s)
             }
 
             impl $crate::op::Forward for $ty {
@@ -70,7 +99,13 @@ macro_rules! differentiable {
                 fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
                     $crate::op::validate_forward(self, ::std::stringify!($ty), x, p, y);
                     $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Forward);
-                    $f(self, x, p, y)
+                    match $len(self) {
+                        0 => {
+                            let s: &mut [f64] = &mut [];
+                            $crate::differentiable!(@call $mode $f, self, x, p, y, s)
+                        }
+                        m => $crate::op::with_scratch(m, |s| $crate::differentiable!(@call $mode $f, self, x, p, y, s)),
+                    }
                 }
 
                 fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
@@ -87,9 +122,14 @@ macro_rules! differentiable {
                     // The primal output goes to scratch. `Duplicated`, not
                     // `DuplicatedOnly`: with the latter, a function that reads
                     // back what it wrote to `y` got a wrong derivative (README,
-                    // Enzyme notes).
-                    $crate::op::with_scratch($crate::op::Operator::n_out(self), |y| {
-                        diffsim_generated_vjp(self, x, dx, p, dp, y, dy);
+                    // Enzyme notes). The scratch's shadow starts at zero
+                    // (Enzyme adds into shadows).
+                    let (n, m) = ($crate::op::Operator::n_out(self), $len(self));
+                    $crate::op::with_scratch(n + 2 * m, |buf| {
+                        let (y, rest) = buf.split_at_mut(n);
+                        let (s, ds) = rest.split_at_mut(m);
+                        ds.fill(0.0);
+                        diffsim_generated_vjp(self, x, dx, p, dp, y, dy, s, ds);
                     });
                 }
             }
@@ -100,11 +140,22 @@ macro_rules! differentiable {
                 fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
                     $crate::op::validate_jvp(self, ::std::stringify!($ty), x, p, tx, tp, y, ty);
                     $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Jvp);
-                    diffsim_generated_jvp(self, x, tx, p, tp, y, ty);
+                    let m = $len(self);
+                    $crate::op::with_scratch(2 * m, |buf| {
+                        let (s, ts) = buf.split_at_mut(m);
+                        ts.fill(0.0);
+                        diffsim_generated_jvp(self, x, tx, p, tp, y, ty, s, ts);
+                    });
                 }
             }
         };
     };
+}
+
+/// The scratch length of a function without scratch: 0.
+#[doc(hidden)]
+pub fn no_scratch<O: ?Sized>(_: &O) -> usize {
+    0
 }
 
 /// The smoothness radius of a smooth operator: `∞`.

@@ -45,7 +45,7 @@ pub use precision::Float32;
 pub use diffsim_solvers::real::Real;
 
 #[doc(hidden)]
-pub use enzyme::{always_smooth, validate_forward, validate_jvp, validate_vjp, with_scratch};
+pub use enzyme::{always_smooth, no_scratch, validate_forward, validate_jvp, validate_vjp, with_scratch};
 
 /// Sizes of a differentiable operator `y = f(x, p)`.
 pub trait Operator {
