@@ -110,6 +110,47 @@ impl Conv1d {
         let hi = (n - off).min(n).max(lo);
         (lo as usize, hi as usize, off)
     }
+
+    /// Tap `t` along one row (`x`, `y` of `len` values): `y[i] += w·x[src(i, t)]`
+    /// for every `i` with a source; the interior as a shifted axpy that
+    /// vectorises, the edges apart.
+    #[inline(always)]
+    fn tap<R: Real>(&self, t: usize, w: R, x: &[R], y: &mut [R]) {
+        let (lo, hi, off) = self.interior(t);
+        if hi > lo {
+            let src = &x[(lo as isize + off) as usize..(hi as isize + off) as usize];
+            for (yi, xi) in y[lo..hi].iter_mut().zip(src) {
+                *yi += w * *xi;
+            }
+        }
+        for i in (0..lo).chain(hi..self.len) {
+            if let Some(j) = self.src(i, t) {
+                y[i] += w * x[j];
+            }
+        }
+    }
+
+    /// Adjoint of [`Self::tap`] for the seed `g`: `gx[src(i, t)] += w·g[i]`,
+    /// and returns `Σ_i g[i]·x[src(i, t)]`, the gradient of the tap's weight.
+    #[inline(always)]
+    fn tap_adjoint<R: Real>(&self, t: usize, w: R, x: &[R], g: &[R], gx: &mut [R]) -> R {
+        let (lo, hi, off) = self.interior(t);
+        let mut acc = R::zero();
+        if hi > lo {
+            let range = (lo as isize + off) as usize..(hi as isize + off) as usize;
+            acc = dot(&g[lo..hi], &x[range.clone()]);
+            for (gxi, gi) in gx[range].iter_mut().zip(&g[lo..hi]) {
+                *gxi += w * *gi;
+            }
+        }
+        for i in (0..lo).chain(hi..self.len) {
+            if let Some(j) = self.src(i, t) {
+                acc += g[i] * x[j];
+                gx[j] += w * g[i];
+            }
+        }
+        acc
+    }
 }
 
 /// `y[o][i] = b[o] + Σ_c Σ_t w[o][c][t]·x[c][i + t − k/2]` (overwrites `y`).
@@ -496,20 +537,7 @@ pub fn conv1d_simple<R: Real>(s: &Conv1d, w: &[R], b: &[R], x: &[R], y: &mut [R]
         for c in 0..s.c_in {
             let xc = &x[c * n..(c + 1) * n];
             for t in 0..k {
-                let wt = w[(o * s.c_in + c) * k + t];
-                // Interior: a shifted axpy that vectorises; edges apart.
-                let (lo, hi, off) = s.interior(t);
-                if hi > lo {
-                    let src = &xc[(lo as isize + off) as usize..(hi as isize + off) as usize];
-                    for (yi, xi) in yo[lo..hi].iter_mut().zip(src) {
-                        *yi += wt * *xi;
-                    }
-                }
-                for i in (0..lo).chain(hi..n) {
-                    if let Some(j) = s.src(i, t) {
-                        yo[i] += wt * xc[j];
-                    }
-                }
+                s.tap(t, w[(o * s.c_in + c) * k + t], xc, yo);
             }
         }
     }
@@ -526,23 +554,7 @@ pub fn conv1d_adjoint_simple<R: Real>(s: &Conv1d, w: &[R], x: &[R], gy: &[R], gx
             let gxc = &mut gx[c * n..(c + 1) * n];
             for t in 0..k {
                 let wi = (o * s.c_in + c) * k + t;
-                let wt = w[wi];
-                let (lo, hi, off) = s.interior(t);
-                let mut acc = R::zero();
-                if hi > lo {
-                    let range = (lo as isize + off) as usize..(hi as isize + off) as usize;
-                    acc = dot(&go[lo..hi], &xc[range.clone()]);
-                    for (gxi, gi) in gxc[range].iter_mut().zip(&go[lo..hi]) {
-                        *gxi += wt * *gi;
-                    }
-                }
-                for i in (0..lo).chain(hi..n) {
-                    if let Some(j) = s.src(i, t) {
-                        acc += go[i] * xc[j];
-                        gxc[j] += wt * go[i];
-                    }
-                }
-                gw[wi] += acc;
+                gw[wi] += s.tap_adjoint(t, w[wi], xc, go, gxc);
             }
         }
     }
@@ -717,19 +729,7 @@ pub fn conv2d_simple<R: Real>(s: &Conv2d, w: &[R], b: &[R], x: &[R], y: &mut [R]
                     let xrow = &x[(c * ny + js) * nx..(c * ny + js + 1) * nx];
                     let yrow = &mut y[(o * ny + j) * nx..(o * ny + j + 1) * nx];
                     for tx in 0..k {
-                        let wt = w[((o * s.c_in + c) * k + ty) * k + tx];
-                        let (lo, hi, off) = row.interior(tx);
-                        if hi > lo {
-                            let src = &xrow[(lo as isize + off) as usize..(hi as isize + off) as usize];
-                            for (yi, xi) in yrow[lo..hi].iter_mut().zip(src) {
-                                *yi += wt * *xi;
-                            }
-                        }
-                        for i in (0..lo).chain(hi..nx) {
-                            if let Some(is) = row.src(i, tx) {
-                                yrow[i] += wt * xrow[is];
-                            }
-                        }
+                        row.tap(tx, w[((o * s.c_in + c) * k + ty) * k + tx], xrow, yrow);
                     }
                 }
             }
@@ -752,23 +752,7 @@ pub fn conv2d_adjoint_simple<R: Real>(s: &Conv2d, w: &[R], x: &[R], gy: &[R], gx
                     let gxrow = &mut gx[(c * ny + js) * nx..(c * ny + js + 1) * nx];
                     for tx in 0..k {
                         let wi = ((o * s.c_in + c) * k + ty) * k + tx;
-                        let wt = w[wi];
-                        let (lo, hi, off) = row.interior(tx);
-                        let mut acc = R::zero();
-                        if hi > lo {
-                            let range = (lo as isize + off) as usize..(hi as isize + off) as usize;
-                            acc = dot(&grow[lo..hi], &xrow[range.clone()]);
-                            for (gxi, gi) in gxrow[range].iter_mut().zip(&grow[lo..hi]) {
-                                *gxi += wt * *gi;
-                            }
-                        }
-                        for i in (0..lo).chain(hi..nx) {
-                            if let Some(is) = row.src(i, tx) {
-                                acc += grow[i] * xrow[is];
-                                gxrow[is] += wt * grow[i];
-                            }
-                        }
-                        gw[wi] += acc;
+                        gw[wi] += row.tap_adjoint(tx, w[wi], xrow, grow, gxrow);
                     }
                 }
             }
