@@ -1,0 +1,303 @@
+//! Advection of the smoke and the velocity: semi-Lagrangian, MacCormack
+//! (with or without limiter) and upwind, and the adjoint of P2's
+//! semi-Lagrangian step with buoyancy.
+
+use super::*;
+
+/// Advection scheme.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Scheme {
+    /// One backward trace, bilinear sample (first order).
+    SemiLagrangian,
+    /// A backward trace, a forward trace from its result, half the
+    /// difference as a correction (second order). With `limiter`, each value
+    /// is clamped to the range of the four samples the backward trace blended
+    /// (Selle et al. 2008): no new extrema, first order at extrema.
+    MacCormack {
+        /// Clamp to the local range.
+        limiter: bool,
+    },
+}
+
+/// Points of a lattice traced along the velocity `(u, v)`: `out[l·stride + k]
+/// = f(p − sdt·vel)` for `k < kx`, `l < ly`, `p` the point of sample
+/// `(k, l)` of the lattice `at` and `vel` the velocity there. (The velocity
+/// is looked up by an enum, not a closure: Enzyme cannot type a closure's
+/// returned pair when the closure is not inlined.)
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn trace<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, (u, v): (&[f64], &[f64]), f: &[f64], sdt: f64, out: &mut [f64]) {
+    let (lat, kx, ly) = mac.lattice(at);
+    for l in 0..ly {
+        for k in 0..kx {
+            let (a, b) = mac.velocity(at, u, v, k, l);
+            out[l * lat.stride + k] = sample::<WX, WY>(f, lat, k as f64 + lat.ox - sdt * a, l as f64 + lat.oy - sdt * b);
+        }
+    }
+}
+
+/// One field on the lattice `at` advected by `scheme`; `hat` and `tilde`
+/// are scratch of `f`'s length (MacCormack only).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn advect_field<const WX: bool, const WY: bool>(
+    mac: Mac<WX, WY>,
+    at: At,
+    scheme: Scheme,
+    dt: f64,
+    uv: (&[f64], &[f64]),
+    f: &[f64],
+    out: &mut [f64],
+    hat: &mut [f64],
+    tilde: &mut [f64],
+) {
+    match scheme {
+        Scheme::SemiLagrangian => trace(mac, at, uv, f, dt, out),
+        Scheme::MacCormack { limiter } => {
+            trace(mac, at, uv, f, dt, hat);
+            trace(mac, at, uv, hat, -dt, tilde);
+            let (lat, kx, ly) = mac.lattice(at);
+            for l in 0..ly {
+                for k in 0..kx {
+                    let c = l * lat.stride + k;
+                    let mut val = hat[c] + 0.5 * (f[c] - tilde[c]);
+                    if limiter {
+                        let (a, b) = mac.velocity(at, uv.0, uv.1, k, l);
+                        let (lo, hi) = sample_range::<WX, WY>(f, lat, k as f64 + lat.ox - dt * a, l as f64 + lat.oy - dt * b);
+                        val = val.clamp(lo, hi);
+                    }
+                    out[c] = val;
+                }
+            }
+        }
+    }
+}
+
+/// Advection over a time step `dt` of the smoke (if `smoke`) and of the
+/// velocity by itself (if `velocity`), each sampled back along the velocity
+/// at its own points (the other component averaged from the four nearest
+/// faces); then the velocity boundary conditions. Fields not advected are
+/// copied. Reads `x = [s, u, v]`, overwrites `y`. `scratch` holds
+/// [`advect_scratch_len`] values (none for semi-Lagrangian).
+///
+/// # Panics
+/// If a length is wrong or a side has fewer than 2 cells.
+#[allow(clippy::too_many_arguments)]
+pub fn advect(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+    assert!(cfg.nx.min(cfg.ny) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+    assert!(scratch.len() >= advect_scratch_len(cfg, scheme), "smoke: advection scratch");
+    with_mac!(cfg, mac => advect_on(mac, scheme, dt, smoke, velocity, x, y, scratch));
+    if velocity {
+        let (_, u2, v2) = cfg.split_mut(y);
+        enforce_boundary(cfg, u2, v2);
+    }
+}
+
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn advect_on<const WX: bool, const WY: bool>(
+    mac: Mac<WX, WY>,
+    scheme: Scheme,
+    dt: f64,
+    smoke: bool,
+    velocity: bool,
+    x: &[f64],
+    y: &mut [f64],
+    scratch: &mut [f64],
+) {
+    let (ns, nu) = (mac.nx * mac.ny, mac.ny * (mac.nx + 1));
+    let (s, rest) = x.split_at(ns);
+    let (u, v) = rest.split_at(nu);
+    let (s2, rest) = y.split_at_mut(ns);
+    let (u2, v2) = rest.split_at_mut(nu);
+    // Each field's scratch: the first values of each half (none for
+    // semi-Lagrangian).
+    let half = scratch.len() / 2;
+    let (hat, tilde) = scratch.split_at_mut(half);
+    let (ks, ku, kv) = (ns.min(half), nu.min(half), v.len().min(half));
+    if smoke {
+        advect_field(mac, At::Centre, scheme, dt, (u, v), s, s2, &mut hat[..ks], &mut tilde[..ks]);
+    } else {
+        copy(s, s2);
+    }
+    if velocity {
+        advect_field(mac, At::UFace, scheme, dt, (u, v), u, u2, &mut hat[..ku], &mut tilde[..ku]);
+        advect_field(mac, At::VFace, scheme, dt, (u, v), v, v2, &mut hat[..kv], &mut tilde[..kv]);
+    } else {
+        copy(u, u2);
+        copy(v, v2);
+    }
+}
+
+/// Scratch [`advect`] needs: for MacCormack two fields of the largest
+/// component's size (`2·max(n_u, n_v)`), none for semi-Lagrangian.
+pub fn advect_scratch_len(cfg: &Smoke2d, scheme: Scheme) -> usize {
+    match scheme {
+        Scheme::SemiLagrangian => 0,
+        Scheme::MacCormack { .. } => 2 * cfg.n_u().max(cfg.n_v()),
+    }
+}
+
+/// Steps 1–4 of P2, for any boundary: semi-Lagrangian advection of smoke and
+/// velocity (unit time step), buoyancy, the velocity boundary conditions.
+/// Reads the packed state `x = [s, u, v]`, overwrites `y = [s', u', v']`
+/// (the velocity not yet divergence-free).
+///
+/// # Panics
+/// If `x` or `y` is not of length [`Smoke2d::n_state`] or a side has fewer
+/// than 2 cells.
+pub fn advect_buoyancy(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
+    advect(cfg, Scheme::SemiLagrangian, 1.0, true, true, x, y, &mut []);
+    // Buoyancy touches no closed, inflow or outflow face and refreshes its
+    // own periodic copies, so the boundary conditions of `advect` still hold.
+    let (s2, _, v2) = cfg.split_mut(y);
+    add_buoyancy(cfg, cfg.buoyancy, s2, v2);
+}
+
+/// Hand-written adjoint of [`advect_buoyancy`]: `gx += Jᵀ·gy` at the state
+/// `x` (accumulates into `gx`; `gy` is used as scratch and left
+/// unspecified). The reference for Enzyme's generated adjoint.
+pub fn advect_buoyancy_adjoint(cfg: &Smoke2d, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
+    let (n, ny) = (cfg.nx, cfg.ny);
+    assert!(n.min(ny) >= 2 && x.len() == cfg.n_state() && gy.len() == cfg.n_state() && gx.len() == cfg.n_state(), "smoke: state lengths");
+    let (s, u, v) = cfg.split(x);
+    let (gs2, gu2, gv2) = cfg.split_mut(gy);
+    let (gs, gu, gv) = cfg.split_mut(gx);
+    // Buoyancy (its own periodic copy came after its addition).
+    if cfg.boundary.periodic_y() {
+        for i in 0..n {
+            gv2[i] += gv2[ny * n + i];
+            gv2[ny * n + i] = 0.0;
+            let b = cfg.buoyancy * 0.5 * gv2[i];
+            gs2[(ny - 1) * n + i] += b;
+            gs2[i] += b;
+        }
+    }
+    for j in 1..ny {
+        for i in 0..n {
+            let b = cfg.buoyancy * 0.5 * gv2[j * n + i];
+            gs2[(j - 1) * n + i] += b;
+            gs2[j * n + i] += b;
+        }
+    }
+    enforce_boundary_adjoint(cfg, gu2, gv2);
+    with_mac!(cfg, mac => semi_lagrangian_adjoint(mac, s, u, v, gs2, gu2, gv2, gs, gu, gv));
+}
+
+/// Adjoint of the semi-Lagrangian advection of smoke and velocity (unit
+/// time step): adds `Jᵀ·g₂` into `(gs, gu, gv)`.
+#[allow(clippy::too_many_arguments)]
+fn semi_lagrangian_adjoint<const WX: bool, const WY: bool>(
+    mac: Mac<WX, WY>,
+    s: &[f64],
+    u: &[f64],
+    v: &[f64],
+    gs2: &[f64],
+    gu2: &[f64],
+    gv2: &[f64],
+    gs: &mut [f64],
+    gu: &mut [f64],
+    gv: &mut [f64],
+) {
+    let (n, ny) = (mac.nx, mac.ny);
+    for j in 0..mac.nfy() {
+        for i in 0..n {
+            let (ub, vv) = mac.at_v(u, v, i, j);
+            let (dpx, dpy) = sample_adjoint::<WX, WY>(v, gv, mac.v(), i as f64 + 0.5 - ub, j as f64 - vv, gv2[j * n + i]);
+            mac.at_v_adjoint(gu, gv, i, j, (-dpx, -dpy));
+        }
+    }
+    for j in 0..ny {
+        for i in 0..mac.nfx() {
+            let (uu, vb) = mac.at_u(u, v, i, j);
+            let (dpx, dpy) = sample_adjoint::<WX, WY>(u, gu, mac.u(), i as f64 - uu, j as f64 + 0.5 - vb, gu2[j * (n + 1) + i]);
+            mac.at_u_adjoint(gu, gv, i, j, (-dpx, -dpy));
+        }
+    }
+    for j in 0..ny {
+        for i in 0..n {
+            let (uc, vc) = mac.at_centre(u, v, i, j);
+            let (dpx, dpy) = sample_adjoint::<WX, WY>(s, gs, mac.smoke(), i as f64 + 0.5 - uc, j as f64 + 0.5 - vc, gs2[j * n + i]);
+            mac.at_centre_adjoint(gu, gv, i, j, (-dpx, -dpy));
+        }
+    }
+}
+
+/// First-order upwind advection of the smoke by the MAC velocity, in
+/// conservative (flux) form over one time step `dt`: through every interior
+/// face, across periodic sides, and through inflow and outflow sides (with
+/// smoke-free fluid outside); none through closed sides. Reads
+/// `x = [s, u, v]`, writes `y = [s', u, v]`.
+pub fn advect_upwind(cfg: &Smoke2d, dt: f64, x: &[f64], y: &mut [f64]) {
+    let (n, ny) = (cfg.nx, cfg.ny);
+    assert!(n.min(ny) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+    let (s, u, v) = cfg.split(x);
+    let nu = n + 1;
+    let (s2, rest) = y.split_at_mut(cfg.n_s());
+    copy(s, s2);
+    // Interior x-faces: flux from cell (i−1, j) to (i, j).
+    for j in 0..ny {
+        for i in 1..n {
+            upwind_flux(s, s2, dt * u[j * nu + i], Some(j * n + i - 1), Some(j * n + i));
+        }
+    }
+    // Interior y-faces: flux from cell (i, j−1) to (i, j).
+    for j in 1..ny {
+        for i in 0..n {
+            upwind_flux(s, s2, dt * v[j * n + i], Some((j - 1) * n + i), Some(j * n + i));
+        }
+    }
+    // The sides: wrap, or exchange with the smoke-free outside.
+    let b = &cfg.boundary;
+    for k in 0..ny {
+        match b.left {
+            Side::Periodic => upwind_flux(s, s2, dt * u[k * nu], Some(k * n + n - 1), Some(k * n)),
+            Side::Inflow(_) | Side::Outflow => upwind_flux(s, s2, dt * u[k * nu], None, Some(k * n)),
+            Side::Closed => {}
+        }
+        if let Side::Inflow(_) | Side::Outflow = b.right {
+            upwind_flux(s, s2, dt * u[k * nu + n], Some(k * n + n - 1), None);
+        }
+    }
+    for k in 0..n {
+        match b.bottom {
+            Side::Periodic => upwind_flux(s, s2, dt * v[k], Some((ny - 1) * n + k), Some(k)),
+            Side::Inflow(_) | Side::Outflow => upwind_flux(s, s2, dt * v[k], None, Some(k)),
+            Side::Closed => {}
+        }
+        if let Side::Inflow(_) | Side::Outflow = b.top {
+            upwind_flux(s, s2, dt * v[ny * n + k], Some((ny - 1) * n + k), None);
+        }
+    }
+    copy(&x[cfg.n_s()..], rest);
+}
+
+/// The upwind flux `c·s_upwind` (`c` = velocity·dt) from cell `lower` to
+/// cell `upper` (`None`: outside, where the smoke is 0).
+#[inline(always)]
+fn upwind_flux(s: &[f64], s2: &mut [f64], c: f64, lower: Option<usize>, upper: Option<usize>) {
+    let from = if c > 0.0 { lower } else { upper };
+    let f = c * from.map_or(0.0, |k| s[k]);
+    if let Some(k) = lower {
+        s2[k] -= f;
+    }
+    if let Some(k) = upper {
+        s2[k] += f;
+    }
+}
+
+/// Distance to the nearest upwind switch of [`advect_upwind`] along `d`: the
+/// smallest `|u_f / d_f|` over the faces that carry flux.
+pub fn upwind_radius(cfg: &Smoke2d, x: &[f64], d: &[f64]) -> f64 {
+    let (_, u, v) = cfg.split(x);
+    let (_, du, dv) = cfg.split(d);
+    let mut r = f64::INFINITY;
+    for (axis, (vel, dvel)) in [(u, du), (v, dv)].into_iter().enumerate() {
+        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
+            if f.side != Some(Side::Closed) && dvel[f.index] != 0.0 {
+                r = r.min((vel[f.index] / dvel[f.index]).abs());
+            }
+        });
+    }
+    r
+}

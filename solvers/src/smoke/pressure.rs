@@ -1,0 +1,722 @@
+//! The pressure projection: divergence and its transpose, the pressure
+//! matrix of a box with walls, inflow, outflow, periodic sides and
+//! obstacles, and its solve by preconditioned conjugate gradients (with the
+//! adjoint, the same solve).
+
+use super::*;
+use std::fmt;
+
+/// Divergence of a MAC velocity, `d[c] = Σ` outward flux over the faces
+/// of cell `c` (overwrites `d`): `u[j][i+1] − u[j][i] + v[j+1][i] − v[j][i]`
+/// inside the box; a periodic axis's face `N` is not read (face `0` wraps).
+pub fn divergence(cfg: &Smoke2d, u: &[f64], v: &[f64], d: &mut [f64]) {
+    d.fill(0.0);
+    for (axis, vel) in [u, v].into_iter().enumerate() {
+        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
+            let w = vel[f.index];
+            if let Some(c) = f.lower {
+                d[c] += w;
+            }
+            if let Some(c) = f.upper {
+                d[c] -= w;
+            }
+        });
+    }
+}
+
+/// Transpose of [`divergence`]: `(u, v) += Dᵀ·d` (accumulates).
+pub fn divergence_transpose(cfg: &Smoke2d, d: &[f64], u: &mut [f64], v: &mut [f64]) {
+    for (axis, vel) in [u, v].into_iter().enumerate() {
+        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
+    }
+}
+
+/// The pressure matrix of the closed `nx × ny` box (`nx ≥ 2`): `(A·p)[c] =
+/// Σ_{neighbours m of c inside the box} (p[c] − p[m])` (overwrites `out`).
+/// Symmetric positive semi-definite, constants in its null space. Row by
+/// row, branch-free inside each row, so that it vectorises.
+#[inline(always)]
+pub fn apply_pressure_matrix(nx: usize, ny: usize, p: &[f64], out: &mut [f64]) {
+    let n = nx;
+    for j in 0..ny {
+        let row = &p[j * n..(j + 1) * n];
+        let dn = (j > 0).then(|| &p[(j - 1) * n..j * n]);
+        let up = (j + 1 < ny).then(|| &p[(j + 1) * n..(j + 2) * n]);
+        let o = &mut out[j * n..(j + 1) * n];
+        // The two end cells, with their neighbour count.
+        for i in [0, n - 1] {
+            let mut acc = 0.0;
+            if i > 0 {
+                acc += row[i] - row[i - 1];
+            }
+            if i + 1 < n {
+                acc += row[i] - row[i + 1];
+            }
+            if let Some(d) = dn {
+                acc += row[i] - d[i];
+            }
+            if let Some(u) = up {
+                acc += row[i] - u[i];
+            }
+            o[i] = acc;
+        }
+        // The rest of the row in one pass over five streams.
+        let (l, c, r) = (&row[..n - 2], &row[1..n - 1], &row[2..]);
+        let o = &mut o[1..n - 1];
+        match (dn, up) {
+            (Some(d), Some(u)) => {
+                for (((((o, &l), &c), &r), &d), &u) in o.iter_mut().zip(l).zip(c).zip(r).zip(&d[1..n - 1]).zip(&u[1..n - 1]) {
+                    *o = 4.0 * c - l - r - d - u;
+                }
+            }
+            (Some(v), None) | (None, Some(v)) => {
+                for ((((o, &l), &c), &r), &v) in o.iter_mut().zip(l).zip(c).zip(r).zip(&v[1..n - 1]) {
+                    *o = 3.0 * c - l - r - v;
+                }
+            }
+            (None, None) => {
+                for (((o, &l), &c), &r) in o.iter_mut().zip(l).zip(c).zip(r) {
+                    *o = 2.0 * c - l - r;
+                }
+            }
+        }
+    }
+}
+
+/// The pressure matrix for any [`Boundary`] and solid cells (`w[c] = 0`;
+/// `None`: no solids): `out[c] = w_c·Σ_m w_m·(p_c − p_m) + (1 − w_c)·p_c`
+/// over the neighbours `m` across the cell's faces that the projection
+/// changes (interior, wrapped across a periodic side, and a ghost `p = 0`
+/// across an outflow side); closed and inflow sides add nothing (Neumann).
+/// Only fluid–fluid faces couple; solid rows are the identity. Symmetric.
+pub fn apply_boundary_matrix(nx: usize, ny: usize, b: &Boundary, w: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
+    let wt = |c: usize| w.map_or(1.0, |w| w[c]);
+    let n = nx;
+    for j in 0..ny {
+        for i in 0..n {
+            let c = j * n + i;
+            let pc = p[c];
+            let mut acc = 0.0;
+            // Each direction: the neighbour inside, or what the side does.
+            let mut across = |inside: bool, m: usize, side: Side, wrapped: usize| {
+                if inside {
+                    acc += wt(m) * (pc - p[m]);
+                } else {
+                    match side {
+                        Side::Periodic => acc += wt(wrapped) * (pc - p[wrapped]),
+                        Side::Outflow => acc += pc,
+                        Side::Closed | Side::Inflow(_) => {}
+                    }
+                }
+            };
+            across(i > 0, c.wrapping_sub(1), b.left, c + n - 1);
+            across(i + 1 < n, c + 1, b.right, (c + 1).wrapping_sub(n));
+            across(j > 0, c.wrapping_sub(n), b.bottom, c + n * (ny - 1));
+            across(j + 1 < ny, c + n, b.top, i);
+            out[c] = wt(c) * acc + (1.0 - wt(c)) * pc;
+        }
+    }
+}
+
+/// A pressure solve that did not converge.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NoConvergence {
+    /// Iterations done.
+    pub iterations: usize,
+    /// Final true residual norm relative to `‖b‖`.
+    pub relative_residual: f64,
+    /// The relative tolerance asked for.
+    pub tolerance: f64,
+}
+
+impl fmt::Display for NoConvergence {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "pressure solve did not converge: relative residual {:.3e} after {} iterations (tolerance {:.1e})",
+            self.relative_residual, self.iterations, self.tolerance
+        )
+    }
+}
+
+impl std::error::Error for NoConvergence {}
+
+/// Preconditioner of the pressure solve.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Preconditioner {
+    /// None: plain conjugate gradients.
+    None,
+    /// Modified incomplete Cholesky, MIC(0), with the usual safety factor
+    /// (Bridson, *Fluid Simulation for Computer Graphics*, §5).
+    Mic0,
+    /// One geometric multigrid V-cycle ([`crate::multigrid`]).
+    Multigrid,
+}
+
+impl fmt::Display for Preconditioner {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Preconditioner::None => "none",
+            Preconditioner::Mic0 => "mic0",
+            Preconditioner::Multigrid => "multigrid",
+        })
+    }
+}
+
+/// Conjugate gradients on the pressure matrix of an `nx × ny` box, with
+/// reusable work buffers and the preconditioner factor computed once. The
+/// closed square box without obstacles (P2, [`PressureSolver::new`]) has a
+/// fused, vectorised matrix product and a choice of preconditioners; other
+/// boundaries, obstacles and rectangles ([`PressureSolver::general`]) use
+/// the general matrix [`apply_boundary_matrix`] with MIC(0) built for it.
+#[derive(Clone, Debug)]
+pub struct PressureSolver {
+    nx: usize,
+    ny: usize,
+    /// Relative tolerance on the true residual, `‖b − A·p‖ ≤ tol·‖b‖`.
+    pub tolerance: f64,
+    /// More iterations than this is an error.
+    pub max_iterations: usize,
+    precond: Preconditioner,
+    /// MIC(0) inverse diagonal.
+    inv_diag: Vec<f64>,
+    /// The general matrix's coefficients (`None` for the closed square
+    /// box's special path).
+    coeffs: Option<Coefficients>,
+    mg: Option<crate::multigrid::Multigrid>,
+    /// Fluid indicator per cell (1 fluid, 0 solid) when there are obstacles.
+    fluid: Option<Vec<f64>>,
+    boundary: Boundary,
+    r: Vec<f64>,
+    z: Vec<f64>,
+    d: Vec<f64>,
+    q: Vec<f64>,
+}
+
+impl PressureSolver {
+    /// A solver for the `n × n` box with tolerance `tolerance`, at most
+    /// `max_iterations` iterations, and the given preconditioner.
+    pub fn new(n: usize, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
+        let mut inv_diag = vec![0.0; n * n];
+        if precond == Preconditioner::Mic0 {
+            // Bridson's MIC(0) for the 5-point matrix with unit off-diagonals.
+            const TAU: f64 = 0.97;
+            const SIGMA: f64 = 0.25;
+            let diag = |i: usize, j: usize| ((i > 0) as usize + (i + 1 < n) as usize + (j > 0) as usize + (j + 1 < n) as usize) as f64;
+            for j in 0..n {
+                for i in 0..n {
+                    let c = j * n + i;
+                    let mut e = diag(i, j);
+                    if i > 0 {
+                        let (a, pc) = (-1.0, inv_diag[c - 1]);
+                        let ay_left = if j + 1 < n { -1.0 } else { 0.0 };
+                        e -= (a * pc) * (a * pc) + TAU * (a * ay_left * pc * pc);
+                    }
+                    if j > 0 {
+                        let (a, pc) = (-1.0, inv_diag[c - n]);
+                        let ax_below = if i + 1 < n { -1.0 } else { 0.0 };
+                        e -= (a * pc) * (a * pc) + TAU * (a * ax_below * pc * pc);
+                    }
+                    if e < SIGMA * diag(i, j) {
+                        e = diag(i, j);
+                    }
+                    inv_diag[c] = 1.0 / e.sqrt();
+                }
+            }
+        }
+        let z = vec![0.0; n * n];
+        let mg = (precond == Preconditioner::Multigrid).then(|| crate::multigrid::Multigrid::new(n));
+        Self {
+            nx: n,
+            ny: n,
+            tolerance,
+            max_iterations,
+            precond,
+            inv_diag,
+            coeffs: None,
+            mg,
+            fluid: None,
+            boundary: Boundary::CLOSED,
+            r: z.clone(),
+            z: z.clone(),
+            d: z.clone(),
+            q: z,
+        }
+    }
+
+    /// A solver for an `nx × ny` box with any boundary and solid cells
+    /// where `fluid[c] = 0` (`None`: no solids): the matrix of
+    /// [`apply_boundary_matrix`], CG preconditioned by MIC(0) of that
+    /// matrix (couplings across a periodic side left out of the factor).
+    pub fn general(nx: usize, ny: usize, boundary: Boundary, tolerance: f64, max_iterations: usize, fluid: Option<Vec<f64>>) -> Self {
+        let nn = nx * ny;
+        if let Some(w) = &fluid {
+            assert_eq!(w.len(), nn, "fluid mask length");
+        }
+        let z = vec![0.0; nn];
+        let mut s = Self {
+            nx,
+            ny,
+            tolerance,
+            max_iterations,
+            precond: Preconditioner::Mic0,
+            inv_diag: z.clone(),
+            coeffs: None,
+            mg: None,
+            fluid,
+            boundary,
+            r: z.clone(),
+            z: z.clone(),
+            d: z.clone(),
+            q: z,
+        };
+        s.factor_general();
+        s
+    }
+
+    /// MIC(0) of the general matrix (Bridson, §5, with its couplings):
+    /// diagonal and couplings read off [`apply_boundary_matrix`] applied to
+    /// unit vectors' closed forms.
+    fn factor_general(&mut self) {
+        const TAU: f64 = 0.97;
+        const SIGMA: f64 = 0.25;
+        let (nx, ny, b) = (self.nx, self.ny, self.boundary);
+        let w = |c: usize| self.fluid.as_ref().map_or(1.0, |w| w[c]);
+        let mut k = Coefficients { diag: vec![0.0; nx * ny], ax: vec![0.0; nx * ny], ay: vec![0.0; nx * ny], wraps: b.periodic_x() || b.periodic_y() };
+        for j in 0..ny {
+            for i in 0..nx {
+                let c = j * nx + i;
+                // What each side adds to the diagonal: a neighbour's fluid
+                // weight, 1 for the ghost of an outflow side, 0 for a wall.
+                let side = |inside: bool, m: usize, s: Side, wrapped: usize| {
+                    if inside {
+                        w(m)
+                    } else {
+                        match s {
+                            Side::Periodic => w(wrapped),
+                            Side::Outflow => 1.0,
+                            Side::Closed | Side::Inflow(_) => 0.0,
+                        }
+                    }
+                };
+                let sum = side(i > 0, c.wrapping_sub(1), b.left, c + nx - 1)
+                    + side(i + 1 < nx, c + 1, b.right, (c + 1).wrapping_sub(nx))
+                    + side(j > 0, c.wrapping_sub(nx), b.bottom, c + nx * (ny - 1))
+                    + side(j + 1 < ny, c + nx, b.top, i);
+                k.diag[c] = w(c) * sum + (1.0 - w(c));
+                k.ax[c] = if i + 1 < nx { -w(c) * w(c + 1) } else { 0.0 };
+                k.ay[c] = if j + 1 < ny { -w(c) * w(c + nx) } else { 0.0 };
+            }
+        }
+        let pc = &mut self.inv_diag;
+        for c in 0..nx * ny {
+            let mut e = k.diag[c];
+            // `ax` is 0 at the end of a row, so the left neighbour of a
+            // row's first cell contributes nothing.
+            if c > 0 {
+                let (ax, ay, p) = (k.ax[c - 1], k.ay[c - 1], pc[c - 1]);
+                e -= (ax * p) * (ax * p) + TAU * ax * ay * p * p;
+            }
+            if c >= nx {
+                let (ay, ax, p) = (k.ay[c - nx], k.ax[c - nx], pc[c - nx]);
+                e -= (ay * p) * (ay * p) + TAU * ay * ax * p * p;
+            }
+            if e < SIGMA * k.diag[c] {
+                e = k.diag[c];
+            }
+            // A cell coupled to nothing (walled in): leave its residual as is.
+            pc[c] = if e > 0.0 { 1.0 / e.sqrt() } else { 1.0 };
+        }
+        self.coeffs = Some(k);
+    }
+
+    /// `out = A·p` with the general matrix: the coefficient form when no
+    /// side wraps, else [`apply_boundary_matrix`].
+    fn apply_general(&self, p: &[f64], out: &mut [f64]) {
+        match &self.coeffs {
+            Some(k) if !k.wraps => apply_coefficients(self.nx, &k.diag, &k.ax, &k.ay, p, out),
+            _ => apply_boundary_matrix(self.nx, self.ny, &self.boundary, self.fluid.as_deref(), p, out),
+        }
+    }
+
+    /// The fluid indicator, when there are obstacles.
+    pub fn fluid(&self) -> Option<&[f64]> {
+        self.fluid.as_deref()
+    }
+
+    /// The preconditioner in use.
+    pub fn preconditioner(&self) -> Preconditioner {
+        self.precond
+    }
+
+    /// `z = M⁻¹·r` (MIC(0): forward then backward substitution).
+    fn precondition(&mut self) {
+        let n = self.nx;
+        match self.precond {
+            Preconditioner::None => self.z.copy_from_slice(&self.r),
+            Preconditioner::Mic0 if self.coeffs.is_some() => {
+                let k = self.coeffs.as_ref().expect("coefficients");
+                mic0_general(self.nx, &k.ax, &k.ay, &self.inv_diag, &self.r, &mut self.z)
+            }
+            Preconditioner::Mic0 => mic0_apply(n, &self.inv_diag, &self.r, &mut self.z),
+            Preconditioner::Multigrid => self.mg.as_mut().expect("multigrid hierarchy").apply(&self.r, &mut self.z),
+        }
+    }
+
+    /// Solves `A·p = b` from `p = 0` until `‖b − A·p‖₂ ≤ tol·‖b‖₂` (true
+    /// residual); overwrites `p`. Without an outflow side the matrix is
+    /// singular and `b` must sum to zero over the fluid (the compatibility
+    /// condition); it is projected onto that space to remove rounding, and
+    /// the solution returned is the one with zero mean on the fluid.
+    /// Returns the number of iterations.
+    pub fn solve(&mut self, b: &[f64], p: &mut [f64]) -> Result<usize, NoConvergence> {
+        let (nx, ny) = (self.nx, self.ny);
+        let nn = nx * ny;
+        // Remove the component along the null vector (constant on the fluid).
+        let (total, count) = match &self.fluid {
+            None => (b.iter().sum::<f64>(), nn as f64),
+            Some(w) => (b.iter().zip(w).map(|(b, w)| b * w).sum::<f64>(), w.iter().sum::<f64>()),
+        };
+        let mean = if self.boundary.has_outflow() { 0.0 } else { total / count.max(1.0) };
+        let special = self.fluid.is_none() && self.boundary == Boundary::CLOSED && nx >= 2;
+        // The right-hand side minus its mean on the fluid cells.
+        let fluid_mean = |c: usize, fluid: &Option<Vec<f64>>| mean * fluid.as_ref().map_or(1.0, |w| w[c]);
+        for (c, (r, &bv)) in self.r.iter_mut().zip(b).enumerate() {
+            *r = bv - fluid_mean(c, &self.fluid);
+        }
+        p.fill(0.0);
+        let bnorm = dot(&self.r, &self.r).sqrt();
+        if bnorm == 0.0 {
+            return Ok(0);
+        }
+        let target = self.tolerance * bnorm;
+        let plain = self.precond == Preconditioner::None;
+        let mut rz = self.restart();
+        let mut rr = dot(&self.r, &self.r);
+        let mut it = 0;
+        loop {
+            if rr.sqrt() <= target {
+                // Confirm on the true residual; restart from it if needed.
+                if special {
+                    apply_pressure_matrix(nx, ny, p, &mut self.q);
+                } else {
+                    let mut q = std::mem::take(&mut self.q);
+                    self.apply_general(p, &mut q);
+                    self.q = q;
+                }
+                for (c, ((q, &bv), r)) in self.q.iter().zip(b).zip(self.r.iter_mut()).enumerate() {
+                    *r = bv - fluid_mean(c, &self.fluid) - q;
+                }
+                rr = dot(&self.r, &self.r);
+                if rr.sqrt() <= target {
+                    if !self.boundary.has_outflow() {
+                        self.remove_null_component(p);
+                    }
+                    return Ok(it);
+                }
+                rz = self.restart();
+            }
+            if it >= self.max_iterations || !rr.is_finite() {
+                return Err(NoConvergence { iterations: it, relative_residual: rr.sqrt() / bnorm, tolerance: self.tolerance });
+            }
+            let mut dq = 0.0;
+            if special {
+                matvec_dot(nx, ny, &self.d, &mut self.q, &mut dq);
+            } else {
+                let mut q = std::mem::take(&mut self.q);
+                self.apply_general(&self.d, &mut q);
+                self.q = q;
+                dq = dot(&self.d, &self.q);
+            }
+            let alpha = rz / dq;
+            update(alpha, &self.d, &self.q, p, &mut self.r, &mut rr);
+            let rz_new = if plain {
+                rr
+            } else {
+                self.precondition();
+                dot(&self.r, &self.z)
+            };
+            let beta = rz_new / rz;
+            rz = rz_new;
+            direction(beta, if plain { &self.r } else { &self.z }, &mut self.d);
+            it += 1;
+        }
+    }
+
+    /// Removes the component of `p` along the null vector (constant on the
+    /// fluid): the solution becomes the pseudo-inverse's, whatever the
+    /// preconditioner added along the null space. The velocity does not
+    /// see the constant, but the projection's adjoint does (through faces
+    /// on walls and solids), so forward and adjoint must agree on it.
+    fn remove_null_component(&self, p: &mut [f64]) {
+        match &self.fluid {
+            None => {
+                let mean = p.iter().sum::<f64>() / p.len().max(1) as f64;
+                p.iter_mut().for_each(|v| *v -= mean);
+            }
+            Some(w) => {
+                let count = w.iter().sum::<f64>().max(1.0);
+                let mean = p.iter().zip(w).map(|(p, w)| p * w).sum::<f64>() / count;
+                p.iter_mut().zip(w).for_each(|(v, w)| *v -= mean * w);
+            }
+        }
+    }
+
+    /// `d = M⁻¹·r`; returns `r·M⁻¹·r`.
+    fn restart(&mut self) -> f64 {
+        self.precondition();
+        self.d.copy_from_slice(&self.z);
+        dot(&self.r, &self.z)
+    }
+}
+
+crate::simd_dispatch! {
+    /// `q = A·d` and `*dq = d·q` in one pass.
+    fn matvec_dot(nx: usize, ny: usize, d: &[f64], q: &mut [f64], dq: &mut f64) => matvec_dot_body
+}
+
+#[inline(always)]
+fn matvec_dot_body(nx: usize, ny: usize, d: &[f64], q: &mut [f64], dq: &mut f64) {
+    apply_pressure_matrix(nx, ny, d, q);
+    *dq = dot(d, q);
+}
+
+crate::simd_dispatch! {
+    /// `p += α·d`, `r −= α·q`, `*rr = r·r` in one pass.
+    fn update(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], rr: &mut f64) => update_body
+}
+
+#[inline(always)]
+fn update_body(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], rr: &mut f64) {
+    let mut acc = [0.0f64; 8];
+    let mut tail = 0.0;
+    let (mut pc, mut rc) = (p.chunks_exact_mut(8), r.chunks_exact_mut(8));
+    let (mut dc, mut qc) = (d.chunks_exact(8), q.chunks_exact(8));
+    for (((pv, rv), dv), qv) in (&mut pc).zip(&mut rc).zip(&mut dc).zip(&mut qc) {
+        for l in 0..8 {
+            pv[l] += alpha * dv[l];
+            rv[l] -= alpha * qv[l];
+            acc[l] += rv[l] * rv[l];
+        }
+    }
+    for (((pv, rv), dv), qv) in pc.into_remainder().iter_mut().zip(rc.into_remainder().iter_mut()).zip(dc.remainder()).zip(qc.remainder()) {
+        *pv += alpha * dv;
+        *rv -= alpha * qv;
+        tail += *rv * *rv;
+    }
+    *rr = acc.iter().sum::<f64>() + tail;
+}
+
+crate::simd_dispatch! {
+    /// `d = z + β·d`.
+    fn direction(beta: f64, z: &[f64], d: &mut [f64]) => direction_body
+}
+
+#[inline(always)]
+fn direction_body(beta: f64, z: &[f64], d: &mut [f64]) {
+    for (dv, &zv) in d.iter_mut().zip(z) {
+        *dv = zv + beta * *dv;
+    }
+}
+
+/// `z = (L·Lᵀ)⁻¹·r` for the MIC(0) factor `L` with inverse diagonal `pc`:
+/// forward then backward substitution. Each cell depends on its left and
+/// lower (right and upper) neighbour, so the sweeps run along anti-diagonals
+/// `i + j = k`, whose cells are independent of each other: no dependency
+/// chain between consecutive operations, unlike the row-by-row order.
+fn mic0_apply(n: usize, pc: &[f64], r: &[f64], z: &mut [f64]) {
+    for k in 0..2 * n - 1 {
+        for i in k.saturating_sub(n - 1)..=k.min(n - 1) {
+            let c = (k - i) * n + i;
+            let mut t = r[c];
+            if i > 0 {
+                t += z[c - 1] * pc[c - 1];
+            }
+            if k - i > 0 {
+                t += z[c - n] * pc[c - n];
+            }
+            z[c] = t * pc[c];
+        }
+    }
+    for k in (0..2 * n - 1).rev() {
+        for i in k.saturating_sub(n - 1)..=k.min(n - 1) {
+            let c = (k - i) * n + i;
+            let mut t = z[c];
+            if i + 1 < n {
+                t += z[c + 1] * pc[c];
+            }
+            if k - i + 1 < n {
+                t += z[c + n] * pc[c];
+            }
+            z[c] = t * pc[c];
+        }
+    }
+}
+
+/// The general pressure matrix in coefficient form: `(A·p)[c] =
+/// diag[c]·p[c] + ax[c]·p[c+1] + ax[c−1]·p[c−1] + ay[c]·p[c+nx] +
+/// ay[c−nx]·p[c−nx]`, with `ax[c] = A[c][c+1]` (0 at the end of a row) and
+/// `ay[c] = A[c][c+nx]` (0 on the top row). Couplings across a periodic side
+/// are not in it (`wraps`: the matrix has some).
+#[derive(Clone, Debug)]
+struct Coefficients {
+    diag: Vec<f64>,
+    ax: Vec<f64>,
+    ay: Vec<f64>,
+    wraps: bool,
+}
+
+crate::simd_dispatch! {
+    /// `out = A·p` from the coefficients: five shifted streams, each a
+    /// branch-free loop.
+    fn apply_coefficients(nx: usize, diag: &[f64], ax: &[f64], ay: &[f64], p: &[f64], out: &mut [f64]) => apply_coefficients_body
+}
+
+#[inline(always)]
+fn apply_coefficients_body(nx: usize, diag: &[f64], ax: &[f64], ay: &[f64], p: &[f64], out: &mut [f64]) {
+    let n = p.len();
+    for ((o, &d), &v) in out.iter_mut().zip(diag).zip(p) {
+        *o = d * v;
+    }
+    let m = n.saturating_sub(1);
+    for ((o, &a), &v) in out[..m].iter_mut().zip(&ax[..m]).zip(&p[1..]) {
+        *o += a * v;
+    }
+    for ((o, &a), &v) in out[1..].iter_mut().zip(&ax[..m]).zip(&p[..m]) {
+        *o += a * v;
+    }
+    let m = n.saturating_sub(nx);
+    for ((o, &a), &v) in out[..m].iter_mut().zip(&ay[..m]).zip(&p[nx..]) {
+        *o += a * v;
+    }
+    for ((o, &a), &v) in out[nx..].iter_mut().zip(&ay[..m]).zip(&p[..m]) {
+        *o += a * v;
+    }
+}
+
+/// `z = (L·Lᵀ)⁻¹·r` for the general MIC(0) factor (couplings `ax`, `ay` of
+/// [`Coefficients`], inverse diagonal `pc`): forward then backward
+/// substitution in row order (`ax` is 0 at the end of a row, so no test for
+/// the row's edge is needed). Anti-diagonal order (as in [`mic0_apply`]) and
+/// bands of rows in a skewed wavefront measured slower at 256 × 128.
+fn mic0_general(nx: usize, ax: &[f64], ay: &[f64], pc: &[f64], r: &[f64], z: &mut [f64]) {
+    let n = r.len();
+    for c in 0..n {
+        let mut t = r[c];
+        if c > 0 {
+            t -= ax[c - 1] * pc[c - 1] * z[c - 1];
+        }
+        if c >= nx {
+            t -= ay[c - nx] * pc[c - nx] * z[c - nx];
+        }
+        z[c] = t * pc[c];
+    }
+    for c in (0..n).rev() {
+        let mut t = z[c];
+        if c + 1 < n {
+            t -= ax[c] * pc[c] * z[c + 1];
+        }
+        if c + nx < n {
+            t -= ay[c] * pc[c] * z[c + nx];
+        }
+        z[c] = t * pc[c];
+    }
+}
+
+/// Dot product with eight independent partial sums (vectorises; a fixed
+/// summation order, so results do not depend on the machine).
+#[inline(always)]
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f64 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();
+    for (x, y) in ca.zip(cb) {
+        for k in 0..8 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    acc.iter().sum::<f64>() + tail
+}
+
+/// Scratch of the projection: divergence and pressure.
+#[derive(Clone, Debug)]
+pub struct ProjectScratch {
+    d: Vec<f64>,
+    p: Vec<f64>,
+}
+
+impl ProjectScratch {
+    /// Scratch for a box of `cells` cells.
+    pub fn new(cells: usize) -> Self {
+        Self { d: vec![0.0; cells], p: vec![0.0; cells] }
+    }
+}
+
+/// Step 5 of P2, for any boundary, in place on the velocity part of the
+/// packed state `y`: `d = D·(u, v)`, solve `A·p = −W·d` (`W` the fluid
+/// mask), `(u, v) −= G·p` on the faces the projection changes (interior,
+/// periodic, outflow; fluid–fluid only), periodic copies refreshed. The
+/// solver must be built for `cfg`'s boundary. Returns the CG iterations.
+pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
+    debug_assert_eq!(solver.boundary, cfg.boundary, "pressure solver built for another boundary");
+    let (_, u, v) = cfg.split_mut(y);
+    divergence(cfg, u, v, &mut scratch.d);
+    for d in scratch.d.iter_mut() {
+        *d = -*d;
+    }
+    if let Some(w) = solver.fluid() {
+        for (d, &wv) in scratch.d.iter_mut().zip(w) {
+            *d *= wv;
+        }
+    }
+    let iterations = solver.solve(&scratch.d, &mut scratch.p)?;
+    let (p, fluid) = (&scratch.p, solver.fluid());
+    for (axis, vel) in [u, v].into_iter().enumerate() {
+        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
+            if f.projected {
+                let grad = f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]);
+                vel[f.index] -= open(fluid, &f) * grad;
+                if let Some(k) = f.copy {
+                    vel[k] = vel[f.index];
+                }
+            }
+        });
+    }
+    Ok(iterations)
+}
+
+/// Adjoint of [`project`] (a linear map), in place on the velocity part of
+/// the adjoint `g`: periodic copies handed to their originals;
+/// `λ_p = −Gᵀ·λ`; solve `A·μ = λ_p` (the transposed system — `A` is
+/// symmetric — to the same tolerance; never a backward pass through the
+/// iterations); since the solve's right-hand side was `−W·D·(u, v)`,
+/// `λ_(u,v) += −Dᵀ·W·μ`. Returns the CG iterations.
+pub fn project_adjoint(cfg: &Smoke2d, g: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
+    let (_, gu, gv) = cfg.split_mut(g);
+    let lp = &mut scratch.d;
+    lp.fill(0.0);
+    for (axis, gvel) in [&mut *gu, &mut *gv].into_iter().enumerate() {
+        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
+            if !f.projected {
+                return;
+            }
+            if let Some(k) = f.copy {
+                gvel[f.index] += gvel[k];
+                gvel[k] = 0.0;
+            }
+            let l = open(solver.fluid(), &f) * gvel[f.index];
+            if let Some(c) = f.upper {
+                lp[c] -= l;
+            }
+            if let Some(c) = f.lower {
+                lp[c] += l;
+            }
+        });
+    }
+    let iterations = solver.solve(lp, &mut scratch.p)?;
+    for (c, m) in scratch.p.iter_mut().enumerate() {
+        *m = -*m * solver.fluid().map_or(1.0, |w| w[c]);
+    }
+    divergence_transpose(cfg, &scratch.p, gu, gv);
+    Ok(iterations)
+}
