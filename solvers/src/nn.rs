@@ -91,12 +91,7 @@ impl Conv1d {
     /// Source position of output `i` under tap `t`, if it reads inside (or wraps).
     #[inline(always)]
     fn src(&self, i: usize, t: usize) -> Option<usize> {
-        let j = i as isize + t as isize - (self.k / 2) as isize;
-        let n = self.len as isize;
-        match self.padding {
-            Padding::Periodic => Some(j.rem_euclid(n) as usize),
-            Padding::Zero => (0..n).contains(&j).then_some(j as usize),
-        }
+        tap_source(i, t, self.k, self.len, self.padding)
     }
 
     /// For tap `t`, the output range `[lo, hi)` whose source lies inside
@@ -587,17 +582,15 @@ impl Conv2d {
     /// The input row read by output row `j` under kernel row `t`.
     #[inline(always)]
     fn src_row(&self, j: usize, t: usize) -> Option<usize> {
-        wrap(j, t, self.k, self.ny, self.padding)
+        tap_source(j, t, self.k, self.ny, self.padding)
     }
 }
 
+/// The input position that output `i` reads under tap `t` of a kernel of
+/// width `k`, on a signal of `n` values.
 #[inline(always)]
-fn wrap(i: usize, t: usize, k: usize, n: usize, padding: Padding) -> Option<usize> {
-    let j = i as isize + t as isize - (k / 2) as isize;
-    match padding {
-        Padding::Periodic => Some(j.rem_euclid(n as isize) as usize),
-        Padding::Zero => (0..n as isize).contains(&j).then_some(j as usize),
-    }
+fn tap_source(i: usize, t: usize, k: usize, n: usize, padding: Padding) -> Option<usize> {
+    wrap_index(i as isize + t as isize - (k / 2) as isize, n, padding)
 }
 
 /// `y[o][j][i] = b[o] + Σ_c Σ_{ty,tx} w[o][c][ty][tx]·x[c][j+ty−k/2][i+tx−k/2]`
