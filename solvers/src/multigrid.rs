@@ -6,13 +6,17 @@
 //! walls); restriction is its exact transpose scaled by ¼, `R = Pᵀ/4`; the
 //! coarse matrix is the same stencil scaled by ¼ per level (the unscaled
 //! matrix approximates `−h²Δ`, and `h` doubles). Smoothing is damped Jacobi
-//! (ω = 0.8), two sweeps before and two after, so that the V-cycle is a
+//! (ω = 0.8), as many sweeps after the coarse correction as before (one
+//! each, `SWEEPS`; thirty on the coarsest grid), so that the V-cycle is a
 //! symmetric positive definite operator, as conjugate gradients needs.
 
 use crate::smoke::apply_pressure_matrix;
 
+/// Jacobi damping.
 const OMEGA: f64 = 0.8;
+/// Smoothing sweeps before and after the coarse-grid correction.
 const SWEEPS: usize = 1;
+/// Sweeps on the coarsest grid (at most 4 × 4 cells) instead of a direct solve.
 const COARSEST_SWEEPS: usize = 30;
 
 #[derive(Clone, Debug)]

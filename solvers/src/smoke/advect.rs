@@ -129,7 +129,7 @@ fn advect_on<const WX: bool, const WY: bool>(
     }
 }
 
-/// Scratch [`advect`] needs: for MacCormack two fields of the largest
+/// Scratch [`advect()`] needs: for MacCormack two fields of the largest
 /// component's size (`2·max(n_u, n_v)`), none for semi-Lagrangian.
 pub fn advect_scratch_len(cfg: &Smoke2d, scheme: Scheme) -> usize {
     match scheme {
