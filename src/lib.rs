@@ -1,7 +1,8 @@
 //! # diffsim: differentiable physics in Rust
 //!
-//! A guide in four steps, from a plain solver function to a checked
-//! gradient through a rollout.
+//! A guide in six steps, from a plain solver function to a checked
+//! gradient through a rollout, training through it, and what accuracy
+//! costs.
 //!
 //! **1. A solver step is a plain function on slices.** It reads a state `x`
 //! and parameters `p` and overwrites its output `y`; it knows nothing of
@@ -12,7 +13,8 @@
 //! [`op::Operator`] for a plain-data type and let
 //! [`differentiable!`] generate [`op::Forward`], [`op::Vjp`] and
 //! [`op::Jvp`] with Enzyme (or [`stencil3!`] for an explicit three-point
-//! stencil written as a cell function or a pointwise map: faster), or write
+//! stencil written as a cell function or a pointwise map: faster; a function
+//! that needs working memory takes it lent, `scratch = len`), or write
 //! them by hand, or
 //! take finite differences with [`op::FiniteDiff`]. Linear solves are
 //! operators too: their VJP is the solve with the transposed matrix
@@ -74,8 +76,9 @@
 //! solutions (Cole–Hopf Burgers, Taylor–Green, heat modes, translation),
 //! observed orders of convergence, error versus time and memory with the
 //! Pareto front (`diffsim pareto`), and the hard cases that must stay
-//! stable (`diffsim stability`). Rollouts check states and adjoints once
-//! per step and report the pass and the step of a NaN.
+//! stable (`diffsim stability`). Rollouts check the final state and, every
+//! few steps, the adjoint, and on a NaN replay to report the pass, the
+//! exact step and the operator.
 //!
 //! Build everything that calls generated gradients in release with fat LTO
 //! and `-Zautodiff=Enable` on this crate only; see the README.

@@ -169,7 +169,9 @@ thread_local! {
 }
 
 /// Runs `f` with a per-thread scratch buffer of length `n` (contents
-/// unspecified). Generated reverse passes write their primal output there.
+/// unspecified). Generated reverse passes write their primal output there,
+/// and functions made with `scratch = len` get their scratch (and its
+/// shadow) from it.
 #[doc(hidden)]
 pub fn with_scratch<R>(n: usize, f: impl FnOnce(&mut [f64]) -> R) -> R {
     SCRATCH.with(|cell| match cell.try_borrow_mut() {
