@@ -99,13 +99,7 @@ macro_rules! differentiable {
                 fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
                     $crate::op::validate_forward(self, ::std::stringify!($ty), x, p, y);
                     $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Forward);
-                    match $len(self) {
-                        0 => {
-                            let s: &mut [f64] = &mut [];
-                            $crate::differentiable!(@call $mode $f, self, x, p, y, s)
-                        }
-                        m => $crate::op::with_scratch(m, |s| $crate::differentiable!(@call $mode $f, self, x, p, y, s)),
-                    }
+                    $crate::op::with_scratch($len(self), |s| $crate::differentiable!(@call $mode $f, self, x, p, y, s))
                 }
 
                 fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
@@ -174,6 +168,12 @@ thread_local! {
 /// shadow) from it.
 #[doc(hidden)]
 pub fn with_scratch<R>(n: usize, f: impl FnOnce(&mut [f64]) -> R) -> R {
+    if n == 0 {
+        // Nothing to lend, so the buffer stays free (the forward of a
+        // function without scratch runs user code, which may itself call
+        // generated derivatives).
+        return f(&mut []);
+    }
     SCRATCH.with(|cell| match cell.try_borrow_mut() {
         Ok(mut buf) => {
             if buf.len() < n {
