@@ -13,6 +13,7 @@ mod p1;
 mod p2;
 mod pg;
 mod rollout;
+mod rollout_wrt;
 mod scenes;
 mod user_op;
 mod wake;

@@ -80,7 +80,9 @@ fn name(i: usize, n: usize) -> String {
 /// Each index is judged at its best step inside the operator's
 /// [`smooth_radius`](crate::op::Forward::smooth_radius) along that index:
 /// the verdict fails when `max_i min_h |fd_i − g_i| > tol·‖g‖∞`.
+#[track_caller]
 pub fn finite_differences<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOptions) -> FdReport {
+    crate::op::check_lengths(op, "finite_differences", x, p, None);
     let (n, m) = (op.n_in(), op.n_params());
     let mut rng = rng(opts, 1);
     let w = random_vector(&mut rng, op.n_out());

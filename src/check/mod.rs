@@ -106,7 +106,12 @@ impl fmt::Display for FullReport {
 }
 
 /// Runs the three checks on `op` at `(x, p)`.
+///
+/// # Panics
+/// If `x` or `p` does not have the operator's length (at the caller's line).
+#[track_caller]
 pub fn check_all<O: crate::op::Vjp + crate::op::Jvp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOptions) -> FullReport {
+    crate::op::check_lengths(op, "check_all", x, p, None);
     FullReport { fd: finite_differences(op, x, p, opts), taylor: taylor(op, x, p, opts), dot: dot_product(op, x, p, opts) }
 }
 

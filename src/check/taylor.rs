@@ -17,6 +17,9 @@ pub struct TaylorReport {
     pub rates: Vec<Option<f64>>,
     /// The smoothness radius along `v` (∞ for smooth operators).
     pub radius: f64,
+    /// The rounding level of `φ`: remainders at or below `100×` this carry
+    /// no rate (printed as "round-off").
+    pub rounding: f64,
     /// The verdict: the rates at the smallest usable steps ≥ 1.8.
     pub verdict: Verdict,
     /// Set when larger steps showed lower rates that recover at smaller
@@ -31,7 +34,11 @@ impl fmt::Display for TaylorReport {
             writeln!(f, "  note: {n}")?;
         }
         for (k, (h, r)) in self.steps.iter().zip(&self.remainders).enumerate() {
-            let rate = self.rates.get(k).copied().flatten().map_or("   -".to_string(), |q| format!("{q:4.2}"));
+            let rate = match self.rates.get(k).copied().flatten() {
+                Some(q) => format!("{q:4.2}"),
+                None if *r <= 100.0 * self.rounding => "   - (round-off)".to_string(),
+                None => "   -".to_string(),
+            };
             writeln!(f, "  h {h:9.3e}  remainder {r:9.3e}  rate {rate}")?;
         }
         Ok(())
@@ -48,9 +55,11 @@ impl fmt::Display for TaylorReport {
 /// `φ`, and the verdict is taken on the last two (the asymptotic regime);
 /// lower rates at larger steps are reported in [`TaylorReport::note`] as an
 /// undeclared kink within their reach. A remainder at rounding level for every step (a linear operator with
-/// an exact gradient) passes; a radius too small for any usable step gives
-/// [`Verdict::Kink`].
+/// an exact gradient) passes, and the report's note says so; a radius too
+/// small for any usable step gives [`Verdict::Kink`].
+#[track_caller]
 pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOptions) -> TaylorReport {
+    crate::op::check_lengths(op, "taylor", x, p, None);
     let mut rng = rng(opts, 2);
     let w = random_vector(&mut rng, op.n_out());
     let vx = random_vector(&mut rng, op.n_in());
@@ -93,9 +102,15 @@ pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOptions) -> Tayl
     } else if h0 < 1e-6 * zscale {
         Verdict::Kink(format!("a kink lies {radius:.2e} from the point along the test direction; no usable step fits"))
     } else if remainders.iter().all(|&r| r <= 100.0 * noise) {
-        Verdict::Pass // remainder at rounding level: locally linear and exact
+        // Locally linear (or curvature below rounding) and the gradient
+        // exact to rounding: nothing to measure a rate on, and nothing wrong.
+        note = Some(format!(
+            "every remainder is at round-off (≤ {:.1e}, 100× the rounding level of φ): the map is linear along the test direction (or its curvature is below rounding) and the gradient is exact to rounding, so there is no rate to measure; a wrong gradient would leave a remainder growing like h",
+            100.0 * noise
+        ));
+        Verdict::Pass
     } else {
         Verdict::Fail("too few remainders above rounding to measure a rate".into())
     };
-    TaylorReport { steps, remainders, rates, radius, verdict, note }
+    TaylorReport { steps, remainders, rates, radius, rounding: noise, verdict, note }
 }

@@ -137,7 +137,7 @@ impl Forward for Chain {
         for (k, op) in self.ops.iter().enumerate() {
             let mut y = vec![0.0; op.n_out()];
             op.forward(&xs, &p[self.param_range(k)], &mut y);
-            if !crate::rollout::all_finite(&y) {
+            if !super::all_finite(&y) {
                 return op.locate_non_finite(&xs, &p[self.param_range(k)]);
             }
             xs = y;

@@ -44,6 +44,12 @@ pub use precision::Float32;
 /// The element types operators run in: `f64` (the default) and `f32`.
 pub use diffsim_solvers::real::Real;
 
+/// Whether every value is finite (no NaN, no infinity): one vectorised
+/// pass with the widest vector instructions the CPU has, cheap enough to run
+/// once per step. Composite operators use it to name the part that made a
+/// value non-finite; rollouts re-export it.
+pub use diffsim_solvers::real::all_finite;
+
 #[doc(hidden)]
 pub use enzyme::{always_smooth, no_scratch, validate_forward, validate_jvp, validate_vjp, with_scratch};
 
@@ -248,19 +254,28 @@ impl From<diffsim_solvers::smoke::NoConvergence> for OpError {
 }
 
 /// Convenience forms that allocate their outputs.
+///
+/// # Panics
+/// Each checks the lengths of its slices against the operator's sizes
+/// first and panics naming the slice, at the caller's line
+/// (`#[track_caller]`).
 pub trait OperatorExt: Forward {
     /// `f(x, p)` in a new vector.
+    #[track_caller]
     fn eval(&self, x: &[f64], p: &[f64]) -> Vec<f64> {
+        check_lengths(self, "eval", x, p, None);
         let mut y = vec![0.0; self.n_out()];
         self.forward(x, p, &mut y);
         y
     }
 
     /// `(J_xᵀ·w, J_pᵀ·w)` in new vectors; `w` is left untouched.
+    #[track_caller]
     fn vjp_new(&self, x: &[f64], p: &[f64], w: &[f64]) -> (Vec<f64>, Vec<f64>)
     where
         Self: Vjp,
     {
+        check_lengths(self, "vjp_new", x, p, Some(("w", w.len(), self.n_out())));
         let mut seed = w.to_vec();
         let mut dx = vec![0.0; self.n_in()];
         let mut dp = vec![0.0; self.n_params()];
@@ -269,10 +284,13 @@ pub trait OperatorExt: Forward {
     }
 
     /// `J_x·tx + J_p·tp` in a new vector.
+    #[track_caller]
     fn jvp_new(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64]) -> Vec<f64>
     where
         Self: Jvp,
     {
+        check_lengths(self, "jvp_new", x, p, Some(("tx", tx.len(), self.n_in())));
+        check_lengths(self, "jvp_new", x, p, Some(("tp", tp.len(), self.n_params())));
         let mut y = vec![0.0; self.n_out()];
         let mut ty = vec![0.0; self.n_out()];
         self.jvp(x, p, tx, tp, &mut y, &mut ty);
@@ -281,3 +299,24 @@ pub trait OperatorExt: Forward {
 }
 
 impl<T: Forward + ?Sized> OperatorExt for T {}
+
+/// Panics, at the caller's line, if `x`, `p` (and an extra slice) do not
+/// have the operator's lengths. The message names the function, the
+/// operator and the slice. (One call per slice: a table of checks iterated
+/// in a loop aborts rustc under the autodiff flag; README, Enzyme notes.)
+#[doc(hidden)]
+#[track_caller]
+pub fn check_lengths<O: Operator + Forward + ?Sized>(op: &O, function: &str, x: &[f64], p: &[f64], extra: Option<(&str, usize, usize)>) {
+    let name = op.name();
+    if x.len() != op.n_in() {
+        panic!("{function} on {name}: `x` has length {}, the operator expects {} (n_in)", x.len(), op.n_in());
+    }
+    if p.len() != op.n_params() {
+        panic!("{function} on {name}: `p` has length {}, the operator expects {} (n_params)", p.len(), op.n_params());
+    }
+    if let Some((what, got, want)) = extra
+        && got != want
+    {
+        panic!("{function} on {name}: `{what}` has length {got}, the operator expects {want}");
+    }
+}

@@ -26,12 +26,14 @@
 //! [`RolloutStats`] reports what each run held and recomputed.
 
 mod checkpoint;
+mod operator;
 
 use thiserror::Error;
 
 use crate::op::{Forward, Real, Vjp};
 
 pub use checkpoint::{Checkpointing, Workspace};
+pub use operator::{RolloutLoss, RolloutOperator, Wrt};
 
 /// Errors of a rollout.
 ///
@@ -188,8 +190,9 @@ pub struct Gradient<R = f64> {
 }
 
 /// A rollout of `steps` steps of `op` with parameters `p`, on values of
-/// type `R` (`f64` unless said otherwise).
-#[derive(Clone, Copy, Debug)]
+/// type `R` (`f64` unless said otherwise). It holds references only, so it
+/// is `Copy` whatever the operator.
+#[derive(Debug)]
 pub struct Rollout<'a, O, R = f64> {
     /// The step operator.
     pub op: &'a O,
@@ -201,6 +204,14 @@ pub struct Rollout<'a, O, R = f64> {
     /// Whether `p` holds one block per step.
     pub per_step: bool,
 }
+
+impl<O, R> Clone for Rollout<'_, O, R> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<O, R> Copy for Rollout<'_, O, R> {}
 
 impl<'a, R: Real, O: Forward<R>> Rollout<'a, O, R> {
     /// A rollout of `steps` steps; checks that `op` maps states to states and
@@ -395,66 +406,6 @@ impl<R: Real, O: Vjp<R>> Rollout<'_, O, R> {
     }
 }
 
-/// Whether every value is finite (no NaN, no infinity): one vectorised
-/// pass with the widest vector instructions the CPU has, cheap enough to run
-/// once per step.
-pub use diffsim_solvers::real::all_finite;
-
-/// A whole rollout `x_0 ↦ x_T` as an operator, so that the gradient checks
-/// apply to it: its VJP is the chained per-step VJP (under the chosen
-/// checkpointing), its JVP the chained per-step JVPs.
-#[derive(Clone, Copy, Debug)]
-pub struct RolloutOperator<'a, O> {
-    /// The rollout.
-    pub rollout: Rollout<'a, O>,
-    /// How the VJP keeps states.
-    pub mode: Checkpointing,
-}
-
-impl<O: Forward> crate::op::Operator for RolloutOperator<'_, O> {
-    fn n_in(&self) -> usize {
-        self.rollout.op.n_in()
-    }
-    fn n_out(&self) -> usize {
-        self.rollout.op.n_out()
-    }
-}
-
-impl<O: Forward> Forward for RolloutOperator<'_, O> {
-    /// `y = x_T` from `x_0 = x` (the rollout's own parameters are used; the
-    /// operator has no parameter input of its own).
-    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) {
-        let xt = self.rollout.final_state_unchecked(x);
-        y.copy_from_slice(&xt);
-    }
-}
-
-impl<O: Vjp> Vjp for RolloutOperator<'_, O> {
-    fn vjp(&self, x: &[f64], _p: &[f64], dy: &mut [f64], dx: &mut [f64], _dp: &mut [f64]) {
-        let seed = dy.to_vec();
-        let linear = |y: &[f64], g: &mut [f64]| -> f64 {
-            g.copy_from_slice(&seed);
-            y.iter().zip(&seed).map(|(a, b)| a * b).sum()
-        };
-        self.rollout.check_state(x).expect("RolloutOperator::vjp: x has the wrong length");
-        let g = checkpoint::run(&self.rollout, &mut Workspace::new(), x, &linear, self.mode, checkpoint::CHECK_EVERY, None).expect("rollout");
-        for (d, v) in dx.iter_mut().zip(&g.dx0) {
-            *d += v;
-        }
-        dy.fill(0.0);
-    }
-}
-
-impl<O: crate::op::Jvp> crate::op::Jvp for RolloutOperator<'_, O> {
-    fn jvp(&self, x: &[f64], _p: &[f64], tx: &[f64], _tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
-        let tp = vec![0.0; self.rollout.op.n_params()];
-        let (mut xc, mut tc) = (x.to_vec(), tx.to_vec());
-        for t in 0..self.rollout.steps {
-            self.rollout.op.jvp(&xc, self.rollout.p_at(t), &tc, &tp, y, ty);
-            xc.copy_from_slice(y);
-            tc.copy_from_slice(ty);
-        }
-        y.copy_from_slice(&xc);
-        ty.copy_from_slice(&tc);
-    }
-}
+/// Whether every value is finite (no NaN, no infinity); the operator core's
+/// [`crate::op::all_finite`], re-exported where rollouts use it.
+pub use crate::op::all_finite;

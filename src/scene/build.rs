@@ -10,22 +10,11 @@ use toml::Spanned;
 
 use super::init::{field_init, shape_cells};
 use super::spec::{EffectSpec, SceneFile, ShapeSpec, unknown};
+use super::value::{count, finite, positive};
 use super::{Array, Control, Domain, Field, Line, Scene, SceneError, SceneLoss};
 use crate::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, DiffuseExplicit, DiffuseImplicit, Force, Inflow, Project};
 use crate::op::{AddParams, Chain, Effect, Part};
 use crate::problems::burgers::BurgersEnzyme;
-
-pub(super) fn positive(key: &str, v: f64) -> Result<f64, SceneError> {
-    if v.is_finite() && v > 0.0 { Ok(v) } else { Err(SceneError::key(key, format!("must be a positive finite number, got {v}"))) }
-}
-
-pub(super) fn finite(key: &str, v: f64) -> Result<f64, SceneError> {
-    if v.is_finite() { Ok(v) } else { Err(SceneError::key(key, format!("must be finite, got {v}"))) }
-}
-
-fn count(key: &str, v: i64) -> Result<usize, SceneError> {
-    if v >= 1 { Ok(v as usize) } else { Err(SceneError::key(key, format!("must be at least 1, got {v}"))) }
-}
 
 /// The 1-based line of byte offset `at` in `text`.
 fn line_of(text: &str, at: usize) -> usize {

@@ -9,8 +9,8 @@ use std::path::Path;
 
 use diffsim_solvers::smoke::{enforce_boundary, obstacle_box, obstacle_disc};
 
-use super::build::{finite, positive};
 use super::spec::{InitSpec, NpyPaths, ShapeSpec};
+use super::value::{finite, positive};
 use super::{Domain, Field, SceneError};
 
 /// A point with one coordinate per axis of the domain.

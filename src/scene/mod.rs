@@ -11,6 +11,7 @@
 mod build;
 mod init;
 pub mod spec;
+mod value;
 
 use std::ops::Range;
 use std::path::Path;

@@ -1,0 +1,278 @@
+//! Whole rollouts as operators, so that the gradient checks of
+//! [`crate::check`] apply to them:
+//!
+//! - [`RolloutLoss`]: `(x_0, p) ↦ L`, the loss of a rollout (terms at any
+//!   steps) as a function of the initial state, the parameters, or both
+//!   ([`Wrt`]). Its VJP is [`Rollout::value_and_grad`]; its JVP chains the
+//!   per-step JVPs and the loss terms' gradients, an independent forward-mode
+//!   computation for the dot-product test.
+//! - [`RolloutOperator`]: `x_0 ↦ x_T`, the final state as a function of the
+//!   initial one (the parameters held fixed).
+//!
+//! ```ignore
+//! use diffsim::check::{CheckOptions, check_all};
+//! use diffsim::rollout::{AtSteps, Checkpointing, Rollout, RolloutLoss, Wrt};
+//!
+//! let loss = AtSteps { steps: vec![10, 20], f: |_t: usize, x: &[f64], g: &mut [f64]| {
+//!     g.copy_from_slice(x);
+//!     0.5 * x.iter().map(|v| v * v).sum::<f64>()
+//! } };
+//! let rollout = Rollout::new(&op, &p, 20)?;
+//! let as_op = RolloutLoss::new(rollout, &x0, &loss, Checkpointing::periodic_sqrt(20), Wrt::Both)?;
+//! let (x, p) = as_op.point();
+//! let report = check_all(&as_op, x, p, &CheckOptions::default()); // ∂L/∂x0 and ∂L/∂p
+//! ```
+
+use super::checkpoint::{self, Checkpointing, Workspace};
+use super::{Loss, Rollout, RolloutError};
+use crate::op::{Forward, Jvp, Operator, Vjp};
+
+/// Which inputs of a rollout a [`RolloutLoss`] takes: the others are held
+/// at the values it was built with.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Wrt {
+    /// The initial state `x_0` is the operator's state input; `p` is fixed
+    /// (the operator has no parameters).
+    X0,
+    /// The parameters `p` (per step if the rollout's are) are the
+    /// operator's parameters; `x_0` is fixed (its state input is empty).
+    P,
+    /// Both: state input `x_0`, parameters `p`.
+    Both,
+}
+
+impl Wrt {
+    fn x0(self) -> bool {
+        matches!(self, Wrt::X0 | Wrt::Both)
+    }
+    fn p(self) -> bool {
+        matches!(self, Wrt::P | Wrt::Both)
+    }
+}
+
+/// The loss of a whole rollout as an operator `(x_0, p) ↦ L` with one
+/// output, so that [`check_all`](crate::check::check_all) checks `∂L/∂x_0`
+/// and `∂L/∂p` through every step, with loss terms at any steps
+/// ([`AtSteps`](super::AtSteps)).
+///
+/// The operator's state input is `x_0` when [`Wrt`] includes it (else
+/// empty), its parameters are `p` when [`Wrt`] includes them (else none);
+/// [`RolloutLoss::point`] gives the matching `(x, p)` to check at.
+///
+/// - Forward: the loss, [`Rollout::loss`].
+/// - VJP: `dx += dy·∂L/∂x_0`, `dp += dy·∂L/∂p` from
+///   [`Rollout::value_and_grad`] under the chosen checkpointing (consumes
+///   `dy`).
+/// - JVP: the tangent carried forward through the per-step JVPs,
+///   `L̇ = Σ_t ⟨∇ℓ_t(x_t), ẋ_t⟩`: forward mode, independent of the VJP.
+///
+/// # Panics
+/// The operator methods panic with the rollout's error (a non-finite
+/// value, a failed solve) since they return nothing; a check that hits one
+/// is not a check of the gradient.
+#[derive(Debug)]
+pub struct RolloutLoss<'a, O, L> {
+    rollout: Rollout<'a, O>,
+    x0: &'a [f64],
+    loss: &'a L,
+    mode: Checkpointing,
+    wrt: Wrt,
+}
+
+impl<O, L> Clone for RolloutLoss<'_, O, L> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<O, L> Copy for RolloutLoss<'_, O, L> {}
+
+impl<'a, O: Forward, L: Loss> RolloutLoss<'a, O, L> {
+    /// The loss of `rollout` from `x0` as an operator of the inputs `wrt`
+    /// names; the rollout's `p` and `x0` are the values of the inputs held
+    /// fixed and the point [`RolloutLoss::point`] returns. `mode` is the
+    /// checkpointing of the VJP (a default for `T` steps:
+    /// `Checkpointing::periodic_sqrt(T)`).
+    ///
+    /// # Errors
+    /// [`RolloutError::Length`] if `x0` is not a state of the operator.
+    pub fn new(rollout: Rollout<'a, O>, x0: &'a [f64], loss: &'a L, mode: Checkpointing, wrt: Wrt) -> Result<Self, RolloutError> {
+        rollout.check_state(x0)?;
+        Ok(Self { rollout, x0, loss, mode: mode.resolve(rollout.steps), wrt })
+    }
+
+    /// The point `(x, p)` at which to check: `x_0` (or nothing) and `p` (or
+    /// nothing), as [`Wrt`] says.
+    pub fn point(&self) -> (&'a [f64], &'a [f64]) {
+        (if self.wrt.x0() { self.x0 } else { &[] }, if self.wrt.p() { self.rollout.p } else { &[] })
+    }
+
+    /// The rollout at the operator's inputs `(x, p)`: `(x_0, rollout)`.
+    #[track_caller]
+    fn at<'b>(&'b self, x: &'b [f64], p: &'b [f64]) -> (&'b [f64], Rollout<'b, O>) {
+        let (n, m) = (self.n_in(), self.n_params());
+        assert!(
+            x.len() == n && p.len() == m,
+            "RolloutLoss: (x, p) have lengths ({}, {}), the operator expects ({n}, {m}) (see RolloutLoss::point)",
+            x.len(),
+            p.len()
+        );
+        let x0 = if self.wrt.x0() { x } else { self.x0 };
+        let mut r = self.rollout;
+        if self.wrt.p() {
+            r.p = p;
+        }
+        (x0, r)
+    }
+}
+
+impl<O: Forward, L: Loss> Operator for RolloutLoss<'_, O, L> {
+    fn n_in(&self) -> usize {
+        if self.wrt.x0() { self.rollout.op.n_in() } else { 0 }
+    }
+    fn n_out(&self) -> usize {
+        1
+    }
+    fn n_params(&self) -> usize {
+        if self.wrt.p() { self.rollout.p.len() } else { 0 }
+    }
+}
+
+impl<O: Forward, L: Loss> Forward for RolloutLoss<'_, O, L> {
+    /// `y[0] = L(x_0, p)`.
+    #[track_caller]
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        let (x0, r) = self.at(x, p);
+        y[0] = r.loss(x0, self.loss).unwrap_or_else(|e| panic!("RolloutLoss: {e}"));
+    }
+}
+
+impl<O: Vjp, L: Loss> Vjp for RolloutLoss<'_, O, L> {
+    #[track_caller]
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        let (x0, r) = self.at(x, p);
+        let g = r.value_and_grad(x0, self.loss, self.mode).unwrap_or_else(|e| panic!("RolloutLoss: {e}"));
+        let s = dy[0];
+        if self.wrt.x0() {
+            dx.iter_mut().zip(&g.dx0).for_each(|(d, v)| *d += s * v);
+        }
+        if self.wrt.p() {
+            dp.iter_mut().zip(&g.dp).for_each(|(d, v)| *d += s * v);
+        }
+        dy[0] = 0.0;
+    }
+}
+
+impl<O: Jvp, L: Loss> Jvp for RolloutLoss<'_, O, L> {
+    #[track_caller]
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        let (x0, r) = self.at(x, p);
+        let n = x0.len();
+        let np = r.op.n_params();
+        let zero_tp = vec![0.0; np];
+        let (mut xc, mut tc) = (x0.to_vec(), if self.wrt.x0() { tx.to_vec() } else { vec![0.0; n] });
+        let (mut xn, mut tn, mut g) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+        let (mut value, mut slope) = (0.0, 0.0);
+        let mut term = |t: usize, x: &[f64], tx: &[f64]| {
+            if self.loss.has_term(t, r.steps) {
+                value += self.loss.term(t, x, &mut g);
+                slope += g.iter().zip(tx).map(|(a, b)| a * b).sum::<f64>();
+            }
+        };
+        if r.steps == 0 {
+            term(0, &xc, &tc);
+        }
+        for t in 0..r.steps {
+            // The tangent of the step from x_t: its block of tp (or zero).
+            let tp_t = match (self.wrt.p(), r.per_step) {
+                (false, _) => &zero_tp[..],
+                (true, true) => &tp[t * np..(t + 1) * np],
+                (true, false) => tp,
+            };
+            r.op.jvp(&xc, r.p_at(t), &tc, tp_t, &mut xn, &mut tn);
+            std::mem::swap(&mut xc, &mut xn);
+            std::mem::swap(&mut tc, &mut tn);
+            term(t + 1, &xc, &tc);
+        }
+        if let Some(e) = r.op.take_error() {
+            panic!("RolloutLoss: in the forward pass: {e}");
+        }
+        assert!(value.is_finite() && slope.is_finite(), "RolloutLoss: the JVP through {} steps of {} is not finite", r.steps, r.op.name());
+        y[0] = value;
+        ty[0] = slope;
+    }
+}
+
+/// A whole rollout `x_0 ↦ x_T` as an operator, so that the gradient checks
+/// apply to it: its VJP is the chained per-step VJP (under the chosen
+/// checkpointing), its JVP the chained per-step JVPs. The parameters are
+/// held fixed; [`RolloutLoss`] takes them (and a loss at several steps) as
+/// inputs too.
+#[derive(Debug)]
+pub struct RolloutOperator<'a, O> {
+    /// The rollout.
+    pub rollout: Rollout<'a, O>,
+    /// How the VJP keeps states.
+    pub mode: Checkpointing,
+}
+
+impl<O> Clone for RolloutOperator<'_, O> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<O> Copy for RolloutOperator<'_, O> {}
+
+impl<O: Forward> Operator for RolloutOperator<'_, O> {
+    fn n_in(&self) -> usize {
+        self.rollout.op.n_in()
+    }
+    fn n_out(&self) -> usize {
+        self.rollout.op.n_out()
+    }
+}
+
+impl<O: Forward> Forward for RolloutOperator<'_, O> {
+    /// `y = x_T` from `x_0 = x` (the rollout's own parameters are used; the
+    /// operator has no parameter input of its own).
+    #[track_caller]
+    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) {
+        self.rollout.check_state(x).unwrap_or_else(|e| panic!("RolloutOperator: {e}"));
+        let xt = self.rollout.final_state_unchecked(x);
+        y.copy_from_slice(&xt);
+    }
+}
+
+impl<O: Vjp> Vjp for RolloutOperator<'_, O> {
+    #[track_caller]
+    fn vjp(&self, x: &[f64], _p: &[f64], dy: &mut [f64], dx: &mut [f64], _dp: &mut [f64]) {
+        let seed = dy.to_vec();
+        let linear = |y: &[f64], g: &mut [f64]| -> f64 {
+            g.copy_from_slice(&seed);
+            y.iter().zip(&seed).map(|(a, b)| a * b).sum()
+        };
+        self.rollout.check_state(x).unwrap_or_else(|e| panic!("RolloutOperator: {e}"));
+        let g = checkpoint::run(&self.rollout, &mut Workspace::new(), x, &linear, self.mode, checkpoint::CHECK_EVERY, None)
+            .unwrap_or_else(|e| panic!("RolloutOperator: {e}"));
+        for (d, v) in dx.iter_mut().zip(&g.dx0) {
+            *d += v;
+        }
+        dy.fill(0.0);
+    }
+}
+
+impl<O: Jvp> Jvp for RolloutOperator<'_, O> {
+    #[track_caller]
+    fn jvp(&self, x: &[f64], _p: &[f64], tx: &[f64], _tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        let tp = vec![0.0; self.rollout.op.n_params()];
+        let (mut xc, mut tc) = (x.to_vec(), tx.to_vec());
+        for t in 0..self.rollout.steps {
+            self.rollout.op.jvp(&xc, self.rollout.p_at(t), &tc, &tp, y, ty);
+            xc.copy_from_slice(y);
+            tc.copy_from_slice(ty);
+        }
+        y.copy_from_slice(&xc);
+        ty.copy_from_slice(&tc);
+    }
+}
