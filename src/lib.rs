@@ -49,7 +49,10 @@
 //!
 //! **4. Roll it out** ([`rollout`]): chain `T` steps and a loss, and get the
 //! loss and its gradient by per-step VJPs over stored or checkpointed
-//! states (`Store`, `Periodic`, `Binomial`). [`problems::burgers::P1`] and
+//! states (`Store`, `Periodic`, `Binomial`), and check it through every
+//! step: [`rollout::RolloutLoss`] is the map `(x_0, p) ↦ L` as an operator
+//! (with respect to `x_0`, `p` or both), so [`check::check_all`] applies to
+//! it. [`problems::burgers::P1`] and
 //! [`problems::smoke::P2`] are the benchmarks built exactly this way;
 //! [`fluids`] holds further 2D operators (diffusion, advection schemes,
 //! forces, inflow).
@@ -81,7 +84,7 @@
 //! exact step and the operator.
 //!
 //! Build everything that calls generated gradients in release with fat LTO
-//! and `-Zautodiff=Enable` on this crate only; see the README.
+//! and `-Zautodiff=Enable` on this crate only; see docs/own-solver.md.
 #![feature(autodiff)]
 #![deny(missing_docs)]
 

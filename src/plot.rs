@@ -60,7 +60,7 @@ fn font() -> Result<(), PlotError> {
     static LOADED: OnceLock<bool> = OnceLock::new();
     let ok = *LOADED.get_or_init(|| {
         // (Paths tried one by one: a table of `&str` can crash Enzyme's type
-        // analysis in this crate; README, Enzyme notes.)
+        // analysis in this crate; docs/pitfalls.md.)
         let found = std::env::var("DIFFSIM_FONT")
             .ok()
             .and_then(|p| std::fs::read(p).ok())

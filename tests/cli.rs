@@ -18,7 +18,7 @@ fn fails_with(args: &[&str], needle: &str) {
 }
 
 // One call per case, not a table: an array of tuples holding `Vec<&str>`
-// tipped rustc's Enzyme type trees into an abort (README, "Enzyme notes").
+// tipped rustc's Enzyme type trees into an abort (docs/pitfalls.md).
 #[test]
 fn bench_p1_rejects_bad_arguments() {
     fails_with(&["bench", "p1", "--n", "2"], "invalid argument --n");
@@ -358,4 +358,45 @@ fn bench_p3_json_line() {
     assert!(total <= 1.0 + 1e-9 && total > 0.5, "shares sum to {total}");
     fails_with(&["bench", "p3", "--dtype", "f16"], "invalid argument --dtype");
     fails_with(&["bench", "p3", "--iterations", "0"], "invalid argument --iterations");
+}
+
+/// A fresh temporary folder under the target directory.
+fn scratch_dir(name: &str) -> std::path::PathBuf {
+    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+#[test]
+fn new_writes_a_crate_with_its_names_the_toolchain_and_the_guard() {
+    let dir = scratch_dir("new-crate");
+    let (code, out, err) = diffsim(&["new", dir.to_str().unwrap(), "--name", "heat-fit"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("cargo run --release"), "{out}");
+    let read = |f: &str| std::fs::read_to_string(dir.join(f)).unwrap_or_else(|e| panic!("{f}: {e}"));
+    let root = read("Cargo.toml");
+    assert!(root.contains("name = \"heat-fit\"") && root.contains("heat-fit-solver = { path = \"solver\" }"), "{root}");
+    assert!(root.contains("[profile.release.package.heat-fit-solver]") && root.contains("[profile.release.package.heat-fit-run]"), "{root}");
+    assert!(!root.contains("starter"), "{root}");
+    let checkout = std::fs::canonicalize(env!("CARGO_MANIFEST_DIR")).unwrap();
+    assert!(root.contains(&format!("diffsim = {{ path = \"{}\" }}", checkout.display())), "{root}");
+    assert!(read("src/lib.rs").contains("use heat_fit_solver::{"));
+    assert!(read("run/src/main.rs").contains("heat_fit::main()"));
+    assert!(read("run/Cargo.toml").contains("name = \"heat-fit\""));
+    assert_eq!(read("rust-toolchain.toml"), std::fs::read_to_string(checkout.join("rust-toolchain.toml")).unwrap());
+    let guard = read("cargo-enzyme");
+    assert!(guard.contains(&format!("pitfalls=\"{}/docs/pitfalls.md\"", checkout.display())), "the guard's pitfalls line was not replaced");
+    assert!(read(".cargo/config.toml").contains(&format!("target-dir = \"{}/target\"", checkout.display())));
+    // Not over an existing crate.
+    fails_with(&["new", dir.to_str().unwrap()], "exists and is not an empty folder");
+}
+
+#[test]
+fn new_rejects_bad_names_with_a_message() {
+    let dir = scratch_dir("Bad Name");
+    fails_with(&["new", dir.to_str().unwrap()], "is not a package name");
+    fails_with(&["new", scratch_dir("x").to_str().unwrap(), "--name", "diffsim"], "clashes");
+    fails_with(&["new", scratch_dir("y").to_str().unwrap(), "--name", "9lives"], "is not a package name");
+    fails_with(&["new", scratch_dir("z").to_str().unwrap(), "--diffsim", "/nonexistent/diffsim"], "cannot find the diffsim checkout");
+    assert!(!scratch_dir("x").exists());
 }

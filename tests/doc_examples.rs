@@ -62,3 +62,39 @@ mod differentiable_macro {
         assert_eq!(dp, vec![14.0]);
     }
 }
+
+/// docs/own-solver.md quotes the template of `diffsim new`
+/// (`examples/starter`) between `// ANCHOR: name` and `// ANCHOR_END: name`
+/// lines; each quoted block must equal its region, and every region must be
+/// quoted, so the page cannot drift from the code the test command builds
+/// and runs.
+#[test]
+fn own_solver_page_quotes_the_template() {
+    let root = env!("CARGO_MANIFEST_DIR");
+    let read = |path: &str| std::fs::read_to_string(format!("{root}/{path}")).unwrap_or_else(|e| panic!("{path}: {e}"));
+    let page = read("docs/own-solver.md");
+    let mut quoted: Vec<String> = Vec::new();
+    let mut rest = page.as_str();
+    while let Some(at) = rest.find("<!-- quote: ") {
+        rest = &rest[at + "<!-- quote: ".len()..];
+        let marker = &rest[..rest.find(" -->").expect("an unclosed quote marker")];
+        let (path, anchor) = marker.split_once('#').expect("quote markers read PATH#ANCHOR");
+        let start = rest.find("```rust\n").expect("a rust block after the marker") + "```rust\n".len();
+        let len = rest[start..].find("```").expect("a closed block");
+        let block = &rest[start..start + len];
+        let file = read(path);
+        let open = format!("// ANCHOR: {anchor}\n");
+        let a = file.find(&open).unwrap_or_else(|| panic!("{path} has no anchor {anchor}")) + open.len();
+        let b = a + file[a..].find(&format!("// ANCHOR_END: {anchor}")).unwrap_or_else(|| panic!("{path}: {anchor} is not closed"));
+        assert_eq!(block, &file[a..b], "docs/own-solver.md quotes {marker} differently from the file");
+        quoted.push(marker.to_string());
+        rest = &rest[start + len..];
+    }
+    for path in ["examples/starter/solver/src/lib.rs", "examples/starter/src/lib.rs"].iter() {
+        let file = read(path);
+        for line in file.lines().filter_map(|l| l.trim().strip_prefix("// ANCHOR: ")) {
+            assert!(quoted.contains(&format!("{path}#{line}")), "{path}#{line} is not quoted in docs/own-solver.md");
+        }
+    }
+    assert!(quoted.len() >= 9, "{quoted:?}");
+}

@@ -25,7 +25,7 @@ fn compare(r: &P1Reference, value: f64, g: &Gradient) {
 fn reference_table_enzyme_and_hand() {
     // No arrays of `Gradient` or of the reference structs here: rustc's
     // Enzyme type trees for arrays of structs that mix pointers and numbers
-    // abort the build (README, "Enzyme notes").
+    // abort the build (docs/pitfalls.md).
     for i in 0..P1_SIZES.len() {
         let r = &P1_SIZES[i];
         let p = P1::new(r.n, r.steps);

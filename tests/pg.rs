@@ -31,7 +31,7 @@ fn heat_decays_fourier_modes_exactly_and_passes_the_checks() {
     // A non-square grid, so the two axes cannot be mixed up.
     let heat = Heat::new(16, 8, 0.7, 1e-3);
     // (Mode numbers and phases in separate vectors: a by-value array of
-    // integer–float tuples crashes Enzyme's type analysis; README, Enzyme notes.)
+    // integer–float tuples crashes Enzyme's type analysis; docs/pitfalls.md.)
     let (mxs, mys, phases) = (vec![0, 1, 0, 5, 8], vec![0, 0, 3, 2, 4], vec![0.0, 0.3, 1.1, -0.4, 0.0]);
     for k in 0..mxs.len() {
         let (mx, my) = (mxs[k], mys[k]);

@@ -1,5 +1,5 @@
 //! A user's own plain function made differentiable with the macro, as the
-//! README shows it: the three checks, parameters included, and validation
+//! README and docs/own-solver.md show it: the three checks, parameters included, and validation
 //! before the generated code.
 
 use diffsim::check::{CheckOptions, check_all};

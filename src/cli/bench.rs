@@ -133,7 +133,7 @@ fn p3(a: P3Args) -> Result<(), CliError> {
         let sum = |f: fn(&TimeShares) -> f64| runs.iter().map(|r| f(&r.1)).sum::<f64>();
         let par = total * threads.min(BATCH) as f64;
         // (Names by index, not a table of (&str, f64) pairs: such by-value
-        // arrays crash Enzyme's type analysis in this crate; README.)
+        // arrays crash Enzyme's type analysis in this crate; docs/pitfalls.md.)
         let shares: Vec<f64> =
             vec![sum(|b| b.solver_fwd) / par, sum(|b| b.solver_bwd) / par, sum(|b| b.net_fwd) / par, sum(|b| b.net_bwd) / par, sum(|b| b.optimizer) / total];
         if a.json {

@@ -4,6 +4,7 @@ mod accuracy;
 mod bench;
 mod demo;
 mod measure;
+mod new;
 mod scene;
 mod train;
 
@@ -102,6 +103,12 @@ enum Command {
     /// ill-conditioned solves, near-singular Jacobians, NaN detection): a
     /// report, and a non-zero exit if any case is not stable.
     Stability(accuracy::StabilityArgs),
+    /// A crate of your own on diffsim, ready to build: a solver (Fisher–KPP)
+    /// with its gradient checks, a rollout with a loss at several steps, the
+    /// checks through it for the initial state and the parameters, and an
+    /// Adam fit; the toolchain file, the profile settings and the Enzyme log
+    /// guard. Then: cd PATH && cargo run --release.
+    New(new::NewArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -145,6 +152,7 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         Command::Experiment(e) => train::experiment(e),
         Command::Pareto(a) => accuracy::pareto(a),
         Command::Stability(a) => accuracy::stability(a),
+        Command::New(a) => new::new(a),
     }
 }
 

@@ -1,6 +1,6 @@
 //! Enzyme-generated derivatives of the dense and convolution layers, kept
 //! to measure them against the hand-written ones that [`super::Layer`] uses
-//! (criterion group `nn_layers`; README, "Networks"). Both are checked by
+//! (criterion group `nn_layers`; docs/networks.md). Both are checked by
 //! the gradient checks.
 
 use diffsim_solvers::nn::{self as kernel, Conv1d};

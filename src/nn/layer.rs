@@ -91,8 +91,7 @@ pub enum Init {
     LeCun,
 }
 
-/// A network that cannot be built. Pointer-free on purpose (README,
-/// Enzyme notes).
+/// A network that cannot be built. Pointer-free on purpose (docs/pitfalls.md).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum NetError {
     /// No layers.

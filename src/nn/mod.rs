@@ -9,8 +9,7 @@
 //! channels concatenated) from which U-Nets are built ([`presets`]). The
 //! derivatives are written by hand on top of the kernels of
 //! [`diffsim_solvers::nn`]; [`enzyme`] holds the Enzyme-generated versions
-//! of the dense and convolution layers they were measured against (README,
-//! "Networks").
+//! of the dense and convolution layers they were measured against (docs/networks.md).
 //!
 //! Parameters live in one flat [`ParamStore`] with a name and shape per
 //! tensor, saved to and loaded from JSON.

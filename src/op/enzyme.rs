@@ -35,7 +35,7 @@ use super::Operator;
 /// (it warns `freeing without malloc` for `vec![0.0; n]`).
 ///
 /// The crate that invokes this macro needs `#![feature(autodiff)]`, the
-/// `-Zautodiff=Enable` flag and a fat-LTO release build (see the README).
+/// `-Zautodiff=Enable` flag and a fat-LTO release build (docs/own-solver.md).
 ///
 /// ```ignore
 /// #![feature(autodiff)]
@@ -115,8 +115,7 @@ macro_rules! differentiable {
                     $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
                     // The primal output goes to scratch. `Duplicated`, not
                     // `DuplicatedOnly`: with the latter, a function that reads
-                    // back what it wrote to `y` got a wrong derivative (README,
-                    // Enzyme notes). The scratch's shadow starts at zero
+                    // back what it wrote to `y` got a wrong derivative (docs/pitfalls.md). The scratch's shadow starts at zero
                     // (Enzyme adds into shadows).
                     let (n, m) = ($crate::op::Operator::n_out(self), $len(self));
                     $crate::op::with_scratch(n + 2 * m, |buf| {

@@ -111,8 +111,7 @@ pub trait Forward<R: Real = f64>: Operator {
 }
 
 /// An operator's name for error messages, kept in a fixed buffer so that
-/// errors carrying it stay pointer-free (see the README's Enzyme notes on
-/// type trees). Longer names are cut at 63 bytes.
+/// errors carrying it stay pointer-free (docs/pitfalls.md, type trees). Longer names are cut at 63 bytes.
 #[derive(Clone, Copy, PartialEq, Eq)]
 pub struct OpName {
     bytes: [u8; 63],
@@ -174,7 +173,7 @@ fn short_type_name(full: &str) -> String {
 }
 
 /// Why an operator could not compute its result. Pointer-free on purpose
-/// (see the README's Enzyme notes on type trees).
+/// (docs/pitfalls.md, type trees).
 #[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
 pub enum OpError {
     /// An iterative linear solve stopped before reaching its tolerance.
@@ -303,7 +302,7 @@ impl<T: Forward + ?Sized> OperatorExt for T {}
 /// Panics, at the caller's line, if `x`, `p` (and an extra slice) do not
 /// have the operator's lengths. The message names the function, the
 /// operator and the slice. (One call per slice: a table of checks iterated
-/// in a loop aborts rustc under the autodiff flag; README, Enzyme notes.)
+/// in a loop aborts rustc under the autodiff flag; docs/pitfalls.md.)
 #[doc(hidden)]
 #[track_caller]
 pub fn check_lengths<O: Operator + Forward + ?Sized>(op: &O, function: &str, x: &[f64], p: &[f64], extra: Option<(&str, usize, usize)>) {

@@ -453,7 +453,7 @@ fn vjp3_rows_body<const ADD: bool, R: Real>(x: &[R], g: &[R], dx: &mut [R], mut 
     // of the entry each call uses (the left and right entries of a typical
     // row are much cheaper than the centre one), so this costs about one row
     // per cell and needs no scratch: measured 1.6× faster than scaling whole
-    // rows into a buffer and gathering from it (README, P1).
+    // rows into a buffer and gathering from it (docs/p1.md).
     if n < 5 {
         for (j, d) in dx.iter_mut().enumerate() {
             put::<ADD, R>(d, gather_at(x, g, j, &mut f));

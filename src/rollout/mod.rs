@@ -40,7 +40,7 @@ pub use operator::{RolloutLoss, RolloutOperator, Wrt};
 /// Deliberately free of pointers (no `String`, no `&str`): a `Result` whose
 /// `Ok` holds `Vec<f64>` and whose `Err` holds a string crashes rustc's
 /// Enzyme type-tree emission in crates built with `-Zautodiff=Enable`
-/// (README, "Enzyme notes").
+/// (docs/pitfalls.md).
 #[derive(Debug, Error, Clone, Copy, PartialEq)]
 pub enum RolloutError {
     /// The operator does not map a state to a state of the same size.

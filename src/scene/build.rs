@@ -83,7 +83,7 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
     let mut x0 = vec![0.0; domain.n_state()];
     let mut fields = Vec::new();
     // (One field at a time: a by-value array of (enum, reference) pairs
-    // crashes Enzyme's type analysis in this crate; README, Enzyme notes.)
+    // crashes Enzyme's type analysis in this crate; docs/pitfalls.md.)
     let mut declare = |field: Field, spec: &Option<Spanned<super::spec::FieldSpec>>| -> Result<(), SceneError> {
         if let Some(spec) = spec {
             let values = at(text, spec, |f| field_init(&format!("fields.{}.init", field.name()), &domain, field, &f.init, dir))?;

@@ -109,7 +109,7 @@ pub fn compare(cfg: &OscConfig) -> Result<Vec<Curve>, HigError> {
     let every = cfg.budget_s / 40.0;
     let mut curves = Vec::new();
     // (Two passes by flag: a by-value array of `&str` can crash Enzyme's
-    // type analysis in this crate; README, Enzyme notes.)
+    // type analysis in this crate; docs/pitfalls.md.)
     for use_hig in [true, false] {
         let name = if use_hig { "hig" } else { "adam" };
         let mut theta = theta0.clone();
