@@ -42,20 +42,47 @@ fn run() -> Result<()> {
 
 // ANCHOR: problem
 /// The problem: 64 cells, a bump of population on a background, the
-/// parameters `[ν, r]` that generate the observations, and a first guess.
-pub fn problem() -> (Fkpp, Vec<f64>, [f64; 2]) {
+/// parameters `[ν, r]` that generate the observations, a first guess, and
+/// the observations at three steps.
+pub struct Problem {
+    /// The step.
+    pub op: Fkpp,
+    /// The initial state.
+    pub u0: Vec<f64>,
+    /// The parameters to recover.
+    pub truth: [f64; 2],
+    /// Where the fit starts.
+    pub guess: [f64; 2],
+    /// The states at the steps of [`OBSERVED`] under `truth`.
+    pub observations: Vec<Vec<f64>>,
+}
+
+/// Observations at these steps; the rollouts run to the last.
+pub const OBSERVED: [usize; 3] = [20, 40, 60];
+/// Steps of every rollout.
+pub const STEPS: usize = 60;
+
+/// The problem, its observations computed by running the step.
+pub fn problem() -> Problem {
     let op = Fkpp { n: 64, dt: 0.01 };
-    let u0 = (0..op.n)
+    let u0: Vec<f64> = (0..op.n)
         .map(|i| {
             let x = (i as f64 + 0.5) / op.n as f64;
             0.1 + 0.7 * (-((x - 0.4) / 0.08).powi(2)).exp()
         })
         .collect();
-    (op, u0, [0.2, 2.0])
+    let truth = [0.2, 2.0];
+    let (mut u, mut next) = (u0.clone(), vec![0.0; op.n]);
+    let mut observations = Vec::new();
+    for t in 1..=STEPS {
+        op.forward(&u, &truth, &mut next);
+        std::mem::swap(&mut u, &mut next);
+        if OBSERVED.contains(&t) {
+            observations.push(u.clone());
+        }
+    }
+    Problem { op, u0, truth, guess: [0.3, 1.0], observations }
 }
-
-/// Observations at these steps.
-pub const OBSERVED: [usize; 3] = [20, 40, 60];
 // ANCHOR_END: problem
 
 fn passed(what: &str, report: FullReport) -> Result<()> {
@@ -72,7 +99,7 @@ fn passed(what: &str, report: FullReport) -> Result<()> {
 /// the hand-written adjoint against Enzyme's.
 fn one_step_checks() -> Result<()> {
     println!("1. one step");
-    let (op, u0, p) = problem();
+    let Problem { op, u0, truth: p, .. } = problem();
     let opts = CheckOptions::default();
     passed("Euler step (differentiable!)", check_all(&op, &u0, &p, &opts))?;
     passed("Euler step (stencil3!)", check_all(&FkppStencil(op), &u0, &p, &opts))?;
@@ -126,35 +153,19 @@ pub fn misfit(observations: &[Vec<f64>]) -> AtSteps<impl Fn(usize, &[f64], &mut 
     }
 }
 
-/// The observations: the states at the observed steps under `p`.
-pub fn observe(op: &Fkpp, u0: &[f64], p: &[f64]) -> Vec<Vec<f64>> {
-    let (mut u, mut next) = (u0.to_vec(), vec![0.0; u0.len()]);
-    let mut observations = Vec::new();
-    for t in 1..=OBSERVED[OBSERVED.len() - 1] {
-        op.forward(&u, p, &mut next);
-        std::mem::swap(&mut u, &mut next);
-        if OBSERVED.contains(&t) {
-            observations.push(u.clone());
-        }
-    }
-    observations
-}
 // ANCHOR_END: loss
 
 // ANCHOR: rollout
-/// A rollout of 60 steps from a first guess of the parameters, its loss and
+/// A rollout of 60 steps from the first guess of the parameters, its loss and
 /// gradient under each way of keeping the states for the backward pass.
 fn rollout_and_its_gradient() -> Result<()> {
     println!("2. a rollout and its gradient");
-    let (op, u0, truth) = problem();
-    let observations = observe(&op, &u0, &truth);
-    let loss = misfit(&observations);
-    let guess = [0.3, 1.0];
-    let steps = OBSERVED[OBSERVED.len() - 1];
-    let rollout = Rollout::new(&op, &guess, steps)?;
+    let pb = problem();
+    let loss = misfit(&pb.observations);
+    let rollout = Rollout::new(&pb.op, &pb.guess, STEPS)?;
     let mut first: Option<Vec<f64>> = None;
-    for mode in [Checkpointing::Store, Checkpointing::periodic_sqrt(steps), Checkpointing::binomial_log(steps)] {
-        let g = rollout.value_and_grad(&u0, &loss, mode)?;
+    for mode in [Checkpointing::Store, Checkpointing::periodic_sqrt(STEPS), Checkpointing::binomial_log(STEPS)] {
+        let g = rollout.value_and_grad(&pb.u0, &loss, mode)?;
         println!(
             "  {mode}: L = {:.6e}, ∂L/∂p = [{:.6e}, {:.6e}], {} states held, {} step evaluations",
             g.loss, g.dp[0], g.dp[1], g.stats.peak_states, g.stats.step_evaluations
@@ -178,12 +189,10 @@ fn rollout_and_its_gradient() -> Result<()> {
 /// `(u_0, p) ↦ L` as an operator.
 fn checks_through_the_rollout() -> Result<()> {
     println!("3. checks through the rollout");
-    let (op, u0, truth) = problem();
-    let observations = observe(&op, &u0, &truth);
-    let loss = misfit(&observations);
-    let guess = [0.3, 1.0];
-    let rollout = Rollout::new(&op, &guess, OBSERVED[OBSERVED.len() - 1])?;
-    let as_op = RolloutLoss::new(rollout, &u0, &loss, Checkpointing::periodic_sqrt(rollout.steps), Wrt::Both)?;
+    let pb = problem();
+    let loss = misfit(&pb.observations);
+    let rollout = Rollout::new(&pb.op, &pb.guess, STEPS)?;
+    let as_op = RolloutLoss::new(rollout, &pb.u0, &loss, Checkpointing::periodic_sqrt(STEPS), Wrt::Both)?;
     let (x, p) = as_op.point();
     passed("∂L/∂u0 and ∂L/∂p through 60 steps", check_all(&as_op, x, p, &CheckOptions::default()))
 }
@@ -195,24 +204,22 @@ fn checks_through_the_rollout() -> Result<()> {
 /// 0.3 % per iteration.
 fn fit_with_adam() -> Result<()> {
     println!("4. fit [ν, r] with Adam");
-    let (op, u0, truth) = problem();
-    let observations = observe(&op, &u0, &truth);
-    let loss = misfit(&observations);
-    let steps = OBSERVED[OBSERVED.len() - 1];
-    let mut p = vec![0.3, 1.0];
+    let pb = problem();
+    let loss = misfit(&pb.observations);
+    let mut p = pb.guess.to_vec();
     let mut adam = Optimizer::adam(0.02);
-    let first = Rollout::new(&op, &p, steps)?.loss(&u0, &loss)?;
+    let first = Rollout::new(&pb.op, &p, STEPS)?.loss(&pb.u0, &loss)?;
     for it in 0..=400 {
-        let g = Rollout::new(&op, &p, steps)?.value_and_grad(&u0, &loss, Checkpointing::Store)?;
+        let g = Rollout::new(&pb.op, &p, STEPS)?.value_and_grad(&pb.u0, &loss, Checkpointing::Store)?;
         if it % 100 == 0 {
             println!("  iteration {it:4}: L = {:.3e}, p = [{:.5}, {:.5}]", g.loss, p[0], p[1]);
         }
         adam.set_lr(0.02 * 0.997f64.powi(it));
         adam.step(&mut p, &g.dp);
     }
-    let last = Rollout::new(&op, &p, steps)?.loss(&u0, &loss)?;
-    let error = p.iter().zip(&truth).map(|(a, b)| ((a - b) / b).abs()).fold(0.0, f64::max);
-    println!("  loss {first:.3e} → {last:.3e}; p = [{:.5}, {:.5}], truth [{}, {}], largest relative error {error:.1e}", p[0], p[1], truth[0], truth[1]);
+    let last = Rollout::new(&pb.op, &p, STEPS)?.loss(&pb.u0, &loss)?;
+    let error = p.iter().zip(&pb.truth).map(|(a, b)| ((a - b) / b).abs()).fold(0.0, f64::max);
+    println!("  loss {first:.3e} → {last:.3e}; p = [{:.5}, {:.5}], truth {:?}, largest relative error {error:.1e}", p[0], p[1], pb.truth);
     if error > 1e-5 {
         return Err(format!("the fit did not recover the parameters (relative error {error:.1e})").into());
     }
