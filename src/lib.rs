@@ -83,8 +83,13 @@
 //! few steps, the adjoint, and on a NaN replay to report the pass, the
 //! exact step and the operator.
 //!
-//! Build everything that calls generated gradients in release with fat LTO
-//! and `-Zautodiff=Enable` on this crate only; see docs/own-solver.md.
+//! **Your own crate.** `diffsim new PATH` writes one that builds and passes
+//! out of the box (a solver, its checks, a rollout, the checks through it, a
+//! fit); `docs/own-solver.md` walks through it and `docs/pitfalls.md` lists
+//! the Enzyme failures known here. Everything that links generated
+//! gradients is built in release with fat LTO, and `-Zautodiff=Enable` goes
+//! only to the crates that declare differentiated functions and to the
+//! final binaries.
 #![feature(autodiff)]
 #![deny(missing_docs)]
 

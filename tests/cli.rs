@@ -400,3 +400,32 @@ fn new_rejects_bad_names_with_a_message() {
     fails_with(&["new", scratch_dir("z").to_str().unwrap(), "--diffsim", "/nonexistent/diffsim"], "cannot find the diffsim checkout");
     assert!(!scratch_dir("x").exists());
 }
+
+/// Runs the build guard on a saved log; returns (exit code, stderr).
+fn guard_on(log_text: &str, name: &str) -> (i32, String) {
+    let log = scratch_dir(name).with_extension("log");
+    std::fs::write(&log, log_text).unwrap();
+    let out = Command::new(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/cargo-enzyme")).arg("--check-log").arg(&log).output().unwrap();
+    (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stderr).into())
+}
+
+#[test]
+fn the_guard_explains_the_failures_it_knows() {
+    let abort = "inserting into : {[0]:Pointer, [0,-1]:Pointer} with [0,-1] of Integer\nillegal insertion\nUNREACHABLE executed at /checkout/src/tools/enzyme/enzyme/Enzyme/TypeAnalysis/TypeTree.h:330!\nerror: could not compile `single` (bin \"single\")\n\nCaused by:\n  process didn't exit successfully: `/x/rustc --crate-name single --edition=2024 single/src/main.rs -Zautodiff=Enable` (signal: 6, SIGABRT: process abort signal)\n";
+    let (_, err) = guard_on(abort, "guard-typetree");
+    assert!(err.contains("Enzyme's type analysis") && err.contains("crate 'single'") && err.contains("docs/pitfalls.md"), "{err}");
+    let (_, err) =
+        guard_on("error: process didn't exit successfully: `/x/rustc --crate-name foo` (signal: 11, SIGSEGV: invalid memory reference)\n", "guard-signal");
+    assert!(err.contains("killed by a signal while compiling crate 'foo'"), "{err}");
+    let (_, err) = guard_on("error: using the autodiff feature requires -Z autodiff=Enable\n", "guard-flag");
+    assert!(err.contains("[profile.release.package.NAME]"), "{err}");
+    let (_, err) = guard_on("error: using the autodiff feature requires setting `lto=\"fat\"` in your Cargo.toml\n", "guard-lto");
+    assert!(err.contains("lto = \"fat\""), "{err}");
+    let (_, err) = guard_on("rust-lld: error: undefined symbol: __enzyme_autodiff_RNvNvCs_6solver\n", "guard-unflagged");
+    assert!(err.contains("final binary was linked without the autodiff flag"), "{err}");
+    // An Enzyme error line fails the check (the gradient would be wrong).
+    let (code, err) = guard_on("error: <unknown>:0:0: in function f: Enzyme: Cannot deduce type of memset\n", "guard-error");
+    assert_ne!(code, 0, "{err}");
+    let (code, err) = guard_on("   Compiling foo v0.1.0\n    Finished `release` profile\n", "guard-clean");
+    assert_eq!((code, err.as_str()), (0, ""));
+}

@@ -98,3 +98,34 @@ fn own_solver_page_quotes_the_template() {
     }
     assert!(quoted.len() >= 9, "{quoted:?}");
 }
+
+/// Every relative link of the README and the docs pages points to a file
+/// that exists (pages move; links must follow).
+#[test]
+fn links_between_the_pages_resolve() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut pages = vec![root.join("README.md")];
+    for entry in std::fs::read_dir(root.join("docs")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "md") {
+            pages.push(path);
+        }
+    }
+    let mut checked = 0;
+    for page in &pages {
+        let text = std::fs::read_to_string(page).unwrap();
+        let mut rest = text.as_str();
+        while let Some(at) = rest.find("](") {
+            rest = &rest[at + 2..];
+            let target = &rest[..rest.find(')').unwrap_or(0)];
+            let target = target.split('#').next().unwrap_or("");
+            if target.is_empty() || target.contains("://") || target.contains(' ') {
+                continue;
+            }
+            let file = page.parent().unwrap().join(target);
+            assert!(file.exists(), "{}: the link to {target} points to nothing", page.display());
+            checked += 1;
+        }
+    }
+    assert!(checked > 30, "only {checked} links found");
+}
