@@ -386,7 +386,10 @@ fn new_writes_a_crate_with_its_names_the_toolchain_and_the_guard() {
     assert_eq!(read("rust-toolchain.toml"), std::fs::read_to_string(checkout.join("rust-toolchain.toml")).unwrap());
     let guard = read("cargo-enzyme");
     assert!(guard.contains(&format!("pitfalls=\"{}/docs/pitfalls.md\"", checkout.display())), "the guard's pitfalls line was not replaced");
-    assert!(read(".cargo/config.toml").contains(&format!("target-dir = \"{}/target\"", checkout.display())));
+    let config = read(".cargo/config.toml");
+    assert!(config.contains(&format!("target-dir = \"{}/target\"", checkout.display())), "{config}");
+    assert!(config.contains(&format!("rustc-wrapper = \"{}/scripts/rustc-release-guard\"", checkout.display())), "{config}");
+    assert!(checkout.join("scripts/rustc-release-guard").is_file());
     // Not over an existing crate.
     fails_with(&["new", dir.to_str().unwrap()], "exists and is not an empty folder");
 }
@@ -428,4 +431,43 @@ fn the_guard_explains_the_failures_it_knows() {
     assert_ne!(code, 0, "{err}");
     let (code, err) = guard_on("   Compiling foo v0.1.0\n    Finished `release` profile\n", "guard-clean");
     assert_eq!((code, err.as_str()), (0, ""));
+}
+
+/// Runs the rustc wrapper with `echo` standing in for rustc; returns (exit
+/// code, stdout, stderr). Each call gets its own TMPDIR (the wrapper says
+/// its message once per parent process, marked there).
+fn release_guard(args: &[&str], allow_debug: bool) -> (i32, String, String) {
+    let tmp = scratch_dir(&format!("guard-tmp-{}", args.join("").len()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    let mut cmd = Command::new(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/rustc-release-guard"));
+    cmd.arg("echo").args(args).env("TMPDIR", &tmp).env_remove("DIFFSIM_ALLOW_DEBUG");
+    if allow_debug {
+        cmd.env("DIFFSIM_ALLOW_DEBUG", "1");
+    }
+    let out = cmd.output().unwrap();
+    (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
+}
+
+#[test]
+fn the_rustc_wrapper_stops_debug_builds_only() {
+    // A debug build's crate (both cargo layouts): stopped, with the message.
+    let (code, out, err) = release_guard(&["--emit=dep-info,metadata,link", "-C", "debuginfo=2", "--out-dir", "/p/target/debug/deps"], false);
+    assert_eq!(code, 1, "{out}");
+    assert!(out.is_empty() && err.contains("diffsim needs a release build") && err.contains("cargo build --release"), "{err}");
+    let (code, _, err) = release_guard(&["--emit=dep-info,link", "-C", "debuginfo=1", "--out-dir", "/p/target/debug/build/foo/0123/out"], false);
+    assert_eq!(code, 1, "{err}");
+    // A check (metadata only), what a check builds for the host (build
+    // scripts, proc macros: no debug info), a release build, cargo's
+    // queries: rustc runs unchanged.
+    let (code, out, _) = release_guard(&["--emit=dep-info,metadata,link", "--out-dir", "/p/target/debug/build/autocfg/0123/out"], false);
+    assert_eq!((code, out.trim()), (0, "--emit=dep-info,metadata,link --out-dir /p/target/debug/build/autocfg/0123/out"));
+    let (code, out, _) = release_guard(&["--emit=dep-info,metadata", "--out-dir", "/p/target/debug/deps"], false);
+    assert_eq!((code, out.trim()), (0, "--emit=dep-info,metadata --out-dir /p/target/debug/deps"));
+    let (code, out, _) = release_guard(&["--emit=dep-info,metadata,link", "--out-dir", "/p/target/release/build/foo/0123/out"], false);
+    assert_eq!((code, out.trim()), (0, "--emit=dep-info,metadata,link --out-dir /p/target/release/build/foo/0123/out"));
+    let (code, out, _) = release_guard(&["-vV"], false);
+    assert_eq!((code, out.trim()), (0, "-vV"));
+    // The way out it names.
+    let (code, _, _) = release_guard(&["--emit=link", "-C", "debuginfo=2", "--out-dir", "/p/target/debug/deps"], true);
+    assert_eq!(code, 0);
 }

@@ -1,7 +1,9 @@
 //! `diffsim new PATH [--name NAME]`: a crate of your own on diffsim, ready
 //! to build. It writes the template of `examples/starter` (the crate that
 //! `docs/own-solver.md` walks through) with its names replaced, the pinned
-//! toolchain, the Enzyme log guard and this checkout's lock file.
+//! toolchain, the Enzyme log guard, this checkout's lock file, and a cargo
+//! configuration that stops debug builds at once and (unless
+//! `--own-target`) shares this checkout's target folder.
 
 use std::path::{Path, PathBuf};
 
@@ -140,16 +142,21 @@ pub fn new(a: NewArgs) -> Result<(), CliError> {
     let guard = GUARD.replace(PITFALLS_LINE, &format!("pitfalls=\"{diffsim_str}/docs/pitfalls.md\""));
     write(root, "cargo-enzyme", &guard)?;
     make_executable(&root.join("cargo-enzyme"))?;
+    let mut config = format!(
+        "[build]\n\
+         # Stops a debug build at its first crate, with what to run instead\n\
+         # (Enzyme needs a release build); `cargo check` passes.\n\
+         rustc-wrapper = \"{diffsim_str}/scripts/rustc-release-guard\"\n"
+    );
     if !a.own_target {
-        let config = format!(
+        config += &format!(
             "# Builds into the diffsim checkout's target folder, so that the dependencies\n\
              # it has compiled already are reused (a first build takes seconds instead of\n\
-             # minutes). Delete these lines to build into ./target instead.\n\
-             [build]\n\
+             # minutes). Delete this line to build into ./target instead.\n\
              target-dir = \"{diffsim_str}/target\"\n"
         );
-        write(root, ".cargo/config.toml", &config)?;
     }
+    write(root, ".cargo/config.toml", &config)?;
     println!("created {} (package {kebab}) on diffsim at {diffsim_str}", root.display());
     println!("next:\n  cd {}\n  cargo run --release            # builds, checks the gradients, fits the parameters", root.display());
     println!("  ./cargo-enzyme run --release   # the same under the Enzyme log guard");
