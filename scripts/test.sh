@@ -17,4 +17,10 @@ own=$(mktemp -d)/my-solver
 trap 'rm -rf "$(dirname "$own")"' EXIT
 target/release/diffsim new "$own"
 (cd "$own" && ./cargo-enzyme run --release)
+# A debug build there stops at once and says what to run instead.
+if (cd "$own" && cargo build >"$own.debug.log" 2>&1); then
+    echo "a debug build of the new crate did not stop" >&2
+    exit 1
+fi
+grep -q "diffsim needs a release build" "$own.debug.log" || { cat "$own.debug.log" >&2; exit 1; }
 echo "all tests passed"
