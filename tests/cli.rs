@@ -382,6 +382,7 @@ fn new_writes_a_crate_with_its_names_the_toolchain_and_the_guard() {
     assert!(root.contains(&format!("diffsim = {{ path = \"{}\" }}", checkout.display())), "{root}");
     assert!(read("src/lib.rs").contains("use heat_fit_solver::{"));
     assert!(read("run/src/main.rs").contains("heat_fit::main()"));
+    assert!(read("run/tests/checks.rs").contains("heat_fit::run().unwrap()"));
     assert!(read("run/Cargo.toml").contains("name = \"heat-fit\""));
     assert_eq!(read("rust-toolchain.toml"), std::fs::read_to_string(checkout.join("rust-toolchain.toml")).unwrap());
     let guard = read("cargo-enzyme");

@@ -136,6 +136,7 @@ pub fn new(a: NewArgs) -> Result<(), CliError> {
     template!(root, &names, "solver/src/lib.rs");
     template!(root, &names, "run/Cargo.toml");
     template!(root, &names, "run/src/main.rs");
+    template!(root, &names, "run/tests/checks.rs");
     write(root, "rust-toolchain.toml", TOOLCHAIN)?;
     write(root, "Cargo.lock", LOCK)?;
     write(root, ".gitignore", "/target\n*.log\n")?;

@@ -32,7 +32,9 @@ pub fn main() -> std::process::ExitCode {
     }
 }
 
-fn run() -> Result<()> {
+/// Every part in order: the checks of one step, a rollout, the checks
+/// through it, the fit (what `main` runs, and the test in `run/tests`).
+pub fn run() -> Result<()> {
     one_step_checks()?;
     rollout_and_its_gradient()?;
     checks_through_the_rollout()?;
