@@ -48,24 +48,31 @@ diffsim::differentiable!(Fkpp => fkpp_step); // Forward, Vjp and Jvp by Enzyme
 // ANCHOR_END: step
 
 // ANCHOR: stencil
+/// The variants below wrap the Euler step's type and have its sizes.
+macro_rules! sizes_of_the_euler_step {
+    ($($variant:ty),*) => {$(
+        impl Operator for $variant {
+            fn n_in(&self) -> usize {
+                self.0.n
+            }
+            fn n_out(&self) -> usize {
+                self.0.n
+            }
+            fn n_params(&self) -> usize {
+                2
+            }
+        }
+    )*};
+}
+
+sizes_of_the_euler_step!(FkppStencil, FkppHeun, FkppHand);
+
 /// The same step written as a pointwise map over shifted views (`l`, `c`,
 /// `r` are the left, centre and right neighbours of every cell):
 /// `stencil3!` differentiates the map and gathers the adjoint, which is
 /// faster than differentiating the whole loop on large grids.
 #[derive(Clone, Copy, Debug)]
 pub struct FkppStencil(pub Fkpp);
-
-impl Operator for FkppStencil {
-    fn n_in(&self) -> usize {
-        self.0.n
-    }
-    fn n_out(&self) -> usize {
-        self.0.n
-    }
-    fn n_params(&self) -> usize {
-        2
-    }
-}
 
 fn fkpp_map(op: &FkppStencil, l: &[f64], c: &[f64], r: &[f64], p: &[f64], out: &mut [f64]) {
     for i in 0..out.len() {
@@ -82,18 +89,6 @@ diffsim::stencil3!(FkppStencil => fkpp_map);
 /// (`scratch = len`), never allocated inside the differentiated function.
 #[derive(Clone, Copy, Debug)]
 pub struct FkppHeun(pub Fkpp);
-
-impl Operator for FkppHeun {
-    fn n_in(&self) -> usize {
-        self.0.n
-    }
-    fn n_out(&self) -> usize {
-        self.0.n
-    }
-    fn n_params(&self) -> usize {
-        2
-    }
-}
 
 fn heun_step(op: &FkppHeun, u: &[f64], p: &[f64], y: &mut [f64], predictor: &mut [f64]) {
     fkpp_step(&op.0, u, p, predictor);
@@ -116,18 +111,6 @@ diffsim::differentiable!(FkppHeun => heun_step, scratch = heun_scratch);
 /// contract: the VJP *adds* into `du` and `dp` and consumes (zeroes) `dy`.
 #[derive(Clone, Copy, Debug)]
 pub struct FkppHand(pub Fkpp);
-
-impl Operator for FkppHand {
-    fn n_in(&self) -> usize {
-        self.0.n
-    }
-    fn n_out(&self) -> usize {
-        self.0.n
-    }
-    fn n_params(&self) -> usize {
-        2
-    }
-}
 
 impl Forward for FkppHand {
     fn forward(&self, u: &[f64], p: &[f64], y: &mut [f64]) {
