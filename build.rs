@@ -5,7 +5,7 @@
 //! setting `lto=\"fat\"`".
 //!
 //! In this checkout and in crates made by `diffsim new`, the rustc wrapper
-//! `scripts/rustc-release-guard` (set in `.cargo/config.toml`) stops a debug
+//! `scripts/rustc-guard` (set in `.cargo/config.toml`) stops a debug
 //! build at its first crate and lets `cargo check` through; this script
 //! then lets debug checks pass (unless the profile has no debug info, by
 //! which the wrapper tells a debug build). Elsewhere (your own setup, another wrapper)
@@ -22,7 +22,7 @@ fn main() {
     let debug = var("PROFILE") == "debug";
     // The wrapper recognises a debug build by its debug info; without debug
     // info (`debug = 0` in the profile) it cannot, and this script decides.
-    let guarded = var("RUSTC_WRAPPER").ends_with("rustc-release-guard") && var("DEBUG") == "true";
+    let guarded = var("RUSTC_WRAPPER").ends_with("rustc-guard") && var("DEBUG") == "true";
     let clippy = var("RUSTC_WORKSPACE_WRAPPER").contains("clippy-driver");
     if debug && !guarded && !clippy && std::env::var_os("DIFFSIM_ALLOW_DEBUG").is_none() {
         println!(

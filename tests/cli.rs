@@ -389,8 +389,8 @@ fn new_writes_a_crate_with_its_names_the_toolchain_and_the_guard() {
     assert!(guard.contains(&format!("pitfalls=\"{}/docs/pitfalls.md\"", checkout.display())), "the guard's pitfalls line was not replaced");
     let config = read(".cargo/config.toml");
     assert!(config.contains(&format!("target-dir = \"{}/target\"", checkout.display())), "{config}");
-    assert!(config.contains(&format!("rustc-wrapper = \"{}/scripts/rustc-release-guard\"", checkout.display())), "{config}");
-    assert!(checkout.join("scripts/rustc-release-guard").is_file());
+    assert!(config.contains(&format!("rustc-wrapper = \"{}/scripts/rustc-guard\"", checkout.display())), "{config}");
+    assert!(checkout.join("scripts/rustc-guard").is_file());
     // Not over an existing crate.
     fails_with(&["new", dir.to_str().unwrap()], "exists and is not an empty folder");
 }
@@ -440,7 +440,7 @@ fn the_guard_explains_the_failures_it_knows() {
 fn release_guard(args: &[&str], allow_debug: bool) -> (i32, String, String) {
     let tmp = scratch_dir(&format!("guard-tmp-{}", args.join("").len()));
     std::fs::create_dir_all(&tmp).unwrap();
-    let mut cmd = Command::new(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/rustc-release-guard"));
+    let mut cmd = Command::new(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/rustc-guard"));
     cmd.arg("echo").args(args).env("TMPDIR", &tmp).env_remove("DIFFSIM_ALLOW_DEBUG");
     if allow_debug {
         cmd.env("DIFFSIM_ALLOW_DEBUG", "1");
@@ -471,4 +471,19 @@ fn the_rustc_wrapper_stops_debug_builds_only() {
     // The way out it names.
     let (code, _, _) = release_guard(&["--emit=link", "-C", "debuginfo=2", "--out-dir", "/p/target/debug/deps"], true);
     assert_eq!(code, 0);
+}
+
+#[test]
+fn the_rustc_wrapper_explains_a_compiler_killed_by_a_signal() {
+    use std::os::unix::process::ExitStatusExt;
+    // A stand-in for rustc that dies of SIGABRT, as rustc does when Enzyme's
+    // type analysis aborts.
+    let out = Command::new(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/rustc-guard"))
+        .args(["sh", "-c", "kill -ABRT $$", "--crate-name", "my_solver_solver", "--emit=link", "--out-dir", "/p/target/release/deps"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("killed by signal 6 while compiling crate 'my_solver_solver'") && err.contains("docs/pitfalls.md"), "{err}");
+    // It dies of the same signal, so that cargo reports it as before.
+    assert_eq!(out.status.signal(), Some(6), "{:?}", out.status);
 }

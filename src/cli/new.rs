@@ -147,7 +147,7 @@ pub fn new(a: NewArgs) -> Result<(), CliError> {
         "[build]\n\
          # Stops a debug build at its first crate, with what to run instead\n\
          # (Enzyme needs a release build); `cargo check` passes.\n\
-         rustc-wrapper = \"{diffsim_str}/scripts/rustc-release-guard\"\n"
+         rustc-wrapper = \"{diffsim_str}/scripts/rustc-guard\"\n"
     );
     if !a.own_target {
         config += &format!(
