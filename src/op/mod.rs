@@ -306,16 +306,16 @@ impl<T: Forward + ?Sized> OperatorExt for T {}
 #[doc(hidden)]
 #[track_caller]
 pub fn check_lengths<O: Operator + Forward + ?Sized>(op: &O, function: &str, x: &[f64], p: &[f64], extra: Option<(&str, usize, usize)>) {
-    let name = op.name();
+    // The name is built only for the message: these run on every call.
     if x.len() != op.n_in() {
-        panic!("{function} on {name}: `x` has length {}, the operator expects {} (n_in)", x.len(), op.n_in());
+        panic!("{function} on {}: `x` has length {}, the operator expects {} (n_in)", op.name(), x.len(), op.n_in());
     }
     if p.len() != op.n_params() {
-        panic!("{function} on {name}: `p` has length {}, the operator expects {} (n_params)", p.len(), op.n_params());
+        panic!("{function} on {}: `p` has length {}, the operator expects {} (n_params)", op.name(), p.len(), op.n_params());
     }
     if let Some((what, got, want)) = extra
         && got != want
     {
-        panic!("{function} on {name}: `{what}` has length {got}, the operator expects {want}");
+        panic!("{function} on {}: `{what}` has length {got}, the operator expects {want}", op.name());
     }
 }

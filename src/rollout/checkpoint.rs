@@ -173,12 +173,7 @@ impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
     /// x_t)ᵀ·λ_{t+1}`.
     fn vjp(&mut self, t: usize, x: &[R]) {
         let r = self.rollout;
-        let dp = if r.per_step {
-            let np = r.op.n_params();
-            &mut self.dp[t * np..(t + 1) * np]
-        } else {
-            &mut self.dp[..]
-        };
+        let dp = &mut self.dp[r.block(t)];
         if t + 1 == r.steps && self.non_finite.is_none() && !super::all_finite(&self.lam) {
             // The seed itself: the loss gradient at x_T.
             self.non_finite = Some(r.steps);

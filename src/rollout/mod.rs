@@ -241,12 +241,15 @@ impl<'a, R: Real, O: Forward<R>> Rollout<'a, O, R> {
 
     /// The parameters of the step from `x_t`.
     pub fn p_at(&self, t: usize) -> &'a [R] {
-        if self.per_step {
-            let np = self.op.n_params();
-            &self.p[t * np..(t + 1) * np]
-        } else {
-            self.p
-        }
+        &self.p[self.block(t)]
+    }
+
+    /// Where the step from `x_t` finds its part of a vector shaped like `p`
+    /// (the parameters, or a tangent or gradient of them): block `t` when
+    /// the parameters are per step, else all of it.
+    fn block(&self, t: usize) -> std::ops::Range<usize> {
+        let np = self.op.n_params();
+        if self.per_step { t * np..(t + 1) * np } else { 0..self.p.len() }
     }
 
     fn check_state(&self, x0: &[R]) -> Result<(), RolloutError> {

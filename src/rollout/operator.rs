@@ -110,13 +110,7 @@ impl<'a, O: Forward, L: Loss> RolloutLoss<'a, O, L> {
     /// The rollout at the operator's inputs `(x, p)`: `(x_0, rollout)`.
     #[track_caller]
     fn at<'b>(&'b self, x: &'b [f64], p: &'b [f64]) -> (&'b [f64], Rollout<'b, O>) {
-        let (n, m) = (self.n_in(), self.n_params());
-        assert!(
-            x.len() == n && p.len() == m,
-            "RolloutLoss: (x, p) have lengths ({}, {}), the operator expects ({n}, {m}) (see RolloutLoss::point)",
-            x.len(),
-            p.len()
-        );
+        crate::op::check_lengths(self, "RolloutLoss (`point()` gives the inputs)", x, p, None);
         let x0 = if self.wrt.x0() { x } else { self.x0 };
         let mut r = self.rollout;
         if self.wrt.p() {
@@ -168,8 +162,7 @@ impl<O: Jvp, L: Loss> Jvp for RolloutLoss<'_, O, L> {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         let (x0, r) = self.at(x, p);
         let n = x0.len();
-        let np = r.op.n_params();
-        let zero_tp = vec![0.0; np];
+        let zero_tp = vec![0.0; r.op.n_params()];
         let (mut xc, mut tc) = (x0.to_vec(), if self.wrt.x0() { tx.to_vec() } else { vec![0.0; n] });
         let (mut xn, mut tn, mut g) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
         let (mut value, mut slope) = (0.0, 0.0);
@@ -184,11 +177,7 @@ impl<O: Jvp, L: Loss> Jvp for RolloutLoss<'_, O, L> {
         }
         for t in 0..r.steps {
             // The tangent of the step from x_t: its block of tp (or zero).
-            let tp_t = match (self.wrt.p(), r.per_step) {
-                (false, _) => &zero_tp[..],
-                (true, true) => &tp[t * np..(t + 1) * np],
-                (true, false) => tp,
-            };
+            let tp_t = if self.wrt.p() { &tp[r.block(t)] } else { &zero_tp[..] };
             r.op.jvp(&xc, r.p_at(t), &tc, tp_t, &mut xn, &mut tn);
             std::mem::swap(&mut xc, &mut xn);
             std::mem::swap(&mut tc, &mut tn);
