@@ -97,9 +97,11 @@ pub fn line_plot(path: &Path, axes: &Axes<'_>, series: &[Series]) -> Result<(), 
 }
 
 /// A tick label with at most three significant digits.
-fn tick(v: &f64) -> String {
+/// Values below `zero` in magnitude are labelled 0 (a linear axis's tick
+/// at rounding distance from zero, such as −5.6e−17).
+fn tick(v: &f64, zero: f64) -> String {
     let a = v.abs();
-    if a == 0.0 {
+    if a <= zero {
         "0".into()
     } else if !(1e-3..1e5).contains(&a) {
         format!("{v:.1e}")
@@ -139,6 +141,9 @@ fn draw_on<DB: DrawingBackend>(root: DrawingArea<DB, plotters::coord::Shift>, ax
     let log_y = axes.log_y && decade(range(pts().map(|p| p.1), true));
     let xr = range(pts().map(|p| p.0), log_x);
     let yr = range(pts().map(|p| p.1), log_y);
+    let zero = |log: bool, r: &std::ops::Range<f64>| if log { 0.0 } else { 1e-9 * (r.end - r.start).abs() };
+    let (zx, zy) = (zero(log_x, &xr), zero(log_y, &yr));
+    let (tick_x, tick_y) = (move |v: &f64| tick(v, zx), move |v: &f64| tick(v, zy));
     let mut builder = ChartBuilder::on(&root);
     builder.caption(axes.title, ("sans-serif", 22)).margin(12).x_label_area_size(45).y_label_area_size(75);
     // Four axis kinds; the drawing is the same for each.
@@ -149,8 +154,8 @@ fn draw_on<DB: DrawingBackend>(root: DrawingArea<DB, plotters::coord::Shift>, ax
                 .configure_mesh()
                 .x_desc(axes.x)
                 .y_desc(axes.y)
-                .x_label_formatter(&tick)
-                .y_label_formatter(&tick)
+                .x_label_formatter(&tick_x)
+                .y_label_formatter(&tick_y)
                 .label_style(("sans-serif", 14))
                 .draw()
                 .map_err(|x| e(&x))?;

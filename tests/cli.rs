@@ -286,6 +286,28 @@ fn sip_heat_experiment_runs_and_reports_json() {
 }
 
 #[test]
+fn cavity_experiment_reports_json_and_writes_its_profiles() {
+    let out = std::env::temp_dir().join(format!("diffsim-cavity-{}", std::process::id()));
+    let o = out.to_str().unwrap();
+    let (code, stdout, err) = diffsim(&["experiment", "cavity", "--re", "100", "--resolution", "16", "--json", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    for key in ["u_min", "y_at_u_min", "v_max", "x_at_v_max", "v_min", "x_at_v_min", "time_s"] {
+        assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
+    }
+    assert_eq!(last["cells"].as_u64(), Some(256), "{last}");
+    assert!(last["steps"].as_u64().is_some_and(|s| s > 10), "{last}");
+    // 16² is coarse: within 10 % of Ghia et al., and their values echoed.
+    assert!((last["u_min"].as_f64().unwrap() + 0.2109).abs() < 0.021, "{last}");
+    assert_eq!(last["ghia"]["v_max"].as_f64(), Some(0.17527), "{last}");
+    assert!(out.join("cavity_re100.csv").exists() && out.join("cavity_re100.png").exists());
+    fails_with(&["experiment", "cavity", "--re", "0"], "invalid argument --re");
+    fails_with(&["experiment", "cavity", "--resolution", "2"], "invalid argument --resolution");
+    fails_with(&["experiment", "cavity", "--resolution", "8", "--max-steps", "10"], "no steady state after 10 steps");
+    std::fs::remove_dir_all(&out).ok();
+}
+
+#[test]
 fn hig_oscillators_experiment_runs_and_reports_json() {
     let out = std::env::temp_dir().join(format!("diffsim-hig-{}", std::process::id()));
     let o = out.to_str().unwrap();

@@ -7,6 +7,7 @@ mod boundaries;
 mod checks;
 mod cli;
 mod doc_examples;
+mod flow;
 mod fluids;
 mod nn;
 mod p1;

@@ -20,6 +20,7 @@ pub mod boundary;
 pub mod burgers;
 pub mod diffusion;
 pub mod exact;
+pub mod flow;
 pub mod linalg;
 pub mod multigrid;
 pub mod nn;

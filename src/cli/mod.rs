@@ -3,6 +3,7 @@
 mod accuracy;
 mod bench;
 mod demo;
+mod flow;
 mod measure;
 mod new;
 mod scene;
@@ -38,6 +39,9 @@ pub enum CliError {
     /// A scene file is malformed.
     #[error(transparent)]
     Scene(#[from] crate::scene::SceneError),
+    /// A viscous flow could not be simulated.
+    #[error(transparent)]
+    Flow(#[from] diffsim_solvers::flow::FlowError),
     /// A scene run failed.
     #[error(transparent)]
     Run(#[from] crate::scene::RunError),

@@ -47,6 +47,9 @@ pub enum ExperimentCommand {
     /// Inverse heat (64 × 64, ν·t = 8): SIP vs Adam vs plain gradient
     /// descent, same network, start and batches.
     SipHeat(SipArgs),
+    /// The lid-driven cavity marched to its steady state, its centreline
+    /// extrema compared with Ghia, Ghia & Shin (1982).
+    Cavity(super::flow::CavityArgs),
 }
 
 /// Arguments of `diffsim experiment sip-heat`.
@@ -336,6 +339,7 @@ pub(super) fn experiment(c: ExperimentCommand) -> Result<(), CliError> {
         ExperimentCommand::SolWake(a) => sol_wake(a),
         ExperimentCommand::HigOscillators(a) => hig_oscillators(a),
         ExperimentCommand::SipHeat(a) => sip_heat(a),
+        ExperimentCommand::Cavity(a) => super::flow::cavity(a),
     }
 }
 

@@ -370,6 +370,17 @@ impl PressureSolver {
     /// the solution returned is the one with zero mean on the fluid.
     /// Returns the number of iterations.
     pub fn solve(&mut self, b: &[f64], p: &mut [f64]) -> Result<usize, NoConvergence> {
+        self.solve_impl(b, p, false)
+    }
+
+    /// [`PressureSolver::solve`] starting from the `p` given instead of
+    /// zero: the same tolerance relative to `‖b‖`, fewer iterations when `p`
+    /// is already close.
+    pub fn solve_from(&mut self, b: &[f64], p: &mut [f64]) -> Result<usize, NoConvergence> {
+        self.solve_impl(b, p, true)
+    }
+
+    fn solve_impl(&mut self, b: &[f64], p: &mut [f64], warm: bool) -> Result<usize, NoConvergence> {
         let (nx, ny) = (self.nx, self.ny);
         let nn = nx * ny;
         // Remove the component along the null vector (constant on the fluid).
@@ -384,10 +395,18 @@ impl PressureSolver {
         for (c, (r, &bv)) in self.r.iter_mut().zip(b).enumerate() {
             *r = bv - fluid_mean(c, &self.fluid);
         }
-        p.fill(0.0);
         let bnorm = dot(&self.r, &self.r).sqrt();
         if bnorm == 0.0 {
+            p.fill(0.0);
             return Ok(0);
+        }
+        if warm && p.iter().all(|v| v.is_finite()) {
+            self.apply_into_q(special, p);
+            for (r, &q) in self.r.iter_mut().zip(&self.q) {
+                *r -= q;
+            }
+        } else {
+            p.fill(0.0);
         }
         let target = self.tolerance * bnorm;
         let plain = self.precond == Preconditioner::None;
@@ -397,13 +416,7 @@ impl PressureSolver {
         loop {
             if rr.sqrt() <= target {
                 // Confirm on the true residual; restart from it if needed.
-                if special {
-                    apply_pressure_matrix(nx, ny, p, &mut self.q);
-                } else {
-                    let mut q = std::mem::take(&mut self.q);
-                    self.apply_general(p, &mut q);
-                    self.q = q;
-                }
+                self.apply_into_q(special, p);
                 for (c, ((q, &bv), r)) in self.q.iter().zip(b).zip(self.r.iter_mut()).enumerate() {
                     *r = bv - fluid_mean(c, &self.fluid) - q;
                 }
@@ -440,6 +453,17 @@ impl PressureSolver {
             rz = rz_new;
             direction(beta, if plain { &self.r } else { &self.z }, &mut self.d);
             it += 1;
+        }
+    }
+
+    /// `q = A·p`, with the closed square box's fused product when `special`.
+    fn apply_into_q(&mut self, special: bool, p: &[f64]) {
+        if special {
+            apply_pressure_matrix(self.nx, self.ny, p, &mut self.q);
+        } else {
+            let mut q = std::mem::take(&mut self.q);
+            self.apply_general(p, &mut q);
+            self.q = q;
         }
     }
 
@@ -650,6 +674,18 @@ impl ProjectScratch {
     pub fn new(cells: usize) -> Self {
         Self { d: vec![0.0; cells], p: vec![0.0; cells] }
     }
+
+    /// The pressure of the last projection, in the projection's units: the
+    /// velocity changed by its unit-spaced differences (`u −= p[c+1] − p[c]`).
+    pub fn pressure(&self) -> &[f64] {
+        &self.p
+    }
+
+    /// Multiplies the kept pressure by `r` (a warm start for a projection
+    /// whose step is `r` times the last one's).
+    pub fn scale_pressure(&mut self, r: f64) {
+        self.p.iter_mut().for_each(|p| *p *= r);
+    }
 }
 
 /// Step 5 of P2, for any boundary, in place on the velocity part of the
@@ -658,8 +694,24 @@ impl ProjectScratch {
 /// periodic, outflow; fluid–fluid only), periodic copies refreshed. The
 /// solver must be built for `cfg`'s boundary. Returns the CG iterations.
 pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
-    debug_assert_eq!(solver.boundary, cfg.boundary, "pressure solver built for another boundary");
     let (_, u, v) = cfg.split_mut(y);
+    project_velocity(cfg, u, v, solver, scratch, false)
+}
+
+/// [`project`] on separate velocity arrays. With `warm`, the solve starts
+/// from the pressure left in `scratch` by the previous call (fewer
+/// iterations when consecutive projections are alike, as in a march to a
+/// steady state) instead of from zero; either way it ends at the same
+/// tolerance. The pressure stays in `scratch` ([`ProjectScratch::pressure`]).
+pub fn project_velocity(
+    cfg: &Smoke2d,
+    u: &mut [f64],
+    v: &mut [f64],
+    solver: &mut PressureSolver,
+    scratch: &mut ProjectScratch,
+    warm: bool,
+) -> Result<usize, NoConvergence> {
+    debug_assert_eq!(solver.boundary, cfg.boundary, "pressure solver built for another boundary");
     divergence(cfg, u, v, &mut scratch.d);
     for d in scratch.d.iter_mut() {
         *d = -*d;
@@ -669,7 +721,7 @@ pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratc
             *d *= wv;
         }
     }
-    let iterations = solver.solve(&scratch.d, &mut scratch.p)?;
+    let iterations = if warm { solver.solve_from(&scratch.d, &mut scratch.p)? } else { solver.solve(&scratch.d, &mut scratch.p)? };
     let (p, fluid) = (&scratch.p, solver.fluid());
     for (axis, vel) in [u, v].into_iter().enumerate() {
         for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
