@@ -63,3 +63,39 @@ pub fn pseudo_inverse_power_apply(m: usize, n: usize, a: &[f64], b: &[f64], beta
     }
     Ok((0..n).map(|j| (0..k).map(|col| d.v[j * k + col] * c[col]).sum()).collect())
 }
+
+/// A sparse symmetric positive definite matrix factored once by faer's
+/// sparse Cholesky (`L·Lᵀ`, fill-reducing ordering), then solved many
+/// times: the pressure matrix of a fixed domain.
+#[derive(Clone, Debug)]
+pub struct SparseCholesky {
+    llt: faer::sparse::linalg::solvers::Llt<usize, f64>,
+    n: usize,
+}
+
+/// Why a sparse Cholesky factorisation failed (the matrix is not positive
+/// definite, or memory ran out).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct FactorFailed(pub String);
+
+impl SparseCholesky {
+    /// Factors the `n × n` matrix given by its lower-triangle entries
+    /// `(row, column, value)`, `row ≥ column` (duplicates are summed).
+    pub fn new(n: usize, lower: &[(usize, usize, f64)]) -> Result<Self, FactorFailed> {
+        use faer::sparse::{SparseColMat, Triplet};
+        let triplets: Vec<Triplet<usize, usize, f64>> = lower.iter().map(|&(r, c, v)| Triplet::new(r, c, v)).collect();
+        let mat = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets).map_err(|e| FactorFailed(format!("{e:?}")))?;
+        let symbolic = faer::sparse::linalg::solvers::SymbolicLlt::try_new(mat.symbolic(), faer::Side::Lower).map_err(|e| FactorFailed(format!("{e:?}")))?;
+        let llt =
+            faer::sparse::linalg::solvers::Llt::try_new_with_symbolic(symbolic, mat.as_ref(), faer::Side::Lower).map_err(|e| FactorFailed(format!("{e:?}")))?;
+        Ok(Self { llt, n })
+    }
+
+    /// Overwrites `b` with `A⁻¹·b`.
+    pub fn solve_in_place(&self, b: &mut [f64]) {
+        use faer::linalg::solvers::SolveCore;
+        assert_eq!(b.len(), self.n, "sparse Cholesky: right-hand side length");
+        let rhs = faer::MatMut::from_column_major_slice_mut(b, self.n, 1);
+        self.llt.solve_in_place_with_conj(faer::Conj::No, rhs);
+    }
+}

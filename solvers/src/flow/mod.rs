@@ -70,6 +70,8 @@ pub enum FlowError {
     /// Fewer than two cells along an axis, or a non-positive or non-finite
     /// cell size or viscosity.
     Grid,
+    /// The pressure matrix could not be factored (out of memory).
+    Factor,
     /// The pressure solve failed at this step.
     Pressure {
         /// The step.
@@ -99,6 +101,7 @@ impl fmt::Display for FlowError {
             FlowError::Boundary(e) => e.fmt(f),
             FlowError::Periodic => f.write_str("flow: periodic sides are not supported by the viscous solver"),
             FlowError::Grid => f.write_str("flow: the grid needs at least 2 × 2 cells and a positive cell size and viscosity"),
+            FlowError::Factor => f.write_str("flow: the sparse Cholesky factorisation of the pressure matrix failed (out of memory?)"),
             FlowError::Pressure { step, cause } => write!(f, "flow: step {step}: {cause}"),
             FlowError::NotFinite { step } => write!(f, "flow: the velocity is not finite after step {step} (unstable time step?)"),
             FlowError::NotSteady { steps, rate, tolerance } => {
@@ -238,7 +241,8 @@ pub struct Stepper {
 impl Stepper {
     /// A stepper for a validated configuration; the pressure solve to
     /// relative tolerance `tolerance`. The closed square box with a side of
-    /// a power of two uses the multigrid-preconditioned solve, others MIC(0).
+    /// a power of two uses the multigrid-preconditioned solve, others a
+    /// sparse Cholesky factor (faer) computed here.
     pub fn new(cfg: Flow2d, tolerance: f64) -> Result<Self, FlowError> {
         cfg.validate()?;
         let grid = cfg.grid();
@@ -248,7 +252,7 @@ impl Stepper {
         let solver = if multigrid {
             PressureSolver::new(cfg.nx, tolerance, max_it, crate::smoke::Preconditioner::Multigrid)
         } else {
-            PressureSolver::general(cfg.nx, cfg.ny, cfg.boundary, tolerance, max_it, None)
+            PressureSolver::general_direct(cfg.nx, cfg.ny, cfg.boundary, tolerance, max_it, None).map_err(|_| FlowError::Factor)?
         };
         let n = cfg.n_vel();
         Ok(Self {
