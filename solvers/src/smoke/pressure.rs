@@ -307,6 +307,80 @@ impl PressureSolver {
         Ok(s)
     }
 
+    /// A direct solver ([`Preconditioner::Cholesky`]) for the matrix of
+    /// faces open by fractions: `(A·p)[c] = Σ_f a_f·(p_c − p_m)` over the
+    /// cell's faces `f` with apertures `a_f ∈ [0, 1]` (`aperture_u` in the
+    /// x-face layout, `aperture_v` in the y-face layout), the neighbour `m`
+    /// a ghost `p = 0` across an outflow side, nothing across a wall or an
+    /// inflow side: the projection onto velocities whose aperture-weighted
+    /// flux balances in every cell (cut cells). Cells with every face shut
+    /// are identity rows. Periodic sides are not supported here.
+    ///
+    /// # Panics
+    /// If a side is periodic or an aperture array has the wrong length.
+    pub fn with_apertures(
+        nx: usize,
+        ny: usize,
+        boundary: Boundary,
+        tolerance: f64,
+        max_iterations: usize,
+        aperture_u: &[f64],
+        aperture_v: &[f64],
+    ) -> Result<Self, crate::linalg::FactorFailed> {
+        assert!(!boundary.periodic_x() && !boundary.periodic_y(), "apertures with periodic sides");
+        assert_eq!(aperture_u.len(), ny * (nx + 1), "x-face apertures");
+        assert_eq!(aperture_v.len(), (ny + 1) * nx, "y-face apertures");
+        let mut k = Coefficients { diag: vec![0.0; nx * ny], ax: vec![0.0; nx * ny], ay: vec![0.0; nx * ny], wraps: false };
+        let side = |s: Side| if s == Side::Outflow { 1.0 } else { 0.0 };
+        for j in 0..ny {
+            for i in 0..nx {
+                let c = j * nx + i;
+                let (l, r) = (aperture_u[j * (nx + 1) + i], aperture_u[j * (nx + 1) + i + 1]);
+                let (d, u) = (aperture_v[j * nx + i], aperture_v[(j + 1) * nx + i]);
+                let sum = l * if i > 0 { 1.0 } else { side(boundary.left) }
+                    + r * if i + 1 < nx { 1.0 } else { side(boundary.right) }
+                    + d * if j > 0 { 1.0 } else { side(boundary.bottom) }
+                    + u * if j + 1 < ny { 1.0 } else { side(boundary.top) };
+                k.diag[c] = sum;
+                k.ax[c] = if i + 1 < nx { -r } else { 0.0 };
+                k.ay[c] = if j + 1 < ny { -u } else { 0.0 };
+            }
+        }
+        // Cells coupled to nothing: identity rows, and not fluid (for the
+        // mean removed in a closed box).
+        let open: Vec<f64> = (0..nx * ny)
+            .map(|c| {
+                if k.diag[c] > 0.0 || k.ax[c] != 0.0 || k.ay[c] != 0.0 || (c > 0 && k.ax[c - 1] != 0.0) || (c >= nx && k.ay[c - nx] != 0.0) { 1.0 } else { 0.0 }
+            })
+            .collect();
+        for (d, &o) in k.diag.iter_mut().zip(&open) {
+            if o == 0.0 {
+                *d = 1.0;
+            }
+        }
+        let z = vec![0.0; nx * ny];
+        let mut s = Self {
+            nx,
+            ny,
+            tolerance,
+            max_iterations,
+            precond: Preconditioner::Cholesky,
+            inv_diag: z.clone(),
+            coeffs: None,
+            mg: None,
+            chol: None,
+            fluid: Some(open),
+            boundary,
+            r: z.clone(),
+            z: z.clone(),
+            d: z.clone(),
+            q: z,
+        };
+        s.factor_mic0(k);
+        s.chol = Some(crate::linalg::SparseCholesky::new(nx * ny, &s.lower_triplets())?);
+        Ok(s)
+    }
+
     /// The lower triangle of the general matrix, `(row, column, value)`,
     /// with the couplings across periodic sides; a singular matrix (no
     /// outflow side) gets 1 added to its first fluid cell's diagonal, which
@@ -346,8 +420,12 @@ impl PressureSolver {
     /// diagonal and couplings read off [`apply_boundary_matrix`] applied to
     /// unit vectors' closed forms.
     fn factor_general(&mut self) {
-        const TAU: f64 = 0.97;
-        const SIGMA: f64 = 0.25;
+        let k = self.coefficients_general();
+        self.factor_mic0(k);
+    }
+
+    /// The general matrix's coefficients from the cells' fluid weights.
+    fn coefficients_general(&self) -> Coefficients {
         let (nx, ny, b) = (self.nx, self.ny, self.boundary);
         let w = |c: usize| self.fluid.as_ref().map_or(1.0, |w| w[c]);
         let mut k = Coefficients { diag: vec![0.0; nx * ny], ax: vec![0.0; nx * ny], ay: vec![0.0; nx * ny], wraps: b.periodic_x() || b.periodic_y() };
@@ -376,8 +454,16 @@ impl PressureSolver {
                 k.ay[c] = if j + 1 < ny { -w(c) * w(c + nx) } else { 0.0 };
             }
         }
+        k
+    }
+
+    /// MIC(0) of the matrix with coefficients `k`, which it keeps.
+    fn factor_mic0(&mut self, k: Coefficients) {
+        const TAU: f64 = 0.97;
+        const SIGMA: f64 = 0.25;
+        let (nx, n) = (self.nx, self.nx * self.ny);
         let pc = &mut self.inv_diag;
-        for c in 0..nx * ny {
+        for c in 0..n {
             let mut e = k.diag[c];
             // `ax` is 0 at the end of a row, so the left neighbour of a
             // row's first cell contributes nothing.
@@ -767,7 +853,7 @@ impl ProjectScratch {
 /// solver must be built for `cfg`'s boundary. Returns the CG iterations.
 pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
     let (_, u, v) = cfg.split_mut(y);
-    project_velocity(cfg, u, v, solver, scratch, false)
+    project_velocity(cfg, u, v, None, solver, scratch, false)
 }
 
 /// [`project`] on separate velocity arrays. With `warm`, the solve starts
@@ -775,16 +861,40 @@ pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratc
 /// iterations when consecutive projections are alike, as in a march to a
 /// steady state) instead of from zero; either way it ends at the same
 /// tolerance. The pressure stays in `scratch` ([`ProjectScratch::pressure`]).
+///
+/// With `apertures` (x-faces, y-faces; the solver built by
+/// [`PressureSolver::with_apertures`] from the same), the divergence weighs
+/// each face's flux by its open fraction and every face open by any
+/// fraction takes the pressure gradient (cut cells).
 pub fn project_velocity(
     cfg: &Smoke2d,
     u: &mut [f64],
     v: &mut [f64],
+    apertures: Option<(&[f64], &[f64])>,
     solver: &mut PressureSolver,
     scratch: &mut ProjectScratch,
     warm: bool,
 ) -> Result<usize, NoConvergence> {
     debug_assert_eq!(solver.boundary, cfg.boundary, "pressure solver built for another boundary");
-    divergence(cfg, u, v, &mut scratch.d);
+    let weight = |axis: usize, k: usize| apertures.map_or(1.0, |(au, av)| if axis == 0 { au[k] } else { av[k] });
+    match apertures {
+        None => divergence(cfg, u, v, &mut scratch.d),
+        Some(_) => {
+            let d = &mut scratch.d;
+            d.fill(0.0);
+            for (axis, vel) in [&*u, &*v].into_iter().enumerate() {
+                for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
+                    let w = weight(axis, f.index) * vel[f.index];
+                    if let Some(c) = f.lower {
+                        d[c] += w;
+                    }
+                    if let Some(c) = f.upper {
+                        d[c] -= w;
+                    }
+                });
+            }
+        }
+    }
     for d in scratch.d.iter_mut() {
         *d = -*d;
     }
@@ -799,7 +909,11 @@ pub fn project_velocity(
         for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
             if f.projected {
                 let grad = f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]);
-                vel[f.index] -= open(fluid, &f) * grad;
+                let open = match apertures {
+                    None => open(fluid, &f),
+                    Some(_) => (weight(axis, f.index) > 0.0) as u8 as f64,
+                };
+                vel[f.index] -= open * grad;
                 if let Some(k) = f.copy {
                     vel[k] = vel[f.index];
                 }
