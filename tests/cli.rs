@@ -308,6 +308,29 @@ fn cavity_experiment_reports_json_and_writes_its_profiles() {
 }
 
 #[test]
+fn cylinder_experiment_reports_both_cases_as_json() {
+    let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-1", "--resolution", "10", "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    for key in ["cd", "cl", "dp", "time_s"] {
+        assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
+    }
+    assert_eq!(last["cells"].as_u64(), Some(220 * 41), "{last}");
+    assert!((last["cd"].as_f64().unwrap() - 5.5795).abs() < 0.03 * 5.5795, "{last}");
+    let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-2", "--resolution", "10", "--t-end", "8", "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    for key in ["cd_max", "cl_max", "st", "time_s"] {
+        assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
+    }
+    // 10 cells per diameter: the period within 5 %, the drag peak within 5 %.
+    assert!((last["st"].as_f64().unwrap() - 0.3).abs() < 0.015, "{last}");
+    assert!((last["cd_max"].as_f64().unwrap() - 3.23).abs() < 0.16, "{last}");
+    fails_with(&["experiment", "cylinder", "--case", "2d-1", "--resolution", "15"], "invalid argument --resolution");
+    fails_with(&["experiment", "cylinder", "--case", "2d-2", "--t-end", "1"], "invalid argument --t-end");
+}
+
+#[test]
 fn hig_oscillators_experiment_runs_and_reports_json() {
     let out = std::env::temp_dir().join(format!("diffsim-hig-{}", std::process::id()));
     let o = out.to_str().unwrap();

@@ -1,6 +1,7 @@
-//! `diffsim experiment cavity`: the viscous solver
-//! ([`diffsim_solvers::flow`]) on the lid-driven cavity, marched to its
-//! steady state and compared with Ghia, Ghia & Shin (1982).
+//! `diffsim experiment cavity` and `cylinder`: the viscous solver
+//! ([`diffsim_solvers::flow`]) on the lid-driven cavity, compared with
+//! Ghia, Ghia & Shin (1982), and on the flow around a cylinder, compared
+//! with Schäfer & Turek (1996).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -168,5 +169,135 @@ fn write_profiles(dir: &std::path::Path, run: &CavityRun, re: f64) -> Result<(),
     }
     let title = format!("lid-driven cavity, Re {re}, {}x{} cells", run.cfg.nx, run.cfg.ny);
     plot_or_warn(&dir.join(png_name), &Axes { title: &title, x: "position along the centreline", y: "velocity", log_x: false, log_y: false }, &series);
+    Ok(())
+}
+
+/// The two cases of the Schäfer–Turek benchmark.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum CylinderCase {
+    /// Re 20, steady: c_D, c_L, Δp.
+    #[value(name = "2d-1")]
+    Steady,
+    /// Re 100, periodic shedding: maxima of c_D and c_L, Strouhal number.
+    #[value(name = "2d-2")]
+    Periodic,
+}
+
+/// Arguments of `diffsim experiment cylinder`.
+#[derive(Debug, clap::Args)]
+pub struct CylinderArgs {
+    /// Which case.
+    #[arg(long, value_enum)]
+    case: CylinderCase,
+    /// Cells per cylinder diameter (a multiple of 10; default 20 for 2d-1,
+    /// 30 for 2d-2).
+    #[arg(long)]
+    resolution: Option<usize>,
+    /// 2d-1: steady when max |du/dt| falls below this.
+    #[arg(long, default_value_t = 1e-6)]
+    tolerance: f64,
+    /// 2d-1: give up after this many pseudo-time steps.
+    #[arg(long, default_value_t = 1_000_000)]
+    max_steps: usize,
+    /// 2d-2: simulated time (from Poiseuille flow); the last 2 time units
+    /// are measured.
+    #[arg(long, default_value_t = 10.0)]
+    t_end: f64,
+    /// Print the result as one JSON object on the last line.
+    #[arg(long)]
+    json: bool,
+    /// 2d-2: also write the force coefficients over time (CSV, PNG) here.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
+    use diffsim_solvers::flow::cylinder::{reference, run_2d1, run_2d2};
+    let per_d = a.resolution.unwrap_or(match a.case {
+        CylinderCase::Steady => 20,
+        CylinderCase::Periodic => 30,
+    });
+    if !(10..=200).contains(&per_d) || per_d % 10 != 0 {
+        return Err(CliError::Argument {
+            arg: "--resolution",
+            reason: format!("cells per diameter must be a multiple of 10 between 10 and 200 (the channel is 4.1 diameters high), got {per_d}"),
+        });
+    }
+    let start = Instant::now();
+    let spinner = if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new_spinner() };
+    let within = |v: f64, (lo, hi): (f64, f64)| if (lo..=hi).contains(&v) { "inside" } else { "outside" };
+    match a.case {
+        CylinderCase::Steady => {
+            if !(a.tolerance.is_finite() && a.tolerance > 0.0) {
+                return Err(CliError::Argument { arg: "--tolerance", reason: format!("must be a positive number, got {}", a.tolerance) });
+            }
+            let r = run_2d1(per_d, a.tolerance, a.max_steps, |step, t, rate| {
+                if step % 200 == 0 {
+                    spinner.set_message(format!("2D-1, {per_d} cells per diameter: step {step}, t = {t:.2}, max |du/dt| = {rate:.2e}"));
+                    spinner.tick();
+                }
+            })?;
+            spinner.finish_and_clear();
+            let time_s = start.elapsed().as_secs_f64();
+            if a.json {
+                let obj = serde_json::json!({"case": "2d-1", "resolution": per_d, "cd": r.cd, "cl": r.cl, "dp": r.dp, "cells": r.cells, "steps": r.steps, "time_s": time_s});
+                println!("{obj}");
+                return Ok(());
+            }
+            println!("Schäfer–Turek 2D-1 (Re 20), {per_d} cells per diameter, {} cells: steady after {} steps, {time_s:.1} s", r.cells, r.steps);
+            println!("| quantity | diffsim | published | |\n|---|---|---|---|");
+            println!(
+                "| c_D | {:.4} | 5.57–5.59 (5.5795) | {} ({:+.2} % from 5.5795) |",
+                r.cd,
+                within(r.cd, reference::CD_2D1),
+                100.0 * (r.cd / reference::CD_2D1_TIGHT - 1.0)
+            );
+            println!("| c_L | {:.4} | 0.0104–0.0110 | {} |", r.cl, within(r.cl, reference::CL_2D1));
+            println!("| Δp | {:.4} | 0.1172–0.1176 | {} |", r.dp, within(r.dp, reference::DP_2D1));
+        }
+        CylinderCase::Periodic => {
+            if !(a.t_end.is_finite() && a.t_end > 2.5) {
+                return Err(CliError::Argument { arg: "--t-end", reason: format!("must exceed 2.5 (the last 2 time units are measured), got {}", a.t_end) });
+            }
+            let r = run_2d2(per_d, a.t_end, 2.0, |t, cl| {
+                spinner.set_message(format!("2D-2, {per_d} cells per diameter: t = {t:.2} of {}, c_L = {cl:+.3}", a.t_end));
+                spinner.tick();
+            })?;
+            spinner.finish_and_clear();
+            let time_s = start.elapsed().as_secs_f64();
+            if let Some(dir) = &a.out {
+                write_force_series(dir, &r.series, per_d)?;
+            }
+            if a.json {
+                let obj = serde_json::json!({"case": "2d-2", "resolution": per_d, "cd_max": r.cd_max, "cl_max": r.cl_max, "st": r.st, "cells": r.cells, "steps": r.steps, "time_s": time_s});
+                println!("{obj}");
+                return Ok(());
+            }
+            println!("Schäfer–Turek 2D-2 (Re 100), {per_d} cells per diameter, {} cells: {} steps to t = {}, {time_s:.1} s", r.cells, r.steps, a.t_end);
+            println!("| quantity | diffsim | published | |\n|---|---|---|---|");
+            println!("| c_D,max | {:.4} | 3.22–3.24 | {} |", r.cd_max, within(r.cd_max, reference::CD_MAX_2D2));
+            println!("| c_L,max | {:.4} | 0.99–1.01 | {} |", r.cl_max, within(r.cl_max, reference::CL_MAX_2D2));
+            println!("| St | {:.4} | 0.295–0.305 | {} |", r.st, within(r.st, reference::ST_2D2));
+        }
+    }
+    Ok(())
+}
+
+/// c_D and c_L over time as CSV and a plot.
+fn write_force_series(dir: &std::path::Path, series: &[[f64; 3]], per_d: usize) -> Result<(), CliError> {
+    std::fs::create_dir_all(dir).map_err(|source| CliError::Io { path: dir.to_path_buf(), source })?;
+    let mut csv = String::from("t,cd,cl\n");
+    for s in series {
+        csv.push_str(&format!("{:.6},{:.8},{:.8}\n", s[0], s[1], s[2]));
+    }
+    let path = dir.join("cylinder_2d2.csv");
+    std::fs::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;
+    let pick = |k: usize| series.iter().map(|s| (s[0], s[k])).collect::<Vec<_>>();
+    let title = format!("Schäfer–Turek 2D-2, {per_d} cells per diameter");
+    plot_or_warn(
+        &dir.join("cylinder_2d2.png"),
+        &Axes { title: &title, x: "t", y: "coefficient", log_x: false, log_y: false },
+        &[Series { name: "c_D".into(), points: pick(1), color: 0, markers: false }, Series { name: "c_L".into(), points: pick(2), color: 1, markers: false }],
+    );
     Ok(())
 }

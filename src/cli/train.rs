@@ -50,6 +50,10 @@ pub enum ExperimentCommand {
     /// The lid-driven cavity marched to its steady state, its centreline
     /// extrema compared with Ghia, Ghia & Shin (1982).
     Cavity(super::flow::CavityArgs),
+    /// The flow around a cylinder of Schäfer & Turek (1996): drag, lift and
+    /// pressure difference (2d-1, steady) or their maxima and the Strouhal
+    /// number (2d-2, periodic), against the published values.
+    Cylinder(super::flow::CylinderArgs),
 }
 
 /// Arguments of `diffsim experiment sip-heat`.
@@ -340,6 +344,7 @@ pub(super) fn experiment(c: ExperimentCommand) -> Result<(), CliError> {
         ExperimentCommand::HigOscillators(a) => hig_oscillators(a),
         ExperimentCommand::SipHeat(a) => sip_heat(a),
         ExperimentCommand::Cavity(a) => super::flow::cavity(a),
+        ExperimentCommand::Cylinder(a) => super::flow::cylinder(a),
     }
 }
 
