@@ -189,8 +189,9 @@ fn a_body_cuts_the_grid_continuously_and_encloses_its_area() {
     assert!(errors[2] < 6e-3 && order > 1.2, "area errors {errors:?}");
 }
 
-/// The force by the control-volume momentum balance: zero on a box of
-/// plain channel flow (the fluxes through its sides balance), and on the
+/// The force by the control-volume momentum balance: the same on two
+/// boxes around the body, zero on a box of plain channel flow (the fluxes
+/// through its sides balance), and on the
 /// benchmark of Schäfer & Turek (1996), case 2D-1 on a coarse grid (10
 /// cells per diameter), a drag coefficient within 3 % of the published
 /// 5.5795, the lift's sign and size, and a divergence-free flow in the
@@ -217,6 +218,10 @@ fn forces_on_a_cylinder_match_schafer_turek_on_a_coarse_grid() {
     let cl = 2.0 * f[1] / (ubar * ubar * 0.1);
     assert!((cd - 5.5795).abs() < 0.03 * 5.5795, "c_D {cd}");
     assert!(cl > 0.0 && cl < 0.05, "c_L {cl}");
+    // Another box around the body: the same force (the discrete steady
+    // equations hold exactly at every fluid face, so the fluxes balance).
+    let inner = stepper.force_in_box(&x, None, [12, 28, 12, 28]);
+    assert!((inner[0] - f[0]).abs() < 1e-6 * f[0] && (inner[1] - f[1]).abs() < 1e-6 * f[0], "{inner:?} against {f:?}");
     // A box downstream, away from the body: nothing inside, no force.
     let empty = stepper.force_in_box(&x, None, [100, 140, 5, 36]);
     assert!(empty[0].abs().max(empty[1].abs()) < 1e-4 * f[0], "force on fluid alone {empty:?} against {f:?}");
@@ -231,5 +236,30 @@ fn forces_on_a_cylinder_match_schafer_turek_on_a_coarse_grid() {
                 - cut.aperture_v[j * nx + i] * v[j * nx + i];
             assert!(out.abs() < 1e-8, "cell ({i}, {j}): net flux {out}");
         }
+    }
+}
+
+/// Around a body the steady state does not depend on the time step or the
+/// integrator: Euler at two steps and SSP-RK3 reach the same flow (the
+/// implicit no-slip factor sits inside the projection).
+#[test]
+fn the_steady_flow_around_a_body_does_not_depend_on_the_step() {
+    use diffsim_solvers::flow::cylinder::{poiseuille, schafer_turek};
+    let (cfg, shape) = schafer_turek(10, 0.3);
+    let run = |integrator: Integrator, fraction: f64| {
+        let mut stepper = Stepper::with_bodies(cfg, 1e-11, std::slice::from_ref(&shape)).unwrap();
+        let mut x = poiseuille(&cfg, 0.3);
+        let dt = fraction * integrator.stable_dt(&cfg, 0.45);
+        for _ in 0..100_000 {
+            if stepper.step(&mut x, dt, integrator).unwrap().rate < 1e-9 {
+                return x;
+            }
+        }
+        panic!("{integrator:?} at {fraction} of the stable step: no steady state");
+    };
+    let reference = run(Integrator::Euler, 1.0);
+    for other in [run(Integrator::Euler, 0.5), run(Integrator::Rk3, 1.0)] {
+        let diff = reference.iter().zip(&other).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(diff < 1e-6, "steady states differ by {diff}");
     }
 }

@@ -4,7 +4,7 @@
 //! the right, ν = 10⁻³, ρ = 1. Case 2D-1 (peak inflow 0.3, Re 20) is
 //! steady; case 2D-2 (peak 1.5, Re 100) sheds vortices periodically.
 
-use super::{Flow2d, FlowError, Integrator, Shape, SteadyOptions, Stepper, WallSpeed, fluid_value_at, march_to_steady, max_speed};
+use super::{Flow2d, FlowError, Integrator, Shape, SteadyOptions, Stepper, WallSpeed, fluid_value_at, ladder, march_to_steady, max_speed};
 use crate::boundary::{Boundary, Profile, Side};
 
 /// Diameter of the cylinder.
@@ -131,8 +131,9 @@ pub fn run_2d2(cells_per_d: usize, t_end: f64, measure: f64, mut observe: impl F
     let mut series = Vec::new();
     let (mut before, mut mid, mut dudt) = (x.clone(), x.clone(), x.clone());
     let cells = force_box(&cfg);
+    let dt0 = Integrator::Rk3.stable_dt(&cfg, 1.5 * u_max);
     while t < t_end {
-        let dt = Integrator::Rk3.stable_dt(&cfg, max_speed(&cfg, &x).max(1.5 * u_max));
+        let dt = ladder(dt0, Integrator::Rk3.stable_dt(&cfg, max_speed(&cfg, &x).max(1.5 * u_max)));
         before.copy_from_slice(&x);
         stepper.step(&mut x, dt, Integrator::Rk3)?;
         for ((m, d), (&a, &b)) in mid.iter_mut().zip(dudt.iter_mut()).zip(before.iter().zip(&x)) {

@@ -238,7 +238,8 @@ pub struct StepReport {
 pub struct Stepper {
     cfg: Flow2d,
     grid: Smoke2d,
-    solver: PressureSolver,
+    /// The projection without bodies.
+    solver: Option<PressureSolver>,
     scratch: ProjectScratch,
     pads: Pads,
     rhs: Vec<f64>,
@@ -248,10 +249,24 @@ pub struct Stepper {
     /// The state with the faces inside bodies zeroed (what the momentum
     /// operator reads when there are bodies).
     masked: Vec<f64>,
+    /// Around bodies: projections per stage weight `b·dt` (the factor
+    /// `M = 1/(1 + b·dt·ν·K/h²)` of the implicit no-slip term enters the
+    /// pressure matrix), most recent last.
+    cut_solvers: Vec<CutSolver>,
+    tolerance: f64,
     steps: usize,
     /// `dt` times the last stage's weight: the time over which the last
     /// projection's pressure gradient acted.
     last_dt: f64,
+}
+
+/// The projection of one stage weight around bodies.
+#[derive(Debug)]
+struct CutSolver {
+    weight: f64,
+    solver: PressureSolver,
+    /// `M` per velocity (packed `[u, v]`).
+    scale: Vec<f64>,
 }
 
 impl Stepper {
@@ -268,10 +283,10 @@ impl Stepper {
         } else {
             PressureSolver::general_direct(cfg.nx, cfg.ny, cfg.boundary, tolerance, max_it, None).map_err(|_| FlowError::Factor)?
         };
-        Ok(Self::assemble(cfg, solver, None))
+        Ok(Self::assemble(cfg, Some(solver), None, tolerance))
     }
 
-    fn assemble(cfg: Flow2d, solver: PressureSolver, cut: Option<Cut>) -> Self {
+    fn assemble(cfg: Flow2d, solver: Option<PressureSolver>, cut: Option<Cut>, tolerance: f64) -> Self {
         let n = cfg.n_vel();
         Self {
             cfg,
@@ -283,24 +298,53 @@ impl Stepper {
             start: vec![0.0; n],
             masked: if cut.is_some() { vec![0.0; n] } else { Vec::new() },
             cut,
+            cut_solvers: Vec::new(),
+            tolerance,
             steps: 0,
             last_dt: 0.0,
         }
     }
 
-    /// A stepper for a flow around fixed bodies (cut cells, [`Cut`]): the
-    /// projection weighs faces by their open fractions (a sparse Cholesky
-    /// solve), faces whose centre lies inside a body hold velocity 0, and
-    /// the viscous stencil of a fluid face next to a body takes the no-slip
-    /// value at the boundary's distance `θ·h` (Gibou et al. 2002), its
-    /// stiff part `−ν·(1/θ − 1)/h²·u` implicit, face by face.
+    /// A stepper for a flow around fixed bodies (cut cells, [`Cut`]): faces
+    /// whose centre lies inside a body hold velocity 0; the viscous stencil
+    /// of a fluid face next to a body takes the no-slip value at the
+    /// boundary's distance `θ·h` (Gibou et al. 2002), its stiff part
+    /// `−ν·(1/θ − 1)/h²·u` implicit face by face, with factor
+    /// `M = 1/(1 + b·dt·ν·(1/θ − 1)/h²)` for a stage of weight `b`; the
+    /// projection is `y − M·G·p` with `D_a·M·G·p = D_a·y` (`D_a` the
+    /// divergence weighted by the faces' open fractions; `M = 0` inside
+    /// bodies), so that the discrete steady equations hold exactly whatever
+    /// the step, and every weight varies continuously with the shape. One
+    /// sparse Cholesky factorisation per stage weight, kept.
     pub fn with_bodies(cfg: Flow2d, tolerance: f64, shapes: &[Shape]) -> Result<Self, FlowError> {
         cfg.validate()?;
         let cut = Cut::new(&cfg, shapes);
+        Ok(Self::assemble(cfg, None, Some(cut), tolerance))
+    }
+
+    /// The index in `cut_solvers` of the projection for stage weight
+    /// `weight` (built and factored when new; at most six kept).
+    fn cut_solver(&mut self, weight: f64) -> Result<usize, FlowError> {
+        if let Some(k) = self.cut_solvers.iter().position(|c| c.weight == weight) {
+            return Ok(k);
+        }
+        let cut = self.cut.as_ref().expect("a stepper with bodies");
+        let cfg = &self.cfg;
+        let stiff = weight * cfg.nu / (cfg.h * cfg.h);
+        // Faces inside a body take no pressure gradient (their velocity is
+        // the body's): as a fluid face nears the boundary its no-slip factor
+        // tends to 0 too, so the weights change continuously.
+        let scale: Vec<f64> = cut.wall.iter().zip(&cut.fluid).map(|(&k, &w)| w / (1.0 + stiff * k)).collect();
+        let n_u = cfg.n_u();
+        let au: Vec<f64> = cut.aperture_u.iter().zip(&scale[..n_u]).map(|(a, m)| a * m).collect();
+        let av: Vec<f64> = cut.aperture_v.iter().zip(&scale[n_u..]).map(|(a, m)| a * m).collect();
         let max_it = 20 * (cfg.nx * cfg.ny).max(100);
-        let solver =
-            PressureSolver::with_apertures(cfg.nx, cfg.ny, cfg.boundary, tolerance, max_it, &cut.aperture_u, &cut.aperture_v).map_err(|_| FlowError::Factor)?;
-        Ok(Self::assemble(cfg, solver, Some(cut)))
+        let solver = PressureSolver::with_apertures(cfg.nx, cfg.ny, cfg.boundary, self.tolerance, max_it, &au, &av).map_err(|_| FlowError::Factor)?;
+        if self.cut_solvers.len() == 6 {
+            self.cut_solvers.remove(0);
+        }
+        self.cut_solvers.push(CutSolver { weight, solver, scale });
+        Ok(self.cut_solvers.len() - 1)
     }
 
     /// The bodies' cut of the grid, if there are bodies.
@@ -408,9 +452,16 @@ impl Stepper {
                 self.scratch.scale_pressure(r);
             }
             let warm = self.last_dt > 0.0;
-            let apertures = self.cut.as_ref().map(|c| (&c.aperture_u[..], &c.aperture_v[..]));
-            iterations += project_velocity(&self.grid, u, v, apertures, &mut self.solver, &mut self.scratch, warm)
-                .map_err(|cause| FlowError::Pressure { step: self.steps, cause })?;
+            let projected = match &self.cut {
+                None => project_velocity(&self.grid, u, v, None, None, self.solver.as_mut().expect("the projection without bodies"), &mut self.scratch, warm),
+                Some(_) => {
+                    let k = self.cut_solver(weight)?;
+                    let cut = self.cut.as_ref().expect("bodies");
+                    let CutSolver { solver, scale, .. } = &mut self.cut_solvers[k];
+                    project_velocity(&self.grid, u, v, Some((&cut.aperture_u, &cut.aperture_v)), Some(scale), solver, &mut self.scratch, warm)
+                }
+            };
+            iterations += projected.map_err(|cause| FlowError::Pressure { step: self.steps, cause })?;
             self.last_dt = weight;
         }
         self.steps += 1;
@@ -454,10 +505,10 @@ pub struct SteadyReport {
 
 /// Marches `x` in time until it stops changing (pseudo-time stepping to
 /// the steady state of the discrete equations, which does not depend on
-/// the time step; around bodies it does, by about 0.1 % of the drag at the
-/// stable step, through the implicit no-slip factor): the integrator cheaper
-/// per unit of time at the reference speed (Euler around bodies), each step
-/// the largest stable one for the current speed.
+/// the time step): the integrator cheaper per unit of time at the reference
+/// speed, each step the largest stable one for the current speed (around
+/// bodies, from a ladder of sizes that repeat: each has its own pressure
+/// factorisation).
 /// `observe(step, time, rate)` is called after every step. Running out of
 /// steps is [`FlowError::NotSteady`] (`x` holds the last state).
 pub fn march_to_steady(
@@ -467,14 +518,15 @@ pub fn march_to_steady(
     mut observe: impl FnMut(usize, f64, f64),
 ) -> Result<SteadyReport, FlowError> {
     let cfg = *stepper.config();
-    // With bodies, Euler: its fixed point satisfies the discrete steady
-    // equations away from the bodies exactly (so the control-volume force
-    // does not depend on the box); an RK3 stage's implicit wall factor
-    // shifts its fixed point by O(dt) through the projection.
-    let integrator = if stepper.cut.is_some() { Integrator::Euler } else { Integrator::cheaper(&cfg, opts.reference_speed) };
+    let integrator = Integrator::cheaper(&cfg, opts.reference_speed);
     let (mut time, mut rate, mut iterations) = (0.0, f64::INFINITY, 0);
+    let dt0 = integrator.stable_dt(&cfg, opts.reference_speed);
+    let bodies = stepper.cut.is_some();
     for step in 0..opts.max_steps {
         let dt = integrator.stable_dt(&cfg, max_speed(&cfg, x).max(opts.reference_speed));
+        // Around bodies each step size has its own pressure factorisation:
+        // steps from a ladder, so that they repeat.
+        let dt = if bodies { ladder(dt0, dt) } else { dt };
         let r = stepper.step(x, dt, integrator)?;
         time += dt;
         rate = r.rate;
@@ -485,4 +537,14 @@ pub fn march_to_steady(
         }
     }
     Err(FlowError::NotSteady { steps: opts.max_steps, rate, tolerance: opts.tolerance })
+}
+
+/// The largest `dt0·2^(−k/4)`, `k = 0, 1, …`, not above `dt`: step sizes
+/// that repeat, for steppers whose projection depends on the step.
+pub fn ladder(dt0: f64, dt: f64) -> f64 {
+    if dt >= dt0 {
+        return dt0;
+    }
+    let k = (4.0 * (dt0 / dt).log2()).ceil();
+    dt0 * 2f64.powf(-k / 4.0)
 }

@@ -853,7 +853,7 @@ impl ProjectScratch {
 /// solver must be built for `cfg`'s boundary. Returns the CG iterations.
 pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
     let (_, u, v) = cfg.split_mut(y);
-    project_velocity(cfg, u, v, None, solver, scratch, false)
+    project_velocity(cfg, u, v, None, None, solver, scratch, false)
 }
 
 /// [`project`] on separate velocity arrays. With `warm`, the solve starts
@@ -862,15 +862,18 @@ pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratc
 /// steady state) instead of from zero; either way it ends at the same
 /// tolerance. The pressure stays in `scratch` ([`ProjectScratch::pressure`]).
 ///
-/// With `apertures` (x-faces, y-faces; the solver built by
-/// [`PressureSolver::with_apertures`] from the same), the divergence weighs
-/// each face's flux by its open fraction and every face open by any
-/// fraction takes the pressure gradient (cut cells).
+/// With `apertures` (x-faces, y-faces), the divergence weighs each face's
+/// flux by its open fraction and every face open by any fraction takes the
+/// pressure gradient (cut cells), scaled per face by `grad_scale` (packed
+/// `[u, v]`; 1 without): the projection `y − M·G·p` with `D_a·M·G·p = D_a·y`,
+/// whose solver [`PressureSolver::with_apertures`] builds from the products
+/// `a_f·M_f`.
 pub fn project_velocity(
     cfg: &Smoke2d,
     u: &mut [f64],
     v: &mut [f64],
     apertures: Option<(&[f64], &[f64])>,
+    grad_scale: Option<&[f64]>,
     solver: &mut PressureSolver,
     scratch: &mut ProjectScratch,
     warm: bool,
@@ -911,7 +914,9 @@ pub fn project_velocity(
                 let grad = f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]);
                 let open = match apertures {
                     None => open(fluid, &f),
-                    Some(_) => (weight(axis, f.index) > 0.0) as u8 as f64,
+                    Some(_) => {
+                        (weight(axis, f.index) > 0.0) as u8 as f64 * grad_scale.map_or(1.0, |m| m[if axis == 0 { f.index } else { cfg.n_u() + f.index }])
+                    }
                 };
                 vel[f.index] -= open * grad;
                 if let Some(k) = f.copy {
