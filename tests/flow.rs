@@ -220,6 +220,14 @@ fn forces_on_a_cylinder_match_schafer_turek_on_a_coarse_grid() {
     assert!(cl > 0.0 && cl < 0.05, "c_L {cl}");
     // Another box around the body: the same force (the discrete steady
     // equations hold exactly at every fluid face, so the fluxes balance).
+    // Newton's method on the same discrete steady equations: the same flow
+    // and force (the march stopped at max |du/dt| < 1e-7).
+    let newton = diffsim_solvers::flow::SteadyFlow::new(cfg, &[Shape::Circle { center: [0.2, 0.2], radius: 0.05 }]).unwrap();
+    let state = newton.solve(&x, &Default::default()).unwrap();
+    let fn_ = newton.force(&state, [10, 30, 10, 30]);
+    assert!((fn_[0] - f[0]).abs() < 1e-5 * f[0] && (fn_[1] - f[1]).abs() < 1e-5 * f[0], "Newton {fn_:?} against the march {f:?}");
+    let diff = state.x.iter().zip(&x).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(diff < 1e-5, "Newton's velocity differs from the march's by {diff}");
     let inner = stepper.force_in_box(&x, None, [12, 28, 12, 28]);
     assert!((inner[0] - f[0]).abs() < 1e-6 * f[0] && (inner[1] - f[1]).abs() < 1e-6 * f[0], "{inner:?} against {f:?}");
     // A box downstream, away from the body: nothing inside, no force.

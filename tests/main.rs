@@ -16,5 +16,6 @@ mod pg;
 mod rollout;
 mod rollout_wrt;
 mod scenes;
+mod shapes;
 mod user_op;
 mod wake;

@@ -99,3 +99,40 @@ impl SparseCholesky {
         self.llt.solve_in_place_with_conj(faer::Conj::No, rhs);
     }
 }
+
+/// A sparse square matrix factored by faer's sparse LU (partial pivoting,
+/// fill-reducing column ordering), then solved with it or its transpose:
+/// the Jacobians of Newton's method and their adjoints.
+#[derive(Clone, Debug)]
+pub struct SparseLu {
+    lu: faer::sparse::linalg::solvers::Lu<usize, f64>,
+    n: usize,
+}
+
+impl SparseLu {
+    /// Factors the `n × n` matrix given by its entries `(row, column,
+    /// value)` (duplicates are summed).
+    pub fn new(n: usize, entries: &[(usize, usize, f64)]) -> Result<Self, FactorFailed> {
+        use faer::sparse::{SparseColMat, Triplet};
+        let triplets: Vec<Triplet<usize, usize, f64>> = entries.iter().map(|&(r, c, v)| Triplet::new(r, c, v)).collect();
+        let mat = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets).map_err(|e| FactorFailed(format!("{e:?}")))?;
+        let lu = mat.sp_lu().map_err(|e| FactorFailed(format!("{e:?}")))?;
+        Ok(Self { lu, n })
+    }
+
+    /// Overwrites `b` with `A⁻¹·b`.
+    pub fn solve_in_place(&self, b: &mut [f64]) {
+        use faer::linalg::solvers::SolveCore;
+        assert_eq!(b.len(), self.n, "sparse LU: right-hand side length");
+        let rhs = faer::MatMut::from_column_major_slice_mut(b, self.n, 1);
+        self.lu.solve_in_place_with_conj(faer::Conj::No, rhs);
+    }
+
+    /// Overwrites `b` with `A⁻ᵀ·b` (the adjoint solve).
+    pub fn solve_transpose_in_place(&self, b: &mut [f64]) {
+        use faer::linalg::solvers::SolveCore;
+        assert_eq!(b.len(), self.n, "sparse LU: right-hand side length");
+        let rhs = faer::MatMut::from_column_major_slice_mut(b, self.n, 1);
+        self.lu.solve_transpose_in_place_with_conj(faer::Conj::No, rhs);
+    }
+}

@@ -2,6 +2,7 @@
 //! step with its Enzyme-generated and hand-written derivatives side by side.
 
 pub mod burgers;
+pub mod drag;
 pub mod heat;
 pub mod oscillators;
 pub mod smoke;

@@ -27,10 +27,12 @@ mod body;
 mod cavity;
 pub mod cylinder;
 mod momentum;
+mod steady;
 
 pub use body::*;
 pub use cavity::*;
 pub use momentum::*;
+pub use steady::*;
 
 /// Tangential speed of each wall (used on `Closed` sides only): along `+y`
 /// for the left and right sides, along `+x` for the bottom and top.

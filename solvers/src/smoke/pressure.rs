@@ -868,6 +868,7 @@ pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratc
 /// `[u, v]`; 1 without): the projection `y − M·G·p` with `D_a·M·G·p = D_a·y`,
 /// whose solver [`PressureSolver::with_apertures`] builds from the products
 /// `a_f·M_f`.
+#[allow(clippy::too_many_arguments)]
 pub fn project_velocity(
     cfg: &Smoke2d,
     u: &mut [f64],
