@@ -162,18 +162,17 @@ fn draw_on<DB: DrawingBackend>(root: DrawingArea<DB, plotters::coord::Shift>, ax
             for s in series {
                 let color = Palette99::pick(s.color).to_rgba();
                 let line = s.points.iter().copied().filter(|&p| keep(axes, p));
+                // A series without a name draws without a legend entry.
                 if s.markers {
-                    chart
-                        .draw_series(line.map(|p| Circle::new(p, 4, color.filled())))
-                        .map_err(|x| e(&x))?
-                        .label(s.name.as_str())
-                        .legend(move |(x, y)| Circle::new((x + 10, y), 4, color.filled()));
+                    let drawn = chart.draw_series(line.map(|p| Circle::new(p, 4, color.filled()))).map_err(|x| e(&x))?;
+                    if !s.name.is_empty() {
+                        drawn.label(s.name.as_str()).legend(move |(x, y)| Circle::new((x + 10, y), 4, color.filled()));
+                    }
                 } else {
-                    chart
-                        .draw_series(LineSeries::new(line, color.stroke_width(2)))
-                        .map_err(|x| e(&x))?
-                        .label(s.name.as_str())
-                        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+                    let drawn = chart.draw_series(LineSeries::new(line, color.stroke_width(2))).map_err(|x| e(&x))?;
+                    if !s.name.is_empty() {
+                        drawn.label(s.name.as_str()).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+                    }
                 }
             }
             chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).label_font(("sans-serif", 14)).draw().map_err(|x| e(&x))?;

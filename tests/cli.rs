@@ -330,6 +330,32 @@ fn cylinder_experiment_reports_both_cases_as_json() {
     fails_with(&["experiment", "cylinder", "--case", "2d-2", "--t-end", "1"], "invalid argument --t-end");
 }
 
+/// The shape optimisation, reduced (modes up to 4, 8 iterations, 10 cells
+/// per diameter): the drag falls, the area holds, the reduction survives a
+/// grid twice as fine, and the plots are written.
+#[test]
+fn drag_shape_experiment_lowers_the_drag_at_fixed_area() {
+    let out = std::env::temp_dir().join(format!("diffsim-drag-shape-{}", std::process::id()));
+    let dir = out.to_str().unwrap();
+    let (code, stdout, err) = diffsim(&["experiment", "drag-shape", "--quick", "--modes", "4", "--max-iterations", "8", "--json", "--out", dir]);
+    assert_eq!(code, 0, "{err}");
+    let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    for key in ["cd_start", "cd_end", "area_start", "area_end", "time_s", "cd_start_fine", "cd_end_fine"] {
+        assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
+    }
+    assert!(last["iterations"].as_u64().is_some_and(|n| (1..=8).contains(&n)), "{last}");
+    let f = |k: &str| last[k].as_f64().unwrap();
+    assert!(f("cd_end") < 0.9 * f("cd_start"), "{last}");
+    assert!((f("area_end") / f("area_start") - 1.0).abs() < 1e-12, "{last}");
+    assert!((f("reduction_pct") - f("reduction_fine_pct")).abs() < 2.0, "{last}");
+    for file in ["drag_shapes.png", "drag_shape_history.png", "drag_shape_history.csv"] {
+        assert!(out.join(file).exists(), "{file} not written");
+    }
+    fails_with(&["experiment", "drag-shape", "--modes", "1"], "invalid argument --modes");
+    fails_with(&["experiment", "drag-shape", "--u-max", "2"], "invalid argument --u-max");
+    std::fs::remove_dir_all(&out).ok();
+}
+
 #[test]
 fn hig_oscillators_experiment_runs_and_reports_json() {
     let out = std::env::temp_dir().join(format!("diffsim-hig-{}", std::process::id()));

@@ -301,3 +301,149 @@ fn write_force_series(dir: &std::path::Path, series: &[[f64; 3]], per_d: usize) 
     );
     Ok(())
 }
+
+/// Arguments of `diffsim experiment drag-shape`.
+#[derive(Debug, clap::Args)]
+pub struct DragShapeArgs {
+    /// A coarse grid (10 cells per diameter, verified at 20): a few minutes at most.
+    #[arg(long)]
+    quick: bool,
+    /// Cells per diameter of the optimisation (a multiple of 10; default
+    /// 20, or 10 with --quick); the verification runs at twice this.
+    #[arg(long)]
+    resolution: Option<usize>,
+    /// Highest Fourier mode K of the shape (modes 2..=K, cosine and sine).
+    #[arg(long, default_value_t = 8)]
+    modes: usize,
+    /// Peak inflow speed (0.3: Re 20, the benchmark's 2D-1; Re = 2/3·u_max·D/ν).
+    #[arg(long, default_value_t = 0.3)]
+    u_max: f64,
+    /// L-BFGS iterations at most.
+    #[arg(long, default_value_t = 60)]
+    max_iterations: usize,
+    /// Print the result as one JSON object on the last line.
+    #[arg(long)]
+    json: bool,
+    /// Write the shapes over the iterations and the drag history (PNG, CSV) here.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
+    use diffsim_solvers::flow::drag_shape::{DragShapeOptions, drag_coefficient, optimise};
+    let per_d = a.resolution.unwrap_or(if a.quick { 10 } else { 20 });
+    if !(10..=100).contains(&per_d) || per_d % 10 != 0 {
+        return Err(CliError::Argument { arg: "--resolution", reason: format!("cells per diameter must be a multiple of 10 between 10 and 100, got {per_d}") });
+    }
+    if !(2..=16).contains(&a.modes) {
+        return Err(CliError::Argument { arg: "--modes", reason: format!("the highest mode must be between 2 and 16, got {}", a.modes) });
+    }
+    if !(a.u_max.is_finite() && a.u_max > 0.0 && a.u_max <= 0.6) {
+        return Err(CliError::Argument { arg: "--u-max", reason: format!("must be in (0, 0.6] (Re up to 40, where the flow stays steady), got {}", a.u_max) });
+    }
+    let opts = DragShapeOptions { cells_per_d: per_d, modes: a.modes, u_max: a.u_max, max_iterations: a.max_iterations, gradient_reduction: 100.0 };
+    let start = Instant::now();
+    if !a.json {
+        eprintln!("minimising the drag at Re {:.0}, {per_d} cells per diameter, modes 2..={} …", opts.reynolds(), a.modes);
+    }
+    let r = optimise(&opts)?;
+    let optimise_s = start.elapsed().as_secs_f64();
+    // Verification: both shapes again on a grid twice as fine.
+    let (_, circle) = diffsim_solvers::flow::cylinder::schafer_turek(per_d, a.u_max);
+    let fine_start = drag_coefficient(2 * per_d, &circle, a.u_max)?;
+    let fine_end = drag_coefficient(2 * per_d, &r.shape, a.u_max)?;
+    let time_s = start.elapsed().as_secs_f64();
+    let reduction = 100.0 * (1.0 - r.cd_end / r.cd_start);
+    let fine_reduction = 100.0 * (1.0 - fine_end / fine_start);
+    let shrink = r.gradient_start / r.gradient_end;
+    if let Some(dir) = &a.out {
+        write_drag_shapes(dir, &r, per_d)?;
+    }
+    if a.json {
+        let obj = serde_json::json!({
+            "re": opts.reynolds(), "resolution": per_d, "modes": a.modes,
+            "cd_start": r.cd_start, "cd_end": r.cd_end, "area_start": r.area_start, "area_end": r.area_end,
+            "iterations": r.iterations, "solves": r.solves, "time_s": time_s, "optimise_s": optimise_s,
+            "gradient_start": r.gradient_start, "gradient_end": r.gradient_end, "gradient_shrink": shrink,
+            "fine_resolution": 2 * per_d, "cd_start_fine": fine_start, "cd_end_fine": fine_end,
+            "reduction_pct": reduction, "reduction_fine_pct": fine_reduction,
+            "shape": {"r0": match &r.shape { diffsim_solvers::flow::Shape::Fourier { r0, .. } => *r0, _ => f64::NAN }, "params": r.shape.params()},
+            "stopped": r.stopped,
+        });
+        println!("{obj}");
+        return Ok(());
+    }
+    println!(
+        "Minimum drag at fixed area, Re {:.0}, {per_d} cells per diameter, Fourier modes 2..={}: {} L-BFGS iterations, {} steady solves, {optimise_s:.1} s",
+        opts.reynolds(),
+        a.modes,
+        r.iterations,
+        r.solves
+    );
+    if let Some(why) = &r.stopped {
+        println!("(the optimiser stopped early: {why})");
+    }
+    println!("| | cylinder | optimised | reduction |\n|---|---|---|---|");
+    println!("| c_D ({per_d} per D) | {:.4} | {:.4} | {reduction:.2} % |", r.cd_start, r.cd_end);
+    println!("| c_D ({} per D, re-simulated) | {fine_start:.4} | {fine_end:.4} | {fine_reduction:.2} % |", 2 * per_d);
+    println!("| area | {:.6e} | {:.6e} | {:+.2e} % |", r.area_start, r.area_end, 100.0 * (r.area_end / r.area_start - 1.0));
+    println!("| projected gradient | {:.3e} | {:.3e} | shrunk {shrink:.0}× |", r.gradient_start, r.gradient_end);
+    Ok(())
+}
+
+/// The shapes over the iterations (PNG) and the drag history (CSV, PNG).
+fn write_drag_shapes(dir: &std::path::Path, r: &diffsim_solvers::flow::drag_shape::DragShapeResult, per_d: usize) -> Result<(), CliError> {
+    std::fs::create_dir_all(dir).map_err(|source| CliError::Io { path: dir.to_path_buf(), source })?;
+    let mut csv = String::from("iteration,cd,gradient_norm\n");
+    for (k, h) in r.history.iter().enumerate() {
+        csv.push_str(&format!("{k},{:.8},{:.6e}\n", h.cd, h.gradient_norm));
+    }
+    let path = dir.join("drag_shape_history.csv");
+    std::fs::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;
+    let history: Vec<(f64, f64)> = r.history.iter().enumerate().map(|(k, h)| (k as f64, h.cd)).collect();
+    plot_or_warn(
+        &dir.join("drag_shape_history.png"),
+        &Axes { title: &format!("drag over the L-BFGS iterations, {per_d} cells per diameter"), x: "iteration", y: "c_D", log_x: false, log_y: false },
+        &[Series { name: "c_D".into(), points: history, color: 0, markers: true }],
+    );
+    // Boundaries of a few iterates, the start and the end among them.
+    let outline = |s: &diffsim_solvers::flow::Shape| -> Vec<(f64, f64)> {
+        let (center, r0, cos, sin) = match s {
+            diffsim_solvers::flow::Shape::Fourier { center, r0, cos, sin } => (*center, *r0, cos.clone(), sin.clone()),
+            _ => return Vec::new(),
+        };
+        (0..=360)
+            .map(|k| {
+                let t = (k as f64).to_radians();
+                let r = r0
+                    + cos.iter().enumerate().map(|(m, a)| a * ((m + 1) as f64 * t).cos()).sum::<f64>()
+                    + sin.iter().enumerate().map(|(m, b)| b * ((m + 1) as f64 * t).sin()).sum::<f64>();
+                (center[0] + r * t.cos(), center[1] + r * t.sin())
+            })
+            .collect()
+    };
+    let n = r.history.len();
+    let mut picks: Vec<usize> = [0, n / 8, n / 4, n / 2, n - 1].into_iter().filter(|&k| k < n).collect();
+    picks.dedup();
+    let mut series: Vec<Series> = picks
+        .iter()
+        .enumerate()
+        .map(|(c, &k)| Series { name: format!("iteration {k}: c_D {:.3}", r.history[k].cd), points: outline(&r.history[k].shape), color: c, markers: false })
+        .collect();
+    // The plot's window (two lone points, which draw nothing) at the aspect
+    // of its area, so that shapes are to scale, with room for the legend.
+    series.push(Series { name: String::new(), points: vec![(0.05, 0.0825)], color: 7, markers: false });
+    series.push(Series { name: String::new(), points: vec![(0.45, 0.3175)], color: 7, markers: false });
+    plot_or_warn(
+        &dir.join("drag_shapes.png"),
+        &Axes {
+            title: &format!("shapes of equal area over the iterations (flow from the left), {per_d} cells per diameter"),
+            x: "x",
+            y: "y",
+            log_x: false,
+            log_y: false,
+        },
+        &series,
+    );
+    Ok(())
+}

@@ -54,6 +54,9 @@ pub enum ExperimentCommand {
     /// pressure difference (2d-1, steady) or their maxima and the Strouhal
     /// number (2d-2, periodic), against the published values.
     Cylinder(super::flow::CylinderArgs),
+    /// Minimum-drag shape of a given area in the 2D-1 channel (Re 20): L-BFGS on
+    /// the adjoint gradient of the steady drag, verified on a grid twice as fine.
+    DragShape(super::flow::DragShapeArgs),
 }
 
 /// Arguments of `diffsim experiment sip-heat`.
@@ -345,6 +348,7 @@ pub(super) fn experiment(c: ExperimentCommand) -> Result<(), CliError> {
         ExperimentCommand::SipHeat(a) => sip_heat(a),
         ExperimentCommand::Cavity(a) => super::flow::cavity(a),
         ExperimentCommand::Cylinder(a) => super::flow::cylinder(a),
+        ExperimentCommand::DragShape(a) => super::flow::drag_shape(a),
     }
 }
 

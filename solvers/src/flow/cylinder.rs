@@ -58,7 +58,7 @@ pub fn poiseuille(cfg: &Flow2d, u_max: f64) -> Vec<f64> {
 
 /// The control volume of the force: cells within one diameter of the
 /// cylinder's bounding box.
-fn force_box(cfg: &Flow2d) -> [usize; 4] {
+pub(crate) fn force_box(cfg: &Flow2d) -> [usize; 4] {
     let cell = |x: f64| (x / cfg.h).round() as usize;
     [cell(0.05), cell(0.35), cell(0.05), cell(0.35)]
 }

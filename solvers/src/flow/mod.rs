@@ -26,6 +26,7 @@ use std::fmt;
 mod body;
 mod cavity;
 pub mod cylinder;
+pub mod drag_shape;
 mod momentum;
 mod steady;
 

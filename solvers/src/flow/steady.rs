@@ -83,7 +83,56 @@ pub struct SteadyFlow {
     sens: CutSensitivity,
     rows: Vec<Row>,
     open: Vec<bool>,
+    /// One open cell per group of open cells that no outflow side reaches
+    /// (fluid pockets the grid cuts off): its pressure is pinned to 0 in
+    /// place of its continuity equation, which the others imply.
+    pinned: Vec<bool>,
     bc: Vec<f64>,
+}
+
+/// The open cells whose pressure is pinned: the first cell of every group
+/// of open cells connected through fluid faces that reaches no outflow
+/// side (its pressure is defined up to a constant).
+fn pinned_cells(cfg: &Flow2d, rows: &[Row], open: &[bool]) -> Vec<bool> {
+    let (nx, ny) = (cfg.nx, cfg.ny);
+    let n_u = cfg.n_u();
+    let cells = nx * ny;
+    // Neighbours through momentum faces; "outflow" when such a face lies on a side.
+    let mut label = vec![usize::MAX; cells];
+    let mut pinned = vec![false; cells];
+    for seed in 0..cells {
+        if !open[seed] || label[seed] != usize::MAX {
+            continue;
+        }
+        let (mut stack, mut anchored) = (vec![seed], false);
+        label[seed] = seed;
+        while let Some(c) = stack.pop() {
+            let (i, j) = (c % nx, c / nx);
+            let faces = [
+                (j * (nx + 1) + i, (i > 0).then(|| c - 1)),
+                (j * (nx + 1) + i + 1, (i + 1 < nx).then(|| c + 1)),
+                (n_u + j * nx + i, (j > 0).then(|| c - nx)),
+                (n_u + (j + 1) * nx + i, (j + 1 < ny).then(|| c + nx)),
+            ];
+            for (f, other) in faces {
+                if rows[f] != Row::Momentum {
+                    continue;
+                }
+                match other {
+                    None => anchored = true,
+                    Some(m) if open[m] && label[m] == usize::MAX => {
+                        label[m] = seed;
+                        stack.push(m);
+                    }
+                    Some(_) => {}
+                }
+            }
+        }
+        if !anchored {
+            pinned[seed] = true;
+        }
+    }
+    pinned
 }
 
 impl SteadyFlow {
@@ -111,7 +160,7 @@ impl SteadyFlow {
         // A cell is open when a face the projection moves (interior, or on
         // an outflow side) is open and in the fluid, as in the time march.
         let side = |s: Side| s == Side::Outflow;
-        let open = (0..nx * ny)
+        let open: Vec<bool> = (0..nx * ny)
             .map(|c| {
                 let (i, j) = (c % nx, c / nx);
                 let faces = [
@@ -123,12 +172,13 @@ impl SteadyFlow {
                 faces.iter().any(|&(f, moved, a)| moved && a > 0.0 && cut.fluid[f] > 0.0)
             })
             .collect();
+        let pinned = pinned_cells(&cfg, &rows, &open);
         let mut bc = cfg.rest();
         {
             let (u, v) = bc.split_at_mut(n_u);
             enforce_boundary(&cfg.grid(), u, v);
         }
-        Ok(Self { cfg, cut, sens, rows, open, bc })
+        Ok(Self { cfg, cut, sens, rows, open, pinned, bc })
     }
 
     /// The cut of the grid.
@@ -167,6 +217,11 @@ impl SteadyFlow {
         [(j * (nx + 1) + i, -1.0), (j * (nx + 1) + i + 1, 1.0), (n_u + j * nx + i, -1.0), (n_u + (j + 1) * nx + i, 1.0)]
     }
 
+    /// Whether cell `c`'s equation is its continuity (else `P_c = 0`).
+    fn continuity(&self, c: usize) -> bool {
+        self.open[c] && !self.pinned[c]
+    }
+
     fn aperture(&self, k: usize) -> f64 {
         let n_u = self.cfg.n_u();
         if k < n_u { self.cut.aperture_u[k] } else { self.cut.aperture_v[k - n_u] }
@@ -201,7 +256,7 @@ impl SteadyFlow {
             };
         }
         for (cell, r) in rp.iter_mut().enumerate() {
-            *r = if self.open[cell] { self.faces_of(cell).iter().map(|&(f, s)| s * self.aperture(f) * x[f]).sum::<f64>() / h } else { p[cell] };
+            *r = if self.continuity(cell) { self.faces_of(cell).iter().map(|&(f, s)| s * self.aperture(f) * x[f]).sum::<f64>() / h } else { p[cell] };
         }
     }
 
@@ -297,7 +352,7 @@ impl SteadyFlow {
             }
         }
         for cell in 0..self.cfg.nx * self.cfg.ny {
-            if self.open[cell] {
+            if self.continuity(cell) {
                 for (f, s) in self.faces_of(cell) {
                     let a = self.aperture(f);
                     if a != 0.0 {
@@ -472,10 +527,10 @@ impl SteadyFlow {
             let d = dot(row) * state.x[*f] / h;
             let (lo, up) = self.cells_of(*f);
             // Outward flux: + for the cell below (lo), − for the one above.
-            if let Some(l) = lo.filter(|&l| self.open[l]) {
+            if let Some(l) = lo.filter(|&l| self.continuity(l)) {
                 out[n + l] += scale * d;
             }
-            if let Some(u) = up.filter(|&u| self.open[u]) {
+            if let Some(u) = up.filter(|&u| self.continuity(u)) {
                 out[n + u] -= scale * d;
             }
         }
@@ -495,10 +550,10 @@ impl SteadyFlow {
         for (f, row) in &self.sens.aperture {
             let (lo, up) = self.cells_of(*f);
             let mut w = 0.0;
-            if let Some(l) = lo.filter(|&l| self.open[l]) {
+            if let Some(l) = lo.filter(|&l| self.continuity(l)) {
                 w += lambda[n + l];
             }
-            if let Some(u) = up.filter(|&u| self.open[u]) {
+            if let Some(u) = up.filter(|&u| self.continuity(u)) {
                 w -= lambda[n + u];
             }
             let w = scale * w * state.x[*f] / h;
