@@ -356,6 +356,24 @@ fn drag_shape_experiment_lowers_the_drag_at_fixed_area() {
     std::fs::remove_dir_all(&out).ok();
 }
 
+/// The Re ↦ shape network, a few updates on the coarse grid: the training
+/// loss falls, and on held-out Reynolds numbers its shapes beat the cylinder.
+#[test]
+fn drag_net_experiment_trains_through_the_solver() {
+    let (code, stdout, err) = diffsim(&["experiment", "drag-net", "--quick", "--iterations", "8", "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    let (start, end) = (last["loss_start"].as_f64().unwrap(), last["loss_end"].as_f64().unwrap());
+    assert!(end < start - 0.02, "{last}");
+    let held = last["held_out"].as_array().unwrap();
+    assert_eq!(held.len(), 2, "{last}");
+    for h in held {
+        assert!(h["cd_network"].as_f64().unwrap() < h["cd_cylinder"].as_f64().unwrap(), "{h}");
+        assert!(h["cd_optimised"].as_f64().unwrap() < h["cd_cylinder"].as_f64().unwrap(), "{h}");
+    }
+    fails_with(&["experiment", "drag-net", "--lr", "-1"], "invalid argument --lr");
+}
+
 #[test]
 fn hig_oscillators_experiment_runs_and_reports_json() {
     let out = std::env::temp_dir().join(format!("diffsim-hig-{}", std::process::id()));

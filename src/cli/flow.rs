@@ -447,3 +447,68 @@ fn write_drag_shapes(dir: &std::path::Path, r: &diffsim_solvers::flow::drag_shap
     );
     Ok(())
 }
+
+/// Arguments of `diffsim experiment drag-net`.
+#[derive(Debug, clap::Args)]
+pub struct DragNetArgs {
+    /// 10 cells per diameter (else 20).
+    #[arg(long)]
+    quick: bool,
+    /// Adam updates.
+    #[arg(long, default_value_t = 40)]
+    iterations: usize,
+    /// Adam's learning rate.
+    #[arg(long, default_value_t = 0.05)]
+    lr: f64,
+    /// Print the result as one JSON object on the last line.
+    #[arg(long)]
+    json: bool,
+}
+
+pub(super) fn drag_net(a: DragNetArgs) -> Result<(), CliError> {
+    use crate::train::shape_net::{ShapeNetOptions, train};
+    if !(a.lr.is_finite() && a.lr > 0.0) {
+        return Err(CliError::Argument { arg: "--lr", reason: format!("must be a positive number, got {}", a.lr) });
+    }
+    let opts = ShapeNetOptions {
+        cells_per_d: if a.quick { 10 } else { 20 },
+        modes: 4,
+        train_re: vec![10.0, 20.0, 30.0, 40.0],
+        test_re: vec![15.0, 35.0],
+        iterations: a.iterations,
+        lr: a.lr,
+        seed: 7,
+    };
+    let start = Instant::now();
+    let spinner = if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new_spinner() };
+    let r = train(&opts, |it, loss| {
+        spinner.set_message(format!("update {it}: mean c_D / c_D,cylinder = {loss:.4}"));
+        spinner.tick();
+    })?;
+    spinner.finish_and_clear();
+    let time_s = start.elapsed().as_secs_f64();
+    if a.json {
+        let held: Vec<serde_json::Value> = r
+            .held_out
+            .iter()
+            .map(|h| serde_json::json!({"re": h.re, "cd_cylinder": h.cd_cylinder, "cd_network": h.cd_network, "cd_optimised": h.cd_optimised, "time_network_s": h.time_network_s, "time_optimised_s": h.time_optimised_s}))
+            .collect();
+        let obj = serde_json::json!({"resolution": opts.cells_per_d, "train_re": opts.train_re, "loss_start": r.losses.first(), "loss_end": r.losses.last(), "train_s": r.train_s, "held_out": held, "time_s": time_s});
+        println!("{obj}");
+        return Ok(());
+    }
+    println!(
+        "Re ↦ shape network trained through the steady solver at Re {:?}, {} cells per diameter: mean c_D/c_D,cylinder {:.4} → {:.4} in {} updates, {:.1} s",
+        opts.train_re,
+        opts.cells_per_d,
+        r.losses.first().copied().unwrap_or(f64::NAN),
+        r.losses.last().copied().unwrap_or(f64::NAN),
+        r.losses.len(),
+        r.train_s
+    );
+    println!("| held-out Re | cylinder c_D | network c_D (time) | optimised one by one c_D (time) |\n|---|---|---|---|");
+    for h in &r.held_out {
+        println!("| {} | {:.4} | {:.4} ({:.1} s) | {:.4} ({:.1} s) |", h.re, h.cd_cylinder, h.cd_network, h.time_network_s, h.cd_optimised, h.time_optimised_s);
+    }
+    Ok(())
+}

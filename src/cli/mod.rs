@@ -42,6 +42,9 @@ pub enum CliError {
     /// A viscous flow could not be simulated.
     #[error(transparent)]
     Flow(#[from] diffsim_solvers::flow::FlowError),
+    /// Training the shape network failed.
+    #[error(transparent)]
+    ShapeNet(#[from] crate::train::shape_net::ShapeNetError),
     /// A scene run failed.
     #[error(transparent)]
     Run(#[from] crate::scene::RunError),

@@ -57,6 +57,10 @@ pub enum ExperimentCommand {
     /// Minimum-drag shape of a given area in the 2D-1 channel (Re 20): L-BFGS on
     /// the adjoint gradient of the steady drag, verified on a grid twice as fine.
     DragShape(super::flow::DragShapeArgs),
+    /// A network from the Reynolds number (10–40) to a minimum-drag shape,
+    /// trained through the steady solver; compared on held-out Re with shapes
+    /// optimised one by one.
+    DragNet(super::flow::DragNetArgs),
 }
 
 /// Arguments of `diffsim experiment sip-heat`.
@@ -349,6 +353,7 @@ pub(super) fn experiment(c: ExperimentCommand) -> Result<(), CliError> {
         ExperimentCommand::Cavity(a) => super::flow::cavity(a),
         ExperimentCommand::Cylinder(a) => super::flow::cylinder(a),
         ExperimentCommand::DragShape(a) => super::flow::drag_shape(a),
+        ExperimentCommand::DragNet(a) => super::flow::drag_net(a),
     }
 }
 

@@ -15,6 +15,7 @@ pub mod optim;
 pub mod oscillators;
 pub mod p3;
 pub mod pg;
+pub mod shape_net;
 pub mod sol;
 pub mod wake;
 

@@ -108,6 +108,37 @@ pub fn drag_coefficient(cells_per_d: usize, shape: &Shape, u_max: f64) -> Result
     Ok(flow.force(&state, force_box(&cfg))[0] * coefficients([1.0, 0.0], u_max)[0])
 }
 
+/// The Fourier body about the cylinder's centre `(0.2, 0.2)` with free
+/// coefficients `q = (a₂…a_K, b₂…b_K)` (`K = modes`, `a₁ = b₁ = 0`) and
+/// `r₀` chosen so that the area is `area`; `None` when no positive `r₀`
+/// fits.
+pub fn shape_at_area(area: f64, modes: usize, q: &[f64]) -> Option<Shape> {
+    let m = modes - 1;
+    assert_eq!(q.len(), 2 * m, "shape_at_area: coefficient count");
+    let squares: f64 = q.iter().map(|c| c * c).sum();
+    let r0sq = area / std::f64::consts::PI - 0.5 * squares;
+    if r0sq <= 0.0 {
+        return None;
+    }
+    let cos = std::iter::once(0.0).chain(q[..m].iter().copied()).collect();
+    let sin = std::iter::once(0.0).chain(q[m..].iter().copied()).collect();
+    Some(Shape::Fourier { center: [0.2, 0.2], r0: r0sq.sqrt(), cos, sin })
+}
+
+/// The gradient with respect to the free coefficients `q` of
+/// [`shape_at_area`] from the gradient `full` with respect to the shape's
+/// parameters `[cx, cy, r₀, a₁…a_K, b₁…b_K]` at radius `r0`: `∂r₀/∂q =
+/// −q/(2·r₀)` (the projected gradient on the constant-area surface).
+pub fn reduced_gradient(full: &[f64], q: &[f64], r0: f64, modes: usize) -> Vec<f64> {
+    let (m, k) = (modes - 1, modes);
+    (0..2 * m)
+        .map(|i| {
+            let direct = if i < m { full[3 + 1 + i] } else { full[3 + k + 1 + (i - m)] };
+            direct - full[2] * q[i] / (2.0 * r0)
+        })
+        .collect()
+}
+
 /// A cached evaluation `(z, c_D, ∂c_D/∂z)`.
 type Evaluation = (Vec<f64>, f64, Vec<f64>);
 
@@ -136,18 +167,8 @@ struct Problem {
 const MAX_TRIALS: usize = 40;
 
 impl Problem {
-    /// The shape of free coefficients `q = (a₂…a_K, b₂…b_K)`, `r₀` from the
-    /// area; `None` when no positive `r₀` fits.
     fn shape(&self, q: &[f64]) -> Option<Shape> {
-        let m = self.modes - 1;
-        let squares: f64 = q.iter().map(|c| c * c).sum();
-        let r0sq = self.area / std::f64::consts::PI - 0.5 * squares;
-        if r0sq <= 0.0 {
-            return None;
-        }
-        let cos = std::iter::once(0.0).chain(q[..m].iter().copied()).collect();
-        let sin = std::iter::once(0.0).chain(q[m..].iter().copied()).collect();
-        Some(Shape::Fourier { center: [0.2, 0.2], r0: r0sq.sqrt(), cos, sin })
+        shape_at_area(self.area, self.modes, q)
     }
 
     /// `c_D` and its gradient in `z`, cached; `None` for a shape that is
@@ -167,19 +188,11 @@ impl Problem {
         let start = self.start.borrow().clone();
         let (cd, full, x) = steady_drag(&self.cfg, &shape, self.u_max, &start)?;
         *self.start.borrow_mut() = x;
-        // Full parameters [cx, cy, r0, a1..aK, b1..bK]; r0 = √(A/π − ½Σq²),
-        // so ∂r0/∂q = −q/(2·r0).
-        let (m, k) = (self.modes - 1, self.modes);
         let r0 = match &shape {
             Shape::Fourier { r0, .. } => *r0,
             _ => unreachable!("the optimised shape is a Fourier body"),
         };
-        let g: Vec<f64> = (0..2 * m)
-            .map(|i| {
-                let direct = if i < m { full[3 + 1 + i] } else { full[3 + k + 1 + (i - m)] };
-                (direct - full[2] * q[i] / (2.0 * r0)) * self.scale
-            })
-            .collect();
+        let g: Vec<f64> = reduced_gradient(&full, &q, r0, self.modes).iter().map(|v| v * self.scale).collect();
         *self.cache.borrow_mut() = Some((z.to_vec(), cd, g.clone()));
         Ok(Some((cd, g)))
     }

@@ -1,0 +1,211 @@
+//! A network that proposes minimum-drag shapes: the Reynolds number ↦ the
+//! free Fourier coefficients of a body of fixed area in the 2D-1 channel,
+//! trained through the steady solver with the drag of its proposed shape as
+//! the loss (the learning version of [`diffsim_solvers::flow::drag_shape`]).
+//!
+//! Per training Reynolds number, the loss is the proposed shape's `c_D`
+//! over the cylinder's; its gradient with respect to the network's weights
+//! is the adjoint gradient of the steady drag
+//! ([`diffsim_solvers::flow::SteadyFlow::force_gradient`]), projected on
+//! the constant-area surface, passed back through the network's VJP.
+//! Adam updates; each Reynolds number keeps its last steady velocity as
+//! Newton's next start.
+
+use std::time::Instant;
+
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+
+use diffsim_solvers::flow::FlowError;
+use diffsim_solvers::flow::cylinder::{DIAMETER, poiseuille, schafer_turek};
+use diffsim_solvers::flow::drag_shape::{DragShapeOptions, drag_coefficient, optimise, reduced_gradient, shape_at_area, steady_drag};
+use diffsim_solvers::flow::{Shape, ShapeError};
+
+use crate::nn::{Activation, Init, Layer, Net};
+use crate::op::{Forward, Vjp};
+use crate::train::optim::Optimizer;
+
+/// What to train.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ShapeNetOptions {
+    /// Grid cells per diameter.
+    pub cells_per_d: usize,
+    /// Highest Fourier mode `K` (coefficients 2..=K, cosine and sine).
+    pub modes: usize,
+    /// Reynolds numbers trained on.
+    pub train_re: Vec<f64>,
+    /// Held-out Reynolds numbers, compared with shapes optimised one by one.
+    pub test_re: Vec<f64>,
+    /// Adam updates (each one steady solve per training Reynolds number).
+    pub iterations: usize,
+    /// Adam's learning rate.
+    pub lr: f64,
+    /// Seed of the initial weights.
+    pub seed: u64,
+}
+
+/// One held-out Reynolds number.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HeldOut {
+    /// Reynolds number.
+    pub re: f64,
+    /// The cylinder's drag coefficient.
+    pub cd_cylinder: f64,
+    /// The network's shape's drag coefficient.
+    pub cd_network: f64,
+    /// The shape optimised for this Reynolds number alone (L-BFGS).
+    pub cd_optimised: f64,
+    /// Seconds: the network's proposal and one steady solve.
+    pub time_network_s: f64,
+    /// Seconds: the optimisation one by one.
+    pub time_optimised_s: f64,
+}
+
+/// How the training went.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ShapeNetReport {
+    /// Mean `c_D/c_D,cylinder` over the training Reynolds numbers, per update
+    /// (before it).
+    pub losses: Vec<f64>,
+    /// Training time.
+    pub train_s: f64,
+    /// The held-out comparison.
+    pub held_out: Vec<HeldOut>,
+}
+
+/// Why training stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum ShapeNetError {
+    /// A steady solve failed.
+    #[error("Re {re}: {source}")]
+    Flow {
+        /// The Reynolds number.
+        re: f64,
+        /// What the solver said.
+        source: FlowError,
+    },
+    /// The network proposed a shape that is not a body in the domain.
+    #[error("Re {re}: the network proposed a shape that is not a body in the channel: {source}")]
+    Shape {
+        /// The Reynolds number.
+        re: f64,
+        /// What is wrong with it.
+        source: ShapeError,
+    },
+}
+
+/// Peak inflow of the channel for Reynolds number `re` (ν = 10⁻³, `Re =
+/// (2/3)·u_max·D/ν`).
+pub fn u_max_for(re: f64) -> f64 {
+    1.5 * re * 1e-3 / DIAMETER
+}
+
+/// The largest magnitude of each cosine coefficient `a₂…a_K` (`a₂` up to
+/// 0.6 of the radius, `a₃` 0.12, the others 0.24): the network's last layer
+/// is a `tanh` scaled by these, which keeps its proposals bodies for
+/// `K ≤ 4` (checked anyway).
+fn bounds(modes: usize) -> Vec<f64> {
+    (2..=modes)
+        .map(|k| match k {
+            2 => 0.03,
+            3 => 0.006,
+            _ => 0.012,
+        })
+        .collect()
+}
+
+/// The network: `[1, 16, 16, K−1]`, tanh between and after the layers. It
+/// proposes the cosine coefficients only (bodies symmetric about the
+/// channel's axis, as the one-by-one optima nearly are).
+fn network(modes: usize) -> Net {
+    let out = modes - 1;
+    Net::new(vec![
+        Layer::Dense { n_in: 1, n_out: 16 },
+        Layer::Act { f: Activation::Tanh, n: 16 },
+        Layer::Dense { n_in: 16, n_out: 16 },
+        Layer::Act { f: Activation::Tanh, n: 16 },
+        Layer::Dense { n_in: 16, n_out: out },
+        Layer::Act { f: Activation::Tanh, n: out },
+    ])
+    .expect("the network is well formed")
+}
+
+/// The network's input: the Reynolds number scaled to about `[−1, 1]`.
+fn input(re: f64) -> [f64; 1] {
+    [(re - 25.0) / 15.0]
+}
+
+/// The free coefficients `q = (a₂…a_K, b₂…b_K)` the network proposes at
+/// `re` (the sine ones 0).
+fn propose(net: &Net, theta: &[f64], re: f64, bound: &[f64]) -> Vec<f64> {
+    let mut o = vec![0.0; bound.len()];
+    net.forward(&input(re), theta, &mut o);
+    o.iter().zip(bound).map(|(v, b)| v * b).chain(std::iter::repeat_n(0.0, bound.len())).collect()
+}
+
+/// Trains the network and compares it with one-by-one optimisations on the
+/// held-out Reynolds numbers.
+pub fn train(opts: &ShapeNetOptions, mut progress: impl FnMut(usize, f64)) -> Result<ShapeNetReport, ShapeNetError> {
+    let net = network(opts.modes);
+    let bound = bounds(opts.modes);
+    let mut theta = net.init(&mut StdRng::seed_from_u64(opts.seed), Init::Glorot);
+    let area = std::f64::consts::PI * 0.25 * DIAMETER * DIAMETER;
+    let per_d = opts.cells_per_d;
+    let flow_err = |re: f64| move |source: FlowError| ShapeNetError::Flow { re, source };
+    // Per training Re: the channel, the cylinder's drag, Newton's start.
+    let mut samples = Vec::new();
+    for &re in &opts.train_re {
+        let u = u_max_for(re);
+        let (cfg, circle) = schafer_turek(per_d, u);
+        let (cd_cylinder, _, x) = steady_drag(&cfg, &circle, u, &poiseuille(&cfg, u)).map_err(flow_err(re))?;
+        samples.push((re, cfg, cd_cylinder, x));
+    }
+    let mut adam = Optimizer::adam(opts.lr);
+    let mut losses = Vec::with_capacity(opts.iterations);
+    let start = Instant::now();
+    let mut grad = vec![0.0; theta.len()];
+    for it in 0..opts.iterations {
+        grad.fill(0.0);
+        let mut loss = 0.0;
+        for (re, cfg, cd_cylinder, x) in samples.iter_mut() {
+            let q = propose(&net, &theta, *re, &bound);
+            let shape = shape_at_area(area, opts.modes, &q).ok_or(ShapeNetError::Shape { re: *re, source: ShapeError::Radius { angle: 0.0, radius: 0.0 } })?;
+            // Validated before the generated derivatives run.
+            shape.validate(cfg).map_err(|source| ShapeNetError::Shape { re: *re, source })?;
+            let u = u_max_for(*re);
+            let (cd, full, state) = steady_drag(cfg, &shape, u, x).map_err(flow_err(*re))?;
+            *x = state;
+            let n = opts.train_re.len() as f64;
+            loss += cd / *cd_cylinder / n;
+            let r0 = match &shape {
+                Shape::Fourier { r0, .. } => *r0,
+                _ => unreachable!("a Fourier body"),
+            };
+            // dL/dq (its cosine part), then through the scaled tanh output
+            // into the weights.
+            let mut seed: Vec<f64> = reduced_gradient(&full, &q, r0, opts.modes).iter().zip(&bound).map(|(g, b)| g * b / (*cd_cylinder * n)).collect();
+            let mut dx = [0.0];
+            net.vjp(&input(*re), &theta, &mut seed, &mut dx, &mut grad);
+        }
+        losses.push(loss);
+        progress(it, loss);
+        adam.step(&mut theta, &grad);
+    }
+    let train_s = start.elapsed().as_secs_f64();
+    let mut held_out = Vec::new();
+    for &re in &opts.test_re {
+        let u = u_max_for(re);
+        let (_, circle) = schafer_turek(per_d, u);
+        let cd_cylinder = drag_coefficient(per_d, &circle, u).map_err(flow_err(re))?;
+        let t = Instant::now();
+        let q = propose(&net, &theta, re, &bound);
+        let shape = shape_at_area(area, opts.modes, &q).ok_or(ShapeNetError::Shape { re, source: ShapeError::Radius { angle: 0.0, radius: 0.0 } })?;
+        let cd_network = drag_coefficient(per_d, &shape, u).map_err(flow_err(re))?;
+        let time_network_s = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let one = optimise(&DragShapeOptions { cells_per_d: per_d, modes: opts.modes, u_max: u, max_iterations: 60, gradient_reduction: 100.0 })
+            .map_err(flow_err(re))?;
+        held_out.push(HeldOut { re, cd_cylinder, cd_network, cd_optimised: one.cd_end, time_network_s, time_optimised_s: t.elapsed().as_secs_f64() });
+    }
+    Ok(ShapeNetReport { losses, train_s, held_out })
+}
