@@ -317,6 +317,12 @@ fn cylinder_experiment_reports_both_cases_as_json() {
     }
     assert_eq!(last["cells"].as_u64(), Some(220 * 41), "{last}");
     assert!((last["cd"].as_f64().unwrap() - 5.5795).abs() < 0.03 * 5.5795, "{last}");
+    // Pseudo-time marching reaches the same discrete steady state as Newton.
+    let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-1", "--resolution", "10", "--solver", "march", "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let march: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert_eq!(march["solver"], "march", "{march}");
+    assert!((march["cd"].as_f64().unwrap() - last["cd"].as_f64().unwrap()).abs() < 1e-4, "{march} against {last}");
     let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-2", "--resolution", "10", "--t-end", "8", "--json"]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();

@@ -183,20 +183,33 @@ pub enum CylinderCase {
     Periodic,
 }
 
+/// How case 2D-1 reaches its steady state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SteadySolver {
+    /// Newton's method on the discrete steady equations (sparse LU).
+    Newton,
+    /// Pseudo-time marching (explicit steps with the projection).
+    March,
+}
+
 /// Arguments of `diffsim experiment cylinder`.
 #[derive(Debug, clap::Args)]
 pub struct CylinderArgs {
     /// Which case.
     #[arg(long, value_enum)]
     case: CylinderCase,
-    /// Cells per cylinder diameter (a multiple of 10; default 20 for 2d-1,
+    /// Cells per cylinder diameter (a multiple of 10; default 40 for 2d-1,
     /// 30 for 2d-2).
     #[arg(long)]
     resolution: Option<usize>,
-    /// 2d-1: steady when max |du/dt| falls below this.
+    /// 2d-1: Newton's method or pseudo-time marching (the same discrete
+    /// steady state).
+    #[arg(long, value_enum, default_value_t = SteadySolver::Newton)]
+    solver: SteadySolver,
+    /// 2d-1 with --solver march: steady when max |du/dt| falls below this.
     #[arg(long, default_value_t = 1e-6)]
     tolerance: f64,
-    /// 2d-1: give up after this many pseudo-time steps.
+    /// 2d-1 with --solver march: give up after this many pseudo-time steps.
     #[arg(long, default_value_t = 1_000_000)]
     max_steps: usize,
     /// 2d-2: simulated time (from Poiseuille flow); the last 2 time units
@@ -212,9 +225,9 @@ pub struct CylinderArgs {
 }
 
 pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
-    use diffsim_solvers::flow::cylinder::{reference, run_2d1, run_2d2};
+    use diffsim_solvers::flow::cylinder::{reference, run_2d1, run_2d1_newton, run_2d2};
     let per_d = a.resolution.unwrap_or(match a.case {
-        CylinderCase::Steady => 20,
+        CylinderCase::Steady => 40,
         CylinderCase::Periodic => 30,
     });
     if !(10..=200).contains(&per_d) || per_d % 10 != 0 {
@@ -231,20 +244,35 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
             if !(a.tolerance.is_finite() && a.tolerance > 0.0) {
                 return Err(CliError::Argument { arg: "--tolerance", reason: format!("must be a positive number, got {}", a.tolerance) });
             }
-            let r = run_2d1(per_d, a.tolerance, a.max_steps, |step, t, rate| {
-                if step % 200 == 0 {
-                    spinner.set_message(format!("2D-1, {per_d} cells per diameter: step {step}, t = {t:.2}, max |du/dt| = {rate:.2e}"));
+            let r = match a.solver {
+                SteadySolver::Newton => {
+                    spinner.set_message(format!("2D-1, {per_d} cells per diameter: Newton's method"));
                     spinner.tick();
+                    run_2d1_newton(per_d)?
                 }
-            })?;
+                SteadySolver::March => run_2d1(per_d, a.tolerance, a.max_steps, |step, t, rate| {
+                    if step % 200 == 0 {
+                        spinner.set_message(format!("2D-1, {per_d} cells per diameter: step {step}, t = {t:.2}, max |du/dt| = {rate:.2e}"));
+                        spinner.tick();
+                    }
+                })?,
+            };
             spinner.finish_and_clear();
             let time_s = start.elapsed().as_secs_f64();
             if a.json {
-                let obj = serde_json::json!({"case": "2d-1", "resolution": per_d, "cd": r.cd, "cl": r.cl, "dp": r.dp, "cells": r.cells, "steps": r.steps, "time_s": time_s});
+                let solver = match a.solver {
+                    SteadySolver::Newton => "newton",
+                    SteadySolver::March => "march",
+                };
+                let obj = serde_json::json!({"case": "2d-1", "solver": solver, "resolution": per_d, "cd": r.cd, "cl": r.cl, "dp": r.dp, "cells": r.cells, "steps": r.steps, "time_s": time_s});
                 println!("{obj}");
                 return Ok(());
             }
-            println!("Schäfer–Turek 2D-1 (Re 20), {per_d} cells per diameter, {} cells: steady after {} steps, {time_s:.1} s", r.cells, r.steps);
+            let how = match a.solver {
+                SteadySolver::Newton => "Newton steps",
+                SteadySolver::March => "pseudo-time steps",
+            };
+            println!("Schäfer–Turek 2D-1 (Re 20), {per_d} cells per diameter, {} cells: steady after {} {how}, {time_s:.1} s", r.cells, r.steps);
             println!("| quantity | diffsim | published | |\n|---|---|---|---|");
             println!(
                 "| c_D | {:.4} | 5.57–5.59 (5.5795) | {} ({:+.2} % from 5.5795) |",

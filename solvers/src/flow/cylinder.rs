@@ -4,7 +4,9 @@
 //! the right, ν = 10⁻³, ρ = 1. Case 2D-1 (peak inflow 0.3, Re 20) is
 //! steady; case 2D-2 (peak 1.5, Re 100) sheds vortices periodically.
 
-use super::{Flow2d, FlowError, Integrator, Shape, SteadyOptions, Stepper, WallSpeed, fluid_value_at, ladder, march_to_steady, max_speed};
+use super::{
+    Flow2d, FlowError, Integrator, NewtonOptions, Shape, SteadyFlow, SteadyOptions, Stepper, WallSpeed, fluid_value_at, ladder, march_to_steady, max_speed,
+};
 use crate::boundary::{Boundary, Profile, Side};
 
 /// Diameter of the cylinder.
@@ -98,6 +100,19 @@ pub fn run_2d1(cells_per_d: usize, tolerance: f64, max_steps: usize, observe: im
     let p = stepper.pressure();
     let at = |x: f64| fluid_value_at(&cfg, stepper.cut(), &p, x, 0.2).unwrap_or(f64::NAN);
     Ok(Steady2d1 { cd, cl, dp: at(0.15) - at(0.25), cells: cfg.nx * cfg.ny, steps: report.steps })
+}
+
+/// Case 2D-1 by Newton's method on the discrete steady equations
+/// ([`SteadyFlow`], the same equations the march of [`run_2d1`] converges
+/// to), from Poiseuille flow; `steps` counts Newton steps.
+pub fn run_2d1_newton(cells_per_d: usize) -> Result<Steady2d1, FlowError> {
+    let u_max = 0.3;
+    let (cfg, shape) = schafer_turek(cells_per_d, u_max);
+    let flow = SteadyFlow::new(cfg, std::slice::from_ref(&shape))?;
+    let state = flow.solve(&poiseuille(&cfg, u_max), &NewtonOptions::default())?;
+    let [cd, cl] = coefficients(flow.force(&state, force_box(&cfg)), u_max);
+    let at = |x: f64| fluid_value_at(&cfg, Some(flow.cut()), &state.pressure, x, 0.2).unwrap_or(f64::NAN);
+    Ok(Steady2d1 { cd, cl, dp: at(0.15) - at(0.25), cells: cfg.nx * cfg.ny, steps: state.steps })
 }
 
 /// Case 2D-2's results.
