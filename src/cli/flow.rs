@@ -416,6 +416,11 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
     println!("| c_D ({} per D, re-simulated) | {fine_start:.4} | {fine_end:.4} | {fine_reduction:.2} % |", 2 * per_d);
     println!("| area | {:.6e} | {:.6e} | {:+.2e} % |", r.area_start, r.area_end, 100.0 * (r.area_end / r.area_start - 1.0));
     println!("| projected gradient | {:.3e} | {:.3e} | shrunk {shrink:.0}× |", r.gradient_start, r.gradient_end);
+    if shrink < 100.0 {
+        println!(
+            "The projected gradient shrank less than 100×: the line search stalled at a kink of the discrete drag (a grid node crossing the boundary); the optimum is not verified to that standard."
+        );
+    }
     Ok(())
 }
 
