@@ -332,6 +332,15 @@ fn cylinder_experiment_reports_both_cases_as_json() {
     // 10 cells per diameter: the period within 5 %, the drag peak within 5 %.
     assert!((last["st"].as_f64().unwrap() - 0.3).abs() < 0.015, "{last}");
     assert!((last["cd_max"].as_f64().unwrap() - 3.23).abs() < 0.16, "{last}");
+    // The error-against-time sweep: the drag's error falls with the resolution.
+    let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-1", "--sweep", "10,20", "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let sweep: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    let rows = sweep["sweep"].as_array().unwrap();
+    assert_eq!(rows.len(), 2, "{sweep}");
+    assert!(rows[1]["cd_error"].as_f64().unwrap() < 0.5 * rows[0]["cd_error"].as_f64().unwrap(), "{sweep}");
+    fails_with(&["experiment", "cylinder", "--case", "2d-2", "--sweep", "10"], "invalid argument --sweep");
+    fails_with(&["experiment", "cylinder", "--case", "2d-1", "--sweep", "15"], "invalid argument --sweep");
     fails_with(&["experiment", "cylinder", "--case", "2d-1", "--resolution", "15"], "invalid argument --resolution");
     fails_with(&["experiment", "cylinder", "--case", "2d-2", "--t-end", "1"], "invalid argument --t-end");
 }

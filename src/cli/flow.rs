@@ -219,7 +219,12 @@ pub struct CylinderArgs {
     /// Print the result as one JSON object on the last line.
     #[arg(long)]
     json: bool,
-    /// 2d-2: also write the force coefficients over time (CSV, PNG) here.
+    /// 2d-1 by Newton: run these resolutions (cells per D, comma-separated)
+    /// and report error against time as a table (and a plot with --out).
+    #[arg(long, value_delimiter = ',')]
+    sweep: Vec<usize>,
+    /// 2d-2: also write the force coefficients over time (CSV, PNG) here;
+    /// 2d-1 with --sweep: the error-against-time plot.
     #[arg(long)]
     out: Option<PathBuf>,
 }
@@ -235,6 +240,9 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
             arg: "--resolution",
             reason: format!("cells per diameter must be a multiple of 10 between 10 and 200 (the channel is 4.1 diameters high), got {per_d}"),
         });
+    }
+    if !a.sweep.is_empty() {
+        return cylinder_sweep(&a);
     }
     let start = Instant::now();
     let spinner = if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new_spinner() };
@@ -307,6 +315,62 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
             println!("| c_L,max | {:.4} | 0.99–1.01 | {} |", r.cl_max, within(r.cl_max, reference::CL_MAX_2D2));
             println!("| St | {:.4} | 0.295–0.305 | {} |", r.st, within(r.st, reference::ST_2D2));
         }
+    }
+    Ok(())
+}
+
+/// 2D-1 by Newton at several resolutions: error against wall time (c_D and
+/// Δp against the tight values).
+fn cylinder_sweep(a: &CylinderArgs) -> Result<(), CliError> {
+    use diffsim_solvers::flow::cylinder::{reference, run_2d1_newton};
+    if a.case != CylinderCase::Steady {
+        return Err(CliError::Argument { arg: "--sweep", reason: "only case 2d-1 has a sweep".into() });
+    }
+    if let Some(&bad) = a.sweep.iter().find(|&&r| !(10..=200).contains(&r) || r % 10 != 0) {
+        return Err(CliError::Argument { arg: "--sweep", reason: format!("cells per diameter must be multiples of 10 between 10 and 200, got {bad}") });
+    }
+    let dp_ref = reference::DP_2D1_TIGHT;
+    let mut rows = Vec::new();
+    for &per_d in &a.sweep {
+        let t = Instant::now();
+        let r = run_2d1_newton(per_d)?;
+        rows.push((per_d, r, t.elapsed().as_secs_f64()));
+    }
+    let cd_err = |cd: f64| (cd / reference::CD_2D1_TIGHT - 1.0).abs();
+    let dp_err = |dp: f64| (dp / dp_ref - 1.0).abs();
+    if a.json {
+        let list: Vec<serde_json::Value> = rows
+            .iter()
+            .map(|(per_d, r, t)| serde_json::json!({"resolution": per_d, "cells": r.cells, "cd": r.cd, "cl": r.cl, "dp": r.dp, "cd_error": cd_err(r.cd), "dp_error": dp_err(r.dp), "time_s": t}))
+            .collect();
+        println!("{}", serde_json::json!({"case": "2d-1", "solver": "newton", "sweep": list}));
+    } else {
+        println!(
+            "Schäfer–Turek 2D-1 by Newton's method: error against wall time\n| cells per D | cells | c_D | c_D error | c_L | Δp | Δp error | time |\n|---|---|---|---|---|---|---|---|"
+        );
+        for (per_d, r, t) in &rows {
+            println!(
+                "| {per_d} | {} | {:.5} | {:.3} % | {:.5} | {:.5} | {:.2} % | {t:.1} s |",
+                r.cells,
+                r.cd,
+                100.0 * cd_err(r.cd),
+                r.cl,
+                r.dp,
+                100.0 * dp_err(r.dp)
+            );
+        }
+    }
+    if let Some(dir) = &a.out {
+        std::fs::create_dir_all(dir).map_err(|source| CliError::Io { path: dir.to_path_buf(), source })?;
+        let points = |f: &dyn Fn(&diffsim_solvers::flow::cylinder::Steady2d1) -> f64| rows.iter().map(|(_, r, t)| (*t, f(r).max(1e-12))).collect::<Vec<_>>();
+        plot_or_warn(
+            &dir.join("cylinder_2d1_error_time.png"),
+            &Axes { title: "Schäfer–Turek 2D-1 by Newton: error against wall time", x: "wall time (s)", y: "relative error", log_x: true, log_y: true },
+            &[
+                Series { name: "c_D (against 5.57954)".into(), points: points(&|r| cd_err(r.cd)), color: 0, markers: true },
+                Series { name: "Δp (against 0.11752)".into(), points: points(&|r| dp_err(r.dp)), color: 1, markers: true },
+            ],
+        );
     }
     Ok(())
 }

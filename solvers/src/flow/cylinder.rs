@@ -28,6 +28,8 @@ pub mod reference {
     pub const ST_2D2: (f64, f64) = (0.295, 0.305);
     /// The tight 2D-1 drag coefficient of the later high-accuracy computations.
     pub const CD_2D1_TIGHT: f64 = 5.57953523384;
+    /// The tight 2D-1 pressure difference of the same computations.
+    pub const DP_2D1_TIGHT: f64 = 0.11752016697;
 }
 
 /// The benchmark's channel and cylinder at `cells_per_d` cells per
