@@ -3,6 +3,7 @@
 //! converging at second order towards Ghia et al.'s values, and its errors.
 
 use diffsim_solvers::boundary::{Boundary, Profile, Side};
+use diffsim_solvers::flow::cylinder::{poiseuille, schafer_turek};
 use diffsim_solvers::flow::{Flow2d, FlowError, Integrator, SteadyOptions, Stepper, WallSpeed, cavity_extrema, ghia, march_to_steady};
 use diffsim_solvers::smoke::divergence;
 
@@ -138,18 +139,6 @@ fn the_direct_pressure_solve_matches_mic0_under_every_boundary() {
     }
 }
 
-fn schafer_turek(cells_per_d: usize, u_max: f64) -> Flow2d {
-    let h = 0.1 / cells_per_d as f64;
-    Flow2d {
-        nx: 22 * cells_per_d,
-        ny: (4.1 * cells_per_d as f64).round() as usize,
-        h,
-        nu: 1e-3,
-        boundary: Boundary { left: Side::Inflow(Profile::Parabolic(u_max)), right: Side::Outflow, bottom: Side::Closed, top: Side::Closed },
-        wall_speed: WallSpeed::default(),
-    }
-}
-
 /// A disc's cut: apertures in [0, 1], the solid area they enclose tends to
 /// πr², a Fourier body with no harmonics cuts exactly like
 /// the circle, and moving the body a little moves every aperture a little.
@@ -159,7 +148,7 @@ fn a_body_cuts_the_grid_continuously_and_encloses_its_area() {
     let circle = Shape::Circle { center: [0.2, 0.2], radius: 0.05 };
     let mut errors = Vec::new();
     for per_d in [10, 20, 40] {
-        let cfg = schafer_turek(per_d, 0.3);
+        let (cfg, _) = schafer_turek(per_d, 0.3);
         let cut = Cut::new(&cfg, std::slice::from_ref(&circle));
         assert!(cut.aperture_u.iter().chain(&cut.aperture_v).all(|a| (0.0..=1.0).contains(a)));
         errors.push((cut.solid_area(&cfg) - circle.area()).abs() / circle.area());
@@ -198,19 +187,11 @@ fn a_body_cuts_the_grid_continuously_and_encloses_its_area() {
 /// aperture-weighted sense.
 #[test]
 fn forces_on_a_cylinder_match_schafer_turek_on_a_coarse_grid() {
-    use diffsim_solvers::flow::Shape;
     let u_max = 0.3;
-    let cfg = schafer_turek(10, u_max);
-    let circle = Shape::Circle { center: [0.2, 0.2], radius: 0.05 };
-    let mut stepper = Stepper::with_bodies(cfg, 1e-10, &[circle]).unwrap();
-    let mut x = cfg.rest();
+    let (cfg, circle) = schafer_turek(10, u_max);
+    let mut stepper = Stepper::with_bodies(cfg, 1e-10, std::slice::from_ref(&circle)).unwrap();
+    let mut x = poiseuille(&cfg, u_max);
     let n_u = cfg.n_u();
-    for j in 0..cfg.ny {
-        let t = (j as f64 + 0.5) / cfg.ny as f64;
-        for i in 0..=cfg.nx {
-            x[j * (cfg.nx + 1) + i] = 4.0 * u_max * t * (1.0 - t);
-        }
-    }
     march_to_steady(&mut stepper, &mut x, &SteadyOptions { tolerance: 1e-7, max_steps: 100_000, reference_speed: 0.45 }, |_, _, _| {}).unwrap();
     let f = stepper.force_in_box(&x, None, [10, 30, 10, 30]);
     let ubar = 2.0 * u_max / 3.0;
@@ -218,16 +199,16 @@ fn forces_on_a_cylinder_match_schafer_turek_on_a_coarse_grid() {
     let cl = 2.0 * f[1] / (ubar * ubar * 0.1);
     assert!((cd - 5.5795).abs() < 0.03 * 5.5795, "c_D {cd}");
     assert!(cl > 0.0 && cl < 0.05, "c_L {cl}");
-    // Another box around the body: the same force (the discrete steady
-    // equations hold exactly at every fluid face, so the fluxes balance).
     // Newton's method on the same discrete steady equations: the same flow
     // and force (the march stopped at max |du/dt| < 1e-7).
-    let newton = diffsim_solvers::flow::SteadyFlow::new(cfg, &[Shape::Circle { center: [0.2, 0.2], radius: 0.05 }]).unwrap();
+    let newton = diffsim_solvers::flow::SteadyFlow::new(cfg, std::slice::from_ref(&circle)).unwrap();
     let state = newton.solve(&x, &Default::default()).unwrap();
     let fn_ = newton.force(&state, [10, 30, 10, 30]);
     assert!((fn_[0] - f[0]).abs() < 1e-5 * f[0] && (fn_[1] - f[1]).abs() < 1e-5 * f[0], "Newton {fn_:?} against the march {f:?}");
     let diff = state.x.iter().zip(&x).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
     assert!(diff < 1e-5, "Newton's velocity differs from the march's by {diff}");
+    // Another box around the body: the same force (the discrete steady
+    // equations hold exactly at every fluid face, so the fluxes balance).
     let inner = stepper.force_in_box(&x, None, [12, 28, 12, 28]);
     assert!((inner[0] - f[0]).abs() < 1e-6 * f[0] && (inner[1] - f[1]).abs() < 1e-6 * f[0], "{inner:?} against {f:?}");
     // A box downstream, away from the body: nothing inside, no force.
@@ -252,7 +233,6 @@ fn forces_on_a_cylinder_match_schafer_turek_on_a_coarse_grid() {
 /// implicit no-slip factor sits inside the projection).
 #[test]
 fn the_steady_flow_around_a_body_does_not_depend_on_the_step() {
-    use diffsim_solvers::flow::cylinder::{poiseuille, schafer_turek};
     let (cfg, shape) = schafer_turek(10, 0.3);
     let run = |integrator: Integrator, fraction: f64| {
         let mut stepper = Stepper::with_bodies(cfg, 1e-11, std::slice::from_ref(&shape)).unwrap();

@@ -4,10 +4,10 @@
 //! three gradient checks, and malformed shapes refused.
 
 use diffsim::check::{CheckOptions, check_all};
-use diffsim::op::OperatorExt;
+use diffsim::op::{Forward, OpError, OperatorExt};
 use diffsim::problems::drag::{CutOperator, FourierLevel, SteadyForce};
 use diffsim_solvers::boundary::{Boundary, Profile, Side};
-use diffsim_solvers::flow::{Flow2d, Shape, ShapeError, WallSpeed};
+use diffsim_solvers::flow::{Flow2d, FlowError, Shape, ShapeError, SteadyFlow, WallSpeed};
 
 /// A short channel (0.5 × 0.41, 10 cells per 0.1) with the Schäfer–Turek
 /// inflow of peak 0.3 and ν = 10⁻³: Re 20 around a body of size 0.1.
@@ -73,7 +73,7 @@ fn the_cut_of_a_fourier_body_and_a_polygon_passes_the_three_checks() {
 fn the_steady_force_gradient_passes_the_three_checks() {
     let cfg = short_channel();
     let start = diffsim_solvers::flow::cylinder::poiseuille(&cfg, 0.3);
-    let op = SteadyForce::new(cfg, fourier(), start, [10, 30, 10, 30]);
+    let op = SteadyForce::new(cfg, fourier(), start, [10, 30, 10, 30]).unwrap();
     let opts = CheckOptions { tol: 1e-5, max_indices: 7, ..Default::default() };
     let report = check_all(&op, &fourier().params(), &[], &opts);
     assert!(report.passed(), "{report}");
@@ -96,4 +96,18 @@ fn malformed_shapes_are_refused_with_what_is_wrong() {
     assert!(matches!(fourier().with_params(&[1.0]), Err(ShapeError::Parameters { expected: 7, given: 1 })));
     let nan = Shape::Circle { center: [f64::NAN, 0.2], radius: 0.05 };
     assert!(matches!(nan.validate(&cfg), Err(ShapeError::NotFinite)));
+    // The steady solver and the force operator refuse them before solving.
+    assert!(matches!(SteadyFlow::new(cfg, std::slice::from_ref(&outside)), Err(FlowError::Shape(ShapeError::LeavesDomain { .. }))));
+    let op = SteadyForce::new(cfg, fourier(), cfg.rest(), [10, 30, 10, 30]).unwrap();
+    let mut y = [0.0; 2];
+    op.forward(&negative_params(), &[], &mut y);
+    assert!(y.iter().all(|v| v.is_nan()), "{y:?}");
+    assert!(matches!(op.take_error(), Some(OpError::Shape(ShapeError::Radius { .. }))));
+}
+
+/// Parameters of [`fourier`]'s kind whose radius turns negative.
+fn negative_params() -> Vec<f64> {
+    let mut p = fourier().params();
+    p[3] = 0.08;
+    p
 }

@@ -195,6 +195,10 @@ pub enum OpError {
         /// The largest stable value.
         limit: f64,
     },
+    /// The parameters describe a body that cannot be put into the flow
+    /// (a shape operator's input).
+    #[error("{0}")]
+    Shape(diffsim_solvers::flow::ShapeError),
 }
 
 /// Reverse mode: the vector–Jacobian product.

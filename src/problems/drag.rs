@@ -14,7 +14,7 @@
 
 use std::cell::RefCell;
 
-use diffsim_solvers::flow::{Cut, Flow2d, NewtonOptions, Shape, SteadyFlow};
+use diffsim_solvers::flow::{Cut, Flow2d, FlowError, NewtonOptions, Shape, SteadyFlow};
 
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
@@ -145,8 +145,9 @@ impl Jvp for CutOperator {
 /// Shape parameters ↦ the force `[F_x, F_y]` on the body in a steady flow
 /// (per unit depth, density 1, by the momentum balance over a box of
 /// cells): input `x` the shape's [`Shape::params`]. Each call solves the
-/// steady equations by Newton's method from `start`; a failed solve
-/// leaves NaN in the output and an error for [`Forward::take_error`].
+/// steady equations by Newton's method from `start`; a malformed shape
+/// ([`OpError::Shape`]) or a failed solve leaves NaN in the output and an
+/// error for [`Forward::take_error`].
 #[derive(Debug)]
 pub struct SteadyForce {
     cfg: Flow2d,
@@ -160,9 +161,10 @@ pub struct SteadyForce {
 impl SteadyForce {
     /// The force on shapes like `template` in `cfg`'s flow, measured on the
     /// box of cells `cells = [i0, i1, j0, j1]`, every solve starting from
-    /// the velocity `start`.
-    pub fn new(cfg: Flow2d, template: Shape, start: Vec<f64>, cells: [usize; 4]) -> Self {
-        Self { cfg, template, start, cells, newton: NewtonOptions::default(), error: RefCell::new(None) }
+    /// the velocity `start`. An error when `cfg` cannot be simulated.
+    pub fn new(cfg: Flow2d, template: Shape, start: Vec<f64>, cells: [usize; 4]) -> Result<Self, FlowError> {
+        cfg.validate()?;
+        Ok(Self { cfg, template, start, cells, newton: NewtonOptions::default(), error: RefCell::new(None) })
     }
 
     /// The steady problem and its solution at parameters `x`, or `None`
@@ -172,19 +174,17 @@ impl SteadyForce {
             self.error.borrow_mut().get_or_insert(e);
             None
         };
-        let shape = match self.template.with_params(x) {
-            Ok(s) => s,
-            Err(_) => return fail(OpError::Unstable { value: f64::NAN, limit: f64::NAN }),
-        };
+        let shape = self.template.with_params(x).expect("the parameter length is checked by the operator");
         let flow = match SteadyFlow::new(self.cfg, &[shape]) {
             Ok(f) => f,
-            Err(_) => return fail(OpError::Unstable { value: f64::NAN, limit: f64::NAN }),
+            Err(FlowError::Shape(e)) => return fail(OpError::Shape(e)),
+            Err(e) => unreachable!("the configuration was validated by SteadyForce::new: {e}"),
         };
         match flow.solve(&self.start, &self.newton) {
             Ok(state) => Some((flow, state)),
             Err(e) => {
                 let residual = match e {
-                    diffsim_solvers::flow::FlowError::NotSteady { rate, .. } => rate,
+                    FlowError::NotSteady { rate, .. } => rate,
                     _ => f64::NAN,
                 };
                 fail(OpError::NoConvergence { iterations: self.newton.max_steps, relative_residual: residual, tolerance: self.newton.tolerance })

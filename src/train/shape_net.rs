@@ -17,9 +17,9 @@ use rand::SeedableRng;
 use rand::rngs::StdRng;
 
 use diffsim_solvers::flow::FlowError;
+use diffsim_solvers::flow::ShapeError;
 use diffsim_solvers::flow::cylinder::{DIAMETER, poiseuille, schafer_turek};
 use diffsim_solvers::flow::drag_shape::{DragShapeOptions, drag_coefficient, optimise, reduced_gradient, shape_at_area, steady_drag};
-use diffsim_solvers::flow::{Shape, ShapeError};
 
 use crate::nn::{Activation, Init, Layer, Net};
 use crate::op::{Forward, Vjp};
@@ -102,8 +102,8 @@ pub fn u_max_for(re: f64) -> f64 {
 
 /// The largest magnitude of each cosine coefficient `a₂…a_K` (`a₂` up to
 /// 0.6 of the radius, `a₃` 0.12, the others 0.24): the network's last layer
-/// is a `tanh` scaled by these, which keeps its proposals bodies for
-/// `K ≤ 4` (checked anyway).
+/// is a `tanh` scaled by these, which keeps `r₀` real for `K ≤ 30` and its
+/// proposals bodies for `K ≤ 4` (the steady solve validates them anyway).
 fn bounds(modes: usize) -> Vec<f64> {
     (2..=modes)
         .map(|k| match k {
@@ -151,7 +151,12 @@ pub fn train(opts: &ShapeNetOptions, mut progress: impl FnMut(usize, f64)) -> Re
     let mut theta = net.init(&mut StdRng::seed_from_u64(opts.seed), Init::Glorot);
     let area = std::f64::consts::PI * 0.25 * DIAMETER * DIAMETER;
     let per_d = opts.cells_per_d;
-    let flow_err = |re: f64| move |source: FlowError| ShapeNetError::Flow { re, source };
+    let flow_err = |re: f64| {
+        move |e: FlowError| match e {
+            FlowError::Shape(source) => ShapeNetError::Shape { re, source },
+            source => ShapeNetError::Flow { re, source },
+        }
+    };
     // Per training Re: the channel, the cylinder's drag, Newton's start.
     let mut samples = Vec::new();
     for &re in &opts.train_re {
@@ -169,21 +174,16 @@ pub fn train(opts: &ShapeNetOptions, mut progress: impl FnMut(usize, f64)) -> Re
         let mut loss = 0.0;
         for (re, cfg, cd_cylinder, x) in samples.iter_mut() {
             let q = propose(&net, &theta, *re, &bound);
-            let shape = shape_at_area(area, opts.modes, &q).ok_or(ShapeNetError::Shape { re: *re, source: ShapeError::Radius { angle: 0.0, radius: 0.0 } })?;
-            // Validated before the generated derivatives run.
-            shape.validate(cfg).map_err(|source| ShapeNetError::Shape { re: *re, source })?;
+            let shape = shape_at_area(area, opts.modes, &q).expect("the output bounds keep ½Σq² below the area's r₀²");
+            // (Validated by the steady solve before any derivative runs.)
             let u = u_max_for(*re);
             let (cd, full, state) = steady_drag(cfg, &shape, u, x).map_err(flow_err(*re))?;
             *x = state;
             let n = opts.train_re.len() as f64;
             loss += cd / *cd_cylinder / n;
-            let r0 = match &shape {
-                Shape::Fourier { r0, .. } => *r0,
-                _ => unreachable!("a Fourier body"),
-            };
             // dL/dq (its cosine part), then through the scaled tanh output
             // into the weights.
-            let mut seed: Vec<f64> = reduced_gradient(&full, &q, r0, opts.modes).iter().zip(&bound).map(|(g, b)| g * b / (*cd_cylinder * n)).collect();
+            let mut seed: Vec<f64> = reduced_gradient(&full, &q, area, opts.modes).iter().zip(&bound).map(|(g, b)| g * b / (*cd_cylinder * n)).collect();
             let mut dx = [0.0];
             net.vjp(&input(*re), &theta, &mut seed, &mut dx, &mut grad);
         }
@@ -199,7 +199,7 @@ pub fn train(opts: &ShapeNetOptions, mut progress: impl FnMut(usize, f64)) -> Re
         let cd_cylinder = drag_coefficient(per_d, &circle, u).map_err(flow_err(re))?;
         let t = Instant::now();
         let q = propose(&net, &theta, re, &bound);
-        let shape = shape_at_area(area, opts.modes, &q).ok_or(ShapeNetError::Shape { re, source: ShapeError::Radius { angle: 0.0, radius: 0.0 } })?;
+        let shape = shape_at_area(area, opts.modes, &q).expect("the output bounds keep ½Σq² below the area's r₀²");
         let cd_network = drag_coefficient(per_d, &shape, u).map_err(flow_err(re))?;
         let time_network_s = t.elapsed().as_secs_f64();
         let t = Instant::now();

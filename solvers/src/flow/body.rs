@@ -39,7 +39,7 @@ pub enum Shape {
 }
 
 /// Why a shape cannot be put into a flow.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub enum ShapeError {
     /// A parameter is NaN or infinite.
     NotFinite,

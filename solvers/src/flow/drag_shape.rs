@@ -126,11 +126,12 @@ pub fn shape_at_area(area: f64, modes: usize, q: &[f64]) -> Option<Shape> {
 }
 
 /// The gradient with respect to the free coefficients `q` of
-/// [`shape_at_area`] from the gradient `full` with respect to the shape's
-/// parameters `[cx, cy, r₀, a₁…a_K, b₁…b_K]` at radius `r0`: `∂r₀/∂q =
+/// [`shape_at_area`] (at `area`) from the gradient `full` with respect to
+/// the shape's parameters `[cx, cy, r₀, a₁…a_K, b₁…b_K]`: `∂r₀/∂q =
 /// −q/(2·r₀)` (the projected gradient on the constant-area surface).
-pub fn reduced_gradient(full: &[f64], q: &[f64], r0: f64, modes: usize) -> Vec<f64> {
+pub fn reduced_gradient(full: &[f64], q: &[f64], area: f64, modes: usize) -> Vec<f64> {
     let (m, k) = (modes - 1, modes);
+    let r0 = (area / std::f64::consts::PI - 0.5 * q.iter().map(|c| c * c).sum::<f64>()).sqrt();
     (0..2 * m)
         .map(|i| {
             let direct = if i < m { full[3 + 1 + i] } else { full[3 + k + 1 + (i - m)] };
@@ -181,18 +182,16 @@ impl Problem {
         }
         let q: Vec<f64> = z.iter().map(|v| v * self.scale).collect();
         let Some(shape) = self.shape(&q) else { return Ok(None) };
-        if shape.validate(&self.cfg).is_err() {
-            return Ok(None);
-        }
-        *self.solves.borrow_mut() += 1;
         let start = self.start.borrow().clone();
-        let (cd, full, x) = steady_drag(&self.cfg, &shape, self.u_max, &start)?;
-        *self.start.borrow_mut() = x;
-        let r0 = match &shape {
-            Shape::Fourier { r0, .. } => *r0,
-            _ => unreachable!("the optimised shape is a Fourier body"),
+        let (cd, full, x) = match steady_drag(&self.cfg, &shape, self.u_max, &start) {
+            Ok(v) => v,
+            // Not a body in the domain (validated before any solve).
+            Err(FlowError::Shape(_)) => return Ok(None),
+            Err(e) => return Err(e),
         };
-        let g: Vec<f64> = reduced_gradient(&full, &q, r0, self.modes).iter().map(|v| v * self.scale).collect();
+        *self.solves.borrow_mut() += 1;
+        *self.start.borrow_mut() = x;
+        let g: Vec<f64> = reduced_gradient(&full, &q, self.area, self.modes).iter().map(|v| v * self.scale).collect();
         *self.cache.borrow_mut() = Some((z.to_vec(), cd, g.clone()));
         Ok(Some((cd, g)))
     }
@@ -274,7 +273,9 @@ pub fn optimise(opts: &DragShapeOptions) -> Result<DragShapeResult, FlowError> {
     let (cd_start, g0) = probe.evaluate(&q0)?.expect("the cylinder is a body in the domain");
     let g0_norm = g0.iter().map(|v| v * v).sum::<f64>().sqrt();
     let scale = (0.1 * 0.5 * DIAMETER / g0_norm.max(1e-12)).sqrt();
-    let problem = Problem { scale, cache: RefCell::new(None), ..probe };
+    // The start's evaluation carries over (z = 0 at any scale; ∂c_D/∂z = s·∂c_D/∂q).
+    let cached = (q0.clone(), cd_start, g0.iter().map(|v| v * scale).collect());
+    let problem = Problem { scale, cache: RefCell::new(Some(cached)), ..probe };
     let linesearch = BacktrackingLineSearch::new(ArmijoCondition::new(1e-4).expect("a valid Armijo constant")).rho(0.5).expect("a valid contraction");
     let solver = LBFGS::new(linesearch, 8)
         .with_tolerance_grad(g0_norm * scale / opts.gradient_reduction)

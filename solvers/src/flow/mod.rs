@@ -90,6 +90,8 @@ pub enum FlowError {
         /// The step.
         step: usize,
     },
+    /// A body is not a proper shape inside the domain.
+    Shape(ShapeError),
     /// An unsteady run did not settle into a periodic signal.
     NotPeriodic {
         /// Upward crossings of the mean found in the measured window.
@@ -115,6 +117,7 @@ impl fmt::Display for FlowError {
             FlowError::Factor => f.write_str("flow: the sparse Cholesky factorisation of the pressure matrix failed (out of memory?)"),
             FlowError::Pressure { step, cause } => write!(f, "flow: step {step}: {cause}"),
             FlowError::NotFinite { step } => write!(f, "flow: the velocity is not finite after step {step} (unstable time step?)"),
+            FlowError::Shape(e) => e.fmt(f),
             FlowError::NotPeriodic { crossings } => {
                 write!(f, "flow: the lift did not oscillate in the measured window ({crossings} upward crossings of its mean; run longer)")
             }

@@ -136,10 +136,13 @@ fn pinned_cells(cfg: &Flow2d, rows: &[Row], open: &[bool]) -> Vec<bool> {
 }
 
 impl SteadyFlow {
-    /// The steady problem of `cfg` around `shapes` (validated: see
-    /// [`Shape::validate`]).
+    /// The steady problem of `cfg` around `shapes`, each validated first
+    /// ([`Shape::validate`]; a malformed one is [`FlowError::Shape`]).
     pub fn new(cfg: Flow2d, shapes: &[Shape]) -> Result<Self, FlowError> {
         cfg.validate()?;
+        for shape in shapes {
+            shape.validate(&cfg).map_err(FlowError::Shape)?;
+        }
         let (cut, sens) = Cut::with_sensitivity(&cfg, shapes);
         let (nx, ny) = (cfg.nx, cfg.ny);
         let n_u = cfg.n_u();
