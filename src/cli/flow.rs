@@ -505,19 +505,9 @@ fn write_drag_shapes(dir: &std::path::Path, r: &diffsim_solvers::flow::drag_shap
     );
     // Boundaries of a few iterates, the start and the end among them.
     let outline = |s: &diffsim_solvers::flow::Shape| -> Vec<(f64, f64)> {
-        let (center, r0, cos, sin) = match s {
-            diffsim_solvers::flow::Shape::Fourier { center, r0, cos, sin } => (*center, *r0, cos.clone(), sin.clone()),
-            _ => return Vec::new(),
-        };
-        (0..=360)
-            .map(|k| {
-                let t = (k as f64).to_radians();
-                let r = r0
-                    + cos.iter().enumerate().map(|(m, a)| a * ((m + 1) as f64 * t).cos()).sum::<f64>()
-                    + sin.iter().enumerate().map(|(m, b)| b * ((m + 1) as f64 * t).sin()).sum::<f64>();
-                (center[0] + r * t.cos(), center[1] + r * t.sin())
-            })
-            .collect()
+        let mut points: Vec<(f64, f64)> = s.outline(360).into_iter().map(|[x, y]| (x, y)).collect();
+        points.push(points[0]);
+        points
     };
     let n = r.history.len();
     let mut picks: Vec<usize> = [0, n / 8, n / 4, n / 2, n - 1].into_iter().filter(|&k| k < n).collect();

@@ -118,9 +118,20 @@ impl Shape {
     pub fn level(&self, x: f64, y: f64) -> f64 {
         match self {
             Shape::Circle { center, radius } => (x - center[0]).hypot(y - center[1]) - radius,
-            Shape::Fourier { center, r0, cos, sin } => {
+            Shape::Fourier { center, .. } => {
                 let (dx, dy) = (x - center[0], y - center[1]);
-                let theta = dy.atan2(dx);
+                dx.hypot(dy) - self.radius_at(dy.atan2(dx)).expect("a Fourier body has a radius")
+            }
+            Shape::Polygon { vertices } => polygon_level(vertices, [x, y], None),
+        }
+    }
+
+    /// The radius `r(θ)` of a circle or Fourier body about its centre
+    /// (`None` for a polygon).
+    pub fn radius_at(&self, theta: f64) -> Option<f64> {
+        match self {
+            Shape::Circle { radius, .. } => Some(*radius),
+            Shape::Fourier { r0, cos, sin, .. } => {
                 let mut r = *r0;
                 for (k, a) in cos.iter().enumerate() {
                     r += a * ((k + 1) as f64 * theta).cos();
@@ -128,9 +139,25 @@ impl Shape {
                 for (k, b) in sin.iter().enumerate() {
                     r += b * ((k + 1) as f64 * theta).sin();
                 }
-                dx.hypot(dy) - r
+                Some(r)
             }
-            Shape::Polygon { vertices } => polygon_level(vertices, [x, y], None),
+            Shape::Polygon { .. } => None,
+        }
+    }
+
+    /// Points along the boundary: `n` equally spaced angles for a circle or
+    /// Fourier body (at the radius [`Shape::radius_at`], even where it is not
+    /// positive), the vertices of a polygon.
+    pub fn outline(&self, n: usize) -> Vec<[f64; 2]> {
+        match self {
+            Shape::Circle { center, .. } | Shape::Fourier { center, .. } => (0..n)
+                .map(|k| {
+                    let theta = 2.0 * std::f64::consts::PI * k as f64 / n as f64;
+                    let r = self.radius_at(theta).expect("a round body has a radius");
+                    [center[0] + r * theta.cos(), center[1] + r * theta.sin()]
+                })
+                .collect(),
+            Shape::Polygon { vertices } => vertices.clone(),
         }
     }
 
@@ -227,25 +254,17 @@ impl Shape {
         }
         // Boundary points, to check the radius and the extent.
         let boundary: Vec<[f64; 2]> = match self {
-            Shape::Circle { center, radius } | Shape::Fourier { center, r0: radius, .. } => {
+            Shape::Circle { center, .. } | Shape::Fourier { center, .. } => {
                 let m = 720;
-                let mut pts = Vec::with_capacity(m);
-                for k in 0..m {
-                    let theta = 2.0 * std::f64::consts::PI * k as f64 / m as f64;
-                    let r = match self {
-                        Shape::Fourier { cos, sin, .. } => {
-                            radius
-                                + cos.iter().enumerate().map(|(k, a)| a * ((k + 1) as f64 * theta).cos()).sum::<f64>()
-                                + sin.iter().enumerate().map(|(k, b)| b * ((k + 1) as f64 * theta).sin()).sum::<f64>()
+                (0..m)
+                    .map(|k| {
+                        let theta = 2.0 * std::f64::consts::PI * k as f64 / m as f64;
+                        match self.radius_at(theta).expect("a round body has a radius") {
+                            r if r > 0.0 => Ok([center[0] + r * theta.cos(), center[1] + r * theta.sin()]),
+                            r => Err(ShapeError::Radius { angle: theta, radius: r }),
                         }
-                        _ => *radius,
-                    };
-                    if r <= 0.0 {
-                        return Err(ShapeError::Radius { angle: theta, radius: r });
-                    }
-                    pts.push([center[0] + r * theta.cos(), center[1] + r * theta.sin()]);
-                }
-                pts
+                    })
+                    .collect::<Result<_, _>>()?
             }
             Shape::Polygon { vertices } => {
                 let n = vertices.len();
