@@ -130,6 +130,29 @@ fn scene_commands_write_their_outputs_and_refuse_bad_scenes() {
 }
 
 #[test]
+fn steady_scene_commands_report_forces_and_the_shape_gradient() {
+    let out = std::env::temp_dir().join(format!("diffsim-steady-{}", std::process::id()));
+    let o = out.to_str().unwrap();
+    let (code, stdout, err) = diffsim(&["run", "scenes/drag_body.toml", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    assert!(stdout.contains("obstacles[0]: force") && stdout.contains("c_D"), "{stdout}");
+    let cd: f64 = stdout.split("c_D ").nth(1).and_then(|r| r.split(',').next()).unwrap().parse().unwrap();
+    assert!(err.contains("Newton steps"), "{err}");
+    for f in ["velocity_u.npy", "velocity_v.npy", "pressure.npy", "speed.png"] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    let (code, stdout, err) = diffsim(&["grad", "scenes/drag_body.toml", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    assert!(stdout.contains("(drag of obstacles[0])") && stdout.contains("d loss / d obstacles[0].shape") && stdout.contains("cos[1]"), "{stdout}");
+    // The drag coefficient the loss reports is the one `run` prints.
+    let loss: f64 = stdout.split_whitespace().nth(1).unwrap().parse().unwrap();
+    assert!((4.0..7.0).contains(&loss) && (loss - cd).abs() < 1e-5, "{stdout}");
+    assert!(out.join("grad_obstacles_0_shape.npy").exists());
+    fails_with(&["grad", "tests/scenes_bad/steady_negative_radius.toml", "--out", o], "line 10: `obstacles[0]`: shape: the radius is");
+    std::fs::remove_dir_all(&out).ok();
+}
+
+#[test]
 fn train_and_experiment_commands() {
     let out = std::env::temp_dir().join(format!("diffsim-train-{}", std::process::id()));
     let o = out.to_str().unwrap();

@@ -6,7 +6,7 @@
 use std::path::Path;
 
 use diffsim::rollout::Checkpointing;
-use diffsim::scene::Scene;
+use diffsim::scene::{AnyScene, Scene};
 
 /// The scene at `path` with `time.steps` replaced.
 fn with_steps(path: &Path, steps: i64) -> Scene {
@@ -34,6 +34,11 @@ fn example_scenes_run() {
     let all = files("scenes");
     assert!(all.len() >= 4);
     for path in &all {
+        if let AnyScene::Steady(scene) = AnyScene::load(path).unwrap() {
+            let run = scene.solve().unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            assert!(run.state.residual < scene.newton.tolerance && run.forces.iter().flatten().all(|f| f.is_finite()));
+            continue;
+        }
         let scene = with_steps(path, 3);
         let x = scene.run(|_, _| {}).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         assert!(x.iter().all(|v| v.is_finite()));
@@ -49,7 +54,7 @@ fn malformed_scenes_are_refused_with_their_message() {
     for path in &all {
         let text = std::fs::read_to_string(path).unwrap();
         let expect = text.lines().next().and_then(|l| l.strip_prefix("# expect: ")).unwrap_or_else(|| panic!("{}: no `# expect:` line", path.display()));
-        let err = Scene::parse(&text).map(|_| ()).expect_err(&path.display().to_string()).to_string();
+        let err = AnyScene::parse_in(&text, Path::new(".")).map(|_| ()).expect_err(&path.display().to_string()).to_string();
         assert!(err.contains(expect), "{}: expected `{expect}` in\n{err}", path.display());
     }
 }
@@ -295,4 +300,84 @@ fn undeclared_effects_never_run() {
     names.sort_unstable();
     assert_eq!(names, vec!["Advect", "Buoyancy", "Project"], "{counts:?}");
     assert!(counts.iter().all(|c| c.forward == 2 && c.vjp == 0));
+}
+
+/// A steady scene's drag gradient with respect to two bodies' shapes (the
+/// implicit adjoint) against central differences of the scene's loss over
+/// whole re-solves; and the loss is the drag coefficient the forces give.
+#[test]
+fn steady_scene_drag_gradient_matches_resolves() {
+    let text = r#"
+[domain]
+size = [60, 41]
+cell = 0.01
+boundary = { left = { inflow = [0.3, 0.0], profile = "parabolic" }, right = "outflow" }
+
+[steady]
+viscosity = 1e-3
+
+[[obstacles]]
+fourier = { center = [0.2013, 0.2007], r0 = 0.0503, cos = [0.004], sin = [0.002] }
+
+[[obstacles]]
+polygon = { vertices = [[0.3813, 0.1717], [0.4671, 0.2043], [0.3827, 0.2331]] }  # off the grid lines (kinks)
+
+[loss]
+kind = "drag"
+obstacle = 0
+reference = { speed = 0.2, length = 0.1 }
+with_respect_to = ["obstacles[0].shape", "obstacles[1].shape"]
+"#;
+    let AnyScene::Steady(mut scene) = AnyScene::parse_in(text, Path::new(".")).unwrap() else { panic!("a steady scene") };
+    let loss = scene.loss.clone().unwrap();
+    let (run, g) = scene.gradient(&loss).unwrap();
+    assert!((g.loss - 2.0 / (0.04 * 0.1) * run.forces[0][0]).abs() < 1e-12 * g.loss.abs());
+    assert_eq!(g.inputs.len(), 2);
+    assert_eq!(g.inputs[0].1, ["cx", "cy", "r0", "cos[0]", "sin[0]"]);
+    assert_eq!(g.inputs[1].2.len(), 6);
+    let eps = 1e-6;
+    for (b, k) in [(0usize, 2usize), (0, 3), (1, 2), (1, 3)] {
+        let shape = scene.shapes[b].clone();
+        let mut value = |d: f64| {
+            let mut p = shape.params();
+            p[k] += d;
+            scene.shapes[b] = shape.with_params(&p).unwrap();
+            let run = scene.solve().unwrap();
+            scene.loss_value(&loss, &run)
+        };
+        let fd = (value(eps) - value(-eps)) / (2.0 * eps);
+        scene.shapes[b] = shape;
+        let adjoint = g.inputs[b].2[k];
+        assert!((fd - adjoint).abs() < 1e-5 * (1.0 + adjoint.abs()), "body {b} parameter {k}: adjoint {adjoint}, differences {fd}");
+        assert!(adjoint.abs() > 1e-3, "body {b} parameter {k}: {adjoint}");
+    }
+}
+
+/// Fourier and polygon obstacles in a scene stepped in time are the cells
+/// whose centres they hold.
+#[test]
+fn shaped_obstacles_in_a_stepped_scene_are_cell_masks() {
+    let text = r#"
+[domain]
+size = [16, 16]
+[time]
+dt = 1.0
+steps = 1
+[fields.velocity]
+init = "zero"
+[[effects]]
+kind = "pressure"
+[[obstacles]]
+fourier = { center = [5.0, 8.0], r0 = 2.5, cos = [0.0, 0.5] }
+[[obstacles]]
+polygon = { vertices = [[10.0, 4.0], [14.0, 4.0], [12.0, 12.0]] }
+"#;
+    let scene = Scene::parse(text).unwrap();
+    let solid = scene.solid.as_ref().unwrap();
+    let at = |i: usize, j: usize| solid[j * 16 + i];
+    // r(0) = 3: cells centred at x 5.5 … 7.5 on row 8 are inside, 8.5 not.
+    assert!(at(5, 7) && at(7, 7) && !at(8, 7));
+    // The triangle: its centroid's cell, not a corner outside it.
+    assert!(at(12, 6) && !at(10, 11));
+    assert!(!at(0, 0) && !at(15, 15));
 }

@@ -73,7 +73,7 @@ fn the_cut_of_a_fourier_body_and_a_polygon_passes_the_three_checks() {
 fn the_steady_force_gradient_passes_the_three_checks() {
     let cfg = short_channel();
     let start = diffsim_solvers::flow::cylinder::poiseuille(&cfg, 0.3);
-    let op = SteadyForce::new(cfg, fourier(), start, [10, 30, 10, 30]).unwrap();
+    let op = SteadyForce::new(cfg, vec![fourier()], start, [10, 30, 10, 30]).unwrap();
     let opts = CheckOptions { tol: 1e-5, max_indices: 7, ..Default::default() };
     let report = check_all(&op, &fourier().params(), &[], &opts);
     assert!(report.passed(), "{report}");
@@ -98,7 +98,7 @@ fn malformed_shapes_are_refused_with_what_is_wrong() {
     assert!(matches!(nan.validate(&cfg), Err(ShapeError::NotFinite)));
     // The steady solver and the force operator refuse them before solving.
     assert!(matches!(SteadyFlow::new(cfg, std::slice::from_ref(&outside)), Err(FlowError::Shape(ShapeError::LeavesDomain { .. }))));
-    let op = SteadyForce::new(cfg, fourier(), cfg.rest(), [10, 30, 10, 30]).unwrap();
+    let op = SteadyForce::new(cfg, vec![fourier()], cfg.rest(), [10, 30, 10, 30]).unwrap();
     let mut y = [0.0; 2];
     op.forward(&negative_params(), &[], &mut y);
     assert!(y.iter().all(|v| v.is_nan()), "{y:?}");

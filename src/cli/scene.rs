@@ -7,7 +7,7 @@ use npyz::WriterBuilder;
 
 use super::CliError;
 use crate::rollout::{Checkpointing, RolloutOperator};
-use crate::scene::{Domain, Field, Scene};
+use crate::scene::{AnyScene, Domain, Field, Scene, SteadyScene};
 
 /// Arguments of `diffsim run`.
 #[derive(Debug, clap::Args)]
@@ -98,18 +98,8 @@ fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64]) -> Result<Vec<S
             let (name, values) = if scene.fields.contains(&Field::Smoke) {
                 (format!("smoke{tag}.png"), x[scene.domain.range(Field::Smoke)].to_vec())
             } else {
-                // Speed at cell centres, scaled to its maximum.
                 let (_, u, v) = cfg.split(x);
-                let speed: Vec<f64> = (0..cfg.n_s())
-                    .map(|c| {
-                        let (i, j) = (c % n, c / n);
-                        let uc = 0.5 * (u[j * (n + 1) + i] + u[j * (n + 1) + i + 1]);
-                        let vc = 0.5 * (v[j * n + i] + v[(j + 1) * n + i]);
-                        uc.hypot(vc)
-                    })
-                    .collect();
-                let max = speed.iter().fold(0.0f64, |m, &s| m.max(s)).max(1e-300);
-                (format!("speed{tag}.png"), speed.iter().map(|s| s / max).collect())
+                (format!("speed{tag}.png"), relative_speed((n, ny), u, v))
             };
             let path = out.join(&name);
             super::demo::write_png(&path, (n, ny), &values, solid).map_err(io(path.clone()))?;
@@ -117,6 +107,21 @@ fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64]) -> Result<Vec<S
         }
     }
     Ok(names)
+}
+
+/// The speed at cell centres of a MAC velocity `(u, v)` on `nx × ny`
+/// cells, scaled to its maximum.
+fn relative_speed((n, ny): (usize, usize), u: &[f64], v: &[f64]) -> Vec<f64> {
+    let speed: Vec<f64> = (0..n * ny)
+        .map(|c| {
+            let (i, j) = (c % n, c / n);
+            let uc = 0.5 * (u[j * (n + 1) + i] + u[j * (n + 1) + i + 1]);
+            let vc = 0.5 * (v[j * n + i] + v[(j + 1) * n + i]);
+            uc.hypot(vc)
+        })
+        .collect();
+    let max = speed.iter().fold(0.0f64, |m, &s| m.max(s)).max(1e-300);
+    speed.iter().map(|s| s / max).collect()
 }
 
 fn progress(steps: usize, quiet: bool) -> indicatif::ProgressBar {
@@ -132,7 +137,10 @@ fn progress(steps: usize, quiet: bool) -> indicatif::ProgressBar {
 }
 
 pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
-    let scene = Scene::load(&a.scene)?;
+    let scene = match AnyScene::load(&a.scene)? {
+        AnyScene::Stepped(scene) => *scene,
+        AnyScene::Steady(scene) => return run_steady(&a, &scene),
+    };
     create_dir(&a.out)?;
     let mut frames = Vec::new();
     let start = std::time::Instant::now();
@@ -243,7 +251,10 @@ fn profile_backward(scene: &Scene) -> Result<String, CliError> {
 }
 
 pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
-    let scene = Scene::load(&a.scene)?;
+    let scene = match AnyScene::load(&a.scene)? {
+        AnyScene::Stepped(scene) => *scene,
+        AnyScene::Steady(scene) => return grad_steady(&a, &scene),
+    };
     let Some(loss) = &scene.loss else {
         return Err(crate::scene::SceneError::key("loss", "`diffsim grad` needs a [loss] table").into());
     };
@@ -272,6 +283,98 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
         let p = scene.rollout_params();
         let op = RolloutOperator { rollout: scene.rollout(&p)?, mode };
         let report = check_all(&op, &scene.x0, &[], &CheckOptions::default());
+        println!("{report}");
+        if !report.passed() {
+            return Err(CliError::ChecksFailed);
+        }
+    }
+    Ok(())
+}
+
+/// Writes a solved steady scene: `velocity_u.npy`, `velocity_v.npy`,
+/// `pressure.npy` (rows = y) and `speed.png` (bodies' cells dark red).
+/// Returns the file names.
+fn write_steady(scene: &SteadyScene, run: &crate::scene::SteadyRun, out: &Path) -> Result<Vec<String>, CliError> {
+    let (nx, ny) = (scene.flow.nx as u64, scene.flow.ny as u64);
+    let (u, v) = run.state.x.split_at(scene.flow.n_u());
+    write_npy(&out.join("velocity_u.npy"), &[ny, nx + 1], u)?;
+    write_npy(&out.join("velocity_v.npy"), &[ny + 1, nx], v)?;
+    write_npy(&out.join("pressure.npy"), &[ny, nx], &run.state.pressure)?;
+    let mut names: Vec<String> = vec!["velocity_u.npy".into(), "velocity_v.npy".into(), "pressure.npy".into()];
+    let (nx, ny, h) = (scene.flow.nx, scene.flow.ny, scene.flow.h);
+    let solid: Vec<bool> = (0..nx * ny).map(|c| scene.shapes.iter().any(|b| b.level(((c % nx) as f64 + 0.5) * h, ((c / nx) as f64 + 0.5) * h) < 0.0)).collect();
+    let path = out.join("speed.png");
+    super::demo::write_png(&path, (nx, ny), &relative_speed((nx, ny), u, v), &solid).map_err(|source| CliError::Io { path: path.clone(), source })?;
+    names.push("speed.png".into());
+    Ok(names)
+}
+
+/// The force on each body (and its coefficient when the loss gives a
+/// reference), one line each.
+fn describe_forces(scene: &SteadyScene, run: &crate::scene::SteadyRun) -> String {
+    let scale = scene.loss.as_ref().map(|l| l.scale).filter(|&s| s != 1.0);
+    let lines: Vec<String> = run
+        .forces
+        .iter()
+        .enumerate()
+        .map(|(k, f)| {
+            let coefficients = scale.map(|s| format!(", c_D {:.6}, c_L {:.6}", s * f[0], s * f[1])).unwrap_or_default();
+            format!("obstacles[{k}]: force ({:.6e}, {:.6e}){coefficients}", f[0], f[1])
+        })
+        .collect();
+    lines.join("\n")
+}
+
+fn run_steady(a: &RunArgs, scene: &SteadyScene) -> Result<(), CliError> {
+    create_dir(&a.out)?;
+    let start = std::time::Instant::now();
+    let run = scene.solve()?;
+    let elapsed = start.elapsed().as_secs_f64();
+    let written = write_steady(scene, &run, &a.out)?;
+    if !a.quiet {
+        println!("{}", describe_forces(scene, &run));
+        eprintln!(
+            "{}: steady flow on {}×{} cells of {}, {} Newton steps (residual {:.1e}) in {elapsed:.2} s; wrote {} to {}",
+            a.scene.display(),
+            scene.flow.nx,
+            scene.flow.ny,
+            scene.flow.h,
+            run.state.steps,
+            run.state.residual,
+            written.join(", "),
+            a.out.display(),
+        );
+    }
+    Ok(())
+}
+
+fn grad_steady(a: &GradArgs, scene: &SteadyScene) -> Result<(), CliError> {
+    let Some(loss) = &scene.loss else {
+        return Err(crate::scene::SceneError::key("loss", "`diffsim grad` needs a [loss] table").into());
+    };
+    if a.profile {
+        eprintln!("--profile times each effect of a scene stepped in time; a steady scene has none (the solve and adjoint times follow)");
+    }
+    create_dir(&a.out)?;
+    let start = std::time::Instant::now();
+    let (run, g) = scene.gradient(loss)?;
+    let elapsed = start.elapsed().as_secs_f64();
+    println!("loss {:.10e} ({} of obstacles[{}])", g.loss, loss.kind(), loss.obstacle);
+    for (name, params, values) in &g.inputs {
+        let stem = format!("grad_{}", name.replace(['.', '['], "_").replace(']', ""));
+        write_npy(&a.out.join(format!("{stem}.npy")), &[values.len() as u64], values)?;
+        let listed: Vec<String> = params.iter().zip(values).map(|(p, v)| format!("{p} {v:.6e}")).collect();
+        println!("d loss / d {name} → {stem}.npy: {}", listed.join(", "));
+    }
+    eprintln!("{} Newton steps and one adjoint solve in {elapsed:.2} s", run.state.steps);
+    if a.check {
+        use crate::check::{CheckOptions, check_all};
+        // The force on the loss's body as a function of every body's
+        // parameters: adjoint (VJP) against whole re-solves and the tangent
+        // equations (JVP). Newton's residual floor limits the differences'
+        // accuracy, hence the looser tolerance.
+        let op = scene.force_operator(loss.obstacle)?;
+        let report = check_all(&op, &scene.params(), &[], &CheckOptions { tol: 1e-5, max_indices: 8, ..Default::default() });
         println!("{report}");
         if !report.passed() {
             return Err(CliError::ChecksFailed);

@@ -142,16 +142,17 @@ impl Jvp for CutOperator {
     }
 }
 
-/// Shape parameters ↦ the force `[F_x, F_y]` on the body in a steady flow
-/// (per unit depth, density 1, by the momentum balance over a box of
-/// cells): input `x` the shape's [`Shape::params`]. Each call solves the
+/// Shape parameters ↦ the force `[F_x, F_y]` on one body in a steady flow
+/// around one or more (per unit depth, density 1, by the momentum balance
+/// over a box of cells around that body): input `x` every shape's
+/// [`Shape::params`], concatenated in order. Each call solves the
 /// steady equations by Newton's method from `start`; a malformed shape
 /// ([`OpError::Shape`]) or a failed solve leaves NaN in the output and an
 /// error for [`Forward::take_error`].
 #[derive(Debug)]
 pub struct SteadyForce {
     cfg: Flow2d,
-    template: Shape,
+    templates: Vec<Shape>,
     start: Vec<f64>,
     cells: [usize; 4],
     newton: NewtonOptions,
@@ -159,12 +160,31 @@ pub struct SteadyForce {
 }
 
 impl SteadyForce {
-    /// The force on shapes like `template` in `cfg`'s flow, measured on the
-    /// box of cells `cells = [i0, i1, j0, j1]`, every solve starting from
-    /// the velocity `start`. An error when `cfg` cannot be simulated.
-    pub fn new(cfg: Flow2d, template: Shape, start: Vec<f64>, cells: [usize; 4]) -> Result<Self, FlowError> {
+    /// The force on what lies in the box of cells `cells = [i0, i1, j0, j1]`
+    /// in `cfg`'s flow around shapes like `templates`, every solve starting
+    /// from the velocity `start` with the default [`NewtonOptions`]. An
+    /// error when `cfg` cannot be simulated.
+    pub fn new(cfg: Flow2d, templates: Vec<Shape>, start: Vec<f64>, cells: [usize; 4]) -> Result<Self, FlowError> {
         cfg.validate()?;
-        Ok(Self { cfg, template, start, cells, newton: NewtonOptions::default(), error: RefCell::new(None) })
+        Ok(Self { cfg, templates, start, cells, newton: NewtonOptions::default(), error: RefCell::new(None) })
+    }
+
+    /// The same operator, Newton's method stopped by `newton`.
+    pub fn with_newton(self, newton: NewtonOptions) -> Self {
+        Self { newton, ..self }
+    }
+
+    /// The shapes at parameters `x` (lengths checked by the operator).
+    fn shapes(&self, x: &[f64]) -> Vec<Shape> {
+        let mut at = 0;
+        self.templates
+            .iter()
+            .map(|t| {
+                let n = t.n_params();
+                at += n;
+                t.with_params(&x[at - n..at]).expect("the parameter length is checked by the operator")
+            })
+            .collect()
     }
 
     /// The steady problem and its solution at parameters `x`, or `None`
@@ -174,8 +194,7 @@ impl SteadyForce {
             self.error.borrow_mut().get_or_insert(e);
             None
         };
-        let shape = self.template.with_params(x).expect("the parameter length is checked by the operator");
-        let flow = match SteadyFlow::new(self.cfg, &[shape]) {
+        let flow = match SteadyFlow::new(self.cfg, &self.shapes(x)) {
             Ok(f) => f,
             Err(FlowError::Shape(e)) => return fail(OpError::Shape(e)),
             Err(e) => unreachable!("the configuration was validated by SteadyForce::new: {e}"),
@@ -195,7 +214,7 @@ impl SteadyForce {
 
 impl Operator for SteadyForce {
     fn n_in(&self) -> usize {
-        self.template.n_params()
+        self.templates.iter().map(Shape::n_params).sum()
     }
     fn n_out(&self) -> usize {
         2
@@ -212,8 +231,14 @@ impl Forward for SteadyForce {
     }
 
     fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-        let shape = self.template.with_params(x).expect("the parameter length is checked by the operator");
-        Cut::smooth_radius(&self.cfg, &shape, dx)
+        let mut at = 0;
+        let mut radius = f64::INFINITY;
+        for shape in self.shapes(x) {
+            let n = shape.n_params();
+            radius = radius.min(Cut::smooth_radius(&self.cfg, &shape, &dx[at..at + n]));
+            at += n;
+        }
+        radius
     }
 
     fn take_error(&self) -> Option<OpError> {

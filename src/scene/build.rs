@@ -21,13 +21,19 @@ fn line_of(text: &str, at: usize) -> usize {
     text[..at.min(text.len())].bytes().filter(|&b| b == b'\n').count() + 1
 }
 
-/// Runs `f`, placing its error at the line where `span` starts.
-fn at<T, S>(text: &str, spanned: &Spanned<S>, f: impl FnOnce(&S) -> Result<T, SceneError>) -> Result<T, SceneError> {
-    f(spanned.get_ref()).map_err(|e| e.at_line(line_of(text, spanned.span().start)))
+/// `e`, placed at the line where `spanned` starts.
+pub(super) fn placed<S>(text: &str, spanned: &Spanned<S>, e: SceneError) -> SceneError {
+    e.at_line(line_of(text, spanned.span().start))
 }
 
-pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, SceneError> {
-    let domain = at(text, &file.domain, |d| {
+/// Runs `f`, placing its error at the line where `span` starts.
+pub(super) fn at<T, S>(text: &str, spanned: &Spanned<S>, f: impl FnOnce(&S) -> Result<T, SceneError>) -> Result<T, SceneError> {
+    f(spanned.get_ref()).map_err(|e| placed(text, spanned, e))
+}
+
+/// The `[domain]` of a scene stepped in time.
+fn domain(file: &SceneFile, text: &str) -> Result<Domain, SceneError> {
+    at(text, &file.domain, |d| {
         let size = &d.size;
         match size.len() {
             1 => {
@@ -52,17 +58,33 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
                 if d.length.is_some() {
                     return Err(SceneError::key("domain.length", "a box has unit cells; `length` is for 1D domains"));
                 }
-                let boundary = match &d.boundary {
-                    None => Boundary::CLOSED,
-                    Some(v) => boundary(v)?,
-                };
+                let boundary = domain_boundary(d)?;
                 boundary.validate().map_err(|e| SceneError::key("domain.boundary", e.to_string()))?;
                 Ok(Domain::Box(Smoke2d { boundary, ..Smoke2d::new(nx, ny) }))
             }
             k => Err(SceneError::key("domain.size", format!("expected [n] (1D) or [nx, ny] (2D), got {k} value(s)"))),
         }
+    })
+}
+
+/// A box's `domain.boundary` (default closed).
+pub(super) fn domain_boundary(d: &super::spec::DomainSpec) -> Result<Boundary, SceneError> {
+    match &d.boundary {
+        None => Ok(Boundary::CLOSED),
+        Some(v) => boundary(v),
+    }
+}
+
+pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, SceneError> {
+    let Some(time) = &file.time else {
+        return Err(SceneError::key("time", "missing: a scene is stepped in time ([time]) or steady ([steady])"));
+    };
+    at(text, &file.domain, |d| match d.cell {
+        Some(_) => Err(SceneError::key("domain.cell", "a scene stepped in time has unit cells; `cell` is for steady scenes")),
+        None => Ok(()),
     })?;
-    let (dt, steps) = at(text, &file.time, |t| Ok((positive("time.dt", t.dt)?, count("time.steps", t.steps)?)))?;
+    let domain = domain(&file, text)?;
+    let (dt, steps) = at(text, time, |t| Ok((positive("time.dt", t.dt)?, count("time.steps", t.steps)?)))?;
 
     // Obstacles.
     let mut solid: Option<Vec<bool>> = None;
@@ -123,6 +145,12 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
     let loss = match &file.loss {
         None => None,
         Some(l) => Some(at(text, l, |l| {
+            let l = match super::spec::loss(l)? {
+                super::spec::LossSpec::Field(l) => l,
+                super::spec::LossSpec::Force { .. } => {
+                    return Err(SceneError::key("loss.kind", "a drag or lift loss needs a steady scene ([steady] in place of [time])"));
+                }
+            };
             let field = match l.field.as_str() {
                 "smoke" => Field::Smoke,
                 "velocity" => Field::Velocity,
@@ -399,7 +427,7 @@ impl Builder<'_> {
                         [i0, i1, j0, j1]
                     }
                     ShapeSpec::Box { .. } => return Err(SceneError::key(at("region"), "expected lower = [x, y], upper = [x, y]")),
-                    ShapeSpec::Disc { .. } => return Err(SceneError::key(at("region"), "an inflow region must be a box")),
+                    _ => return Err(SceneError::key(at("region"), "an inflow region must be a box")),
                 };
                 self.effects.push("inflow".into());
                 self.ops.push(Box::new(Inflow { cfg, region }));

@@ -7,6 +7,7 @@
 
 use std::path::Path;
 
+use diffsim_solvers::flow::Shape;
 use diffsim_solvers::smoke::{enforce_boundary, obstacle_box, obstacle_disc};
 
 use super::spec::{InitSpec, NpyPaths, ShapeSpec};
@@ -25,6 +26,30 @@ fn point(key: &str, v: &[f64], dims: usize) -> Result<Vec<f64>, SceneError> {
     Ok(v.to_vec())
 }
 
+/// A 2D shape as a body ([`Shape`]: a box becomes a polygon), checked to be
+/// a proper one (a positive radius, a simple polygon).
+pub(super) fn shape_of(key: &str, shape: &ShapeSpec) -> Result<Shape, SceneError> {
+    let xy = |k: &str, v: &[f64]| point(&format!("{key}.{k}"), v, 2).map(|p| [p[0], p[1]]);
+    let body = match shape {
+        ShapeSpec::Box { lower, upper } => {
+            let (a, b) = (xy("lower", lower)?, xy("upper", upper)?);
+            if b[0] <= a[0] || b[1] <= a[1] {
+                return Err(SceneError::key(format!("{key}.upper"), format!("the box is empty: upper {b:?} is not above lower {a:?} on both axes")));
+            }
+            Shape::Polygon { vertices: vec![a, [b[0], a[1]], b, [a[0], b[1]]] }
+        }
+        ShapeSpec::Disc { center, radius } => Shape::Circle { center: xy("center", center)?, radius: positive(&format!("{key}.radius"), *radius)? },
+        ShapeSpec::Fourier { center, r0, cos, sin } => {
+            Shape::Fourier { center: xy("center", center)?, r0: finite(&format!("{key}.r0"), *r0)?, cos: cos.clone(), sin: sin.clone() }
+        }
+        ShapeSpec::Polygon { vertices } => {
+            Shape::Polygon { vertices: vertices.iter().enumerate().map(|(k, v)| xy(&format!("vertices[{k}]"), v)).collect::<Result<_, _>>()? }
+        }
+    };
+    body.check().map_err(|e| SceneError::key(key, e.to_string()))?;
+    Ok(body)
+}
+
 /// The cells (values, on a line) inside a shape, clipped to the domain; a
 /// shape wholly outside is an error.
 pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec) -> Result<Vec<bool>, SceneError> {
@@ -38,6 +63,15 @@ pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec) -> Resu
             let c = point(&format!("{key}.center"), center, dims)?;
             positive(&format!("{key}.radius"), *radius)?;
             obstacle_disc(cfg, [c[0], c[1]], *radius)
+        }
+        (Domain::Box(cfg), ShapeSpec::Fourier { .. } | ShapeSpec::Polygon { .. }) => {
+            let body = shape_of(key, shape)?;
+            let (nx, ny) = (cfg.nx, cfg.ny);
+            let cells: Vec<bool> = (0..nx * ny).map(|c| body.level((c % nx) as f64 + 0.5, (c / nx) as f64 + 0.5) < 0.0).collect();
+            cells.iter().any(|&c| c).then_some(cells)
+        }
+        (Domain::Line(_), ShapeSpec::Fourier { .. } | ShapeSpec::Polygon { .. }) => {
+            return Err(SceneError::key(key, "Fourier and polygon shapes need a 2D domain"));
         }
         (Domain::Line(l), ShapeSpec::Box { lower, upper }) => {
             let (a, b) = (point(&format!("{key}.lower"), lower, dims)?[0], point(&format!("{key}.upper"), upper, dims)?[0]);

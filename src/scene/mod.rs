@@ -5,13 +5,21 @@
 //! is not declared is never constructed, so it allocates and costs nothing
 //! ([`crate::op::count`] shows that none of its code runs).
 //!
+//! A scene with `[steady]` in place of `[time]` is a [`SteadyScene`]: the
+//! steady viscous flow around its obstacles, with a drag or lift loss
+//! differentiated with respect to their shapes. [`AnyScene::load`] reads
+//! either kind.
+//!
 //! Every key is documented in `docs/scenes.md`; every mistake is a
 //! [`SceneError`] naming the key and, where the file has it, the line.
 
 mod build;
 mod init;
 pub mod spec;
+mod steady;
 mod value;
+
+pub use steady::{ForceLoss, SteadyGradient, SteadyRun, SteadyScene, param_names};
 
 use std::ops::Range;
 use std::path::Path;
@@ -231,8 +239,10 @@ impl Scene {
 
     /// Builds a scene from its TOML text, `.npy` paths relative to `dir`.
     pub fn parse_in(text: &str, dir: &Path) -> Result<Scene, SceneError> {
-        let file: spec::SceneFile = toml::from_str(text).map_err(|e| SceneError::Syntax(spec::suggest_field(&e.to_string())))?;
-        build::build(file, text, dir)
+        match AnyScene::parse_in(text, dir)? {
+            AnyScene::Stepped(scene) => Ok(*scene),
+            AnyScene::Steady(_) => Err(SceneError::key("steady", "a steady scene: read it with AnyScene::load")),
+        }
     }
 
     /// The 2D grid.
@@ -323,6 +333,34 @@ impl Scene {
             inputs.push(GradInput { name: w.clone(), arrays });
         }
         Ok(SceneGradient { loss: g.loss, inputs })
+    }
+}
+
+/// A scene of either kind.
+#[derive(Debug)]
+pub enum AnyScene {
+    /// Stepped in time (`[time]`).
+    Stepped(Box<Scene>),
+    /// A steady flow (`[steady]`).
+    Steady(Box<SteadyScene>),
+}
+
+impl AnyScene {
+    /// Reads and builds the scene in `path` (`.npy` paths in it are relative
+    /// to its folder).
+    pub fn load(path: &Path) -> Result<AnyScene, SceneError> {
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read { path: path.to_path_buf(), source })?;
+        Self::parse_in(&text, path.parent().unwrap_or(Path::new(".")))
+    }
+
+    /// Builds a scene from its TOML text, `.npy` paths relative to `dir`.
+    pub fn parse_in(text: &str, dir: &Path) -> Result<AnyScene, SceneError> {
+        let file: spec::SceneFile = toml::from_str(text).map_err(|e| SceneError::Syntax(spec::suggest_field(&e.to_string())))?;
+        if file.steady.is_some() {
+            steady::build(file, text).map(|s| AnyScene::Steady(Box::new(s)))
+        } else {
+            build::build(file, text, dir).map(|s| AnyScene::Stepped(Box::new(s)))
+        }
     }
 }
 

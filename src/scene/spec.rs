@@ -16,8 +16,10 @@ use super::SceneError;
 pub struct SceneFile {
     /// The box and its boundary.
     pub domain: Spanned<DomainSpec>,
-    /// Time step and number of steps.
-    pub time: Spanned<TimeSpec>,
+    /// Time step and number of steps (a scene stepped in time).
+    pub time: Option<Spanned<TimeSpec>>,
+    /// The steady viscous flow, in place of `[time]` (a steady scene).
+    pub steady: Option<Spanned<SteadySpec>>,
     /// Initial values of the fields the scene uses.
     #[serde(default)]
     pub fields: FieldsSpec,
@@ -27,8 +29,8 @@ pub struct SceneFile {
     /// Solid shapes.
     #[serde(default)]
     pub obstacles: Vec<Spanned<ShapeSpec>>,
-    /// What `diffsim grad` differentiates.
-    pub loss: Option<Spanned<LossSpec>>,
+    /// What `diffsim grad` differentiates (parsed by [`loss`]).
+    pub loss: Option<Spanned<toml::Table>>,
 }
 
 /// `[domain]`.
@@ -39,6 +41,8 @@ pub struct DomainSpec {
     pub size: Vec<i64>,
     /// Length of a 1D domain (default: `n`, unit cells).
     pub length: Option<f64>,
+    /// Cell width of a steady scene's box (default 1).
+    pub cell: Option<f64>,
     /// `"closed"`, `"periodic"`, `"outflow"`, per axis `{ x = …, y = … }`,
     /// or per side `{ left = …, right = …, bottom = …, top = … }`.
     #[serde(default)]
@@ -53,6 +57,29 @@ pub struct TimeSpec {
     pub dt: f64,
     /// Number of steps.
     pub steps: i64,
+}
+
+/// `[steady]`: the steady incompressible Navier–Stokes equations around
+/// the obstacles, solved by Newton's method.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SteadySpec {
+    /// Kinematic viscosity ν.
+    pub viscosity: f64,
+    /// Newton stops when the largest residual falls below this (default 1e-10).
+    #[serde(default = "newton_tolerance")]
+    pub tolerance: f64,
+    /// Newton steps before giving up (default 40).
+    #[serde(default = "newton_steps")]
+    pub max_iterations: i64,
+}
+
+fn newton_tolerance() -> f64 {
+    1e-10
+}
+
+fn newton_steps() -> i64 {
+    40
 }
 
 /// `[fields]`.
@@ -140,7 +167,8 @@ fn one() -> f64 {
     1.0
 }
 
-/// A solid shape in `[[obstacles]]` (cells whose centre lies inside).
+/// A solid shape in `[[obstacles]]`: in a scene stepped in time, the cells
+/// whose centre lies inside; in a steady scene, the body cut from the grid.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ShapeSpec {
@@ -158,13 +186,49 @@ pub enum ShapeSpec {
         /// Radius.
         radius: f64,
     },
+    /// A body with radius `r(θ) = r0 + Σₖ cos[k−1]·cos kθ + sin[k−1]·sin kθ`
+    /// about its centre (2D).
+    Fourier {
+        /// Centre `[x, y]`.
+        center: Vec<f64>,
+        /// Mean radius.
+        r0: f64,
+        /// Cosine coefficients `a₁, a₂, …` (default none).
+        #[serde(default)]
+        cos: Vec<f64>,
+        /// Sine coefficients `b₁, b₂, …` (default none).
+        #[serde(default)]
+        sin: Vec<f64>,
+    },
+    /// A simple polygon through its vertices, in order (2D).
+    Polygon {
+        /// Vertices `[[x, y], …]`.
+        vertices: Vec<Vec<f64>>,
+    },
 }
 
-/// `[loss]`: `½·Σ_t Σ (field_t − target)²` over the listed steps (default:
-/// the last).
+/// `[loss]`, by its `kind` (default `"field"`).
+#[derive(Debug)]
+pub enum LossSpec {
+    /// `kind = "field"`.
+    Field(FieldLossSpec),
+    /// `kind = "drag"` or `"lift"`.
+    Force {
+        /// Lift (else drag).
+        lift: bool,
+        /// The rest.
+        spec: ForceLossSpec,
+    },
+}
+
+/// The loss kinds, as written.
+pub const LOSS_KINDS: [&str; 3] = ["field", "drag", "lift"];
+
+/// `[loss] kind = "field"`: `½·Σ_t Σ (field_t − target)²` over the listed
+/// steps (default: the last).
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct LossSpec {
+pub struct FieldLossSpec {
     /// The field compared (`"smoke"` or `"velocity"`).
     pub field: String,
     /// The target, an initial value of that field.
@@ -175,6 +239,41 @@ pub struct LossSpec {
     /// `<effect kind>.<parameter>` (e.g. `buoyancy.coefficient`), and
     /// `force.control` (the force field of every step).
     pub with_respect_to: Vec<String>,
+}
+
+/// `[loss] kind = "drag" | "lift"` (steady scenes): the force on one
+/// obstacle along x (drag) or y (lift), per unit depth at density 1, or its
+/// coefficient `2F/(U²L)`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ForceLossSpec {
+    /// The obstacle, by its place in `[[obstacles]]` (default 0).
+    #[serde(default)]
+    pub obstacle: i64,
+    /// `{ speed = U, length = L }`: the loss is the coefficient `2F/(U²L)`.
+    pub reference: Option<ReferenceSpec>,
+    /// `obstacles[k].shape` for any obstacle `k`.
+    pub with_respect_to: Vec<String>,
+}
+
+/// The reference speed and length of a force coefficient.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReferenceSpec {
+    /// Speed `U`.
+    pub speed: f64,
+    /// Length `L`.
+    pub length: f64,
+}
+
+/// Parses the `[loss]` table.
+pub fn loss(table: &toml::Table) -> Result<LossSpec, SceneError> {
+    let (kind, value, fail) = split_kind(table, "loss", Some("field"), &LOSS_KINDS)?;
+    Ok(match kind {
+        "field" => LossSpec::Field(value.try_into().map_err(fail)?),
+        "drag" | "lift" => LossSpec::Force { lift: kind == "lift", spec: value.try_into().map_err(fail)? },
+        other => return Err(SceneError::key("loss.kind", unknown("loss kind", other, &LOSS_KINDS))),
+    })
 }
 
 /// One effect, by its `kind`.
@@ -316,15 +415,7 @@ pub struct InflowSpec {
 /// Parses the `k`-th `[[effects]]` table.
 pub fn effect(k: usize, table: &toml::Table) -> Result<EffectSpec, SceneError> {
     let at = format!("effects[{k}]");
-    let kind = match table.get("kind") {
-        Some(toml::Value::String(s)) => s.as_str(),
-        Some(_) => return Err(SceneError::key(format!("{at}.kind"), "must be a string")),
-        None => return Err(SceneError::key(format!("{at}.kind"), format!("missing; one of {}", EFFECT_KINDS.join(", ")))),
-    };
-    let mut rest = table.clone();
-    rest.remove("kind");
-    let value = toml::Value::Table(rest);
-    let fail = |e: toml::de::Error| SceneError::key(format!("{at} (kind = \"{kind}\")"), suggest_field(&e.to_string()));
+    let (kind, value, fail) = split_kind(table, &at, None, &EFFECT_KINDS)?;
     Ok(match kind {
         "advection" => EffectSpec::Advection(value.try_into().map_err(fail)?),
         "diffusion" => EffectSpec::Diffusion(value.try_into().map_err(fail)?),
@@ -334,6 +425,26 @@ pub fn effect(k: usize, table: &toml::Table) -> Result<EffectSpec, SceneError> {
         "inflow" => EffectSpec::Inflow(value.try_into().map_err(fail)?),
         other => return Err(SceneError::key(format!("{at}.kind"), unknown("effect kind", other, &EFFECT_KINDS))),
     })
+}
+
+/// A table chosen by its `kind` key (`default` when absent, else an error
+/// listing `kinds`): the kind, the other keys, and the error for them.
+fn split_kind<'a>(
+    table: &'a toml::Table,
+    at: &str,
+    default: Option<&'a str>,
+    kinds: &[&str],
+) -> Result<(&'a str, toml::Value, impl Fn(toml::de::Error) -> SceneError + use<'a>), SceneError> {
+    let kind = match (table.get("kind"), default) {
+        (Some(toml::Value::String(s)), _) => s.as_str(),
+        (Some(_), _) => return Err(SceneError::key(format!("{at}.kind"), "must be a string")),
+        (None, Some(d)) => d,
+        (None, None) => return Err(SceneError::key(format!("{at}.kind"), format!("missing; one of {}", kinds.join(", ")))),
+    };
+    let mut rest = table.clone();
+    rest.remove("kind");
+    let at = at.to_string();
+    Ok((kind, toml::Value::Table(rest), move |e: toml::de::Error| SceneError::key(format!("{at} (kind = \"{kind}\")"), suggest_field(&e.to_string()))))
 }
 
 /// "unknown X `y`; did you mean `z`?" (or the list of choices).

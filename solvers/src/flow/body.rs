@@ -246,14 +246,39 @@ impl Shape {
     }
 
     /// Checks that the shape is a proper body inside the flow's domain, at
-    /// least one cell `h` from every side: finite parameters, a positive
-    /// radius at every angle, a simple polygon.
+    /// least one cell `h` from every side: [`Shape::check`], and the extent.
     pub fn validate(&self, cfg: &Flow2d) -> Result<(), ShapeError> {
+        let (w, hgt, h) = (cfg.nx as f64 * cfg.h, cfg.ny as f64 * cfg.h, cfg.h);
+        for p in self.boundary_points()? {
+            if p[0] < h || p[0] > w - h || p[1] < h || p[1] > hgt - h {
+                return Err(ShapeError::LeavesDomain { point: p });
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks that the shape is a proper body wherever it lies: finite
+    /// parameters, a positive radius at every angle, a simple polygon.
+    pub fn check(&self) -> Result<(), ShapeError> {
+        self.boundary_points().map(|_| ())
+    }
+
+    /// The bounding box `[x_min, x_max, y_min, y_max]` of a checked shape
+    /// (a round body's sampled at 720 angles).
+    pub fn bounds(&self) -> Result<[f64; 4], ShapeError> {
+        let points = self.boundary_points()?;
+        Ok(points.iter().fold([f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY], |b, p| {
+            [b[0].min(p[0]), b[1].max(p[0]), b[2].min(p[1]), b[3].max(p[1])]
+        }))
+    }
+
+    /// Boundary points of a proper body (720 angles of a round body, a
+    /// polygon's vertices), or why it is not one.
+    fn boundary_points(&self) -> Result<Vec<[f64; 2]>, ShapeError> {
         if self.params().iter().any(|v| !v.is_finite()) {
             return Err(ShapeError::NotFinite);
         }
-        // Boundary points, to check the radius and the extent.
-        let boundary: Vec<[f64; 2]> = match self {
+        match self {
             Shape::Circle { center, .. } | Shape::Fourier { center, .. } => {
                 let m = 720;
                 (0..m)
@@ -264,7 +289,7 @@ impl Shape {
                             r => Err(ShapeError::Radius { angle: theta, radius: r }),
                         }
                     })
-                    .collect::<Result<_, _>>()?
+                    .collect()
             }
             Shape::Polygon { vertices } => {
                 let n = vertices.len();
@@ -285,16 +310,9 @@ impl Shape {
                 if Shape::polygon_area(vertices).abs() == 0.0 {
                     return Err(ShapeError::SelfIntersecting { first: 0, second: 1 });
                 }
-                vertices.clone()
-            }
-        };
-        let (w, hgt, h) = (cfg.nx as f64 * cfg.h, cfg.ny as f64 * cfg.h, cfg.h);
-        for &p in &boundary {
-            if p[0] < h || p[0] > w - h || p[1] < h || p[1] > hgt - h {
-                return Err(ShapeError::LeavesDomain { point: p });
+                Ok(vertices.clone())
             }
         }
-        Ok(())
     }
 
     /// The signed area of a polygon (positive counter-clockwise).
