@@ -458,6 +458,16 @@ fn pareto_and_stability_commands_report_json() {
     let best_fd = rows.iter().filter(|r| r["method"] == "finite differences").map(|r| r["error"].as_f64().unwrap()).fold(f64::INFINITY, f64::min);
     assert!(best_fd < 1e-4, "best finite difference error {best_fd}");
     fails_with(&["pareto", "heat"], "invalid value 'heat'");
+    // The cylinder: c_D's error falls with resolution, and both solvers
+    // reach the same discrete state.
+    let (code, stdout, err) = diffsim(&["pareto", "cylinder", "--quick", "--budget", "0", "--json", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    let rows: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    let error =
+        |solver: &str, n: u64| rows.as_array().unwrap().iter().find(|r| r["solver"] == solver && r["cells_per_d"] == n).unwrap()["error"].as_f64().unwrap();
+    assert!(error("newton", 20) < error("newton", 10) && error("newton", 20) < 0.005, "{rows}");
+    assert!((error("march", 10) - error("newton", 10)).abs() < 1e-4, "{rows}");
+    fails_with(&["pareto", "cylinder", "--gradients"], "no gradient sweep");
     // Stability report.
     let (code, stdout, err) = diffsim(&["stability", "--json"]);
     assert_eq!(code, 0, "{err}");

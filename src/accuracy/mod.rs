@@ -81,6 +81,9 @@ pub enum AccuracyError {
         /// The step (0-based).
         step: usize,
     },
+    /// A viscous flow solve failed.
+    #[error("{0}")]
+    Flow(#[from] diffsim_solvers::flow::FlowError),
 }
 
 pub(crate) use crate::rollout::all_finite;

@@ -24,6 +24,9 @@ pub enum Problem {
     Burgers,
     /// The Taylor–Green vortex (ν = 0.01, t = 1) against its exact decay.
     TaylorGreen,
+    /// Schäfer–Turek's cylinder, case 2D-1: c_D against the tight
+    /// reference value, by Newton's method and by pseudo-time marching.
+    Cylinder,
 }
 
 /// Arguments of `diffsim pareto`.
@@ -100,6 +103,13 @@ pub fn pareto(a: ParetoArgs) -> Result<(), CliError> {
                 .collect();
             ("taylor-green", "Taylor–Green vortex (ν = 0.01, t = 1): error vs time", rows)
         }
+        (Problem::Cylinder, false) => ("cylinder", "Schäfer–Turek 2D-1 (Re 20): c_D error vs time", cylinder_rows(a.budget, a.quick)),
+        (Problem::Cylinder, true) => {
+            return Err(CliError::Argument {
+                arg: "--gradients",
+                reason: "the cylinder has no gradient sweep (its shape gradient is checked by `diffsim grad scenes/drag_body.toml --check`)".into(),
+            });
+        }
         (Problem::Burgers, true) => {
             let p = if a.quick { P1::new(64, 64) } else { P1::new(256, 256) };
             let rows = gradient_rows(
@@ -132,6 +142,35 @@ pub fn pareto(a: ParetoArgs) -> Result<(), CliError> {
         println!("\nwritten to {}", dir.display());
     }
     Ok(())
+}
+
+/// Case 2D-1 at several resolutions (cells per diameter) by Newton's method
+/// and by marching in pseudo-time to `max |du/dt| < 1e-6` (the same
+/// discrete steady state, reached two ways): c_D's relative error against
+/// the tight reference value.
+fn cylinder_rows(budget: f64, quick: bool) -> Vec<Measurement> {
+    use diffsim_solvers::flow::cylinder::{reference, run_2d1, run_2d1_newton};
+    let (newton, march): (&[usize], &[usize]) = if quick { (&[10, 20], &[10]) } else { (&[10, 20, 30, 40], &[10, 20]) };
+    let mut rows = Vec::new();
+    // (One call per solver: a by-value array of (name, list) pairs crashes
+    // Enzyme's type analysis in this crate; docs/pitfalls.md.)
+    let mut sweep = |solver: &str, list: &[usize]| {
+        for &per_d in list {
+            let (result, time_s, peak) =
+                measure(budget, || if solver == "newton" { run_2d1_newton(per_d) } else { run_2d1(per_d, 1e-6, 1_000_000, |_, _, _| {}) });
+            let mut params = Map::new();
+            params.insert("solver".into(), json!(solver));
+            params.insert("cells_per_d".into(), json!(per_d));
+            params.insert("cells".into(), result.as_ref().map_or(Value::Null, |r| json!(r.cells)));
+            let error = result.map(|r| (r.cd / reference::CD_2D1_TIGHT - 1.0).abs()).map_err(AccuracyError::Flow);
+            rows.push(accuracy_row(format!("{solver} (cut cells)"), params, (error, time_s, peak)));
+        }
+    };
+    // The march first: the peak-memory reset cannot return what the
+    // allocator keeps from a larger run before.
+    sweep("march", march);
+    sweep("newton", newton);
+    rows
 }
 
 /// The gradient of a rollout loss by the Enzyme and hand-written adjoints
