@@ -5,7 +5,8 @@
 //! steady; case 2D-2 (peak 1.5, Re 100) sheds vortices periodically.
 
 use super::{
-    Flow2d, FlowError, Integrator, NewtonOptions, Shape, SteadyFlow, SteadyOptions, Stepper, WallSpeed, fluid_value_at, ladder, march_to_steady, max_speed,
+    Flow2d, FlowError, Integrator, NewtonOptions, Shape, SteadyFlow, SteadyOptions, SteadyState, Stepper, WallSpeed, fluid_value_at, ladder, march_to_steady,
+    max_speed,
 };
 use crate::boundary::{Boundary, Profile, Side};
 
@@ -109,12 +110,22 @@ pub fn run_2d1(cells_per_d: usize, tolerance: f64, max_steps: usize, observe: im
 /// to), from Poiseuille flow; `steps` counts Newton steps.
 pub fn run_2d1_newton(cells_per_d: usize) -> Result<Steady2d1, FlowError> {
     let u_max = 0.3;
-    let (cfg, shape) = schafer_turek(cells_per_d, u_max);
-    let flow = SteadyFlow::new(cfg, std::slice::from_ref(&shape))?;
-    let state = flow.solve(&poiseuille(&cfg, u_max), &NewtonOptions::default())?;
+    let (_, shape) = schafer_turek(cells_per_d, u_max);
+    let (flow, state) = steady_in_channel(cells_per_d, &shape, u_max)?;
+    let cfg = *flow.config();
     let [cd, cl] = coefficients(flow.force(&state, force_box(&cfg)), u_max);
     let at = |x: f64| fluid_value_at(&cfg, Some(flow.cut()), &state.pressure, x, 0.2).unwrap_or(f64::NAN);
     Ok(Steady2d1 { cd, cl, dp: at(0.15) - at(0.25), cells: cfg.nx * cfg.ny, steps: state.steps })
+}
+
+/// The steady flow around `shape` in the benchmark's channel at
+/// `cells_per_d` cells per diameter and peak inflow `u_max`, by Newton's
+/// method from Poiseuille flow.
+pub fn steady_in_channel(cells_per_d: usize, shape: &Shape, u_max: f64) -> Result<(SteadyFlow, SteadyState), FlowError> {
+    let (cfg, _) = schafer_turek(cells_per_d, u_max);
+    let flow = SteadyFlow::new(cfg, std::slice::from_ref(shape))?;
+    let state = flow.solve(&poiseuille(&cfg, u_max), &NewtonOptions::default())?;
+    Ok((flow, state))
 }
 
 /// Case 2D-2's results.

@@ -18,7 +18,7 @@ use argmin::solver::linesearch::BacktrackingLineSearch;
 use argmin::solver::linesearch::condition::ArmijoCondition;
 use argmin::solver::quasinewton::LBFGS;
 
-use super::cylinder::{DIAMETER, coefficients, force_box, poiseuille, schafer_turek};
+use super::cylinder::{DIAMETER, coefficients, force_box, poiseuille, schafer_turek, steady_in_channel};
 use super::{Flow2d, FlowError, NewtonOptions, Shape, SteadyFlow};
 
 /// What to optimise.
@@ -102,10 +102,8 @@ pub fn steady_drag(cfg: &Flow2d, shape: &Shape, u_max: f64, start: &[f64]) -> Re
 /// `cells_per_d` cells per diameter and peak inflow `u_max` (Newton from
 /// Poiseuille flow): for re-simulating an optimised shape on another grid.
 pub fn drag_coefficient(cells_per_d: usize, shape: &Shape, u_max: f64) -> Result<f64, FlowError> {
-    let (cfg, _) = schafer_turek(cells_per_d, u_max);
-    let flow = SteadyFlow::new(cfg, std::slice::from_ref(shape))?;
-    let state = flow.solve(&poiseuille(&cfg, u_max), &NewtonOptions::default())?;
-    Ok(flow.force(&state, force_box(&cfg))[0] * coefficients([1.0, 0.0], u_max)[0])
+    let (flow, state) = steady_in_channel(cells_per_d, shape, u_max)?;
+    Ok(flow.force(&state, force_box(flow.config()))[0] * coefficients([1.0, 0.0], u_max)[0])
 }
 
 /// The Fourier body about the cylinder's centre `(0.2, 0.2)` with free
