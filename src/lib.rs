@@ -83,6 +83,10 @@
 //! few steps, the adjoint, and on a NaN replay to report the pass, the
 //! exact step and the operator.
 //!
+//! **Nothing lost.** Training writes atomic checkpoints and resumes bit for
+//! bit ([`train::checkpoint`]); input files are read only when they are
+//! regular files under a size limit ([`files`]).
+//!
 //! **Your own crate.** `diffsim new PATH` writes one that builds and passes
 //! out of the box (a solver, its checks, a rollout, the checks through it, a
 //! fit); `docs/own-solver.md` walks through it and `docs/pitfalls.md` lists
@@ -96,6 +100,7 @@
 pub mod accuracy;
 pub mod check;
 pub mod cli;
+pub mod files;
 pub mod fluids;
 pub mod nn;
 pub mod op;

@@ -174,13 +174,19 @@ fn train_and_experiment_commands() {
     for f in ["loss.csv", "loss.png", "model.json", "checkpoint.json"] {
         assert!(out.join(f).exists(), "{f} missing");
     }
+    // A finished run resumed only writes its outputs again; --extend trains on.
     let (code, stdout, err) = diffsim(&["train", c, "--out", o, "--quiet", "--resume"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(stdout.contains("0 iterations (3 in total)") && err.contains("the run had finished"), "{stdout}");
+    let (code, stdout, err) = diffsim(&["train", c, "--out", o, "--quiet", "--extend", "3"]);
     assert_eq!(code, 0, "{err}");
     assert!(stdout.contains("(6 in total)"), "{stdout}");
     assert_eq!(std::fs::read_to_string(out.join("loss.csv")).unwrap().lines().count(), 7);
-    // Data generated on the fly with a viscosity range.
+    // Data generated on the fly with a viscosity range (another
+    // configuration: the folder's run is replaced only when asked).
     std::fs::write(&cfg, tiny.replace("viscosity = 0.01", "viscosity = [0.005, 0.02]")).unwrap();
-    let (code, _, err) = diffsim(&["train", c, "--out", o, "--quiet"]);
+    fails_with(&["train", c, "--out", o, "--quiet"], "holds a run of another configuration (`problem.viscosity` differs)");
+    let (code, _, err) = diffsim(&["train", c, "--out", o, "--quiet", "--overwrite"]);
     assert_eq!(code, 0, "{err}");
     // Mistakes name the key.
     std::fs::write(&cfg, tiny.replace("method = \"sol\"", "method = \"sol2\"")).unwrap();

@@ -13,6 +13,7 @@ mod nn;
 mod p1;
 mod p2;
 mod pg;
+mod resume;
 mod rollout;
 mod rollout_wrt;
 mod scenes;

@@ -265,13 +265,21 @@ fn resumed_training_repeats_an_uninterrupted_run() {
     let theta0 = params(&net, 6);
     let (mut a, mut opt_a) = (theta0.clone(), Optimizer::adam(1e-3));
     let mut losses = Vec::new();
-    train(&setup, &net, &mut a, &mut opt_a, TrainData::Fixed(&data), &s, |r| losses.push(r.loss)).unwrap();
+    train(&setup, &net, &mut a, &mut opt_a, TrainData::Fixed(&data), &s, |r, _, _| {
+        losses.push(r.loss);
+        std::ops::ControlFlow::Continue(())
+    })
+    .unwrap();
     // The same in two halves, with the state through JSON in between.
     let (mut b, mut opt_b) = (theta0.clone(), Optimizer::adam(1e-3));
-    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, ..s }, |_| {}).unwrap();
+    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, ..s }, |_, _, _| std::ops::ControlFlow::Continue(()))
+        .unwrap();
     let saved = serde_json::to_string(&(&b, &opt_b)).unwrap();
     let (mut b, mut opt_b): (Vec<f64>, Optimizer) = serde_json::from_str(&saved).unwrap();
-    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, first: 4, ..s }, |_| {}).unwrap();
+    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, first: 4, ..s }, |_, _, _| {
+        std::ops::ControlFlow::Continue(())
+    })
+    .unwrap();
     assert_eq!(a, b);
     assert_eq!(opt_a, opt_b);
     assert!(losses.iter().all(|l| l.is_finite()));

@@ -36,6 +36,22 @@ pub enum CliError {
         /// The cause.
         source: std::io::Error,
     },
+    /// An input file could not be read.
+    #[error(transparent)]
+    Read(#[from] crate::files::ReadError),
+    /// A training checkpoint cannot be written or used.
+    #[error(transparent)]
+    Checkpoint(#[from] crate::train::checkpoint::CheckpointError),
+    /// Training stopped at a signal after writing a checkpoint.
+    #[error("interrupted after iteration {done} of {target}; the checkpoint is written. Resume with: {resume}")]
+    Interrupted {
+        /// Iterations done (and checkpointed).
+        done: u64,
+        /// Iterations the run was to reach.
+        target: u64,
+        /// The command that resumes it.
+        resume: String,
+    },
     /// A scene file is malformed.
     #[error(transparent)]
     Scene(#[from] crate::scene::SceneError),

@@ -13,6 +13,7 @@ use crate::nn::{Activation, ParamStore};
 use crate::plot::{Axes, Series};
 use crate::train::Optimizer;
 use crate::train::burgers::{LogRow, Method, StudyConfig, TrainData, evaluate, initial_params, mean, study, train};
+use crate::train::checkpoint::{Checkpoint, FORMAT, config_difference};
 use crate::train::config::TrainConfig;
 use crate::train::sol::SolProblem;
 
@@ -24,10 +25,24 @@ pub struct TrainArgs {
     /// Output directory: loss.csv, loss.png, model.json, checkpoint.json.
     #[arg(long, default_value = "out/train")]
     out: PathBuf,
-    /// Continue from OUT/checkpoint.json for the configured number of
-    /// further iterations.
-    #[arg(long)]
+    /// Finish an interrupted run: continue from OUT/checkpoint.json to the
+    /// configured number of iterations (the result is the uninterrupted
+    /// run's, bit for bit).
+    #[arg(long, conflicts_with_all = ["extend", "overwrite"])]
     resume: bool,
+    /// Train a run further: this many iterations beyond OUT/checkpoint.json,
+    /// past the configured total if need be.
+    #[arg(long, value_name = "ITERATIONS", conflicts_with = "overwrite")]
+    extend: Option<usize>,
+    /// Start afresh in a folder that holds another run's files, replacing them.
+    #[arg(long)]
+    overwrite: bool,
+    /// Write a checkpoint every this many iterations …
+    #[arg(long, value_name = "ITERATIONS", default_value_t = 50)]
+    checkpoint_every: usize,
+    /// … or once this many seconds have passed since the last one.
+    #[arg(long, value_name = "SECONDS", default_value_t = 30.0)]
+    checkpoint_seconds: f64,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -245,35 +260,92 @@ fn bar(len: usize, quiet: bool, prefix: &str) -> indicatif::ProgressBar {
     b
 }
 
-/// The training checkpoint: parameters (named) and optimizer state, with
-/// the number of iterations done.
-#[derive(serde::Serialize, serde::Deserialize)]
-struct Checkpoint {
-    iterations_done: usize,
-    params: ParamStore,
-    optimizer: Optimizer,
+/// Set by SIGINT or SIGTERM: training writes a checkpoint and stops.
+static STOP: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// The largest training configuration read.
+const MAX_CONFIG_BYTES: u64 = 1 << 20;
+
+/// What a fresh run would replace in `out`, described for the refusal.
+fn existing_run(out: &Path, config: &str) -> Option<String> {
+    let ckpt = out.join("checkpoint.json");
+    let files: Vec<&str> = ["checkpoint.json", "model.json", "loss.csv"].into_iter().filter(|f| out.join(f).exists()).collect();
+    if files.is_empty() {
+        return None;
+    }
+    let what = match Checkpoint::load(&ckpt) {
+        Ok(c) => match config_difference(&c.config, config) {
+            None => format!("a run of this configuration ({} iterations done): --resume to finish it, --extend N to train it further", c.iterations_done),
+            Some((key, _, _)) => format!("a run of another configuration (`{key}` differs)"),
+        },
+        Err(_) => "another run's files".to_string(),
+    };
+    Some(format!("{} holds {what} ({}); --overwrite replaces them, or choose another --out", out.display(), files.join(", ")))
+}
+
+/// Keeps the header and the rows of iterations `1..=done` of a loss log
+/// (a killed run may have logged past its last checkpoint).
+fn trim_log(path: &Path, done: u64) -> Result<(), CliError> {
+    let header = "iteration,loss,grad_norm,seconds";
+    let text = if path.exists() { crate::files::read_text(path, 1 << 30, "loss log")? } else { String::new() };
+    let mut kept = vec![header];
+    kept.extend(text.lines().skip(1).filter(|l| l.split(',').next().and_then(|i| i.parse::<u64>().ok()).is_some_and(|i| i <= done)));
+    crate::files::write_atomic(path, format!("{}\n", kept.join("\n")).as_bytes()).map_err(io(path))
 }
 
 pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
-    let text = std::fs::read_to_string(&a.config).map_err(|source| CliError::Io { path: a.config.clone(), source })?;
+    let text = crate::files::read_text(&a.config, MAX_CONFIG_BYTES, "training configuration")?;
     let cfg = TrainConfig::parse(&text)?;
+    if a.checkpoint_every == 0 || !(a.checkpoint_seconds.is_finite() && a.checkpoint_seconds > 0.0) {
+        return Err(CliError::Argument { arg: "--checkpoint-every/--checkpoint-seconds", reason: "must be positive".into() });
+    }
     std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
     let ckpt_path = a.out.join("checkpoint.json");
+    let log_path = a.out.join("loss.csv");
     let names = cfg.net.param_names();
-    let (mut store, mut opt, done) = if a.resume {
-        let text = std::fs::read_to_string(&ckpt_path).map_err(io(&ckpt_path))?;
-        let c: Checkpoint = serde_json::from_str(&text).map_err(|e| CliError::Argument { arg: "--resume", reason: format!("{}: {e}", ckpt_path.display()) })?;
-        let mut fresh = ParamStore::new();
-        fresh.add("net.", &names, &vec![0.0; cfg.net_params()]);
-        fresh.check_layout(&c.params).map_err(|e| CliError::Argument { arg: "--resume", reason: e.to_string() })?;
-        c.params.validate().map_err(|reason| CliError::Argument { arg: "--resume", reason })?;
+    let mut layout = ParamStore::new();
+    layout.add("net.", &names, &vec![0.0; cfg.net_params()]);
+    let total = cfg.settings.iterations as u64;
+    let continuing = a.resume || a.extend.is_some();
+    let (mut store, mut opt, done) = if continuing {
+        if !ckpt_path.exists() {
+            return Err(CliError::Argument {
+                arg: if a.resume { "--resume" } else { "--extend" },
+                reason: format!("nothing to continue: {} does not exist (start the run without it)", ckpt_path.display()),
+            });
+        }
+        let c = Checkpoint::load(&ckpt_path)?;
+        c.check(&ckpt_path, &text, &layout, &cfg.optimizer)?;
+        if a.resume && c.iterations_done > total {
+            return Err(CliError::Argument {
+                arg: "--resume",
+                reason: format!("the checkpoint has {} iterations, more than the configured {total} (use --extend to train further)", c.iterations_done),
+            });
+        }
+        trim_log(&log_path, c.iterations_done)?;
         (c.params, c.optimizer, c.iterations_done)
     } else {
-        let mut store = ParamStore::new();
-        store.add("net.", &names, &initial_params(&cfg.net, cfg.settings.seed));
+        if !a.overwrite
+            && let Some(what) = existing_run(&a.out, &text)
+        {
+            return Err(CliError::Argument { arg: "--out", reason: what });
+        }
+        let mut store = layout.clone();
+        store.values = initial_params(&cfg.net, cfg.settings.seed);
         let opt = if cfg.optimizer == "sgd" { Optimizer::sgd(cfg.settings.lr) } else { Optimizer::adam(cfg.settings.lr) };
+        // Iteration 0 is a checkpoint too: from the first moment the folder
+        // names its configuration and can be resumed.
+        Checkpoint { format: FORMAT, config: text.clone(), iterations_done: 0, params: store.clone(), optimizer: opt.clone() }.save(&ckpt_path)?;
+        trim_log(&log_path, 0)?;
         (store, opt, 0)
     };
+    let target = match a.extend {
+        Some(n) => done + n as u64,
+        None => total,
+    };
+    if a.resume && done == total {
+        eprintln!("the run had finished ({done} iterations); writing its outputs again");
+    }
     let mut rng = <rand::rngs::StdRng as rand::SeedableRng>::seed_from_u64(cfg.settings.seed);
     let train_set = if cfg.nu_range.is_none() { cfg.setup.dataset(cfg.data.train, cfg.data.steps, &mut rng) } else { Vec::new() };
     let test_set = cfg.setup.dataset(cfg.data.test, cfg.data.test_steps, &mut rng);
@@ -281,26 +353,52 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
         None => TrainData::Fixed(&train_set),
         Some(nu) => TrainData::Random { nu, horizon: cfg.data.steps },
     };
-    let settings = crate::train::burgers::TrainSettings { first: done + 1, ..cfg.settings };
-    let log_path = a.out.join("loss.csv");
-    let mut log = std::fs::OpenOptions::new().create(true).append(a.resume).write(true).truncate(!a.resume).open(&log_path).map_err(io(&log_path))?;
-    if !a.resume {
-        writeln!(log, "iteration,loss,grad_norm,seconds").map_err(io(&log_path))?;
-    }
+    let iterations = usize::try_from(target - done).map_err(|_| CliError::Argument { arg: "--extend", reason: "too many iterations".into() })?;
+    let settings = crate::train::burgers::TrainSettings { first: done as usize + 1, iterations, ..cfg.settings };
+    let log_file = std::fs::OpenOptions::new().append(true).open(&log_path).map_err(io(&log_path))?;
+    let mut log = std::io::BufWriter::new(log_file);
+    // Ctrl-C or a termination request: checkpoint and stop after the
+    // current iteration (a second handler cannot be set; ignore).
+    let _ = ctrlc::set_handler(|| STOP.store(true, std::sync::atomic::Ordering::SeqCst));
     let progress = bar(settings.iterations, a.quiet, &settings.method.name());
     let mut rows: Vec<LogRow> = Vec::new();
-    let mut write_err = None;
-    let time = train(&cfg.setup, &cfg.net, &mut store.values, &mut opt, data, &settings, |r| {
+    let mut failure: Option<CliError> = None;
+    let mut stopped_at = None;
+    let (mut last_it, mut last_time) = (done, std::time::Instant::now());
+    let time = train(&cfg.setup, &cfg.net, &mut store.values, &mut opt, data, &settings, |r, theta, opt| {
         if let Err(e) = writeln!(log, "{},{:.9e},{:.6e},{:.4}", r.iteration, r.loss, r.grad_norm, r.seconds) {
-            write_err.get_or_insert(e);
+            failure.get_or_insert(io(&log_path)(e));
         }
         progress.set_message(format!("loss {:.3e}", r.loss));
         progress.inc(1);
         rows.push(r);
+        let it = r.iteration as u64;
+        let stop = STOP.load(std::sync::atomic::Ordering::SeqCst);
+        if stop || it - last_it >= a.checkpoint_every as u64 || last_time.elapsed().as_secs_f64() >= a.checkpoint_seconds {
+            // The log first: it never lags the checkpoint.
+            if let Err(e) = log.flush() {
+                failure.get_or_insert(io(&log_path)(e));
+            }
+            let params = ParamStore { entries: layout.entries.clone(), values: theta.to_vec() };
+            let c = Checkpoint { format: FORMAT, config: text.clone(), iterations_done: it, params, optimizer: opt.clone() };
+            if let Err(e) = c.save(&ckpt_path) {
+                failure.get_or_insert(e.into());
+            }
+            (last_it, last_time) = (it, std::time::Instant::now());
+        }
+        if stop || failure.is_some() {
+            stopped_at = Some(it);
+            return std::ops::ControlFlow::Break(());
+        }
+        std::ops::ControlFlow::Continue(())
     })?;
     progress.finish_and_clear();
-    if let Some(e) = write_err {
-        return Err(io(&log_path)(e));
+    log.flush().map_err(io(&log_path))?;
+    if let Some(e) = failure {
+        return Err(e);
+    }
+    if let Some(at) = stopped_at {
+        return Err(CliError::Interrupted { done: at, target, resume: format!("diffsim train {} --out {} --resume", a.config.display(), a.out.display()) });
     }
     // The whole loss history (this run and earlier ones) for the plot.
     let history = std::fs::read_to_string(&log_path).map_err(io(&log_path))?;
@@ -317,10 +415,8 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
         &Axes { title: "training loss", x: "iteration", y: "loss", log_x: false, log_y: true },
         &[Series { name: settings.method.name(), points, color: 0, markers: false }],
     );
-    let done = done + settings.iterations;
-    let ckpt = Checkpoint { iterations_done: done, params: store.clone(), optimizer: opt };
-    std::fs::write(&ckpt_path, serde_json::to_string(&ckpt).map_err(|e| CliError::Argument { arg: "checkpoint", reason: e.to_string() })?)
-        .map_err(io(&ckpt_path))?;
+    let done = target;
+    Checkpoint { format: FORMAT, config: text.clone(), iterations_done: done, params: store.clone(), optimizer: opt }.save(&ckpt_path)?;
     store.save(&a.out.join("model.json")).map_err(|e| CliError::Argument { arg: "--out", reason: e.to_string() })?;
     let source =
         evaluate(&cfg.setup, &cfg.net, None, &test_set, cfg.data.test_steps).map_err(|e| CliError::Argument { arg: "config", reason: e.to_string() })?;
@@ -331,7 +427,7 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
         settings.iterations,
         done,
         time.total,
-        1e3 * time.total / settings.iterations as f64,
+        1e3 * time.total / settings.iterations.max(1) as f64,
         rows.last().map_or(f64::NAN, |r| r.loss)
     );
     println!(

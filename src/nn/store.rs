@@ -47,6 +47,9 @@ pub enum StoreError {
         /// The cause.
         source: std::io::Error,
     },
+    /// The file could not be read (missing, not a regular file, too large).
+    #[error(transparent)]
+    Read(#[from] crate::files::ReadError),
     /// The file is not a parameter store.
     #[error("{path}: not a parameter file: {reason}")]
     Format {
@@ -102,16 +105,19 @@ impl ParamStore {
         Ok(())
     }
 
-    /// Writes the store as JSON.
+    /// Writes the store as JSON, atomically (a kill leaves the old file or
+    /// the new one).
     pub fn save(&self, path: &Path) -> Result<(), StoreError> {
         let text = serde_json::to_string(self).map_err(|e| StoreError::Format { path: path.to_path_buf(), reason: e.to_string() })?;
-        std::fs::write(path, text).map_err(|source| StoreError::Io { path: path.to_path_buf(), source })
+        crate::files::write_atomic(path, text.as_bytes()).map_err(|source| StoreError::Io { path: path.to_path_buf(), source })
     }
 
-    /// Reads a store written by [`ParamStore::save`], checking it.
+    /// Reads a store written by [`ParamStore::save`], checking it (a
+    /// regular file of at most 1 GiB).
     pub fn load(path: &Path) -> Result<ParamStore, StoreError> {
-        let text = std::fs::read_to_string(path).map_err(|source| StoreError::Io { path: path.to_path_buf(), source })?;
-        let store: ParamStore = serde_json::from_str(&text).map_err(|e| StoreError::Format { path: path.to_path_buf(), reason: e.to_string() })?;
+        let text = crate::files::read_text(path, 1 << 30, "parameter file")?;
+        let store: ParamStore =
+            serde_json::from_str(&text).map_err(|e| StoreError::Format { path: path.to_path_buf(), reason: crate::files::shorten(&e.to_string(), 200) })?;
         store.validate().map_err(|reason| StoreError::Format { path: path.to_path_buf(), reason })?;
         Ok(store)
     }

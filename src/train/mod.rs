@@ -8,6 +8,7 @@
 //! ([`burgers`]) and on 2D flow past a disc ([`wake`]).
 
 pub mod burgers;
+pub mod checkpoint;
 pub mod config;
 pub mod heat;
 pub mod hig;

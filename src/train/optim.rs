@@ -50,6 +50,59 @@ impl Optimizer {
         Optimizer::Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, m: Vec::new(), v: Vec::new(), t: 0 }
     }
 
+    /// `"adam"` or `"sgd"`, as in a training configuration.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Optimizer::Sgd { .. } => "sgd",
+            Optimizer::Adam { .. } => "adam",
+        }
+    }
+
+    /// Checks saved state against `n` parameters: settings in range, state
+    /// empty (no step yet) or of length `n`, every value finite, Adam's
+    /// step count consistent with its moments. For state read from a file.
+    pub fn validate(&self, n: usize) -> Result<(), String> {
+        let finite = |name: &str, v: &[f64]| match v.iter().position(|x| !x.is_finite()) {
+            Some(i) => Err(format!("{} state `{name}`[{i}] is not finite", self.kind())),
+            None => Ok(()),
+        };
+        let length = |name: &str, v: &[f64]| {
+            if v.is_empty() || v.len() == n { Ok(()) } else { Err(format!("{} state `{name}` has {} values for {n} parameters", self.kind(), v.len())) }
+        };
+        let lr = self.lr();
+        if !(lr.is_finite() && lr >= 0.0) {
+            return Err(format!("learning rate {lr} is not a finite non-negative number"));
+        }
+        match self {
+            Optimizer::Sgd { momentum, velocity, .. } => {
+                if !(0.0..1.0).contains(momentum) {
+                    return Err(format!("sgd momentum {momentum} is outside [0, 1)"));
+                }
+                length("velocity", velocity)?;
+                finite("velocity", velocity)
+            }
+            Optimizer::Adam { beta1, beta2, eps, m, v, t, .. } => {
+                if !((0.0..1.0).contains(beta1) && (0.0..1.0).contains(beta2) && eps.is_finite() && *eps > 0.0) {
+                    return Err(format!("adam settings beta1 {beta1}, beta2 {beta2}, eps {eps} are out of range"));
+                }
+                length("m", m)?;
+                length("v", v)?;
+                if m.len() != v.len() {
+                    return Err(format!("adam state `m` has {} values and `v` {}", m.len(), v.len()));
+                }
+                if (*t == 0) != m.is_empty() || *t > i32::MAX as u64 {
+                    return Err(format!("adam step count {t} does not fit its moments ({} values)", m.len()));
+                }
+                finite("m", m)?;
+                finite("v", v)?;
+                match v.iter().position(|x| *x < 0.0) {
+                    Some(i) => Err(format!("adam state `v`[{i}] is negative")),
+                    None => Ok(()),
+                }
+            }
+        }
+    }
+
     /// The learning rate.
     pub fn lr(&self) -> f64 {
         match self {

@@ -128,8 +128,10 @@ pub struct LogRow {
     pub seconds: f64,
 }
 
-/// Trains `theta` in place on batches from `data`; calls `progress(row)`
-/// after every iteration. Returns where the time went.
+/// Trains `theta` in place on batches from `data`; calls
+/// `progress(row, theta, optimizer)` after every iteration, which may stop
+/// the run early by returning `ControlFlow::Break` (for checkpoints and
+/// interrupts). Returns where the time went.
 pub fn train<P: SolProblem>(
     setup: &P,
     net: &Net,
@@ -137,7 +139,7 @@ pub fn train<P: SolProblem>(
     opt: &mut Optimizer,
     data: TrainData<'_>,
     s: &TrainSettings,
-    mut progress: impl FnMut(LogRow),
+    mut progress: impl FnMut(LogRow, &[f64], &Optimizer) -> std::ops::ControlFlow<()>,
 ) -> Result<TimeShares, RolloutError> {
     let k = s.method.unroll();
     let steps: Vec<usize> = (1..=k).collect();
@@ -193,7 +195,9 @@ pub fn train<P: SolProblem>(
         opt.set_lr(s.lr_at(it));
         opt.step(theta, &grad);
         shares.optimizer += t.elapsed().as_secs_f64();
-        progress(LogRow { iteration: it, loss, grad_norm, seconds: start.elapsed().as_secs_f64() });
+        if progress(LogRow { iteration: it, loss, grad_norm, seconds: start.elapsed().as_secs_f64() }, theta, opt).is_break() {
+            break;
+        }
     }
     shares.total = start.elapsed().as_secs_f64();
     Ok(shares)
@@ -340,9 +344,10 @@ pub fn study<P: SolProblem>(cfg: &StudyConfig<P>, mut progress: impl FnMut(&str,
         let s = TrainSettings { method, ..cfg.settings };
         let name = method.name();
         let mut loss = Vec::with_capacity(s.iterations);
-        let time = train(&cfg.setup, &cfg.net, &mut theta, &mut opt, TrainData::Fixed(&train_set), &s, |row| {
+        let time = train(&cfg.setup, &cfg.net, &mut theta, &mut opt, TrainData::Fixed(&train_set), &s, |row, _, _| {
             loss.push(row.loss);
             progress(&name, row);
+            std::ops::ControlFlow::Continue(())
         })?;
         let error = evaluate(&cfg.setup, &cfg.net, Some(&theta), &test_set, cfg.eval_steps)?;
         let train_mean_error = mean(&evaluate(&cfg.setup, &cfg.net, Some(&theta), &train_set, cfg.eval_steps)?);

@@ -1,0 +1,167 @@
+//! Training checkpoints: all a run needs to go on exactly as if it had
+//! never stopped. The parameters and the optimizer's state are saved with
+//! the number of iterations done and the configuration's text; the random
+//! state and the position in the data need no saving, because the batch of
+//! iteration `i` is drawn from a generator seeded by the configuration's
+//! seed and `i` alone ([`super::sol::TrainSettings::first`]).
+//!
+//! Checkpoints are written atomically ([`crate::files::write_atomic`]) and
+//! checked on reading: a truncated or corrupt file, another format, another
+//! configuration (naming the first key that differs), another network or
+//! optimizer state of the wrong shape is an error, never used.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use super::Optimizer;
+use crate::files::{ReadError, read_text, shorten, write_atomic};
+use crate::nn::ParamStore;
+
+/// The checkpoint format this build writes and reads.
+pub const FORMAT: u32 = 1;
+
+/// The largest checkpoint read (1 GiB of JSON: far beyond any network here).
+pub const MAX_BYTES: u64 = 1 << 30;
+
+/// A training run's state after some iterations.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Checkpoint {
+    /// [`FORMAT`] when written.
+    pub format: u32,
+    /// The configuration's text.
+    pub config: String,
+    /// Iterations done.
+    pub iterations_done: u64,
+    /// The network's parameters.
+    pub params: ParamStore,
+    /// The optimizer and its state.
+    pub optimizer: Optimizer,
+}
+
+/// A checkpoint that cannot be written or used.
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    /// It could not be read.
+    #[error(transparent)]
+    Read(#[from] ReadError),
+    /// It could not be written.
+    #[error("cannot write {path}: {source}")]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// Not a checkpoint: truncated, corrupt or another kind of file.
+    #[error("{path}: not a usable checkpoint (truncated or corrupt?): {reason}")]
+    Corrupt {
+        /// The file.
+        path: PathBuf,
+        /// What the reader found.
+        reason: String,
+    },
+    /// Written by another checkpoint format.
+    #[error("{path}: checkpoint format {found}; this diffsim reads format {FORMAT}")]
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// Its format.
+        found: u32,
+    },
+    /// Written for another configuration.
+    #[error("{path}: written for another configuration: `{key}` is {then} there and {now} in this one")]
+    Mismatch {
+        /// The file.
+        path: PathBuf,
+        /// The first key that differs (`training.lr`).
+        key: String,
+        /// Its value in the checkpoint's configuration.
+        then: String,
+        /// Its value in the configuration given.
+        now: String,
+    },
+    /// Its parameters or optimizer state do not fit the configuration.
+    #[error("{path}: {reason}")]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// What does not fit.
+        reason: String,
+    },
+}
+
+impl Checkpoint {
+    /// Writes the checkpoint to `path` atomically.
+    pub fn save(&self, path: &Path) -> Result<(), CheckpointError> {
+        let text = serde_json::to_string(self).map_err(|e| CheckpointError::Corrupt { path: path.to_path_buf(), reason: e.to_string() })?;
+        write_atomic(path, text.as_bytes()).map_err(|source| CheckpointError::Write { path: path.to_path_buf(), source })
+    }
+
+    /// Reads the checkpoint at `path`, refusing a truncated or corrupt file
+    /// and another format.
+    pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
+        let text = read_text(path, MAX_BYTES, "checkpoint")?;
+        // The format first, so that a newer file is named as such.
+        let head: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| CheckpointError::Corrupt { path: path.to_path_buf(), reason: shorten(&e.to_string(), 200) })?;
+        match head.get("format").and_then(serde_json::Value::as_u64) {
+            Some(f) if f == FORMAT as u64 => {}
+            Some(f) => return Err(CheckpointError::Format { path: path.to_path_buf(), found: u32::try_from(f).unwrap_or(u32::MAX) }),
+            None => return Err(CheckpointError::Corrupt { path: path.to_path_buf(), reason: "no `format` field".into() }),
+        }
+        serde_json::from_value(head).map_err(|e| CheckpointError::Corrupt { path: path.to_path_buf(), reason: shorten(&e.to_string(), 200) })
+    }
+
+    /// Checks that the checkpoint continues a run of `config` (the text;
+    /// `training.iterations` may differ) with parameters laid out as
+    /// `layout` and an optimizer of kind `optimizer` whose state fits them.
+    pub fn check(&self, path: &Path, config: &str, layout: &ParamStore, optimizer: &str) -> Result<(), CheckpointError> {
+        let invalid = |reason: String| CheckpointError::Invalid { path: path.to_path_buf(), reason };
+        if let Some((key, then, now)) = config_difference(&self.config, config) {
+            return Err(CheckpointError::Mismatch { path: path.to_path_buf(), key, then, now });
+        }
+        layout.check_layout(&self.params).map_err(|e| invalid(format!("its network does not fit this configuration's: {e}")))?;
+        self.params.validate().map_err(|e| invalid(format!("its parameters: {e}")))?;
+        if self.optimizer.kind() != optimizer {
+            return Err(invalid(format!("its optimizer is {}, this configuration's is {optimizer}", self.optimizer.kind())));
+        }
+        self.optimizer.validate(self.params.values.len()).map_err(|e| invalid(format!("its optimizer state: {e}")))
+    }
+}
+
+/// The first key (as a dotted path) whose value differs between two
+/// configurations' texts, with both values shortened for display;
+/// `training.iterations` (the run's length) is not compared. Texts that do
+/// not parse differ at the root.
+pub fn config_difference(then: &str, now: &str) -> Option<(String, String, String)> {
+    let parse = |t: &str| t.parse::<toml::Table>().ok();
+    let (Some(a), Some(b)) = (parse(then), parse(now)) else {
+        return (then != now).then(|| ("(the whole file)".into(), "unreadable".into(), "readable".into()));
+    };
+    table_difference("", &a, &b)
+}
+
+fn table_difference(prefix: &str, a: &toml::Table, b: &toml::Table) -> Option<(String, String, String)> {
+    let show = |v: Option<&toml::Value>| v.map_or("absent".to_string(), |v| shorten(&v.to_string(), 60));
+    let mut keys: Vec<&String> = a.keys().chain(b.keys()).collect();
+    keys.sort();
+    keys.dedup();
+    for k in keys {
+        let path = if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") };
+        if path == "training.iterations" {
+            continue;
+        }
+        match (a.get(k), b.get(k)) {
+            (Some(toml::Value::Table(x)), Some(toml::Value::Table(y))) => {
+                if let Some(d) = table_difference(&path, x, y) {
+                    return Some(d);
+                }
+            }
+            (x, y) if x != y => return Some((path, show(x), show(y))),
+            _ => {}
+        }
+    }
+    None
+}
