@@ -361,7 +361,7 @@ fn grad_steady(a: &GradArgs, scene: &SteadyScene) -> Result<(), CliError> {
     let elapsed = start.elapsed().as_secs_f64();
     println!("loss {:.10e} ({} of obstacles[{}])", g.loss, loss.kind(), loss.obstacle);
     for (name, params, values) in &g.inputs {
-        let stem = format!("grad_{}", name.replace(['.', '['], "_").replace(']', ""));
+        let stem = crate::scene::grad_stem(name);
         write_npy(&a.out.join(format!("{stem}.npy")), &[values.len() as u64], values)?;
         let listed: Vec<String> = params.iter().zip(values).map(|(p, v)| format!("{p} {v:.6e}")).collect();
         println!("d loss / d {name} → {stem}.npy: {}", listed.join(", "));

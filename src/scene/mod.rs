@@ -306,7 +306,7 @@ impl Scene {
         let np = self.params.len();
         let mut inputs = Vec::new();
         for w in &loss.with_respect_to {
-            let stem = format!("grad_{}", w.replace(['.', '['], "_").replace(']', ""));
+            let stem = grad_stem(w);
             let field = match w.as_str() {
                 "smoke.init" => Some(Field::Smoke),
                 "velocity.init" => Some(Field::Velocity),
@@ -334,6 +334,13 @@ impl Scene {
         }
         Ok(SceneGradient { loss: g.loss, inputs })
     }
+}
+
+/// The file stem of the gradient with respect to an input named as in
+/// `with_respect_to`: `smoke.init` → `grad_smoke_init`,
+/// `obstacles[0].shape` → `grad_obstacles_0_shape`.
+pub fn grad_stem(name: &str) -> String {
+    format!("grad_{}", name.replace(['.', '['], "_").replace(']', ""))
 }
 
 /// A scene of either kind.
