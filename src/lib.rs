@@ -85,7 +85,10 @@
 //!
 //! **Nothing lost.** Training writes atomic checkpoints and resumes bit for
 //! bit ([`train::checkpoint`]); input files are read only when they are
-//! regular files under a size limit ([`files`]).
+//! regular files under a size limit ([`files`]); what a run will allocate
+//! is estimated against a memory budget before it starts ([`memory`]), and
+//! a gradient's checkpointing is chosen to fit it ([`rollout::plan`]);
+//! parser messages reach users in plain words ([`words`]).
 //!
 //! **Your own crate.** `diffsim new PATH` writes one that builds and passes
 //! out of the box (a solver, its checks, a rollout, the checks through it, a
@@ -102,6 +105,7 @@ pub mod check;
 pub mod cli;
 pub mod files;
 pub mod fluids;
+pub mod memory;
 pub mod nn;
 pub mod op;
 pub mod plot;
@@ -109,3 +113,4 @@ pub mod problems;
 pub mod rollout;
 pub mod scene;
 pub mod train;
+pub mod words;

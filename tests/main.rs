@@ -9,6 +9,7 @@ mod cli;
 mod doc_examples;
 mod flow;
 mod fluids;
+mod inputs;
 mod nn;
 mod p1;
 mod p2;

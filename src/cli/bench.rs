@@ -20,6 +20,28 @@ pub(super) enum BenchCommand {
     /// P3 sol1d: one training iteration (loss, gradient through 16 coupled
     /// solver + network steps for a batch of 32, Adam update).
     P3(P3Args),
+    /// Time and peak memory of P1's gradient under each checkpointing mode
+    /// and under the budget's choice, for several T (each run in its own
+    /// process, so that its peak memory is its own); writes memory.md and
+    /// memory.png.
+    Memory(MemoryArgs),
+}
+
+#[derive(Debug, Args)]
+pub(super) struct MemoryArgs {
+    /// Cells N.
+    #[arg(long, default_value_t = 2048)]
+    n: usize,
+    /// The rollout lengths T, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "1000,10000,100000")]
+    steps: Vec<usize>,
+    /// The budget of the `auto` runs (the fixed modes run under the
+    /// default budget).
+    #[arg(long, default_value = "50MB")]
+    budget: String,
+    /// Output directory.
+    #[arg(long, default_value = "out/memory")]
+    out: std::path::PathBuf,
 }
 
 #[derive(Debug, Args)]
@@ -78,9 +100,11 @@ pub(super) struct P1Args {
     /// split over two threads.
     #[arg(long)]
     threads: Option<usize>,
-    /// How states are kept for the backward pass: store, periodic[:K],
-    /// binomial[:S] (without a number: every ⌈√T⌉ steps, ⌈log₂ T⌉ snapshots).
-    #[arg(long, default_value = "periodic")]
+    /// How states are kept for the backward pass: `auto` (the fastest mode
+    /// within --memory-budget, by the cost model of docs/memory.md), store,
+    /// periodic[:K], binomial[:S] (without a number: every ⌈√T⌉ steps,
+    /// ⌈log₂ T⌉ snapshots).
+    #[arg(long, default_value = "auto")]
     checkpoint: String,
     /// Print one JSON line instead of a table.
     #[arg(long)]
@@ -92,6 +116,7 @@ pub(super) fn run(cmd: BenchCommand) -> Result<(), CliError> {
         BenchCommand::P1(a) => p1(a),
         BenchCommand::P2(a) => p2(a),
         BenchCommand::P3(a) => p3(a),
+        BenchCommand::Memory(a) => memory(a),
     }
 }
 
@@ -175,11 +200,23 @@ fn p1(a: P1Args) -> Result<(), CliError> {
         return Err(CliError::Argument { arg: "--steps", reason: "need at least 1 step".into() });
     }
     let threads = threads(a.threads)?;
-    let mode: Checkpointing = a.checkpoint.parse().map_err(|reason| CliError::Argument { arg: "--checkpoint", reason })?;
-    let mode = mode.resolve(a.steps);
+    // The problem's own arrays (u₀, the target, the gradient, the adjoint buffers).
+    let other = crate::memory::f64s(&[a.n as u64, 8]);
+    crate::memory::check("P1", format!("{} cells", a.n), other, None)?;
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|source| CliError::Threads { threads, source })?;
     pool.install(|| -> Result<(), CliError> {
         let p = P1::new(a.n, a.steps);
+        let forward_s = || {
+            let t = std::time::Instant::now();
+            let _ = p.value();
+            t.elapsed().as_secs_f64() / a.steps as f64
+        };
+        // The bench holds three gradients' states at once (Enzyme, Enzyme on
+        // the whole step, hand-written; each keeps its workspace between
+        // rounds).
+        let job = crate::rollout::plan::Job { steps: a.steps, state_bytes: 8 * a.n as u64, copies: 3, forward_s: 0.0 };
+        let (plan, chosen) = super::checkpointing(&a.checkpoint, job, forward_s, other.unwrap_or(0), "P1's gradient")?;
+        let mode = plan.mode;
         // The four computations in interleaved rounds: the ratios are
         // medians of per-round ratios (robust on a shared machine).
         let (mut ws_e, mut ws_w, mut ws_h) = (Workspace::new(), Workspace::new(), Workspace::new());
@@ -205,7 +242,8 @@ fn p1(a: P1Args) -> Result<(), CliError> {
         let hand_diff = g.dx0.iter().zip(&h.dx0).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
         let out = json!({
             "problem": "p1", "n": a.n, "steps": a.steps, "threads": threads,
-            "checkpoint": mode.to_string(),
+            "checkpoint": mode.to_string(), "checkpoint_chosen": chosen,
+            "memory_budget_bytes": crate::memory::budget(), "estimate_bytes": plan.bytes, "estimate_grad_s": plan.seconds,
             "forward_s": forward_s, "grad_s": grad_s, "hand_grad_s": hand_grad_s,
             "grad_over_forward": grad_over_forward, "hand_over_forward": hand_over_forward,
             "enzyme_over_hand": grad_over_forward / hand_over_forward,
@@ -219,6 +257,8 @@ fn p1(a: P1Args) -> Result<(), CliError> {
         } else {
             let cell_steps = (a.n * a.steps) as f64;
             println!("P1 burgers1d  N = {}  T = {}  threads = {}  checkpointing = {}", a.n, a.steps, threads, mode);
+            let how = if chosen { "chosen within" } else { "given; budget" };
+            println!("  memory plan ({how} {}): {plan}", crate::memory::human(crate::memory::budget()));
             println!("  forward          {:10.3} ms   {:6.2} Gcell-steps/s", forward_s * 1e3, cell_steps / forward_s / 1e9);
             println!("  Enzyme gradient  {:10.3} ms   {:6.2}× forward", grad_s * 1e3, grad_over_forward);
             println!("  Enzyme (whole step) {:7.3} ms   {:6.2}× forward", whole_s * 1e3, whole_over_forward);
@@ -321,10 +361,70 @@ fn p2(a: P2Args) -> Result<(), CliError> {
     })
 }
 
+/// More threads than this per core only add switching.
+const MAX_THREADS_PER_CORE: usize = 8;
+
 fn threads(requested: Option<usize>) -> Result<usize, CliError> {
     let threads = requested.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     if threads < 1 {
         return Err(CliError::Argument { arg: "--threads", reason: "need at least 1 thread".into() });
     }
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    if threads > MAX_THREADS_PER_CORE * cores {
+        return Err(CliError::Argument {
+            arg: "--threads",
+            reason: format!("{threads} threads on {cores} core(s) would only wait for each other; at most {} here", MAX_THREADS_PER_CORE * cores),
+        });
+    }
     Ok(threads)
+}
+
+/// `diffsim bench memory`: one `bench p1 --json` process per T and mode.
+fn memory(a: MemoryArgs) -> Result<(), CliError> {
+    use crate::plot::{Axes, Series};
+    let budget = crate::memory::parse_bytes(&a.budget)?;
+    let exe = std::env::current_exe().map_err(|source| CliError::Io { path: "diffsim".into(), source })?;
+    std::fs::create_dir_all(&a.out).map_err(|source| CliError::Io { path: a.out.clone(), source })?;
+    let modes = ["store", "periodic", "binomial", "auto"];
+    let mut table =
+        "| T | mode | checkpointing | gradient ms | × forward | peak RSS MB | states MB (one gradient) | model ms | model MB (three gradients) |\n|---|---|---|---|---|---|---|---|---|\n"
+            .to_string();
+    let mut series: Vec<Series> = modes.iter().enumerate().map(|(k, m)| Series { name: m.to_string(), points: Vec::new(), color: k, markers: true }).collect();
+    for &t in &a.steps {
+        for (k, mode) in modes.iter().enumerate() {
+            let mut cmd = std::process::Command::new(&exe);
+            cmd.args(["bench", "p1", "--n", &a.n.to_string(), "--steps", &t.to_string(), "--checkpoint", mode, "--json"]);
+            if *mode == "auto" {
+                cmd.args(["--memory-budget", &budget.to_string()]);
+            }
+            let out = cmd.output().map_err(|source| CliError::Io { path: exe.clone(), source })?;
+            let text = String::from_utf8_lossy(&out.stdout);
+            let row = if out.status.success() { serde_json::from_str::<serde_json::Value>(text.trim()).ok() } else { None };
+            let Some(j) = row else {
+                let why = String::from_utf8_lossy(&out.stderr).lines().next().unwrap_or("failed").to_string();
+                eprintln!("T = {t}, {mode}: {why}");
+                table += &format!("| {t} | {mode} | — | {} | | | | | |\n", crate::files::shorten(&why, 90));
+                continue;
+            };
+            let f = |key: &str| j[key].as_f64().unwrap_or(f64::NAN);
+            let (grad_ms, rss) = (f("grad_s") * 1e3, f("peak_rss_bytes") / 1e6);
+            table += &format!(
+                "| {t} | {mode} | {} | {grad_ms:.2} | {:.1} | {rss:.0} | {:.1} | {:.2} | {:.1} |\n",
+                j["checkpoint"].as_str().unwrap_or("?"),
+                f("grad_over_forward"),
+                f("peak_state_bytes") / 1e6,
+                f("estimate_grad_s") * 1e3,
+                f("estimate_bytes") / 1e6,
+            );
+            series[k].points.push((rss, grad_ms / t as f64 * 1e3));
+            eprintln!("T = {t}, {mode} ({}): {grad_ms:.2} ms, peak RSS {rss:.0} MB", j["checkpoint"].as_str().unwrap_or("?"));
+        }
+    }
+    let md = a.out.join("memory.md");
+    std::fs::write(&md, &table).map_err(|source| CliError::Io { path: md.clone(), source })?;
+    let axes = Axes { title: "P1 gradient: time per step against peak memory", x: "peak RSS (MB)", y: "gradient µs per step", log_x: true, log_y: true };
+    super::plot_or_warn(&a.out.join("memory.png"), &axes, &series);
+    println!("{table}");
+    println!("wrote memory.md and memory.png to {}", a.out.display());
+    Ok(())
 }

@@ -39,6 +39,9 @@ pub enum CliError {
     /// An input file could not be read.
     #[error(transparent)]
     Read(#[from] crate::files::ReadError),
+    /// A run does not fit the memory budget.
+    #[error(transparent)]
+    Memory(#[from] crate::memory::MemoryError),
     /// A training checkpoint cannot be written or used.
     #[error(transparent)]
     Checkpoint(#[from] crate::train::checkpoint::CheckpointError),
@@ -92,6 +95,11 @@ pub enum CliError {
 pub struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// Memory the command may use (`50MB`, `2GiB`; default half of the
+    /// machine's memory): a run that cannot fit is refused up front with
+    /// its estimate, and a gradient picks its checkpointing to fit.
+    #[arg(long, global = true, value_name = "BYTES")]
+    memory_budget: Option<String>,
 }
 
 #[derive(Debug, Subcommand)]
@@ -163,8 +171,36 @@ fn plot_or_warn(path: &std::path::Path, axes: &crate::plot::Axes<'_>, series: &[
     }
 }
 
+/// The checkpointing of a gradient for `job` (its `forward_s` unset: it
+/// is timed by `forward_s()`, called once), with `other` bytes held
+/// besides: as given by `--checkpoint` (refused when its states exceed the
+/// memory budget), or for `auto` the fastest mode within the budget by the
+/// cost model ([`crate::rollout::plan`]). Returns the plan and whether it
+/// was chosen.
+fn checkpointing(
+    arg: &str,
+    mut job: crate::rollout::plan::Job,
+    forward_s: impl FnOnce() -> f64,
+    other: u64,
+    what: &str,
+) -> Result<(crate::rollout::plan::Plan, bool), CliError> {
+    use crate::rollout::{Checkpointing, plan};
+    job.forward_s = forward_s();
+    if arg == "auto" {
+        return Ok((plan::choose(&job, other, crate::memory::budget(), what)?, true));
+    }
+    let mode: Checkpointing = arg.parse().map_err(|reason| CliError::Argument { arg: "--checkpoint", reason })?;
+    let p = plan::estimate(mode.resolve(job.steps), &job);
+    let hint = Some("--checkpoint auto to choose a mode that fits".into());
+    crate::memory::check(what, plan::describe(&p, &job, other), Some(p.bytes.saturating_add(other)), hint)?;
+    Ok((p, false))
+}
+
 /// Runs the command line.
 pub fn run(cli: Cli) -> Result<(), CliError> {
+    if let Some(b) = &cli.memory_budget {
+        crate::memory::set_budget(crate::memory::parse_bytes(b)?);
+    }
     match cli.command {
         Command::Bench(b) => bench::run(b),
         Command::Demo(DemoCommand::Plume(a)) => demo::plume(a),

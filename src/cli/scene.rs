@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use npyz::WriterBuilder;
 
 use super::CliError;
-use crate::rollout::{Checkpointing, RolloutOperator};
+use crate::rollout::RolloutOperator;
 use crate::scene::{AnyScene, Domain, Field, Scene, SteadyScene};
 
 /// Arguments of `diffsim run`.
@@ -43,6 +43,11 @@ pub struct GradArgs {
     /// backward passes.
     #[arg(long)]
     profile: bool,
+    /// How the rollout's states are kept for the backward pass: `auto`
+    /// (the fastest mode within --memory-budget), store, periodic[:K],
+    /// binomial[:S].
+    #[arg(long, default_value = "auto")]
+    checkpoint: String,
 }
 
 fn create_dir(out: &Path) -> Result<(), CliError> {
@@ -141,8 +146,10 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
         AnyScene::Stepped(scene) => *scene,
         AnyScene::Steady(scene) => return run_steady(&a, &scene),
     };
+    if a.every == Some(0) {
+        return Err(CliError::Argument { arg: "--every", reason: "must be at least 1 (a frame every this many steps)".into() });
+    }
     create_dir(&a.out)?;
-    let mut frames = Vec::new();
     let start = std::time::Instant::now();
     let x = if a.profile {
         let (x, table) = profile_run(&scene)?;
@@ -150,19 +157,25 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
         x
     } else {
         let bar = progress(scene.steps, a.quiet);
+        // Frames go to disk as they come (memory stays one state); the
+        // first failed write stops the writing and is reported.
+        let mut failed = None;
         let x = scene.run(|k, x| {
-            if a.every.is_some_and(|e| e > 0 && k % e == 0) {
-                frames.push((k, x.to_vec()));
+            if failed.is_none()
+                && a.every.is_some_and(|e| e > 0 && k % e == 0)
+                && let Err(e) = write_images(&scene, &a.out, &format!("_{k:05}"), x)
+            {
+                failed = Some(e);
             }
             bar.inc(1);
         });
         bar.finish_and_clear();
+        if let Some(e) = failed {
+            return Err(e);
+        }
         x?
     };
     let elapsed = start.elapsed().as_secs_f64();
-    for (k, f) in &frames {
-        write_images(&scene, &a.out, &format!("_{k:05}"), f)?;
-    }
     let mut written = write_state(&scene, &a.out, &x)?;
     written.extend(write_images(&scene, &a.out, "", &x)?);
     if !a.quiet {
@@ -250,6 +263,26 @@ fn profile_backward(scene: &Scene) -> Result<String, CliError> {
     Ok(table(&scene.effects, &times, total, "backward (VJPs of each effect; the whole pass includes recomputing the step's intermediate states)"))
 }
 
+/// The checkpointing of a scene's gradient (see [`super::checkpointing`]):
+/// the states are the scene's; besides them the grid's work arrays and, for
+/// a control per step, its values and gradient at every step.
+fn gradient_plan(scene: &Scene, arg: &str) -> Result<(crate::rollout::plan::Plan, bool), CliError> {
+    use crate::op::Forward;
+    let n = scene.x0.len() as u64;
+    let per_step = if scene.per_step() { crate::memory::f64s(&[scene.params.len() as u64, scene.steps as u64, 2]) } else { Some(0) };
+    let other = crate::memory::f64s(&[n, 8]).zip(per_step).and_then(|(a, b)| a.checked_add(b));
+    let detail = format!("{} values per state over {} steps", n, scene.steps);
+    crate::memory::check("the scene's gradient", detail, other, None)?;
+    let forward_s = || {
+        let mut y = vec![0.0; scene.x0.len()];
+        let t = std::time::Instant::now();
+        scene.step.forward(&scene.x0, &scene.params, &mut y);
+        t.elapsed().as_secs_f64()
+    };
+    let job = crate::rollout::plan::Job { steps: scene.steps, state_bytes: 8 * n, copies: 1, forward_s: 0.0 };
+    super::checkpointing(arg, job, forward_s, other.unwrap_or(0), "the scene's gradient")
+}
+
 pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
     let scene = match AnyScene::load(&a.scene)? {
         AnyScene::Stepped(scene) => *scene,
@@ -258,9 +291,12 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
     let Some(loss) = &scene.loss else {
         return Err(crate::scene::SceneError::key("loss", "`diffsim grad` needs a [loss] table").into());
     };
+    let (plan, chosen) = gradient_plan(&scene, &a.checkpoint)?;
+    let mode = plan.mode;
     create_dir(&a.out)?;
-    let mode = Checkpointing::periodic_sqrt(scene.steps);
     let g = scene.gradient(loss, mode)?;
+    let how = if chosen { "chosen within" } else { "given; budget" };
+    eprintln!("memory plan ({how} {}): {plan}", crate::memory::human(crate::memory::budget()));
     println!("loss {:.10e}", g.loss);
     for input in &g.inputs {
         let norm = input.arrays.iter().flat_map(|(_, _, v)| v).map(|a| a * a).sum::<f64>().sqrt();

@@ -196,6 +196,12 @@ impl StudyArgs {
             if cfg.methods.is_empty() {
                 return Err(CliError::Argument { arg: "--methods", reason: "name at least one variant".into() });
             }
+            if let Some(k) = cfg.methods.iter().map(|m| m.unroll()).max().filter(|&k| k >= cfg.train_steps) {
+                return Err(CliError::Argument {
+                    arg: "--methods",
+                    reason: format!("sol{k} unrolls {k} steps, but the training trajectories have {} steps", cfg.train_steps),
+                });
+            }
         }
         if let Some(sigma) = self.noise {
             if !(sigma.is_finite() && sigma >= 0.0) {
@@ -401,7 +407,7 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
         return Err(CliError::Interrupted { done: at, target, resume: format!("diffsim train {} --out {} --resume", a.config.display(), a.out.display()) });
     }
     // The whole loss history (this run and earlier ones) for the plot.
-    let history = std::fs::read_to_string(&log_path).map_err(io(&log_path))?;
+    let history = crate::files::read_text(&log_path, 1 << 30, "loss log")?;
     let points: Vec<(f64, f64)> = history
         .lines()
         .skip(1)

@@ -220,37 +220,56 @@ impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
     }
 
     /// Reverses steps `a..b`, given `x_a`, with `s` snapshots to spare.
-    fn binomial(&mut self, a: usize, b: usize, xa: &[R], s: usize) {
-        let t = b - a;
-        if t == 1 {
-            self.vjp(a, xa);
-            return;
-        }
-        if s == 0 {
-            for j in (a..b).rev() {
-                let xj = self.advance(xa, a, j - a);
-                self.vjp(j, &xj);
-                self.release(xj);
+    /// The left part is a loop, not a call: the recursion is at most `s`
+    /// deep (with one snapshot and 10⁵ steps a recursive left part
+    /// overflowed the stack).
+    fn binomial(&mut self, a: usize, mut b: usize, xa: &[R], s: usize) {
+        loop {
+            let t = b - a;
+            if t == 1 {
+                self.vjp(a, xa);
+                return;
             }
-            return;
+            if s == 0 {
+                for j in (a..b).rev() {
+                    let xj = self.advance(xa, a, j - a);
+                    self.vjp(j, &xj);
+                    self.release(xj);
+                }
+                return;
+            }
+            let m = b - split(t, s);
+            let xm = self.advance(xa, a, m - a);
+            self.binomial(m, b, &xm, s - 1);
+            self.release(xm);
+            b = m;
         }
-        let mut r = 1;
-        while binom(s + r, s) < t as u128 {
-            r += 1;
-        }
-        // The right part is reversed with one snapshot fewer, the left with
-        // one repetition fewer: |right| ≤ β(s−1, r), |left| ≤ β(s, r−1).
-        let right = (binom(s - 1 + r, s - 1).min(t as u128 - 1)) as usize;
-        let m = b - right;
-        let xm = self.advance(xa, a, m - a);
-        self.binomial(m, b, &xm, s - 1);
-        self.release(xm);
-        self.binomial(a, m, xa, s);
     }
 }
 
+/// The length of the right part when `t > 1` steps are reversed with
+/// `s ≥ 1` snapshots: the right part is reversed with one snapshot fewer,
+/// the left with one repetition fewer (`|right| ≤ β(s−1, r)`,
+/// `|left| ≤ β(s, r−1)`, `r` the smallest with `C(s + r, s) ≥ t`).
+pub(super) fn split(t: usize, s: usize) -> usize {
+    // `C(s + r, s)` grows with `r`: double, then bisect (one snapshot
+    // needs r = t − 1, too many for a linear search over 10⁵ steps).
+    let enough = |r: usize| binom(s + r, s) >= t as u128;
+    let mut hi = 1;
+    while !enough(hi) {
+        hi *= 2;
+    }
+    let mut lo = hi / 2;
+    while lo + 1 < hi {
+        let mid = lo + (hi - lo) / 2;
+        if enough(mid) { hi = mid } else { lo = mid }
+    }
+    let r = if enough(lo.max(1)) { lo.max(1) } else { hi };
+    (binom(s - 1 + r, s - 1).min(t as u128 - 1)) as usize
+}
+
 /// `C(n, k)`, saturating.
-fn binom(n: usize, k: usize) -> u128 {
+pub(super) fn binom(n: usize, k: usize) -> u128 {
     let mut c: u128 = 1;
     for i in 0..k as u128 {
         c = c.saturating_mul(n as u128 - i) / (i + 1);

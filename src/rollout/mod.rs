@@ -27,6 +27,7 @@
 
 mod checkpoint;
 mod operator;
+pub mod plan;
 
 use thiserror::Error;
 

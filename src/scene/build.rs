@@ -9,12 +9,13 @@ use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d};
 use toml::Spanned;
 
 use super::init::{field_init, shape_cells};
-use super::spec::{EffectSpec, SceneFile, ShapeSpec, unknown};
+use super::spec::{EffectSpec, SceneFile, ShapeSpec};
 use super::value::{count, finite, positive};
 use super::{Array, Control, Domain, Field, Line, Scene, SceneError, SceneLoss};
 use crate::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, DiffuseExplicit, DiffuseImplicit, Force, Inflow, Project};
 use crate::op::{AddParams, Chain, Effect, Part};
 use crate::problems::burgers::BurgersEnzyme;
+use crate::words::unknown;
 
 /// The 1-based line of byte offset `at` in `text`.
 fn line_of(text: &str, at: usize) -> usize {
@@ -41,6 +42,7 @@ fn domain(file: &SceneFile, text: &str) -> Result<Domain, SceneError> {
                 if n < 3 {
                     return Err(SceneError::key("domain.size", format!("need at least 3 cells, got {n}")));
                 }
+                grid_fits(&[n as u64], LINE_ARRAYS)?;
                 let length = positive("domain.length", d.length.unwrap_or(n as f64))?;
                 let periodic = match &d.boundary {
                     None => false,
@@ -55,6 +57,7 @@ fn domain(file: &SceneFile, text: &str) -> Result<Domain, SceneError> {
                 if nx.min(ny) < 4 {
                     return Err(SceneError::key("domain.size", format!("need at least 4 cells per side, got [{nx}, {ny}]")));
                 }
+                grid_fits(&[nx as u64 + 1, ny as u64 + 1], BOX_ARRAYS)?;
                 if d.length.is_some() {
                     return Err(SceneError::key("domain.length", "a box has unit cells; `length` is for 1D domains"));
                 }
@@ -65,6 +68,28 @@ fn domain(file: &SceneFile, text: &str) -> Result<Domain, SceneError> {
             k => Err(SceneError::key("domain.size", format!("expected [n] (1D) or [nx, ny] (2D), got {k} value(s)"))),
         }
     })
+}
+
+/// Arrays of the grid's size a scene holds at most while it runs (the
+/// state, the step's output, the effects' work: the pressure solve's
+/// vectors and multigrid levels are most of it), per cell of a box and of
+/// a line: the memory estimate checked before anything is allocated.
+pub(super) const BOX_ARRAYS: u64 = 24;
+/// See [`BOX_ARRAYS`].
+pub(super) const LINE_ARRAYS: u64 = 16;
+
+/// The longest rollout a scene declares (`time.steps`): longer ones would
+/// run for days (split them into several runs, each from the last state).
+pub const MAX_STEPS: i64 = 1_000_000_000;
+
+/// Refuses a grid of `sizes` whose `arrays` arrays exceed the memory budget.
+fn grid_fits(sizes: &[u64], arrays: u64) -> Result<(), SceneError> {
+    let cells: Vec<String> = sizes.iter().map(u64::to_string).collect();
+    let mut counts = sizes.to_vec();
+    counts.push(arrays);
+    crate::memory::check("the scene's grid", format!("{arrays} arrays of {} float64 values", cells.join("×")), crate::memory::f64s(&counts), None)
+        .map(|_| ())
+        .map_err(|e| SceneError::key("domain.size", e.to_string()))
 }
 
 /// A box's `domain.boundary` (default closed).
@@ -84,7 +109,12 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
         None => Ok(()),
     })?;
     let domain = domain(&file, text)?;
-    let (dt, steps) = at(text, time, |t| Ok((positive("time.dt", t.dt)?, count("time.steps", t.steps)?)))?;
+    let (dt, steps) = at(text, time, |t| {
+        if t.steps > MAX_STEPS {
+            return Err(SceneError::key("time.steps", format!("{} steps is more than the {MAX_STEPS} a scene may run; split the run", t.steps)));
+        }
+        Ok((positive("time.dt", t.dt)?, count("time.steps", t.steps)?))
+    })?;
 
     // Obstacles.
     let mut solid: Option<Vec<bool>> = None;
@@ -99,6 +129,11 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
         for (a, c) in all.iter_mut().zip(cells) {
             *a |= c;
         }
+    }
+    if let (Some(all), Some(last)) = (&solid, file.obstacles.last())
+        && all.iter().all(|&c| c)
+    {
+        return Err(placed(text, last, SceneError::key("obstacles", "the obstacles cover every cell of the domain: no fluid is left to simulate")));
     }
 
     // Initial state.

@@ -54,6 +54,16 @@ pub(super) fn shape_of(key: &str, shape: &ShapeSpec) -> Result<Shape, SceneError
 /// shape wholly outside is an error.
 pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec) -> Result<Vec<bool>, SceneError> {
     let dims = domain.dims();
+    if let ShapeSpec::Box { lower, upper } = shape {
+        let (a, b) = (point(&format!("{key}.lower"), lower, dims)?, point(&format!("{key}.upper"), upper, dims)?);
+        if let Some(axis) = (0..dims).find(|&d| a[d] >= b[d]) {
+            let name = ["x", "y"][axis];
+            return Err(SceneError::key(
+                format!("{key}.upper"),
+                format!("must exceed `lower` on every axis: on {name}, upper {} ≤ lower {}", b[axis], a[axis]),
+            ));
+        }
+    }
     let cells = match (domain, shape) {
         (Domain::Box(cfg), ShapeSpec::Box { lower, upper }) => {
             let (a, b) = (point(&format!("{key}.lower"), lower, dims)?, point(&format!("{key}.upper"), upper, dims)?);
@@ -187,7 +197,9 @@ fn read_npy(key: &str, domain: &Domain, field: Field, paths: &NpyPaths, dir: &Pa
     for (path, array) in paths.iter().zip(&arrays) {
         let full = dir.join(path);
         let fail = |why: String| SceneError::key(key.clone(), format!("{}: {why}", full.display()));
-        let bytes = std::fs::read(&full).map_err(|e| fail(format!("cannot read: {e}")))?;
+        // At most the array in float64 and a header: larger files are not this array.
+        let limit = 8 * array.range.len() as u64 + 65_536;
+        let bytes = crate::files::read_bytes(&full, limit, "`.npy` array of this field").map_err(|e| SceneError::key(key.clone(), e.to_string()))?;
         let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| fail(format!("not a valid .npy file: {e}")))?;
         if npy.order() == npyz::Order::Fortran {
             return Err(fail("Fortran order; save it in C order (numpy's default)".into()));

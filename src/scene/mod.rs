@@ -29,17 +29,16 @@ use diffsim_solvers::smoke::Smoke2d;
 use crate::op::{Chain, Forward};
 use crate::rollout::{AtSteps, Checkpointing, Loss, Rollout, RolloutError};
 
+/// The largest scene file read (a scene's arrays belong in `.npy` files).
+pub const MAX_SCENE_BYTES: u64 = 1 << 20;
+
 /// A scene that cannot be read or built.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
-    /// The file could not be read.
-    #[error("cannot read scene {path}: {source}")]
-    Read {
-        /// The file.
-        path: std::path::PathBuf,
-        /// The cause.
-        source: std::io::Error,
-    },
+    /// The file could not be read (or is not a regular file, or is larger
+    /// than [`MAX_SCENE_BYTES`]).
+    #[error("scene: {0}")]
+    Read(#[from] crate::files::ReadError),
     /// The TOML is malformed or a value has the wrong type (the message
     /// names the line and key).
     #[error("scene: {0}")]
@@ -227,7 +226,7 @@ impl Scene {
     /// Reads and builds the scene in `path` (`.npy` paths in it are relative
     /// to its folder).
     pub fn load(path: &Path) -> Result<Scene, SceneError> {
-        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read { path: path.to_path_buf(), source })?;
+        let text = crate::files::read_text(path, MAX_SCENE_BYTES, "scene file")?;
         Self::parse_in(&text, path.parent().unwrap_or(Path::new(".")))
     }
 
@@ -356,13 +355,13 @@ impl AnyScene {
     /// Reads and builds the scene in `path` (`.npy` paths in it are relative
     /// to its folder).
     pub fn load(path: &Path) -> Result<AnyScene, SceneError> {
-        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read { path: path.to_path_buf(), source })?;
+        let text = crate::files::read_text(path, MAX_SCENE_BYTES, "scene file")?;
         Self::parse_in(&text, path.parent().unwrap_or(Path::new(".")))
     }
 
     /// Builds a scene from its TOML text, `.npy` paths relative to `dir`.
     pub fn parse_in(text: &str, dir: &Path) -> Result<AnyScene, SceneError> {
-        let file: spec::SceneFile = toml::from_str(text).map_err(|e| SceneError::Syntax(spec::suggest_field(&e.to_string())))?;
+        let file: spec::SceneFile = toml::from_str(text).map_err(|e| SceneError::Syntax(crate::words::toml_error(&e, text)))?;
         if file.steady.is_some() {
             steady::build(file, text).map(|s| AnyScene::Steady(Box::new(s)))
         } else {

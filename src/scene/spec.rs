@@ -444,32 +444,10 @@ fn split_kind<'a>(
     let mut rest = table.clone();
     rest.remove("kind");
     let at = at.to_string();
-    Ok((kind, toml::Value::Table(rest), move |e: toml::de::Error| SceneError::key(format!("{at} (kind = \"{kind}\")"), suggest_field(&e.to_string()))))
+    Ok((kind, toml::Value::Table(rest), move |e: toml::de::Error| match crate::words::plain(&e.to_string()) {
+        (Some(key), text) => SceneError::key(format!("{at}.{key}"), text),
+        (None, text) => SceneError::key(format!("{at} (kind = \"{kind}\")"), text),
+    }))
 }
 
-/// "unknown X `y`; did you mean `z`?" (or the list of choices).
-pub fn unknown(what: &str, got: &str, choices: &[&str]) -> String {
-    match closest(got, choices) {
-        Some(best) => format!("unknown {what} `{got}`; did you mean `{best}`?"),
-        None => format!("unknown {what} `{got}`; expected one of {}", choices.join(", ")),
-    }
-}
-
-/// The choice nearest to `got` by edit distance, when it is near enough to
-/// be a typo.
-pub fn closest<'a>(got: &str, choices: &[&'a str]) -> Option<&'a str> {
-    choices.iter().map(|c| (strsim::damerau_levenshtein(got, c), *c)).filter(|(d, c)| *d <= 2.max(c.len() / 3)).min_by_key(|(d, _)| *d).map(|(_, c)| c)
-}
-
-/// serde's "unknown field `x`, expected one of `a`, `b`" with the closest
-/// field suggested.
-pub fn suggest_field(message: &str) -> String {
-    let message = message.trim().to_string();
-    let Some(rest) = message.split("unknown field `").nth(1) else { return message };
-    let Some((got, tail)) = rest.split_once('`') else { return message };
-    let expected: Vec<&str> = tail.split('`').skip(1).step_by(2).collect();
-    match closest(got, &expected) {
-        Some(best) => format!("{message}; did you mean `{best}`?"),
-        None => message,
-    }
-}
+use crate::words::unknown;

@@ -151,6 +151,24 @@ impl SteadyScene {
     }
 }
 
+/// Refuses a grid whose Newton solve exceeds the memory budget. The sparse
+/// LU of the coupled Jacobian holds about 16-21 kB per cell at 9 000 to
+/// 144 000 cells, growing a little faster than the cell count (measured
+/// by `diffsim pareto cylinder`, docs/accuracy.md): the estimate is 21 kB
+/// per cell, times `(cells / 144 000)^¼` beyond that.
+fn newton_fits(nx: u64, ny: u64) -> Result<(), SceneError> {
+    let cells = nx.checked_mul(ny);
+    let need = cells.and_then(|c| {
+        let growth = (c as f64 / 144_000.0).powf(0.25).max(1.0);
+        let bytes = c as f64 * 21_000.0 * growth;
+        (bytes < 1.8e19).then_some(bytes as u64)
+    });
+    let detail = format!("the Newton solve's sparse LU on {nx}×{ny} cells, about 21 kB per cell");
+    crate::memory::check("the steady scene", detail, need, Some("use a coarser `domain.cell`".into()))
+        .map(|_| ())
+        .map_err(|e| SceneError::key("domain.size", e.to_string()))
+}
+
 /// Builds a steady scene.
 pub(super) fn build(file: SceneFile, text: &str) -> Result<SteadyScene, SceneError> {
     let steady = file.steady.as_ref().expect("a steady scene has [steady]");
@@ -183,6 +201,7 @@ pub(super) fn build(file: SceneFile, text: &str) -> Result<SteadyScene, SceneErr
         if d.length.is_some() {
             return Err(SceneError::key("domain.length", "`length` is for 1D domains; a box gives its cell width as `cell`"));
         }
+        newton_fits(nx as u64, ny as u64)?;
         let h = positive("domain.cell", d.cell.unwrap_or(1.0))?;
         let flow = Flow2d { nx, ny, h, nu, boundary: domain_boundary(d)?, wall_speed: WallSpeed::default() };
         flow.validate().map_err(|e| SceneError::key("domain.boundary", e.to_string()))?;
@@ -262,7 +281,7 @@ pub(super) fn build(file: SceneFile, text: &str) -> Result<SteadyScene, SceneErr
                 .map(|w| match known.iter().position(|k| k == w) {
                     Some(k) => Ok((w.clone(), k)),
                     None => {
-                        Err(SceneError::key("loss.with_respect_to", super::spec::unknown("input", w, &known.iter().map(String::as_str).collect::<Vec<_>>())))
+                        Err(SceneError::key("loss.with_respect_to", crate::words::unknown("input", w, &known.iter().map(String::as_str).collect::<Vec<_>>())))
                     }
                 })
                 .collect::<Result<_, _>>()?;

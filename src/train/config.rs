@@ -48,13 +48,33 @@ pub struct ProblemSpec {
 }
 
 /// One viscosity or a range.
-#[derive(Debug, Deserialize)]
-#[serde(untagged)]
+#[derive(Debug)]
 pub enum Viscosity {
     /// Fixed.
     One(f64),
     /// Sampled per batch.
     Range([f64; 2]),
+}
+
+impl<'de> Deserialize<'de> for Viscosity {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let number = |v: &toml::Value| v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
+        let value = toml::Value::deserialize(d)?;
+        match &value {
+            toml::Value::Array(a) if a.len() == 2 => {
+                if let (Some(lo), Some(hi)) = (number(&a[0]), number(&a[1])) {
+                    return Ok(Viscosity::Range([lo, hi]));
+                }
+            }
+            v => {
+                if let Some(x) = number(v) {
+                    return Ok(Viscosity::One(x));
+                }
+            }
+        }
+        Err(D::Error::custom(format!("expected a number or a range [lo, hi], got {}", crate::files::shorten(&value.to_string(), crate::words::ECHO))))
+    }
 }
 
 /// `[data]`.
@@ -88,15 +108,12 @@ pub struct NetworkSpec {
     /// `"conv"` (default), `"resnet"` or `"unet"`.
     #[serde(default = "conv")]
     pub preset: String,
-    /// Channels of the conv stack (default `[1, 32, 32, 1]`).
-    #[serde(default = "channels")]
-    pub channels: Vec<usize>,
-    /// Width of the resnet / U-Net (default 16).
-    #[serde(default = "d16")]
-    pub width: usize,
-    /// Residual blocks (default 2).
-    #[serde(default = "d2")]
-    pub blocks: usize,
+    /// Channels of the conv stack (default `[1, 32, 32, 1]`; conv only).
+    pub channels: Option<Vec<usize>>,
+    /// Width of the resnet / U-Net (default 16; not for conv).
+    pub width: Option<usize>,
+    /// Residual blocks (default 2; resnet only).
+    pub blocks: Option<usize>,
     /// Kernel width (odd, default 5).
     #[serde(default = "d5")]
     pub kernel: usize,
@@ -107,7 +124,7 @@ pub struct NetworkSpec {
 
 impl Default for NetworkSpec {
     fn default() -> Self {
-        Self { preset: conv(), channels: channels(), width: 16, blocks: 2, kernel: 5, activation: Activation::Tanh }
+        Self { preset: conv(), channels: None, width: None, blocks: None, kernel: 5, activation: Activation::Tanh }
     }
 }
 
@@ -148,8 +165,8 @@ macro_rules! defaults {
     ($($name:ident: $t:ty = $v:expr;)*) => { $(fn $name() -> $t { $v })* };
 }
 defaults! {
-    d2: usize = 2; d3: usize = 3; d4: usize = 4; d5: usize = 5; d8: usize = 8; d16: usize = 16; d32: usize = 32; d128: usize = 128; d144: usize = 144;
-    nu: Viscosity = Viscosity::One(0.01); conv: String = "conv".into(); channels: Vec<usize> = vec![1, 32, 32, 1]; tanh: Activation = Activation::Tanh;
+    d3: usize = 3; d4: usize = 4; d5: usize = 5; d8: usize = 8; d16: usize = 16; d32: usize = 32; d128: usize = 128; d144: usize = 144;
+    nu: Viscosity = Viscosity::One(0.01); conv: String = "conv".into(); tanh: Activation = Activation::Tanh;
     noise: f64 = 0.02; adam: String = "adam".into(); lr: f64 = 1e-3; clip: f64 = 10.0; one: u64 = 1;
 }
 
@@ -159,6 +176,9 @@ pub enum ConfigError {
     /// Malformed TOML or a wrong type (the message names the line).
     #[error("training config: {0}")]
     Syntax(String),
+    /// The run would not fit the memory budget.
+    #[error("training config: {0}")]
+    Memory(#[from] crate::memory::MemoryError),
     /// A value the run cannot use.
     #[error("training config: `{key}`: {reason}")]
     Key {
@@ -190,6 +210,15 @@ fn positive(key: &'static str, v: usize) -> Result<usize, ConfigError> {
     if v >= 1 { Ok(v) } else { Err(ConfigError::Key { key, reason: "must be at least 1".into() }) }
 }
 
+/// Widest layer (channels) a network may have.
+const MAX_WIDTH: usize = 4096;
+/// Most layers (conv) or blocks (resnet) a network may have.
+const MAX_LAYERS: usize = 64;
+
+fn at_most(key: &'static str, v: usize, max: usize) -> Result<usize, ConfigError> {
+    if v <= max { Ok(v) } else { Err(ConfigError::Key { key, reason: format!("{v} is more than the {max} allowed") }) }
+}
+
 fn rate(key: &'static str, v: f64) -> Result<f64, ConfigError> {
     if v.is_finite() && v > 0.0 { Ok(v) } else { Err(ConfigError::Key { key, reason: format!("must be a positive finite number, got {v}") }) }
 }
@@ -202,10 +231,10 @@ impl TrainConfig {
 
     /// Parses and checks a configuration.
     pub fn parse(text: &str) -> Result<Self, ConfigError> {
-        let f: TrainFile = toml::from_str(text).map_err(|e| ConfigError::Syntax(crate::scene::spec::suggest_field(&e.to_string())))?;
+        let f: TrainFile = toml::from_str(text).map_err(|e| ConfigError::Syntax(crate::words::toml_error(&e, text)))?;
         let p = &f.problem;
         if p.kind != "burgers" {
-            return Err(ConfigError::Key { key: "problem.kind", reason: crate::scene::spec::unknown("problem", &p.kind, &["burgers"]) });
+            return Err(ConfigError::Key { key: "problem.kind", reason: crate::words::unknown("problem", &p.kind, &["burgers"]) });
         }
         let cells = positive("problem.cells", p.cells)?;
         if cells < 3 {
@@ -221,6 +250,14 @@ impl TrainConfig {
                 (a, Some((a, b)))
             }
         };
+        // The data and the fine solver's arrays, checked before anything is allocated.
+        let (d, fine) = (&f.data, p.refinement as u64);
+        let trajectories =
+            (d.train as u64).checked_mul(d.steps as u64 + 1).zip((d.test as u64).checked_mul(d.test_steps as u64 + 1)).and_then(|(a, b)| a.checked_add(b));
+        let data = trajectories.and_then(|t| crate::memory::f64s(&[t, cells as u64]));
+        let solver = crate::memory::f64s(&[cells as u64, fine, 16]);
+        let detail = format!("{} training and {} test trajectories of {cells} cells, a fine grid of {cells}×{fine} cells", d.train, d.test);
+        crate::memory::check("the training data", detail, data.zip(solver).and_then(|(a, b)| a.checked_add(b)), None)?;
         let setup = Setup::new(
             cells,
             positive("problem.refinement", p.refinement)?,
@@ -233,21 +270,45 @@ impl TrainConfig {
         if k % 2 == 0 || k == 0 {
             return Err(ConfigError::Key { key: "network.kernel", reason: format!("must be odd, got {k}") });
         }
+        if k > cells {
+            return Err(ConfigError::Key { key: "network.kernel", reason: format!("a kernel of {k} cells is wider than the grid of {cells} cells") });
+        }
+        // A key the chosen preset does not read is an error, not ignored.
+        let unused = |key: &'static str, given: bool, used_by: &str| -> Result<(), ConfigError> {
+            if given { Err(ConfigError::Key { key, reason: format!("the {} preset does not use it (only {used_by})", n.preset) }) } else { Ok(()) }
+        };
+        let width = |n: &NetworkSpec| positive("network.width", n.width.unwrap_or(16)).and_then(|w| at_most("network.width", w, MAX_WIDTH));
         let net = match n.preset.as_str() {
             "conv" => {
-                if n.channels.len() < 2 || n.channels[0] != 1 || *n.channels.last().unwrap_or(&0) != 1 {
+                unused("network.width", n.width.is_some(), "resnet and unet")?;
+                unused("network.blocks", n.blocks.is_some(), "resnet")?;
+                let channels = n.channels.clone().unwrap_or_else(|| vec![1, 32, 32, 1]);
+                if channels.len() < 2 || channels[0] != 1 || *channels.last().unwrap_or(&0) != 1 {
                     return Err(ConfigError::Key { key: "network.channels", reason: "must start and end with 1 (the state has one channel)".into() });
                 }
-                presets::conv_stack_1d(cells, &n.channels, k, Padding::Periodic, n.activation)
+                if channels.len() > MAX_LAYERS {
+                    return Err(ConfigError::Key { key: "network.channels", reason: format!("{} layers; at most {MAX_LAYERS}", channels.len()) });
+                }
+                for &c in &channels {
+                    positive("network.channels", c)?;
+                    at_most("network.channels", c, MAX_WIDTH)?;
+                }
+                presets::conv_stack_1d(cells, &channels, k, Padding::Periodic, n.activation)
             }
-            "resnet" => presets::resnet_1d(cells, 1, 1, positive("network.width", n.width)?, n.blocks, k, Padding::Periodic, n.activation),
+            "resnet" => {
+                unused("network.channels", n.channels.is_some(), "conv")?;
+                let blocks = at_most("network.blocks", n.blocks.unwrap_or(2), MAX_LAYERS)?;
+                presets::resnet_1d(cells, 1, 1, width(n)?, blocks, k, Padding::Periodic, n.activation)
+            }
             "unet" => {
+                unused("network.channels", n.channels.is_some(), "conv")?;
+                unused("network.blocks", n.blocks.is_some(), "resnet")?;
                 if cells % 2 != 0 {
                     return Err(ConfigError::Key { key: "network.preset", reason: format!("a U-Net needs an even number of cells, got {cells}") });
                 }
-                presets::unet_1d(cells, 1, 1, positive("network.width", n.width)?, k, Padding::Periodic, n.activation)
+                presets::unet_1d(cells, 1, 1, width(n)?, k, Padding::Periodic, n.activation)
             }
-            other => return Err(ConfigError::Key { key: "network.preset", reason: crate::scene::spec::unknown("preset", other, &["conv", "resnet", "unet"]) }),
+            other => return Err(ConfigError::Key { key: "network.preset", reason: crate::words::unknown("preset", other, &["conv", "resnet", "unet"]) }),
         }
         .map_err(|e| ConfigError::Key { key: "network", reason: e.to_string() })?;
         let t = &f.training;
@@ -260,7 +321,7 @@ impl TrainConfig {
                 Method::Noise(t.noise)
             }
             "sol" => Method::Sol(positive("training.unroll", t.unroll)?),
-            other => return Err(ConfigError::Key { key: "training.method", reason: crate::scene::spec::unknown("method", other, &["pre", "noise", "sol"]) }),
+            other => return Err(ConfigError::Key { key: "training.method", reason: crate::words::unknown("method", other, &["pre", "noise", "sol"]) }),
         };
         if f.data.steps <= method.unroll() && range.is_none() {
             return Err(ConfigError::Key {
@@ -269,7 +330,7 @@ impl TrainConfig {
             });
         }
         if t.optimizer != "adam" && t.optimizer != "sgd" {
-            return Err(ConfigError::Key { key: "training.optimizer", reason: crate::scene::spec::unknown("optimizer", &t.optimizer, &["adam", "sgd"]) });
+            return Err(ConfigError::Key { key: "training.optimizer", reason: crate::words::unknown("optimizer", &t.optimizer, &["adam", "sgd"]) });
         }
         let settings = TrainSettings {
             method,
