@@ -144,15 +144,19 @@ pub fn f64s(counts: &[u64]) -> Option<u64> {
 }
 
 /// Checks an estimate (`None`: it overflowed) of `need` bytes beyond the
-/// [`BASE`] against the budget.
-pub fn check(what: &str, detail: impl Into<String>, need: Option<u64>, hint: Option<String>) -> Result<u64, MemoryError> {
+/// [`BASE`] against the process's [`budget`].
+pub fn check(what: &str, detail: impl Into<String>, need: Option<u64>, hint: Option<String>) -> Result<(), MemoryError> {
+    check_within(budget(), what, detail, need, hint)
+}
+
+/// [`check`] against `budget` bytes.
+pub fn check_within(budget: u64, what: &str, detail: impl Into<String>, need: Option<u64>, hint: Option<String>) -> Result<(), MemoryError> {
     let detail = detail.into();
     let Some(need) = need.and_then(|n| n.checked_add(BASE)) else {
         return Err(MemoryError::Overflow { what: what.into(), detail });
     };
-    let budget = budget();
     if need > budget {
         return Err(MemoryError::OverBudget { what: what.into(), detail, need, budget, hint });
     }
-    Ok(need)
+    Ok(())
 }

@@ -134,10 +134,11 @@ pub fn toml_error(e: &toml::de::Error, text: &str) -> String {
     let Some(span) = e.span() else { return plain_with_key(e.message()) };
     let at = span.start.min(text.len());
     let line = text[..at].matches('\n').count() + 1;
+    let source = text[text[..at].rfind('\n').map_or(0, |i| i + 1)..].lines().next().unwrap_or("");
     let (key, reason) = plain(e.message());
     // A header is the key only of what concerns the table itself (a
     // syntax error noticed there belongs to the lines before it).
-    let on_header = text[text[..at].rfind('\n').map_or(0, |i| i + 1)..].trim_start().starts_with('[');
+    let on_header = source.trim_start().starts_with('[');
     let about_table = reason.starts_with("unknown key") || reason.starts_with("missing key") || reason.starts_with("expected a");
     let path = if on_header && !about_table { None } else { key_at(text, at) };
     let key = match (path, key) {
@@ -145,7 +146,6 @@ pub fn toml_error(e: &toml::de::Error, text: &str) -> String {
         (Some(p), _) => Some(p),
         (None, k) => k,
     };
-    let source = text.lines().nth(line - 1).unwrap_or("");
     let quoted = format!("\n  {line} | {}", crate::files::shorten(source.trim_end(), 2 * ECHO));
     match key {
         Some(k) => format!("line {line}: `{k}`: {reason}{quoted}"),

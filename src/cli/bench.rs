@@ -206,7 +206,8 @@ fn p1(a: P1Args) -> Result<(), CliError> {
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|source| CliError::Threads { threads, source })?;
     pool.install(|| -> Result<(), CliError> {
         let p = P1::new(a.n, a.steps);
-        let forward_s = || {
+        // One forward pass times a step for the cost model.
+        let step_s = {
             let t = std::time::Instant::now();
             let _ = p.value();
             t.elapsed().as_secs_f64() / a.steps as f64
@@ -214,8 +215,8 @@ fn p1(a: P1Args) -> Result<(), CliError> {
         // The bench holds three gradients' states at once (Enzyme, Enzyme on
         // the whole step, hand-written; each keeps its workspace between
         // rounds).
-        let job = crate::rollout::plan::Job { steps: a.steps, state_bytes: 8 * a.n as u64, copies: 3, forward_s: 0.0 };
-        let (plan, chosen) = super::checkpointing(&a.checkpoint, job, forward_s, other.unwrap_or(0), "P1's gradient")?;
+        let job = crate::rollout::plan::Job { steps: a.steps, state_bytes: 8 * a.n as u64, copies: 3, forward_s: step_s };
+        let (plan, chosen) = super::checkpointing(&a.checkpoint, &job, other.unwrap_or(0), "P1's gradient")?;
         let mode = plan.mode;
         // The four computations in interleaved rounds: the ratios are
         // medians of per-round ratios (robust on a shared machine).

@@ -171,28 +171,20 @@ fn plot_or_warn(path: &std::path::Path, axes: &crate::plot::Axes<'_>, series: &[
     }
 }
 
-/// The checkpointing of a gradient for `job` (its `forward_s` unset: it
-/// is timed by `forward_s()`, called once), with `other` bytes held
+/// The checkpointing of a gradient for `job`, with `other` bytes held
 /// besides: as given by `--checkpoint` (refused when its states exceed the
 /// memory budget), or for `auto` the fastest mode within the budget by the
 /// cost model ([`crate::rollout::plan`]). Returns the plan and whether it
 /// was chosen.
-fn checkpointing(
-    arg: &str,
-    mut job: crate::rollout::plan::Job,
-    forward_s: impl FnOnce() -> f64,
-    other: u64,
-    what: &str,
-) -> Result<(crate::rollout::plan::Plan, bool), CliError> {
+fn checkpointing(arg: &str, job: &crate::rollout::plan::Job, other: u64, what: &str) -> Result<(crate::rollout::plan::Plan, bool), CliError> {
     use crate::rollout::{Checkpointing, plan};
-    job.forward_s = forward_s();
     if arg == "auto" {
-        return Ok((plan::choose(&job, other, crate::memory::budget(), what)?, true));
+        return Ok((plan::choose(job, other, crate::memory::budget(), what)?, true));
     }
     let mode: Checkpointing = arg.parse().map_err(|reason| CliError::Argument { arg: "--checkpoint", reason })?;
-    let p = plan::estimate(mode.resolve(job.steps), &job);
+    let p = plan::estimate(mode.resolve(job.steps), job);
     let hint = Some("--checkpoint auto to choose a mode that fits".into());
-    crate::memory::check(what, plan::describe(&p, &job, other), Some(p.bytes.saturating_add(other)), hint)?;
+    crate::memory::check(what, plan::describe(&p, job, other), Some(p.bytes.saturating_add(other)), hint)?;
     Ok((p, false))
 }
 

@@ -162,7 +162,7 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
         let mut failed = None;
         let x = scene.run(|k, x| {
             if failed.is_none()
-                && a.every.is_some_and(|e| e > 0 && k % e == 0)
+                && a.every.is_some_and(|e| k % e == 0)
                 && let Err(e) = write_images(&scene, &a.out, &format!("_{k:05}"), x)
             {
                 failed = Some(e);
@@ -273,14 +273,15 @@ fn gradient_plan(scene: &Scene, arg: &str) -> Result<(crate::rollout::plan::Plan
     let other = crate::memory::f64s(&[n, 8]).zip(per_step).and_then(|(a, b)| a.checked_add(b));
     let detail = format!("{} values per state over {} steps", n, scene.steps);
     crate::memory::check("the scene's gradient", detail, other, None)?;
-    let forward_s = || {
+    // One step from x₀ times a step for the cost model.
+    let step_s = {
         let mut y = vec![0.0; scene.x0.len()];
         let t = std::time::Instant::now();
         scene.step.forward(&scene.x0, &scene.params, &mut y);
         t.elapsed().as_secs_f64()
     };
-    let job = crate::rollout::plan::Job { steps: scene.steps, state_bytes: 8 * n, copies: 1, forward_s: 0.0 };
-    super::checkpointing(arg, job, forward_s, other.unwrap_or(0), "the scene's gradient")
+    let job = crate::rollout::plan::Job { steps: scene.steps, state_bytes: 8 * n, copies: 1, forward_s: step_s };
+    super::checkpointing(arg, &job, other.unwrap_or(0), "the scene's gradient")
 }
 
 pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {

@@ -156,9 +156,9 @@ pub fn choose(job: &Job, other: u64, budget: u64, what: &str) -> Result<Plan, Me
         return Ok(*best);
     }
     let least = plans.iter().min_by_key(|p| p.bytes).copied().expect("store is always a candidate");
-    let detail = describe(&least, job, other);
-    let need = least.bytes.saturating_add(other).saturating_add(crate::memory::BASE);
-    Err(MemoryError::OverBudget { what: what.into(), detail, need, budget, hint: None })
+    // None fits: refused with the smallest.
+    crate::memory::check_within(budget, what, describe(&least, job, other), Some(least.bytes.saturating_add(other)), None)?;
+    Ok(least)
 }
 
 /// "N states of B with MODE over T steps (×C), and O besides".

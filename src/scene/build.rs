@@ -88,7 +88,6 @@ fn grid_fits(sizes: &[u64], arrays: u64) -> Result<(), SceneError> {
     let mut counts = sizes.to_vec();
     counts.push(arrays);
     crate::memory::check("the scene's grid", format!("{arrays} arrays of {} float64 values", cells.join("×")), crate::memory::f64s(&counts), None)
-        .map(|_| ())
         .map_err(|e| SceneError::key("domain.size", e.to_string()))
 }
 

@@ -26,16 +26,25 @@ fn point(key: &str, v: &[f64], dims: usize) -> Result<Vec<f64>, SceneError> {
     Ok(v.to_vec())
 }
 
+/// A box's corners `lower` and `upper` under `key`, one coordinate per
+/// axis, `upper` above `lower` on every axis.
+fn box_corners(key: &str, lower: &[f64], upper: &[f64], dims: usize) -> Result<(Vec<f64>, Vec<f64>), SceneError> {
+    let (a, b) = (point(&format!("{key}.lower"), lower, dims)?, point(&format!("{key}.upper"), upper, dims)?);
+    if let Some(axis) = (0..dims).find(|&d| a[d] >= b[d]) {
+        let name = ["x", "y"][axis];
+        return Err(SceneError::key(format!("{key}.upper"), format!("must exceed `lower` on every axis: on {name}, upper {} ≤ lower {}", b[axis], a[axis])));
+    }
+    Ok((a, b))
+}
+
 /// A 2D shape as a body ([`Shape`]: a box becomes a polygon), checked to be
 /// a proper one (a positive radius, a simple polygon).
 pub(super) fn shape_of(key: &str, shape: &ShapeSpec) -> Result<Shape, SceneError> {
     let xy = |k: &str, v: &[f64]| point(&format!("{key}.{k}"), v, 2).map(|p| [p[0], p[1]]);
     let body = match shape {
         ShapeSpec::Box { lower, upper } => {
-            let (a, b) = (xy("lower", lower)?, xy("upper", upper)?);
-            if b[0] <= a[0] || b[1] <= a[1] {
-                return Err(SceneError::key(format!("{key}.upper"), format!("the box is empty: upper {b:?} is not above lower {a:?} on both axes")));
-            }
+            let (a, b) = box_corners(key, lower, upper, 2)?;
+            let (a, b) = ([a[0], a[1]], [b[0], b[1]]);
             Shape::Polygon { vertices: vec![a, [b[0], a[1]], b, [a[0], b[1]]] }
         }
         ShapeSpec::Disc { center, radius } => Shape::Circle { center: xy("center", center)?, radius: positive(&format!("{key}.radius"), *radius)? },
@@ -54,19 +63,9 @@ pub(super) fn shape_of(key: &str, shape: &ShapeSpec) -> Result<Shape, SceneError
 /// shape wholly outside is an error.
 pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec) -> Result<Vec<bool>, SceneError> {
     let dims = domain.dims();
-    if let ShapeSpec::Box { lower, upper } = shape {
-        let (a, b) = (point(&format!("{key}.lower"), lower, dims)?, point(&format!("{key}.upper"), upper, dims)?);
-        if let Some(axis) = (0..dims).find(|&d| a[d] >= b[d]) {
-            let name = ["x", "y"][axis];
-            return Err(SceneError::key(
-                format!("{key}.upper"),
-                format!("must exceed `lower` on every axis: on {name}, upper {} ≤ lower {}", b[axis], a[axis]),
-            ));
-        }
-    }
     let cells = match (domain, shape) {
         (Domain::Box(cfg), ShapeSpec::Box { lower, upper }) => {
-            let (a, b) = (point(&format!("{key}.lower"), lower, dims)?, point(&format!("{key}.upper"), upper, dims)?);
+            let (a, b) = box_corners(key, lower, upper, dims)?;
             obstacle_box(cfg, [a[0], a[1]], [b[0], b[1]])
         }
         (Domain::Box(cfg), ShapeSpec::Disc { center, radius }) => {
@@ -84,7 +83,8 @@ pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec) -> Resu
             return Err(SceneError::key(key, "Fourier and polygon shapes need a 2D domain"));
         }
         (Domain::Line(l), ShapeSpec::Box { lower, upper }) => {
-            let (a, b) = (point(&format!("{key}.lower"), lower, dims)?[0], point(&format!("{key}.upper"), upper, dims)?[0]);
+            let (a, b) = box_corners(key, lower, upper, dims)?;
+            let (a, b) = (a[0], b[0]);
             let cells: Vec<bool> = (0..l.n).map(|i| (a..b).contains(&(i as f64 * l.dx))).collect();
             cells.iter().any(|&c| c).then_some(cells)
         }

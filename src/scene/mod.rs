@@ -226,8 +226,7 @@ impl Scene {
     /// Reads and builds the scene in `path` (`.npy` paths in it are relative
     /// to its folder).
     pub fn load(path: &Path) -> Result<Scene, SceneError> {
-        let text = crate::files::read_text(path, MAX_SCENE_BYTES, "scene file")?;
-        Self::parse_in(&text, path.parent().unwrap_or(Path::new(".")))
+        Self::stepped(AnyScene::load(path)?)
     }
 
     /// Builds a scene from its TOML text (`.npy` paths relative to the
@@ -238,7 +237,12 @@ impl Scene {
 
     /// Builds a scene from its TOML text, `.npy` paths relative to `dir`.
     pub fn parse_in(text: &str, dir: &Path) -> Result<Scene, SceneError> {
-        match AnyScene::parse_in(text, dir)? {
+        Self::stepped(AnyScene::parse_in(text, dir)?)
+    }
+
+    /// The scene if it is stepped in time.
+    fn stepped(scene: AnyScene) -> Result<Scene, SceneError> {
+        match scene {
             AnyScene::Stepped(scene) => Ok(*scene),
             AnyScene::Steady(_) => Err(SceneError::key("steady", "a steady scene: read it with AnyScene::load")),
         }

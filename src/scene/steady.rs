@@ -165,7 +165,6 @@ fn newton_fits(nx: u64, ny: u64) -> Result<(), SceneError> {
     });
     let detail = format!("the Newton solve's sparse LU on {nx}×{ny} cells, about 21 kB per cell");
     crate::memory::check("the steady scene", detail, need, Some("use a coarser `domain.cell`".into()))
-        .map(|_| ())
         .map_err(|e| SceneError::key("domain.size", e.to_string()))
 }
 
