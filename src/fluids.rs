@@ -405,7 +405,12 @@ fn advect_scratch(op: &Advect) -> usize {
     smoke::advect_scratch_len(&op.cfg, op.scheme)
 }
 
-crate::differentiable!(Advect => advect, scratch = advect_scratch);
+/// Where the bilinear samples stay between lattice lines.
+fn advect_radius(op: &Advect, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+    smoke::advect_radius(&op.cfg, op.scheme, op.dt, op.smoke, op.velocity, x, dx)
+}
+
+crate::differentiable!(Advect => advect, smooth_radius = advect_radius, scratch = advect_scratch);
 
 /// An external force field on the faces as the parameters:
 /// `[s, u, v] ↦ [s, u + dt·fu, v + dt·fv]`, `p = [fu, fv]`

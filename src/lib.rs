@@ -88,7 +88,9 @@
 //! regular files under a size limit ([`files`]); what a run will allocate
 //! is estimated against a memory budget before it starts ([`memory`]), and
 //! a gradient's checkpointing is chosen to fit it ([`rollout::plan`]);
-//! parser messages reach users in plain words ([`words`]).
+//! parser messages reach users in plain words ([`words`]); every reader of
+//! user input is fuzzed, and the inputs the fuzzer kept are replayed by the
+//! suite ([`fuzz`]).
 //!
 //! **Your own crate.** `diffsim new PATH` writes one that builds and passes
 //! out of the box (a solver, its checks, a rollout, the checks through it, a
@@ -105,6 +107,7 @@ pub mod check;
 pub mod cli;
 pub mod files;
 pub mod fluids;
+pub mod fuzz;
 pub mod memory;
 pub mod nn;
 pub mod op;

@@ -60,12 +60,32 @@ pub fn set_budget(bytes: u64) {
     BUDGET.store(bytes.max(1), Ordering::Relaxed);
 }
 
-/// The process's memory budget: as set, else [`default_budget`].
+thread_local! {
+    /// 0: no budget of this thread's own ([`with_budget`]).
+    static LOCAL: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
+}
+
+/// The memory budget: this thread's own while [`with_budget`] runs, else the
+/// process's as set, else [`default_budget`].
 pub fn budget() -> u64 {
-    match BUDGET.load(Ordering::Relaxed) {
-        0 => default_budget(),
-        b => b,
+    match (LOCAL.with(std::cell::Cell::get), BUDGET.load(Ordering::Relaxed)) {
+        (0, 0) => default_budget(),
+        (0, b) | (b, _) => b,
     }
+}
+
+/// Runs `f` with a budget of `bytes` for the checks made on this thread
+/// (a host running many scenes with a budget each, the fuzz targets), then
+/// restores the previous one, also when `f` panics.
+pub fn with_budget<R>(bytes: u64, f: impl FnOnce() -> R) -> R {
+    struct Restore(u64);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            LOCAL.with(|l| l.set(self.0));
+        }
+    }
+    let _restore = Restore(LOCAL.with(|l| l.replace(bytes.max(1))));
+    f()
 }
 
 /// Half of the machine's memory (`MemTotal` of `/proc/meminfo`; 4 GB where

@@ -147,7 +147,8 @@ pub fn toml_error(e: &toml::de::Error, text: &str) -> String {
         (None, k) => k,
     };
     let quoted = format!("\n  {line} | {}", crate::files::shorten(source.trim_end(), 2 * ECHO));
-    match key {
+    // A key is the user's text too: cut like any echoed value.
+    match key.map(|k| crate::files::shorten(&k, ECHO)) {
         Some(k) => format!("line {line}: `{k}`: {reason}{quoted}"),
         None => format!("line {line}: {reason}{quoted}"),
     }

@@ -4,7 +4,7 @@
 //! obstacle, on square and oblong boxes.
 
 use diffsim::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, Force, Project};
-use diffsim::op::OperatorExt;
+use diffsim::op::{Forward, OperatorExt};
 use diffsim::problems::smoke::{SmokeAdvect, SmokeAdvectHand, SmokeStep};
 use diffsim_solvers::boundary::{Boundary, BoundaryError, Profile, Side};
 use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d, divergence};
@@ -194,4 +194,29 @@ fn diffusion_on_a_periodic_box_conserves_mass_and_momentum() {
         assert!(spread(&y[..ns]) < spread(&x[..ns]));
         assert_eq!(y[ns + n], y[ns], "periodic copy refreshed");
     }
+}
+
+#[test]
+fn regions_cut_off_from_the_outflow_are_found() {
+    use diffsim_solvers::boundary::{SealedRegion, sealed_region};
+    let b = Boundary { left: Side::Inflow(Profile::Uniform(1.0)), right: Side::Outflow, ..Boundary::CLOSED };
+    let (nx, ny) = (6, 4);
+    // A wall across the channel at column 2: columns 0-1 are fed and sealed.
+    let wall: Vec<bool> = (0..nx * ny).map(|c| c % nx == 2).collect();
+    assert_eq!(sealed_region(nx, ny, &b, &wall), Some(SealedRegion { cells: 8, at: (0, 0) }));
+    // A gap in the wall drains it; a pocket with no inflow is no concern.
+    let gap: Vec<bool> = (0..nx * ny).map(|c| c % nx == 2 && c / nx != 3).collect();
+    assert_eq!(sealed_region(nx, ny, &b, &gap), None);
+    let pocket: Vec<bool> = (0..nx * ny).map(|c| c % nx == 4).collect();
+    assert_eq!(sealed_region(nx, ny, &Boundary { left: Side::Closed, ..b }, &pocket), None);
+    // Across a periodic axis the sealed part wraps: inflow at the bottom,
+    // a full solid row 1, outflow at the top.
+    let bt = Boundary { bottom: Side::Inflow(Profile::Uniform(0.1)), top: Side::Outflow, ..Boundary::axes(Side::Periodic, Side::Closed) };
+    let row: Vec<bool> = (0..nx * ny).map(|c| c / nx == 1).collect();
+    assert_eq!(sealed_region(nx, ny, &bt, &row), Some(SealedRegion { cells: 6, at: (0, 0) }));
+    // The projection of such a box cannot converge: that is why scenes refuse it.
+    let cfg = Smoke2d { nx, ny, ..Smoke2d::p2(nx).with_boundary(bt) };
+    let op = Project::with_obstacles(cfg, 1e-10, 500, &row);
+    let _ = op.eval(&smoke_state(&cfg, 1), &[]);
+    assert!(op.take_error().is_some(), "a sealed fed region converged");
 }

@@ -141,3 +141,106 @@ fn sigterm_checkpoints_and_says_how_to_resume_and_bad_checkpoints_are_refused() 
     std::fs::remove_dir_all(&out).ok();
     std::fs::remove_dir_all(&empty).ok();
 }
+
+/// `diffsim experiment sol-burgers` on a small setting, with `extra`.
+fn study(out: &Path, extra: &[&str]) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_diffsim"));
+    c.args(["experiment", "sol-burgers", "--quick", "--iterations", "1500", "--methods", "pre,sol4", "--checkpoint-seconds", "0.1", "--json"])
+        .args(["--out", out.to_str().unwrap()])
+        .args(extra);
+    c
+}
+
+#[test]
+fn an_interrupted_study_resumed_gives_the_uninterrupted_results() {
+    let (whole, cut) = (scratch("study-whole"), scratch("study-cut"));
+    let start = Instant::now();
+    let o = study(&whole, &[]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // Interrupts at fractions of the whole run's time (the machine's speed varies).
+    let whole_s = start.elapsed().as_secs_f64();
+    // Interrupted (SIGTERM: the variant in progress is checkpointed) or
+    // killed (SIGKILL: the last periodic checkpoint) at several moments.
+    let mut landed = 0;
+    let mut attempt = 0;
+    loop {
+        let extra: &[&str] = if attempt == 0 { &[] } else { &["--resume"] };
+        let mut child = study(&cut, extra).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
+        let delay = Duration::from_secs_f64(whole_s * [0.4, 0.25, 0.3, 0.2].get(attempt).copied().unwrap_or(1000.0));
+        let start = Instant::now();
+        while start.elapsed() < delay && child.try_wait().unwrap().is_none() {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let signal = if attempt % 2 == 0 { "-TERM" } else { "-KILL" };
+        if child.try_wait().unwrap().is_none() {
+            Command::new("kill").args([signal, &child.id().to_string()]).status().unwrap();
+        }
+        let o = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        match o.status.code() {
+            Some(0) => break,
+            Some(130) => {
+                assert!(err.contains("in variant") && err.contains("--resume"), "{err}");
+                landed += 1;
+            }
+            None => landed += usize::from(cut.join("parts").exists()),
+            Some(c) => panic!("exit {c}: {err}"),
+        }
+        attempt += 1;
+        assert!(attempt < 12, "the study never finished");
+    }
+    assert!(landed >= 2, "only {landed} interrupts landed during the study");
+    let read = |d: &Path| std::fs::read_to_string(d.join("errors.csv")).unwrap();
+    assert_eq!(read(&whole), read(&cut), "errors.csv differs after {attempt} interrupts");
+    // The parts of another setting are refused with the setting named.
+    let o = study(&cut, &["--resume", "--lr", "0.002"]).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("other settings") && err.contains("lr: 0.002"), "{err}");
+    std::fs::remove_dir_all(&whole).ok();
+    std::fs::remove_dir_all(&cut).ok();
+}
+
+/// `diffsim experiment sip-heat` with `iterations` updates per optimizer.
+fn sip(out: &Path, iterations: &str, extra: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_diffsim"))
+        .args(["experiment", "sip-heat", "--iterations", iterations, "--json", "--out", out.to_str().unwrap()])
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn a_comparison_resumes_per_optimizer_and_says_what_it_cannot_resume() {
+    let out = scratch("sip");
+    let o = sip(&out, "3", &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let first = std::fs::read_to_string(out.join("error.csv")).unwrap();
+    // As if the run had been cut during gradient descent: SIP's and Adam's
+    // runs are read back (their wall-clock times too), only GD runs again.
+    std::fs::remove_file(out.join("parts/gd.done.json")).unwrap();
+    let o = sip(&out, "3", &["--resume"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let again = std::fs::read_to_string(out.join("error.csv")).unwrap();
+    let rows = |t: &str, name: &str| t.lines().filter(|l| l.starts_with(name)).map(String::from).collect::<Vec<_>>();
+    assert_eq!(rows(&first, "sip,"), rows(&again, "sip,"));
+    assert_eq!(rows(&first, "adam,"), rows(&again, "adam,"));
+    assert_eq!(rows(&again, "gd,").len(), rows(&first, "gd,").len());
+    // Other options: the saved parts are refused, naming the setting.
+    let o = sip(&out, "4", &["--resume"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("other settings") && err.contains("iterations: 4"), "{err}");
+    // Ctrl-C (here SIGTERM) says what is kept and what starts again.
+    let child = Command::new(env!("CARGO_BIN_EXE_diffsim"))
+        .args(["experiment", "sip-heat", "--iterations", "100000", "--out", out.to_str().unwrap()])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(130), "{err}");
+    assert!(err.contains("finished parts are kept") && err.contains("--resume") && err.contains("cannot be resumed midway"), "{err}");
+    std::fs::remove_dir_all(&out).ok();
+}

@@ -139,6 +139,76 @@ impl Boundary {
     }
 }
 
+/// A fluid region that an inflow side feeds and no outflow side drains
+/// ([`sealed_region`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SealedRegion {
+    /// Its fluid cells.
+    pub cells: usize,
+    /// One of its cells touching the inflow side, `(i, j)`.
+    pub at: (usize, usize),
+}
+
+/// The first fluid region (cells joined through faces, across periodic
+/// sides) of an `nx × ny` box with solid cells `solid` (row-major) that
+/// fluid enters through an inflow side and cannot leave, touching no
+/// outflow side: obstacles have cut it off. No divergence-free velocity
+/// exists there, so a pressure solve cannot converge; `None` when every
+/// fed region drains.
+pub fn sealed_region(nx: usize, ny: usize, b: &Boundary, solid: &[bool]) -> Option<SealedRegion> {
+    assert_eq!(solid.len(), nx * ny, "sealed_region: mask length");
+    let feeds = |side: Side, t: f64| matches!(side, Side::Inflow(p) if p.at(t) != 0.0);
+    let mut region = vec![usize::MAX; nx * ny];
+    let mut stack = Vec::new();
+    for start in 0..nx * ny {
+        if solid[start] || region[start] != usize::MAX {
+            continue;
+        }
+        region[start] = start;
+        stack.push(start);
+        let (mut cells, mut fed, mut drains) = (0, None, false);
+        while let Some(c) = stack.pop() {
+            cells += 1;
+            let (i, j) = (c % nx, c / nx);
+            let (tx, ty) = ((j as f64 + 0.5) / ny as f64, (i as f64 + 0.5) / nx as f64);
+            // Sides this cell lies on.
+            let on = [(i == 0, b.left, tx), (i + 1 == nx, b.right, tx), (j == 0, b.bottom, ty), (j + 1 == ny, b.top, ty)];
+            for (edge, side, t) in on.iter().copied() {
+                if edge {
+                    drains |= side == Side::Outflow;
+                    if fed.is_none() && feeds(side, t) {
+                        fed = Some((i, j));
+                    }
+                }
+            }
+            let wrap = |k: usize, n: usize, up: bool, periodic: bool| -> Option<usize> {
+                match (up, k) {
+                    (true, k) if k + 1 < n => Some(k + 1),
+                    (true, _) => periodic.then_some(0),
+                    (false, 0) => periodic.then_some(n - 1),
+                    (false, k) => Some(k - 1),
+                }
+            };
+            let neighbours = [
+                wrap(i, nx, true, b.periodic_x()).map(|i2| j * nx + i2),
+                wrap(i, nx, false, b.periodic_x()).map(|i2| j * nx + i2),
+                wrap(j, ny, true, b.periodic_y()).map(|j2| j2 * nx + i),
+                wrap(j, ny, false, b.periodic_y()).map(|j2| j2 * nx + i),
+            ];
+            for m in neighbours.into_iter().flatten() {
+                if !solid[m] && region[m] == usize::MAX {
+                    region[m] = start;
+                    stack.push(m);
+                }
+            }
+        }
+        if let (Some(at), false) = (fed, drains) {
+            return Some(SealedRegion { cells, at });
+        }
+    }
+    None
+}
+
 impl Default for Boundary {
     fn default() -> Self {
         Self::CLOSED

@@ -56,7 +56,8 @@ impl fmt::Display for TaylorReport {
 /// lower rates at larger steps are reported in [`TaylorReport::note`] as an
 /// undeclared kink within their reach. A remainder at rounding level for every step (a linear operator with
 /// an exact gradient) passes, and the report's note says so; a radius too
-/// small for any usable step gives [`Verdict::Kink`].
+/// small for any usable step, or one that leaves fewer than three
+/// remainders above rounding, gives [`Verdict::Kink`].
 #[track_caller]
 pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOptions) -> TaylorReport {
     crate::op::check_lengths(op, "taylor", x, p, None);
@@ -109,6 +110,10 @@ pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOptions) -> Tayl
             100.0 * noise
         ));
         Verdict::Pass
+    } else if 0.5 * radius < 0.1 * zscale {
+        // The steps were shortened to stay short of a declared kink, and
+        // those that fit fall to rounding too soon: nothing to judge.
+        Verdict::Kink(format!("a kink lies {radius:.2e} from the point along the test direction; the steps that fit leave too few remainders above rounding"))
     } else {
         Verdict::Fail("too few remainders above rounding to measure a rate".into())
     };

@@ -6,7 +6,7 @@ use serde_json::json;
 use super::{CliError, interleaved_times, median_time, peak_rss_bytes};
 use crate::problems::burgers::P1;
 use crate::problems::smoke::P2;
-use crate::rollout::{Checkpointing, Workspace};
+use crate::rollout::Workspace;
 use diffsim_solvers::smoke::{P2_SIZES, Preconditioner};
 
 #[derive(Debug, Subcommand)]
@@ -76,9 +76,9 @@ pub(super) struct P2Args {
     /// fastest), mic0 or none.
     #[arg(long, default_value = "multigrid")]
     preconditioner: String,
-    /// How states are kept for the backward pass: store, periodic[:K],
-    /// binomial[:S].
-    #[arg(long, default_value = "store")]
+    /// How states are kept for the backward pass: `auto` (the fastest mode
+    /// within --memory-budget), store, periodic[:K], binomial[:S].
+    #[arg(long, default_value = "auto")]
     checkpoint: String,
     /// Print one JSON line instead of a table.
     #[arg(long)]
@@ -304,14 +304,20 @@ fn p2(a: P2Args) -> Result<(), CliError> {
             return Err(CliError::Argument { arg: "--preconditioner", reason: format!("unknown preconditioner `{other}` (expected none, mic0 or multigrid)") });
         }
     };
-    let mode: Checkpointing = a.checkpoint.parse().map_err(|reason| CliError::Argument { arg: "--checkpoint", reason })?;
-    let mode = mode.resolve(a.steps);
+    // Two problems (Enzyme, hand) with their solvers: the grids, the
+    // multigrid hierarchy, CG's vectors and the adjoint buffers.
+    let other = crate::memory::f64s(&[a.n as u64, a.n as u64, P2_ARRAYS]);
+    crate::memory::check("P2", format!("two problems of {}² cells", a.n), other, None)?;
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|source| CliError::Threads { threads, source })?;
     pool.install(|| -> Result<(), CliError> {
         let p = P2::new(a.n, a.steps, precond);
         let budget = 2.0;
         let (forward_s, loss) = median_time(budget, 3, 21, || p.value());
         loss?;
+        // Two gradients' states at once (Enzyme's and the hand adjoint's workspaces).
+        let job = crate::rollout::plan::Job { steps: a.steps, state_bytes: 8 * p.x0.len() as u64, copies: 2, forward_s: forward_s / a.steps as f64 };
+        let (plan, chosen) = super::checkpointing(&a.checkpoint, &job, other.unwrap_or(0), "P2's gradient")?;
+        let mode = plan.mode;
         let mut ws = Workspace::new();
         let (grad_s, g) = median_time(budget, 3, 21, || p.grad_in(&mut ws, mode));
         g?;
@@ -329,7 +335,8 @@ fn p2(a: P2Args) -> Result<(), CliError> {
         let n2 = a.n * a.n / 2;
         let out = json!({
             "problem": "p2", "n": a.n, "steps": a.steps, "threads": threads,
-            "checkpoint": mode.to_string(), "preconditioner": precond.to_string(),
+            "checkpoint": mode.to_string(), "checkpoint_chosen": chosen, "preconditioner": precond.to_string(),
+            "memory_budget_bytes": crate::memory::budget(), "estimate_bytes": plan.bytes,
             "forward_s": forward_s, "grad_s": grad_s, "grad_over_forward": grad_s / forward_s,
             "hand_grad_s": hand_grad_s, "enzyme_over_hand": grad_s / hand_grad_s,
             "enzyme_hand_max_diff": g.dx0.iter().zip(&h.dx0).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max),
@@ -341,6 +348,8 @@ fn p2(a: P2Args) -> Result<(), CliError> {
             println!("{out}");
         } else {
             println!("P2 smoke2d  N = {}  T = {}  threads = {}  preconditioner = {}  checkpointing = {}", a.n, a.steps, threads, precond, mode);
+            let how = if chosen { "chosen within" } else { "given; budget" };
+            println!("  memory plan ({how} {}): {plan}", crate::memory::human(crate::memory::budget()));
             println!("  forward          {:10.3} ms", forward_s * 1e3);
             println!("  gradient         {:10.3} ms   {:6.2}× forward", grad_s * 1e3, grad_s / forward_s);
             println!("  hand gradient    {:10.3} ms   {:6.2}× forward   Enzyme/hand {:.2}", hand_grad_s * 1e3, hand_grad_s / forward_s, grad_s / hand_grad_s);
@@ -361,6 +370,10 @@ fn p2(a: P2Args) -> Result<(), CliError> {
         Ok(())
     })
 }
+
+/// Arrays of `N²` values P2 holds besides the gradient's states (both
+/// problems: grids, multigrid levels, CG and adjoint vectors).
+const P2_ARRAYS: u64 = 64;
 
 /// More threads than this per core only add switching.
 const MAX_THREADS_PER_CORE: usize = 8;

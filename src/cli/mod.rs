@@ -46,12 +46,14 @@ pub enum CliError {
     #[error(transparent)]
     Checkpoint(#[from] crate::train::checkpoint::CheckpointError),
     /// Training stopped at a signal after writing a checkpoint.
-    #[error("interrupted after iteration {done} of {target}; the checkpoint is written. Resume with: {resume}")]
+    #[error("interrupted after iteration {done} of {target}{detail}; the checkpoint is written. Resume with: {resume}")]
     Interrupted {
         /// Iterations done (and checkpointed).
         done: u64,
         /// Iterations the run was to reach.
         target: u64,
+        /// More on where (`" in variant sol4"`), or empty.
+        detail: String,
         /// The command that resumes it.
         resume: String,
     },

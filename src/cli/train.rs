@@ -13,7 +13,7 @@ use crate::nn::{Activation, ParamStore};
 use crate::plot::{Axes, Series};
 use crate::train::Optimizer;
 use crate::train::burgers::{LogRow, Method, StudyConfig, TrainData, evaluate, initial_params, mean, study, train};
-use crate::train::checkpoint::{Checkpoint, FORMAT, config_difference};
+use crate::train::checkpoint::{Checkpoint, FORMAT, Parts, config_difference};
 use crate::train::config::TrainConfig;
 use crate::train::sol::SolProblem;
 
@@ -93,6 +93,12 @@ pub struct SipArgs {
     /// Output directory: table.md, error.csv, error.png.
     #[arg(long, default_value = "out/sip-heat")]
     out: PathBuf,
+    /// Keep the optimizers' runs (OUT/parts) an interrupted run finished,
+    /// with the same options, and run only the rest; a run interrupted
+    /// midway starts again (it is not checkpointed inside). Without it the
+    /// comparison starts afresh.
+    #[arg(long)]
+    resume: bool,
 }
 
 /// Arguments of `diffsim experiment hig-oscillators`.
@@ -107,6 +113,13 @@ pub struct HigArgs {
     /// Output directory: table.md, loss.csv, loss.png.
     #[arg(long, default_value = "out/hig-oscillators")]
     out: PathBuf,
+    /// Keep the problems (OUT/parts) an interrupted run finished, with the
+    /// same options, and run only the rest; a problem interrupted midway
+    /// starts again (its runs race on the wall clock: a run cut and
+    /// resumed would not be the same run). Without it the comparison starts
+    /// afresh.
+    #[arg(long)]
+    resume: bool,
 }
 
 /// Options of every solver-in-the-loop study.
@@ -143,6 +156,16 @@ pub struct StudyArgs {
     /// sigmoid (default: the study's).
     #[arg(long)]
     activation: Option<String>,
+    /// Go on from an interrupted run's saved parts (OUT/parts: the
+    /// finished variants and a checkpoint of the one in progress), with the
+    /// same options; the results are the uninterrupted run's. Without it a
+    /// run starts afresh.
+    #[arg(long)]
+    resume: bool,
+    /// Seconds between two checkpoints of the variant in training (and
+    /// one at Ctrl-C).
+    #[arg(long, default_value_t = 30.0)]
+    checkpoint_seconds: f64,
 }
 
 impl StudyArgs {
@@ -156,6 +179,9 @@ impl StudyArgs {
     /// Sets the overridden values, refusing zeros, non-positive learning
     /// rates, negative noise and unknown variants.
     fn apply<P>(&self, cfg: &mut StudyConfig<P>) -> Result<(), CliError> {
+        if !(self.checkpoint_seconds.is_finite() && self.checkpoint_seconds > 0.0) {
+            return Err(CliError::Argument { arg: "--checkpoint-seconds", reason: format!("must be a positive number, got {}", self.checkpoint_seconds) });
+        }
         if let Some(it) = self.iterations {
             if it == 0 {
                 return Err(CliError::Argument { arg: "--iterations", reason: "must be at least 1".into() });
@@ -404,7 +430,12 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
         return Err(e);
     }
     if let Some(at) = stopped_at {
-        return Err(CliError::Interrupted { done: at, target, resume: format!("diffsim train {} --out {} --resume", a.config.display(), a.out.display()) });
+        return Err(CliError::Interrupted {
+            done: at,
+            target,
+            detail: String::new(),
+            resume: format!("diffsim train {} --out {} --resume", a.config.display(), a.out.display()),
+        });
     }
     // The whole loss history (this run and earlier ones) for the plot.
     let history = crate::files::read_text(&log_path, 1 << 30, "loss log")?;
@@ -459,6 +490,33 @@ pub(super) fn experiment(c: ExperimentCommand) -> Result<(), CliError> {
     }
 }
 
+/// Part `name` of a study: read back from `parts` when an earlier run
+/// finished it (with `--resume`), else run and saved.
+fn part<T: serde::Serialize + serde::de::DeserializeOwned>(parts: &Parts, name: &str, run: impl FnOnce() -> Result<T, CliError>) -> Result<T, CliError> {
+    if let Some(done) = parts.finished(name)? {
+        return Ok(done);
+    }
+    let value = run()?;
+    parts.finish(name, &value)?;
+    Ok(value)
+}
+
+/// Ctrl-C in a study whose parts are not checkpointed inside: says what is
+/// kept and how to go on, and exits with 130 (a part being saved is
+/// written atomically: there or not).
+fn exit_on_interrupt(out: &Path, parts: &'static str) {
+    let dir = out.join("parts");
+    let args: Vec<String> = std::env::args().skip(1).filter(|a| a != "--resume").collect();
+    let _ = ctrlc::set_handler(move || {
+        eprintln!(
+            "interrupted: the finished parts are kept in {}; `diffsim {} --resume` runs only the rest ({parts} cannot be resumed midway and starts again)",
+            dir.display(),
+            args.join(" ")
+        );
+        std::process::exit(130);
+    });
+}
+
 fn sip_heat(a: SipArgs) -> Result<(), CliError> {
     use crate::train::heat::{HeatConfig, Method, compare};
     let mut cfg = HeatConfig::standard();
@@ -475,14 +533,23 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
         cfg.gd_lr = lr;
     }
     std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+    let parts = Parts::open(&a.out.join("parts"), format!("sip-heat\n{cfg:#?}"), a.resume)?;
+    exit_on_interrupt(&a.out, "each optimizer's run");
     let methods = vec![Method::Sip, Method::Adam, Method::Gd];
     let progress = bar(methods.len() * cfg.iterations, a.json, "train");
     let start = std::time::Instant::now();
-    let curves = compare(&cfg, &methods, |m, _| {
-        progress.set_message(m.name());
-        progress.inc(1);
-    })
-    .map_err(|e| CliError::Argument { arg: "sip-heat", reason: e.to_string() })?;
+    // One part per optimizer: each starts from the same network and batches.
+    let mut curves = Vec::new();
+    for m in methods {
+        curves.push(part(&parts, m.name(), || {
+            let mut c = compare(&cfg, &[m], |m, _| {
+                progress.set_message(m.name());
+                progress.inc(1);
+            })
+            .map_err(|e| CliError::Argument { arg: "sip-heat", reason: e.to_string() })?;
+            Ok(c.remove(0))
+        })?);
+    }
     progress.finish_and_clear();
     let mut table = String::from("| optimizer | updates | training s | start error | final error |\n|---|---|---|---|---|\n");
     let mut csv = String::from("optimizer,seconds,error\n");
@@ -519,14 +586,17 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
 }
 
 fn hig_oscillators(a: HigArgs) -> Result<(), CliError> {
-    use crate::train::oscillators::{OscConfig, compare};
+    use crate::train::oscillators::{Curve, OscConfig, compare};
     if !(a.budget.is_finite() && a.budget > 0.0) {
         return Err(CliError::Argument { arg: "--budget", reason: format!("must be a positive number of seconds, got {}", a.budget) });
     }
     std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+    let (lin, nonlin) = (OscConfig::linear(a.budget), OscConfig::nonlinear(a.budget));
+    let parts = Parts::open(&a.out.join("parts"), format!("hig-oscillators\n{lin:#?}\n{nonlin:#?}"), a.resume)?;
+    exit_on_interrupt(&a.out, "each problem's runs (timed by the wall clock)");
     let fail = |e: crate::train::hig::HigError| CliError::Argument { arg: "hig-oscillators", reason: e.to_string() };
-    let linear = compare(&OscConfig::linear(a.budget)).map_err(fail)?;
-    let nonlinear = compare(&OscConfig::nonlinear(a.budget)).map_err(fail)?;
+    let linear: Vec<Curve> = part(&parts, "linear", || compare(&lin).map_err(fail))?;
+    let nonlinear: Vec<Curve> = part(&parts, "nonlinear", || compare(&nonlin).map_err(fail))?;
     let mut table = format!("| problem | optimizer | updates in {:.0} s | final loss |\n|---|---|---|---|\n", a.budget);
     let mut series = Vec::new();
     let mut csv = String::from("problem,optimizer,seconds,loss\n");
@@ -572,7 +642,7 @@ fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
     let act = a.study.activation(crate::train::burgers::STUDY_ACTIVATION)?;
     cfg.net = crate::train::burgers::correction_net(&a.net, cfg.setup.coarse.n, a.width, act).map_err(|reason| CliError::Argument { arg: "--net", reason })?;
     a.study.apply(&mut cfg)?;
-    run_sol_study(&cfg, "sol-burgers", "Burgers", a.study.json, &a.out)
+    run_sol_study(&cfg, "sol-burgers", "Burgers", &a.study, &a.out)
 }
 
 fn sol_wake(a: SolWakeArgs) -> Result<(), CliError> {
@@ -590,21 +660,50 @@ fn sol_wake(a: SolWakeArgs) -> Result<(), CliError> {
         let fine = cfg.setup.fine();
         println!("computing {} reference trajectories on the {}×{} grid …", cfg.train + cfg.test, fine.nx, fine.ny);
     }
-    run_sol_study(&cfg, "sol-wake", "flow past a disc", a.study.json, &a.out)
+    run_sol_study(&cfg, "sol-wake", "flow past a disc", &a.study, &a.out)
 }
 
 /// Runs a solver-in-the-loop study; writes its table, errors per step,
 /// plots and (with `json`) the one-line result.
-fn run_sol_study<P: SolProblem>(cfg: &StudyConfig<P>, command: &'static str, title: &str, json: bool, out: &Path) -> Result<(), CliError> {
+/// Saved parts live in `OUT/parts`; with `resume` the study goes on from
+/// them. Ctrl-C checkpoints the variant in progress and exits with the
+/// command that resumes.
+fn run_sol_study<P: SolProblem + std::fmt::Debug>(
+    cfg: &StudyConfig<P>,
+    command: &'static str,
+    title: &str,
+    study_args: &StudyArgs,
+    out: &Path,
+) -> Result<(), CliError> {
+    use crate::train::sol::{Resumable, StudyError};
+    let json = study_args.json;
     std::fs::create_dir_all(out).map_err(io(out))?;
+    // Everything the results depend on, one setting per line.
+    let parts = Parts::open(&out.join("parts"), format!("{command}\n{cfg:#?}"), study_args.resume)?;
     let total = cfg.methods.len() * cfg.settings.iterations;
     let progress = bar(total, json, "train");
-    let results = study(cfg, |name, r| {
+    let _ = ctrlc::set_handler(|| STOP.store(true, std::sync::atomic::Ordering::SeqCst));
+    let stop = || STOP.load(std::sync::atomic::Ordering::SeqCst);
+    let resumable = Resumable { parts: &parts, every_s: study_args.checkpoint_seconds, stop: &stop };
+    let results = study(cfg, Some(resumable), |name, r| {
         progress.set_message(format!("{name} loss {:.3e}", r.loss));
         progress.inc(1);
-    })
-    .map_err(|e| CliError::Argument { arg: command, reason: e.to_string() })?;
+    });
     progress.finish_and_clear();
+    let results = match results {
+        Ok(r) => r,
+        Err(StudyError::Interrupted { variant, done, of }) => {
+            let args: Vec<String> = std::env::args().skip(1).filter(|a| a != "--resume").collect();
+            return Err(CliError::Interrupted {
+                done: done as u64,
+                target: of as u64,
+                detail: format!(" in variant {variant}"),
+                resume: format!("diffsim {} --resume", args.join(" ")),
+            });
+        }
+        Err(StudyError::Part(e)) => return Err(e.into()),
+        Err(e) => return Err(CliError::Argument { arg: command, reason: e.to_string() }),
+    };
 
     // Table.
     let source = results[0].mean_error;

@@ -21,6 +21,12 @@ impl ParamEntry {
         self.shape.iter().product()
     }
 
+    /// Its name and shape for a message, each cut to a readable length
+    /// (both come from files).
+    pub fn describe(&self) -> String {
+        format!("`{}` {}", crate::files::shorten(&self.name, 80), crate::files::shorten(&format!("{:?}", self.shape), 80))
+    }
+
     /// Whether the tensor is empty.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
@@ -99,7 +105,7 @@ impl ParamStore {
         }
         for (a, b) in self.entries.iter().zip(&other.entries) {
             if a != b {
-                return Err(StoreError::Mismatch(format!("expected `{}` {:?}, the file has `{}` {:?}", a.name, a.shape, b.name, b.shape)));
+                return Err(StoreError::Mismatch(format!("expected {}, the file has {}", a.describe(), b.describe())));
             }
         }
         Ok(())
@@ -116,20 +122,29 @@ impl ParamStore {
     /// regular file of at most 1 GiB).
     pub fn load(path: &Path) -> Result<ParamStore, StoreError> {
         let text = crate::files::read_text(path, 1 << 30, "parameter file")?;
-        let store: ParamStore =
-            serde_json::from_str(&text).map_err(|e| StoreError::Format { path: path.to_path_buf(), reason: crate::files::shorten(&e.to_string(), 200) })?;
-        store.validate().map_err(|reason| StoreError::Format { path: path.to_path_buf(), reason })?;
+        Self::parse(&text).map_err(|reason| StoreError::Format { path: path.to_path_buf(), reason })
+    }
+
+    /// A store from the JSON text [`ParamStore::save`] writes, checked.
+    pub fn parse(text: &str) -> Result<ParamStore, String> {
+        let store: ParamStore = serde_json::from_str(text).map_err(|e| crate::files::shorten(&e.to_string(), 200))?;
+        store.validate()?;
         Ok(store)
     }
 
     /// Entries tile the values in order and every value is finite.
     pub fn validate(&self) -> Result<(), String> {
-        let mut at = 0;
+        let mut at: usize = 0;
         for e in &self.entries {
             if e.offset != at {
-                return Err(format!("`{}` starts at {}, expected {at}", e.name, e.offset));
+                return Err(format!("{} starts at {}, expected {at}", e.describe(), e.offset));
             }
-            at += e.len();
+            at = e
+                .shape
+                .iter()
+                .try_fold(1usize, |n, &d| n.checked_mul(d))
+                .and_then(|n| at.checked_add(n))
+                .ok_or_else(|| format!("{}: the sizes overflow", e.describe()))?;
         }
         if at != self.values.len() {
             return Err(format!("the tensors hold {at} values, the file {}", self.values.len()));

@@ -29,7 +29,17 @@ fn smoke_advect(op: &SmokeAdvect, x: &[f64], _p: &[f64], y: &mut [f64]) {
     smoke::advect_buoyancy(&op.0, x, y)
 }
 
-crate::differentiable!(SmokeAdvect => smoke_advect);
+/// P2's step traces every field back by one unit of time: bilinear
+/// samples kink where a traced point crosses a lattice line.
+fn p2_radius(cfg: &Smoke2d, x: &[f64], dx: &[f64]) -> f64 {
+    smoke::advect_radius(cfg, smoke::Scheme::SemiLagrangian, 1.0, true, true, x, dx)
+}
+
+fn smoke_advect_radius(op: &SmokeAdvect, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+    p2_radius(&op.0, x, dx)
+}
+
+crate::differentiable!(SmokeAdvect => smoke_advect, smooth_radius = smoke_advect_radius);
 
 /// Steps 1–4 of P2 with the hand-written adjoint (the reference for
 /// [`SmokeAdvect`]'s generated one).
@@ -49,6 +59,10 @@ impl Forward for SmokeAdvectHand {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "SmokeAdvectHand", x, p, y);
         smoke::advect_buoyancy(&self.0, x, y)
+    }
+
+    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+        p2_radius(&self.0, x, dx)
     }
 }
 
@@ -125,6 +139,11 @@ impl Forward for SmokeStep {
         validate_forward(self, "SmokeStep", x, p, y);
         smoke::advect_buoyancy(&self.advect.0, x, y);
         self.project.apply(y);
+    }
+
+    /// The advection's (the projection after it is linear).
+    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+        p2_radius(&self.advect.0, x, dx)
     }
 
     fn take_error(&self) -> Option<OpError> {

@@ -134,6 +134,22 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
     {
         return Err(placed(text, last, SceneError::key("obstacles", "the obstacles cover every cell of the domain: no fluid is left to simulate")));
     }
+    if let (Some(all), Some(last), Domain::Box(cfg)) = (&solid, file.obstacles.last(), &domain)
+        && let Some(r) = diffsim_solvers::boundary::sealed_region(cfg.nx, cfg.ny, &cfg.boundary, all)
+    {
+        let (i, j) = r.at;
+        return Err(placed(
+            text,
+            last,
+            SceneError::key(
+                "obstacles",
+                format!(
+                    "the obstacles cut off {} fluid cells (the region of cell [{i}, {j}]) that the inflow feeds and no outflow side drains: no divergence-free flow exists there; open a path to an outflow side",
+                    r.cells
+                ),
+            ),
+        ));
+    }
 
     // Initial state.
     let mut x0 = vec![0.0; domain.n_state()];

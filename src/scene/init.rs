@@ -183,6 +183,51 @@ fn sine(domain: &Domain, field: Field, a: f64, k: &[f64]) -> Vec<f64> {
     }
 }
 
+/// The values of a `.npy` file's bytes: C order, float64 or float32 (read
+/// as float64), of exactly `shape` (numpy order), every value finite.
+pub fn npy_values(bytes: &[u8], shape: &[u64]) -> Result<Vec<f64>, String> {
+    flat_header(bytes)?;
+    let npy = npyz::NpyFile::new(bytes).map_err(|e| format!("not a valid .npy file: {e}"))?;
+    if npy.order() == npyz::Order::Fortran {
+        return Err("Fortran order; save it in C order (numpy's default)".into());
+    }
+    if npy.shape() != shape {
+        return Err(format!("shape {:?}, expected {:?} (rows = y, columns = x)", npy.shape(), shape));
+    }
+    let dtype = npy.dtype().descr();
+    let values: Vec<f64> = match dtype.as_str() {
+        "'<f8'" => npy.into_vec::<f64>().map_err(|e| format!("cannot read the values: {e}"))?,
+        "'<f4'" => npy.into_vec::<f32>().map_err(|e| format!("cannot read the values: {e}"))?.into_iter().map(f64::from).collect(),
+        other => return Err(format!("dtype {other}; expected float64 or float32")),
+    };
+    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+        return Err(format!("value {i} (flat index) is {}", values[i]));
+    }
+    Ok(values)
+}
+
+/// Refuses a `.npy` header that is not flat: one dictionary, one shape
+/// tuple, no lists. npyz parses the header (a Python literal) with
+/// backtracking that takes exponential time in nested brackets (found by
+/// fuzzing: a 190-byte header of nested braces ran for over 20 s); the
+/// float arrays read here never nest.
+fn flat_header(bytes: &[u8]) -> Result<(), String> {
+    if bytes.len() < 10 || !bytes.starts_with(b"\x93NUMPY") {
+        return Ok(()); // not a .npy file: npyz says so
+    }
+    let (start, len) = match bytes[6] {
+        1 => (10, usize::from(u16::from_le_bytes([bytes[8], bytes[9]]))),
+        _ if bytes.len() >= 12 => (12, u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize),
+        _ => return Ok(()),
+    };
+    let header = &bytes[start.min(bytes.len())..start.saturating_add(len).min(bytes.len())];
+    let count = |c: u8| header.iter().filter(|&&b| b == c).count();
+    if count(b'{') > 1 || count(b'(') > 1 || count(b'[') > 0 {
+        return Err("not a valid .npy file: its header nests brackets (an array of float64 or float32 has one flat dictionary)".into());
+    }
+    Ok(())
+}
+
 /// The field's values from `.npy` files, one per array of the field (C
 /// order, float64 or float32, the shapes of [`Domain::arrays`]).
 fn read_npy(key: &str, domain: &Domain, field: Field, paths: &NpyPaths, dir: &Path) -> Result<Vec<f64>, SceneError> {
@@ -200,22 +245,7 @@ fn read_npy(key: &str, domain: &Domain, field: Field, paths: &NpyPaths, dir: &Pa
         // At most the array in float64 and a header: larger files are not this array.
         let limit = 8 * array.range.len() as u64 + 65_536;
         let bytes = crate::files::read_bytes(&full, limit, "`.npy` array of this field").map_err(|e| SceneError::key(key.clone(), e.to_string()))?;
-        let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| fail(format!("not a valid .npy file: {e}")))?;
-        if npy.order() == npyz::Order::Fortran {
-            return Err(fail("Fortran order; save it in C order (numpy's default)".into()));
-        }
-        if npy.shape() != array.shape.as_slice() {
-            return Err(fail(format!("shape {:?}, expected {:?} (rows = y, columns = x)", npy.shape(), array.shape)));
-        }
-        let dtype = npy.dtype().descr();
-        let values: Vec<f64> = match dtype.as_str() {
-            "'<f8'" => npy.into_vec::<f64>().map_err(|e| fail(format!("cannot read the values: {e}")))?,
-            "'<f4'" => npy.into_vec::<f32>().map_err(|e| fail(format!("cannot read the values: {e}")))?.into_iter().map(f64::from).collect(),
-            other => return Err(fail(format!("dtype {other}; expected float64 or float32"))),
-        };
-        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
-            return Err(fail(format!("value {i} (flat index) is {}", values[i])));
-        }
+        let values = npy_values(&bytes, &array.shape).map_err(fail)?;
         out.extend(values);
     }
     Ok(out)

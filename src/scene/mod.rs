@@ -19,6 +19,7 @@ pub mod spec;
 mod steady;
 mod value;
 
+pub use init::npy_values;
 pub use steady::{ForceLoss, SteadyGradient, SteadyRun, SteadyScene, param_names};
 
 use std::ops::Range;

@@ -103,9 +103,14 @@ impl Checkpoint {
     /// and another format.
     pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
         let text = read_text(path, MAX_BYTES, "checkpoint")?;
+        Self::parse(&text, path)
+    }
+
+    /// A checkpoint from its JSON text (`path` names it in errors).
+    pub fn parse(text: &str, path: &Path) -> Result<Checkpoint, CheckpointError> {
         // The format first, so that a newer file is named as such.
         let head: serde_json::Value =
-            serde_json::from_str(&text).map_err(|e| CheckpointError::Corrupt { path: path.to_path_buf(), reason: shorten(&e.to_string(), 200) })?;
+            serde_json::from_str(text).map_err(|e| CheckpointError::Corrupt { path: path.to_path_buf(), reason: shorten(&e.to_string(), 200) })?;
         match head.get("format").and_then(serde_json::Value::as_u64) {
             Some(f) if f == FORMAT as u64 => {}
             Some(f) => return Err(CheckpointError::Format { path: path.to_path_buf(), found: u32::try_from(f).unwrap_or(u32::MAX) }),
@@ -164,4 +169,129 @@ fn table_difference(prefix: &str, a: &toml::Table, b: &toml::Table) -> Option<(S
         }
     }
     None
+}
+
+/// A long study's saved parts (`OUT/parts/`): the result of each finished
+/// part (a trained variant of a solver-in-the-loop study) and a checkpoint
+/// of the part in progress, every file stamped with the study's settings,
+/// so that `--resume` keeps what is done, goes on where the run stopped and
+/// refuses the parts of another study.
+#[derive(Debug)]
+pub struct Parts {
+    dir: PathBuf,
+    settings: String,
+}
+
+/// A part's file: the study's settings and the value.
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Stamped<T> {
+    format: u32,
+    settings: String,
+    value: T,
+}
+
+/// A part in progress: its parameters and optimizer after
+/// `iterations_done` iterations, and the losses of those iterations.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PartProgress {
+    /// Iterations done.
+    pub iterations_done: usize,
+    /// The parameters.
+    pub theta: Vec<f64>,
+    /// The optimizer and its state.
+    pub optimizer: Optimizer,
+    /// The loss of each iteration done.
+    pub loss: Vec<f64>,
+}
+
+impl Parts {
+    /// The parts in `dir` of a study with `settings` (a full description
+    /// of everything its results depend on, one setting per line). Without
+    /// `resume` earlier parts are removed: the study starts afresh.
+    pub fn open(dir: &Path, settings: String, resume: bool) -> Result<Parts, CheckpointError> {
+        let write = |source| CheckpointError::Write { path: dir.to_path_buf(), source };
+        if !resume && dir.exists() {
+            std::fs::remove_dir_all(dir).map_err(write)?;
+        }
+        std::fs::create_dir_all(dir).map_err(write)?;
+        Ok(Parts { dir: dir.to_path_buf(), settings })
+    }
+
+    fn path(&self, name: &str, kind: &str) -> PathBuf {
+        self.dir.join(format!("{name}.{kind}.json"))
+    }
+
+    fn read<T: serde::de::DeserializeOwned>(&self, path: &Path) -> Result<Option<T>, CheckpointError> {
+        if !path.exists() {
+            return Ok(None);
+        }
+        let text = read_text(path, MAX_BYTES, "study part")?;
+        let corrupt = |e: serde_json::Error| CheckpointError::Corrupt { path: path.to_path_buf(), reason: shorten(&e.to_string(), 200) };
+        let head: serde_json::Value = serde_json::from_str(&text).map_err(corrupt)?;
+        match head.get("format").and_then(serde_json::Value::as_u64) {
+            Some(f) if f == FORMAT as u64 => {}
+            Some(f) => return Err(CheckpointError::Format { path: path.to_path_buf(), found: u32::try_from(f).unwrap_or(u32::MAX) }),
+            None => return Err(CheckpointError::Corrupt { path: path.to_path_buf(), reason: "no `format` field".into() }),
+        }
+        let part: Stamped<T> = serde_json::from_value(head).map_err(corrupt)?;
+        if part.settings != self.settings {
+            // The first setting that differs, by line.
+            let (then, now) = part.settings.lines().zip(self.settings.lines()).find(|(a, b)| a != b).unwrap_or(("(fewer settings)", "(more settings)"));
+            return Err(CheckpointError::Invalid {
+                path: path.to_path_buf(),
+                reason: format!(
+                    "written by a run of the study with other settings (`{}` there, `{}` now); run without --resume to start afresh, or use another --out",
+                    shorten(then.trim(), 80),
+                    shorten(now.trim(), 80)
+                ),
+            });
+        }
+        Ok(Some(part.value))
+    }
+
+    fn write<T: Serialize>(&self, path: &Path, value: T) -> Result<(), CheckpointError> {
+        let part = Stamped { format: FORMAT, settings: self.settings.clone(), value };
+        let text = serde_json::to_string(&part).map_err(|e| CheckpointError::Corrupt { path: path.to_path_buf(), reason: e.to_string() })?;
+        write_atomic(path, text.as_bytes()).map_err(|source| CheckpointError::Write { path: path.to_path_buf(), source })
+    }
+
+    /// The result of part `name`, when it finished in an earlier run.
+    pub fn finished<T: serde::de::DeserializeOwned>(&self, name: &str) -> Result<Option<T>, CheckpointError> {
+        self.read(&self.path(name, "done"))
+    }
+
+    /// Saves the result of part `name` and drops its progress checkpoint.
+    pub fn finish<T: Serialize>(&self, name: &str, result: &T) -> Result<(), CheckpointError> {
+        self.write(&self.path(name, "done"), result)?;
+        let p = self.path(name, "progress");
+        if p.exists() {
+            std::fs::remove_file(&p).map_err(|source| CheckpointError::Write { path: p, source })?;
+        }
+        Ok(())
+    }
+
+    /// Part `name`'s progress checkpoint, checked against `params`
+    /// parameters and at most `iterations` iterations.
+    pub fn progress(&self, name: &str, params: usize, iterations: usize) -> Result<Option<PartProgress>, CheckpointError> {
+        let path = self.path(name, "progress");
+        let Some(p) = self.read::<PartProgress>(&path)? else { return Ok(None) };
+        let invalid = |reason: String| CheckpointError::Invalid { path: path.clone(), reason };
+        if p.theta.len() != params {
+            return Err(invalid(format!("{} parameters, the network has {params}", p.theta.len())));
+        }
+        if p.iterations_done > iterations || p.loss.len() != p.iterations_done {
+            return Err(invalid(format!("{} iterations with {} losses, of {iterations}", p.iterations_done, p.loss.len())));
+        }
+        if let Some(i) = p.theta.iter().position(|v| !v.is_finite()) {
+            return Err(invalid(format!("parameter {i} is {}", p.theta[i])));
+        }
+        p.optimizer.validate(params).map_err(|e| invalid(format!("its optimizer state: {e}")))?;
+        Ok(Some(p))
+    }
+
+    /// Saves part `name`'s progress.
+    pub fn save_progress(&self, name: &str, progress: &PartProgress) -> Result<(), CheckpointError> {
+        self.write(&self.path(name, "progress"), progress)
+    }
 }

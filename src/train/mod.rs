@@ -71,7 +71,7 @@ impl Timers {
 
 /// Where the time of training went (seconds, summed over threads for the
 /// solver and network parts).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TimeShares {
     /// Wall time of the iterations it covers.
     pub total: f64,

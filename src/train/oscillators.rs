@@ -63,7 +63,7 @@ impl OscConfig {
 }
 
 /// Loss versus training time of one optimizer.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct Curve {
     /// `hig` or `adam`.
     pub name: String,

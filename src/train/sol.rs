@@ -17,6 +17,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 pub use super::TimeShares;
+use super::checkpoint::{CheckpointError, PartProgress, Parts};
 use super::{Coupled, Coupling, Optimizer, Sample, batch_gradient, clip_by_norm};
 use crate::nn::Net;
 use crate::op::{Forward, Jvp, Vjp};
@@ -295,7 +296,7 @@ impl Method {
 }
 
 /// One trained (or source) variant's results.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct VariantResult {
     /// `source`, `pre`, `noise`, `sol4`, `sol16`.
     pub name: String,
@@ -315,10 +316,29 @@ pub struct VariantResult {
     pub s_per_iter: f64,
 }
 
+/// How a study saves its parts and learns of an interrupt ([`study`]).
+pub struct Resumable<'a> {
+    /// Where finished variants and the one in progress are saved.
+    pub parts: &'a Parts,
+    /// Seconds between two progress checkpoints of a variant.
+    pub every_s: f64,
+    /// True once the run should stop (Ctrl-C): the variant in progress is
+    /// checkpointed and the study returns [`StudyError::Interrupted`].
+    pub stop: &'a (dyn Fn() -> bool + Sync),
+}
+
 /// Runs the study: builds the data sets, evaluates the source solver,
 /// trains each variant from the same initial network and evaluates it.
-/// `progress(variant, row)` is called after every iteration.
-pub fn study<P: SolProblem>(cfg: &StudyConfig<P>, mut progress: impl FnMut(&str, LogRow)) -> Result<Vec<VariantResult>, StudyError> {
+/// `progress(variant, row)` is called after every iteration. With
+/// `resume`, variants finished in an earlier run are read back, the one in
+/// progress goes on from its checkpoint, and the results are those of an
+/// uninterrupted run (the batches of iteration `i` depend on the seed and
+/// `i` alone; the times are this run's).
+pub fn study<P: SolProblem>(
+    cfg: &StudyConfig<P>,
+    resume: Option<Resumable<'_>>,
+    mut progress: impl FnMut(&str, LogRow),
+) -> Result<Vec<VariantResult>, StudyError> {
     let mut rng = StdRng::seed_from_u64(cfg.settings.seed);
     let mut train_set = cfg.setup.dataset(cfg.train_base, cfg.train_steps, &mut rng);
     let test_set = cfg.setup.dataset(cfg.test, cfg.eval_steps, &mut rng);
@@ -338,20 +358,62 @@ pub fn study<P: SolProblem>(cfg: &StudyConfig<P>, mut progress: impl FnMut(&str,
         time: TimeShares::default(),
         s_per_iter: 0.0,
     }];
+    let total = cfg.settings.iterations;
     for &method in &cfg.methods {
+        let name = method.name();
+        if let Some(r) = &resume
+            && let Some(done) = r.parts.finished::<VariantResult>(&name)?
+        {
+            for (k, &loss) in done.loss.iter().enumerate() {
+                progress(&name, LogRow { iteration: k + 1, loss, grad_norm: f64::NAN, seconds: 0.0 });
+            }
+            out.push(done);
+            continue;
+        }
         let mut theta = theta0.clone();
         let mut opt = Optimizer::adam(cfg.settings.lr);
-        let s = TrainSettings { method, ..cfg.settings };
-        let name = method.name();
-        let mut loss = Vec::with_capacity(s.iterations);
-        let time = train(&cfg.setup, &cfg.net, &mut theta, &mut opt, TrainData::Fixed(&train_set), &s, |row, _, _| {
+        let mut loss = Vec::with_capacity(total);
+        if let Some(r) = &resume
+            && let Some(p) = r.parts.progress(&name, theta.len(), total)?
+        {
+            (theta, opt, loss) = (p.theta, p.optimizer, p.loss);
+            for (k, &l) in loss.iter().enumerate() {
+                progress(&name, LogRow { iteration: k + 1, loss: l, grad_norm: f64::NAN, seconds: 0.0 });
+            }
+        }
+        let first = loss.len() + 1;
+        let s = TrainSettings { method, first, iterations: total + 1 - first, ..cfg.settings };
+        let mut last_save = std::time::Instant::now();
+        let mut failure: Option<CheckpointError> = None;
+        let mut stopped = false;
+        let time = train(&cfg.setup, &cfg.net, &mut theta, &mut opt, TrainData::Fixed(&train_set), &s, |row, theta, opt| {
             loss.push(row.loss);
             progress(&name, row);
-            std::ops::ControlFlow::Continue(())
+            let Some(r) = &resume else { return std::ops::ControlFlow::Continue(()) };
+            stopped = (r.stop)();
+            if stopped || last_save.elapsed().as_secs_f64() >= r.every_s {
+                let p = PartProgress { iterations_done: row.iteration, theta: theta.to_vec(), optimizer: opt.clone(), loss: loss.clone() };
+                if let Err(e) = r.parts.save_progress(&name, &p) {
+                    failure = Some(e);
+                }
+                last_save = std::time::Instant::now();
+            }
+            if stopped || failure.is_some() { std::ops::ControlFlow::Break(()) } else { std::ops::ControlFlow::Continue(()) }
         })?;
+        if let Some(e) = failure {
+            return Err(e.into());
+        }
+        if stopped && loss.len() < total {
+            return Err(StudyError::Interrupted { variant: name, done: loss.len(), of: total });
+        }
         let error = evaluate(&cfg.setup, &cfg.net, Some(&theta), &test_set, cfg.eval_steps)?;
         let train_mean_error = mean(&evaluate(&cfg.setup, &cfg.net, Some(&theta), &train_set, cfg.eval_steps)?);
-        out.push(VariantResult { name, mean_error: mean(&error), train_mean_error, error, loss, s_per_iter: time.total / s.iterations.max(1) as f64, time });
+        let ran = (total + 1 - first).max(1);
+        let result = VariantResult { name, mean_error: mean(&error), train_mean_error, error, loss, s_per_iter: time.total / ran as f64, time };
+        if let Some(r) = &resume {
+            r.parts.finish(&result.name, &result)?;
+        }
+        out.push(result);
     }
     Ok(out)
 }
@@ -373,11 +435,24 @@ pub fn mean(v: &[f64]) -> f64 {
 }
 
 /// A study that failed.
-#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
+#[derive(Debug, thiserror::Error)]
 pub enum StudyError {
     /// Training failed (a non-finite loss or gradient, with where).
     #[error("training: {0}")]
     Train(#[from] RolloutError),
+    /// A saved part cannot be written or used.
+    #[error(transparent)]
+    Part(#[from] CheckpointError),
+    /// Stopped by a signal; the variant in progress is checkpointed.
+    #[error("interrupted in variant {variant} after iteration {done} of {of}; the finished variants and its progress are saved")]
+    Interrupted {
+        /// The variant in progress.
+        variant: String,
+        /// Its iterations done.
+        done: usize,
+        /// Its iterations in all.
+        of: usize,
+    },
     /// An evaluation rollout blew up.
     #[error("evaluation: {0}")]
     Eval(#[from] EvalError),

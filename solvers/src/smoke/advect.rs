@@ -129,6 +129,48 @@ fn advect_on<const WX: bool, const WY: bool>(
     }
 }
 
+/// How far `x` may move along `d` before [`advect`] meets a kink: bilinear
+/// sampling is smooth between lattice lines and kinks where a traced point
+/// crosses one (or a clamped edge). The smallest, over the traced points
+/// (the backward trace, and for MacCormack also the forward one), of the
+/// distance to the nearest line over the speed at which `d` moves the
+/// point; ∞ when `d` moves none. MacCormack's limiter is not counted: its
+/// clamp kinks wherever it engages, which no radius of this kind bounds.
+#[allow(clippy::too_many_arguments)]
+pub fn advect_radius(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
+    let (_, u, v) = cfg.split(x);
+    let (_, du, dv) = cfg.split(d);
+    with_mac!(cfg, mac => {
+        let mut r = f64::INFINITY;
+        let steps: &[f64] = match scheme {
+            Scheme::SemiLagrangian => &[dt],
+            Scheme::MacCormack { .. } => &[dt, -dt],
+        };
+        let lattices = [(smoke, At::Centre), (velocity, At::UFace), (velocity, At::VFace)];
+        for &(on, at) in lattices.iter() {
+            if !on {
+                continue;
+            }
+            let (_, kx, ly) = mac.lattice(at);
+            for l in 0..ly {
+                for k in 0..kx {
+                    let (a, b) = mac.velocity(at, u, v, k, l);
+                    let (da, db) = mac.velocity(at, du, dv, k, l);
+                    for &sdt in steps {
+                        r = r.min(gap(k as f64 - sdt * a, sdt * da)).min(gap(l as f64 - sdt * b, sdt * db));
+                    }
+                }
+            }
+        }
+        r
+    })
+}
+
+/// Distance of `pos` to the nearest whole number over `speed` (∞ when 0).
+fn gap(pos: f64, speed: f64) -> f64 {
+    if speed == 0.0 { f64::INFINITY } else { (pos - pos.round()).abs() / speed.abs() }
+}
+
 /// Scratch [`advect()`] needs: for MacCormack two fields of the largest
 /// component's size (`2·max(n_u, n_v)`), none for semi-Lagrangian.
 pub fn advect_scratch_len(cfg: &Smoke2d, scheme: Scheme) -> usize {
