@@ -405,9 +405,14 @@ fn advect_scratch(op: &Advect) -> usize {
     smoke::advect_scratch_len(&op.cfg, op.scheme)
 }
 
-/// Where the bilinear samples stay between lattice lines.
+/// Where the bilinear samples stay between lattice lines, and with
+/// MacCormack's limiter also where its clamp switches.
 fn advect_radius(op: &Advect, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-    smoke::advect_radius(&op.cfg, op.scheme, op.dt, op.smoke, op.velocity, x, dx)
+    let sampling = smoke::advect_radius(&op.cfg, op.scheme, op.dt, op.smoke, op.velocity, x, dx);
+    match op.scheme {
+        Scheme::MacCormack { limiter: true } => sampling.min(smoke::limiter_radius(&op.cfg, op.dt, op.smoke, op.velocity, x, dx)),
+        _ => sampling,
+    }
 }
 
 crate::differentiable!(Advect => advect, smooth_radius = advect_radius, scratch = advect_scratch);

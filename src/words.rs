@@ -68,7 +68,9 @@ fn reason(line: &str) -> String {
     }
     if let Some(rest) = m.strip_prefix("unknown field `").or_else(|| m.strip_prefix("unknown variant `")) {
         let what = if m.starts_with("unknown field") { "key" } else { "kind" };
-        if let Some((got, tail)) = rest.split_once('`') {
+        // The name given may hold backticks itself: the choices follow the
+        // last "`, expected".
+        if let Some((got, tail)) = rest.rsplit_once("`, expected").or_else(|| rest.split_once('`')) {
             let choices: Vec<&str> = tail.split('`').skip(1).step_by(2).collect();
             return if choices.is_empty() { format!("unknown {what} `{}`", crate::files::shorten(got, ECHO)) } else { unknown(what, got, &choices) };
         }
@@ -136,6 +138,8 @@ pub fn toml_error(e: &toml::de::Error, text: &str) -> String {
     let line = text[..at].matches('\n').count() + 1;
     let source = text[text[..at].rfind('\n').map_or(0, |i| i + 1)..].lines().next().unwrap_or("");
     let (key, reason) = plain(e.message());
+    // Whatever the parser's message quoted, the line stays readable.
+    let reason = crate::files::shorten(&reason, 6 * ECHO);
     // A header is the key only of what concerns the table itself (a
     // syntax error noticed there belongs to the lines before it).
     let on_header = source.trim_start().starts_with('[');

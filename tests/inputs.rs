@@ -50,6 +50,8 @@ fn parser_words_are_plain_and_short() {
     assert_eq!(plain("invalid value: integer `-3`, expected usize").1, "expected a whole number, got the number -3");
     assert!(plain("wanted exactly 1 element, more than 1 element").1.ends_with("got several"));
     assert_eq!(plain("unknown field `viscosty`, expected one of `fields`, `viscosity`").1, "unknown key `viscosty`; did you mean `viscosity`?");
+    // A name holding backticks (found by fuzzing): the choices are still found, the name cut.
+    assert_eq!(plain("unknown variant `a`b`, expected `relu` or `tanh`").1, "unknown kind `a`b`; expected one of relu, tanh");
     // A value of half a megabyte in a scene: the message stays short.
     let scene = format!(
         "[domain]\nsize = [16, 16]\n[time]\ndt = 1.0\nsteps = 2\n[[effects]]\nkind = \"diffusion\"\nfields = [\"smoke\"]\nviscosity = \"{}\"\n",

@@ -381,3 +381,28 @@ polygon = { vertices = [[10.0, 4.0], [14.0, 4.0], [12.0, 12.0]] }
     assert!(at(12, 6) && !at(10, 11));
     assert!(!at(0, 0) && !at(15, 15));
 }
+
+#[test]
+fn a_failing_effect_is_named_with_its_step() {
+    let text = r#"
+[domain]
+size = [16, 16]
+[time]
+dt = 1.0
+steps = 3
+[fields.smoke]
+init = { box = { lower = [4.0, 4.0], upper = [8.0, 8.0], value = 1.0 } }
+[fields.velocity]
+init = { uniform = [0.3, 0.1] }
+[[effects]]
+kind = "advection"
+fields = ["smoke", "velocity"]
+[[effects]]
+kind = "pressure"
+tolerance = 1e-14
+max_iterations = 1
+"#;
+    let scene = diffsim::scene::Scene::parse(text).unwrap();
+    let err = scene.run(|_, _| {}).unwrap_err().to_string();
+    assert!(err.starts_with("step 1: effects[1] (pressure): linear solve did not converge"), "{err}");
+}

@@ -10,7 +10,7 @@ use toml::Spanned;
 
 use super::init::{field_init, shape_cells};
 use super::spec::{EffectSpec, SceneFile, ShapeSpec};
-use super::value::{count, finite, positive};
+use super::value::{count, finite, iterations, positive, tolerance};
 use super::{Array, Control, Domain, Field, Line, Scene, SceneError, SceneLoss};
 use crate::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, DiffuseExplicit, DiffuseImplicit, Force, Inflow, Project};
 use crate::op::{AddParams, Chain, Effect, Part};
@@ -385,8 +385,8 @@ impl Builder<'_> {
                         });
                     }
                     "implicit" => {
-                        let tol = positive(&at("tolerance"), d.tolerance)?;
-                        let max = count(&at("max_iterations"), d.max_iterations)?;
+                        let tol = tolerance(&at("tolerance"), d.tolerance)?;
+                        let max = iterations(&at("max_iterations"), d.max_iterations, domain.n_state())?;
                         self.ops.push(match line {
                             Some(l) => Box::new(Diffuse::line(l.n, l.periodic, s, v, |g| DiffuseImplicit::on(g, tol, max))),
                             None => Box::new(Diffuse::implicit(*self_cfg(&domain), s, v, tol, max)),
@@ -437,8 +437,8 @@ impl Builder<'_> {
             }
             (EffectSpec::Pressure(p), Domain::Box(cfg)) => {
                 self.need(&at("kind"), "pressure", &[Field::Velocity])?;
-                let tol = positive(&at("tolerance"), p.tolerance)?;
-                let max = count(&at("max_iterations"), p.max_iterations)?;
+                let tol = tolerance(&at("tolerance"), p.tolerance)?;
+                let max = iterations(&at("max_iterations"), p.max_iterations, domain.n_state())?;
                 let precond = match p.preconditioner.as_str() {
                     "multigrid" => Preconditioner::Multigrid,
                     "mic0" => Preconditioner::Mic0,

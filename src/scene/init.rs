@@ -206,8 +206,8 @@ pub fn npy_values(bytes: &[u8], shape: &[u64]) -> Result<Vec<f64>, String> {
     Ok(values)
 }
 
-/// Refuses a `.npy` header that is not flat: one dictionary, one shape
-/// tuple, no lists. npyz parses the header (a Python literal) with
+/// Refuses a `.npy` header that is not flat (one dictionary, one shape
+/// tuple, no lists) or whose shape does not multiply to a storable count. npyz parses the header (a Python literal) with
 /// backtracking that takes exponential time in nested brackets (found by
 /// fuzzing: a 190-byte header of nested braces ran for over 20 s); the
 /// float arrays read here never nest.
@@ -224,6 +224,15 @@ fn flat_header(bytes: &[u8]) -> Result<(), String> {
     let count = |c: u8| header.iter().filter(|&&b| b == c).count();
     if count(b'{') > 1 || count(b'(') > 1 || count(b'[') > 0 {
         return Err("not a valid .npy file: its header nests brackets (an array of float64 or float32 has one flat dictionary)".into());
+    }
+    // npyz multiplies the shape's sizes unchecked (found by fuzzing: a size
+    // of 10¹⁹ overflowed); they must multiply to a count that fits.
+    let text = String::from_utf8_lossy(header);
+    if let Some(dims) = text.split_once('(').and_then(|(_, r)| r.split_once(')')).map(|(d, _)| d) {
+        let product = dims.split(',').map(str::trim).filter(|d| !d.is_empty()).try_fold(1u64, |n, d| d.parse::<u64>().ok().and_then(|d| n.checked_mul(d)));
+        if product.is_none_or(|n| n > 1 << 48) {
+            return Err(format!("not a valid .npy file: its shape ({}) is not a list of sizes of a storable array", crate::files::shorten(dims, 80)));
+        }
     }
     Ok(())
 }

@@ -27,7 +27,7 @@ use std::path::Path;
 
 use diffsim_solvers::smoke::Smoke2d;
 
-use crate::op::{Chain, Forward};
+use crate::op::Chain;
 use crate::rollout::{AtSteps, Checkpointing, Loss, Rollout, RolloutError};
 
 /// The largest scene file read (a scene's arrays belong in `.npy` files).
@@ -408,8 +408,12 @@ impl Scene {
         let mut y = vec![0.0; x.len()];
         for k in 1..=self.steps {
             self.step.forward_with(&x, &self.params, &mut y, &mut after_effect);
-            if let Some(error) = self.step.take_error() {
-                return Err(RunError::Operator { step: k, error });
+            // The effect that failed, by its place in the file (one
+            // operator per effect).
+            let errors: Vec<(usize, crate::op::OpError)> = self.step.ops().iter().enumerate().filter_map(|(e, op)| op.take_error().map(|x| (e, x))).collect();
+            if let Some((e, error)) = errors.into_iter().next() {
+                let effect = format!("effects[{e}] ({})", self.effects.get(e).map_or("?", String::as_str));
+                return Err(RunError::Operator { step: k, effect, error });
             }
             if let Some(at) = y.iter().position(|v| !v.is_finite()) {
                 let field = if self.domain.range(Field::Smoke).contains(&at) { "smoke" } else { "velocity" };
@@ -423,13 +427,15 @@ impl Scene {
 }
 
 /// A scene run that failed.
-#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum RunError {
     /// An effect failed (a solve that did not converge, an unstable step).
-    #[error("step {step}: {error}")]
+    #[error("step {step}: {effect}: {error}")]
     Operator {
         /// The step (1-based).
         step: usize,
+        /// Which effect, as `effects[k] (kind)`.
+        effect: String,
         /// What failed.
         error: crate::op::OpError,
     },

@@ -18,6 +18,9 @@ use super::spec::{LossSpec, SceneFile};
 use super::value::{count, positive};
 use crate::problems::drag::SteadyForce;
 
+/// Most Newton steps a steady scene may ask for.
+const MAX_NEWTON_STEPS: usize = 1000;
+
 /// A steady scene: the flow, its bodies and the loss.
 #[derive(Debug)]
 pub struct SteadyScene {
@@ -187,6 +190,12 @@ pub(super) fn build(file: SceneFile, text: &str) -> Result<SteadyScene, SceneErr
         let nu = positive("steady.viscosity", s.viscosity)?;
         let tolerance = positive("steady.tolerance", s.tolerance)?;
         let max_steps = count("steady.max_iterations", s.max_iterations)?;
+        if max_steps > MAX_NEWTON_STEPS {
+            return Err(SceneError::key(
+                "steady.max_iterations",
+                format!("{max_steps} Newton steps; at most {MAX_NEWTON_STEPS} (Newton converges in tens of steps or not at all)"),
+            ));
+        }
         Ok((nu, NewtonOptions { tolerance, max_steps }))
     })?;
     let flow = at(text, &file.domain, |d| {

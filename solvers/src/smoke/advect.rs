@@ -166,6 +166,81 @@ pub fn advect_radius(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, veloci
     })
 }
 
+/// How far `x` may move along `d` before MacCormack's limiter switches: the
+/// clamp of each value to the range of the four samples its backward trace
+/// blended kinks where the unclamped value crosses a bound, and where the
+/// bound passes from one sample to another. First order: the rates of the
+/// unclamped values come from a step of `1e-7` relative along `d` (exact
+/// for the bounds, which are samples of the field); within the sampling
+/// radius of [`advect_radius`], which the caller takes too.
+pub fn limiter_radius(cfg: &Smoke2d, dt: f64, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
+    let dmax = d.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    if dmax == 0.0 {
+        return f64::INFINITY;
+    }
+    let eps = 1e-7 * (1.0 + x.iter().fold(0.0f64, |m, v| m.max(v.abs()))) / dmax;
+    let xe: Vec<f64> = x.iter().zip(d).map(|(a, b)| a + eps * b).collect();
+    with_mac!(cfg, mac => limiter_on(mac, dt, smoke, velocity, [cfg.split(x), cfg.split(d), cfg.split(&xe)], eps))
+}
+
+type Fields<'a> = (&'a [f64], &'a [f64], &'a [f64]);
+
+/// [`limiter_radius`] on one MAC grid: `[x, d, x + eps·d]` split.
+fn limiter_on<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, dt: f64, smoke: bool, velocity: bool, [x, d, xe]: [Fields<'_>; 3], eps: f64) -> f64 {
+    let mut r = f64::INFINITY;
+    // (One lattice at a time: the fields and their tangents by match, not a table.)
+    for at in [At::Centre, At::UFace, At::VFace] {
+        let (f, df, fe) = match at {
+            At::Centre if smoke => (x.0, d.0, xe.0),
+            At::UFace if velocity => (x.1, d.1, xe.1),
+            At::VFace if velocity => (x.2, d.2, xe.2),
+            _ => continue,
+        };
+        let (lat, kx, ly) = mac.lattice(at);
+        let val = unclamped(mac, at, dt, (x.1, x.2), f);
+        let vale = unclamped(mac, at, dt, (xe.1, xe.2), fe);
+        for l in 0..ly {
+            for k in 0..kx {
+                let c = l * lat.stride + k;
+                let (a, b) = mac.velocity(at, x.1, x.2, k, l);
+                let (idx, _, _) = corners::<WX, WY>(lat, k as f64 + lat.ox - dt * a, l as f64 + lat.oy - dt * b);
+                let rate = (vale[c] - val[c]) / eps;
+                // The bounds: the smallest and largest sample, and the runner-up of each.
+                let mut order = idx;
+                order.sort_by(|&i, &j| f[i].total_cmp(&f[j]));
+                let (lo, lo2, hi2, hi) = (order[0], order[1], order[2], order[3]);
+                r = r
+                    .min(crossing(val[c] - f[lo], rate - df[lo]))
+                    .min(crossing(f[hi] - val[c], df[hi] - rate))
+                    .min(crossing(f[lo2] - f[lo], df[lo2] - df[lo]))
+                    .min(crossing(f[hi] - f[hi2], df[hi] - df[hi2]));
+            }
+        }
+    }
+    r
+}
+
+/// When a gap closing at `speed` reaches zero (∞ when it opens or stays;
+/// 0 when it is closed and about to open).
+fn crossing(gap: f64, speed: f64) -> f64 {
+    if gap == 0.0 {
+        if speed == 0.0 { f64::INFINITY } else { 0.0 }
+    } else if gap * speed < 0.0 {
+        gap.abs() / speed.abs()
+    } else {
+        f64::INFINITY
+    }
+}
+
+/// MacCormack's value before the limiter at every point of the lattice `at`.
+#[inline(always)]
+fn unclamped<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, dt: f64, uv: (&[f64], &[f64]), f: &[f64]) -> Vec<f64> {
+    let (mut hat, mut tilde) = (vec![0.0; f.len()], vec![0.0; f.len()]);
+    trace(mac, at, uv, f, dt, &mut hat);
+    trace(mac, at, uv, &hat, -dt, &mut tilde);
+    hat.iter().zip(f).zip(&tilde).map(|((h, f), t)| h + 0.5 * (f - t)).collect()
+}
+
 /// Distance of `pos` to the nearest whole number over `speed` (∞ when 0).
 fn gap(pos: f64, speed: f64) -> f64 {
     if speed == 0.0 { f64::INFINITY } else { (pos - pos.round()).abs() / speed.abs() }
