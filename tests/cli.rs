@@ -425,7 +425,19 @@ fn hig_oscillators_experiment_runs_and_reports_json() {
     let (code, stdout, err) = diffsim(&["experiment", "hig-oscillators", "--budget", "0.3", "--json", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-    for key in ["hig", "adam", "hig_nonlinear", "adam_nonlinear", "budget_s"] {
+    for key in [
+        "hig",
+        "adam",
+        "gn",
+        "hig_nonlinear",
+        "adam_nonlinear",
+        "gn_nonlinear",
+        "budget_s",
+        "hig_s_per_update",
+        "adam_s_per_update",
+        "hig_nonlinear_s_per_update",
+        "adam_nonlinear_s_per_update",
+    ] {
         assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
     }
     assert!(out.join("loss.png").exists() && out.join("table.md").exists());

@@ -327,6 +327,67 @@ fn half_inverse_follows_its_definition_and_stays_finite() {
 }
 
 #[test]
+fn gram_route_matches_the_svd_where_it_claims_to() {
+    use diffsim_solvers::linalg::{GRAM_TOLERANCE, PowerMethod, gram_is_accurate, pseudo_inverse_power_apply_with as apply, svd};
+    // Near-singular matrices, wide and tall, whose singular values spread
+    // over nine decades, many near a 1e-6 cutoff.
+    let mut seed = 7u64;
+    let mut rnd = || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed as f64 / u64::MAX as f64) - 0.5
+    };
+    let rel = |x: &[f64], r: &[f64]| {
+        let d: f64 = x.iter().zip(r).map(|(p, q)| (p - q).powi(2)).sum::<f64>().sqrt();
+        d / r.iter().map(|q| q * q).sum::<f64>().sqrt()
+    };
+    for (m, n) in [(48, 150), (150, 48)] {
+        // A = U·diag(s)·Vᵀ with random orthonormal U, V (from the SVDs of
+        // random matrices) and s from 1 down to 1e-9: not graded, so the
+        // Gram matrix cannot resolve its small eigenvalues.
+        let k = m.min(n);
+        let mut orthonormal = |rows: usize| {
+            let r: Vec<f64> = (0..rows * k).map(|_| rnd()).collect();
+            svd(rows, k, &r).unwrap().u
+        };
+        let (u, v) = (orthonormal(m), orthonormal(n));
+        let mut a = vec![0.0; m * n];
+        for i in 0..m {
+            for j in 0..n {
+                a[i * n + j] = (0..k).map(|c| u[i * k + c] * 10f64.powf(-9.0 * c as f64 / (k - 1) as f64) * v[j * k + c]).sum();
+            }
+        }
+        let b: Vec<f64> = (0..m).map(|_| rnd()).collect();
+        for beta in [0.5, 1.0] {
+            let svd = apply(m, n, &a, &b, beta, 1e-6, PowerMethod::SVD_F64).unwrap();
+            let gram = apply(m, n, &a, &b, beta, 1e-6, PowerMethod::GRAM_F64).unwrap();
+            assert!(rel(&gram, &svd) < GRAM_TOLERANCE, "{m}×{n} β {beta}: {}", rel(&gram, &svd));
+            let auto = apply(m, n, &a, &b, beta, 1e-6, PowerMethod::AUTO).unwrap();
+            assert!(rel(&auto, &svd) < GRAM_TOLERANCE, "{m}×{n} β {beta}: {}", rel(&auto, &svd));
+            // Past what the Gram matrix is known to resolve, the checked
+            // route sees kept eigenvalues near its rounding floor and takes
+            // the SVD.
+            let svd = apply(m, n, &a, &b, beta, 1e-10, PowerMethod::SVD_F64).unwrap();
+            assert_eq!(apply(m, n, &a, &b, beta, 1e-10, PowerMethod::AUTO).unwrap(), svd);
+            // f32 keeps a few digits where the kept spectrum spans two
+            // decades (its rounding, 1e-7, against s ≥ 1e-2·s_max).
+            let svd = apply(m, n, &a, &b, beta, 1e-2, PowerMethod::SVD_F64).unwrap();
+            let single = apply(m, n, &a, &b, beta, 1e-2, PowerMethod::SVD_F32).unwrap();
+            assert!(rel(&single, &svd) < 1e-2, "{m}×{n} β {beta}: {}", rel(&single, &svd));
+        }
+    }
+    assert!(gram_is_accurate(1e-6, false) && !gram_is_accurate(1e-10, false) && !gram_is_accurate(0.0, false) && !gram_is_accurate(1e-3, true));
+    // A well-conditioned matrix keeps the Gram route even at 1e-10.
+    let (m, n) = (20, 60);
+    let a: Vec<f64> = (0..m * n).map(|_| rnd()).collect();
+    let b: Vec<f64> = (0..m).map(|_| rnd()).collect();
+    let gram = apply(m, n, &a, &b, 0.5, 1e-10, PowerMethod::GRAM_F64).unwrap();
+    assert_eq!(apply(m, n, &a, &b, 0.5, 1e-10, PowerMethod::AUTO).unwrap(), gram);
+    assert!(rel(&gram, &apply(m, n, &a, &b, 0.5, 1e-10, PowerMethod::SVD_F64).unwrap()) < 1e-10);
+}
+
+#[test]
 fn oscillators_and_hig_steps() {
     use diffsim::problems::oscillators::Oscillators;
     use diffsim::train::hig::{ControlSample, Hig, HigError, hig_step, loss_and_gradient};
@@ -338,7 +399,7 @@ fn oscillators_and_hig_steps() {
     assert_passes("linear oscillators", &lin, &x, &state(6, 3));
     assert_passes("nonlinear oscillators", &non, &x, &state(8, 4));
     // Without coupling and control, one oscillator period returns the state (RK4 error only).
-    let free = Oscillators { steps: 200, dt: std::f64::consts::TAU / 200.0, linear: 0.0, cubic: 0.0 };
+    let free = Oscillators { steps: 200, dt: std::f64::consts::TAU / 200.0, linear: 0.0, cubic: 0.0, control: 1.0 };
     let y = free.eval(&x, &vec![0.0; 200]);
     for (a, b) in y.iter().zip(&x) {
         assert!((a - b).abs() < 1e-6, "{y:?} vs {x:?}");
@@ -362,13 +423,29 @@ fn oscillators_and_hig_steps() {
         let fd = (dataset_loss(&lin, &net, &up, &data) - dataset_loss(&lin, &net, &down, &data)) / (2.0 * h);
         assert!((fd - g[i]).abs() < 1e-6 * fd.abs().max(1e-3), "θ[{i}]: {fd} vs {}", g[i]);
     }
-    let hig = Hig { lr: 1.0, truncation: 1e-10, memory_budget: 1 << 20 };
+    let hig = Hig { memory_budget: 1 << 20, ..Hig::half_inverse(1.0, 1e-10) };
     let before = dataset_loss(&lin, &net, &theta, &data);
     for _ in 0..30 {
         hig_step(&lin, &net, &mut theta, &data, &hig).unwrap();
     }
     let after = dataset_loss(&lin, &net, &theta, &data);
     assert!(after < 0.01 * before, "{before} → {after}");
+    // The Gram route takes the SVD's step where it is accurate, and
+    // Gauss-Newton (power 1) lowers the loss too.
+    let (mut t1, mut t2) = (theta.clone(), theta.clone());
+    let gram = Hig { truncation: 1e-6, method: Some(diffsim::train::hig::PowerMethod::GRAM_F64), ..hig };
+    hig_step(&lin, &net, &mut t1, &data, &gram).unwrap();
+    hig_step(&lin, &net, &mut t2, &data, &Hig { method: Some(diffsim::train::hig::PowerMethod::SVD_F64), ..gram }).unwrap();
+    let step: f64 = t2.iter().zip(&theta).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt();
+    let diff: f64 = t1.iter().zip(&t2).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt();
+    assert!(diff < 1e-6 * step, "{diff} vs step {step}");
+    let mut gn = params(&net, 2);
+    let start = dataset_loss(&lin, &net, &gn, &data);
+    for _ in 0..10 {
+        hig_step(&lin, &net, &mut gn, &data, &Hig { memory_budget: 1 << 20, ..Hig::gauss_newton(1.0, 1e-10) }).unwrap();
+    }
+    let end = dataset_loss(&lin, &net, &gn, &data);
+    assert!(end < 0.5 * start, "Gauss-Newton: {start} → {end}");
     let tight = Hig { memory_budget: 100, ..hig };
     assert!(matches!(hig_step(&lin, &net, &mut theta, &data, &tight), Err(HigError::Budget { .. })));
 }

@@ -333,9 +333,9 @@ pub fn hig_near_singular() -> Case {
     let s = ControlSample { x0: vec![0.3, -0.2, 0.5, 0.1], target: vec![0.3, -0.2, 0.5, 0.1] };
     let batch = vec![s; 8];
     let mut truncated = theta0.clone();
-    let r1 = hig_step(&physics, &net, &mut truncated, &batch, &Hig { lr: 1.0, truncation: 1e-10, memory_budget: 1 << 26 });
+    let r1 = hig_step(&physics, &net, &mut truncated, &batch, &Hig { memory_budget: 1 << 26, ..Hig::half_inverse(1.0, 1e-10) });
     let mut raw = theta0.clone();
-    let r2 = hig_step(&physics, &net, &mut raw, &batch, &Hig { lr: 1.0, truncation: 0.0, memory_budget: 1 << 26 });
+    let r2 = hig_step(&physics, &net, &mut raw, &batch, &Hig { memory_budget: 1 << 26, ..Hig::half_inverse(1.0, 0.0) });
     let step = |t: &[f64]| t.iter().zip(&theta0).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
     let ok1 = r1.is_ok() && all_finite(&truncated);
     let ok2 = matches!(r2, Err(HigError::NonFinite)) || (r2.is_ok() && all_finite(&raw));

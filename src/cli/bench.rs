@@ -25,6 +25,23 @@ pub(super) enum BenchCommand {
     /// process, so that its peak memory is its own); writes memory.md and
     /// memory.png.
     Memory(MemoryArgs),
+    /// One HIG update on the coupled oscillators (linear and nonlinear, the
+    /// published settings): the Jacobian, each decomposition (f64 SVD, f64
+    /// Gram eigendecomposition, f32 SVD, the checked default) with its
+    /// error against the f64 SVD on the real batch and on a near-singular
+    /// one, the whole update and an Adam update.
+    Hig(HigBenchArgs),
+}
+
+#[derive(Debug, Args)]
+pub(super) struct HigBenchArgs {
+    /// Timed repetitions of each part (after one warm-up); the median is
+    /// reported.
+    #[arg(long, default_value_t = 10)]
+    iterations: usize,
+    /// Print one JSON line instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -117,6 +134,7 @@ pub(super) fn run(cmd: BenchCommand) -> Result<(), CliError> {
         BenchCommand::P2(a) => p2(a),
         BenchCommand::P3(a) => p3(a),
         BenchCommand::Memory(a) => memory(a),
+        BenchCommand::Hig(a) => hig(a),
     }
 }
 
@@ -391,6 +409,130 @@ fn threads(requested: Option<usize>) -> Result<usize, CliError> {
         });
     }
     Ok(threads)
+}
+
+/// The median of `n` timings of `f`, after one warm-up call.
+fn median_seconds(n: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    let mut t: Vec<f64> = (0..n)
+        .map(|_| {
+            let start = std::time::Instant::now();
+            f();
+            start.elapsed().as_secs_f64()
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    t[t.len() / 2]
+}
+
+/// The `k`-th decomposition `bench hig` compares, with its JSON name (by
+/// index, not a by-value array of pairs: those crash Enzyme's type
+/// analysis in this crate; docs/pitfalls.md).
+fn decomposition(k: usize) -> (&'static str, crate::train::hig::PowerMethod) {
+    use crate::train::hig::PowerMethod;
+    match k {
+        0 => ("svd_f64", PowerMethod::SVD_F64),
+        1 => ("gram_f64", PowerMethod::GRAM_F64),
+        2 => ("svd_f32", PowerMethod::SVD_F32),
+        _ => ("auto", PowerMethod::AUTO),
+    }
+}
+
+/// `diffsim bench hig`.
+fn hig(a: HigBenchArgs) -> Result<(), CliError> {
+    use crate::train::Optimizer;
+    use crate::train::hig::{ControlSample, PowerMethod, batch_jacobian, hig_step, loss_and_gradient};
+    use crate::train::oscillators::{OscConfig, datasets};
+    use diffsim_solvers::linalg::pseudo_inverse_power_apply_with as apply;
+    if a.iterations < 1 {
+        return Err(CliError::Argument { arg: "--iterations", reason: "need at least 1".into() });
+    }
+    let fail = |e: crate::train::hig::HigError| CliError::Argument { arg: "bench hig", reason: e.to_string() };
+    let rel = |x: &[f64], r: &[f64]| {
+        let d: f64 = x.iter().zip(r).map(|(p, q)| (p - q) * (p - q)).sum::<f64>().sqrt();
+        d / r.iter().map(|q| q * q).sum::<f64>().sqrt().max(f64::MIN_POSITIVE)
+    };
+    let mut out = serde_json::Map::new();
+    for problem in 0..2 {
+        let (label, cfg) = if problem == 0 { ("linear", OscConfig::linear(1.0)) } else { ("nonlinear", OscConfig::nonlinear(1.0)) };
+        let (data, _) = datasets(&cfg);
+        let net = cfg.network();
+        let theta = cfg.initial_params(&net);
+        let batch = &data[..cfg.hig_batch];
+        let h = cfg.hig;
+        let j = batch_jacobian(&cfg.problem, &net, &theta, batch, h.memory_budget).map_err(fail)?;
+        // A near-singular batch: each sample beside a copy moved by 1e-7.
+        let near: Vec<ControlSample> = batch
+            .iter()
+            .enumerate()
+            .map(|(k, s)| {
+                if k % 2 == 0 {
+                    s.clone()
+                } else {
+                    ControlSample { x0: batch[k - 1].x0.iter().map(|v| v + 1e-7).collect(), target: batch[k - 1].target.clone() }
+                }
+            })
+            .collect();
+        let jn = batch_jacobian(&cfg.problem, &net, &theta, &near, h.memory_budget).map_err(fail)?;
+        let solve = |jb: &crate::train::hig::BatchJacobian, m: PowerMethod| {
+            apply(jb.rows, jb.cols, &jb.jac, &jb.grad, h.power, h.truncation, m).map_err(|_| fail(crate::train::hig::HigError::Svd))
+        };
+        let mut row = serde_json::Map::new();
+        row.insert("rows".into(), json!(j.rows));
+        row.insert("cols".into(), json!(j.cols));
+        row.insert("truncation".into(), json!(h.truncation));
+        // The route the default (checked) method takes on this batch.
+        let route = |jb: &crate::train::hig::BatchJacobian| -> Result<&str, CliError> {
+            Ok(if solve(jb, PowerMethod::AUTO)? == solve(jb, PowerMethod::GRAM_F64)? { "gram" } else { "svd" })
+        };
+        row.insert("auto_route".into(), json!(route(&j)?));
+        row.insert("auto_route_near_singular".into(), json!(route(&jn)?));
+        row.insert("jacobian_s".into(), json!(median_seconds(a.iterations, || drop(batch_jacobian(&cfg.problem, &net, &theta, batch, h.memory_budget)))));
+        let (reference, near_reference) = (solve(&j, PowerMethod::SVD_F64)?, solve(&jn, PowerMethod::SVD_F64)?);
+        for k in 0..4 {
+            let (name, m) = decomposition(k);
+            row.insert(format!("{name}_s"), json!(median_seconds(a.iterations, || drop(solve(&j, m)))));
+            row.insert(format!("{name}_error"), json!(rel(&solve(&j, m)?, &reference)));
+            row.insert(format!("{name}_near_singular_error"), json!(rel(&solve(&jn, m)?, &near_reference)));
+        }
+        let mut t = theta.clone();
+        row.insert(
+            "hig_s_per_update".into(),
+            json!(median_seconds(a.iterations, || {
+                let _ = hig_step(&cfg.problem, &net, &mut t, batch, &h);
+            })),
+        );
+        let mut t = theta.clone();
+        let mut adam = Optimizer::adam(cfg.adam_lr);
+        let adam_batch = &data[..cfg.adam_batch];
+        row.insert(
+            "adam_s_per_update".into(),
+            json!(median_seconds(a.iterations, || {
+                let (_, g) = loss_and_gradient(&cfg.problem, &net, &t, adam_batch);
+                adam.step(&mut t, &g);
+            })),
+        );
+        out.insert(label.into(), serde_json::Value::Object(row));
+    }
+    if a.json {
+        println!("{}", serde_json::Value::Object(out));
+    } else {
+        for (label, row) in &out {
+            println!(
+                "{label}: Jacobian {} × {}, truncation {}; auto takes the {} route (near-singular batch: {})",
+                row["rows"], row["cols"], row["truncation"], row["auto_route"], row["auto_route_near_singular"]
+            );
+            println!("  Jacobian      {:8.2} ms", row["jacobian_s"].as_f64().unwrap_or(f64::NAN) * 1e3);
+            for k in 0..4 {
+                let name = decomposition(k).0;
+                let f = |k: &str| row[format!("{name}{k}")].as_f64().unwrap_or(f64::NAN);
+                println!("  {name:<12}  {:8.2} ms, error {:.1e} (near-singular batch {:.1e})", f("_s") * 1e3, f("_error"), f("_near_singular_error"));
+            }
+            println!("  HIG update    {:8.2} ms", row["hig_s_per_update"].as_f64().unwrap_or(f64::NAN) * 1e3);
+            println!("  Adam update   {:8.2} ms", row["adam_s_per_update"].as_f64().unwrap_or(f64::NAN) * 1e3);
+        }
+    }
+    Ok(())
 }
 
 /// `diffsim bench memory`: one `bench p1 --json` process per T and mode.

@@ -7,14 +7,15 @@
 //! ```text
 //! ẋᵢ = vᵢ
 //! v̇₁ = −x₁ + c·(x₂ − x₁) − κ·(x₁ − x₂)³
-//! v̇₂ = −x₂ + c·(x₁ − x₂) + κ·(x₁ − x₂)³ + u(t)
+//! v̇₂ = −x₂ + c·(x₁ − x₂) + κ·(x₁ − x₂)³ + a·u(t)
 //! ```
 //!
 //! with `u` constant over each of the `steps` RK4 steps of `dt`. The
 //! operator maps the initial state `x` (4 values) and the controls `p`
 //! (`steps` values) to the final state. Linear problem: `c = 0.2`, `κ = 0`,
-//! 24 steps of 0.5; nonlinear: `c = 0`, `κ = 1` (the cubic force of the
-//! quartic coupling energy), 96 steps of 0.125. Derivatives by Enzyme
+//! `a = 1`, 24 steps of 0.5; nonlinear: `c = 0`, `κ = 1` (the cubic force of
+//! the quartic coupling energy), `a = 3`, 96 steps of 0.125 (the published
+//! code's `Nonlinear_oscillators/ODEs_batch.py`). Derivatives by Enzyme
 //! through nalgebra's fixed-size vectors.
 
 use nalgebra::Vector4;
@@ -32,17 +33,20 @@ pub struct Oscillators {
     pub linear: f64,
     /// Cubic coupling `κ`.
     pub cubic: f64,
+    /// The control's coefficient `a` on the last oscillator.
+    pub control: f64,
 }
 
 impl Oscillators {
-    /// The linear problem: coupling 0.2, 24 steps of 0.5.
+    /// The linear problem: coupling 0.2, control coefficient 1, 24 steps of 0.5.
     pub fn linear() -> Self {
-        Self { steps: 24, dt: 0.5, linear: 0.2, cubic: 0.0 }
+        Self { steps: 24, dt: 0.5, linear: 0.2, cubic: 0.0, control: 1.0 }
     }
 
-    /// The nonlinear problem: cubic coupling 1.0, 96 steps of 0.125.
+    /// The nonlinear problem: cubic coupling 1.0, control coefficient 3, 96
+    /// steps of 0.125.
     pub fn nonlinear() -> Self {
-        Self { steps: 96, dt: 0.125, linear: 0.0, cubic: 1.0 }
+        Self { steps: 96, dt: 0.125, linear: 0.0, cubic: 1.0, control: 3.0 }
     }
 }
 
@@ -62,7 +66,7 @@ impl Operator for Oscillators {
 fn rhs(op: &Oscillators, s: &Vector4<f64>, u: f64) -> Vector4<f64> {
     let d = s[0] - s[1];
     let f = op.cubic * d * d * d;
-    Vector4::new(s[2], s[3], -s[0] - op.linear * d - f, -s[1] + op.linear * d + f + u)
+    Vector4::new(s[2], s[3], -s[0] - op.linear * d - f, -s[1] + op.linear * d + f + op.control * u)
 }
 
 #[inline(always)]

@@ -163,7 +163,7 @@ pub fn compare(cfg: &HeatConfig, methods: &[Method], mut progress: impl FnMut(Me
                 points.push((trained, e));
             }
         }
-        curves.push(Curve { name: method.name().to_string(), points, updates: cfg.iterations });
+        curves.push(Curve { name: method.name().to_string(), points, updates: cfg.iterations, seconds: trained, diverged_after: None });
     }
     Ok(curves)
 }

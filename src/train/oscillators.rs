@@ -1,6 +1,7 @@
-//! HIG against Adam on the coupled oscillators, in equal wall-clock budgets
-//! (the published comparison: 4096 samples from U[0, 1)⁴, the target is the
-//! start state, network 4 → 20 → 20 → 20 → controls with tanh).
+//! HIG against Adam and Gauss-Newton on the coupled oscillators, in equal
+//! wall-clock budgets (the published comparison of Schnell, Holl & Thuerey,
+//! ICLR 2022: 4096 training and 4096 test samples from U[0, 1)⁴, the target
+//! is the start state, network 4 → 20 → 20 → 20 → controls).
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -11,17 +12,50 @@ use crate::nn::{Activation, Init, Net, presets};
 use crate::op::Forward;
 use crate::problems::oscillators::Oscillators;
 
+/// The optimizers compared.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum OscMethod {
+    /// Half-inverse gradients.
+    Hig,
+    /// Adam on the plain gradient.
+    Adam,
+    /// Gauss-Newton: the truncated pseudo-inverse of the same Jacobian.
+    GaussNewton,
+}
+
+impl OscMethod {
+    /// The three, in the order they run.
+    pub const ALL: [OscMethod; 3] = [OscMethod::Hig, OscMethod::Adam, OscMethod::GaussNewton];
+
+    /// Its name in tables and JSON keys.
+    pub fn name(self) -> &'static str {
+        match self {
+            OscMethod::Hig => "hig",
+            OscMethod::Adam => "adam",
+            OscMethod::GaussNewton => "gn",
+        }
+    }
+}
+
 /// One comparison's settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OscConfig {
     /// The physics.
     pub problem: Oscillators,
+    /// The hidden layers' activation.
+    pub activation: Activation,
     /// Training samples.
     pub samples: usize,
-    /// HIG's batch, step size and truncation.
+    /// Held-out samples the curves are measured on.
+    pub test_samples: usize,
+    /// HIG's batch.
     pub hig_batch: usize,
     /// HIG's settings.
     pub hig: Hig,
+    /// Gauss-Newton's batch.
+    pub gn_batch: usize,
+    /// Gauss-Newton's settings.
+    pub gn: Hig,
     /// Adam's batch.
     pub adam_batch: usize,
     /// Adam's learning rate.
@@ -33,14 +67,19 @@ pub struct OscConfig {
 }
 
 impl OscConfig {
-    /// The linear problem as published: HIG batch 32, η = 1, truncation
-    /// 1e-10; Adam batch 256, lr 1e-3.
+    /// The linear problem as in the book and the JAX peer: tanh, HIG batch
+    /// 32, η = 1, truncation 1e-10; Adam batch 256, lr 1e-3; Gauss-Newton as
+    /// HIG.
     pub fn linear(budget_s: f64) -> Self {
         Self {
             problem: Oscillators::linear(),
+            activation: Activation::Tanh,
             samples: 4096,
+            test_samples: 4096,
             hig_batch: 32,
-            hig: Hig { lr: 1.0, truncation: 1e-10, memory_budget: 1 << 30 },
+            hig: Hig::half_inverse(1.0, 1e-10),
+            gn_batch: 32,
+            gn: Hig::gauss_newton(1.0, 1e-10),
             adam_batch: 256,
             adam_lr: 1e-3,
             budget_s,
@@ -48,29 +87,50 @@ impl OscConfig {
         }
     }
 
-    /// The nonlinear problem: HIG batch 128, η = 1, truncation 1e-6; Adam
+    /// The nonlinear problem as published (`Nonlinear_oscillators/`):
+    /// ReLU, HIG and Gauss-Newton batch 128, η = 1, truncation 1e-6; Adam
     /// batch 512, lr 3e-4.
     pub fn nonlinear(budget_s: f64) -> Self {
         Self {
             problem: Oscillators::nonlinear(),
+            activation: Activation::Relu,
             hig_batch: 128,
-            hig: Hig { lr: 1.0, truncation: 1e-6, memory_budget: 1 << 30 },
+            hig: Hig::half_inverse(1.0, 1e-6),
+            gn_batch: 128,
+            gn: Hig::gauss_newton(1.0, 1e-6),
             adam_batch: 512,
             adam_lr: 3e-4,
             ..Self::linear(budget_s)
         }
     }
+
+    /// The network 4 → 20 → 20 → 20 → one control per step.
+    pub fn network(&self) -> Net {
+        presets::mlp(&[4, 20, 20, 20, self.problem.steps], self.activation).expect("the preset is well formed")
+    }
+
+    /// The network's starting weights (Glorot, from the seed).
+    pub fn initial_params(&self, net: &Net) -> Vec<f64> {
+        net.init(&mut StdRng::seed_from_u64(self.seed + 1), Init::Glorot)
+    }
 }
 
 /// Loss versus training time of one optimizer.
-#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct Curve {
-    /// `hig` or `adam`.
+    /// `hig`, `adam`, `gn`, …
     pub name: String,
-    /// `(training seconds, loss on the whole training set)`.
+    /// `(training seconds, loss on the held-out samples)`.
     pub points: Vec<(f64, f64)>,
     /// Updates taken.
     pub updates: usize,
+    /// Training seconds (evaluations excluded).
+    pub seconds: f64,
+    /// The update after which the run stopped because the step or the
+    /// test loss was no longer finite (the curve ends at the last finite
+    /// point).
+    #[serde(default)]
+    pub diverged_after: Option<usize>,
 }
 
 impl Curve {
@@ -78,6 +138,25 @@ impl Curve {
     pub fn final_loss(&self) -> f64 {
         self.points.last().map_or(f64::NAN, |p| p.1)
     }
+
+    /// Training seconds per update.
+    pub fn seconds_per_update(&self) -> f64 {
+        self.seconds / self.updates.max(1) as f64
+    }
+}
+
+/// The published data: `samples + test_samples` states from U[0, 1)⁴,
+/// split into training and test sets; each target is its start state.
+pub fn datasets(cfg: &OscConfig) -> (Vec<ControlSample>, Vec<ControlSample>) {
+    let mut rng = StdRng::seed_from_u64(cfg.seed);
+    let mut all: Vec<ControlSample> = (0..cfg.samples + cfg.test_samples)
+        .map(|_| {
+            let x: Vec<f64> = (0..4).map(|_| rng.random::<f64>()).collect();
+            ControlSample { x0: x.clone(), target: x }
+        })
+        .collect();
+    let test = all.split_off(cfg.samples);
+    (all, test)
 }
 
 /// The mean over samples of `‖y − y*‖²`.
@@ -93,30 +172,29 @@ pub fn dataset_loss(physics: &Oscillators, net: &Net, theta: &[f64], data: &[Con
     total / data.len() as f64
 }
 
-/// Trains the same initial network with HIG and with Adam, each for
+/// Trains the same initial network with each of `methods`, each for
 /// `budget_s` seconds of training (evaluation excluded), recording the
-/// training-set loss about 40 times along the way.
-pub fn compare(cfg: &OscConfig) -> Result<Vec<Curve>, HigError> {
-    let mut rng = StdRng::seed_from_u64(cfg.seed);
-    let data: Vec<ControlSample> = (0..cfg.samples)
-        .map(|_| {
-            let x: Vec<f64> = (0..4).map(|_| rng.random::<f64>()).collect();
-            ControlSample { x0: x.clone(), target: x }
-        })
-        .collect();
-    let net = presets::mlp(&[4, 20, 20, 20, cfg.problem.steps], Activation::Tanh).expect("the preset is well formed");
-    let theta0 = net.init(&mut StdRng::seed_from_u64(cfg.seed + 1), Init::Glorot);
+/// test-set loss about 40 times along the way. A run whose step or loss
+/// stops being finite ends there, with [`Curve::diverged_after`] set (a
+/// result of the comparison, not an error). `progress(method, seconds)` is
+/// called after each evaluation.
+pub fn compare(cfg: &OscConfig, methods: &[OscMethod], mut progress: impl FnMut(OscMethod, f64)) -> Result<Vec<Curve>, HigError> {
+    let (data, test) = datasets(cfg);
+    let net = cfg.network();
+    let theta0 = cfg.initial_params(&net);
     let every = cfg.budget_s / 40.0;
     let mut curves = Vec::new();
-    // (Two passes by flag: a by-value array of `&str` can crash Enzyme's
-    // type analysis in this crate; docs/pitfalls.md.)
-    for use_hig in [true, false] {
-        let name = if use_hig { "hig" } else { "adam" };
+    for &method in methods {
         let mut theta = theta0.clone();
         let mut adam = Optimizer::adam(cfg.adam_lr);
-        let batch = if use_hig { cfg.hig_batch } else { cfg.adam_batch };
-        let mut points = vec![(0.0, dataset_loss(&cfg.problem, &net, &theta, &data))];
+        let batch = match method {
+            OscMethod::Hig => cfg.hig_batch,
+            OscMethod::Adam => cfg.adam_batch,
+            OscMethod::GaussNewton => cfg.gn_batch,
+        };
+        let mut points = vec![(0.0, dataset_loss(&cfg.problem, &net, &theta, &test))];
         let (mut trained, mut next, mut updates, mut at) = (0.0, every, 0, 0);
+        let mut diverged_after = None;
         while trained < cfg.budget_s {
             if at + batch > data.len() {
                 at = 0;
@@ -124,24 +202,40 @@ pub fn compare(cfg: &OscConfig) -> Result<Vec<Curve>, HigError> {
             let b = &data[at..at + batch];
             at += batch;
             let t = std::time::Instant::now();
-            if use_hig {
-                hig_step(&cfg.problem, &net, &mut theta, b, &cfg.hig)?;
-            } else {
-                let (_, g) = loss_and_gradient(&cfg.problem, &net, &theta, b);
-                adam.step(&mut theta, &g);
-            }
+            let step = match method {
+                OscMethod::Hig => hig_step(&cfg.problem, &net, &mut theta, b, &cfg.hig).map(drop),
+                OscMethod::GaussNewton => hig_step(&cfg.problem, &net, &mut theta, b, &cfg.gn).map(drop),
+                OscMethod::Adam => {
+                    let (l, g) = loss_and_gradient(&cfg.problem, &net, &theta, b);
+                    if l.is_finite() && g.iter().all(|v| v.is_finite()) {
+                        adam.step(&mut theta, &g);
+                        Ok(())
+                    } else {
+                        Err(HigError::NonFinite)
+                    }
+                }
+            };
             trained += t.elapsed().as_secs_f64();
-            updates += 1;
+            match step {
+                Ok(()) => updates += 1,
+                Err(HigError::NonFinite) => {
+                    diverged_after = Some(updates);
+                    break;
+                }
+                Err(e) => return Err(e),
+            }
             if trained >= next || trained >= cfg.budget_s {
-                let l = dataset_loss(&cfg.problem, &net, &theta, &data);
+                let l = dataset_loss(&cfg.problem, &net, &theta, &test);
                 if !l.is_finite() {
-                    return Err(HigError::NonFinite);
+                    diverged_after = Some(updates);
+                    break;
                 }
                 points.push((trained, l));
+                progress(method, trained);
                 next += every;
             }
         }
-        curves.push(Curve { name: name.to_string(), points, updates });
+        curves.push(Curve { name: method.name().to_string(), points, updates, seconds: trained, diverged_after });
     }
     Ok(curves)
 }
