@@ -61,6 +61,15 @@ fn presets_pass_the_gradient_checks() {
     check_net("resnet 1d", &presets::resnet_1d(8, 1, 3, 2, 2, 3, Padding::Periodic, Activation::Gelu).unwrap(), 3);
     check_net("unet 1d", &presets::unet_1d(8, 1, 1, 2, 3, Padding::Zero, Activation::Tanh).unwrap(), 4);
     check_net("unet 2d", &presets::unet_2d(4, 4, 1, 2, 2, 3, Padding::Periodic, Activation::Tanh).unwrap(), 5);
+    // Three levels (8², 4², 2²), zero padding as PhiFlow's u_net.
+    let deep = presets::unet_2d_levels(8, 8, 1, 1, 2, 3, 3, Padding::Zero, Activation::Tanh).unwrap();
+    // Per level two 3 × 3 convs (the first from 1, 2 or 4 channels), a
+    // second double conv from 4 channels on the two finer levels, a 1 × 1 out.
+    let conv = |c_in: usize, c_out: usize, k: usize| c_in * c_out * k * k + c_out;
+    let want = 3 * conv(2, 2, 3) + conv(1, 2, 3) + 2 * (conv(2, 2, 3) + conv(4, 2, 3) + conv(2, 2, 3)) + conv(2, 1, 1);
+    assert_eq!((deep.n_in(), deep.n_out(), deep.n_params()), (64, 64, want));
+    check_net("unet 2d, 3 levels", &deep, 6);
+    assert!(presets::unet_2d_levels(6, 6, 1, 1, 2, 3, 3, Padding::Zero, Activation::Tanh).is_err(), "6 is not divisible by 4");
     // P3's network has 5505 parameters.
     assert_eq!(presets::conv_stack_1d(32, &[1, 32, 32, 1], 5, Padding::Periodic, Activation::Tanh).unwrap().n_params(), 5505);
 }

@@ -50,6 +50,43 @@ fn heat_decays_fourier_modes_exactly_and_passes_the_checks() {
     assert_passes("Heat", &heat, &state(128, 5), &[]);
 }
 
+#[test]
+fn bayesian_inverse_inverts_signal_keeps_the_undecided_and_damps_noise() {
+    use diffsim::problems::heat::BayesianInverse;
+    // The published inverse (tum-pbs/SIP heat/inv_diffuse.py), mode by
+    // mode, on a 16 × 8 grid: a mode whose amplitude is what a signal has
+    // after diffusion (nx·e^{−g}, far above the noise 1e-6·‖y‖) is
+    // inverted exactly (×e^{g}); one far below both signal and noise is
+    // left as it is (P(signal) ≈ ½, no action); one far above any signal
+    // the diffusion could have left is noise and diffused further (×e^{−g}).
+    let heat = Heat::new(16, 8, 0.7, 1e-3).with_bayesian_inverse(BayesianInverse::PUBLISHED);
+    let n = 128.0;
+    let (m1, k1) = mode(16, 8, 1, 0, 0.3);
+    let (m2, _) = mode(16, 8, 5, 2, -0.4);
+    let (m3, k3) = mode(16, 8, 8, 4, 0.0);
+    let (g1, g3) = (0.7 * k1, 0.7 * k3);
+    // m1 splits over two DFT bins of amplitude c·N/2 each.
+    let c1 = 2.0 * 16.0 * (-g1).exp() / n;
+    let y: Vec<f64> = (0..128).map(|k| c1 * m1[k] + 1e-9 * m2[k] + m3[k]).collect();
+    let want: Vec<f64> = (0..128).map(|k| c1 * g1.exp() * m1[k] + 1e-9 * m2[k] + (-g3).exp() * m3[k]).collect();
+    let mut x = vec![0.0; 128];
+    heat.local_inverse(&y, &[], &y, &mut x);
+    assert!(max_diff(&x, &want) < 1e-12, "{}", max_diff(&x, &want));
+}
+
+#[test]
+fn mean_matched_keeps_the_input_mean_and_passes_the_checks() {
+    use diffsim::op::{Forward, MeanMatched};
+    let net = MeanMatched(presets::mlp(&[6, 5, 6], Activation::Tanh).unwrap());
+    let theta = net.0.init(&mut StdRng::seed_from_u64(4), Init::Glorot);
+    let x = state(6, 7);
+    let mut y = vec![0.0; 6];
+    net.forward(&x, &theta, &mut y);
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    assert!((mean(&y) - mean(&x)).abs() < 1e-15);
+    assert_passes("MeanMatched(mlp)", &net, &x, &theta);
+}
+
 /// Solves `a·x = b` (`n × n`, row-major) by Gaussian elimination with
 /// partial pivoting.
 fn solve(n: usize, mut a: Vec<f64>, mut b: Vec<f64>) -> Vec<f64> {

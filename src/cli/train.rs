@@ -81,9 +81,21 @@ pub enum ExperimentCommand {
 /// Arguments of `diffsim experiment sip-heat`.
 #[derive(Debug, clap::Args)]
 pub struct SipArgs {
-    /// Updates per optimizer (default 300).
+    /// `small` (a one-level U-Net of width 8, batch 16, the Tikhonov
+    /// inverse) or `published` (tum-pbs/SIP's: the Bayesian inverse, a
+    /// 4-level U-Net of 16 filters in float32 with the mean correction,
+    /// batch 128).
+    #[arg(long, default_value = "small")]
+    setup: String,
+    /// Updates per optimizer (default 300 small, 50 published).
     #[arg(long)]
     iterations: Option<usize>,
+    /// Held-out samples the error is measured on (default 32).
+    #[arg(long)]
+    test_samples: Option<usize>,
+    /// Samples per batch (default 16 small, 128 published).
+    #[arg(long)]
+    batch: Option<usize>,
     /// Learning rate of plain gradient descent.
     #[arg(long)]
     gd_lr: Option<f64>,
@@ -527,12 +539,28 @@ fn exit_on_interrupt(out: &Path, parts: &'static str) {
 
 fn sip_heat(a: SipArgs) -> Result<(), CliError> {
     use crate::train::heat::{HeatConfig, Method, compare};
-    let mut cfg = HeatConfig::standard();
+    let mut cfg = match a.setup.as_str() {
+        "small" => HeatConfig::standard(),
+        "published" => HeatConfig::published(50),
+        other => return Err(CliError::Argument { arg: "--setup", reason: crate::words::unknown("setup", other, &["small", "published"]) }),
+    };
     if let Some(it) = a.iterations {
         if it == 0 {
             return Err(CliError::Argument { arg: "--iterations", reason: "must be at least 1".into() });
         }
         cfg.iterations = it;
+    }
+    if let Some(n) = a.test_samples {
+        if n == 0 {
+            return Err(CliError::Argument { arg: "--test-samples", reason: "must be at least 1".into() });
+        }
+        cfg.test_samples = n;
+    }
+    if let Some(n) = a.batch {
+        if n == 0 {
+            return Err(CliError::Argument { arg: "--batch", reason: "must be at least 1".into() });
+        }
+        cfg.batch = n;
     }
     if let Some(lr) = a.gd_lr {
         if !(lr.is_finite() && lr > 0.0) {
@@ -559,14 +587,27 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
         })?);
     }
     progress.finish_and_clear();
-    let mut table = String::from("| optimizer | updates | training s | start error | final error |\n|---|---|---|---|---|\n");
-    let mut csv = String::from("optimizer,seconds,error\n");
+    let mut table = String::from("| optimizer | updates | training s | start error | final error | start x-L2 | final x-L2 |\n|---|---|---|---|---|---|---|\n");
+    let mut csv = String::from("optimizer,seconds,error,x_l2\n");
     let mut series = Vec::new();
+    let l2 = |c: &crate::train::oscillators::Curve, last: bool| {
+        let p = if last { c.l2_points.last() } else { c.l2_points.first() };
+        p.map_or(f64::NAN, |p| p.1)
+    };
     for (k, c) in curves.iter().enumerate() {
         let seconds = c.points.last().map_or(0.0, |p| p.0);
-        table.push_str(&format!("| {} | {} | {seconds:.1} | {:.1} | {:.1} |\n", c.name, c.updates, c.points[0].1, c.final_loss()));
-        for (t, e) in &c.points {
-            csv.push_str(&format!("{},{t:.4},{e:.6e}\n", c.name));
+        table.push_str(&format!(
+            "| {} | {} | {seconds:.1} | {:.1} | {:.1} | {:.1} | {:.1} |\n",
+            c.name,
+            c.updates,
+            c.points[0].1,
+            c.final_loss(),
+            l2(c, false),
+            l2(c, true)
+        ));
+        for (i, (t, e)) in c.points.iter().enumerate() {
+            let x2 = c.l2_points.get(i).map_or(f64::NAN, |p| p.1);
+            csv.push_str(&format!("{},{t:.4},{e:.6e},{x2:.6e}\n", c.name));
         }
         series.push(Series { name: c.name.clone(), points: c.points.clone(), color: k, markers: false });
     }
@@ -583,7 +624,9 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
     if a.json {
         let obj = serde_json::json!({
             "sip": curves[0].final_loss(), "adam": curves[1].final_loss(), "gd": curves[2].final_loss(),
-            "iterations": cfg.iterations, "budget_s": budget_s,
+            "sip_s": curves[0].seconds, "adam_s": curves[1].seconds, "gd_s": curves[2].seconds,
+            "sip_x_l2": l2(&curves[0], true), "adam_x_l2": l2(&curves[1], true), "gd_x_l2": l2(&curves[2], true),
+            "setup": a.setup, "iterations": cfg.iterations, "budget_s": budget_s,
         });
         println!("{obj}");
     } else {

@@ -1,5 +1,5 @@
 //! Ready-made networks: a plain convolution stack (benchmark P3's network),
-//! a multilayer perceptron, a small residual network, small U-Nets, and
+//! a multilayer perceptron, a small residual network, U-Nets, and
 //! the gathers that put a 2D MAC velocity into image channels and back.
 
 use diffsim_solvers::nn::{Activation, Conv1d, Conv2d, Padding};
@@ -101,6 +101,59 @@ pub fn unet_2d(nx: usize, ny: usize, c_in: usize, c_out: usize, width: usize, k:
         Layer::Act { f: act, n: width * nx * ny },
         conv2d(width, c_out, k, nx, ny, padding),
     ])
+}
+
+/// A U-Net of `levels` resolutions on an `nx × ny` map (both divisible by
+/// `2^(levels−1)`), `filters` channels at every level, in the classic
+/// shape of PhiFlow's `u_net` (the SIP paper's network: 4 levels, 16
+/// filters): a double convolution (`k × k` conv, act, conv, act) to
+/// `filters`; per coarser level a 2 × 2 average pool and a double
+/// convolution, the way back an upsample, the finer level's features
+/// concatenated (a skip) and a double convolution from `2·filters`; a 1 × 1
+/// convolution to `c_out`. (PhiFlow pools by maximum and may normalise
+/// batches; diffsim pools by average and has no batch normalisation.)
+#[allow(clippy::too_many_arguments)]
+pub fn unet_2d_levels(
+    nx: usize,
+    ny: usize,
+    c_in: usize,
+    c_out: usize,
+    filters: usize,
+    levels: usize,
+    k: usize,
+    padding: Padding,
+    act: Activation,
+) -> Result<Net, NetError> {
+    let f = filters;
+    let double = |c_in: usize, nx: usize, ny: usize| {
+        vec![
+            conv2d(c_in, f, k, nx, ny, padding),
+            Layer::Act { f: act, n: f * nx * ny },
+            conv2d(f, f, k, nx, ny, padding),
+            Layer::Act { f: act, n: f * nx * ny },
+        ]
+    };
+    // The levels below resolution (nx, ny), inside out: pool, double conv,
+    // [the next level as a skip, double conv from 2f], upsample.
+    let mut inner: Option<Net> = None;
+    for level in (1..levels.max(1)).rev() {
+        let (hx, hy) = (nx >> level, ny >> level);
+        let mut layers = vec![Layer::AvgPool2d { c: f, nx: 2 * hx, ny: 2 * hy }];
+        layers.extend(double(f, hx, hy));
+        if let Some(net) = inner.take() {
+            layers.push(Layer::Skip(net));
+            layers.extend(double(2 * f, hx, hy));
+        }
+        layers.push(Layer::Upsample2d { c: f, nx: hx, ny: hy });
+        inner = Some(Net::new(layers)?);
+    }
+    let mut layers = double(c_in, nx, ny);
+    if let Some(net) = inner {
+        layers.push(Layer::Skip(net));
+        layers.extend(double(2 * f, nx, ny));
+    }
+    layers.push(conv2d(f, c_out, 1, nx, ny, padding));
+    Net::new(layers)
 }
 
 /// A [`Layer::Gather`] from a packed MAC state `[s, u, v]` of an `nx × ny`

@@ -57,17 +57,7 @@ impl<O: Forward> FiniteDiff<O> {
     }
 }
 
-impl<O: Operator> Operator for FiniteDiff<O> {
-    fn n_in(&self) -> usize {
-        self.op.n_in()
-    }
-    fn n_out(&self) -> usize {
-        self.op.n_out()
-    }
-    fn n_params(&self) -> usize {
-        self.op.n_params()
-    }
-}
+sizes_of_inner!([O: Operator] FiniteDiff<O> => op);
 
 impl<O: Forward> Forward for FiniteDiff<O> {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {

@@ -43,17 +43,7 @@ pub struct GaussNewton<'a, O> {
     pub tolerance: f64,
 }
 
-impl<O: Operator> Operator for GaussNewton<'_, O> {
-    fn n_in(&self) -> usize {
-        self.op.n_in()
-    }
-    fn n_out(&self) -> usize {
-        self.op.n_out()
-    }
-    fn n_params(&self) -> usize {
-        self.op.n_params()
-    }
-}
+sizes_of_inner!(['a, O: Operator] GaussNewton<'a, O> => op);
 
 impl<O: Forward> Forward for GaussNewton<'_, O> {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {

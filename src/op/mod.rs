@@ -24,11 +24,30 @@
 //!
 //! All three are checked against each other by [`crate::check`].
 
+/// `impl Operator` for a wrapper with the sizes of the operator in its
+/// field: `sizes_of_inner!([O: Operator] Float32<O> => 0)`.
+macro_rules! sizes_of_inner {
+    ([$($generics:tt)*] $wrapper:ty => $field:tt) => {
+        impl<$($generics)*> $crate::op::Operator for $wrapper {
+            fn n_in(&self) -> usize {
+                self.$field.n_in()
+            }
+            fn n_out(&self) -> usize {
+                self.$field.n_out()
+            }
+            fn n_params(&self) -> usize {
+                self.$field.n_params()
+            }
+        }
+    };
+}
+
 mod chain;
 pub mod count;
 mod enzyme;
 mod fd;
 mod inverse;
+mod mean;
 mod part;
 mod per_thread;
 mod precision;
@@ -37,6 +56,7 @@ pub mod stencil;
 pub use chain::{Chain, Effect};
 pub use fd::FiniteDiff;
 pub use inverse::{GaussNewton, LocalInverse};
+pub use mean::MeanMatched;
 pub use part::{AddParams, Part};
 pub use per_thread::PerThread;
 pub use precision::Float32;

@@ -31,17 +31,7 @@ fn add_widened(v: &[f32], out: &mut [f64]) {
     }
 }
 
-impl<O: Operator> Operator for Float32<O> {
-    fn n_in(&self) -> usize {
-        self.0.n_in()
-    }
-    fn n_out(&self) -> usize {
-        self.0.n_out()
-    }
-    fn n_params(&self) -> usize {
-        self.0.n_params()
-    }
-}
+sizes_of_inner!([O: Operator] Float32<O> => 0);
 
 impl<O: Forward<f32>> Forward for Float32<O> {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {

@@ -8,9 +8,12 @@
 //! [`LocalInverse`] is the damped spectral inverse `f/(f² + ε²)` per mode
 //! (`f = exp(−ν·t·|k|²)`): modes that diffusion has not drowned are
 //! inverted, the rest are left out, and nothing is amplified beyond
-//! `1/(2ε)`.
+//! `1/(2ε)`. Or, with [`Heat::with_bayesian_inverse`], the published
+//! inverse: each mode inverted as far as the probability that it carries
+//! signal rather than noise allows ([`BayesianInverse`]).
 
-use diffsim_solvers::spectral::{Heat2d, heat, heat_inverse};
+pub use diffsim_solvers::spectral::BayesianInverse;
+use diffsim_solvers::spectral::{Heat2d, heat, heat_inverse, heat_inverse_bayesian};
 
 use crate::op::{Forward, Jvp, LocalInverse, Operator, Vjp};
 
@@ -19,8 +22,10 @@ use crate::op::{Forward, Jvp, LocalInverse, Operator, Vjp};
 pub struct Heat {
     /// Grid and amount of diffusion.
     pub grid: Heat2d,
-    /// Regularisation `ε` of the inverse.
+    /// Regularisation `ε` of the Tikhonov inverse.
     pub epsilon: f64,
+    /// When set, the local inverse is this Bayesian one instead.
+    pub bayesian: Option<BayesianInverse>,
 }
 
 impl Heat {
@@ -32,7 +37,12 @@ impl Heat {
 
     /// `nx × ny` cells of size 1, diffusion `ν·t`, inverse damping `ε`.
     pub fn new(nx: usize, ny: usize, nu_t: f64, epsilon: f64) -> Self {
-        Self { grid: Heat2d { nx, ny, dx: 1.0, nu_t }, epsilon }
+        Self { grid: Heat2d { nx, ny, dx: 1.0, nu_t }, epsilon, bayesian: None }
+    }
+
+    /// The same physics with the Bayesian local inverse.
+    pub fn with_bayesian_inverse(self, settings: BayesianInverse) -> Self {
+        Self { bayesian: Some(settings), ..self }
     }
 
     fn cells(&self) -> usize {
@@ -75,6 +85,9 @@ impl Jvp for Heat {
 
 impl LocalInverse for Heat {
     fn local_inverse(&self, _x: &[f64], _p: &[f64], dy: &[f64], dx: &mut [f64]) {
-        heat_inverse(&self.grid, self.epsilon, dy, dx);
+        match &self.bayesian {
+            Some(b) => heat_inverse_bayesian(&self.grid, b, dy, dx),
+            None => heat_inverse(&self.grid, self.epsilon, dy, dx),
+        }
     }
 }

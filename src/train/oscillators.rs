@@ -131,6 +131,10 @@ pub struct Curve {
     /// point).
     #[serde(default)]
     pub diverged_after: Option<usize>,
+    /// A second error measure at the same times, where the comparison has
+    /// one (inverse heat: the notebook's x-L2 beside the L1 error).
+    #[serde(default)]
+    pub l2_points: Vec<(f64, f64)>,
 }
 
 impl Curve {
@@ -235,7 +239,7 @@ pub fn compare(cfg: &OscConfig, methods: &[OscMethod], mut progress: impl FnMut(
                 next += every;
             }
         }
-        curves.push(Curve { name: method.name().to_string(), points, updates, seconds: trained, diverged_after });
+        curves.push(Curve { name: method.name().to_string(), points, updates, seconds: trained, diverged_after, l2_points: Vec::new() });
     }
     Ok(curves)
 }
