@@ -306,7 +306,7 @@ fn sip_heat_experiment_runs_and_reports_json() {
     let (code, stdout, err) = diffsim(&["experiment", "sip-heat", "--iterations", "1", "--json", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-    for key in ["sip", "adam", "gd", "sip_s", "adam_s", "gd_s", "sip_x_l2", "budget_s"] {
+    for key in ["sip", "adam", "gd", "sip_s", "adam_s", "gd_s", "sip_x_l2", "inverse", "inverse_x_l2", "budget_s"] {
         assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
     }
     assert!(out.join("error.png").exists() && out.join("table.md").exists() && out.join("error.csv").exists());

@@ -611,6 +611,8 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
         }
         series.push(Series { name: c.name.clone(), points: c.points.clone(), color: k, markers: false });
     }
+    let (inverse_l1, inverse_l2) = crate::train::heat::inverse_errors(&cfg);
+    table.push_str(&format!("| the inverse alone, x = P⁻¹(y*) | – | – | – | {inverse_l1:.1} | – | {inverse_l2:.1} |\n"));
     let md = a.out.join("table.md");
     std::fs::write(&md, &table).map_err(io(&md))?;
     let path = a.out.join("error.csv");
@@ -626,6 +628,7 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
             "sip": curves[0].final_loss(), "adam": curves[1].final_loss(), "gd": curves[2].final_loss(),
             "sip_s": curves[0].seconds, "adam_s": curves[1].seconds, "gd_s": curves[2].seconds,
             "sip_x_l2": l2(&curves[0], true), "adam_x_l2": l2(&curves[1], true), "gd_x_l2": l2(&curves[2], true),
+            "inverse": inverse_l1, "inverse_x_l2": inverse_l2,
             "setup": a.setup, "iterations": cfg.iterations, "budget_s": budget_s,
         });
         println!("{obj}");

@@ -228,6 +228,25 @@ fn train_each<N: Vjp + Sync>(
     Ok(curves)
 }
 
+/// The held-out errors `(L1, x-L2)` of the physics' local inverse applied
+/// to each observation directly (`x = P⁻¹(y*)`, from `x = 0`): what the
+/// inverse alone recovers, the level a network trained through it
+/// approaches. The same held-out samples as [`compare`]'s curves.
+pub fn inverse_errors(cfg: &HeatConfig) -> (f64, f64) {
+    use crate::op::LocalInverse;
+    let test = samples(&cfg.physics, &mut StdRng::seed_from_u64(cfg.seed + 1000), cfg.test_samples);
+    let zero = vec![0.0; cfg.physics.grid.nx * cfg.physics.grid.ny];
+    let (mut l1, mut l2) = (0.0, 0.0);
+    for s in &test {
+        let mut x = vec![0.0; zero.len()];
+        cfg.physics.local_inverse(&zero, &[], &s.observed, &mut x);
+        l1 += x.iter().zip(&s.truth).map(|(a, b)| (a - b).abs()).sum::<f64>();
+        l2 += 0.5 * x.iter().zip(&s.truth).map(|(a, b)| (a - b) * (a - b)).sum::<f64>();
+    }
+    let n = test.len().max(1) as f64;
+    (l1 / n, l2 / n)
+}
+
 /// The held-out errors of the recovered states: the mean over samples of
 /// `‖x − x*‖₁` (summed over cells; the published MAE is this over the cell
 /// count) and of `½‖x − x*‖₂²` (the notebook's x-L2).
