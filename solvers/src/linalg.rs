@@ -106,8 +106,12 @@ pub const GRAM_TOLERANCE: f64 = 1e-3;
 /// in; the linear one, 10⁻¹⁰, is not, and there [`Decomposition::Checked`]
 /// looks at the spectrum actually kept).
 pub fn gram_is_accurate(truncation: f64, single: bool) -> bool {
-    let eps = if single { f64::from(f32::EPSILON) } else { f64::EPSILON };
-    truncation > 0.0 && eps / (truncation * truncation) <= GRAM_TOLERANCE
+    truncation > 0.0 && epsilon(single) / (truncation * truncation) <= GRAM_TOLERANCE
+}
+
+/// The machine epsilon of `f32` (`single`) or `f64`.
+fn epsilon(single: bool) -> f64 {
+    if single { f64::from(f32::EPSILON) } else { f64::EPSILON }
 }
 
 /// [`pseudo_inverse_power_apply`] by a chosen decomposition and precision.
@@ -190,7 +194,7 @@ fn power_apply<T: Precision>(a: faer::MatRef<'_, T>, b: &[f64], beta: f64, trunc
         let lmax = lam.iter().copied().fold(0.0, f64::max);
         let cutoff = truncation * truncation * lmax;
         let kept = |l: f64| l > cutoff && l > 0.0;
-        let eps = if std::mem::size_of::<T>() == 4 { f64::from(f32::EPSILON) } else { f64::EPSILON };
+        let eps = epsilon(std::mem::size_of::<T>() == 4);
         if checked && lam.iter().any(|&l| kept(l) && eps * lmax > GRAM_TOLERANCE * l) {
             return Ok(None);
         }

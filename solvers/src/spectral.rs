@@ -66,21 +66,32 @@ pub fn spectral_multiply(nx: usize, ny: usize, multiplier: &[f64], x: &[f64], y:
     let n = nx * ny;
     assert!(multiplier.len() == n && x.len() == n && y.len() == n, "spectral_multiply: slices must hold nx·ny values");
     let mut planner = FftPlanner::<f64>::new();
-    let (fx, ifx) = (planner.plan_fft_forward(nx), planner.plan_fft_inverse(nx));
-    let (fy, ify) = (planner.plan_fft_forward(ny), planner.plan_fft_inverse(ny));
+    let spectrum = forward(&mut planner, nx, ny, x);
+    multiply_back(&mut planner, nx, ny, spectrum, multiplier, y);
+}
+
+/// The unnormalised 2D DFT of a real `nx × ny` field, column by column:
+/// mode `(i, j)` (along x, along y) at `[i·ny + j]`.
+fn forward(planner: &mut FftPlanner<f64>, nx: usize, ny: usize, x: &[f64]) -> Vec<Complex<f64>> {
     let mut rows: Vec<Complex<f64>> = x.iter().map(|&v| Complex::new(v, 0.0)).collect();
-    fx.process(&mut rows); // every row along x
+    planner.plan_fft_forward(nx).process(&mut rows); // every row along x
     let mut cols = transpose(nx, ny, &rows); // [i·ny + j]
-    fy.process(&mut cols);
+    planner.plan_fft_forward(ny).process(&mut cols);
+    cols
+}
+
+/// `y = F⁻¹(m ⊙ spectrum)` for a [`forward`] spectrum and a multiplier
+/// `[j·nx + i]`; the real part.
+fn multiply_back(planner: &mut FftPlanner<f64>, nx: usize, ny: usize, mut cols: Vec<Complex<f64>>, multiplier: &[f64], y: &mut [f64]) {
     for i in 0..nx {
         for j in 0..ny {
             cols[i * ny + j] *= multiplier[j * nx + i];
         }
     }
-    ify.process(&mut cols);
+    planner.plan_fft_inverse(ny).process(&mut cols);
     let mut rows = transpose(ny, nx, &cols);
-    ifx.process(&mut rows);
-    let scale = 1.0 / n as f64;
+    planner.plan_fft_inverse(nx).process(&mut rows);
+    let scale = 1.0 / (nx * ny) as f64;
     for (out, c) in y.iter_mut().zip(&rows) {
         *out = c.re * scale;
     }
@@ -100,8 +111,9 @@ impl BayesianInverse {
     /// The published settings: signal prior 0.5, noise 1e-6.
     pub const PUBLISHED: Self = Self { signal_prior: 0.5, noise: 1e-6 };
 
-    /// The multiplier of each mode `[j·nx + i]` for the amplitudes `amp`
-    /// (unnormalised DFT of the input, as numpy's `fft`).
+    /// The multiplier of each mode `[j·nx + i]` for the amplitudes
+    /// `amp(i, j)` of mode `(i, j)` (along x, along y; of the unnormalised
+    /// DFT of the input, as numpy's `fft`).
     ///
     /// With `g = ν·t·|k|²` (so diffusion multiplies by `e^{−g}`), the
     /// expected signal amplitude `nx·e^{−g}` and the noise amplitude
@@ -111,7 +123,7 @@ impl BayesianInverse {
     /// `P ≤ ½` or `P ≥ 0.68` (one sigma), else 0; the multiplier `e^{a·g}`
     /// (the exact inverse for `a = 1`, more diffusion for `a < 0`), its
     /// exponent capped at `⌊ln f32::MAX⌋ = 88` as published.
-    pub fn multipliers(&self, h: &Heat2d, amp: &[Complex<f64>], y_norm: f64) -> Vec<f64> {
+    pub fn multipliers(&self, h: &Heat2d, amp: impl Fn(usize, usize) -> f64, y_norm: f64) -> Vec<f64> {
         let sigma = self.noise * y_norm;
         let cap = f64::from(f32::MAX).ln().floor();
         let mut out = Vec::with_capacity(h.nx * h.ny);
@@ -120,7 +132,7 @@ impl BayesianInverse {
             for i in 0..h.nx {
                 let kx = wavenumber(i, h.nx, h.dx);
                 let g = h.nu_t * (kx * kx + ky * ky);
-                let a = amp[j * h.nx + i].norm();
+                let a = amp(i, j);
                 let expected = h.nx as f64 * (-g).exp();
                 let mut ls = (-0.5 * (a / expected).powi(2)).exp() * self.signal_prior;
                 if !ls.is_finite() {
@@ -147,23 +159,12 @@ impl BayesianInverse {
 /// If a slice does not hold `nx·ny` values.
 pub fn heat_inverse_bayesian(h: &Heat2d, settings: &BayesianInverse, y: &[f64], x: &mut [f64]) {
     let (nx, ny) = (h.nx, h.ny);
-    let n = nx * ny;
-    assert!(y.len() == n && x.len() == n, "heat_inverse_bayesian: slices must hold nx·ny values");
-    let amp = dft2(nx, ny, y);
-    let norm = y.iter().map(|v| v * v).sum::<f64>().sqrt();
-    let m = settings.multipliers(h, &amp, norm);
-    spectral_multiply(nx, ny, &m, y, x);
-}
-
-/// The unnormalised 2D DFT of a real `nx × ny` field, `[j·nx + i]`.
-fn dft2(nx: usize, ny: usize, x: &[f64]) -> Vec<Complex<f64>> {
+    assert!(y.len() == nx * ny && x.len() == nx * ny, "heat_inverse_bayesian: slices must hold nx·ny values");
     let mut planner = FftPlanner::<f64>::new();
-    let (fx, fy) = (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny));
-    let mut rows: Vec<Complex<f64>> = x.iter().map(|&v| Complex::new(v, 0.0)).collect();
-    fx.process(&mut rows);
-    let mut cols = transpose(nx, ny, &rows);
-    fy.process(&mut cols);
-    transpose(ny, nx, &cols)
+    let spectrum = forward(&mut planner, nx, ny, y);
+    let norm = y.iter().map(|v| v * v).sum::<f64>().sqrt();
+    let m = settings.multipliers(h, |i, j| spectrum[i * ny + j].norm(), norm);
+    multiply_back(&mut planner, nx, ny, spectrum, &m, x);
 }
 
 /// The transpose of the row-major `rows × cols` matrix `a`:

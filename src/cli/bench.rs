@@ -411,20 +411,6 @@ fn threads(requested: Option<usize>) -> Result<usize, CliError> {
     Ok(threads)
 }
 
-/// The median of `n` timings of `f`, after one warm-up call.
-fn median_seconds(n: usize, mut f: impl FnMut()) -> f64 {
-    f();
-    let mut t: Vec<f64> = (0..n)
-        .map(|_| {
-            let start = std::time::Instant::now();
-            f();
-            start.elapsed().as_secs_f64()
-        })
-        .collect();
-    t.sort_by(f64::total_cmp);
-    t[t.len() / 2]
-}
-
 /// The `k`-th decomposition `bench hig` compares, with its JSON name (by
 /// index, not a by-value array of pairs: those crash Enzyme's type
 /// analysis in this crate; docs/pitfalls.md).
@@ -481,36 +467,40 @@ fn hig(a: HigBenchArgs) -> Result<(), CliError> {
         row.insert("rows".into(), json!(j.rows));
         row.insert("cols".into(), json!(j.cols));
         row.insert("truncation".into(), json!(h.truncation));
-        // The route the default (checked) method takes on this batch.
-        let route = |jb: &crate::train::hig::BatchJacobian| -> Result<&str, CliError> {
-            Ok(if solve(jb, PowerMethod::AUTO)? == solve(jb, PowerMethod::GRAM_F64)? { "gram" } else { "svd" })
-        };
-        row.insert("auto_route".into(), json!(route(&j)?));
-        row.insert("auto_route_near_singular".into(), json!(route(&jn)?));
-        row.insert("jacobian_s".into(), json!(median_seconds(a.iterations, || drop(batch_jacobian(&cfg.problem, &net, &theta, batch, h.memory_budget)))));
-        let (reference, near_reference) = (solve(&j, PowerMethod::SVD_F64)?, solve(&jn, PowerMethod::SVD_F64)?);
+        let n = a.iterations;
+        row.insert("jacobian_s".into(), json!(median_time(0.0, n, n, || batch_jacobian(&cfg.problem, &net, &theta, batch, h.memory_budget)).0));
+        // Each decomposition's update on both batches, once (the first,
+        // the f64 SVD, is the reference).
+        let mut updates: Vec<(Vec<f64>, Vec<f64>)> = Vec::with_capacity(4);
         for k in 0..4 {
             let (name, m) = decomposition(k);
-            row.insert(format!("{name}_s"), json!(median_seconds(a.iterations, || drop(solve(&j, m)))));
-            row.insert(format!("{name}_error"), json!(rel(&solve(&j, m)?, &reference)));
-            row.insert(format!("{name}_near_singular_error"), json!(rel(&solve(&jn, m)?, &near_reference)));
+            let (seconds, x) = median_time(0.0, n, n, || solve(&j, m));
+            let (x, xn) = (x?, solve(&jn, m)?);
+            let (reference, near_reference) = updates.first().map_or((&x, &xn), |(r, rn)| (r, rn));
+            row.insert(format!("{name}_s"), json!(seconds));
+            row.insert(format!("{name}_error"), json!(rel(&x, reference)));
+            row.insert(format!("{name}_near_singular_error"), json!(rel(&xn, near_reference)));
+            updates.push((x, xn));
         }
+        // The route the default (checked) method took: the Gram route's
+        // update or not.
+        let route = |same: bool| if same { "gram" } else { "svd" };
+        row.insert("auto_route".into(), json!(route(updates[3].0 == updates[1].0)));
+        row.insert("auto_route_near_singular".into(), json!(route(updates[3].1 == updates[1].1)));
         let mut t = theta.clone();
-        row.insert(
-            "hig_s_per_update".into(),
-            json!(median_seconds(a.iterations, || {
-                let _ = hig_step(&cfg.problem, &net, &mut t, batch, &h);
-            })),
-        );
+        row.insert("hig_s_per_update".into(), json!(median_time(0.0, n, n, || hig_step(&cfg.problem, &net, &mut t, batch, &h)).0));
         let mut t = theta.clone();
         let mut adam = Optimizer::adam(cfg.adam_lr);
         let adam_batch = &data[..cfg.adam_batch];
         row.insert(
             "adam_s_per_update".into(),
-            json!(median_seconds(a.iterations, || {
-                let (_, g) = loss_and_gradient(&cfg.problem, &net, &t, adam_batch);
-                adam.step(&mut t, &g);
-            })),
+            json!(
+                median_time(0.0, n, n, || {
+                    let (_, g) = loss_and_gradient(&cfg.problem, &net, &t, adam_batch);
+                    adam.step(&mut t, &g);
+                })
+                .0
+            ),
         );
         out.insert(label.into(), serde_json::Value::Object(row));
     }

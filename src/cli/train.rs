@@ -521,17 +521,22 @@ fn part<T: serde::Serialize + serde::de::DeserializeOwned>(parts: &Parts, name: 
     Ok(value)
 }
 
+/// This command line with `--resume` (once, at the end).
+fn resume_command() -> String {
+    let args: Vec<String> = std::env::args().skip(1).filter(|a| a != "--resume").collect();
+    format!("diffsim {} --resume", args.join(" "))
+}
+
 /// Ctrl-C in a study whose parts are not checkpointed inside: says what is
 /// kept and how to go on, and exits with 130 (a part being saved is
 /// written atomically: there or not).
 fn exit_on_interrupt(out: &Path, parts: &'static str) {
     let dir = out.join("parts");
-    let args: Vec<String> = std::env::args().skip(1).filter(|a| a != "--resume").collect();
+    let resume = resume_command();
     let _ = ctrlc::set_handler(move || {
         eprintln!(
-            "interrupted: the finished parts are kept in {}; `diffsim {} --resume` runs only the rest ({parts} cannot be resumed midway and starts again)",
-            dir.display(),
-            args.join(" ")
+            "interrupted: the finished parts are kept in {}; `{resume}` runs only the rest ({parts} cannot be resumed midway and starts again)",
+            dir.display()
         );
         std::process::exit(130);
     });
@@ -774,13 +779,7 @@ fn run_sol_study<P: SolProblem + std::fmt::Debug>(
     let results = match results {
         Ok(r) => r,
         Err(StudyError::Interrupted { variant, done, of }) => {
-            let args: Vec<String> = std::env::args().skip(1).filter(|a| a != "--resume").collect();
-            return Err(CliError::Interrupted {
-                done: done as u64,
-                target: of as u64,
-                detail: format!(" in variant {variant}"),
-                resume: format!("diffsim {} --resume", args.join(" ")),
-            });
+            return Err(CliError::Interrupted { done: done as u64, target: of as u64, detail: format!(" in variant {variant}"), resume: resume_command() });
         }
         Err(StudyError::Part(e)) => return Err(e.into()),
         Err(e) => return Err(CliError::Argument { arg: command, reason: e.to_string() }),

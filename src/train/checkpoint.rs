@@ -108,15 +108,7 @@ impl Checkpoint {
 
     /// A checkpoint from its JSON text (`path` names it in errors).
     pub fn parse(text: &str, path: &Path) -> Result<Checkpoint, CheckpointError> {
-        // The format first, so that a newer file is named as such.
-        let head: serde_json::Value =
-            serde_json::from_str(text).map_err(|e| CheckpointError::Corrupt { path: path.to_path_buf(), reason: shorten(&e.to_string(), 200) })?;
-        match head.get("format").and_then(serde_json::Value::as_u64) {
-            Some(f) if f == FORMAT as u64 => {}
-            Some(f) => return Err(CheckpointError::Format { path: path.to_path_buf(), found: u32::try_from(f).unwrap_or(u32::MAX) }),
-            None => return Err(CheckpointError::Corrupt { path: path.to_path_buf(), reason: "no `format` field".into() }),
-        }
-        serde_json::from_value(head).map_err(|e| CheckpointError::Corrupt { path: path.to_path_buf(), reason: shorten(&e.to_string(), 200) })
+        parse_versioned(text, path)
     }
 
     /// Checks that the checkpoint continues a run of `config` (the text;
@@ -134,6 +126,19 @@ impl Checkpoint {
         }
         self.optimizer.validate(self.params.values.len()).map_err(|e| invalid(format!("its optimizer state: {e}")))
     }
+}
+
+/// A JSON file of this format version (`path` names it in errors): the
+/// format is read first, so that a newer file is named as such.
+fn parse_versioned<T: serde::de::DeserializeOwned>(text: &str, path: &Path) -> Result<T, CheckpointError> {
+    let corrupt = |e: serde_json::Error| CheckpointError::Corrupt { path: path.to_path_buf(), reason: shorten(&e.to_string(), 200) };
+    let head: serde_json::Value = serde_json::from_str(text).map_err(corrupt)?;
+    match head.get("format").and_then(serde_json::Value::as_u64) {
+        Some(f) if f == FORMAT as u64 => {}
+        Some(f) => return Err(CheckpointError::Format { path: path.to_path_buf(), found: u32::try_from(f).unwrap_or(u32::MAX) }),
+        None => return Err(CheckpointError::Corrupt { path: path.to_path_buf(), reason: "no `format` field".into() }),
+    }
+    serde_json::from_value(head).map_err(corrupt)
 }
 
 /// The first key (as a dotted path) whose value differs between two
@@ -227,14 +232,7 @@ impl Parts {
             return Ok(None);
         }
         let text = read_text(path, MAX_BYTES, "study part")?;
-        let corrupt = |e: serde_json::Error| CheckpointError::Corrupt { path: path.to_path_buf(), reason: shorten(&e.to_string(), 200) };
-        let head: serde_json::Value = serde_json::from_str(&text).map_err(corrupt)?;
-        match head.get("format").and_then(serde_json::Value::as_u64) {
-            Some(f) if f == FORMAT as u64 => {}
-            Some(f) => return Err(CheckpointError::Format { path: path.to_path_buf(), found: u32::try_from(f).unwrap_or(u32::MAX) }),
-            None => return Err(CheckpointError::Corrupt { path: path.to_path_buf(), reason: "no `format` field".into() }),
-        }
-        let part: Stamped<T> = serde_json::from_value(head).map_err(corrupt)?;
+        let part: Stamped<T> = parse_versioned(&text, path)?;
         if part.settings != self.settings {
             // The first setting that differs, by line.
             let (then, now) = part.settings.lines().zip(self.settings.lines()).find(|(a, b)| a != b).unwrap_or(("(fewer settings)", "(more settings)"));

@@ -13,10 +13,11 @@
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
 
 use super::Optimizer;
 use super::oscillators::Curve;
-use super::pg::{InverseSample, PgError, physics_loss_and_gradient, sip_gradient, state_error};
+use super::pg::{InverseSample, PgError, physics_loss_and_gradient, sip_gradient};
 use crate::nn::{Activation, Net, Padding, presets};
 use crate::op::{Float32, Forward, MeanMatched, Vjp};
 use crate::problems::heat::Heat;
@@ -190,7 +191,7 @@ fn train_each<N: Vjp + Sync>(
     methods: &[Method],
     mut progress: impl FnMut(Method, usize),
 ) -> Result<Vec<Curve>, PgError> {
-    let test = samples(&cfg.physics, &mut StdRng::seed_from_u64(cfg.seed + 1000), cfg.test_samples);
+    let test = test_set(cfg);
     let every = (cfg.iterations / 30).max(1);
     let mut curves = Vec::new();
     for &method in methods {
@@ -228,36 +229,46 @@ fn train_each<N: Vjp + Sync>(
     Ok(curves)
 }
 
+/// The held-out samples every curve and [`inverse_errors`] are measured on.
+fn test_set(cfg: &HeatConfig) -> Vec<InverseSample> {
+    samples(&cfg.physics, &mut StdRng::seed_from_u64(cfg.seed + 1000), cfg.test_samples)
+}
+
+/// `(‖x − x*‖₁, ½‖x − x*‖₂²)` of one recovered state.
+fn errors(x: &[f64], truth: &[f64]) -> (f64, f64) {
+    x.iter().zip(truth).fold((0.0, 0.0), |(l1, l2), (a, b)| (l1 + (a - b).abs(), l2 + 0.5 * (a - b) * (a - b)))
+}
+
+/// The means over `data` of `recover(sample)`'s [`errors`], samples in
+/// parallel and summed in order.
+fn mean_errors(data: &[InverseSample], recover: impl Fn(&InverseSample) -> Vec<f64> + Sync) -> (f64, f64) {
+    let per: Vec<(f64, f64)> = data.par_iter().map(|s| errors(&recover(s), &s.truth)).collect();
+    let n = data.len().max(1) as f64;
+    let (l1, l2) = per.iter().fold((0.0, 0.0), |(a, b), (c, d)| (a + c, b + d));
+    (l1 / n, l2 / n)
+}
+
 /// The held-out errors `(L1, x-L2)` of the physics' local inverse applied
 /// to each observation directly (`x = P⁻¹(y*)`, from `x = 0`): what the
 /// inverse alone recovers, the level a network trained through it
 /// approaches. The same held-out samples as [`compare`]'s curves.
 pub fn inverse_errors(cfg: &HeatConfig) -> (f64, f64) {
     use crate::op::LocalInverse;
-    let test = samples(&cfg.physics, &mut StdRng::seed_from_u64(cfg.seed + 1000), cfg.test_samples);
     let zero = vec![0.0; cfg.physics.grid.nx * cfg.physics.grid.ny];
-    let (mut l1, mut l2) = (0.0, 0.0);
-    for s in &test {
+    mean_errors(&test_set(cfg), |s| {
         let mut x = vec![0.0; zero.len()];
         cfg.physics.local_inverse(&zero, &[], &s.observed, &mut x);
-        l1 += x.iter().zip(&s.truth).map(|(a, b)| (a - b).abs()).sum::<f64>();
-        l2 += 0.5 * x.iter().zip(&s.truth).map(|(a, b)| (a - b) * (a - b)).sum::<f64>();
-    }
-    let n = test.len().max(1) as f64;
-    (l1 / n, l2 / n)
+        x
+    })
 }
 
 /// The held-out errors of the recovered states: the mean over samples of
 /// `‖x − x*‖₁` (summed over cells; the published MAE is this over the cell
 /// count) and of `½‖x − x*‖₂²` (the notebook's x-L2).
 fn state_errors<N: Vjp + Sync>(net: &N, theta: &[f64], data: &[InverseSample]) -> (f64, f64) {
-    let l2: f64 = data
-        .iter()
-        .map(|s| {
-            let mut x = vec![0.0; net.n_out()];
-            net.forward(&s.observed, theta, &mut x);
-            0.5 * x.iter().zip(&s.truth).map(|(a, b)| (a - b) * (a - b)).sum::<f64>()
-        })
-        .sum();
-    (state_error(net, theta, data), l2 / data.len().max(1) as f64)
+    mean_errors(data, |s| {
+        let mut x = vec![0.0; net.n_out()];
+        net.forward(&s.observed, theta, &mut x);
+        x
+    })
 }
