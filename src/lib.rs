@@ -67,8 +67,11 @@
 //! ([`train::burgers`]) and on 2D flow past a disc ([`train::wake`]). Beyond
 //! plain gradients: half-inverse gradients ([`train::hig`]) and
 //! scale-invariant physics updates ([`train::pg`]), which use an
-//! operator's [`op::LocalInverse`] (exact, regularised, or a Gauss-Newton
-//! step with [`op::GaussNewton`]) to give the network its target.
+//! operator's [`op::LocalInverse`] (exact, regularised, a reverse-time
+//! simulation as for the smoke step, or a Gauss-Newton step with
+//! [`op::GaussNewton`]; sharpened by [`op::Refined`], its promise measured
+//! by [`check::local_inverse`]) to give the network its target
+//! ([`train::heat`], [`train::smoke`]).
 //!
 //! **Precision.** Operators, rollouts and training run in `f64` by default
 //! and in `f32` where an operator implements `Forward<f32>` (networks, the

@@ -326,6 +326,30 @@ fn sip_heat_experiment_runs_and_reports_json() {
 }
 
 #[test]
+fn sip_smoke_experiment_runs_and_reports_json() {
+    let out = std::env::temp_dir().join(format!("diffsim-sip-smoke-{}", std::process::id()));
+    let o = out.to_str().unwrap();
+    let (code, stdout, err) = diffsim(&["experiment", "sip-smoke", "--quick", "--seconds", "0.5", "--inverse-iterations", "2", "--json", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    for key in ["sip", "adam", "time_s", "sip_resim", "adam_resim", "sip_s_per_update", "adam_s_per_update", "inverse", "inverse_resim"] {
+        assert!(last[key].as_f64().is_some_and(|v| v.is_finite() && v > 0.0), "{key} in {last}");
+    }
+    assert!(last["sip_updates"].as_u64().is_some_and(|u| u >= 1), "{last}");
+    // The inverse's promise is measured and reported, and beats "nothing moved".
+    let misses = last["inverse_miss"].as_array().unwrap();
+    assert_eq!(misses.len(), 3, "{last}");
+    for m in misses {
+        assert!(m["reverse_time"].as_f64().unwrap() < m["unmoved"].as_f64().unwrap(), "{m}");
+    }
+    for f in ["table.md", "error.csv", "error.png", "reconstructions.png"] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    fails_with(&["experiment", "sip-smoke", "--seconds", "0", "--out", o], "invalid argument --seconds");
+    std::fs::remove_dir_all(&out).ok();
+}
+
+#[test]
 fn cavity_experiment_reports_json_and_writes_its_profiles() {
     let out = std::env::temp_dir().join(format!("diffsim-cavity-{}", std::process::id()));
     let o = out.to_str().unwrap();

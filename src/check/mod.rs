@@ -8,6 +8,9 @@
 //!   when `h` halves).
 //! - [`dot_product`]: `⟨J·v, w⟩ = ⟨v, Jᵀ·w⟩` between the JVP and the VJP,
 //!   plus the VJP's buffer contract (it accumulates, and consumes its seed).
+//! - [`local_inverse`]: a [`LocalInverse`](crate::op::LocalInverse) against
+//!   its promise `f(x + dx) ≈ f(x) + dy`, the relative miss over a sweep of
+//!   step sizes (what physical-gradient training relies on).
 //!
 //! Piecewise-smooth operators declare [`Forward::smooth_radius`]; the checks
 //! keep their steps inside it, and when no usable step fits (the point sits
@@ -19,6 +22,7 @@
 
 mod dot;
 mod fd;
+mod inverse;
 mod taylor;
 
 use std::fmt;
@@ -30,6 +34,7 @@ use crate::op::Forward;
 
 pub use dot::{DotReport, dot_product, dot_product_between};
 pub use fd::{FdReport, FdStep, finite_differences, sweep_steps};
+pub use inverse::{InverseReport, InverseStep, local_inverse, local_inverse_error, step_miss};
 pub use taylor::{TaylorReport, taylor};
 
 /// Outcome of a check.

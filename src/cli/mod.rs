@@ -6,6 +6,7 @@ mod demo;
 mod flow;
 mod measure;
 mod new;
+mod pg;
 mod scene;
 mod train;
 

@@ -62,6 +62,10 @@ pub enum ExperimentCommand {
     /// Inverse heat (64 × 64, ν·t = 8): SIP vs Adam vs plain gradient
     /// descent, same network, start and batches.
     SipHeat(SipArgs),
+    /// Inverse smoke: a network recovers P2's initial smoke from the smoke
+    /// T steps later, trained by SIP with the reverse-time inverse and by
+    /// Adam through the solver, in equal wall-clock budgets.
+    SipSmoke(super::pg::SipSmokeArgs),
     /// The lid-driven cavity marched to its steady state, its centreline
     /// extrema compared with Ghia, Ghia & Shin (1982).
     Cavity(super::flow::CavityArgs),
@@ -296,7 +300,18 @@ pub struct SolWakeArgs {
     steps: Option<usize>,
 }
 
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CliError + '_ {
+/// Writes a comparison's `table.md`, `error.csv` and `error.png` (the plot
+/// only warns when it cannot be drawn).
+pub(super) fn write_error_files(out: &Path, table: &str, csv: &str, axes: &Axes<'_>, series: &[Series]) -> Result<(), CliError> {
+    let md = out.join("table.md");
+    std::fs::write(&md, table).map_err(io(&md))?;
+    let path = out.join("error.csv");
+    std::fs::write(&path, csv).map_err(io(&path))?;
+    plot_or_warn(&out.join("error.png"), axes, series);
+    Ok(())
+}
+
+pub(super) fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CliError + '_ {
     move |source| CliError::Io { path: path.to_path_buf(), source }
 }
 
@@ -503,6 +518,7 @@ pub(super) fn experiment(c: ExperimentCommand) -> Result<(), CliError> {
         ExperimentCommand::SolWake(a) => sol_wake(a),
         ExperimentCommand::HigOscillators(a) => hig_oscillators(a),
         ExperimentCommand::SipHeat(a) => sip_heat(a),
+        ExperimentCommand::SipSmoke(a) => super::pg::sip_smoke(a),
         ExperimentCommand::Cavity(a) => super::flow::cavity(a),
         ExperimentCommand::Cylinder(a) => super::flow::cylinder(a),
         ExperimentCommand::DragShape(a) => super::flow::drag_shape(a),
@@ -596,7 +612,7 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
     let mut csv = String::from("optimizer,seconds,error,x_l2\n");
     let mut series = Vec::new();
     let l2 = |c: &crate::train::oscillators::Curve, last: bool| {
-        let p = if last { c.l2_points.last() } else { c.l2_points.first() };
+        let p = if last { c.second_points.last() } else { c.second_points.first() };
         p.map_or(f64::NAN, |p| p.1)
     };
     for (k, c) in curves.iter().enumerate() {
@@ -611,22 +627,20 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
             l2(c, true)
         ));
         for (i, (t, e)) in c.points.iter().enumerate() {
-            let x2 = c.l2_points.get(i).map_or(f64::NAN, |p| p.1);
+            let x2 = c.second_points.get(i).map_or(f64::NAN, |p| p.1);
             csv.push_str(&format!("{},{t:.4},{e:.6e},{x2:.6e}\n", c.name));
         }
         series.push(Series { name: c.name.clone(), points: c.points.clone(), color: k, markers: false });
     }
     let (inverse_l1, inverse_l2) = crate::train::heat::inverse_errors(&cfg);
     table.push_str(&format!("| the inverse alone, x = P⁻¹(y*) | – | – | – | {inverse_l1:.1} | – | {inverse_l2:.1} |\n"));
-    let md = a.out.join("table.md");
-    std::fs::write(&md, &table).map_err(io(&md))?;
-    let path = a.out.join("error.csv");
-    std::fs::write(&path, csv).map_err(io(&path))?;
-    plot_or_warn(
-        &a.out.join("error.png"),
+    write_error_files(
+        &a.out,
+        &table,
+        &csv,
         &Axes { title: "inverse heat: state error vs training time", x: "seconds", y: "mean L1 error of x", log_x: false, log_y: true },
         &series,
-    );
+    )?;
     let budget_s = start.elapsed().as_secs_f64();
     if a.json {
         let obj = serde_json::json!({

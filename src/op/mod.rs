@@ -55,7 +55,7 @@ pub mod stencil;
 
 pub use chain::{Chain, Effect};
 pub use fd::FiniteDiff;
-pub use inverse::{GaussNewton, LocalInverse};
+pub use inverse::{GaussNewton, LocalInverse, Refined};
 pub use mean::MeanMatched;
 pub use part::{AddParams, Part};
 pub use per_thread::PerThread;

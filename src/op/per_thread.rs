@@ -101,3 +101,9 @@ impl<O: Jvp + Send> Jvp for PerThread<O> {
         self.mine().jvp(x, p, tx, tp, y, ty)
     }
 }
+
+impl<O: super::LocalInverse + Send> super::LocalInverse for PerThread<O> {
+    fn local_inverse(&self, x: &[f64], p: &[f64], dy: &[f64], dx: &mut [f64]) {
+        self.mine().local_inverse(x, p, dy, dx)
+    }
+}

@@ -1,13 +1,15 @@
 //! 2D buoyant smoke (benchmark P2) as operators: the explicit part of the
-//! step (advection, walls, buoyancy) with Enzyme-generated derivatives, and
-//! the full step with the pressure projection's implicit adjoint chained in
-//! between.
+//! step (advection, walls, buoyancy) with Enzyme-generated derivatives, the
+//! full step with the pressure projection's implicit adjoint chained in
+//! between and an approximate local inverse (reverse-time simulation), and
+//! [`SmokeRise`], P2's solver as the forward map of an inverse problem
+//! (initial smoke to the smoke `T` steps later).
 
 use diffsim_solvers::smoke::{self, Preconditioner, Smoke2d};
 
 use crate::fluids::Project;
 
-use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+use crate::op::{Forward, Jvp, LocalInverse, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 use crate::rollout::{Checkpointing, Gradient, Rollout, RolloutError, Workspace};
 
 /// Steps 1–4 of P2 (advection, walls, buoyancy) on the packed state
@@ -172,6 +174,168 @@ impl Jvp for SmokeStep {
         self.advect.jvp(x, p, tx, tp, y, ty);
         self.project.apply(y);
         self.project.apply(ty);
+    }
+}
+
+impl LocalInverse for SmokeStep {
+    /// The step run backwards in time on the perturbation, along the
+    /// velocity of `x` (the one the forward step advected with): the
+    /// buoyancy the step added to `dy`'s velocity taken back, every field of
+    /// the perturbation carried back one unit of time
+    /// ([`smoke::advect_along`] with `dt = −1`), the velocity projected so
+    /// that `x + dx` stays divergence-free. Approximate: it ignores how
+    /// `dx` changes the velocity that advects (the step's nonlinearity),
+    /// and bilinear sampling back and forth smooths what it carries (a
+    /// first-order error in the cell size);
+    /// [`crate::check::local_inverse`] measures how well
+    /// `f(x + dx) ≈ f(x) + dy` holds. A failed solve is recorded as in
+    /// [`Forward::forward`].
+    fn local_inverse(&self, x: &[f64], p: &[f64], dy: &[f64], dx: &mut [f64]) {
+        validate_forward(self, "SmokeStep::local_inverse", x, p, dy);
+        assert_eq!(dx.len(), self.n_in(), "SmokeStep::local_inverse: dx has the wrong length");
+        let cfg = *self.cfg();
+        let mut d = dy.to_vec();
+        let (s, _, v) = cfg.split_mut(&mut d);
+        smoke::add_buoyancy(&cfg, -cfg.buoyancy, s, v);
+        smoke::advect_along(&cfg, -1.0, x, &d, dx);
+        self.project.apply(dx);
+    }
+}
+
+/// P2's solver as the forward map of an inverse problem: the initial
+/// smoke (velocity at rest) to the smoke `steps` steps later,
+/// `P: s_0 ↦ s_T`, both `N²` values. The smoke rises, drives the velocity
+/// by its buoyancy and is carried by it: `P` is nonlinear.
+///
+/// - VJP: the steps' VJPs chained back over the stored trajectory
+///   (Enzyme for the explicit part, the implicit adjoint of the solves).
+/// - JVP: the steps' JVPs chained forward.
+/// - [`LocalInverse`]: the steps' local inverses chained back over the
+///   stored trajectory (reverse-time simulation of the perturbation `[dy,
+///   0, 0]`), its smoke part.
+///
+/// A failed solve is recorded and reported by [`Forward::take_error`].
+#[derive(Debug)]
+pub struct SmokeRise {
+    /// The step (owns the solver; not `Sync`: wrap in
+    /// [`crate::op::PerThread`] for batches).
+    pub step: SmokeStep,
+    /// Number of steps `T`.
+    pub steps: usize,
+}
+
+impl SmokeRise {
+    /// `steps` steps of P2 on `n × n` cells, solves to relative tolerance
+    /// 1e-8 with a sparse Cholesky preconditioner (a direct solve).
+    pub fn new(n: usize, steps: usize) -> Self {
+        Self { step: SmokeStep::new(Smoke2d::p2(n), 1e-8, 2000, Preconditioner::Cholesky), steps }
+    }
+
+    /// The packed states `x_0 = [s_0, 0, 0], …, x_T`.
+    pub fn trajectory(&self, s0: &[f64]) -> Vec<Vec<f64>> {
+        let cfg = self.step.cfg();
+        let mut x = vec![0.0; cfg.n_state()];
+        x[..cfg.n_s()].copy_from_slice(s0);
+        let mut states = Vec::with_capacity(self.steps + 1);
+        for _ in 0..self.steps {
+            let mut y = vec![0.0; x.len()];
+            self.step.forward(&x, &[], &mut y);
+            states.push(std::mem::replace(&mut x, y));
+        }
+        states.push(x);
+        states
+    }
+}
+
+impl Operator for SmokeRise {
+    fn n_in(&self) -> usize {
+        self.step.cfg().n_s()
+    }
+    fn n_out(&self) -> usize {
+        self.step.cfg().n_s()
+    }
+}
+
+impl Forward for SmokeRise {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "SmokeRise", x, p, y);
+        let states = self.trajectory(x);
+        y.copy_from_slice(&states[self.steps][..y.len()]);
+    }
+
+    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+        // The smallest radius of the steps along the tangent carried forward.
+        let cfg = self.step.cfg();
+        let (mut xc, mut tc) = (vec![0.0; cfg.n_state()], vec![0.0; cfg.n_state()]);
+        xc[..cfg.n_s()].copy_from_slice(x);
+        tc[..cfg.n_s()].copy_from_slice(dx);
+        let (mut y, mut ty) = (vec![0.0; xc.len()], vec![0.0; xc.len()]);
+        let mut radius = f64::INFINITY;
+        for _ in 0..self.steps {
+            radius = radius.min(self.step.smooth_radius(&xc, &[], &tc, &[]));
+            self.step.jvp(&xc, &[], &tc, &[], &mut y, &mut ty);
+            std::mem::swap(&mut xc, &mut y);
+            std::mem::swap(&mut tc, &mut ty);
+        }
+        radius
+    }
+
+    fn take_error(&self) -> Option<OpError> {
+        self.step.take_error()
+    }
+}
+
+impl Vjp for SmokeRise {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "SmokeRise", x, p, dy, dx, dp);
+        let states = self.trajectory(x);
+        let n = self.step.cfg().n_state();
+        let mut g = vec![0.0; n];
+        g[..dy.len()].copy_from_slice(dy);
+        for t in (0..self.steps).rev() {
+            let mut gx = vec![0.0; n];
+            self.step.vjp(&states[t], &[], &mut g, &mut gx, &mut []);
+            g = gx;
+        }
+        for (d, v) in dx.iter_mut().zip(&g) {
+            *d += v;
+        }
+        dy.fill(0.0);
+    }
+}
+
+impl Jvp for SmokeRise {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        validate_jvp(self, "SmokeRise", x, p, tx, tp, y, ty);
+        let n = self.step.cfg().n_state();
+        let (mut xc, mut tc) = (vec![0.0; n], vec![0.0; n]);
+        xc[..x.len()].copy_from_slice(x);
+        tc[..tx.len()].copy_from_slice(tx);
+        let (mut yn, mut tn) = (vec![0.0; n], vec![0.0; n]);
+        for _ in 0..self.steps {
+            self.step.jvp(&xc, &[], &tc, &[], &mut yn, &mut tn);
+            std::mem::swap(&mut xc, &mut yn);
+            std::mem::swap(&mut tc, &mut tn);
+        }
+        y.copy_from_slice(&xc[..y.len()]);
+        ty.copy_from_slice(&tc[..ty.len()]);
+    }
+}
+
+impl LocalInverse for SmokeRise {
+    fn local_inverse(&self, x: &[f64], p: &[f64], dy: &[f64], dx: &mut [f64]) {
+        validate_forward(self, "SmokeRise::local_inverse", x, p, dy);
+        assert_eq!(dx.len(), self.n_in(), "SmokeRise::local_inverse: dx has the wrong length");
+        let states = self.trajectory(x);
+        let n = self.step.cfg().n_state();
+        let mut d = vec![0.0; n];
+        d[..dy.len()].copy_from_slice(dy);
+        let mut back = vec![0.0; n];
+        for t in (0..self.steps).rev() {
+            self.step.local_inverse(&states[t], &[], &d, &mut back);
+            std::mem::swap(&mut d, &mut back);
+        }
+        dx.copy_from_slice(&d[..dx.len()]);
     }
 }
 

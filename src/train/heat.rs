@@ -203,7 +203,7 @@ fn train_each<N: Vjp + Sync>(
             Method::Gd => Optimizer::sgd(cfg.gd_lr),
         };
         let (e1, e2) = state_errors(net, &theta, &test);
-        let (mut points, mut l2_points) = (vec![(0.0, e1)], vec![(0.0, e2)]);
+        let (mut points, mut second_points) = (vec![(0.0, e1)], vec![(0.0, e2)]);
         let mut trained = 0.0;
         for it in 1..=cfg.iterations {
             let batch = samples(&cfg.physics, &mut data_rng, cfg.batch);
@@ -221,10 +221,10 @@ fn train_each<N: Vjp + Sync>(
                     return Err(PgError::NonFinite { what: "state error", sample: 0 });
                 }
                 points.push((trained, e1));
-                l2_points.push((trained, e2));
+                second_points.push((trained, e2));
             }
         }
-        curves.push(Curve { name: method.name().to_string(), points, updates: cfg.iterations, seconds: trained, diverged_after: None, l2_points });
+        curves.push(Curve { name: method.name().to_string(), points, updates: cfg.iterations, seconds: trained, diverged_after: None, second_points });
     }
     Ok(curves)
 }

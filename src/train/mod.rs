@@ -17,6 +17,7 @@ pub mod oscillators;
 pub mod p3;
 pub mod pg;
 pub mod shape_net;
+pub mod smoke;
 pub mod sol;
 pub mod wake;
 

@@ -132,9 +132,10 @@ pub struct Curve {
     #[serde(default)]
     pub diverged_after: Option<usize>,
     /// A second error measure at the same times, where the comparison has
-    /// one (inverse heat: the notebook's x-L2 beside the L1 error).
-    #[serde(default)]
-    pub l2_points: Vec<(f64, f64)>,
+    /// one (inverse heat: the notebook's x-L2 beside the L1 error; inverse
+    /// smoke: the re-simulated final smoke's error beside the initial's).
+    #[serde(default, alias = "l2_points")]
+    pub second_points: Vec<(f64, f64)>,
 }
 
 impl Curve {
@@ -239,7 +240,7 @@ pub fn compare(cfg: &OscConfig, methods: &[OscMethod], mut progress: impl FnMut(
                 next += every;
             }
         }
-        curves.push(Curve { name: method.name().to_string(), points, updates, seconds: trained, diverged_after, l2_points: Vec::new() });
+        curves.push(Curve { name: method.name().to_string(), points, updates, seconds: trained, diverged_after, second_points: Vec::new() });
     }
     Ok(curves)
 }

@@ -21,7 +21,7 @@
 
 use rayon::prelude::*;
 
-use crate::op::{LocalInverse, Vjp};
+use crate::op::{LocalInverse, OpError, Vjp};
 
 /// One example of the inverse problem.
 #[derive(Clone, Debug)]
@@ -32,8 +32,8 @@ pub struct InverseSample {
     pub truth: Vec<f64>,
 }
 
-/// A physical-gradient step that produced non-finite values.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+/// A physical-gradient step that could not be made.
+#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
 pub enum PgError {
     /// A non-finite loss, target or gradient.
     #[error("non-finite {what} in sample {sample} of the batch")]
@@ -43,6 +43,15 @@ pub enum PgError {
         /// The sample's index in the batch.
         sample: usize,
     },
+    /// The physics failed (e.g. a solve did not converge) in some sample of
+    /// the batch.
+    #[error("the physics failed in the batch: {0}")]
+    Physics(OpError),
+}
+
+/// The physics' recorded failure, if any, after a batch.
+fn physics_ok<P: crate::op::Forward>(physics: &P) -> Result<(), PgError> {
+    physics.take_error().map_or(Ok(()), |e| Err(PgError::Physics(e)))
 }
 
 /// What a SIP step computed.
@@ -60,14 +69,16 @@ fn finite(v: &[f64], what: &'static str, sample: usize) -> Result<(), PgError> {
     if v.iter().all(|x| x.is_finite()) { Ok(()) } else { Err(PgError::NonFinite { what, sample }) }
 }
 
-/// `(x, y, ½‖y − y*‖²)` of one sample.
-fn predict<P: Vjp, N: Vjp>(physics: &P, net: &N, theta: &[f64], s: &InverseSample) -> (Vec<f64>, Vec<f64>, f64) {
+/// `(x, y, ½‖y − y*‖²)` of sample `i`; a non-finite prediction is an
+/// error before the physics sees it.
+fn predict<P: Vjp, N: Vjp>(physics: &P, net: &N, theta: &[f64], s: &InverseSample, i: usize) -> Result<(Vec<f64>, Vec<f64>, f64), PgError> {
     let mut x = vec![0.0; net.n_out()];
     net.forward(&s.observed, theta, &mut x);
+    finite(&x, "network prediction", i)?;
     let mut y = vec![0.0; physics.n_out()];
     physics.forward(&x, &[], &mut y);
     let loss = 0.5 * y.iter().zip(&s.observed).map(|(a, b)| (a - b) * (a - b)).sum::<f64>();
-    (x, y, loss)
+    Ok((x, y, loss))
 }
 
 /// One sample's `(loss, proxy loss, gradient)`.
@@ -108,7 +119,7 @@ pub fn physics_loss_and_gradient<P: Vjp + Sync, N: Vjp + Sync>(
         .par_iter()
         .enumerate()
         .map(|(i, s)| {
-            let (x, y, loss) = predict(physics, net, theta, s);
+            let (x, y, loss) = predict(physics, net, theta, s, i)?;
             let mut seed: Vec<f64> = y.iter().zip(&s.observed).map(|(a, b)| a - b).collect();
             let mut dx = vec![0.0; x.len()];
             physics.vjp(&x, &[], &mut seed, &mut dx, &mut []);
@@ -117,6 +128,7 @@ pub fn physics_loss_and_gradient<P: Vjp + Sync, N: Vjp + Sync>(
             Ok((loss, 0.0, g))
         })
         .collect();
+    physics_ok(physics)?;
     let (loss, _, g) = reduce(parts, theta.len())?;
     if !loss.is_finite() {
         return Err(PgError::NonFinite { what: "physics loss", sample: 0 });
@@ -137,7 +149,7 @@ pub fn sip_gradient<P: LocalInverse + Vjp + Sync, N: Vjp + Sync>(
         .par_iter()
         .enumerate()
         .map(|(i, s)| {
-            let (x, y, loss) = predict(physics, net, theta, s);
+            let (x, y, loss) = predict(physics, net, theta, s, i)?;
             let dy: Vec<f64> = s.observed.iter().zip(&y).map(|(t, a)| eta * (t - a)).collect();
             let mut step = vec![0.0; x.len()];
             physics.local_inverse(&x, &[], &dy, &mut step);
@@ -150,6 +162,7 @@ pub fn sip_gradient<P: LocalInverse + Vjp + Sync, N: Vjp + Sync>(
             Ok((loss, proxy, g))
         })
         .collect();
+    physics_ok(physics)?;
     let (physics_loss, proxy_loss, grad) = reduce(parts, theta.len())?;
     Ok(SipGradient { physics_loss, proxy_loss, grad })
 }

@@ -129,6 +129,36 @@ fn advect_on<const WX: bool, const WY: bool>(
     }
 }
 
+/// A perturbation `d = [ds, du, dv]` of the state carried along the
+/// velocity of the state `x` over `dt` (semi-Lagrangian: each field sampled
+/// at its own points traced back by `dt` times `x`'s velocity there), then
+/// the linear velocity boundary conditions; overwrites `out`. Linear in
+/// `d`. With `dt = −1` it runs P2's advection backwards in time along the
+/// step's velocity: the approximate inverse of [`advect_buoyancy`]'s
+/// transport that the smoke step's local inverse uses.
+///
+/// # Panics
+/// If a length is wrong or a side has fewer than 2 cells.
+pub fn advect_along(cfg: &Smoke2d, dt: f64, x: &[f64], d: &[f64], out: &mut [f64]) {
+    let n = cfg.n_state();
+    assert!(cfg.nx.min(cfg.ny) >= 2 && x.len() == n && d.len() == n && out.len() == n, "smoke: state lengths");
+    with_mac!(cfg, mac => advect_along_on(mac, dt, x, d, out));
+    let (_, u2, v2) = cfg.split_mut(out);
+    enforce_boundary_linear(cfg, u2, v2);
+}
+
+fn advect_along_on<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, dt: f64, x: &[f64], d: &[f64], out: &mut [f64]) {
+    let (ns, nu) = (mac.nx * mac.ny, mac.ny * (mac.nx + 1));
+    let (u, v) = x[ns..].split_at(nu);
+    let (ds, rest) = d.split_at(ns);
+    let (du, dv) = rest.split_at(nu);
+    let (os, rest) = out.split_at_mut(ns);
+    let (ou, ov) = rest.split_at_mut(nu);
+    trace(mac, At::Centre, (u, v), ds, dt, os);
+    trace(mac, At::UFace, (u, v), du, dt, ou);
+    trace(mac, At::VFace, (u, v), dv, dt, ov);
+}
+
 /// How far `x` may move along `d` before [`advect`] meets a kink: bilinear
 /// sampling is smooth between lattice lines and kinks where a traced point
 /// crosses one (or a clamped edge). The smallest, over the traced points
