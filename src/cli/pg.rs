@@ -11,8 +11,8 @@ use crate::train::smoke::{SHOWN, SmokeComparison, SmokeConfig, SmokeMethod, comp
 /// Arguments of `diffsim experiment sip-smoke`.
 #[derive(Debug, clap::Args)]
 pub struct SipSmokeArgs {
-    /// A quick look: 16 × 16 cells, 8 steps, 10 s per method (else 32 × 32,
-    /// 16 steps, 120 s).
+    /// A quick look: 16 × 16 cells, 10 s per method (else 32 × 32, 120 s;
+    /// 16 steps in both).
     #[arg(long)]
     quick: bool,
     /// Training seconds per method (overrides the default of the mode).

@@ -69,10 +69,10 @@ impl SmokeConfig {
         Self { n: 32, steps: 16, batch: 16, width: 8, levels: 3, adam_lr: 1e-3, sip_lr: 1e-3, eta: 1.0, refine: 0, seconds: 120.0, test_samples: 16, seed: 1 }
     }
 
-    /// A quick look: 16 × 16 cells, 8 steps, batch 8, a 2-level U-Net of
+    /// A quick look: 16 × 16 cells, 16 steps, batch 8, a 2-level U-Net of
     /// 4 filters, 10 s each, 8 held-out samples.
     pub fn quick() -> Self {
-        Self { n: 16, steps: 8, batch: 8, width: 4, levels: 2, seconds: 10.0, test_samples: 8, ..Self::standard() }
+        Self { n: 16, batch: 8, width: 4, levels: 2, seconds: 10.0, test_samples: 8, ..Self::standard() }
     }
 }
 
