@@ -245,6 +245,24 @@ impl SmokeRise {
         states.push(x);
         states
     }
+
+    /// The packed state `[s_0, 0, 0]` and tangent `[t_0, 0, 0]` carried
+    /// through the steps by their JVPs; `visit(x_t, t_t)` sees each pair
+    /// before its step. Returns `(x_T, t_T)`.
+    fn carry(&self, s0: &[f64], t0: &[f64], mut visit: impl FnMut(&[f64], &[f64])) -> (Vec<f64>, Vec<f64>) {
+        let n = self.step.cfg().n_state();
+        let (mut xc, mut tc) = (vec![0.0; n], vec![0.0; n]);
+        xc[..s0.len()].copy_from_slice(s0);
+        tc[..t0.len()].copy_from_slice(t0);
+        let (mut yn, mut tn) = (vec![0.0; n], vec![0.0; n]);
+        for _ in 0..self.steps {
+            visit(&xc, &tc);
+            self.step.jvp(&xc, &[], &tc, &[], &mut yn, &mut tn);
+            std::mem::swap(&mut xc, &mut yn);
+            std::mem::swap(&mut tc, &mut tn);
+        }
+        (xc, tc)
+    }
 }
 
 impl Operator for SmokeRise {
@@ -265,18 +283,8 @@ impl Forward for SmokeRise {
 
     fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
         // The smallest radius of the steps along the tangent carried forward.
-        let cfg = self.step.cfg();
-        let (mut xc, mut tc) = (vec![0.0; cfg.n_state()], vec![0.0; cfg.n_state()]);
-        xc[..cfg.n_s()].copy_from_slice(x);
-        tc[..cfg.n_s()].copy_from_slice(dx);
-        let (mut y, mut ty) = (vec![0.0; xc.len()], vec![0.0; xc.len()]);
         let mut radius = f64::INFINITY;
-        for _ in 0..self.steps {
-            radius = radius.min(self.step.smooth_radius(&xc, &[], &tc, &[]));
-            self.step.jvp(&xc, &[], &tc, &[], &mut y, &mut ty);
-            std::mem::swap(&mut xc, &mut y);
-            std::mem::swap(&mut tc, &mut ty);
-        }
+        self.carry(x, dx, |xc, tc| radius = radius.min(self.step.smooth_radius(xc, &[], tc, &[])));
         radius
     }
 
@@ -307,16 +315,7 @@ impl Vjp for SmokeRise {
 impl Jvp for SmokeRise {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         validate_jvp(self, "SmokeRise", x, p, tx, tp, y, ty);
-        let n = self.step.cfg().n_state();
-        let (mut xc, mut tc) = (vec![0.0; n], vec![0.0; n]);
-        xc[..x.len()].copy_from_slice(x);
-        tc[..tx.len()].copy_from_slice(tx);
-        let (mut yn, mut tn) = (vec![0.0; n], vec![0.0; n]);
-        for _ in 0..self.steps {
-            self.step.jvp(&xc, &[], &tc, &[], &mut yn, &mut tn);
-            std::mem::swap(&mut xc, &mut yn);
-            std::mem::swap(&mut tc, &mut tn);
-        }
+        let (xc, tc) = self.carry(x, tx, |_, _| {});
         y.copy_from_slice(&xc[..y.len()]);
         ty.copy_from_slice(&tc[..ty.len()]);
     }

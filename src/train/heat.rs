@@ -19,7 +19,7 @@ use super::Optimizer;
 use super::oscillators::Curve;
 use super::pg::{InverseSample, PgError, physics_loss_and_gradient, sip_gradient};
 use crate::nn::{Activation, Net, Padding, presets};
-use crate::op::{Float32, Forward, MeanMatched, Vjp};
+use crate::op::{Float32, Forward, MeanMatched, OperatorExt, Vjp};
 use crate::problems::heat::Heat;
 
 /// The comparison's settings.
@@ -266,9 +266,5 @@ pub fn inverse_errors(cfg: &HeatConfig) -> (f64, f64) {
 /// `‖x − x*‖₁` (summed over cells; the published MAE is this over the cell
 /// count) and of `½‖x − x*‖₂²` (the notebook's x-L2).
 fn state_errors<N: Vjp + Sync>(net: &N, theta: &[f64], data: &[InverseSample]) -> (f64, f64) {
-    mean_errors(data, |s| {
-        let mut x = vec![0.0; net.n_out()];
-        net.forward(&s.observed, theta, &mut x);
-        x
-    })
+    mean_errors(data, |s| net.eval(&s.observed, theta))
 }

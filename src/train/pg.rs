@@ -21,7 +21,7 @@
 
 use rayon::prelude::*;
 
-use crate::op::{LocalInverse, OpError, Vjp};
+use crate::op::{LocalInverse, OpError, OperatorExt, Vjp};
 
 /// One example of the inverse problem.
 #[derive(Clone, Debug)]
@@ -50,7 +50,7 @@ pub enum PgError {
 }
 
 /// The physics' recorded failure, if any, after a batch.
-fn physics_ok<P: crate::op::Forward>(physics: &P) -> Result<(), PgError> {
+pub(crate) fn physics_ok<P: crate::op::Forward + ?Sized>(physics: &P) -> Result<(), PgError> {
     physics.take_error().map_or(Ok(()), |e| Err(PgError::Physics(e)))
 }
 
@@ -72,8 +72,7 @@ fn finite(v: &[f64], what: &'static str, sample: usize) -> Result<(), PgError> {
 /// `(x, y, ½‖y − y*‖²)` of sample `i`; a non-finite prediction is an
 /// error before the physics sees it.
 fn predict<P: Vjp, N: Vjp>(physics: &P, net: &N, theta: &[f64], s: &InverseSample, i: usize) -> Result<(Vec<f64>, Vec<f64>, f64), PgError> {
-    let mut x = vec![0.0; net.n_out()];
-    net.forward(&s.observed, theta, &mut x);
+    let x = net.eval(&s.observed, theta);
     finite(&x, "network prediction", i)?;
     let mut y = vec![0.0; physics.n_out()];
     physics.forward(&x, &[], &mut y);
@@ -173,8 +172,7 @@ pub fn state_error<N: Vjp + Sync>(net: &N, theta: &[f64], data: &[InverseSample]
     let errors: Vec<f64> = data
         .par_iter()
         .map(|s| {
-            let mut x = vec![0.0; net.n_out()];
-            net.forward(&s.observed, theta, &mut x);
+            let x = net.eval(&s.observed, theta);
             x.iter().zip(&s.truth).map(|(a, b)| (a - b).abs()).sum::<f64>()
         })
         .collect();

@@ -27,9 +27,9 @@ use rayon::prelude::*;
 
 use super::Optimizer;
 use super::oscillators::Curve;
-use super::pg::{InverseSample, PgError, physics_loss_and_gradient, sip_gradient};
+use super::pg::{InverseSample, PgError, physics_loss_and_gradient, physics_ok, sip_gradient};
 use crate::nn::{Activation, Net, Padding, presets};
-use crate::op::{Float32, Forward, LocalInverse, PerThread, Refined, Vjp};
+use crate::op::{Float32, Forward, LocalInverse, OperatorExt, PerThread, Refined, Vjp};
 use crate::problems::smoke::SmokeRise;
 
 /// The comparison's settings.
@@ -122,7 +122,8 @@ pub fn samples(physics: &Physics, n: usize, rng: &mut impl Rng, count: usize) ->
             InverseSample { observed, truth }
         })
         .collect();
-    physics.take_error().map_or(Ok(out), |e| Err(PgError::Physics(e)))
+    physics_ok(physics)?;
+    Ok(out)
 }
 
 /// The network: a U-Net of `levels` levels and `width` filters (ReLU,
@@ -213,7 +214,7 @@ pub fn compare(cfg: &SmokeConfig, methods: &[SmokeMethod], mut progress: impl Fn
                 next = trained + every;
             }
         }
-        let shown = test.iter().take(SHOWN).map(|s| predict(&net, &theta, s)).collect();
+        let shown = test.iter().take(SHOWN).map(|s| net.eval(&s.observed, &theta)).collect();
         let curve = Curve { name: method.name().to_string(), points, updates, seconds: trained, diverged_after: None, second_points };
         runs.push(SmokeRun { curve, shown });
     }
@@ -223,12 +224,6 @@ pub fn compare(cfg: &SmokeConfig, methods: &[SmokeMethod], mut progress: impl Fn
 /// The held-out samples every curve and [`inverse_alone`] are measured on.
 fn test_set(cfg: &SmokeConfig, physics: &Physics) -> Result<Vec<InverseSample>, PgError> {
     samples(physics, cfg.n, &mut StdRng::seed_from_u64(cfg.seed + 1000), cfg.test_samples)
-}
-
-fn predict<N: Vjp>(net: &N, theta: &[f64], s: &InverseSample) -> Vec<f64> {
-    let mut x = vec![0.0; net.n_out()];
-    net.forward(&s.observed, theta, &mut x);
-    x
 }
 
 fn mae(a: &[f64], b: &[f64]) -> f64 {
@@ -247,9 +242,7 @@ fn state_errors(physics: &Physics, data: &[InverseSample], xs: &[Vec<f64>]) -> R
             (mae(x, &s.truth), mae(&y, &s.observed))
         })
         .collect();
-    if let Some(e) = physics.take_error() {
-        return Err(PgError::Physics(e));
-    }
+    physics_ok(physics)?;
     let n = data.len().max(1) as f64;
     let (a, b) = per.iter().fold((0.0, 0.0), |(a, b), (c, d)| (a + c, b + d));
     let (a, b) = (a / n, b / n);
@@ -261,7 +254,7 @@ fn state_errors(physics: &Physics, data: &[InverseSample], xs: &[Vec<f64>]) -> R
 
 /// The network's held-out errors.
 fn errors<N: Vjp + Sync>(physics: &Physics, net: &N, theta: &[f64], data: &[InverseSample]) -> Result<(f64, f64), PgError> {
-    let xs: Vec<Vec<f64>> = data.par_iter().map(|s| predict(net, theta, s)).collect();
+    let xs: Vec<Vec<f64>> = data.par_iter().map(|s| net.eval(&s.observed, theta)).collect();
     state_errors(physics, data, &xs)
 }
 
@@ -334,9 +327,7 @@ pub fn inverse_misses(cfg: &SmokeConfig, scales: &[f64]) -> Result<Vec<InverseMi
                 .collect()
         })
         .collect();
-    if let Some(e) = physics.take_error() {
-        return Err(PgError::Physics(e));
-    }
+    physics_ok(&physics)?;
     Ok(scales
         .iter()
         .enumerate()
