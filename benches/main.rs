@@ -79,6 +79,21 @@ fn p2(c: &mut Criterion) {
     g.finish();
 }
 
+/// P4 smoke3d at 32³ × 10 (the spec's first size): forward, Enzyme gradient,
+/// hand-adjoint gradient.
+fn p4(c: &mut Criterion) {
+    use diffsim::problems::smoke3d::P4;
+    let mut g = c.benchmark_group("p4_smoke3d");
+    g.sample_size(10);
+    let p = P4::new(32, 10, Preconditioner::Multigrid);
+    g.bench_function("forward/32x10", |b| b.iter(|| std::hint::black_box(p.value().unwrap())));
+    let mut ws = Workspace::new();
+    g.bench_function("grad/32x10", |b| b.iter(|| std::hint::black_box(p.grad_in(&mut ws, Checkpointing::Store).unwrap())));
+    let hand = P4::new(32, 10, Preconditioner::Multigrid).with_hand_adjoint();
+    g.bench_function("hand_grad/32x10", |b| b.iter(|| std::hint::black_box(hand.grad_in(&mut ws, Checkpointing::Store).unwrap())));
+    g.finish();
+}
+
 /// P3 sol1d: one training iteration (16 coupled steps, batch 32, Adam).
 fn p3(c: &mut Criterion) {
     let mut g = c.benchmark_group("p3_sol1d");
@@ -91,7 +106,7 @@ fn p3(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, p1, p1_step, p2, p3, solver_parts, scene_effects, nn_layers);
+criterion_group!(benches, p1, p1_step, p2, p3, p4, solver_parts, scene_effects, nn_layers);
 criterion_main!(benches);
 
 /// One multigrid V-cycle and one plain CG matrix product at 64² and 128²,

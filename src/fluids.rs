@@ -492,11 +492,42 @@ pub struct Project {
     fluid: Option<Vec<f64>>,
     solver: RefCell<PressureSolver>,
     scratch: RefCell<ProjectScratch>,
+    /// The solves' iteration counts and first failure.
+    pub log: SolveLog,
+}
+
+/// What a projection's solves did: CG iterations so far, forward and
+/// adjoint, and the first solve that did not converge (reported, then
+/// cleared, by [`SolveLog::take_error`]). Shared by the 2D and 3D projections.
+#[derive(Debug, Default)]
+pub struct SolveLog {
     error: Cell<Option<NoConvergence>>,
     /// CG iterations of all forward (and JVP) solves so far.
     pub cg_forward: Cell<usize>,
     /// CG iterations of all adjoint solves so far.
     pub cg_adjoint: Cell<usize>,
+}
+
+impl SolveLog {
+    /// Counts a forward (`adjoint = false`) or adjoint solve's iterations and
+    /// keeps its failure if it is the first.
+    pub fn record(&self, r: Result<usize, NoConvergence>, adjoint: bool) {
+        let counter = if adjoint { &self.cg_adjoint } else { &self.cg_forward };
+        match r {
+            Ok(it) => counter.set(counter.get() + it),
+            Err(e) => {
+                counter.set(counter.get() + e.iterations);
+                if self.error.get().is_none() {
+                    self.error.set(Some(e));
+                }
+            }
+        }
+    }
+
+    /// The first failure since the last call, as an operator error.
+    pub fn take_error(&self) -> Option<OpError> {
+        self.error.take().map(OpError::from)
+    }
 }
 
 impl Project {
@@ -516,15 +547,7 @@ impl Project {
         } else {
             PressureSolver::general(cfg.nx, cfg.ny, cfg.boundary, tolerance, max_iterations, None)
         };
-        Self {
-            cfg,
-            fluid: None,
-            solver: RefCell::new(solver),
-            scratch: RefCell::new(ProjectScratch::new(cfg.n_s())),
-            error: Cell::new(None),
-            cg_forward: Cell::new(0),
-            cg_adjoint: Cell::new(0),
-        }
+        Self { cfg, fluid: None, solver: RefCell::new(solver), scratch: RefCell::new(ProjectScratch::new(cfg.n_s())), log: SolveLog::default() }
     }
 
     /// The projection with solid cells where `solid[c]` is true: the
@@ -543,81 +566,80 @@ impl Project {
         self.solver.borrow().preconditioner()
     }
 
-    fn record(&self, r: Result<usize, NoConvergence>, counter: &Cell<usize>) {
-        match r {
-            Ok(it) => counter.set(counter.get() + it),
-            Err(e) => {
-                counter.set(counter.get() + e.iterations);
-                if self.error.get().is_none() {
-                    self.error.set(Some(e));
-                }
-            }
-        }
-    }
-
     /// The map in place on a packed state (or tangent).
     pub fn apply(&self, y: &mut [f64]) {
         if let Some(w) = &self.fluid {
             smoke::apply_obstacle_mask(&self.cfg, w, y);
         }
         let r = smoke::project(&self.cfg, y, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
-        self.record(r, &self.cg_forward);
+        self.log.record(r, false);
     }
 
     /// The transposed map in place on an adjoint.
     pub fn apply_adjoint(&self, g: &mut [f64]) {
         let r = smoke::project_adjoint(&self.cfg, g, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
-        self.record(r, &self.cg_adjoint);
+        self.log.record(r, true);
         if let Some(w) = &self.fluid {
             smoke::apply_obstacle_mask(&self.cfg, w, g);
         }
     }
 }
 
-impl Operator for Project {
-    fn n_in(&self) -> usize {
-        self.cfg.n_state()
-    }
-    fn n_out(&self) -> usize {
-        self.cfg.n_state()
-    }
-}
-
-impl Forward for Project {
-    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
-        crate::op::count::record("Project", crate::op::count::Method::Forward);
-        validate_forward(self, "Project", x, p, y);
-        y.copy_from_slice(x);
-        self.apply(y);
-    }
-
-    fn take_error(&self) -> Option<OpError> {
-        self.error.take().map(OpError::from)
-    }
-}
-
-impl Vjp for Project {
-    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
-        crate::op::count::record("Project", crate::op::count::Method::Vjp);
-        validate_vjp(self, "Project", x, p, dy, dx, dp);
-        self.apply_adjoint(dy);
-        for (d, g) in dx.iter_mut().zip(dy.iter_mut()) {
-            *d += *g;
-            *g = 0.0;
+/// The operator traits of a linear projection `$ty` with methods `apply`
+/// (in place on a state or tangent), `apply_adjoint` (in place on an
+/// adjoint), a `log: SolveLog` field and a grid `cfg` with `n_state()`: the
+/// 2D and 3D projections are one operator shape.
+macro_rules! linear_projection {
+    ($ty:ty, $name:literal) => {
+        impl $crate::op::Operator for $ty {
+            fn n_in(&self) -> usize {
+                self.cfg.n_state()
+            }
+            fn n_out(&self) -> usize {
+                self.cfg.n_state()
+            }
         }
-    }
-}
 
-impl Jvp for Project {
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
-        crate::op::count::record("Project", crate::op::count::Method::Jvp);
-        validate_jvp(self, "Project", x, p, tx, tp, y, ty);
-        y.copy_from_slice(x);
-        self.apply(y);
-        ty.copy_from_slice(tx);
-        self.apply(ty);
-    }
+        impl $crate::op::Forward for $ty {
+            fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+                $crate::op::count::record($name, $crate::op::count::Method::Forward);
+                $crate::op::validate_forward(self, $name, x, p, y);
+                y.copy_from_slice(x);
+                self.apply(y);
+            }
+
+            fn take_error(&self) -> Option<$crate::op::OpError> {
+                self.log.take_error()
+            }
+        }
+
+        impl $crate::op::Vjp for $ty {
+            fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+                $crate::op::count::record($name, $crate::op::count::Method::Vjp);
+                $crate::op::validate_vjp(self, $name, x, p, dy, dx, dp);
+                self.apply_adjoint(dy);
+                for (d, g) in dx.iter_mut().zip(dy.iter_mut()) {
+                    *d += *g;
+                    *g = 0.0;
+                }
+            }
+        }
+
+        impl $crate::op::Jvp for $ty {
+            fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+                $crate::op::count::record($name, $crate::op::count::Method::Jvp);
+                $crate::op::validate_jvp(self, $name, x, p, tx, tp, y, ty);
+                y.copy_from_slice(x);
+                self.apply(y);
+                ty.copy_from_slice(tx);
+                self.apply(ty);
+            }
+        }
+    };
 }
+pub(crate) use linear_projection;
+
+linear_projection!(Project, "Project");
 
 /// Buoyancy over a time step `dt` with the coefficient as the parameter
 /// `p = [b]`: `v += dt·b·(smoke averaged to the y-face)` on the interior y-faces (and the

@@ -14,6 +14,7 @@ mod inputs;
 mod nn;
 mod p1;
 mod p2;
+mod p4;
 mod pg;
 mod properties;
 mod resume;

@@ -19,8 +19,8 @@ fn check_size(k: usize, preconds: &[Preconditioner]) {
             l2,
             gs[0],
             gs[r.n * r.n / 2],
-            p.step.project.cg_forward.get(),
-            p.step.project.cg_adjoint.get()
+            p.step.project.log.cg_forward.get(),
+            p.step.project.log.cg_adjoint.get()
         );
         assert!((g.loss - r.loss).abs() <= 1e-6 * r.loss, "loss {} vs {}", g.loss, r.loss);
         assert!((l2 - r.grad_l2).abs() <= 1e-6 * r.grad_l2, "‖∇L‖ {} vs {}", l2, r.grad_l2);

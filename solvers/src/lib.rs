@@ -18,13 +18,16 @@
 
 pub mod boundary;
 pub mod burgers;
+pub mod cg;
 pub mod diffusion;
 pub mod exact;
 pub mod flow;
+pub mod grid;
 pub mod linalg;
 pub mod multigrid;
 pub mod nn;
 pub mod real;
 pub mod simd;
 pub mod smoke;
+pub mod smoke3d;
 pub mod spectral;

@@ -1,19 +1,47 @@
 //! A geometric multigrid V-cycle for the closed-box pressure matrix, used as
-//! the preconditioner of conjugate gradients.
+//! the preconditioner of conjugate gradients: one hierarchy for the square
+//! (2D, five-point matrix) and the cube (3D, seven-point matrix; a square is
+//! a cube one cell deep that is never coarsened along z).
 //!
 //! Cell-centred grids halve per level while the side stays even and ≥ 4.
-//! Prolongation `P` is bilinear (weights ¾, ¼ per axis, reflected at the
-//! walls); restriction is its exact transpose scaled by ¼, `R = Pᵀ/4`; the
-//! coarse matrix is the same stencil scaled by ¼ per level (the unscaled
-//! matrix approximates `−h²Δ`, and `h` doubles). Smoothing is damped Jacobi
-//! (ω = 0.8), as many sweeps after the coarse correction as before (one
+//! Prolongation `P` is bilinear or trilinear (weights ¾, ¼ per axis,
+//! reflected at the walls: the 2D prolongation of each slab after the slabs
+//! are blended along z); restriction is its exact transpose scaled to an
+//! average, `R = Pᵀ/2^d` (`d` the coarsened axes); the coarse matrix is the
+//! same stencil scaled by ¼ per level (the unscaled matrix approximates
+//! `−h²Δ`, and `h` doubles). Smoothing is damped Jacobi
+//! (ω = 0.8 in 2D, 6/7 in 3D), as many sweeps after the coarse correction as before (one
 //! each, `SWEEPS`; thirty on the coarsest grid), so that the V-cycle is a
 //! symmetric positive definite operator, as conjugate gradients needs.
 
 use crate::smoke::apply_pressure_matrix;
 
-/// Jacobi damping.
-const OMEGA: f64 = 0.8;
+/// The pressure matrix of the closed box of `n × n × nz` cells (`nz = 1`:
+/// the square's five-point matrix): `(A·p)[c] = Σ_{neighbours m of c inside
+/// the box} (p[c] − p[m])`, overwrites `out`. Each slab's in-plane part is
+/// the vectorised 2D product; the coupling across slabs is a pass over
+/// pairs of slabs.
+#[inline(always)]
+pub fn apply_box_matrix(n: usize, nz: usize, p: &[f64], out: &mut [f64]) {
+    let slab = n * n;
+    for k in 0..nz {
+        apply_pressure_matrix(n, n, &p[k * slab..(k + 1) * slab], &mut out[k * slab..(k + 1) * slab]);
+    }
+    for k in 1..nz {
+        let (lo, hi) = out.split_at_mut(k * slab);
+        let (below, here) = (&p[(k - 1) * slab..k * slab], &p[k * slab..(k + 1) * slab]);
+        for (((ol, oh), &b), &h) in lo[(k - 1) * slab..].iter_mut().zip(&mut hi[..slab]).zip(below).zip(here) {
+            *ol += b - h;
+            *oh += h - b;
+        }
+    }
+}
+
+/// Jacobi damping: `2d/(2d + 1)` for the `(2d+1)`-point matrix in `d`
+/// dimensions (the factor that damps the highest frequencies best).
+fn omega(cube: bool) -> f64 {
+    if cube { 6.0 / 7.0 } else { 0.8 }
+}
 /// Smoothing sweeps before and after the coarse-grid correction.
 const SWEEPS: usize = 1;
 /// Sweeps on the coarsest grid (at most 4 × 4 cells) instead of a direct solve.
@@ -22,6 +50,8 @@ const COARSEST_SWEEPS: usize = 30;
 #[derive(Clone, Debug)]
 struct Level {
     n: usize,
+    /// Slabs along z (1 in 2D).
+    nz: usize,
     /// The level's matrix is `scale · A_n`.
     scale: f64,
     /// `ω / diag` of the level's matrix.
@@ -32,26 +62,34 @@ struct Level {
 }
 
 impl Level {
-    fn new(n: usize, scale: f64) -> Self {
-        let mut omega_inv_diag = vec![0.0; n * n];
-        for j in 0..n {
-            for i in 0..n {
-                let deg = (i > 0) as usize + (i + 1 < n) as usize + (j > 0) as usize + (j + 1 < n) as usize;
-                omega_inv_diag[j * n + i] = OMEGA / (scale * deg as f64);
+    fn new(n: usize, nz: usize, scale: f64) -> Self {
+        let mut omega_inv_diag = vec![0.0; n * n * nz];
+        for k in 0..nz {
+            for j in 0..n {
+                for i in 0..n {
+                    let deg = (i > 0) as usize + (i + 1 < n) as usize + (j > 0) as usize + (j + 1 < n) as usize + (k > 0) as usize + (k + 1 < nz) as usize;
+                    omega_inv_diag[(k * n + j) * n + i] = omega(nz > 1) / (scale * deg as f64);
+                }
             }
         }
-        let z = vec![0.0; n * n];
-        Self { n, scale, omega_inv_diag, r: z.clone(), e: z.clone(), t: z }
+        let z = vec![0.0; n * n * nz];
+        Self { n, nz, scale, omega_inv_diag, r: z.clone(), e: z.clone(), t: z }
     }
 
     #[inline(always)]
     /// `sweeps` damped-Jacobi sweeps on `scale·A·e = r`, from the current `e`.
     fn smooth(&mut self, sweeps: usize) {
         for _ in 0..sweeps {
-            apply_pressure_matrix(self.n, self.n, &self.e, &mut self.t);
-            for (((e, &t), &r), &w) in self.e.iter_mut().zip(&self.t).zip(&self.r).zip(&self.omega_inv_diag) {
-                *e += w * (r - self.scale * t);
-            }
+            self.sweep();
+        }
+    }
+
+    /// One damped-Jacobi sweep, `e += ω·D⁻¹·(r − scale·A·e)`.
+    #[inline(always)]
+    fn sweep(&mut self) {
+        apply_box_matrix(self.n, self.nz, &self.e, &mut self.t);
+        for (((e, &t), &r), &w) in self.e.iter_mut().zip(&self.t).zip(&self.r).zip(&self.omega_inv_diag) {
+            *e += w * (r - self.scale * t);
         }
     }
 }
@@ -60,19 +98,33 @@ impl Level {
 #[derive(Clone, Debug)]
 pub struct Multigrid {
     levels: Vec<Level>,
+    /// The coarse grids halve along z too (3D).
+    cube: bool,
+    /// One coarse slab (blending along z).
+    slab: Vec<f64>,
 }
 
 impl Multigrid {
     /// The hierarchy for an `n × n` box.
     pub fn new(n: usize) -> Self {
-        let mut levels = vec![Level::new(n, 1.0)];
+        Self::hierarchy(n, false)
+    }
+
+    /// The hierarchy for an `n × n × n` box.
+    pub fn cube(n: usize) -> Self {
+        Self::hierarchy(n, true)
+    }
+
+    fn hierarchy(n: usize, cube: bool) -> Self {
+        let depth = |m: usize| if cube { m } else { 1 };
+        let mut levels = vec![Level::new(n, depth(n), 1.0)];
         let (mut m, mut scale) = (n, 1.0);
         while m % 2 == 0 && m / 2 >= 2 && m > 4 {
             m /= 2;
             scale *= 0.25;
-            levels.push(Level::new(m, scale));
+            levels.push(Level::new(m, depth(m), scale));
         }
-        Self { levels }
+        Self { levels, cube, slab: vec![0.0; (n / 2).max(1).pow(2)] }
     }
 
     /// Number of levels.
@@ -90,31 +142,37 @@ impl Multigrid {
     #[inline(always)]
     fn apply_body(&mut self, r: &[f64], z: &mut [f64]) {
         let depth = self.levels.len();
+        let average = if self.cube { 0.125 } else { 0.25 };
         self.levels[0].r.copy_from_slice(r);
-        // Down: smooth, then restrict the residual, r_c = Pᵀ·(r − A·e) / 4.
+        // Down: smooth, then restrict the residual, r_c = Pᵀ·(r − A·e) / 2^d.
         for k in 0..depth - 1 {
             let (fine, coarse) = self.levels.split_at_mut(k + 1);
             let (f, c) = (&mut fine[k], &mut coarse[0]);
-            f.e.fill(0.0);
-            f.smooth(SWEEPS);
-            apply_pressure_matrix(f.n, f.n, &f.e, &mut f.t);
+            // The first sweep from e = 0 is e = ω·D⁻¹·r (no product needed).
+            for ((e, &r), &w) in f.e.iter_mut().zip(&f.r).zip(&f.omega_inv_diag) {
+                *e = w * r;
+            }
+            f.smooth(SWEEPS - 1);
+            apply_box_matrix(f.n, f.nz, &f.e, &mut f.t);
             for (t, &r) in f.t.iter_mut().zip(&f.r) {
                 *t = r - f.scale * *t;
             }
             c.r.fill(0.0);
-            restrict(c.n, &f.t, &mut c.r, &mut c.t);
+            restrict_box(c, &f.t, &mut self.slab);
             for v in c.r.iter_mut() {
-                *v *= 0.25;
+                *v *= average;
             }
         }
         let coarsest = &mut self.levels[depth - 1];
-        coarsest.e.fill(0.0);
-        coarsest.smooth(COARSEST_SWEEPS);
+        for ((e, &r), &w) in coarsest.e.iter_mut().zip(&coarsest.r).zip(&coarsest.omega_inv_diag) {
+            *e = w * r;
+        }
+        coarsest.smooth(COARSEST_SWEEPS - 1);
         // Up: e += P·e_c, then smooth.
         for k in (0..depth - 1).rev() {
             let (fine, coarse) = self.levels.split_at_mut(k + 1);
             let (f, c) = (&mut fine[k], &mut coarse[0]);
-            prolong(c.n, &c.e, &mut f.e, &mut c.t);
+            prolong_box(c, &mut f.e, &mut self.slab);
             f.smooth(SWEEPS);
         }
         z.copy_from_slice(&self.levels[0].e);
@@ -141,6 +199,50 @@ fn taps(a: usize, nc: usize) -> (usize, usize) {
     let ic = a / 2;
     let other = if a % 2 == 0 { ic.saturating_sub(1) } else { (ic + 1).min(nc - 1) };
     (ic, other)
+}
+
+/// `fine += P·coarse` from the level `c`: each fine slab from the two
+/// coarse slabs beside it along z (¾, ¼) blended into `slab`, then the 2D
+/// prolongation; a level one slab deep is prolonged in the plane only.
+#[inline(always)]
+fn prolong_box(c: &mut Level, fine: &mut [f64], slab: &mut [f64]) {
+    let (nc, area) = (c.n, c.n * c.n);
+    if c.nz == 1 {
+        return prolong(nc, &c.e, fine, &mut c.t);
+    }
+    let fine_area = 4 * area;
+    for kf in 0..2 * c.nz {
+        let (kc, ko) = taps(kf, c.nz);
+        let (a, b) = (&c.e[kc * area..(kc + 1) * area], &c.e[ko * area..(ko + 1) * area]);
+        for ((s, &a), &b) in slab[..area].iter_mut().zip(a).zip(b) {
+            *s = 0.75 * a + 0.25 * b;
+        }
+        prolong(nc, &slab[..area], &mut fine[kf * fine_area..(kf + 1) * fine_area], &mut c.t);
+    }
+}
+
+/// `c.r += Pᵀ·fine`, the exact transpose of [`prolong_box`]: each fine
+/// slab restricted in the plane into `slab`, then spread to the two coarse
+/// slabs beside it along z.
+#[inline(always)]
+fn restrict_box(c: &mut Level, fine: &[f64], slab: &mut [f64]) {
+    let (nc, area) = (c.n, c.n * c.n);
+    if c.nz == 1 {
+        return restrict(nc, fine, &mut c.r, &mut c.t);
+    }
+    let fine_area = 4 * area;
+    for kf in 0..2 * c.nz {
+        let (kc, ko) = taps(kf, c.nz);
+        let s = &mut slab[..area];
+        s.fill(0.0);
+        restrict(nc, &fine[kf * fine_area..(kf + 1) * fine_area], s, &mut c.t);
+        for (r, &v) in c.r[kc * area..(kc + 1) * area].iter_mut().zip(s.iter()) {
+            *r += 0.75 * v;
+        }
+        for (r, &v) in c.r[ko * area..(ko + 1) * area].iter_mut().zip(s.iter()) {
+            *r += 0.25 * v;
+        }
+    }
 }
 
 /// `fine += P·coarse`: bilinear cell-centred prolongation from `nc × nc` to

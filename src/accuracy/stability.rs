@@ -311,14 +311,14 @@ pub fn ill_conditioned_pressure() -> Case {
         figures(vec![
             ("n", json!(n)),
             ("residual_after_50_iterations", json!(residual)),
-            ("cg_forward_iterations", json!(full.cg_forward.get())),
-            ("cg_adjoint_iterations", json!(full.cg_adjoint.get())),
+            ("cg_forward_iterations", json!(full.log.cg_forward.get())),
+            ("cg_adjoint_iterations", json!(full.log.cg_adjoint.get())),
         ]),
         format!(
             "thin wall: 50 iterations reported as {}; to 1e-10 in {} (forward) and {} (adjoint) iterations",
             reported.map_or("converged (not reported)".to_string(), |e| e.to_string()),
-            full.cg_forward.get(),
-            full.cg_adjoint.get()
+            full.log.cg_forward.get(),
+            full.log.cg_adjoint.get()
         ),
     )
 }

@@ -4,10 +4,13 @@ use clap::{Args, Subcommand};
 use serde_json::json;
 
 use super::{CliError, interleaved_times, median_time, peak_rss_bytes};
+use crate::problems::SmokeBenchmark;
 use crate::problems::burgers::P1;
-use crate::problems::smoke::P2;
+use crate::problems::smoke::{P2, SmokeStep};
+use crate::problems::smoke3d::{P4, SmokeStep3};
 use crate::rollout::Workspace;
 use diffsim_solvers::smoke::{P2_SIZES, Preconditioner};
+use diffsim_solvers::smoke3d::P4_SIZES;
 
 #[derive(Debug, Subcommand)]
 pub(super) enum BenchCommand {
@@ -17,6 +20,9 @@ pub(super) enum BenchCommand {
     /// P2 smoke2d: loss and gradient of buoyant smoke with pressure
     /// projection, forward vs gradient (Enzyme + implicit adjoint solves).
     P2(P2Args),
+    /// P4 smoke3d: P2 in three dimensions, forward vs gradient (Enzyme +
+    /// implicit adjoint solves) vs the hand-written adjoint.
+    P4(P4Args),
     /// P3 sol1d: one training iteration (loss, gradient through 16 coupled
     /// solver + network steps for a batch of 32, Adam update).
     P3(P3Args),
@@ -86,11 +92,30 @@ pub(super) struct P2Args {
     /// Number of steps T (≥ 1).
     #[arg(long, default_value_t = 20)]
     steps: usize,
+    #[command(flatten)]
+    run: SmokeRun,
+}
+
+#[derive(Debug, Args)]
+pub(super) struct P4Args {
+    /// Cells per side N (≥ 8).
+    #[arg(long, default_value_t = 32)]
+    n: usize,
+    /// Number of steps T (≥ 1).
+    #[arg(long, default_value_t = 10)]
+    steps: usize,
+    #[command(flatten)]
+    run: SmokeRun,
+}
+
+/// The options P2 and P4 share.
+#[derive(Debug, Args)]
+pub(super) struct SmokeRun {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
     /// Preconditioner of the pressure solves: multigrid (a V-cycle; the
-    /// fastest), mic0 or none.
+    /// fastest), mic0 (2D only) or none.
     #[arg(long, default_value = "multigrid")]
     preconditioner: String,
     /// How states are kept for the backward pass: `auto` (the fastest mode
@@ -132,6 +157,7 @@ pub(super) fn run(cmd: BenchCommand) -> Result<(), CliError> {
     match cmd {
         BenchCommand::P1(a) => p1(a),
         BenchCommand::P2(a) => p2(a),
+        BenchCommand::P4(a) => p4(a),
         BenchCommand::P3(a) => p3(a),
         BenchCommand::Memory(a) => memory(a),
         BenchCommand::Hig(a) => hig(a),
@@ -307,81 +333,156 @@ fn p1(a: P1Args) -> Result<(), CliError> {
 }
 
 fn p2(a: P2Args) -> Result<(), CliError> {
-    if a.n < 8 {
-        return Err(CliError::Argument { arg: "--n", reason: format!("need at least 8 cells per side, got {}", a.n) });
+    smoke_bench::<SmokeStep>(a.n, a.steps, a.run)
+}
+
+fn p4(a: P4Args) -> Result<(), CliError> {
+    smoke_bench::<SmokeStep3>(a.n, a.steps, a.run)
+}
+
+/// What the smoke benchmarks (P2 in 2D, P4 in 3D) need beyond
+/// [`SmokeBenchmark`]: implemented by each one's step operator.
+trait SmokeBench: crate::op::Vjp + Sized {
+    /// `"p2"`, `"p4"`.
+    const NAME: &'static str;
+    /// The heading, e.g. `"P2 smoke2d"`.
+    const TITLE: &'static str;
+    /// Spatial dimensions (cells = N^DIM).
+    const DIM: u32;
+    /// The JSON key of the probed gradient entry and how it is printed.
+    const PROBE: (&'static str, &'static str);
+    /// The preconditioners the solves accept, as `--preconditioner` spells them.
+    const PRECONDITIONERS: &'static [(&'static str, Preconditioner)];
+    fn build(n: usize, steps: usize, precond: Preconditioner) -> SmokeBenchmark<Self>;
+    fn hand(p: SmokeBenchmark<Self>) -> SmokeBenchmark<Self>;
+    fn log(&self) -> &crate::fluids::SolveLog;
+    /// The flat index of the probed gradient entry.
+    fn probe(n: usize) -> usize;
+    /// Reference loss and ‖∇L‖ of this size, if benchmarks.md has them.
+    fn reference(n: usize, steps: usize) -> Option<(f64, f64)>;
+}
+
+impl SmokeBench for SmokeStep {
+    const NAME: &'static str = "p2";
+    const TITLE: &'static str = "P2 smoke2d";
+    const DIM: u32 = 2;
+    const PROBE: (&'static str, &'static str) = ("grad_n2", "∂L/∂s[N²/2]");
+    const PRECONDITIONERS: &'static [(&'static str, Preconditioner)] =
+        &[("multigrid", Preconditioner::Multigrid), ("mic0", Preconditioner::Mic0), ("none", Preconditioner::None)];
+    fn build(n: usize, steps: usize, precond: Preconditioner) -> P2 {
+        P2::new(n, steps, precond)
     }
-    if a.steps < 1 {
+    fn hand(p: P2) -> P2 {
+        p.with_hand_adjoint()
+    }
+    fn log(&self) -> &crate::fluids::SolveLog {
+        &self.project.log
+    }
+    fn probe(n: usize) -> usize {
+        n * n / 2
+    }
+    fn reference(n: usize, steps: usize) -> Option<(f64, f64)> {
+        P2_SIZES.iter().find(|r| r.n == n && r.steps == steps).map(|r| (r.loss, r.grad_l2))
+    }
+}
+
+impl SmokeBench for SmokeStep3 {
+    const NAME: &'static str = "p4";
+    const TITLE: &'static str = "P4 smoke3d";
+    const DIM: u32 = 3;
+    const PROBE: (&'static str, &'static str) = ("grad_mid", "∂L/∂s[mid]");
+    const PRECONDITIONERS: &'static [(&'static str, Preconditioner)] = &[("multigrid", Preconditioner::Multigrid), ("none", Preconditioner::None)];
+    fn build(n: usize, steps: usize, precond: Preconditioner) -> P4 {
+        P4::new(n, steps, precond)
+    }
+    fn hand(p: P4) -> P4 {
+        p.with_hand_adjoint()
+    }
+    fn log(&self) -> &crate::fluids::SolveLog {
+        &self.project.log
+    }
+    fn probe(n: usize) -> usize {
+        diffsim_solvers::smoke3d::p4_mid(n)
+    }
+    fn reference(n: usize, steps: usize) -> Option<(f64, f64)> {
+        P4_SIZES.iter().find(|r| r.n == n && r.steps == steps).map(|r| (r.loss, r.grad_l2))
+    }
+}
+
+/// P2 or P4: forward, Enzyme gradient and hand gradient timed in one run,
+/// CG iteration totals of one gradient, the loss and gradient checksums
+/// against the reference, peak memory.
+fn smoke_bench<P: SmokeBench>(n: usize, steps: usize, a: SmokeRun) -> Result<(), CliError> {
+    if n < 8 {
+        return Err(CliError::Argument { arg: "--n", reason: format!("need at least 8 cells per side, got {}", n) });
+    }
+    if steps < 1 {
         return Err(CliError::Argument { arg: "--steps", reason: "need at least 1 step".into() });
     }
     let threads = threads(a.threads)?;
-    let precond = match a.preconditioner.as_str() {
-        "mic0" => Preconditioner::Mic0,
-        "none" => Preconditioner::None,
-        "multigrid" => Preconditioner::Multigrid,
-        other => {
-            return Err(CliError::Argument { arg: "--preconditioner", reason: format!("unknown preconditioner `{other}` (expected none, mic0 or multigrid)") });
-        }
+    let Some(&(_, precond)) = P::PRECONDITIONERS.iter().find(|(name, _)| *name == a.preconditioner) else {
+        let names: Vec<&str> = P::PRECONDITIONERS.iter().map(|(name, _)| *name).collect();
+        return Err(CliError::Argument {
+            arg: "--preconditioner",
+            reason: format!("unknown preconditioner `{}` (expected {})", a.preconditioner, names.join(", ")),
+        });
     };
+    let title = P::TITLE;
     // Two problems (Enzyme, hand) with their solvers: the grids, the
     // multigrid hierarchy, CG's vectors and the adjoint buffers.
-    let other = crate::memory::f64s(&[a.n as u64, a.n as u64, P2_ARRAYS]);
-    crate::memory::check("P2", format!("two problems of {}² cells", a.n), other, None)?;
+    let other = (n as u64).checked_pow(P::DIM).and_then(|cells| crate::memory::f64s(&[cells, SMOKE_ARRAYS]));
+    crate::memory::check(title, format!("two problems of {}^{} cells", n, P::DIM), other, None)?;
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|source| CliError::Threads { threads, source })?;
     pool.install(|| -> Result<(), CliError> {
-        let p = P2::new(a.n, a.steps, precond);
+        let p = P::build(n, steps, precond);
         let budget = 2.0;
         let (forward_s, loss) = median_time(budget, 3, 21, || p.value());
         loss?;
         // Two gradients' states at once (Enzyme's and the hand adjoint's workspaces).
-        let job = crate::rollout::plan::Job { steps: a.steps, state_bytes: 8 * p.x0.len() as u64, copies: 2, forward_s: forward_s / a.steps as f64 };
-        let (plan, chosen) = super::checkpointing(&a.checkpoint, &job, other.unwrap_or(0), "P2's gradient")?;
+        let job = crate::rollout::plan::Job { steps: steps, state_bytes: 8 * p.x0.len() as u64, copies: 2, forward_s: forward_s / steps as f64 };
+        let (plan, chosen) = super::checkpointing(&a.checkpoint, &job, other.unwrap_or(0), &format!("{title}'s gradient"))?;
         let mode = plan.mode;
         let mut ws = Workspace::new();
         let (grad_s, g) = median_time(budget, 3, 21, || p.grad_in(&mut ws, mode));
         g?;
-        let hand = P2::new(a.n, a.steps, precond).with_hand_adjoint();
+        let hand = P::hand(P::build(n, steps, precond));
         let mut ws_hand = Workspace::new();
         let (hand_grad_s, h) = median_time(budget, 3, 21, || hand.grad_in(&mut ws_hand, mode));
         let h = h?;
         // Iteration totals of one gradient computation (forward and adjoint solves).
-        p.step.project.cg_forward.set(0);
-        p.step.project.cg_adjoint.set(0);
+        p.step.log().cg_forward.set(0);
+        p.step.log().cg_adjoint.set(0);
         let g = p.grad_in(&mut ws, mode)?;
-        let (cg_f, cg_a) = (p.step.project.cg_forward.get(), p.step.project.cg_adjoint.get());
+        let (cg_f, cg_a) = (p.step.log().cg_forward.get(), p.step.log().cg_adjoint.get());
         let gs = p.smoke_gradient(&g);
         let grad_l2 = gs.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let n2 = a.n * a.n / 2;
-        let out = json!({
-            "problem": "p2", "n": a.n, "steps": a.steps, "threads": threads,
+        let probe = gs[P::probe(n)];
+        let mut out = json!({
+            "problem": P::NAME, "n": n, "steps": steps, "threads": threads,
             "checkpoint": mode.to_string(), "checkpoint_chosen": chosen, "preconditioner": precond.to_string(),
             "memory_budget_bytes": crate::memory::budget(), "estimate_bytes": plan.bytes,
             "forward_s": forward_s, "grad_s": grad_s, "grad_over_forward": grad_s / forward_s,
             "hand_grad_s": hand_grad_s, "enzyme_over_hand": grad_s / hand_grad_s,
             "enzyme_hand_max_diff": g.dx0.iter().zip(&h.dx0).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max),
             "peak_rss_bytes": peak_rss_bytes(),
-            "loss": g.loss, "grad_l2": grad_l2, "grad_0": gs[0], "grad_n2": gs[n2],
+            "loss": g.loss, "grad_l2": grad_l2, "grad_0": gs[0],
             "cg_iterations_forward": cg_f, "cg_iterations_adjoint": cg_a,
         });
+        out[P::PROBE.0] = json!(probe);
         if a.json {
             println!("{out}");
         } else {
-            println!("P2 smoke2d  N = {}  T = {}  threads = {}  preconditioner = {}  checkpointing = {}", a.n, a.steps, threads, precond, mode);
+            println!("{title}  N = {}  T = {}  threads = {}  preconditioner = {}  checkpointing = {}", n, steps, threads, precond, mode);
             let how = if chosen { "chosen within" } else { "given; budget" };
             println!("  memory plan ({how} {}): {plan}", crate::memory::human(crate::memory::budget()));
             println!("  forward          {:10.3} ms", forward_s * 1e3);
             println!("  gradient         {:10.3} ms   {:6.2}× forward", grad_s * 1e3, grad_s / forward_s);
             println!("  hand gradient    {:10.3} ms   {:6.2}× forward   Enzyme/hand {:.2}", hand_grad_s * 1e3, hand_grad_s / forward_s, grad_s / hand_grad_s);
-            println!("  loss {:.10}  ‖∇L‖ {:.10}  ∂L/∂s[0] {:.8e}  ∂L/∂s[N²/2] {:.8e}", g.loss, grad_l2, gs[0], gs[n2]);
-            println!("  CG iterations per gradient: {cg_f} forward, {cg_a} adjoint ({:.1} per solve)", (cg_f + cg_a) as f64 / (2 * a.steps) as f64);
-            if let Some(r) = P2_SIZES.iter().find(|r| r.n == a.n && r.steps == a.steps) {
+            println!("  loss {:.10}  ‖∇L‖ {:.10}  ∂L/∂s[0] {:.8e}  {} {:.8e}", g.loss, grad_l2, gs[0], P::PROBE.1, probe);
+            println!("  CG iterations per gradient: {cg_f} forward, {cg_a} adjoint ({:.1} per solve)", (cg_f + cg_a) as f64 / (2 * steps) as f64);
+            if let Some((loss, l2)) = P::reference(n, steps) {
                 let rel = |got: f64, want: f64| (got - want).abs() / want.abs();
-                println!(
-                    "  reference: loss {:.10}  ‖∇L‖ {:.10}  relative differences {:.1e}, {:.1e}",
-                    r.loss,
-                    r.grad_l2,
-                    rel(g.loss, r.loss),
-                    rel(grad_l2, r.grad_l2)
-                );
+                println!("  reference: loss {loss:.10}  ‖∇L‖ {l2:.10}  relative differences {:.1e}, {:.1e}", rel(g.loss, loss), rel(grad_l2, l2));
             }
             println!("  peak RSS {:.1} MB", peak_rss_bytes() as f64 / 1e6);
         }
@@ -389,9 +490,9 @@ fn p2(a: P2Args) -> Result<(), CliError> {
     })
 }
 
-/// Arrays of `N²` values P2 holds besides the gradient's states (both
-/// problems: grids, multigrid levels, CG and adjoint vectors).
-const P2_ARRAYS: u64 = 64;
+/// Arrays of `N^d` values P2 or P4 holds besides the gradient's states
+/// (both problems: grids, multigrid levels, CG and adjoint vectors).
+const SMOKE_ARRAYS: u64 = 64;
 
 /// More threads than this per core only add switching.
 const MAX_THREADS_PER_CORE: usize = 8;

@@ -56,7 +56,7 @@ pub(super) fn plume(a: PlumeArgs) -> Result<(), CliError> {
     let path = a.out.join("plume.png");
     write_png(&path, (n, n), &x[..cfg.n_s()], &solid).map_err(|e| CliError::Io { path: path.clone(), source: e })?;
     let mass: f64 = x[..cfg.n_s()].iter().sum();
-    println!("plume: {n}×{n} cells, {} steps, smoke total {mass:.1}, CG iterations {} → {}", a.steps, step.project.cg_forward.get(), path.display());
+    println!("plume: {n}×{n} cells, {} steps, smoke total {mass:.1}, CG iterations {} → {}", a.steps, step.project.log.cg_forward.get(), path.display());
     Ok(())
 }
 

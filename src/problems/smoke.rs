@@ -10,7 +10,6 @@ use diffsim_solvers::smoke::{self, Preconditioner, Smoke2d};
 use crate::fluids::Project;
 
 use crate::op::{Forward, Jvp, LocalInverse, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
-use crate::rollout::{Checkpointing, Gradient, Rollout, RolloutError, Workspace};
 
 /// Steps 1–4 of P2 (advection, walls, buoyancy) on the packed state
 /// `[s, u, v]`, with Enzyme-generated VJP and JVP.
@@ -339,17 +338,7 @@ impl LocalInverse for SmokeRise {
 }
 
 /// Benchmark P2 at `n × n` cells and `steps` steps.
-#[derive(Debug)]
-pub struct P2 {
-    /// The step operator (owns the solver and its iteration counters).
-    pub step: SmokeStep,
-    /// Number of steps `T`.
-    pub steps: usize,
-    /// Packed initial state `[s, u, v]`.
-    pub x0: Vec<f64>,
-    /// Target smoke.
-    pub target: Vec<f64>,
-}
+pub type P2 = crate::problems::SmokeBenchmark<SmokeStep>;
 
 impl P2 {
     /// The P2 problem with solves to relative tolerance 1e-8, at most 2000
@@ -362,26 +351,5 @@ impl P2 {
     /// The same problem with the hand-written adjoint of the explicit part.
     pub fn with_hand_adjoint(self) -> Self {
         Self { step: self.step.with_hand_adjoint(), ..self }
-    }
-
-    /// The loss `L = ½·Σ (s_T − s*)²` and its gradient.
-    pub fn loss(&self) -> impl Fn(&[f64], &mut [f64]) -> f64 + '_ {
-        |x, g| smoke::p2_loss(self.step.cfg(), x, &self.target, g)
-    }
-
-    /// `L` by the forward rollout alone.
-    pub fn value(&self) -> Result<f64, RolloutError> {
-        Rollout::new(&self.step, &[], self.steps)?.loss(&self.x0, &self.loss())
-    }
-
-    /// `L` and its gradient with respect to the packed initial state
-    /// (Enzyme for the explicit part, implicit adjoint for the solves).
-    pub fn grad_in(&self, ws: &mut Workspace, mode: Checkpointing) -> Result<Gradient, RolloutError> {
-        Rollout::new(&self.step, &[], self.steps)?.value_and_grad_in(ws, &self.x0, &self.loss(), mode)
-    }
-
-    /// The gradient with respect to the initial smoke only (`N²` values).
-    pub fn smoke_gradient<'g>(&self, g: &'g Gradient) -> &'g [f64] {
-        &g.dx0[..self.step.cfg().n_s()]
     }
 }

@@ -30,6 +30,7 @@
 //! reference values.
 
 use crate::boundary::{Boundary, Side, for_each_face};
+use crate::grid::{axis_passes, axis_position, beside, next, own_faces};
 
 /// Grid of the smoke problem: `nx × ny` unit cells, buoyancy coefficient,
 /// and the boundary conditions.
@@ -123,25 +124,6 @@ pub struct Lattice {
     pub oy: f64,
 }
 
-/// Where a coordinate `r` (in samples) falls on an axis of `m` samples: the
-/// two samples it lies between and the fraction past the first. Clamped to
-/// the axis (P2's rule; the lower sample kept one short of the last) or,
-/// when `WRAP`, wrapped around the period `m`.
-#[inline(always)]
-fn axis_position<const WRAP: bool>(m: usize, r: f64) -> (usize, usize, f64) {
-    if WRAP {
-        let mf = m as f64;
-        let r = r - mf * (r / mf).floor();
-        let k0 = (r as usize).min(m - 1);
-        (k0, if k0 + 1 == m { 0 } else { k0 + 1 }, r - k0 as f64)
-    } else {
-        let g = r.clamp(0.0, (m - 1) as f64);
-        // g ≥ 0, so truncation is the floor (one instruction, no libm call).
-        let k0 = (g as usize).min(m - 2);
-        (k0, k0 + 1, g - k0 as f64)
-    }
-}
-
 /// The four samples around `(px, py)` (row-major corners `c00, c10, c01,
 /// c11`) and the fractions `(fx, fy)`.
 #[inline(always)]
@@ -175,8 +157,7 @@ pub fn sample_adjoint<const WX: bool, const WY: bool>(f: &[f64], gf: &mut [f64],
     gf[c11] += g * fx * fy;
     let dfx = (f[c10] - f[c00]) * (1.0 - fy) + (f[c11] - f[c01]) * fy;
     let dfy = (f[c01] - f[c00]) * (1.0 - fx) + (f[c11] - f[c10]) * fx;
-    let inside = |wrap: bool, r: f64, m: usize| if wrap || (r >= 0.0 && r <= (m - 1) as f64) { 1.0 } else { 0.0 };
-    (g * dfx * inside(WX, rx, lat.nx), g * dfy * inside(WY, ry, lat.ny))
+    (g * dfx * axis_passes::<WX>(lat.nx, rx), g * dfy * axis_passes::<WY>(lat.ny, ry))
 }
 
 /// The smallest and largest of the four lattice values [`sample`] blends
@@ -202,28 +183,13 @@ impl<const WX: bool, const WY: bool> Mac<WX, WY> {
     /// `N` is a copy).
     #[inline(always)]
     fn nfx(self) -> usize {
-        if WX { self.nx } else { self.nx + 1 }
+        own_faces::<WX>(self.nx)
     }
 
     /// Rows of y-faces that hold their own value.
     #[inline(always)]
     fn nfy(self) -> usize {
-        if WY { self.ny } else { self.ny + 1 }
-    }
-
-    /// The cell (column or row) after cell `k` along a wrapping or bounded
-    /// axis of `n` cells: `k + 1`, or `0` past the last cell of a wrapping
-    /// axis.
-    #[inline(always)]
-    fn next<const WRAP: bool>(n: usize, k: usize) -> usize {
-        if WRAP && k + 1 == n { 0 } else { k + 1 }
-    }
-
-    /// The two cells beside face `k` of an axis of `n` cells: wrapped, or
-    /// clamped to the box (the edge-extended copy of P2).
-    #[inline(always)]
-    fn beside<const WRAP: bool>(n: usize, k: usize) -> (usize, usize) {
-        if WRAP { (if k == 0 { n - 1 } else { k - 1 }, k) } else { (k.saturating_sub(1).min(n - 1), k.min(n - 1)) }
+        own_faces::<WY>(self.ny)
     }
 
     /// The lattice of `at` and the samples per row and rows that hold their
@@ -266,15 +232,15 @@ impl<const WX: bool, const WY: bool> Mac<WX, WY> {
     #[inline(always)]
     fn at_centre(self, u: &[f64], v: &[f64], i: usize, j: usize) -> (f64, f64) {
         let (nx, ny) = (self.nx, self.ny);
-        (0.5 * (u[j * (nx + 1) + i] + u[j * (nx + 1) + Self::next::<WX>(nx, i)]), 0.5 * (v[j * nx + i] + v[Self::next::<WY>(ny, j) * nx + i]))
+        (0.5 * (u[j * (nx + 1) + i] + u[j * (nx + 1) + next::<WX>(nx, i)]), 0.5 * (v[j * nx + i] + v[next::<WY>(ny, j) * nx + i]))
     }
 
     /// Velocity at x-face `(i, j)`: its own `u`, the four nearest `v`.
     #[inline(always)]
     fn at_u(self, u: &[f64], v: &[f64], i: usize, j: usize) -> (f64, f64) {
         let n = self.nx;
-        let (a, b) = Self::beside::<WX>(n, i);
-        let up = Self::next::<WY>(self.ny, j);
+        let (a, b) = beside::<WX>(n, i);
+        let up = next::<WY>(self.ny, j);
         (u[j * (n + 1) + i], 0.25 * (v[j * n + a] + v[j * n + b] + v[up * n + a] + v[up * n + b]))
     }
 
@@ -282,8 +248,8 @@ impl<const WX: bool, const WY: bool> Mac<WX, WY> {
     #[inline(always)]
     fn at_v(self, u: &[f64], v: &[f64], i: usize, j: usize) -> (f64, f64) {
         let nu = self.nx + 1;
-        let (a, b) = Self::beside::<WY>(self.ny, j);
-        let r = Self::next::<WX>(self.nx, i);
+        let (a, b) = beside::<WY>(self.ny, j);
+        let r = next::<WX>(self.nx, i);
         (0.25 * (u[a * nu + i] + u[a * nu + r] + u[b * nu + i] + u[b * nu + r]), v[j * self.nx + i])
     }
 
@@ -292,17 +258,17 @@ impl<const WX: bool, const WY: bool> Mac<WX, WY> {
     fn at_centre_adjoint(self, gu: &mut [f64], gv: &mut [f64], i: usize, j: usize, (ga, gb): (f64, f64)) {
         let n = self.nx;
         gu[j * (n + 1) + i] += 0.5 * ga;
-        gu[j * (n + 1) + Self::next::<WX>(n, i)] += 0.5 * ga;
+        gu[j * (n + 1) + next::<WX>(n, i)] += 0.5 * ga;
         gv[j * n + i] += 0.5 * gb;
-        gv[Self::next::<WY>(self.ny, j) * n + i] += 0.5 * gb;
+        gv[next::<WY>(self.ny, j) * n + i] += 0.5 * gb;
     }
 
     /// Adds `gᵀ·∂(at_u)/∂(u, v)` into `(gu, gv)`.
     #[inline(always)]
     fn at_u_adjoint(self, gu: &mut [f64], gv: &mut [f64], i: usize, j: usize, (ga, gb): (f64, f64)) {
         let n = self.nx;
-        let (a, b) = Self::beside::<WX>(n, i);
-        let up = Self::next::<WY>(self.ny, j);
+        let (a, b) = beside::<WX>(n, i);
+        let up = next::<WY>(self.ny, j);
         gu[j * (n + 1) + i] += ga;
         for c in [j * n + a, j * n + b, up * n + a, up * n + b] {
             gv[c] += 0.25 * gb;
@@ -313,8 +279,8 @@ impl<const WX: bool, const WY: bool> Mac<WX, WY> {
     #[inline(always)]
     fn at_v_adjoint(self, gu: &mut [f64], gv: &mut [f64], i: usize, j: usize, (ga, gb): (f64, f64)) {
         let nu = self.nx + 1;
-        let (a, b) = Self::beside::<WY>(self.ny, j);
-        let r = Self::next::<WX>(self.nx, i);
+        let (a, b) = beside::<WY>(self.ny, j);
+        let r = next::<WX>(self.nx, i);
         for c in [a * nu + i, a * nu + r, b * nu + i, b * nu + r] {
             gu[c] += 0.25 * ga;
         }

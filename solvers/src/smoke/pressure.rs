@@ -118,28 +118,8 @@ pub fn apply_boundary_matrix(nx: usize, ny: usize, b: &Boundary, w: Option<&[f64
     }
 }
 
-/// A pressure solve that did not converge.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct NoConvergence {
-    /// Iterations done.
-    pub iterations: usize,
-    /// Final true residual norm relative to `‖b‖`.
-    pub relative_residual: f64,
-    /// The relative tolerance asked for.
-    pub tolerance: f64,
-}
-
-impl fmt::Display for NoConvergence {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(
-            f,
-            "pressure solve did not converge: relative residual {:.3e} after {} iterations (tolerance {:.1e})",
-            self.relative_residual, self.iterations, self.tolerance
-        )
-    }
-}
-
-impl std::error::Error for NoConvergence {}
+pub use crate::cg::NoConvergence;
+use crate::cg::{CgWork, Null, Stop, System, dot};
 
 /// Preconditioner of the pressure solve.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -196,10 +176,7 @@ pub struct PressureSolver {
     /// Fluid indicator per cell (1 fluid, 0 solid) when there are obstacles.
     fluid: Option<Vec<f64>>,
     boundary: Boundary,
-    r: Vec<f64>,
-    z: Vec<f64>,
-    d: Vec<f64>,
-    q: Vec<f64>,
+    work: CgWork,
 }
 
 impl PressureSolver {
@@ -252,10 +229,7 @@ impl PressureSolver {
             chol: None,
             fluid: None,
             boundary: Boundary::CLOSED,
-            r: z.clone(),
-            z: z.clone(),
-            d: z.clone(),
-            q: z,
+            work: CgWork::new(z.len()),
         }
     }
 
@@ -281,10 +255,7 @@ impl PressureSolver {
             chol: None,
             fluid,
             boundary,
-            r: z.clone(),
-            z: z.clone(),
-            d: z.clone(),
-            q: z,
+            work: CgWork::new(z.len()),
         };
         s.factor_general();
         s
@@ -371,10 +342,7 @@ impl PressureSolver {
             chol: None,
             fluid: Some(open),
             boundary,
-            r: z.clone(),
-            z: z.clone(),
-            d: z.clone(),
-            q: z,
+            work: CgWork::new(z.len()),
         };
         s.factor_mic0(k);
         s.chol = Some(crate::linalg::SparseCholesky::new(nx * ny, &s.lower_triplets())?);
@@ -503,24 +471,6 @@ impl PressureSolver {
         self.precond
     }
 
-    /// `z = M⁻¹·r` (MIC(0): forward then backward substitution).
-    fn precondition(&mut self) {
-        let n = self.nx;
-        match self.precond {
-            Preconditioner::None => self.z.copy_from_slice(&self.r),
-            Preconditioner::Mic0 if self.coeffs.is_some() => {
-                let k = self.coeffs.as_ref().expect("coefficients");
-                mic0_general(self.nx, &k.ax, &k.ay, &self.inv_diag, &self.r, &mut self.z)
-            }
-            Preconditioner::Mic0 => mic0_apply(n, &self.inv_diag, &self.r, &mut self.z),
-            Preconditioner::Multigrid => self.mg.as_mut().expect("multigrid hierarchy").apply(&self.r, &mut self.z),
-            Preconditioner::Cholesky => {
-                self.z.copy_from_slice(&self.r);
-                self.chol.as_ref().expect("Cholesky factor").solve_in_place(&mut self.z);
-            }
-        }
-    }
-
     /// Solves `A·p = b` from `p = 0` until `‖b − A·p‖₂ ≤ tol·‖b‖₂` (true
     /// residual); overwrites `p`. Without an outflow side the matrix is
     /// singular and `b` must sum to zero over the fluid (the compatibility
@@ -539,116 +489,58 @@ impl PressureSolver {
     }
 
     fn solve_impl(&mut self, b: &[f64], p: &mut [f64], warm: bool) -> Result<usize, NoConvergence> {
-        let (nx, ny) = (self.nx, self.ny);
-        let nn = nx * ny;
-        // Remove the component along the null vector (constant on the fluid).
-        let (total, count) = match &self.fluid {
-            None => (b.iter().sum::<f64>(), nn as f64),
-            Some(w) => (b.iter().zip(w).map(|(b, w)| b * w).sum::<f64>(), w.iter().sum::<f64>()),
-        };
-        let mean = if self.boundary.has_outflow() { 0.0 } else { total / count.max(1.0) };
-        let special = self.fluid.is_none() && self.boundary == Boundary::CLOSED && nx >= 2;
-        // The right-hand side minus its mean on the fluid cells.
-        let fluid_mean = |c: usize, fluid: &Option<Vec<f64>>| mean * fluid.as_ref().map_or(1.0, |w| w[c]);
-        for (c, (r, &bv)) in self.r.iter_mut().zip(b).enumerate() {
-            *r = bv - fluid_mean(c, &self.fluid);
-        }
-        let bnorm = dot(&self.r, &self.r).sqrt();
-        if bnorm == 0.0 {
-            p.fill(0.0);
-            return Ok(0);
-        }
-        if warm && p.iter().all(|v| v.is_finite()) {
-            self.apply_into_q(special, p);
-            for (r, &q) in self.r.iter_mut().zip(&self.q) {
-                *r -= q;
-            }
+        let stop = Stop { tolerance: self.tolerance, max_iterations: self.max_iterations };
+        let mut work = std::mem::take(&mut self.work);
+        // The null vector's weights (a copy: the solve borrows the solver mutably).
+        let fluid = self.fluid.clone();
+        let null = if self.boundary.has_outflow() { Null::None } else { Null::Constant(fluid.as_deref()) };
+        let result = crate::cg::solve(self, &mut work, null, stop, b, p, warm);
+        self.work = work;
+        result
+    }
+
+    /// Whether the closed square box's fused product applies.
+    fn special(&self) -> bool {
+        self.fluid.is_none() && self.boundary == Boundary::CLOSED && self.nx >= 2
+    }
+}
+
+impl System for PressureSolver {
+    fn apply(&mut self, p: &[f64], out: &mut [f64]) {
+        if self.special() {
+            apply_pressure_matrix(self.nx, self.ny, p, out);
         } else {
-            p.fill(0.0);
+            self.apply_general(p, out);
         }
-        let target = self.tolerance * bnorm;
-        let plain = self.precond == Preconditioner::None;
-        let mut rz = self.restart();
-        let mut rr = dot(&self.r, &self.r);
-        let mut it = 0;
-        loop {
-            if rr.sqrt() <= target {
-                // Confirm on the true residual; restart from it if needed.
-                self.apply_into_q(special, p);
-                for (c, ((q, &bv), r)) in self.q.iter().zip(b).zip(self.r.iter_mut()).enumerate() {
-                    *r = bv - fluid_mean(c, &self.fluid) - q;
-                }
-                rr = dot(&self.r, &self.r);
-                if rr.sqrt() <= target {
-                    if !self.boundary.has_outflow() {
-                        self.remove_null_component(p);
-                    }
-                    return Ok(it);
-                }
-                rz = self.restart();
-            }
-            if it >= self.max_iterations || !rr.is_finite() {
-                return Err(NoConvergence { iterations: it, relative_residual: rr.sqrt() / bnorm, tolerance: self.tolerance });
-            }
+    }
+
+    fn apply_dot(&mut self, d: &[f64], q: &mut [f64]) -> f64 {
+        if self.special() {
             let mut dq = 0.0;
-            if special {
-                matvec_dot(nx, ny, &self.d, &mut self.q, &mut dq);
-            } else {
-                let mut q = std::mem::take(&mut self.q);
-                self.apply_general(&self.d, &mut q);
-                self.q = q;
-                dq = dot(&self.d, &self.q);
-            }
-            let alpha = rz / dq;
-            update(alpha, &self.d, &self.q, p, &mut self.r, &mut rr);
-            let rz_new = if plain {
-                rr
-            } else {
-                self.precondition();
-                dot(&self.r, &self.z)
-            };
-            let beta = rz_new / rz;
-            rz = rz_new;
-            direction(beta, if plain { &self.r } else { &self.z }, &mut self.d);
-            it += 1;
-        }
-    }
-
-    /// `q = A·p`, with the closed square box's fused product when `special`.
-    fn apply_into_q(&mut self, special: bool, p: &[f64]) {
-        if special {
-            apply_pressure_matrix(self.nx, self.ny, p, &mut self.q);
+            matvec_dot(self.nx, self.ny, d, q, &mut dq);
+            dq
         } else {
-            let mut q = std::mem::take(&mut self.q);
-            self.apply_general(p, &mut q);
-            self.q = q;
+            self.apply_general(d, q);
+            dot(d, q)
         }
     }
 
-    /// Removes the component of `p` along the null vector (constant on the
-    /// fluid): the solution becomes the pseudo-inverse's, whatever the
-    /// preconditioner added along the null space. The velocity does not
-    /// see the constant, but the projection's adjoint does (through faces
-    /// on walls and solids), so forward and adjoint must agree on it.
-    fn remove_null_component(&self, p: &mut [f64]) {
-        match &self.fluid {
-            None => {
-                let mean = p.iter().sum::<f64>() / p.len().max(1) as f64;
-                p.iter_mut().for_each(|v| *v -= mean);
+    /// `z = M⁻¹·r` (MIC(0): forward then backward substitution).
+    fn precondition(&mut self, r: &[f64], z: &mut [f64]) -> bool {
+        match self.precond {
+            Preconditioner::None => return false,
+            Preconditioner::Mic0 if self.coeffs.is_some() => {
+                let k = self.coeffs.as_ref().expect("coefficients");
+                mic0_general(self.nx, &k.ax, &k.ay, &self.inv_diag, r, z)
             }
-            Some(w) => {
-                let count = w.iter().sum::<f64>().max(1.0);
-                let mean = p.iter().zip(w).map(|(p, w)| p * w).sum::<f64>() / count;
-                p.iter_mut().zip(w).for_each(|(v, w)| *v -= mean * w);
+            Preconditioner::Mic0 => mic0_apply(self.nx, &self.inv_diag, r, z),
+            Preconditioner::Multigrid => self.mg.as_mut().expect("multigrid hierarchy").apply(r, z),
+            Preconditioner::Cholesky => {
+                z.copy_from_slice(r);
+                self.chol.as_ref().expect("Cholesky factor").solve_in_place(z);
             }
         }
-    }
-
-    /// `d = M⁻¹·r`; returns `r·M⁻¹·r`.
-    fn restart(&mut self) -> f64 {
-        self.precondition();
-        self.d.copy_from_slice(&self.z);
-        dot(&self.r, &self.z)
+        true
     }
 }
 
@@ -661,44 +553,6 @@ crate::simd_dispatch! {
 fn matvec_dot_body(nx: usize, ny: usize, d: &[f64], q: &mut [f64], dq: &mut f64) {
     apply_pressure_matrix(nx, ny, d, q);
     *dq = dot(d, q);
-}
-
-crate::simd_dispatch! {
-    /// `p += α·d`, `r −= α·q`, `*rr = r·r` in one pass.
-    fn update(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], rr: &mut f64) => update_body
-}
-
-#[inline(always)]
-fn update_body(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], rr: &mut f64) {
-    let mut acc = [0.0f64; 8];
-    let mut tail = 0.0;
-    let (mut pc, mut rc) = (p.chunks_exact_mut(8), r.chunks_exact_mut(8));
-    let (mut dc, mut qc) = (d.chunks_exact(8), q.chunks_exact(8));
-    for (((pv, rv), dv), qv) in (&mut pc).zip(&mut rc).zip(&mut dc).zip(&mut qc) {
-        for l in 0..8 {
-            pv[l] += alpha * dv[l];
-            rv[l] -= alpha * qv[l];
-            acc[l] += rv[l] * rv[l];
-        }
-    }
-    for (((pv, rv), dv), qv) in pc.into_remainder().iter_mut().zip(rc.into_remainder().iter_mut()).zip(dc.remainder()).zip(qc.remainder()) {
-        *pv += alpha * dv;
-        *rv -= alpha * qv;
-        tail += *rv * *rv;
-    }
-    *rr = acc.iter().sum::<f64>() + tail;
-}
-
-crate::simd_dispatch! {
-    /// `d = z + β·d`.
-    fn direction(beta: f64, z: &[f64], d: &mut [f64]) => direction_body
-}
-
-#[inline(always)]
-fn direction_body(beta: f64, z: &[f64], d: &mut [f64]) {
-    for (dv, &zv) in d.iter_mut().zip(z) {
-        *dv = zv + beta * *dv;
-    }
 }
 
 /// `z = (L·Lᵀ)⁻¹·r` for the MIC(0) factor `L` with inverse diagonal `pc`:
@@ -803,21 +657,6 @@ fn mic0_general(nx: usize, ax: &[f64], ay: &[f64], pc: &[f64], r: &[f64], z: &mu
         }
         z[c] = t * pc[c];
     }
-}
-
-/// Dot product with eight independent partial sums (vectorises; a fixed
-/// summation order, so results do not depend on the machine).
-#[inline(always)]
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f64 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();
-    for (x, y) in ca.zip(cb) {
-        for k in 0..8 {
-            acc[k] += x[k] * y[k];
-        }
-    }
-    acc.iter().sum::<f64>() + tail
 }
 
 /// Scratch of the projection: divergence and pressure.

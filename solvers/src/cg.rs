@@ -1,0 +1,238 @@
+//! Preconditioned conjugate gradients on a symmetric positive
+//! (semi-)definite system, written once for every pressure solve (2D and
+//! 3D, any boundary, any preconditioner): the matrix and the preconditioner
+//! come in through [`System`], the vectors live in [`CgWork`].
+//!
+//! Singular systems (a closed box: constants solve `A·p = 0`) are solved in
+//! the space orthogonal to the null vector, given as [`Null`]: the
+//! right-hand side is projected onto it first, to remove rounding that
+//! would break the compatibility condition, and the solution returned is
+//! the one without a null component (the pseudo-inverse's), whatever the
+//! preconditioner added along it. The projection's adjoint sees that
+//! component (through faces on walls and solids), so forward and adjoint
+//! solves must agree on it.
+
+use std::fmt;
+
+/// A solve that did not converge.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NoConvergence {
+    /// Iterations done.
+    pub iterations: usize,
+    /// Final true residual norm relative to `‖b‖`.
+    pub relative_residual: f64,
+    /// The relative tolerance asked for.
+    pub tolerance: f64,
+}
+
+impl fmt::Display for NoConvergence {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "pressure solve did not converge: relative residual {:.3e} after {} iterations (tolerance {:.1e})",
+            self.relative_residual, self.iterations, self.tolerance
+        )
+    }
+}
+
+impl std::error::Error for NoConvergence {}
+
+/// The matrix `A` and the preconditioner `M⁻¹ ≈ A⁻¹` of a solve.
+pub trait System {
+    /// `out = A·p` (overwrites).
+    fn apply(&mut self, p: &[f64], out: &mut [f64]);
+
+    /// `q = A·d`, returning `d·q` (one pass where the matrix fuses it).
+    fn apply_dot(&mut self, d: &[f64], q: &mut [f64]) -> f64 {
+        self.apply(d, q);
+        dot(d, q)
+    }
+
+    /// `z = M⁻¹·r`, a symmetric positive definite map; `false` when there is
+    /// no preconditioner (`z` is then not written and CG runs plain).
+    fn precondition(&mut self, r: &[f64], z: &mut [f64]) -> bool;
+}
+
+/// The null space of `A`.
+#[derive(Clone, Copy, Debug)]
+pub enum Null<'a> {
+    /// None: `A` is definite.
+    None,
+    /// The constant vector on the cells where the weight is 1 (`None`: on
+    /// every cell; cells of weight 0 are solid, identity rows).
+    Constant(Option<&'a [f64]>),
+}
+
+/// The vectors of conjugate gradients (residual, preconditioned residual,
+/// direction, matrix times direction), kept between solves.
+#[derive(Clone, Debug, Default)]
+pub struct CgWork {
+    r: Vec<f64>,
+    z: Vec<f64>,
+    d: Vec<f64>,
+    q: Vec<f64>,
+}
+
+impl CgWork {
+    /// Vectors for systems of `n` unknowns.
+    pub fn new(n: usize) -> Self {
+        Self { r: vec![0.0; n], z: vec![0.0; n], d: vec![0.0; n], q: vec![0.0; n] }
+    }
+}
+
+/// The stopping rule of a solve.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Stop {
+    /// Relative tolerance on the true residual, `‖b − A·p‖₂ ≤ tol·‖b‖₂`.
+    pub tolerance: f64,
+    /// More iterations than this is an error.
+    pub max_iterations: usize,
+}
+
+/// Solves `A·p = b` until `‖b − A·p‖₂ ≤ tol·‖b‖₂` (true residual, `b`
+/// projected off the null space first), from `p = 0` or, when `warm`, from
+/// the `p` given (if finite); overwrites `p`. Returns the iterations, or the
+/// residual reached when `max_iterations` pass or the iteration breaks down.
+///
+/// # Panics
+/// If `b`, `p` and the work vectors differ in length.
+pub fn solve(sys: &mut impl System, work: &mut CgWork, null: Null<'_>, stop: Stop, b: &[f64], p: &mut [f64], warm: bool) -> Result<usize, NoConvergence> {
+    let n = b.len();
+    assert!(p.len() == n && work.r.len() == n, "cg: lengths");
+    let CgWork { r, z, d, q } = work;
+    // The right-hand side minus its null component.
+    let (mean, weights) = match null {
+        Null::None => (0.0, None),
+        Null::Constant(None) => (b.iter().sum::<f64>() / n as f64, None),
+        Null::Constant(Some(w)) => (b.iter().zip(w).map(|(b, w)| b * w).sum::<f64>() / w.iter().sum::<f64>().max(1.0), Some(w)),
+    };
+    let rhs = |c: usize, bv: f64| bv - mean * weights.map_or(1.0, |w| w[c]);
+    for (c, (r, &bv)) in r.iter_mut().zip(b).enumerate() {
+        *r = rhs(c, bv);
+    }
+    let bnorm = dot(r, r).sqrt();
+    if bnorm == 0.0 {
+        p.fill(0.0);
+        return Ok(0);
+    }
+    if warm && p.iter().all(|v| v.is_finite()) {
+        sys.apply(p, q);
+        for (r, &q) in r.iter_mut().zip(q.iter()) {
+            *r -= q;
+        }
+    } else {
+        p.fill(0.0);
+    }
+    let target = stop.tolerance * bnorm;
+    // d = M⁻¹·r; returns r·M⁻¹·r.
+    let restart = |sys: &mut dyn FnMut(&[f64], &mut [f64]) -> bool, r: &[f64], z: &mut [f64], d: &mut [f64]| {
+        if sys(r, z) {
+            d.copy_from_slice(z);
+            dot(r, z)
+        } else {
+            d.copy_from_slice(r);
+            dot(r, r)
+        }
+    };
+    let mut rz = restart(&mut |r, z| sys.precondition(r, z), r, z, d);
+    let mut rr = dot(r, r);
+    let mut it = 0;
+    loop {
+        if rr.sqrt() <= target {
+            // Confirm on the true residual; restart from it if needed.
+            sys.apply(p, q);
+            for (c, ((q, &bv), r)) in q.iter().zip(b).zip(r.iter_mut()).enumerate() {
+                *r = rhs(c, bv) - q;
+            }
+            rr = dot(r, r);
+            if rr.sqrt() <= target {
+                if let Null::Constant(w) = null {
+                    remove_constant(w, p);
+                }
+                return Ok(it);
+            }
+            rz = restart(&mut |r, z| sys.precondition(r, z), r, z, d);
+        }
+        if it >= stop.max_iterations || !rr.is_finite() {
+            return Err(NoConvergence { iterations: it, relative_residual: rr.sqrt() / bnorm, tolerance: stop.tolerance });
+        }
+        let dq = sys.apply_dot(d, q);
+        let alpha = rz / dq;
+        update(alpha, d, q, p, r, &mut rr);
+        let preconditioned = sys.precondition(r, z);
+        let rz_new = if preconditioned { dot(r, z) } else { rr };
+        let beta = rz_new / rz;
+        rz = rz_new;
+        direction(beta, if preconditioned { z } else { r }, d);
+        it += 1;
+    }
+}
+
+/// Removes the component of `p` along the constant vector on the cells of
+/// weight 1 (`None`: every cell).
+pub fn remove_constant(weights: Option<&[f64]>, p: &mut [f64]) {
+    match weights {
+        None => {
+            let mean = p.iter().sum::<f64>() / p.len().max(1) as f64;
+            p.iter_mut().for_each(|v| *v -= mean);
+        }
+        Some(w) => {
+            let count = w.iter().sum::<f64>().max(1.0);
+            let mean = p.iter().zip(w).map(|(p, w)| p * w).sum::<f64>() / count;
+            p.iter_mut().zip(w).for_each(|(v, w)| *v -= mean * w);
+        }
+    }
+}
+
+crate::simd_dispatch! {
+    /// `p += α·d`, `r −= α·q`, `*rr = r·r` in one pass.
+    fn update(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], rr: &mut f64) => update_body
+}
+
+#[inline(always)]
+fn update_body(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], rr: &mut f64) {
+    let mut acc = [0.0f64; 8];
+    let mut tail = 0.0;
+    let (mut pc, mut rc) = (p.chunks_exact_mut(8), r.chunks_exact_mut(8));
+    let (mut dc, mut qc) = (d.chunks_exact(8), q.chunks_exact(8));
+    for (((pv, rv), dv), qv) in (&mut pc).zip(&mut rc).zip(&mut dc).zip(&mut qc) {
+        for l in 0..8 {
+            pv[l] += alpha * dv[l];
+            rv[l] -= alpha * qv[l];
+            acc[l] += rv[l] * rv[l];
+        }
+    }
+    for (((pv, rv), dv), qv) in pc.into_remainder().iter_mut().zip(rc.into_remainder().iter_mut()).zip(dc.remainder()).zip(qc.remainder()) {
+        *pv += alpha * dv;
+        *rv -= alpha * qv;
+        tail += *rv * *rv;
+    }
+    *rr = acc.iter().sum::<f64>() + tail;
+}
+
+crate::simd_dispatch! {
+    /// `d = z + β·d`.
+    fn direction(beta: f64, z: &[f64], d: &mut [f64]) => direction_body
+}
+
+#[inline(always)]
+fn direction_body(beta: f64, z: &[f64], d: &mut [f64]) {
+    for (dv, &zv) in d.iter_mut().zip(z) {
+        *dv = zv + beta * *dv;
+    }
+}
+
+/// `a·b` with eight independent partial sums (vectorises; the order of the
+/// sum is fixed, so results do not depend on the machine).
+#[inline(always)]
+pub fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f64 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();
+    for (x, y) in ca.zip(cb) {
+        for k in 0..8 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    acc.iter().sum::<f64>() + tail
+}

@@ -1,0 +1,58 @@
+//! Index rules of one axis of a cell grid, shared by every dimension.
+//!
+//! A 2D or 3D grid is a product of axes, and each of its rules (where a
+//! traced point falls, which cell follows another, which cells lie beside a
+//! face) acts on one axis at a time: bilinear and trilinear sampling
+//! multiply the per-axis weights of [`axis_position`], and the MAC grids of
+//! [`crate::smoke`] (2D) and [`crate::smoke3d`] (3D) average velocities over
+//! the cells of [`next`] and [`beside`]. An axis either wraps (periodic) or
+//! is bounded (every other boundary kind: samples clamp to it).
+
+/// Where a coordinate `r` (in samples) falls on an axis of `m ≥ 2` samples:
+/// the two samples it lies between and the fraction past the first. Clamped
+/// to the axis (P2's rule; the lower sample kept one short of the last) or,
+/// when `WRAP`, wrapped around the period `m`.
+#[inline(always)]
+pub fn axis_position<const WRAP: bool>(m: usize, r: f64) -> (usize, usize, f64) {
+    if WRAP {
+        let mf = m as f64;
+        let r = r - mf * (r / mf).floor();
+        let k0 = (r as usize).min(m - 1);
+        (k0, if k0 + 1 == m { 0 } else { k0 + 1 }, r - k0 as f64)
+    } else {
+        let g = r.clamp(0.0, (m - 1) as f64);
+        // g ≥ 0, so truncation is the floor (one instruction, no libm call).
+        let k0 = (g as usize).min(m - 2);
+        (k0, k0 + 1, g - k0 as f64)
+    }
+}
+
+/// Whether a sample position `r` moves the clamped sample of an axis of `m`
+/// samples (inside the range, edges included, or on a wrapping axis): the
+/// factor, 1 or 0, by which the adjoint of sampling passes `∂/∂r`, as
+/// Enzyme's derivative of `f64::clamp` does.
+#[inline(always)]
+pub fn axis_passes<const WRAP: bool>(m: usize, r: f64) -> f64 {
+    if WRAP || (r >= 0.0 && r <= (m - 1) as f64) { 1.0 } else { 0.0 }
+}
+
+/// The cell after cell `k` along an axis of `n` cells: `k + 1`, or `0` past
+/// the last cell of a wrapping axis.
+#[inline(always)]
+pub fn next<const WRAP: bool>(n: usize, k: usize) -> usize {
+    if WRAP && k + 1 == n { 0 } else { k + 1 }
+}
+
+/// The two cells beside face `k` of an axis of `n` cells: wrapped, or
+/// clamped to the box (the edge-extended copy of P2 and P4).
+#[inline(always)]
+pub fn beside<const WRAP: bool>(n: usize, k: usize) -> (usize, usize) {
+    if WRAP { (if k == 0 { n - 1 } else { k - 1 }, k) } else { (k.saturating_sub(1).min(n - 1), k.min(n - 1)) }
+}
+
+/// Faces of an axis of `n` cells that hold their own value: `n + 1`, or `n`
+/// when the axis wraps (face `n` is a copy of face `0`).
+#[inline(always)]
+pub fn own_faces<const WRAP: bool>(n: usize) -> usize {
+    if WRAP { n } else { n + 1 }
+}

@@ -1,0 +1,174 @@
+//! Semi-Lagrangian advection of the smoke and the velocity (trilinear), P4's
+//! buoyancy and walls, and the hand-written adjoint of the three.
+
+use super::*;
+
+/// Points of the lattice `at` traced back along the velocity: `out[q] =
+/// f(q − dt·vel(q))` for every point `q` holding its own value.
+#[inline(always)]
+fn trace<const WX: bool, const WY: bool, const WZ: bool>(mac: Mac3<WX, WY, WZ>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, out: &mut [f64]) {
+    let lat = mac.lattice(at);
+    for k in 0..lat.n[2] {
+        for j in 0..lat.n[1] {
+            for i in 0..lat.n[0] {
+                let [a, b, c] = mac.velocity(at, vel, [i, j, k]);
+                let p = [i as f64 + lat.o[0] - dt * a, j as f64 + lat.o[1] - dt * b, k as f64 + lat.o[2] - dt * c];
+                out[(k * lat.sy + j) * lat.sx + i] = sample3::<WX, WY, WZ>(f, lat, p);
+            }
+        }
+    }
+}
+
+/// Adjoint of [`trace`] at unit time step: adds `Jᵀ·g` into the velocity's
+/// adjoint `gvel` and the traced field's: `gs` for the centres, else the
+/// component's own entry of `gvel` (a velocity component is both the field
+/// sampled and one of the velocities that trace it).
+#[inline(always)]
+fn trace_adjoint<const WX: bool, const WY: bool, const WZ: bool>(
+    mac: Mac3<WX, WY, WZ>,
+    at: At3,
+    vel: [&[f64]; 3],
+    f: &[f64],
+    g: &[f64],
+    mut gs: Option<&mut [f64]>,
+    gvel: [&mut [f64]; 3],
+) {
+    let lat = mac.lattice(at);
+    let [gu, gv, gw] = gvel;
+    for k in 0..lat.n[2] {
+        for j in 0..lat.n[1] {
+            for i in 0..lat.n[0] {
+                let q = [i, j, k];
+                let [a, b, c] = mac.velocity(at, vel, q);
+                let p = [i as f64 + lat.o[0] - a, j as f64 + lat.o[1] - b, k as f64 + lat.o[2] - c];
+                let gq = g[(k * lat.sy + j) * lat.sx + i];
+                let gf: &mut [f64] = match at {
+                    At3::Centre => gs.as_deref_mut().expect("smoke adjoint"),
+                    At3::U => &mut *gu,
+                    At3::V => &mut *gv,
+                    At3::W => &mut *gw,
+                };
+                let dp = sample3_adjoint::<WX, WY, WZ>(f, gf, lat, p, gq);
+                mac.velocity_adjoint(at, [&mut *gu, &mut *gv, &mut *gw], q, [-dp[0], -dp[1], -dp[2]]);
+            }
+        }
+    }
+}
+
+/// Steps 1–4 of P4: semi-Lagrangian advection of the smoke and of the
+/// velocity (unit time step, each component sampled at its own faces along
+/// the velocity there), the closed walls, buoyancy along +y. Reads the
+/// packed state `x = [s, u, v, w]`, overwrites `y` (the velocity not yet
+/// divergence-free).
+///
+/// # Panics
+/// If `x` or `y` is not of length [`Smoke3d::n_state`] or a side has fewer
+/// than 2 cells.
+pub fn advect_buoyancy(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
+    assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
+    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let [s, u, v, w] = cfg.split(x);
+    let [s2, u2, v2, w2] = cfg.split_mut(y);
+    let vel = [u, v, w];
+    trace(mac, At3::Centre, vel, s, 1.0, s2);
+    trace(mac, At3::U, vel, u, 1.0, u2);
+    trace(mac, At3::V, vel, v, 1.0, v2);
+    trace(mac, At3::W, vel, w, 1.0, w2);
+    close_walls(cfg, [u2, v2, w2]);
+    add_buoyancy(cfg, cfg.buoyancy, s2, v2);
+}
+
+/// Zeroes the velocity on the six walls (P4's step 3).
+pub fn close_walls(cfg: &Smoke3d, [u, v, w]: [&mut [f64]; 3]) {
+    let [nx, ny, nz] = cfg.dims();
+    for k in 0..nz {
+        for j in 0..ny {
+            let r = (k * ny + j) * (nx + 1);
+            u[r] = 0.0;
+            u[r + nx] = 0.0;
+        }
+        for i in 0..nx {
+            v[(k * (ny + 1)) * nx + i] = 0.0;
+            v[(k * (ny + 1) + ny) * nx + i] = 0.0;
+        }
+    }
+    let slab = nx * ny;
+    for c in 0..slab {
+        w[c] = 0.0;
+        w[nz * slab + c] = 0.0;
+    }
+}
+
+/// Buoyancy along +y, in place: `v[k][j][i] += coefficient · (s[k][j−1][i]
+/// + s[k][j][i]) / 2` on the interior y-faces.
+pub fn add_buoyancy(cfg: &Smoke3d, coefficient: f64, s: &[f64], v: &mut [f64]) {
+    let [nx, ny, nz] = cfg.dims();
+    for k in 0..nz {
+        for j in 1..ny {
+            for i in 0..nx {
+                v[(k * (ny + 1) + j) * nx + i] += coefficient * 0.5 * (s[(k * ny + j - 1) * nx + i] + s[(k * ny + j) * nx + i]);
+            }
+        }
+    }
+}
+
+/// Hand-written adjoint of [`advect_buoyancy`]: `gx += Jᵀ·gy` at the state
+/// `x` (accumulates into `gx`; `gy` is used as scratch and left
+/// unspecified). The reference for Enzyme's generated adjoint.
+///
+/// # Panics
+/// As [`advect_buoyancy`], and if `gy` or `gx` has the wrong length.
+pub fn advect_buoyancy_adjoint(cfg: &Smoke3d, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
+    let n = cfg.n_state();
+    assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == n && gy.len() == n && gx.len() == n, "smoke3d: state lengths");
+    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let [nx, ny, nz] = cfg.dims();
+    let [s, u, v, w] = cfg.split(x);
+    let [gs2, gu2, gv2, gw2] = cfg.split_mut(gy);
+    // Buoyancy, then the walls (which zero what they set).
+    for k in 0..nz {
+        for j in 1..ny {
+            for i in 0..nx {
+                let b = cfg.buoyancy * 0.5 * gv2[(k * (ny + 1) + j) * nx + i];
+                gs2[(k * ny + j - 1) * nx + i] += b;
+                gs2[(k * ny + j) * nx + i] += b;
+            }
+        }
+    }
+    close_walls(cfg, [&mut *gu2, &mut *gv2, &mut *gw2]);
+    let [gs, gu, gv, gw] = cfg.split_mut(gx);
+    let vel = [u, v, w];
+    trace_adjoint(mac, At3::W, vel, w, gw2, None, [&mut *gu, &mut *gv, &mut *gw]);
+    trace_adjoint(mac, At3::V, vel, v, gv2, None, [&mut *gu, &mut *gv, &mut *gw]);
+    trace_adjoint(mac, At3::U, vel, u, gu2, None, [&mut *gu, &mut *gv, &mut *gw]);
+    trace_adjoint(mac, At3::Centre, vel, s, gs2, Some(gs), [gu, gv, gw]);
+}
+
+/// How far `x` may move along `d` before [`advect_buoyancy`] meets a kink:
+/// trilinear sampling is smooth between lattice planes and kinks where a
+/// traced point crosses one (or a clamped edge). The smallest, over the
+/// traced points of the four lattices, of the distance to the nearest plane
+/// over the speed at which `d` moves the point; ∞ when `d` moves none.
+pub fn advect_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
+    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let [_, u, v, w] = cfg.split(x);
+    let [_, du, dv, dw] = cfg.split(d);
+    let gap = |pos: f64, speed: f64| if speed == 0.0 { f64::INFINITY } else { (pos - pos.round()).abs() / speed.abs() };
+    let mut r = f64::INFINITY;
+    for at in [At3::Centre, At3::U, At3::V, At3::W] {
+        let lat = mac.lattice(at);
+        for k in 0..lat.n[2] {
+            for j in 0..lat.n[1] {
+                for i in 0..lat.n[0] {
+                    let q = [i, j, k];
+                    let vel = mac.velocity(at, [u, v, w], q);
+                    let dvel = mac.velocity(at, [du, dv, dw], q);
+                    for a in 0..3 {
+                        r = r.min(gap(q[a] as f64 - vel[a], dvel[a]));
+                    }
+                }
+            }
+        }
+    }
+    r
+}
