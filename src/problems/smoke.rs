@@ -47,33 +47,44 @@ crate::differentiable!(SmokeAdvect => smoke_advect, smooth_radius = smoke_advect
 #[derive(Clone, Copy, Debug)]
 pub struct SmokeAdvectHand(pub Smoke2d);
 
-impl Operator for SmokeAdvectHand {
-    fn n_in(&self) -> usize {
-        self.0.n_state()
-    }
-    fn n_out(&self) -> usize {
-        self.0.n_state()
-    }
-}
+/// `Operator`, `Forward` and `Vjp` of the explicit part `$ty(grid)` with a
+/// hand-written adjoint: the forward `$explicit(grid, x, y)`, the adjoint
+/// `$adjoint(grid, x, dy, dx)` (accumulating; the seed is then zeroed), the
+/// smooth radius `$radius(grid, x, dx)`. One shape for 2D and 3D.
+macro_rules! hand_explicit_operator {
+    ($ty:ident, $explicit:path, $adjoint:path, $radius:path) => {
+        impl $crate::op::Operator for $ty {
+            fn n_in(&self) -> usize {
+                self.0.n_state()
+            }
+            fn n_out(&self) -> usize {
+                self.0.n_state()
+            }
+        }
 
-impl Forward for SmokeAdvectHand {
-    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
-        validate_forward(self, "SmokeAdvectHand", x, p, y);
-        smoke::advect_buoyancy(&self.0, x, y)
-    }
+        impl $crate::op::Forward for $ty {
+            fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+                $crate::op::validate_forward(self, stringify!($ty), x, p, y);
+                $explicit(&self.0, x, y)
+            }
 
-    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-        p2_radius(&self.0, x, dx)
-    }
-}
+            fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+                $radius(&self.0, x, dx)
+            }
+        }
 
-impl Vjp for SmokeAdvectHand {
-    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
-        validate_vjp(self, "SmokeAdvectHand", x, p, dy, dx, dp);
-        smoke::advect_buoyancy_adjoint(&self.0, x, dy, dx);
-        dy.fill(0.0);
-    }
+        impl $crate::op::Vjp for $ty {
+            fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+                $crate::op::validate_vjp(self, stringify!($ty), x, p, dy, dx, dp);
+                $adjoint(&self.0, x, dy, dx);
+                dy.fill(0.0);
+            }
+        }
+    };
 }
+pub(crate) use hand_explicit_operator;
+
+hand_explicit_operator!(SmokeAdvectHand, smoke::advect_buoyancy, smoke::advect_buoyancy_adjoint, p2_radius);
 
 /// One full P2 step: [`SmokeAdvect`], then the pressure projection
 /// ([`Project`], with the obstacle mask when there are obstacles).
@@ -135,46 +146,58 @@ impl Operator for SmokeStep {
     }
 }
 
-impl Forward for SmokeStep {
-    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
-        validate_forward(self, "SmokeStep", x, p, y);
-        smoke::advect_buoyancy(&self.advect.0, x, y);
-        self.project.apply(y);
-    }
+/// `Forward`, `Vjp` and `Jvp` of a smoke step `$ty` with fields `advect`
+/// (the explicit part as an Enzyme operator over the grid `advect.0`),
+/// `hand` (use the hand-written adjoint `$hand` instead) and `project` (the
+/// projection): the explicit part (`$explicit`), then the projection. The
+/// VJP goes through the projection's implicit adjoint (in place on `dy`),
+/// then the explicit part's VJP; the JVP applies the (linear) projection to
+/// the explicit part's value and tangent alike. The smooth radius is the
+/// advection's (`$radius`; the projection after it is linear). One shape
+/// for the 2D and 3D steps.
+macro_rules! smoke_step_operator {
+    ($ty:ty, $name:literal, $hand:ident, $explicit:path, $radius:path) => {
+        impl $crate::op::Forward for $ty {
+            fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+                $crate::op::validate_forward(self, $name, x, p, y);
+                $explicit(&self.advect.0, x, y);
+                self.project.apply(y);
+            }
 
-    /// The advection's (the projection after it is linear).
-    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-        p2_radius(&self.advect.0, x, dx)
-    }
+            fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+                $radius(&self.advect.0, x, dx)
+            }
 
-    fn take_error(&self) -> Option<OpError> {
-        self.project.take_error()
-    }
-}
-
-impl Vjp for SmokeStep {
-    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
-        validate_vjp(self, "SmokeStep", x, p, dy, dx, dp);
-        // Through the projection (in place on dy), then the explicit part.
-        self.project.apply_adjoint(dy);
-        if self.hand {
-            SmokeAdvectHand(self.advect.0).vjp(x, p, dy, dx, dp);
-        } else {
-            self.advect.vjp(x, p, dy, dx, dp);
+            fn take_error(&self) -> Option<$crate::op::OpError> {
+                self.project.log.take_error()
+            }
         }
-    }
-}
 
-impl Jvp for SmokeStep {
-    /// The explicit part's JVP, then the projection (a linear map) applied to
-    /// the state and to the tangent alike.
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
-        validate_jvp(self, "SmokeStep", x, p, tx, tp, y, ty);
-        self.advect.jvp(x, p, tx, tp, y, ty);
-        self.project.apply(y);
-        self.project.apply(ty);
-    }
+        impl $crate::op::Vjp for $ty {
+            fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+                $crate::op::validate_vjp(self, $name, x, p, dy, dx, dp);
+                self.project.apply_adjoint(dy);
+                if self.hand {
+                    $hand(self.advect.0).vjp(x, p, dy, dx, dp);
+                } else {
+                    self.advect.vjp(x, p, dy, dx, dp);
+                }
+            }
+        }
+
+        impl $crate::op::Jvp for $ty {
+            fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+                $crate::op::validate_jvp(self, $name, x, p, tx, tp, y, ty);
+                self.advect.jvp(x, p, tx, tp, y, ty);
+                self.project.apply(y);
+                self.project.apply(ty);
+            }
+        }
+    };
 }
+pub(crate) use smoke_step_operator;
+
+smoke_step_operator!(SmokeStep, "SmokeStep", SmokeAdvectHand, smoke::advect_buoyancy, p2_radius);
 
 impl LocalInverse for SmokeStep {
     /// The step run backwards in time on the perturbation, along the

@@ -9,7 +9,7 @@ use diffsim_solvers::smoke::Preconditioner;
 use diffsim_solvers::smoke3d::{self, PressureSolver3, Scratch3, Smoke3d};
 
 use crate::fluids::SolveLog;
-use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+use crate::op::Operator;
 
 /// The operator sizes of a packed 3D state `[s, u, v, w]` in and out.
 macro_rules! state_operator {
@@ -50,26 +50,7 @@ crate::differentiable!(SmokeAdvect3 => smoke_advect3, smooth_radius = smoke_adve
 #[derive(Clone, Copy, Debug)]
 pub struct SmokeAdvect3Hand(pub Smoke3d);
 
-state_operator!(SmokeAdvect3Hand, o => o.0);
-
-impl Forward for SmokeAdvect3Hand {
-    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
-        validate_forward(self, "SmokeAdvect3Hand", x, p, y);
-        smoke3d::advect_buoyancy(&self.0, x, y)
-    }
-
-    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-        smoke3d::advect_radius(&self.0, x, dx)
-    }
-}
-
-impl Vjp for SmokeAdvect3Hand {
-    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
-        validate_vjp(self, "SmokeAdvect3Hand", x, p, dy, dx, dp);
-        smoke3d::advect_buoyancy_adjoint(&self.0, x, dy, dx);
-        dy.fill(0.0);
-    }
-}
+crate::problems::smoke::hand_explicit_operator!(SmokeAdvect3Hand, smoke3d::advect_buoyancy, smoke3d::advect_buoyancy_adjoint, smoke3d::advect_radius);
 
 /// The 3D pressure projection of a packed `[s, u, v, w]` state (linear):
 /// `(u, v, w) −= G·A⁺·(−D·(u, v, w))` by preconditioned CG to a relative
@@ -154,43 +135,7 @@ impl SmokeStep3 {
 
 state_operator!(SmokeStep3, o => o.advect.0);
 
-impl Forward for SmokeStep3 {
-    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
-        validate_forward(self, "SmokeStep3", x, p, y);
-        smoke3d::advect_buoyancy(self.cfg(), x, y);
-        self.project.apply(y);
-    }
-
-    /// The advection's (the projection after it is linear).
-    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-        smoke3d::advect_radius(self.cfg(), x, dx)
-    }
-
-    fn take_error(&self) -> Option<OpError> {
-        self.project.log.take_error()
-    }
-}
-
-impl Vjp for SmokeStep3 {
-    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
-        validate_vjp(self, "SmokeStep3", x, p, dy, dx, dp);
-        self.project.apply_adjoint(dy);
-        if self.hand {
-            SmokeAdvect3Hand(self.advect.0).vjp(x, p, dy, dx, dp);
-        } else {
-            self.advect.vjp(x, p, dy, dx, dp);
-        }
-    }
-}
-
-impl Jvp for SmokeStep3 {
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
-        validate_jvp(self, "SmokeStep3", x, p, tx, tp, y, ty);
-        self.advect.jvp(x, p, tx, tp, y, ty);
-        self.project.apply(y);
-        self.project.apply(ty);
-    }
-}
+crate::problems::smoke::smoke_step_operator!(SmokeStep3, "SmokeStep3", SmokeAdvect3Hand, smoke3d::advect_buoyancy, smoke3d::advect_radius);
 
 /// Benchmark P4 at `n³` cells and `steps` steps.
 pub type P4 = crate::problems::SmokeBenchmark<SmokeStep3>;
