@@ -439,7 +439,7 @@ fn smoke_bench<P: SmokeBench>(n: usize, steps: usize, a: SmokeRun) -> Result<(),
         let (forward_s, loss) = median_time(budget, 3, 21, || p.value());
         loss?;
         // Two gradients' states at once (Enzyme's and the hand adjoint's workspaces).
-        let job = crate::rollout::plan::Job { steps: steps, state_bytes: 8 * p.x0.len() as u64, copies: 2, forward_s: forward_s / steps as f64 };
+        let job = crate::rollout::plan::Job { steps, state_bytes: 8 * p.x0.len() as u64, copies: 2, forward_s: forward_s / steps as f64 };
         let (plan, chosen) = super::checkpointing(&a.checkpoint, &job, other.unwrap_or(0), &format!("{title}'s gradient"))?;
         let mode = plan.mode;
         let mut ws = Workspace::new();
