@@ -109,7 +109,7 @@ pub struct DiffuseImplicit {
     grid: Grid,
     solver: RefCell<ImplicitSolver>,
     scratch: RefCell<(Vec<f64>, Vec<f64>)>,
-    error: Cell<Option<NoConvergence>>,
+    log: SolveLog,
 }
 
 impl DiffuseImplicit {
@@ -126,16 +126,13 @@ impl DiffuseImplicit {
             grid,
             solver: RefCell::new(ImplicitSolver::new(grid, tolerance, max_iterations)),
             scratch: RefCell::new((vec![0.0; len], vec![0.0; len])),
-            error: Cell::new(None),
+            log: SolveLog::default(),
         }
     }
 
     fn solve(&self, kappa: f64, b: &[f64], x: &mut [f64]) {
-        if let Err(e) = self.solver.borrow_mut().solve(kappa, b, x)
-            && self.error.get().is_none()
-        {
-            self.error.set(Some(e));
-        }
+        let r = self.solver.borrow_mut().solve(kappa, b, x);
+        self.log.record(r, false);
     }
 }
 
@@ -159,7 +156,7 @@ impl Forward for DiffuseImplicit {
     }
 
     fn take_error(&self) -> Option<OpError> {
-        self.error.take().map(OpError::from)
+        self.log.take_error()
     }
 }
 
@@ -498,7 +495,8 @@ pub struct Project {
 
 /// What a projection's solves did: CG iterations so far, forward and
 /// adjoint, and the first solve that did not converge (reported, then
-/// cleared, by [`SolveLog::take_error`]). Shared by the 2D and 3D projections.
+/// cleared, by [`SolveLog::take_error`]). Shared by the 2D and 3D
+/// projections and implicit diffusion.
 #[derive(Debug, Default)]
 pub struct SolveLog {
     error: Cell<Option<NoConvergence>>,

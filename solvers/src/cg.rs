@@ -51,6 +51,9 @@ pub trait System {
     /// `z = M⁻¹·r`, a symmetric positive definite map; `false` when there is
     /// no preconditioner (`z` is then not written and CG runs plain).
     fn precondition(&mut self, r: &[f64], z: &mut [f64]) -> bool;
+
+    /// The null space of `A`.
+    fn null(&self) -> Null<'_>;
 }
 
 /// The null space of `A`.
@@ -96,20 +99,17 @@ pub struct Stop {
 ///
 /// # Panics
 /// If `b`, `p` and the work vectors differ in length.
-pub fn solve(sys: &mut impl System, work: &mut CgWork, null: Null<'_>, stop: Stop, b: &[f64], p: &mut [f64], warm: bool) -> Result<usize, NoConvergence> {
+pub fn solve(sys: &mut impl System, work: &mut CgWork, stop: Stop, b: &[f64], p: &mut [f64], warm: bool) -> Result<usize, NoConvergence> {
     let n = b.len();
     assert!(p.len() == n && work.r.len() == n, "cg: lengths");
     let CgWork { r, z, d, q } = work;
     // The right-hand side minus its null component.
-    let (mean, weights) = match null {
-        Null::None => (0.0, None),
-        Null::Constant(None) => (b.iter().sum::<f64>() / n as f64, None),
-        Null::Constant(Some(w)) => (b.iter().zip(w).map(|(b, w)| b * w).sum::<f64>() / w.iter().sum::<f64>().max(1.0), Some(w)),
+    let mean = match sys.null() {
+        Null::None => 0.0,
+        Null::Constant(None) => b.iter().sum::<f64>() / n as f64,
+        Null::Constant(Some(w)) => b.iter().zip(w).map(|(b, w)| b * w).sum::<f64>() / w.iter().sum::<f64>().max(1.0),
     };
-    let rhs = |c: usize, bv: f64| bv - mean * weights.map_or(1.0, |w| w[c]);
-    for (c, (r, &bv)) in r.iter_mut().zip(b).enumerate() {
-        *r = rhs(c, bv);
-    }
+    projected_rhs(sys.null(), mean, b, r);
     let bnorm = dot(r, r).sqrt();
     if bnorm == 0.0 {
         p.fill(0.0);
@@ -124,34 +124,25 @@ pub fn solve(sys: &mut impl System, work: &mut CgWork, null: Null<'_>, stop: Sto
         p.fill(0.0);
     }
     let target = stop.tolerance * bnorm;
-    // d = M⁻¹·r; returns r·M⁻¹·r.
-    let restart = |sys: &mut dyn FnMut(&[f64], &mut [f64]) -> bool, r: &[f64], z: &mut [f64], d: &mut [f64]| {
-        if sys(r, z) {
-            d.copy_from_slice(z);
-            dot(r, z)
-        } else {
-            d.copy_from_slice(r);
-            dot(r, r)
-        }
-    };
-    let mut rz = restart(&mut |r, z| sys.precondition(r, z), r, z, d);
+    let mut rz = restart(sys, r, z, d);
     let mut rr = dot(r, r);
     let mut it = 0;
     loop {
         if rr.sqrt() <= target {
             // Confirm on the true residual; restart from it if needed.
             sys.apply(p, q);
-            for (c, ((q, &bv), r)) in q.iter().zip(b).zip(r.iter_mut()).enumerate() {
-                *r = rhs(c, bv) - q;
+            projected_rhs(sys.null(), mean, b, r);
+            for (r, &q) in r.iter_mut().zip(q.iter()) {
+                *r -= q;
             }
             rr = dot(r, r);
             if rr.sqrt() <= target {
-                if let Null::Constant(w) = null {
+                if let Null::Constant(w) = sys.null() {
                     remove_constant(w, p);
                 }
                 return Ok(it);
             }
-            rz = restart(&mut |r, z| sys.precondition(r, z), r, z, d);
+            rz = restart(sys, r, z, d);
         }
         if it >= stop.max_iterations || !rr.is_finite() {
             return Err(NoConvergence { iterations: it, relative_residual: rr.sqrt() / bnorm, tolerance: stop.tolerance });
@@ -165,6 +156,30 @@ pub fn solve(sys: &mut impl System, work: &mut CgWork, null: Null<'_>, stop: Sto
         rz = rz_new;
         direction(beta, if preconditioned { z } else { r }, d);
         it += 1;
+    }
+}
+
+/// `r = b − mean·w`: the right-hand side with its null component (`mean`
+/// along the null vector `w`) removed.
+fn projected_rhs(null: Null<'_>, mean: f64, b: &[f64], r: &mut [f64]) {
+    let weights = match null {
+        Null::Constant(w) => w,
+        Null::None => None,
+    };
+    for (c, (r, &bv)) in r.iter_mut().zip(b).enumerate() {
+        *r = bv - mean * weights.map_or(1.0, |w| w[c]);
+    }
+}
+
+/// A fresh search direction, `d = M⁻¹·r` (or `r` without a
+/// preconditioner); returns `r·M⁻¹·r`.
+fn restart(sys: &mut impl System, r: &[f64], z: &mut [f64], d: &mut [f64]) -> f64 {
+    if sys.precondition(r, z) {
+        d.copy_from_slice(z);
+        dot(r, z)
+    } else {
+        d.copy_from_slice(r);
+        dot(r, r)
     }
 }
 

@@ -56,3 +56,11 @@ pub fn beside<const WRAP: bool>(n: usize, k: usize) -> (usize, usize) {
 pub fn own_faces<const WRAP: bool>(n: usize) -> usize {
     if WRAP { n } else { n + 1 }
 }
+
+/// How far a sample position `pos` (in samples) may move at `speed` before
+/// it crosses a lattice line, where linear sampling kinks: its distance to
+/// the nearest whole number over `|speed|` (∞ when the speed is 0).
+#[inline(always)]
+pub fn lattice_gap(pos: f64, speed: f64) -> f64 {
+    if speed == 0.0 { f64::INFINITY } else { (pos - pos.round()).abs() / speed.abs() }
+}

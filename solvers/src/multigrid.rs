@@ -9,8 +9,8 @@
 //! are blended along z); restriction is its exact transpose scaled to an
 //! average, `R = Pᵀ/2^d` (`d` the coarsened axes); the coarse matrix is the
 //! same stencil scaled by ¼ per level (the unscaled matrix approximates
-//! `−h²Δ`, and `h` doubles). Smoothing is damped Jacobi
-//! (ω = 0.8 in 2D, 6/7 in 3D), as many sweeps after the coarse correction as before (one
+//! `−h²Δ`, and `h` doubles). Smoothing is damped Jacobi (ω = 0.8 in 2D,
+//! 6/7 in 3D), as many sweeps after the coarse correction as before (one
 //! each, `SWEEPS`; thirty on the coarsest grid), so that the V-cycle is a
 //! symmetric positive definite operator, as conjugate gradients needs.
 
@@ -76,6 +76,16 @@ impl Level {
         Self { n, nz, scale, omega_inv_diag, r: z.clone(), e: z.clone(), t: z }
     }
 
+    /// `sweeps ≥ 1` damped-Jacobi sweeps on `scale·A·e = r` from `e = 0`:
+    /// the first is `e = ω·D⁻¹·r` (no product needed).
+    #[inline(always)]
+    fn smooth_from_zero(&mut self, sweeps: usize) {
+        for ((e, &r), &w) in self.e.iter_mut().zip(&self.r).zip(&self.omega_inv_diag) {
+            *e = w * r;
+        }
+        self.smooth(sweeps - 1);
+    }
+
     #[inline(always)]
     /// `sweeps` damped-Jacobi sweeps on `scale·A·e = r`, from the current `e`.
     fn smooth(&mut self, sweeps: usize) {
@@ -98,8 +108,6 @@ impl Level {
 #[derive(Clone, Debug)]
 pub struct Multigrid {
     levels: Vec<Level>,
-    /// The coarse grids halve along z too (3D).
-    cube: bool,
     /// One coarse slab (blending along z).
     slab: Vec<f64>,
 }
@@ -124,7 +132,7 @@ impl Multigrid {
             scale *= 0.25;
             levels.push(Level::new(m, depth(m), scale));
         }
-        Self { levels, cube, slab: vec![0.0; (n / 2).max(1).pow(2)] }
+        Self { levels, slab: vec![0.0; (n / 2).max(1).pow(2)] }
     }
 
     /// Number of levels.
@@ -142,17 +150,14 @@ impl Multigrid {
     #[inline(always)]
     fn apply_body(&mut self, r: &[f64], z: &mut [f64]) {
         let depth = self.levels.len();
-        let average = if self.cube { 0.125 } else { 0.25 };
+        // Restriction averages the 8 (cube) or 4 (square) fine cells of a coarse one.
+        let average = if self.levels[0].nz > 1 { 0.125 } else { 0.25 };
         self.levels[0].r.copy_from_slice(r);
         // Down: smooth, then restrict the residual, r_c = Pᵀ·(r − A·e) / 2^d.
         for k in 0..depth - 1 {
             let (fine, coarse) = self.levels.split_at_mut(k + 1);
             let (f, c) = (&mut fine[k], &mut coarse[0]);
-            // The first sweep from e = 0 is e = ω·D⁻¹·r (no product needed).
-            for ((e, &r), &w) in f.e.iter_mut().zip(&f.r).zip(&f.omega_inv_diag) {
-                *e = w * r;
-            }
-            f.smooth(SWEEPS - 1);
+            f.smooth_from_zero(SWEEPS);
             apply_box_matrix(f.n, f.nz, &f.e, &mut f.t);
             for (t, &r) in f.t.iter_mut().zip(&f.r) {
                 *t = r - f.scale * *t;
@@ -163,11 +168,7 @@ impl Multigrid {
                 *v *= average;
             }
         }
-        let coarsest = &mut self.levels[depth - 1];
-        for ((e, &r), &w) in coarsest.e.iter_mut().zip(&coarsest.r).zip(&coarsest.omega_inv_diag) {
-            *e = w * r;
-        }
-        coarsest.smooth(COARSEST_SWEEPS - 1);
+        self.levels[depth - 1].smooth_from_zero(COARSEST_SWEEPS);
         // Up: e += P·e_c, then smooth.
         for k in (0..depth - 1).rev() {
             let (fine, coarse) = self.levels.split_at_mut(k + 1);

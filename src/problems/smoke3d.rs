@@ -5,8 +5,8 @@
 
 use std::cell::RefCell;
 
-use diffsim_solvers::smoke::Preconditioner;
-use diffsim_solvers::smoke3d::{self, PressureSolver3, Scratch3, Smoke3d};
+use diffsim_solvers::smoke::{Preconditioner, ProjectScratch};
+use diffsim_solvers::smoke3d::{self, PressureSolver3, Smoke3d};
 
 use crate::fluids::SolveLog;
 use crate::op::Operator;
@@ -61,7 +61,7 @@ crate::problems::smoke::hand_explicit_operator!(SmokeAdvect3Hand, smoke3d::advec
 pub struct Project3 {
     cfg: Smoke3d,
     solver: RefCell<PressureSolver3>,
-    scratch: RefCell<Scratch3>,
+    scratch: RefCell<ProjectScratch>,
     /// The solves' iteration counts and first failure.
     pub log: SolveLog,
 }
@@ -78,7 +78,7 @@ impl Project3 {
         Self {
             cfg,
             solver: RefCell::new(PressureSolver3::new(cfg.nx, tolerance, max_iterations, precond)),
-            scratch: RefCell::new(Scratch3::new(cfg.n_s())),
+            scratch: RefCell::new(ProjectScratch::new(cfg.n_s())),
             log: SolveLog::default(),
         }
     }

@@ -187,7 +187,7 @@ pub fn advect_radius(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, veloci
                     let (a, b) = mac.velocity(at, u, v, k, l);
                     let (da, db) = mac.velocity(at, du, dv, k, l);
                     for &sdt in steps {
-                        r = r.min(gap(k as f64 - sdt * a, sdt * da)).min(gap(l as f64 - sdt * b, sdt * db));
+                        r = r.min(lattice_gap(k as f64 - sdt * a, sdt * da)).min(lattice_gap(l as f64 - sdt * b, sdt * db));
                     }
                 }
             }
@@ -269,11 +269,6 @@ fn unclamped<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, dt: f64, 
     trace(mac, at, uv, f, dt, &mut hat);
     trace(mac, at, uv, &hat, -dt, &mut tilde);
     hat.iter().zip(f).zip(&tilde).map(|((h, f), t)| h + 0.5 * (f - t)).collect()
-}
-
-/// Distance of `pos` to the nearest whole number over `speed` (∞ when 0).
-fn gap(pos: f64, speed: f64) -> f64 {
-    if speed == 0.0 { f64::INFINITY } else { (pos - pos.round()).abs() / speed.abs() }
 }
 
 /// Scratch [`advect()`] needs: for MacCormack two fields of the largest

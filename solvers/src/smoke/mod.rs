@@ -30,7 +30,7 @@
 //! reference values.
 
 use crate::boundary::{Boundary, Side, for_each_face};
-use crate::grid::{axis_passes, axis_position, beside, next, own_faces};
+use crate::grid::{axis_passes, axis_position, beside, lattice_gap, next, own_faces};
 
 /// Grid of the smoke problem: `nx × ny` unit cells, buoyancy coefficient,
 /// and the boundary conditions.

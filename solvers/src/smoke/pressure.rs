@@ -491,10 +491,7 @@ impl PressureSolver {
     fn solve_impl(&mut self, b: &[f64], p: &mut [f64], warm: bool) -> Result<usize, NoConvergence> {
         let stop = Stop { tolerance: self.tolerance, max_iterations: self.max_iterations };
         let mut work = std::mem::take(&mut self.work);
-        // The null vector's weights (a copy: the solve borrows the solver mutably).
-        let fluid = self.fluid.clone();
-        let null = if self.boundary.has_outflow() { Null::None } else { Null::Constant(fluid.as_deref()) };
-        let result = crate::cg::solve(self, &mut work, null, stop, b, p, warm);
+        let result = crate::cg::solve(self, &mut work, stop, b, p, warm);
         self.work = work;
         result
     }
@@ -523,6 +520,11 @@ impl System for PressureSolver {
             self.apply_general(d, q);
             dot(d, q)
         }
+    }
+
+    /// Constants on the fluid cells, unless a side lets fluid out.
+    fn null(&self) -> Null<'_> {
+        if self.boundary.has_outflow() { Null::None } else { Null::Constant(self.fluid.as_deref()) }
     }
 
     /// `z = M⁻¹·r` (MIC(0): forward then backward substitution).
@@ -659,11 +661,11 @@ fn mic0_general(nx: usize, ax: &[f64], ay: &[f64], pc: &[f64], r: &[f64], z: &mu
     }
 }
 
-/// Scratch of the projection: divergence and pressure.
+/// Scratch of the projection (2D and 3D): divergence and pressure.
 #[derive(Clone, Debug)]
 pub struct ProjectScratch {
-    d: Vec<f64>,
-    p: Vec<f64>,
+    pub(crate) d: Vec<f64>,
+    pub(crate) p: Vec<f64>,
 }
 
 impl ProjectScratch {

@@ -153,7 +153,6 @@ pub fn advect_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
     let mac = Mac3::<false, false, false> { n: cfg.dims() };
     let [_, u, v, w] = cfg.split(x);
     let [_, du, dv, dw] = cfg.split(d);
-    let gap = |pos: f64, speed: f64| if speed == 0.0 { f64::INFINITY } else { (pos - pos.round()).abs() / speed.abs() };
     let mut r = f64::INFINITY;
     for at in [At3::Centre, At3::U, At3::V, At3::W] {
         let lat = mac.lattice(at);
@@ -164,7 +163,7 @@ pub fn advect_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
                     let vel = mac.velocity(at, [u, v, w], q);
                     let dvel = mac.velocity(at, [du, dv, dw], q);
                     for a in 0..3 {
-                        r = r.min(gap(q[a] as f64 - vel[a], dvel[a]));
+                        r = r.min(lattice_gap(q[a] as f64 - vel[a], dvel[a]));
                     }
                 }
             }

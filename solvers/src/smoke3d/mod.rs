@@ -23,7 +23,7 @@
 //! the hand-written [`advect_buoyancy_adjoint`] beside it) and [`project`]
 //! (a linear solve; its adjoint [`project_adjoint`] is the same solve).
 
-use crate::grid::{axis_passes, axis_position, beside, next, own_faces};
+use crate::grid::{axis_passes, axis_position, beside, lattice_gap, next, own_faces};
 
 /// Grid of the 3D smoke problem: `nx × ny × nz` unit cells in a closed box,
 /// and the buoyancy coefficient (along +y).
@@ -267,15 +267,6 @@ impl<const WX: bool, const WY: bool, const WZ: bool> Mac3<WX, WY, WZ> {
         for t in self.taps(at, 2, q) {
             gw[t] += 0.25 * g[2];
         }
-    }
-}
-
-/// Element-wise copy (an explicit loop, as in 2D: `copy_from_slice` into
-/// part of a buffer Enzyme differentiates has given wrong gradients).
-#[inline(always)]
-fn copy(from: &[f64], to: &mut [f64]) {
-    for (o, &a) in to.iter_mut().zip(from) {
-        *o = a;
     }
 }
 

@@ -7,7 +7,7 @@ use super::*;
 /// lies within `N/8` of `(N/2, N/4, N/2)`, packed as `[s, u, v, w]`.
 pub fn p4_initial(cfg: &Smoke3d) -> Vec<f64> {
     let mut x = vec![0.0; cfg.n_state()];
-    copy(&ball(cfg.nx, 0.25), &mut x[..cfg.n_s()]);
+    x[..cfg.n_s()].copy_from_slice(&ball(cfg.nx, 0.25));
     x
 }
 

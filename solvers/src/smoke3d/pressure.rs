@@ -6,7 +6,7 @@
 use super::*;
 use crate::cg::{CgWork, NoConvergence, Null, Stop, System};
 use crate::multigrid::{Multigrid, apply_box_matrix};
-use crate::smoke::Preconditioner;
+use crate::smoke::{Preconditioner, ProjectScratch};
 
 /// Calls `f(c, faces)` for every cell `c` with the flat indices of its six
 /// faces, `[u_left, u_right, v_below, v_above, w_back, w_front]`.
@@ -137,7 +137,7 @@ impl PressureSolver3 {
     pub fn solve(&mut self, b: &[f64], p: &mut [f64]) -> Result<usize, NoConvergence> {
         let mut work = std::mem::take(&mut self.work);
         let stop = self.stop;
-        let r = crate::cg::solve(self, &mut work, Null::Constant(None), stop, b, p, false);
+        let r = crate::cg::solve(self, &mut work, stop, b, p, false);
         self.work = work;
         r
     }
@@ -146,6 +146,11 @@ impl PressureSolver3 {
 impl System for PressureSolver3 {
     fn apply(&mut self, p: &[f64], out: &mut [f64]) {
         apply_box_matrix(self.n, self.n, p, out);
+    }
+
+    /// Constants: the box is closed.
+    fn null(&self) -> Null<'_> {
+        Null::Constant(None)
     }
 
     fn precondition(&mut self, r: &[f64], z: &mut [f64]) -> bool {
@@ -159,24 +164,10 @@ impl System for PressureSolver3 {
     }
 }
 
-/// Divergence and pressure of a projection, kept between calls.
-#[derive(Clone, Debug)]
-pub struct Scratch3 {
-    d: Vec<f64>,
-    p: Vec<f64>,
-}
-
-impl Scratch3 {
-    /// Scratch for a box of `cells` cells.
-    pub fn new(cells: usize) -> Self {
-        Self { d: vec![0.0; cells], p: vec![0.0; cells] }
-    }
-}
-
 /// P4's step 5 in place on the velocity part of the packed state `y`: the
 /// solve `A·p = −D·(u, v, w)`, then `(u, v, w) −= G·p` on the interior
 /// faces. Returns the CG iterations.
-pub fn project(cfg: &Smoke3d, y: &mut [f64], solver: &mut PressureSolver3, scratch: &mut Scratch3) -> Result<usize, NoConvergence> {
+pub fn project(cfg: &Smoke3d, y: &mut [f64], solver: &mut PressureSolver3, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
     let [_, u, v, w] = cfg.split_mut(y);
     divergence(cfg, [u, v, w], &mut scratch.d);
     for d in scratch.d.iter_mut() {
@@ -191,7 +182,7 @@ pub fn project(cfg: &Smoke3d, y: &mut [f64], solver: &mut PressureSolver3, scrat
 /// the adjoint `g`: `λ_p = −Gᵀ·λ`, the solve `A·μ = λ_p` (the transposed —
 /// here the same — system to the same tolerance), `λ += −Dᵀ·μ`. Returns
 /// the CG iterations.
-pub fn project_adjoint(cfg: &Smoke3d, g: &mut [f64], solver: &mut PressureSolver3, scratch: &mut Scratch3) -> Result<usize, NoConvergence> {
+pub fn project_adjoint(cfg: &Smoke3d, g: &mut [f64], solver: &mut PressureSolver3, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
     let [_, gu, gv, gw] = cfg.split_mut(g);
     gradient_transpose(cfg, [gu, gv, gw], &mut scratch.d);
     for d in scratch.d.iter_mut() {
