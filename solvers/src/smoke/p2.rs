@@ -1,4 +1,5 @@
-//! Benchmark P2 `smoke2d`: initial state, target, loss and reference values
+//! Benchmark P2 `smoke2d`: initial state, target and reference values (the loss is
+//! `diffsim::problems::half_squared_error`, shared with P4)
 //! (`benchmarks.md`).
 
 use super::*;
@@ -28,19 +29,6 @@ fn disc(n: usize, cy: f64) -> Vec<f64> {
         }
     }
     s
-}
-
-/// P2 loss `L = ½·Σ (s_T − s*)²` on the smoke part of the packed state;
-/// writes `∂L/∂x` (zero on the velocity part) into `grad` (overwrites).
-pub fn p2_loss(cfg: &Smoke2d, x: &[f64], target: &[f64], grad: &mut [f64]) -> f64 {
-    grad.fill(0.0);
-    let mut sum = 0.0;
-    for ((g, &s), &t) in grad.iter_mut().zip(&x[..cfg.n_s()]).zip(target) {
-        let d = s - t;
-        sum += d * d;
-        *g = d;
-    }
-    0.5 * sum
 }
 
 /// Reference values of one P2 size (JAX, float64; `benchmarks.md`).

@@ -1,4 +1,5 @@
-//! Benchmark P4 `smoke3d`: initial state, target, loss and reference values
+//! Benchmark P4 `smoke3d`: initial state, target and reference values (the loss is
+//! `diffsim::problems::half_squared_error`, shared with P2)
 //! (`benchmarks.md`).
 
 use super::*;
