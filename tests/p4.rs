@@ -4,7 +4,7 @@
 //! multigrid preconditioner in 3D.
 
 use diffsim::check::{CheckOptions, check_all};
-use diffsim::problems::smoke3d::{P4, Project3, SmokeAdvect3, SmokeAdvect3Hand, SmokeStep3};
+use diffsim::problems::smoke3d::{P4, Project3, SmokeAdvect3, SmokeAdvect3Hand, SmokeAdvect3Slabs, SmokeStep3, slab_ranges};
 use diffsim::rollout::{Checkpointing, Workspace};
 use diffsim_solvers::smoke::Preconditioner;
 use diffsim_solvers::smoke3d::{P4_SIZES, Smoke3d, p4_mid};
@@ -81,15 +81,49 @@ fn explicit_part_passes_all_checks() {
         let r = check_all(&SmokeAdvect3(cfg), &x, &[], &CheckOptions::default());
         assert!(r.passed(), "Enzyme n = {n}:\n{r}");
     }
+    // The slab ranges whose adjoints the parallel VJP sums: a middle range
+    // and the top one (which also holds the last z-faces).
+    let cfg = Smoke3d::p4(8);
+    let x = state(&cfg, 3);
+    for ks in [3..5, 5..8] {
+        let r = check_all(&SmokeAdvect3Slabs::new(cfg, ks.clone()), &x, &[], &CheckOptions::default());
+        assert!(r.passed(), "slabs {ks:?}:\n{r}");
+    }
+}
+
+#[test]
+fn slab_ranges_tile_the_step() {
+    use diffsim::op::OperatorExt;
+    let cfg = Smoke3d::p4(16);
+    let x = state(&cfg, 9);
+    let full = SmokeAdvect3(cfg).eval(&x, &[]);
+    let ranges = slab_ranges(cfg.nz);
+    assert_eq!(ranges.len(), 2);
+    let mut pieces: Vec<Vec<f64>> = vec![Vec::new(); 4];
+    for ks in &ranges {
+        let y = SmokeAdvect3Slabs::new(cfg, ks.clone()).eval(&x, &[]);
+        let mut o = 0;
+        for (f, len) in cfg.slab_lens(ks.clone()).into_iter().enumerate() {
+            pieces[f].extend_from_slice(&y[o..o + len]);
+            o += len;
+        }
+    }
+    let joined: Vec<f64> = pieces.concat();
+    assert!(joined.iter().zip(&full).all(|(a, b)| a.to_bits() == b.to_bits()), "the slab ranges do not give the step");
 }
 
 #[test]
 fn hand_adjoint_passes_the_checks_against_enzyme() {
     use diffsim::check::{dot_product_between, finite_differences, taylor};
     use diffsim::op::Vjp;
-    for n in [6, 8] {
+    for n in [6, 8, 16] {
         let cfg = Smoke3d::p4(n);
         let x = state(&cfg, 40 + n as u64);
+        if n == 16 {
+            // Enzyme's adjoint over two slab ranges summed (the parallel
+            // path) against the hand adjoint, entry by entry, below.
+            assert_eq!(slab_ranges(n).len(), 2);
+        }
         // Enzyme's JVP against the hand VJP: an independent pair.
         let r = dot_product_between(&SmokeAdvect3(cfg), &SmokeAdvect3Hand(cfg), &x, &[], &CheckOptions { tol: 1e-12, ..Default::default() });
         assert!(r.verdict.passed(), "n = {n}: {r}");
@@ -163,5 +197,40 @@ fn multigrid_preconditioner_is_symmetric_and_positive_in_3d() {
         let (a, b) = (dot(&mr, &s), dot(&r, &ms));
         assert!((a - b).abs() <= 1e-12 * a.abs().max(b.abs()), "n = {n}: ⟨Mr, s⟩ {a} vs ⟨r, Ms⟩ {b}");
         assert!(dot(&mr, &r) > 0.0, "n = {n}: not positive");
+    }
+}
+
+/// The grid of the thread-count test: large enough that the forward
+/// advection, the V-cycle's finest level and CG's sums run split over
+/// threads.
+const THREADED_N: usize = 24;
+const _: () = assert!(THREADED_N * THREADED_N * THREADED_N > 3 * diffsim_solvers::par::MIN_PARALLEL);
+
+#[test]
+fn results_are_identical_for_any_thread_count() {
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| {
+            let p = P4::new(THREADED_N, 3, Preconditioner::Multigrid);
+            let g = p.grad_in(&mut Workspace::new(), Checkpointing::Store).unwrap();
+            let cfg = Smoke3d::p4(THREADED_N);
+            let x = state(&cfg, 5);
+            let (mut serial, mut parallel) = (vec![0.0; x.len()], vec![0.0; x.len()]);
+            diffsim_solvers::smoke3d::advect_buoyancy(&cfg, &x, &mut serial);
+            diffsim_solvers::smoke3d::advect_buoyancy_parallel(&cfg, &x, &mut parallel);
+            assert!(
+                serial.iter().zip(&parallel).all(|(a, b)| a.to_bits() == b.to_bits()),
+                "{threads} threads: the parallel advection differs from the serial one"
+            );
+            (g.loss, g.dx0)
+        })
+    };
+    let (loss, grad) = run(1);
+    assert!(loss.is_finite() && grad.iter().any(|&v| v != 0.0));
+    for threads in [2, 3] {
+        let (l, g) = run(threads);
+        assert_eq!(l.to_bits(), loss.to_bits(), "loss with {threads} threads");
+        let differ = grad.iter().zip(&g).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
+        assert_eq!(differ, 0, "{differ} gradient entries differ between 1 and {threads} threads");
     }
 }

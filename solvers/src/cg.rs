@@ -14,6 +14,8 @@
 
 use std::fmt;
 
+use crate::par;
+
 /// A solve that did not converge.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct NoConvergence {
@@ -199,9 +201,18 @@ pub fn remove_constant(weights: Option<&[f64]>, p: &mut [f64]) {
     }
 }
 
+/// `p += α·d`, `r −= α·q`, `*rr = r·r` in one pass (in pieces, [`crate::par`]).
+fn update(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], rr: &mut f64) {
+    *rr = par::sum_pieces_mut(p, r, |k, p, r| {
+        let o = k * par::SUM_PIECE..k * par::SUM_PIECE + p.len();
+        let mut acc = 0.0;
+        update_piece(alpha, &d[o.clone()], &q[o], p, r, &mut acc);
+        acc
+    });
+}
+
 crate::simd_dispatch! {
-    /// `p += α·d`, `r −= α·q`, `*rr = r·r` in one pass.
-    fn update(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], rr: &mut f64) => update_body
+    fn update_piece(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], rr: &mut f64) => update_body
 }
 
 #[inline(always)]
@@ -225,9 +236,13 @@ fn update_body(alpha: f64, d: &[f64], q: &[f64], p: &mut [f64], r: &mut [f64], r
     *rr = acc.iter().sum::<f64>() + tail;
 }
 
+/// `d = z + β·d` (in pieces).
+fn direction(beta: f64, z: &[f64], d: &mut [f64]) {
+    par::for_pieces(d, par::SUM_PIECE, |k, d| direction_piece(beta, &z[k * par::SUM_PIECE..k * par::SUM_PIECE + d.len()], d));
+}
+
 crate::simd_dispatch! {
-    /// `d = z + β·d`.
-    fn direction(beta: f64, z: &[f64], d: &mut [f64]) => direction_body
+    fn direction_piece(beta: f64, z: &[f64], d: &mut [f64]) => direction_body
 }
 
 #[inline(always)]
@@ -237,10 +252,17 @@ fn direction_body(beta: f64, z: &[f64], d: &mut [f64]) {
     }
 }
 
-/// `a·b` with eight independent partial sums (vectorises; the order of the
-/// sum is fixed, so results do not depend on the machine).
-#[inline(always)]
+/// `a·b`: the partial sums of pieces of [`par::SUM_PIECE`] values (each with
+/// eight lanes, which vectorise) added in order, so that results depend on
+/// neither the machine nor the thread count.
+#[inline]
 pub fn dot(a: &[f64], b: &[f64]) -> f64 {
+    par::sum_pieces(a, b, dot_piece)
+}
+
+/// `a·b` with eight independent partial sums.
+#[inline(always)]
+pub fn dot_piece(a: &[f64], b: &[f64]) -> f64 {
     let mut acc = [0.0f64; 8];
     let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
     let tail: f64 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();

@@ -14,26 +14,36 @@
 //! each, `SWEEPS`; thirty on the coarsest grid), so that the V-cycle is a
 //! symmetric positive definite operator, as conjugate gradients needs.
 
+use crate::par::{SUM_PIECE, for_pieces, sum_pieces};
 use crate::smoke::apply_pressure_matrix;
 
 /// The pressure matrix of the closed box of `n × n × nz` cells (`nz = 1`:
 /// the square's five-point matrix): `(A·p)[c] = Σ_{neighbours m of c inside
-/// the box} (p[c] − p[m])`, overwrites `out`. Each slab's in-plane part is
-/// the vectorised 2D product; the coupling across slabs is a pass over
-/// pairs of slabs.
+/// the box} (p[c] − p[m])`, overwrites `out`. Slab by slab (in parallel on
+/// large boxes, [`crate::par`]): the slab's in-plane part is the vectorised
+/// 2D product, then the coupling to the slabs below and above.
 #[inline(always)]
 pub fn apply_box_matrix(n: usize, nz: usize, p: &[f64], out: &mut [f64]) {
     let slab = n * n;
-    for k in 0..nz {
-        apply_pressure_matrix(n, n, &p[k * slab..(k + 1) * slab], &mut out[k * slab..(k + 1) * slab]);
-    }
-    for k in 1..nz {
-        let (lo, hi) = out.split_at_mut(k * slab);
-        let (below, here) = (&p[(k - 1) * slab..k * slab], &p[k * slab..(k + 1) * slab]);
-        for (((ol, oh), &b), &h) in lo[(k - 1) * slab..].iter_mut().zip(&mut hi[..slab]).zip(below).zip(here) {
-            *ol += b - h;
-            *oh += h - b;
+    for_pieces(&mut out[..nz * slab], slab, |k, o| box_matrix_slab(n, nz, k, p, o));
+}
+
+/// Slab `k` of [`apply_box_matrix`] into `o`.
+#[inline(always)]
+fn box_matrix_slab(n: usize, nz: usize, k: usize, p: &[f64], o: &mut [f64]) {
+    let slab = n * n;
+    let here = &p[k * slab..(k + 1) * slab];
+    apply_pressure_matrix(n, n, here, o);
+    let mut couple = |other: &[f64]| {
+        for ((o, &h), &b) in o.iter_mut().zip(here).zip(other) {
+            *o += h - b;
         }
+    };
+    if k > 0 {
+        couple(&p[(k - 1) * slab..k * slab]);
+    }
+    if k + 1 < nz {
+        couple(&p[(k + 1) * slab..(k + 2) * slab]);
     }
 }
 
@@ -59,6 +69,9 @@ struct Level {
     r: Vec<f64>,
     e: Vec<f64>,
     t: Vec<f64>,
+    /// The `2·nz` finer slabs restricted to (or blended from) this level's
+    /// area, between the two passes of a 3D transfer.
+    slabs: Vec<f64>,
 }
 
 impl Level {
@@ -73,16 +86,21 @@ impl Level {
             }
         }
         let z = vec![0.0; n * n * nz];
-        Self { n, nz, scale, omega_inv_diag, r: z.clone(), e: z.clone(), t: z }
+        let slabs = if nz > 1 { vec![0.0; 2 * n * n * nz] } else { Vec::new() };
+        Self { n, nz, scale, omega_inv_diag, r: z.clone(), e: z.clone(), t: z, slabs }
     }
 
     /// `sweeps ≥ 1` damped-Jacobi sweeps on `scale·A·e = r` from `e = 0`:
     /// the first is `e = ω·D⁻¹·r` (no product needed).
     #[inline(always)]
     fn smooth_from_zero(&mut self, sweeps: usize) {
-        for ((e, &r), &w) in self.e.iter_mut().zip(&self.r).zip(&self.omega_inv_diag) {
-            *e = w * r;
-        }
+        let (r, w, len) = (&self.r, &self.omega_inv_diag, self.n * self.n);
+        for_pieces(&mut self.e, len, |k, e| {
+            let o = k * len..k * len + e.len();
+            for ((e, &r), &w) in e.iter_mut().zip(&r[o.clone()]).zip(&w[o]) {
+                *e = w * r;
+            }
+        });
         self.smooth(sweeps - 1);
     }
 
@@ -94,13 +112,34 @@ impl Level {
         }
     }
 
-    /// One damped-Jacobi sweep, `e += ω·D⁻¹·(r − scale·A·e)`.
+    /// One damped-Jacobi sweep, `e ← e + ω·D⁻¹·(r − scale·A·e)`, written
+    /// slab by slab into `t` (the product and the update in one pass), then
+    /// swapped into `e`.
     #[inline(always)]
     fn sweep(&mut self) {
-        apply_box_matrix(self.n, self.nz, &self.e, &mut self.t);
-        for (((e, &t), &r), &w) in self.e.iter_mut().zip(&self.t).zip(&self.r).zip(&self.omega_inv_diag) {
-            *e += w * (r - self.scale * t);
-        }
+        let (n, nz, scale) = (self.n, self.nz, self.scale);
+        let (e, r, w) = (&self.e, &self.r, &self.omega_inv_diag);
+        for_pieces(&mut self.t[..n * n * nz], n * n, |k, t| {
+            box_matrix_slab(n, nz, k, e, t);
+            let o = k * n * n..(k + 1) * n * n;
+            for (((t, &e), &r), &w) in t.iter_mut().zip(&e[o.clone()]).zip(&r[o.clone()]).zip(&w[o]) {
+                *t = e + w * (r - scale * *t);
+            }
+        });
+        std::mem::swap(&mut self.e, &mut self.t);
+    }
+
+    /// `t = r − scale·A·e`, the residual of the level's equation.
+    #[inline(always)]
+    fn residual(&mut self) {
+        let (n, nz, scale) = (self.n, self.nz, self.scale);
+        let (e, r) = (&self.e, &self.r);
+        for_pieces(&mut self.t[..n * n * nz], n * n, |k, t| {
+            box_matrix_slab(n, nz, k, e, t);
+            for (t, &r) in t.iter_mut().zip(&r[k * n * n..(k + 1) * n * n]) {
+                *t = r - scale * *t;
+            }
+        });
     }
 }
 
@@ -108,8 +147,6 @@ impl Level {
 #[derive(Clone, Debug)]
 pub struct Multigrid {
     levels: Vec<Level>,
-    /// One coarse slab (blending along z).
-    slab: Vec<f64>,
 }
 
 impl Multigrid {
@@ -132,7 +169,7 @@ impl Multigrid {
             scale *= 0.25;
             levels.push(Level::new(m, depth(m), scale));
         }
-        Self { levels, slab: vec![0.0; (n / 2).max(1).pow(2)] }
+        Self { levels }
     }
 
     /// Number of levels.
@@ -152,35 +189,30 @@ impl Multigrid {
         let depth = self.levels.len();
         // Restriction averages the 8 (cube) or 4 (square) fine cells of a coarse one.
         let average = if self.levels[0].nz > 1 { 0.125 } else { 0.25 };
-        self.levels[0].r.copy_from_slice(r);
+        for_pieces(&mut self.levels[0].r, SUM_PIECE, |k, piece| piece.copy_from_slice(&r[k * SUM_PIECE..k * SUM_PIECE + piece.len()]));
         // Down: smooth, then restrict the residual, r_c = Pᵀ·(r − A·e) / 2^d.
         for k in 0..depth - 1 {
             let (fine, coarse) = self.levels.split_at_mut(k + 1);
             let (f, c) = (&mut fine[k], &mut coarse[0]);
             f.smooth_from_zero(SWEEPS);
-            apply_box_matrix(f.n, f.nz, &f.e, &mut f.t);
-            for (t, &r) in f.t.iter_mut().zip(&f.r) {
-                *t = r - f.scale * *t;
-            }
-            c.r.fill(0.0);
-            restrict_box(c, &f.t, &mut self.slab);
-            for v in c.r.iter_mut() {
-                *v *= average;
-            }
+            f.residual();
+            restrict_box(c, &f.t, average);
         }
         self.levels[depth - 1].smooth_from_zero(COARSEST_SWEEPS);
         // Up: e += P·e_c, then smooth.
         for k in (0..depth - 1).rev() {
             let (fine, coarse) = self.levels.split_at_mut(k + 1);
             let (f, c) = (&mut fine[k], &mut coarse[0]);
-            prolong_box(c, &mut f.e, &mut self.slab);
+            prolong_box(c, &mut f.e);
             f.smooth(SWEEPS);
         }
-        z.copy_from_slice(&self.levels[0].e);
-        let mean = z.iter().sum::<f64>() / z.len() as f64;
-        for v in z.iter_mut() {
-            *v -= mean;
-        }
+        let e = &self.levels[0].e;
+        let mean = sum_pieces(e, e, |a, _| a.iter().sum()) / z.len() as f64;
+        for_pieces(z, SUM_PIECE, |k, z| {
+            for (z, &e) in z.iter_mut().zip(&e[k * SUM_PIECE..]) {
+                *z = e - mean;
+            }
+        });
     }
 }
 
@@ -202,89 +234,99 @@ fn taps(a: usize, nc: usize) -> (usize, usize) {
     (ic, other)
 }
 
-/// `fine += P·coarse` from the level `c`: each fine slab from the two
-/// coarse slabs beside it along z (¾, ¼) blended into `slab`, then the 2D
-/// prolongation; a level one slab deep is prolonged in the plane only.
+/// `fine += P·coarse` from the level `c`: the two coarse slabs beside each
+/// fine slab along z blended (¾, ¼) into `c.slabs`, then each fine slab
+/// prolonged in the plane (both passes slab by slab, in parallel on large
+/// boxes); a level one slab deep is prolonged in the plane only.
 #[inline(always)]
-fn prolong_box(c: &mut Level, fine: &mut [f64], slab: &mut [f64]) {
+fn prolong_box(c: &mut Level, fine: &mut [f64]) {
     let (nc, area) = (c.n, c.n * c.n);
     if c.nz == 1 {
-        return prolong(nc, &c.e, fine, &mut c.t);
+        return prolong(nc, &c.e, fine);
     }
-    let fine_area = 4 * area;
-    for kf in 0..2 * c.nz {
-        let (kc, ko) = taps(kf, c.nz);
-        let (a, b) = (&c.e[kc * area..(kc + 1) * area], &c.e[ko * area..(ko + 1) * area]);
-        for ((s, &a), &b) in slab[..area].iter_mut().zip(a).zip(b) {
+    let (e, nz) = (&c.e, c.nz);
+    for_pieces(&mut c.slabs, area, |kf, s| {
+        let (kc, ko) = taps(kf, nz);
+        for ((s, &a), &b) in s.iter_mut().zip(&e[kc * area..(kc + 1) * area]).zip(&e[ko * area..(ko + 1) * area]) {
             *s = 0.75 * a + 0.25 * b;
         }
-        prolong(nc, &slab[..area], &mut fine[kf * fine_area..(kf + 1) * fine_area], &mut c.t);
-    }
+    });
+    let slabs = &c.slabs;
+    for_pieces(&mut fine[..8 * area * nz], 4 * area, |kf, f| prolong(nc, &slabs[kf * area..(kf + 1) * area], f));
 }
 
-/// `c.r += Pᵀ·fine`, the exact transpose of [`prolong_box`]: each fine
-/// slab restricted in the plane into `slab`, then spread to the two coarse
-/// slabs beside it along z.
+/// `c.r = average · Pᵀ·fine`, the transpose of [`prolong_box`] scaled:
+/// each fine slab restricted in the plane into `c.slabs`, then each coarse
+/// slab gathered from the fine slabs beside it along z (both passes in
+/// parallel on large boxes).
 #[inline(always)]
-fn restrict_box(c: &mut Level, fine: &[f64], slab: &mut [f64]) {
+fn restrict_box(c: &mut Level, fine: &[f64], average: f64) {
     let (nc, area) = (c.n, c.n * c.n);
     if c.nz == 1 {
-        return restrict(nc, fine, &mut c.r, &mut c.t);
+        c.r.fill(0.0);
+        restrict(nc, fine, &mut c.r);
+        c.r.iter_mut().for_each(|v| *v *= average);
+        return;
     }
-    let fine_area = 4 * area;
-    for kf in 0..2 * c.nz {
-        let (kc, ko) = taps(kf, c.nz);
-        let s = &mut slab[..area];
+    let nz = c.nz;
+    for_pieces(&mut c.slabs, area, |kf, s| {
         s.fill(0.0);
-        restrict(nc, &fine[kf * fine_area..(kf + 1) * fine_area], s, &mut c.t);
-        for (r, &v) in c.r[kc * area..(kc + 1) * area].iter_mut().zip(s.iter()) {
-            *r += 0.75 * v;
+        restrict(nc, &fine[kf * 4 * area..(kf + 1) * 4 * area], s);
+    });
+    let slabs = &c.slabs;
+    for_pieces(&mut c.r, area, |kc, r| {
+        r.fill(0.0);
+        // Fine slabs 2kc and 2kc+1 weigh ¾, 2kc−1 and 2kc+2 ¼ (at the walls
+        // the reflected end slab), added in the order of the fine slabs.
+        for kf in (2 * kc).saturating_sub(1)..(2 * kc + 3).min(2 * nz) {
+            let (own, other) = taps(kf, nz);
+            let s = &slabs[kf * area..(kf + 1) * area];
+            for (weight, tap) in [(0.75, own), (0.25, other)] {
+                if tap == kc {
+                    for (r, &v) in r.iter_mut().zip(s) {
+                        *r += weight * v;
+                    }
+                }
+            }
         }
-        for (r, &v) in c.r[ko * area..(ko + 1) * area].iter_mut().zip(s.iter()) {
-            *r += 0.25 * v;
-        }
-    }
+        r.iter_mut().for_each(|v| *v *= average);
+    });
 }
 
 /// `fine += P·coarse`: bilinear cell-centred prolongation from `nc × nc` to
-/// `2nc × 2nc` (rows blended first, then each coarse value spread to its
-/// two fine cells along x).
+/// `2nc × 2nc` (rows blended, then each coarse value spread to its two fine
+/// cells along x).
 #[inline(always)]
-fn prolong(nc: usize, coarse: &[f64], fine: &mut [f64], row: &mut [f64]) {
+fn prolong(nc: usize, coarse: &[f64], fine: &mut [f64]) {
     let nf = 2 * nc;
     for jf in 0..nf {
         let (jc, jo) = taps(jf, nc);
-        for ((r, &a), &b) in row.iter_mut().zip(&coarse[jc * nc..(jc + 1) * nc]).zip(&coarse[jo * nc..(jo + 1) * nc]) {
-            *r = 0.75 * a + 0.25 * b;
-        }
+        let (a, b) = (&coarse[jc * nc..(jc + 1) * nc], &coarse[jo * nc..(jo + 1) * nc]);
+        let row = |i: usize| 0.75 * a[i] + 0.25 * b[i];
         let f = &mut fine[jf * nf..(jf + 1) * nf];
         for ic in 0..nc {
-            let (left, right) = (row[ic.saturating_sub(1)], row[(ic + 1).min(nc - 1)]);
-            f[2 * ic] += 0.75 * row[ic] + 0.25 * left;
-            f[2 * ic + 1] += 0.75 * row[ic] + 0.25 * right;
+            let (here, left, right) = (row(ic), row(ic.saturating_sub(1)), row((ic + 1).min(nc - 1)));
+            f[2 * ic] += 0.75 * here + 0.25 * left;
+            f[2 * ic + 1] += 0.75 * here + 0.25 * right;
         }
     }
 }
 
 /// `coarse += Pᵀ·fine`: the exact transpose of [`prolong`], as gathers.
 #[inline(always)]
-fn restrict(nc: usize, fine: &[f64], coarse: &mut [f64], row: &mut [f64]) {
+fn restrict(nc: usize, fine: &[f64], coarse: &mut [f64]) {
     let nf = 2 * nc;
     for jf in 0..nf {
         let (jc, jo) = taps(jf, nc);
         let f = &fine[jf * nf..(jf + 1) * nf];
-        for (ic, r) in row[..nc].iter_mut().enumerate() {
+        for ic in 0..nc {
             // Fine 2ic and 2ic+1 weigh ¾; fine 2ic−1 and 2ic+2 weigh ¼, and
             // at the walls the reflected fine 0 and nf−1.
             let left = if ic > 0 { f[2 * ic - 1] } else { f[0] };
             let right = if ic + 1 < nc { f[2 * ic + 2] } else { f[nf - 1] };
-            *r = 0.75 * (f[2 * ic] + f[2 * ic + 1]) + 0.25 * (left + right);
-        }
-        for (c, &r) in coarse[jc * nc..(jc + 1) * nc].iter_mut().zip(row.iter()) {
-            *c += 0.75 * r;
-        }
-        for (c, &r) in coarse[jo * nc..(jo + 1) * nc].iter_mut().zip(row.iter()) {
-            *c += 0.25 * r;
+            let r = 0.75 * (f[2 * ic] + f[2 * ic + 1]) + 0.25 * (left + right);
+            coarse[jc * nc + ic] += 0.75 * r;
+            coarse[jo * nc + ic] += 0.25 * r;
         }
     }
 }

@@ -8,8 +8,11 @@ use std::cell::RefCell;
 use diffsim_solvers::smoke::{Preconditioner, ProjectScratch};
 use diffsim_solvers::smoke3d::{self, PressureSolver3, Smoke3d};
 
+use diffsim_solvers::par::{SUM_PIECE, for_pieces};
+use rayon::prelude::*;
+
 use crate::fluids::SolveLog;
-use crate::op::Operator;
+use crate::op::{Forward, Jvp, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
 /// The operator sizes of a packed 3D state `[s, u, v, w]` in and out.
 macro_rules! state_operator {
@@ -28,22 +31,138 @@ macro_rules! state_operator {
 }
 
 /// Steps 1–4 of P4 (advection, walls, buoyancy) on the packed state
-/// `[s, u, v, w]`, with Enzyme-generated VJP and JVP.
+/// `[s, u, v, w]`, with Enzyme-generated VJP and JVP. The forward runs its
+/// slabs in parallel; the VJP is Enzyme's adjoint of [`SmokeAdvect3Slabs`]
+/// over fixed slab ranges in parallel, summed in a fixed order
+/// ([`slab_ranges`]): the same result for any thread count.
 #[derive(Clone, Copy, Debug)]
 pub struct SmokeAdvect3(pub Smoke3d);
 
 state_operator!(SmokeAdvect3, o => o.0);
 
+impl Forward for SmokeAdvect3 {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "SmokeAdvect3", x, p, y);
+        smoke3d::advect_buoyancy_parallel(&self.0, x, y);
+    }
+
+    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+        smoke3d::advect_radius(&self.0, x, dx)
+    }
+}
+
+impl Vjp for SmokeAdvect3 {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "SmokeAdvect3", x, p, dy, dx, dp);
+        let cfg = self.0;
+        let ranges = slab_ranges(cfg.nz);
+        if ranges.len() == 1 {
+            return SmokeAdvect3Slabs::new(cfg, 0..cfg.nz).vjp(x, p, dy, dx, dp);
+        }
+        let n = cfg.n_state();
+        let mut parts = PARTS.take();
+        parts.resize_with(ranges.len(), Vec::new);
+        let (first, rest) = parts.split_at_mut(1);
+        // The first range's adjoint straight into dx (its buffer holds only
+        // dy_0), each other range's into its own buffer `[dx_r | dy_r]`, all
+        // at once; dy_r gathered from dy (each field's slabs are contiguous).
+        let gather = |ks: &std::ops::Range<usize>, dy_r: &mut [f64]| {
+            let mut o = 0;
+            for (&len, &start) in cfg.slab_lens(ks.clone()).iter().zip(&cfg.slab_starts(ks.start)) {
+                dy_r[o..o + len].copy_from_slice(&dy[start..start + len]);
+                o += len;
+            }
+        };
+        let range_vjp = |ks: &std::ops::Range<usize>, buf: &mut Vec<f64>, own: usize, dx: Option<&mut [f64]>| {
+            buf.clear();
+            buf.resize(own + cfg.slab_lens(ks.clone()).iter().sum::<usize>(), 0.0);
+            let (dx_r, dy_r) = buf.split_at_mut(own);
+            gather(ks, dy_r);
+            SmokeAdvect3Slabs::new(cfg, ks.clone()).vjp(x, &[], dy_r, dx.unwrap_or(dx_r), &mut []);
+        };
+        rayon::join(
+            || range_vjp(&ranges[0], &mut first[0], 0, Some(&mut *dx)),
+            || rest.par_iter_mut().zip(&ranges[1..]).for_each(|(buf, ks)| range_vjp(ks, buf, n, None)),
+        );
+        // dx += Σ_r dx_r, in the order of the ranges.
+        let rest = &parts[1..];
+        for_pieces(dx, SUM_PIECE, |k, d| {
+            let o = k * SUM_PIECE;
+            for part in rest {
+                for (d, &v) in d.iter_mut().zip(&part[o..o + SUM_PIECE.min(n - o)]) {
+                    *d += v;
+                }
+            }
+        });
+        PARTS.set(parts);
+        dy.fill(0.0);
+    }
+}
+
+impl Jvp for SmokeAdvect3 {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        validate_jvp(self, "SmokeAdvect3", x, p, tx, tp, y, ty);
+        SmokeAdvect3Slabs::new(self.0, 0..self.0.nz).jvp(x, p, tx, tp, y, ty);
+    }
+}
+
+thread_local! {
+    /// The buffers of [`SmokeAdvect3`]'s VJP, one per slab range, kept
+    /// between calls.
+    static PARTS: std::cell::Cell<Vec<Vec<f64>>> = const { std::cell::Cell::new(Vec::new()) };
+}
+
+/// The fixed slab ranges [`SmokeAdvect3`]'s VJP splits `nz` slabs into:
+/// two from 16 slabs on, else one. Fixed by the grid alone, so that the
+/// sum over them does not depend on the thread count; each range past the
+/// first costs one state of memory, and two keep the two cores of the
+/// machines here busy.
+pub fn slab_ranges(nz: usize) -> Vec<std::ops::Range<usize>> {
+    let count = (nz / 8).clamp(1, 2);
+    (0..count).map(|r| r * nz / count..(r + 1) * nz / count).collect()
+}
+
+/// Slabs `k0..k1` (along z) of [`SmokeAdvect3`]'s output, packed as
+/// [`Smoke3d::slab_lens`] says, with Enzyme-generated VJP and JVP: the
+/// piece of the step whose adjoints [`SmokeAdvect3`] runs in parallel.
+/// Over `0..nz` it is [`SmokeAdvect3`].
+#[derive(Clone, Copy, Debug)]
+pub struct SmokeAdvect3Slabs {
+    cfg: Smoke3d,
+    k0: usize,
+    k1: usize,
+}
+
+impl SmokeAdvect3Slabs {
+    /// Slabs `ks` of the grid `cfg`.
+    ///
+    /// # Panics
+    /// If `ks` is empty or reaches past `nz`.
+    pub fn new(cfg: Smoke3d, ks: std::ops::Range<usize>) -> Self {
+        assert!(ks.start < ks.end && ks.end <= cfg.nz, "SmokeAdvect3Slabs: slabs {ks:?} of {}", cfg.nz);
+        Self { cfg, k0: ks.start, k1: ks.end }
+    }
+}
+
+impl Operator for SmokeAdvect3Slabs {
+    fn n_in(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_out(&self) -> usize {
+        self.cfg.slab_lens(self.k0..self.k1).iter().sum()
+    }
+}
+
 /// The thin wrapper Enzyme differentiates.
-fn smoke_advect3(op: &SmokeAdvect3, x: &[f64], _p: &[f64], y: &mut [f64]) {
-    smoke3d::advect_buoyancy(&op.0, x, y)
+fn smoke_advect3_slabs(op: &SmokeAdvect3Slabs, x: &[f64], _p: &[f64], y: &mut [f64]) {
+    smoke3d::advect_buoyancy_slabs(&op.cfg, x, op.k0..op.k1, y)
 }
 
-fn smoke_advect3_radius(op: &SmokeAdvect3, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-    smoke3d::advect_radius(&op.0, x, dx)
+fn smoke_advect3_slabs_radius(op: &SmokeAdvect3Slabs, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+    smoke3d::advect_radius(&op.cfg, x, dx)
 }
 
-crate::differentiable!(SmokeAdvect3 => smoke_advect3, smooth_radius = smoke_advect3_radius);
+crate::differentiable!(SmokeAdvect3Slabs => smoke_advect3_slabs, smooth_radius = smoke_advect3_slabs_radius);
 
 /// Steps 1–4 of P4 with the hand-written adjoint (the reference for
 /// [`SmokeAdvect3`]'s generated one).
@@ -135,7 +254,7 @@ impl SmokeStep3 {
 
 state_operator!(SmokeStep3, o => o.advect.0);
 
-crate::problems::smoke::smoke_step_operator!(SmokeStep3, "SmokeStep3", SmokeAdvect3Hand, smoke3d::advect_buoyancy, smoke3d::advect_radius);
+crate::problems::smoke::smoke_step_operator!(SmokeStep3, "SmokeStep3", SmokeAdvect3Hand, smoke3d::advect_buoyancy_parallel, smoke3d::advect_radius);
 
 /// Benchmark P4 at `n³` cells and `steps` steps.
 pub type P4 = crate::problems::SmokeBenchmark<SmokeStep3>;

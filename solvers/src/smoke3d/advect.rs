@@ -1,22 +1,77 @@
 //! Semi-Lagrangian advection of the smoke and the velocity (trilinear), P4's
 //! buoyancy and walls, and the hand-written adjoint of the three.
 
+use std::ops::Range;
+
 use super::*;
+use crate::par::for_pieces;
 
 /// Points of the lattice `at` traced back along the velocity: `out[q] =
-/// f(q − dt·vel(q))` for every point `q` holding its own value.
+/// f(q − dt·vel(q))` for every point `q` holding its own value in slabs
+/// `ks` (and the lattice's slabs past `nz` when `ks` reaches the top),
+/// `out` holding those slabs.
 #[inline(always)]
-fn trace<const WX: bool, const WY: bool, const WZ: bool>(mac: Mac3<WX, WY, WZ>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, out: &mut [f64]) {
+fn trace<const WX: bool, const WY: bool, const WZ: bool>(
+    mac: Mac3<WX, WY, WZ>,
+    at: At3,
+    vel: [&[f64]; 3],
+    f: &[f64],
+    dt: f64,
+    ks: Range<usize>,
+    out: &mut [f64],
+) {
     let lat = mac.lattice(at);
-    for k in 0..lat.n[2] {
+    let end = if ks.end == mac.n[2] { lat.n[2] } else { ks.end };
+    for k in ks.start..end {
         for j in 0..lat.n[1] {
             for i in 0..lat.n[0] {
-                let [a, b, c] = mac.velocity(at, vel, [i, j, k]);
-                let p = [i as f64 + lat.o[0] - dt * a, j as f64 + lat.o[1] - dt * b, k as f64 + lat.o[2] - dt * c];
-                out[(k * lat.sy + j) * lat.sx + i] = sample3::<WX, WY, WZ>(f, lat, p);
+                out[((k - ks.start) * lat.sy + j) * lat.sx + i] = traced(mac, at, lat, vel, f, dt, [i, j, k]);
             }
         }
     }
+}
+
+/// [`trace`] with the slabs split over threads (the same values). The
+/// serial loop above stays as it is: Enzyme differentiates it, and slicing
+/// the output per slab there trips its reverse pass (docs/enzyme.md).
+fn trace_parallel<const WX: bool, const WY: bool, const WZ: bool>(mac: Mac3<WX, WY, WZ>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, out: &mut [f64]) {
+    let lat = mac.lattice(at);
+    let slab = lat.sy * lat.sx;
+    // One arm per lattice, so that each slab's loop is compiled for a known
+    // lattice, as the serial loop is where it is inlined.
+    for_pieces(&mut out[..lat.n[2] * slab], slab, move |k, o| match at {
+        At3::Centre => trace_slab(mac, At3::Centre, vel, f, dt, k, o),
+        At3::U => trace_slab(mac, At3::U, vel, f, dt, k, o),
+        At3::V => trace_slab(mac, At3::V, vel, f, dt, k, o),
+        At3::W => trace_slab(mac, At3::W, vel, f, dt, k, o),
+    });
+}
+
+/// Slab `k` of [`trace`] into `o` (that slab of the lattice's array).
+#[inline(always)]
+fn trace_slab<const WX: bool, const WY: bool, const WZ: bool>(mac: Mac3<WX, WY, WZ>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, k: usize, o: &mut [f64]) {
+    let lat = mac.lattice(at);
+    for j in 0..lat.n[1] {
+        for i in 0..lat.n[0] {
+            o[j * lat.sx + i] = traced(mac, at, lat, vel, f, dt, [i, j, k]);
+        }
+    }
+}
+
+/// The value traced back to point `q` of the lattice `at`.
+#[inline(always)]
+fn traced<const WX: bool, const WY: bool, const WZ: bool>(
+    mac: Mac3<WX, WY, WZ>,
+    at: At3,
+    lat: Lattice3,
+    vel: [&[f64]; 3],
+    f: &[f64],
+    dt: f64,
+    q: [usize; 3],
+) -> f64 {
+    let [a, b, c] = mac.velocity(at, vel, q);
+    let p = [q[0] as f64 + lat.o[0] - dt * a, q[1] as f64 + lat.o[1] - dt * b, q[2] as f64 + lat.o[2] - dt * c];
+    sample3::<WX, WY, WZ>(f, lat, p)
 }
 
 /// Adjoint of [`trace`] at unit time step: adds `Jᵀ·g` into the velocity's
@@ -65,23 +120,67 @@ fn trace_adjoint<const WX: bool, const WY: bool, const WZ: bool>(
 /// If `x` or `y` is not of length [`Smoke3d::n_state`] or a side has fewer
 /// than 2 cells.
 pub fn advect_buoyancy(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
+    advect_buoyancy_slabs(cfg, x, 0..cfg.nz, y);
+}
+
+/// Slabs `ks` of [`advect_buoyancy`]'s output, packed as
+/// [`Smoke3d::slab_lens`] says (`y` of their total length): each output slab
+/// depends on the whole input but on no other output slab, so that an
+/// adjoint can be taken slab range by slab range (in parallel, then summed
+/// in a fixed order). Over `0..nz`, [`advect_buoyancy`] itself.
+///
+/// # Panics
+/// If `x` or `y` has the wrong length, `ks` is empty or past `nz`, or a
+/// side has fewer than 2 cells.
+pub fn advect_buoyancy_slabs(cfg: &Smoke3d, x: &[f64], ks: Range<usize>, y: &mut [f64]) {
+    let lens = cfg.slab_lens(ks.clone());
+    assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == cfg.n_state() && y.len() == lens.iter().sum::<usize>(), "smoke3d: state lengths");
+    assert!(ks.start < ks.end && ks.end <= cfg.nz, "smoke3d: slabs {ks:?} of {}", cfg.nz);
+    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let [s, u, v, w] = cfg.split(x);
+    let (s2, rest) = y.split_at_mut(lens[0]);
+    let (u2, rest) = rest.split_at_mut(lens[1]);
+    let (v2, w2) = rest.split_at_mut(lens[2]);
+    let vel = [u, v, w];
+    trace(mac, At3::Centre, vel, s, 1.0, ks.clone(), s2);
+    trace(mac, At3::U, vel, u, 1.0, ks.clone(), u2);
+    trace(mac, At3::V, vel, v, 1.0, ks.clone(), v2);
+    trace(mac, At3::W, vel, w, 1.0, ks.clone(), w2);
+    close_walls_slabs(cfg, ks.clone(), [u2, v2, w2]);
+    add_buoyancy_slabs(cfg, cfg.buoyancy, ks.len(), s2, v2);
+}
+
+/// [`advect_buoyancy`] with the slabs of each field split over threads
+/// ([`crate::par`]): the same values for any thread count. Not for
+/// differentiated code (Enzyme differentiates [`advect_buoyancy`], whose
+/// body this repeats: sharing it through a generic trace trips Enzyme).
+///
+/// # Panics
+/// As [`advect_buoyancy`].
+pub fn advect_buoyancy_parallel(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
     assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
     let mac = Mac3::<false, false, false> { n: cfg.dims() };
     let [s, u, v, w] = cfg.split(x);
     let [s2, u2, v2, w2] = cfg.split_mut(y);
     let vel = [u, v, w];
-    trace(mac, At3::Centre, vel, s, 1.0, s2);
-    trace(mac, At3::U, vel, u, 1.0, u2);
-    trace(mac, At3::V, vel, v, 1.0, v2);
-    trace(mac, At3::W, vel, w, 1.0, w2);
+    trace_parallel(mac, At3::Centre, vel, s, 1.0, s2);
+    trace_parallel(mac, At3::U, vel, u, 1.0, u2);
+    trace_parallel(mac, At3::V, vel, v, 1.0, v2);
+    trace_parallel(mac, At3::W, vel, w, 1.0, w2);
     close_walls(cfg, [u2, v2, w2]);
     add_buoyancy(cfg, cfg.buoyancy, s2, v2);
 }
 
 /// Zeroes the velocity on the six walls (P4's step 3).
-pub fn close_walls(cfg: &Smoke3d, [u, v, w]: [&mut [f64]; 3]) {
+pub fn close_walls(cfg: &Smoke3d, vel: [&mut [f64]; 3]) {
+    close_walls_slabs(cfg, 0..cfg.nz, vel);
+}
+
+/// [`close_walls`] on slabs `ks` of the velocity (packed as
+/// [`Smoke3d::slab_lens`] says).
+fn close_walls_slabs(cfg: &Smoke3d, ks: Range<usize>, [u, v, w]: [&mut [f64]; 3]) {
     let [nx, ny, nz] = cfg.dims();
-    for k in 0..nz {
+    for k in 0..ks.len() {
         for j in 0..ny {
             let r = (k * ny + j) * (nx + 1);
             u[r] = 0.0;
@@ -92,18 +191,29 @@ pub fn close_walls(cfg: &Smoke3d, [u, v, w]: [&mut [f64]; 3]) {
             v[(k * (ny + 1) + ny) * nx + i] = 0.0;
         }
     }
-    let slab = nx * ny;
+    // Indexed stores, not `fill`: a fill is a memset, whose type Enzyme
+    // cannot deduce here (docs/pitfalls.md).
+    let (slab, last) = (nx * ny, w.len() - nx * ny);
     for c in 0..slab {
-        w[c] = 0.0;
-        w[nz * slab + c] = 0.0;
+        if ks.start == 0 {
+            w[c] = 0.0;
+        }
+        if ks.end == nz {
+            w[last + c] = 0.0;
+        }
     }
 }
 
 /// Buoyancy along +y, in place: `v[k][j][i] += coefficient · (s[k][j−1][i]
 /// + s[k][j][i]) / 2` on the interior y-faces.
 pub fn add_buoyancy(cfg: &Smoke3d, coefficient: f64, s: &[f64], v: &mut [f64]) {
-    let [nx, ny, nz] = cfg.dims();
-    for k in 0..nz {
+    add_buoyancy_slabs(cfg, coefficient, cfg.nz, s, v);
+}
+
+/// [`add_buoyancy`] on `slabs` slabs of `s` and `v`.
+fn add_buoyancy_slabs(cfg: &Smoke3d, coefficient: f64, slabs: usize, s: &[f64], v: &mut [f64]) {
+    let [nx, ny, _] = cfg.dims();
+    for k in 0..slabs {
         for j in 1..ny {
             for i in 0..nx {
                 v[(k * (ny + 1) + j) * nx + i] += coefficient * 0.5 * (s[(k * ny + j - 1) * nx + i] + s[(k * ny + j) * nx + i]);

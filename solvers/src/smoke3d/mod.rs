@@ -23,6 +23,8 @@
 //! the hand-written [`advect_buoyancy_adjoint`] beside it) and [`project`]
 //! (a linear solve; its adjoint [`project_adjoint`] is the same solve).
 
+use std::ops::Range;
+
 use crate::grid::{axis_passes, axis_position, beside, lattice_gap, next, own_faces};
 
 /// Grid of the 3D smoke problem: `nx × ny × nz` unit cells in a closed box,
@@ -78,6 +80,22 @@ impl Smoke3d {
         let (u, rest) = rest.split_at(self.n_face(0));
         let (v, w) = rest.split_at(self.n_face(1));
         [s, u, v, w]
+    }
+
+    /// Lengths of slabs `ks` (along z) of `[s, u, v, w]`: `ks.len()` slabs
+    /// of each field, and for `w` also its last face slab when `ks` reaches
+    /// the top (`ks.end == nz`). Over `0..nz`, the packed state.
+    pub fn slab_lens(&self, ks: Range<usize>) -> [usize; 4] {
+        let [nx, ny, nz] = self.dims();
+        let m = ks.end - ks.start;
+        [m * ny * nx, m * ny * (nx + 1), m * (ny + 1) * nx, (m + (ks.end == nz) as usize) * ny * nx]
+    }
+
+    /// Where slab `k` of each field starts in the packed state.
+    pub fn slab_starts(&self, k: usize) -> [usize; 4] {
+        let [nx, ny, _] = self.dims();
+        let (ns, nu, nv) = (self.n_s(), self.n_face(0), self.n_face(1));
+        [k * ny * nx, ns + k * ny * (nx + 1), ns + nu + k * (ny + 1) * nx, ns + nu + nv + k * ny * nx]
     }
 
     /// Splits a packed state `[s, u, v, w]`, mutably.
