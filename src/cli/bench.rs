@@ -31,6 +31,10 @@ pub(super) enum BenchCommand {
     /// process, so that its peak memory is its own); writes memory.md and
     /// memory.png.
     Memory(MemoryArgs),
+    /// P4's cost against its size: one `bench p4 --json` process per
+    /// (N, T), forward and gradient times, CG iterations and peak memory;
+    /// writes p4_cost.md and p4_cost.png (time against cells × steps).
+    P4Cost(P4CostArgs),
     /// One HIG update on the coupled oscillators (linear and nonlinear, the
     /// published settings): the Jacobian, each decomposition (f64 SVD, f64
     /// Gram eigendecomposition, f32 SVD, the checked default) with its
@@ -64,6 +68,22 @@ pub(super) struct MemoryArgs {
     budget: String,
     /// Output directory.
     #[arg(long, default_value = "out/memory")]
+    out: std::path::PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub(super) struct P4CostArgs {
+    /// Cells per side N, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "16,32,64")]
+    sizes: Vec<usize>,
+    /// Steps T, comma-separated (every N runs every T).
+    #[arg(long, value_delimiter = ',', default_value = "5,10,20")]
+    steps: Vec<usize>,
+    /// Checkpointing of every run (see `bench p4 --checkpoint`).
+    #[arg(long, default_value = "auto")]
+    checkpoint: String,
+    /// Output directory.
+    #[arg(long, default_value = "out/p4-cost")]
     out: std::path::PathBuf,
 }
 
@@ -160,6 +180,7 @@ pub(super) fn run(cmd: BenchCommand) -> Result<(), CliError> {
         BenchCommand::P4(a) => p4(a),
         BenchCommand::P3(a) => p3(a),
         BenchCommand::Memory(a) => memory(a),
+        BenchCommand::P4Cost(a) => p4_cost(a),
         BenchCommand::Hig(a) => hig(a),
     }
 }
@@ -647,14 +668,13 @@ fn memory(a: MemoryArgs) -> Result<(), CliError> {
             if *mode == "auto" {
                 cmd.args(["--memory-budget", &budget.to_string()]);
             }
-            let out = cmd.output().map_err(|source| CliError::Io { path: exe.clone(), source })?;
-            let text = String::from_utf8_lossy(&out.stdout);
-            let row = if out.status.success() { serde_json::from_str::<serde_json::Value>(text.trim()).ok() } else { None };
-            let Some(j) = row else {
-                let why = String::from_utf8_lossy(&out.stderr).lines().next().unwrap_or("failed").to_string();
-                eprintln!("T = {t}, {mode}: {why}");
-                table += &format!("| {t} | {mode} | — | {} | | | | | |\n", crate::files::shorten(&why, 90));
-                continue;
+            let j = match json_run(&exe, cmd)? {
+                Ok(j) => j,
+                Err(why) => {
+                    eprintln!("T = {t}, {mode}: {why}");
+                    table += &format!("| {t} | {mode} | — | {} | | | | | |\n", crate::files::shorten(&why, 90));
+                    continue;
+                }
             };
             let f = |key: &str| j[key].as_f64().unwrap_or(f64::NAN);
             let (grad_ms, rss) = (f("grad_s") * 1e3, f("peak_rss_bytes") / 1e6);
@@ -676,5 +696,65 @@ fn memory(a: MemoryArgs) -> Result<(), CliError> {
     super::plot_or_warn(&a.out.join("memory.png"), &axes, &series);
     println!("{table}");
     println!("wrote memory.md and memory.png to {}", a.out.display());
+    Ok(())
+}
+
+/// Runs `cmd` (a `diffsim bench ... --json` process) and parses its JSON
+/// line; `Ok(Err(why))` when the run failed (the first line of its stderr).
+fn json_run(exe: &std::path::Path, mut cmd: std::process::Command) -> Result<Result<serde_json::Value, String>, CliError> {
+    let out = cmd.output().map_err(|source| CliError::Io { path: exe.to_path_buf(), source })?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    let row = if out.status.success() { serde_json::from_str::<serde_json::Value>(text.trim()).ok() } else { None };
+    Ok(row.ok_or_else(|| String::from_utf8_lossy(&out.stderr).lines().next().unwrap_or("failed").to_string()))
+}
+
+/// `diffsim bench p4-cost`: one `bench p4 --json` process per (N, T), so
+/// that each peak RSS is that run's own.
+fn p4_cost(a: P4CostArgs) -> Result<(), CliError> {
+    use crate::plot::{Axes, Series};
+    let exe = std::env::current_exe().map_err(|source| CliError::Io { path: "diffsim".into(), source })?;
+    std::fs::create_dir_all(&a.out).map_err(|source| CliError::Io { path: a.out.clone(), source })?;
+    let mut table = "| N | T | cells × steps | forward ms | gradient ms | × forward | µs per cell-step (gradient) | CG iterations per step, fwd (with recomputed steps) / adj | checkpointing | peak RSS MB |\n|---|---|---|---|---|---|---|---|---|---|\n".to_string();
+    let mut series = vec![
+        Series { name: "forward".into(), points: Vec::new(), color: 0, markers: true },
+        Series { name: "gradient".into(), points: Vec::new(), color: 1, markers: true },
+    ];
+    for &n in &a.sizes {
+        for &t in &a.steps {
+            let mut cmd = std::process::Command::new(&exe);
+            cmd.args(["bench", "p4", "--n", &n.to_string(), "--steps", &t.to_string(), "--checkpoint", &a.checkpoint, "--json"]);
+            let j = match json_run(&exe, cmd)? {
+                Ok(j) => j,
+                Err(why) => {
+                    eprintln!("N = {n}, T = {t}: {why}");
+                    table += &format!("| {n} | {t} | | {} | | | | | | |\n", crate::files::shorten(&why, 90));
+                    continue;
+                }
+            };
+            let f = |key: &str| j[key].as_f64().unwrap_or(f64::NAN);
+            let work = (n as f64).powi(3) * t as f64;
+            let (fwd_ms, grad_ms) = (f("forward_s") * 1e3, f("grad_s") * 1e3);
+            // A gradient's forward solves include recomputed ones (checkpointing).
+            let (cg_f, cg_a) = (f("cg_iterations_forward"), f("cg_iterations_adjoint"));
+            table += &format!(
+                "| {n} | {t} | {work:.3e} | {fwd_ms:.1} | {grad_ms:.1} | {:.2} | {:.3} | {:.1} / {:.1} | {} | {:.0} |\n",
+                grad_ms / fwd_ms,
+                grad_ms * 1e3 / work,
+                cg_f / t as f64,
+                cg_a / t as f64,
+                j["checkpoint"].as_str().unwrap_or("?"),
+                f("peak_rss_bytes") / 1e6,
+            );
+            series[0].points.push((work, fwd_ms));
+            series[1].points.push((work, grad_ms));
+            eprintln!("N = {n}, T = {t}: forward {fwd_ms:.1} ms, gradient {grad_ms:.1} ms");
+        }
+    }
+    let md = a.out.join("p4_cost.md");
+    std::fs::write(&md, &table).map_err(|source| CliError::Io { path: md.clone(), source })?;
+    let axes = Axes { title: "P4 smoke3d: time against cells × steps", x: "cells × steps", y: "ms", log_x: true, log_y: true };
+    super::plot_or_warn(&a.out.join("p4_cost.png"), &axes, &series);
+    println!("{table}");
+    println!("wrote p4_cost.md and p4_cost.png to {}", a.out.display());
     Ok(())
 }
