@@ -9,6 +9,7 @@ mod cli;
 mod doc_examples;
 mod flow;
 mod fluids;
+mod fluids3d;
 mod fuzz_replay;
 mod inputs;
 mod nn;

@@ -26,6 +26,48 @@ pub struct RunArgs {
     /// No progress bar and no summary.
     #[arg(long)]
     quiet: bool,
+    /// 3D scenes: the slice written as PNG, `AXIS` (the middle plane) or
+    /// `AXIS=INDEX` (`z=10`: the plane of cells k = 10).
+    #[arg(long, value_name = "AXIS[=INDEX]", default_value = "z")]
+    slice: String,
+    /// 3D scenes: the axis of the maximum-intensity projection written as
+    /// PNG.
+    #[arg(long, value_name = "AXIS", default_value = "z")]
+    mip: String,
+}
+
+/// The pictures of a 3D scene: a slice (axis, cell index) and the axis of
+/// a maximum-intensity projection.
+#[derive(Clone, Copy, Debug)]
+struct Views {
+    slice: (usize, Option<usize>),
+    mip: usize,
+}
+
+impl Views {
+    /// `--slice` and `--mip` checked against the domain.
+    fn parse(a: &RunArgs, domain: &Domain) -> Result<Self, CliError> {
+        let axis = |arg: &'static str, name: &str| {
+            crate::volume::axis_index(name).ok_or_else(|| CliError::Argument { arg, reason: format!("expected an axis x, y or z, got \"{name}\"") })
+        };
+        let (name, index) = match a.slice.split_once('=') {
+            Some((name, index)) => {
+                let index = index
+                    .trim()
+                    .parse::<usize>()
+                    .map_err(|_| CliError::Argument { arg: "--slice", reason: format!("expected AXIS=INDEX with a cell index, got \"{}\"", a.slice) })?;
+                (name.trim(), Some(index))
+            }
+            None => (a.slice.trim(), None),
+        };
+        let views = Views { slice: (axis("--slice", name)?, index), mip: axis("--mip", a.mip.trim())? };
+        if let (Domain::Box3(cfg), (ax, Some(k))) = (domain, views.slice)
+            && k >= cfg.dims()[ax]
+        {
+            return Err(CliError::Argument { arg: "--slice", reason: format!("index {k} is past the {} cells along {name}", cfg.dims()[ax]) });
+        }
+        Ok(views)
+    }
 }
 
 /// Arguments of `diffsim grad`.
@@ -79,8 +121,9 @@ fn write_state(scene: &Scene, out: &Path, x: &[f64]) -> Result<Vec<String>, CliE
 }
 
 /// An image of a state: the smoke of a box (the speed when it has no smoke),
-/// or a plot of each field of a line. Returns the file names.
-fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64]) -> Result<Vec<String>, CliError> {
+/// a slice and a maximum-intensity projection of it in 3D, or a plot of
+/// each field of a line. Returns the file names.
+fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64], views: Views) -> Result<Vec<String>, CliError> {
     let io = |path: PathBuf| move |source| CliError::Io { path, source };
     let mut names = Vec::new();
     match &scene.domain {
@@ -110,8 +153,51 @@ fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64]) -> Result<Vec<S
             super::demo::write_png(&path, (n, ny), &values, solid).map_err(io(path.clone()))?;
             names.push(name);
         }
+        Domain::Box3(cfg) => {
+            use crate::volume::{any_projection, max_projection, slice, slice_marks};
+            let dims = cfg.dims();
+            let none = vec![false; cfg.n_s()];
+            let solid = scene.solid.as_deref().unwrap_or(&none);
+            let (field, values) = if scene.fields.contains(&Field::Smoke) {
+                ("smoke", x[scene.domain.range(Field::Smoke)].to_vec())
+            } else {
+                ("speed", relative_speed_3d(cfg, x))
+            };
+            let names_axis = ["x", "y", "z"];
+            let (ax, index) = views.slice;
+            let k = index.unwrap_or(dims[ax] / 2);
+            let plane = slice(dims, &values, ax, k);
+            let name = format!("{field}_slice_{}{k}{tag}.png", names_axis[ax]);
+            let path = out.join(&name);
+            super::demo::write_png(&path, (plane.width, plane.height), &plane.values, &slice_marks(dims, solid, ax, k)).map_err(io(path.clone()))?;
+            names.push(name);
+            // The projection: obstacles shown where no smoke lies along the ray.
+            let mip = max_projection(dims, &values, views.mip);
+            let marks: Vec<bool> = any_projection(dims, solid, views.mip).iter().zip(&mip.values).map(|(&m, &v)| m && v < 0.02).collect();
+            let name = format!("{field}_mip_{}{tag}.png", names_axis[views.mip]);
+            let path = out.join(&name);
+            super::demo::write_png(&path, (mip.width, mip.height), &mip.values, &marks).map_err(io(path.clone()))?;
+            names.push(name);
+        }
     }
     Ok(names)
+}
+
+/// The speed at the cell centres of a 3D MAC velocity, scaled to its
+/// maximum.
+fn relative_speed_3d(cfg: &diffsim_solvers::smoke3d::Smoke3d, x: &[f64]) -> Vec<f64> {
+    use diffsim_solvers::smoke3d::{At3, Mac3};
+    let [_, u, v, w] = cfg.split(x);
+    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let [nx, ny, _] = cfg.dims();
+    let speed: Vec<f64> = (0..cfg.n_s())
+        .map(|c| {
+            let [a, b, d] = mac.velocity(At3::Centre, [u, v, w], [c % nx, (c / nx) % ny, c / (nx * ny)]);
+            (a * a + b * b + d * d).sqrt()
+        })
+        .collect();
+    let max = speed.iter().fold(0.0f64, |m, &s| m.max(s)).max(1e-300);
+    speed.iter().map(|s| s / max).collect()
 }
 
 /// The speed at cell centres of a MAC velocity `(u, v)` on `nx × ny`
@@ -149,6 +235,7 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
     if a.every == Some(0) {
         return Err(CliError::Argument { arg: "--every", reason: "must be at least 1 (a frame every this many steps)".into() });
     }
+    let views = Views::parse(&a, &scene.domain)?;
     create_dir(&a.out)?;
     let start = std::time::Instant::now();
     let x = if a.profile {
@@ -163,7 +250,7 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
         let x = scene.run(|k, x| {
             if failed.is_none()
                 && a.every.is_some_and(|e| k % e == 0)
-                && let Err(e) = write_images(&scene, &a.out, &format!("_{k:05}"), x)
+                && let Err(e) = write_images(&scene, &a.out, &format!("_{k:05}"), x, views)
             {
                 failed = Some(e);
             }
@@ -177,7 +264,7 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
     };
     let elapsed = start.elapsed().as_secs_f64();
     let mut written = write_state(&scene, &a.out, &x)?;
-    written.extend(write_images(&scene, &a.out, "", &x)?);
+    written.extend(write_images(&scene, &a.out, "", &x, views)?);
     if !a.quiet {
         eprintln!(
             "{}: {}, {} steps of {} in {elapsed:.2} s; effects: {}; wrote {} to {}",
@@ -197,6 +284,7 @@ fn describe(d: &Domain) -> String {
     match d {
         Domain::Line(l) => format!("{} cells on a line of length {}", l.n, l.n as f64 * l.dx),
         Domain::Box(cfg) => format!("{}×{} cells", cfg.nx, cfg.ny),
+        Domain::Box3(cfg) => format!("{}×{}×{} cells", cfg.nx, cfg.ny, cfg.nz),
     }
 }
 

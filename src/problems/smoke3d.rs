@@ -173,12 +173,17 @@ crate::problems::smoke::hand_explicit_operator!(SmokeAdvect3Hand, smoke3d::advec
 
 /// The 3D pressure projection of a packed `[s, u, v, w]` state (linear):
 /// `(u, v, w) −= G·A⁺·(−D·(u, v, w))` by preconditioned CG to a relative
-/// tolerance on the true residual. The VJP is the implicit adjoint: one
-/// solve with the transposed (same) matrix to the same tolerance. A solve
-/// that does not converge is reported through [`Forward::take_error`].
+/// tolerance on the true residual. With obstacles
+/// ([`Project3::with_obstacles`]) the obstacle mask comes first and last
+/// (no smoke in solid cells, no flow through their faces) and the solve
+/// couples fluid cells only. The VJP is the implicit adjoint: one solve
+/// with the transposed (same) matrix to the same tolerance. A solve that
+/// does not converge is reported through [`Forward::take_error`].
 #[derive(Debug)]
 pub struct Project3 {
     cfg: Smoke3d,
+    /// The fluid mask and each axis's open faces, when there are obstacles.
+    obstacles: Option<(Vec<f64>, [Vec<f64>; 3])>,
     solver: RefCell<PressureSolver3>,
     scratch: RefCell<ProjectScratch>,
     /// The solves' iteration counts and first failure.
@@ -196,9 +201,42 @@ impl Project3 {
         assert!(cfg.nx == cfg.ny && cfg.ny == cfg.nz, "3D projection: the box must be a cube (got {}×{}×{})", cfg.nx, cfg.ny, cfg.nz);
         Self {
             cfg,
+            obstacles: None,
             solver: RefCell::new(PressureSolver3::new(cfg.nx, tolerance, max_iterations, precond)),
             scratch: RefCell::new(ProjectScratch::new(cfg.n_s())),
             log: SolveLog::default(),
+        }
+    }
+
+    /// The projection of the closed cube `cfg` with solid cells where
+    /// `solid[c]` is true (e.g. [`smoke3d::solid_cells`]): the obstacle mask
+    /// ([`smoke3d::apply_obstacle_mask3`]), the solve coupling fluid cells
+    /// only ([`PressureSolver3::with_obstacles`]), the mask again. The
+    /// result is divergence-free in every fluid cell with no flow through
+    /// a solid's faces.
+    ///
+    /// # Panics
+    /// As [`Project3::new`], if `solid` does not have a value per cell, or
+    /// if every cell is solid.
+    pub fn with_obstacles(cfg: Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner, solid: &[bool]) -> Self {
+        assert_eq!(solid.len(), cfg.n_s(), "3D projection: one solid flag per cell");
+        assert!(solid.iter().any(|&s| !s), "3D projection: every cell is solid");
+        let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
+        let open = smoke3d::open_faces(&cfg, &fluid);
+        let solver = PressureSolver3::with_obstacles(cfg.nx, tolerance, max_iterations, precond, fluid.clone());
+        Self { obstacles: Some((fluid, open)), solver: RefCell::new(solver), ..Self::new(cfg, tolerance, max_iterations, precond) }
+    }
+
+    /// The fluid mask (1 fluid, 0 solid) when there are obstacles.
+    pub fn fluid(&self) -> Option<&[f64]> {
+        self.obstacles.as_ref().map(|(f, _)| &f[..])
+    }
+
+    /// The obstacle mask in place (nothing without obstacles): linear and
+    /// its own transpose.
+    fn mask(&self, y: &mut [f64]) {
+        if let Some((fluid, open)) = &self.obstacles {
+            smoke3d::apply_obstacle_mask3(&self.cfg, fluid, open, y);
         }
     }
 
@@ -209,14 +247,18 @@ impl Project3 {
 
     /// The map in place on a packed state (or tangent).
     pub fn apply(&self, y: &mut [f64]) {
+        self.mask(y);
         let r = smoke3d::project(&self.cfg, y, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
         self.log.record(r, false);
+        self.mask(y);
     }
 
     /// The transposed map in place on an adjoint.
     pub fn apply_adjoint(&self, g: &mut [f64]) {
+        self.mask(g);
         let r = smoke3d::project_adjoint(&self.cfg, g, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
         self.log.record(r, true);
+        self.mask(g);
     }
 }
 
@@ -243,6 +285,17 @@ impl SmokeStep3 {
     /// The same step with the hand-written adjoint of the explicit part.
     pub fn with_hand_adjoint(mut self) -> Self {
         self.hand = true;
+        self
+    }
+
+    /// The same step with solid cells where `solid[c]` is true (see
+    /// [`Project3::with_obstacles`]; the solves keep this step's settings).
+    ///
+    /// # Panics
+    /// As [`Project3::with_obstacles`].
+    pub fn with_obstacles(mut self, solid: &[bool]) -> Self {
+        let (stop, precond) = (self.project.solver.borrow().stop, self.project.preconditioner());
+        self.project = Project3::with_obstacles(*self.cfg(), stop.tolerance, stop.max_iterations, precond, solid);
         self
     }
 

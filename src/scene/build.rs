@@ -6,6 +6,7 @@ use std::path::Path;
 use diffsim_solvers::boundary::{Boundary, Profile, Side};
 use diffsim_solvers::burgers::Burgers1d;
 use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d};
+use diffsim_solvers::smoke3d::Smoke3d;
 use toml::Spanned;
 
 use super::init::{field_init, shape_cells};
@@ -13,8 +14,10 @@ use super::spec::{EffectSpec, SceneFile, ShapeSpec};
 use super::value::{count, finite, iterations, positive, tolerance};
 use super::{Array, Control, Domain, Field, Line, Scene, SceneError, SceneLoss};
 use crate::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, DiffuseExplicit, DiffuseImplicit, Force, Inflow, Project};
+use crate::fluids3d::{Buoyancy3, Inflow3};
 use crate::op::{AddParams, Chain, Effect, Part};
 use crate::problems::burgers::BurgersEnzyme;
+use crate::problems::smoke3d::{Project3, SmokeAdvect3};
 use crate::words::unknown;
 
 /// The 1-based line of byte offset `at` in `text`.
@@ -65,7 +68,29 @@ fn domain(file: &SceneFile, text: &str) -> Result<Domain, SceneError> {
                 boundary.validate().map_err(|e| SceneError::key("domain.boundary", e.to_string()))?;
                 Ok(Domain::Box(Smoke2d { boundary, ..Smoke2d::new(nx, ny) }))
             }
-            k => Err(SceneError::key("domain.size", format!("expected [n] (1D) or [nx, ny] (2D), got {k} value(s)"))),
+            3 => {
+                let [nx, ny, nz] = [0, 1, 2].map(|a| count(&format!("domain.size[{a}]"), size[a]));
+                let (nx, ny, nz) = (nx?, ny?, nz?);
+                if nx.min(ny).min(nz) < 4 {
+                    return Err(SceneError::key("domain.size", format!("need at least 4 cells per side, got [{nx}, {ny}, {nz}]")));
+                }
+                grid_fits(&[nx as u64 + 1, ny as u64 + 1, nz as u64 + 1], BOX_ARRAYS)?;
+                if d.length.is_some() {
+                    return Err(SceneError::key("domain.length", "a box has unit cells; `length` is for 1D domains"));
+                }
+                match &d.boundary {
+                    None => {}
+                    Some(toml::Value::String(s)) if s == "closed" => {}
+                    Some(_) => {
+                        return Err(SceneError::key(
+                            "domain.boundary",
+                            "3D boxes are closed on every side so far (periodic, inflow and outflow sides are 2D only)",
+                        ));
+                    }
+                }
+                Ok(Domain::Box3(Smoke3d::new(nx, ny, nz, 1.0)))
+            }
+            k => Err(SceneError::key("domain.size", format!("expected [n] (1D), [nx, ny] (2D) or [nx, ny, nz] (3D), got {k} value(s)"))),
         }
     })
 }
@@ -107,22 +132,25 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
         Some(_) => Err(SceneError::key("domain.cell", "a scene stepped in time has unit cells; `cell` is for steady scenes")),
         None => Ok(()),
     })?;
-    let domain = domain(&file, text)?;
+    let mut domain = domain(&file, text)?;
     let (dt, steps) = at(text, time, |t| {
         if t.steps > MAX_STEPS {
             return Err(SceneError::key("time.steps", format!("{} steps is more than the {MAX_STEPS} a scene may run; split the run", t.steps)));
         }
         Ok((positive("time.dt", t.dt)?, count("time.steps", t.steps)?))
     })?;
+    if let Domain::Box3(cfg) = &mut domain {
+        cfg.dt = dt;
+    }
 
     // Obstacles.
     let mut solid: Option<Vec<bool>> = None;
     for (k, shape) in file.obstacles.iter().enumerate() {
         let cells = at(text, shape, |shape| {
-            if domain.dims() != 2 {
-                return Err(SceneError::key(format!("obstacles[{k}]"), "obstacles need a 2D domain"));
+            if domain.dims() == 1 {
+                return Err(SceneError::key(format!("obstacles[{k}]"), "obstacles need a 2D or 3D domain"));
             }
-            shape_cells(&format!("obstacles[{k}]"), &domain, shape)
+            shape_cells(&format!("obstacles[{k}]"), &domain, shape, dir)
         })?;
         let all = solid.get_or_insert_with(|| vec![false; cells.len()]);
         for (a, c) in all.iter_mut().zip(cells) {
@@ -306,9 +334,12 @@ impl Builder<'_> {
         let (domain, dt) = (self.domain, self.dt);
         let line = match domain {
             Domain::Line(l) => Some(l),
-            Domain::Box(_) => None,
+            Domain::Box(_) | Domain::Box3(_) => None,
         };
-        let box_only = |kind: &str| SceneError::key(at("kind"), format!("{kind} needs a 2D domain"));
+        let box_only = |kind: &str| SceneError::key(at("kind"), format!("{kind} needs a 2D or 3D domain"));
+        if let Domain::Box3(cfg) = domain {
+            return self.effect_3d(k, e, cfg);
+        }
         match (e, domain) {
             (EffectSpec::Advection(a), _) => {
                 let (s, v) = self.fields_of(&at("fields"), &a.fields)?;
@@ -439,12 +470,7 @@ impl Builder<'_> {
                 self.need(&at("kind"), "pressure", &[Field::Velocity])?;
                 let tol = tolerance(&at("tolerance"), p.tolerance)?;
                 let max = iterations(&at("max_iterations"), p.max_iterations, domain.n_state())?;
-                let precond = match p.preconditioner.as_str() {
-                    "multigrid" => Preconditioner::Multigrid,
-                    "mic0" => Preconditioner::Mic0,
-                    "none" => Preconditioner::None,
-                    other => return Err(SceneError::key(at("preconditioner"), unknown("preconditioner", other, &["multigrid", "mic0", "none"]))),
-                };
+                let precond = preconditioner(&at("preconditioner"), &p.preconditioner, &["multigrid", "mic0", "none"])?;
                 self.effects.push("pressure".into());
                 self.ops.push(Box::new(match self.solid {
                     Some(s) => Project::with_obstacles(cfg, tol, max, s),
@@ -455,6 +481,9 @@ impl Builder<'_> {
             (EffectSpec::Buoyancy(b), Domain::Box(cfg)) => {
                 if b.field != "smoke" {
                     return Err(SceneError::key(at("field"), unknown("field", &b.field, &["smoke"])));
+                }
+                if b.axis != "y" {
+                    return Err(SceneError::key(at("axis"), format!("2D buoyancy acts along y (a negative coefficient pulls down), got \"{}\"", b.axis)));
                 }
                 self.need(&at("kind"), "buoyancy", &[Field::Smoke, Field::Velocity])?;
                 self.effects.push("buoyancy".into());
@@ -481,11 +510,124 @@ impl Builder<'_> {
                 };
                 self.effects.push("inflow".into());
                 self.ops.push(Box::new(Inflow { cfg, region }));
-                let values = [finite(&at("smoke"), i.smoke)?, finite(&at("velocity[0]"), i.velocity[0])?, finite(&at("velocity[1]"), i.velocity[1])?];
-                self.params.extend(values);
+                let velocity = inflow_velocity(&at("velocity"), &i.velocity, 2)?;
+                self.params.push(finite(&at("smoke"), i.smoke)?);
+                self.params.extend(velocity);
             }
+            (_, Domain::Box3(_)) => unreachable!("3D effects are built by effect_3d"),
         }
         Ok(())
+    }
+
+    /// An effect of a 3D scene. So far: semi-Lagrangian advection of smoke
+    /// and velocity together, buoyancy along any axis, inflow regions and
+    /// the pressure projection of a cube (with obstacles); diffusion and
+    /// forces are 2D only, and say so.
+    fn effect_3d(&mut self, k: usize, e: EffectSpec, cfg: Smoke3d) -> Result<(), SceneError> {
+        let at = |key: &str| format!("effects[{k}].{key}");
+        let not_yet = |kind: &str| SceneError::key(at("kind"), format!("{kind} is not available in 3D scenes yet (2D and 1D only)"));
+        let n = cfg.n_state();
+        match e {
+            EffectSpec::Advection(a) => {
+                let (s, v) = self.fields_of(&at("fields"), &a.fields)?;
+                if !(s && v) {
+                    return Err(SceneError::key(
+                        at("fields"),
+                        "3D advection moves the smoke and the velocity together so far: fields = [\"smoke\", \"velocity\"]",
+                    ));
+                }
+                if a.scheme != "semi_lagrangian" {
+                    let known = ["semi_lagrangian", "maccormack", "upwind"];
+                    if !known.contains(&a.scheme.as_str()) {
+                        return Err(SceneError::key(at("scheme"), unknown("scheme", &a.scheme, &known)));
+                    }
+                    return Err(SceneError::key(at("scheme"), format!("3D advection is semi_lagrangian so far (\"{}\" is 2D only)", a.scheme)));
+                }
+                self.effects.push("advection".into());
+                self.ops.push(Box::new(SmokeAdvect3(cfg)));
+            }
+            EffectSpec::Pressure(p) => {
+                self.need(&at("kind"), "pressure", &[Field::Velocity])?;
+                let tol = tolerance(&at("tolerance"), p.tolerance)?;
+                let max = iterations(&at("max_iterations"), p.max_iterations, n)?;
+                let precond = preconditioner(&at("preconditioner"), &p.preconditioner, &["multigrid", "none"])?;
+                if !(cfg.nx == cfg.ny && cfg.ny == cfg.nz) {
+                    return Err(SceneError::key(
+                        at("kind"),
+                        format!("the 3D pressure solve needs a cube (nx = ny = nz) so far, got [{}, {}, {}]", cfg.nx, cfg.ny, cfg.nz),
+                    ));
+                }
+                self.effects.push("pressure".into());
+                self.ops.push(Box::new(match self.solid {
+                    Some(s) => Project3::with_obstacles(cfg, tol, max, precond, s),
+                    None => Project3::new(cfg, tol, max, precond),
+                }));
+                self.projected = true;
+            }
+            EffectSpec::Buoyancy(b) => {
+                if b.field != "smoke" {
+                    return Err(SceneError::key(at("field"), unknown("field", &b.field, &["smoke"])));
+                }
+                let axis = match b.axis.as_str() {
+                    "x" => 0,
+                    "y" => 1,
+                    "z" => 2,
+                    other => return Err(SceneError::key(at("axis"), unknown("axis", other, &["x", "y", "z"]))),
+                };
+                self.need(&at("kind"), "buoyancy", &[Field::Smoke, Field::Velocity])?;
+                self.effects.push("buoyancy".into());
+                self.ops.push(Box::new(Buoyancy3 { cfg, dt: self.dt, axis }));
+                self.name(k, "buoyancy", "coefficient", 1.0);
+                self.params.push(finite(&at("coefficient"), b.coefficient)?);
+            }
+            EffectSpec::Inflow(i) => {
+                let dims = cfg.dims();
+                let region = match i.region {
+                    ShapeSpec::Box { lower, upper } if lower.len() == 3 && upper.len() == 3 => {
+                        for v in lower.iter().chain(&upper) {
+                            finite(&at("region"), *v)?;
+                        }
+                        let clip = |v: f64, a: usize| v.clamp(0.0, dims[a] as f64).round() as usize;
+                        let r = [clip(lower[0], 0), clip(upper[0], 0), clip(lower[1], 1), clip(upper[1], 1), clip(lower[2], 2), clip(upper[2], 2)];
+                        if r[0] >= r[1] || r[2] >= r[3] || r[4] >= r[5] {
+                            return Err(SceneError::key(at("region"), "the box covers no cell of the domain"));
+                        }
+                        r
+                    }
+                    ShapeSpec::Box { .. } => return Err(SceneError::key(at("region"), "expected lower = [x, y, z], upper = [x, y, z]")),
+                    _ => return Err(SceneError::key(at("region"), "an inflow region must be a box")),
+                };
+                self.effects.push("inflow".into());
+                self.ops.push(Box::new(Inflow3 { cfg, region }));
+                let velocity = inflow_velocity(&at("velocity"), &i.velocity, 3)?;
+                self.params.push(finite(&at("smoke"), i.smoke)?);
+                self.params.extend(velocity);
+            }
+            EffectSpec::Diffusion(_) => return Err(not_yet("diffusion")),
+            EffectSpec::Force(_) => return Err(not_yet("force")),
+        }
+        Ok(())
+    }
+}
+
+/// An inflow's velocity: one finite value per axis (none: at rest).
+fn inflow_velocity(key: &str, v: &[f64], dims: usize) -> Result<Vec<f64>, SceneError> {
+    if v.is_empty() {
+        return Ok(vec![0.0; dims]);
+    }
+    if v.len() != dims {
+        return Err(SceneError::key(key, format!("expected {dims} values, one per axis, got {}", v.len())));
+    }
+    v.iter().enumerate().map(|(a, &x)| finite(&format!("{key}[{a}]"), x)).collect()
+}
+
+/// A pressure effect's preconditioner, one of `known`.
+fn preconditioner(key: &str, name: &str, known: &[&str]) -> Result<Preconditioner, SceneError> {
+    match name {
+        "multigrid" if known.contains(&name) => Ok(Preconditioner::Multigrid),
+        "mic0" if known.contains(&name) => Ok(Preconditioner::Mic0),
+        "none" => Ok(Preconditioner::None),
+        other => Err(SceneError::key(key, unknown("preconditioner", other, known))),
     }
 }
 
@@ -493,6 +635,7 @@ fn self_cfg(domain: &Domain) -> &Smoke2d {
     match domain {
         Domain::Box(cfg) => cfg,
         Domain::Line(_) => unreachable!("2D effects are refused on a line before this"),
+        Domain::Box3(_) => unreachable!("3D effects are built by effect_3d"),
     }
 }
 

@@ -2,13 +2,14 @@
 //! analytic presets and `.npy` files.
 //!
 //! Positions: in a box, cell `(i, j)` has its centre at `(i + ½, j + ½)`
-//! (unit cells); on a line, value `i` sits at `x = i·dx` (the grid points of
+//! (unit cells; in 3D `(i + ½, j + ½, k + ½)`); on a line, value `i` sits at `x = i·dx` (the grid points of
 //! a periodic line, as in benchmark P1).
 
 use std::path::Path;
 
 use diffsim_solvers::flow::Shape;
 use diffsim_solvers::smoke::{enforce_boundary, obstacle_box, obstacle_disc};
+use diffsim_solvers::smoke3d::{Smoke3d, Solid3, close_walls, solid_cells};
 
 use super::spec::{InitSpec, NpyPaths, ShapeSpec};
 use super::value::{finite, positive};
@@ -17,7 +18,7 @@ use super::{Domain, Field, SceneError};
 /// A point with one coordinate per axis of the domain.
 fn point(key: &str, v: &[f64], dims: usize) -> Result<Vec<f64>, SceneError> {
     if v.len() != dims {
-        let want = if dims == 1 { "[x]" } else { "[x, y]" };
+        let want = ["[x]", "[x, y]", "[x, y, z]"][dims.clamp(1, 3) - 1];
         return Err(SceneError::key(key, format!("expected {want} for a {dims}D domain, got {} value(s)", v.len())));
     }
     for x in v {
@@ -31,7 +32,7 @@ fn point(key: &str, v: &[f64], dims: usize) -> Result<Vec<f64>, SceneError> {
 fn box_corners(key: &str, lower: &[f64], upper: &[f64], dims: usize) -> Result<(Vec<f64>, Vec<f64>), SceneError> {
     let (a, b) = (point(&format!("{key}.lower"), lower, dims)?, point(&format!("{key}.upper"), upper, dims)?);
     if let Some(axis) = (0..dims).find(|&d| a[d] >= b[d]) {
-        let name = ["x", "y"][axis];
+        let name = ["x", "y", "z"][axis];
         return Err(SceneError::key(format!("{key}.upper"), format!("must exceed `lower` on every axis: on {name}, upper {} ≤ lower {}", b[axis], a[axis])));
     }
     Ok((a, b))
@@ -54,16 +55,79 @@ pub(super) fn shape_of(key: &str, shape: &ShapeSpec) -> Result<Shape, SceneError
         ShapeSpec::Polygon { vertices } => {
             Shape::Polygon { vertices: vertices.iter().enumerate().map(|(k, v)| xy(&format!("vertices[{k}]"), v)).collect::<Result<_, _>>()? }
         }
+        ShapeSpec::Sphere { .. } | ShapeSpec::Cylinder { .. } | ShapeSpec::Npy(_) => return Err(only_3d(key)),
     };
     body.check().map_err(|e| SceneError::key(key, e.to_string()))?;
     Ok(body)
 }
 
+/// The error for a 3D shape elsewhere.
+fn only_3d(key: &str) -> SceneError {
+    SceneError::key(key, "sphere, cylinder and npy shapes need a 3D domain (size = [nx, ny, nz])")
+}
+
+/// An axis by name.
+fn axis_of(key: &str, name: &str) -> Result<usize, SceneError> {
+    match name {
+        "x" => Ok(0),
+        "y" => Ok(1),
+        "z" => Ok(2),
+        other => Err(SceneError::key(key, crate::words::unknown("axis", other, &["x", "y", "z"]))),
+    }
+}
+
+/// The solid cells of a 3D shape (a cell is solid when its centre lies
+/// inside; `npy`: where the file's value is not zero).
+fn shape_cells_3d(key: &str, cfg: &Smoke3d, shape: &ShapeSpec, dir: &Path) -> Result<Vec<bool>, SceneError> {
+    let solid = match shape {
+        ShapeSpec::Box { lower, upper } => {
+            let (a, b) = box_corners(key, lower, upper, 3)?;
+            Solid3::Box { lower: [a[0], a[1], a[2]], upper: [b[0], b[1], b[2]] }
+        }
+        ShapeSpec::Sphere { center, radius } => {
+            let c = point(&format!("{key}.center"), center, 3)?;
+            Solid3::Sphere { center: [c[0], c[1], c[2]], radius: positive(&format!("{key}.radius"), *radius)? }
+        }
+        ShapeSpec::Cylinder { center, radius, axis, extent } => {
+            let c = point(&format!("{key}.center"), center, 3)?;
+            let axis = axis_of(&format!("{key}.axis"), axis)?;
+            let extent = match extent {
+                None => [f64::NEG_INFINITY, f64::INFINITY],
+                Some(e) => {
+                    let e =
+                        point(&format!("{key}.extent"), e, 2).map_err(|_| SceneError::key(format!("{key}.extent"), "expected [from, to] along the axis"))?;
+                    if e[0] >= e[1] {
+                        return Err(SceneError::key(format!("{key}.extent"), format!("`to` {} must exceed `from` {}", e[1], e[0])));
+                    }
+                    [e[0], e[1]]
+                }
+            };
+            Solid3::Cylinder { axis, center: [c[0], c[1], c[2]], radius: positive(&format!("{key}.radius"), *radius)?, extent }
+        }
+        ShapeSpec::Npy(path) => {
+            let shape = [cfg.nz as u64, cfg.ny as u64, cfg.nx as u64];
+            let full = dir.join(path);
+            let fail = |why: String| SceneError::key(format!("{key}.npy"), format!("{}: {why}", full.display()));
+            let bytes = crate::files::read_bytes(&full, 8 * cfg.n_s() as u64 + 65_536, "`.npy` obstacle mask").map_err(|e| fail(e.to_string()))?;
+            let values = npy_values(&bytes, &shape).map_err(fail)?;
+            return Ok(values.iter().map(|&v| v != 0.0).collect());
+        }
+        ShapeSpec::Disc { .. } => return Err(SceneError::key(key, "a disc is 2D; in 3D use a sphere or a cylinder")),
+        ShapeSpec::Fourier { .. } | ShapeSpec::Polygon { .. } => return Err(SceneError::key(key, "Fourier and polygon shapes need a 2D domain")),
+    };
+    Ok(solid_cells(cfg, &[solid]))
+}
+
 /// The cells (values, on a line) inside a shape, clipped to the domain; a
-/// shape wholly outside is an error.
-pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec) -> Result<Vec<bool>, SceneError> {
+/// shape wholly outside is an error. `dir` is where `.npy` paths start.
+pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec, dir: &Path) -> Result<Vec<bool>, SceneError> {
     let dims = domain.dims();
     let cells = match (domain, shape) {
+        (Domain::Box3(cfg), _) => {
+            let cells = shape_cells_3d(key, cfg, shape, dir)?;
+            cells.iter().any(|&c| c).then_some(cells)
+        }
+        (_, ShapeSpec::Sphere { .. } | ShapeSpec::Cylinder { .. } | ShapeSpec::Npy(_)) => return Err(only_3d(key)),
         (Domain::Box(cfg), ShapeSpec::Box { lower, upper }) => {
             let (a, b) = box_corners(key, lower, upper, dims)?;
             obstacle_box(cfg, [a[0], a[1]], [b[0], b[1]])
@@ -98,6 +162,7 @@ pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec) -> Resu
     cells.ok_or_else(|| {
         let size = match domain {
             Domain::Box(cfg) => format!("{}×{} domain", cfg.nx, cfg.ny),
+            Domain::Box3(cfg) => format!("{}×{}×{} domain", cfg.nx, cfg.ny, cfg.nz),
             Domain::Line(l) => format!("domain [0, {})", l.n as f64 * l.dx),
         };
         SceneError::key(key, format!("the shape lies wholly outside the {size}"))
@@ -114,14 +179,20 @@ pub(super) fn field_init(key: &str, domain: &Domain, field: Field, init: &InitSp
         (InitSpec::Npy(paths), _, _) => read_npy(key, domain, field, paths, dir)?,
         (InitSpec::Disc { center, radius, value }, Field::Smoke, _) | (InitSpec::Disc { center, radius, value }, Field::Velocity, Domain::Line(_)) => {
             let value = finite(&format!("{key}.value"), *value)?;
-            let cells = shape_cells(key, domain, &ShapeSpec::Disc { center: center.clone(), radius: *radius })?;
+            let cells = shape_cells(key, domain, &ShapeSpec::Disc { center: center.clone(), radius: *radius }, dir)?;
             cells.into_iter().map(|c| if c { value } else { 0.0 }).collect()
         }
         (InitSpec::Box { lower, upper, value }, Field::Smoke, _) | (InitSpec::Box { lower, upper, value }, Field::Velocity, Domain::Line(_)) => {
             let value = finite(&format!("{key}.value"), *value)?;
-            let cells = shape_cells(key, domain, &ShapeSpec::Box { lower: lower.clone(), upper: upper.clone() })?;
+            let cells = shape_cells(key, domain, &ShapeSpec::Box { lower: lower.clone(), upper: upper.clone() }, dir)?;
             cells.into_iter().map(|c| if c { value } else { 0.0 }).collect()
         }
+        (InitSpec::Sphere { center, radius, value }, Field::Smoke, Domain::Box3(_)) => {
+            let value = finite(&format!("{key}.value"), *value)?;
+            let cells = shape_cells(key, domain, &ShapeSpec::Sphere { center: center.clone(), radius: *radius }, dir)?;
+            cells.into_iter().map(|c| if c { value } else { 0.0 }).collect()
+        }
+        (InitSpec::Sphere { .. }, Field::Smoke, _) => return Err(only_3d(key)),
         (InitSpec::Sine { amplitude, wavenumber }, _, _) => {
             let a = finite(&format!("{key}.sine.amplitude"), *amplitude)?;
             let k = point(&format!("{key}.sine.wavenumber"), wavenumber, dims)?;
@@ -136,16 +207,29 @@ pub(super) fn field_init(key: &str, domain: &Domain, field: Field, init: &InitSp
                     uv[cfg.n_u()..].fill(v[1]);
                     uv
                 }
+                Domain::Box3(cfg) => (0..3).flat_map(|a| std::iter::repeat_n(v[a], cfg.n_face(a))).collect(),
             }
         }
         (InitSpec::Uniform(_), Field::Smoke, _) => return Err(SceneError::key(key, "`uniform` is for the velocity; use a shape, `sine`, `npy` or \"zero\"")),
-        (InitSpec::Disc { .. } | InitSpec::Box { .. }, Field::Velocity, Domain::Box(_)) => {
+        (InitSpec::Disc { .. } | InitSpec::Box { .. } | InitSpec::Sphere { .. }, Field::Velocity, Domain::Box(_)) => {
             return Err(SceneError::key(key, "a 2D velocity starts \"zero\", `uniform = [vx, vy]`, `sine` or `npy = [u, v]`"));
         }
+        (InitSpec::Disc { .. } | InitSpec::Box { .. } | InitSpec::Sphere { .. }, Field::Velocity, Domain::Box3(_)) => {
+            return Err(SceneError::key(key, "a 3D velocity starts \"zero\", `uniform = [vx, vy, vz]`, `sine` or `npy = [u, v, w]`"));
+        }
+        (InitSpec::Sphere { .. }, Field::Velocity, Domain::Line(_)) => return Err(only_3d(key)),
     };
-    if let (Field::Velocity, Domain::Box(cfg)) = (field, domain) {
-        let (u, v) = values.split_at_mut(cfg.n_u());
-        enforce_boundary(cfg, u, v);
+    match (field, domain) {
+        (Field::Velocity, Domain::Box(cfg)) => {
+            let (u, v) = values.split_at_mut(cfg.n_u());
+            enforce_boundary(cfg, u, v);
+        }
+        (Field::Velocity, Domain::Box3(cfg)) => {
+            let (u, rest) = values.split_at_mut(cfg.n_face(0));
+            let (v, w) = rest.split_at_mut(cfg.n_face(1));
+            close_walls(cfg, [u, v, w]);
+        }
+        _ => {}
     }
     Ok(values)
 }
@@ -178,6 +262,21 @@ fn sine(domain: &Domain, field: Field, a: f64, k: &[f64]) -> Vec<f64> {
                     }
                     out
                 }
+            }
+        }
+        Domain::Box3(cfg) => {
+            let n = cfg.dims();
+            // `k` periods across the box along each axis.
+            let at = |p: [f64; 3]| a * (TAU * (0..3).map(|b| k[b] * p[b] / n[b] as f64).sum::<f64>()).sin();
+            // Samples of the centres (axis 3) or of the faces normal to an axis.
+            let lattice = |axis: usize| {
+                let e: Vec<usize> = (0..3).map(|b| n[b] + (b == axis) as usize).collect();
+                let o = move |b: usize| if b == axis { 0.0 } else { 0.5 };
+                (0..e[0] * e[1] * e[2]).map(move |c| [(c % e[0]) as f64 + o(0), ((c / e[0]) % e[1]) as f64 + o(1), (c / (e[0] * e[1])) as f64 + o(2)])
+            };
+            match field {
+                Field::Smoke => lattice(3).map(at).collect(),
+                Field::Velocity => (0..3).flat_map(lattice).map(at).collect(),
             }
         }
     }

@@ -26,6 +26,7 @@ use std::ops::Range;
 use std::path::Path;
 
 use diffsim_solvers::smoke::Smoke2d;
+use diffsim_solvers::smoke3d::Smoke3d;
 
 use crate::op::Chain;
 use crate::rollout::{AtSteps, Checkpointing, Loss, Rollout, RolloutError};
@@ -102,13 +103,17 @@ pub struct Line {
 }
 
 /// The domain of a scene. The state always holds both fields, smoke first
-/// (`[s, u]` on a line, `[s, u, v]` in a box), whether declared or not.
+/// (`[s, u]` on a line, `[s, u, v]` in a box, `[s, u, v, w]` in a 3D box),
+/// whether declared or not.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Domain {
     /// A line (1D scenes: Burgers, heat).
     Line(Line),
     /// A box of `nx × ny` unit cells with its boundary (2D).
     Box(Smoke2d),
+    /// A closed box of `nx × ny × nz` unit cells (3D), its time step in
+    /// `dt` (the advection's).
+    Box3(Smoke3d),
 }
 
 /// One array of a field as written to `.npy`: its file-name suffix, its
@@ -116,7 +121,7 @@ pub enum Domain {
 /// array is `[rows = y, columns = x]`).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Array {
-    /// `""`, `"_u"` or `"_v"`.
+    /// `""`, `"_u"`, `"_v"` or `"_w"`.
     pub suffix: &'static str,
     /// Where the values are.
     pub range: Range<usize>,
@@ -130,6 +135,7 @@ impl Domain {
         match self {
             Domain::Line(l) => 2 * l.n,
             Domain::Box(cfg) => cfg.n_state(),
+            Domain::Box3(cfg) => cfg.n_state(),
         }
     }
 
@@ -138,6 +144,7 @@ impl Domain {
         match self {
             Domain::Line(_) => 1,
             Domain::Box(_) => 2,
+            Domain::Box3(_) => 3,
         }
     }
 
@@ -146,6 +153,7 @@ impl Domain {
         let ns = match self {
             Domain::Line(l) => l.n,
             Domain::Box(cfg) => cfg.n_s(),
+            Domain::Box3(cfg) => cfg.n_s(),
         };
         match field {
             Field::Smoke => 0..ns,
@@ -165,6 +173,20 @@ impl Domain {
                     Array { suffix: "_u", range: r.start..r.start + nu, shape: vec![ny, nx + 1] },
                     Array { suffix: "_v", range: r.start + nu..r.end, shape: vec![ny + 1, nx] },
                 ]
+            }
+            (Domain::Box3(cfg), Field::Smoke) => vec![Array { suffix: "", range: r, shape: vec![cfg.nz as u64, cfg.ny as u64, cfg.nx as u64] }],
+            (Domain::Box3(cfg), Field::Velocity) => {
+                let mut start = r.start;
+                ["_u", "_v", "_w"]
+                    .into_iter()
+                    .enumerate()
+                    .map(|(axis, suffix)| {
+                        let len = cfg.n_face(axis);
+                        let shape = [cfg.nz, cfg.ny, cfg.nx].iter().enumerate().map(|(b, &n)| (n + (2 - b == axis) as usize) as u64).collect();
+                        start += len;
+                        Array { suffix, range: start - len..start, shape }
+                    })
+                    .collect()
             }
         }
     }
@@ -252,11 +274,11 @@ impl Scene {
     /// The 2D grid.
     ///
     /// # Panics
-    /// For a 1D scene.
+    /// For a 1D or 3D scene.
     pub fn cfg(&self) -> &Smoke2d {
         match &self.domain {
             Domain::Box(cfg) => cfg,
-            Domain::Line(_) => panic!("Scene::cfg: a 1D scene has no 2D grid"),
+            Domain::Line(_) | Domain::Box3(_) => panic!("Scene::cfg: a {}D scene has no 2D grid", self.domain.dims()),
         }
     }
 

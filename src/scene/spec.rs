@@ -127,6 +127,16 @@ pub enum InitSpec {
         #[serde(default = "one")]
         value: f64,
     },
+    /// `value` inside the ball (3D: cell centres within `radius` of `center`).
+    Sphere {
+        /// Centre `[x, y, z]`, in cells.
+        center: Vec<f64>,
+        /// Radius in cells.
+        radius: f64,
+        /// The value inside (default 1).
+        #[serde(default = "one")]
+        value: f64,
+    },
     /// `amplitude·sin(2π·(kx·x + ky·y)/L)` (for a 2D velocity: on each
     /// face, both components).
     Sine {
@@ -205,6 +215,33 @@ pub enum ShapeSpec {
         /// Vertices `[[x, y], …]`.
         vertices: Vec<Vec<f64>>,
     },
+    /// A ball (3D).
+    Sphere {
+        /// Centre `[x, y, z]`.
+        center: Vec<f64>,
+        /// Radius.
+        radius: f64,
+    },
+    /// A circular cylinder along an axis (3D).
+    Cylinder {
+        /// A point on its centre line, `[x, y, z]` (the coordinate along
+        /// the axis is not used).
+        center: Vec<f64>,
+        /// Radius.
+        radius: f64,
+        /// `"x"`, `"y"` or `"z"` (default `"z"`).
+        #[serde(default = "z_axis")]
+        axis: String,
+        /// From and to along the axis (default: through the box).
+        extent: Option<Vec<f64>>,
+    },
+    /// Solid cells from a `.npy` file (3D: shape `[nz, ny, nx]`, solid
+    /// where the value is not zero), path relative to the scene file.
+    Npy(String),
+}
+
+fn z_axis() -> String {
+    "z".into()
 }
 
 /// `[loss]`, by its `kind` (default `"field"`).
@@ -381,8 +418,15 @@ pub struct BuoyancySpec {
     /// The field that lifts (`"smoke"`).
     #[serde(default = "smoke")]
     pub field: String,
-    /// Upward acceleration per unit of smoke.
+    /// Acceleration per unit of smoke (along +y; negative: down).
     pub coefficient: f64,
+    /// The axis it acts along (3D: `"x"`, `"y"` or `"z"`; default `"y"`).
+    #[serde(default = "y_axis")]
+    pub axis: String,
+}
+
+fn y_axis() -> String {
+    "y".into()
 }
 
 fn smoke() -> String {
@@ -407,9 +451,9 @@ pub struct InflowSpec {
     /// The smoke value set there.
     #[serde(default)]
     pub smoke: f64,
-    /// The velocity set there, x first.
+    /// The velocity set there, x first (one entry per axis; default zero).
     #[serde(default)]
-    pub velocity: [f64; 2],
+    pub velocity: Vec<f64>,
 }
 
 /// Parses the `k`-th `[[effects]]` table.

@@ -74,16 +74,18 @@ fn traced<const WX: bool, const WY: bool, const WZ: bool>(
     sample3::<WX, WY, WZ>(f, lat, p)
 }
 
-/// Adjoint of [`trace`] at unit time step: adds `Jᵀ·g` into the velocity's
+/// Adjoint of [`trace`] at time step `dt`: adds `Jᵀ·g` into the velocity's
 /// adjoint `gvel` and the traced field's: `gs` for the centres, else the
 /// component's own entry of `gvel` (a velocity component is both the field
 /// sampled and one of the velocities that trace it).
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn trace_adjoint<const WX: bool, const WY: bool, const WZ: bool>(
     mac: Mac3<WX, WY, WZ>,
     at: At3,
     vel: [&[f64]; 3],
     f: &[f64],
+    dt: f64,
     g: &[f64],
     mut gs: Option<&mut [f64]>,
     gvel: [&mut [f64]; 3],
@@ -95,7 +97,7 @@ fn trace_adjoint<const WX: bool, const WY: bool, const WZ: bool>(
             for i in 0..lat.n[0] {
                 let q = [i, j, k];
                 let [a, b, c] = mac.velocity(at, vel, q);
-                let p = [i as f64 + lat.o[0] - a, j as f64 + lat.o[1] - b, k as f64 + lat.o[2] - c];
+                let p = [i as f64 + lat.o[0] - dt * a, j as f64 + lat.o[1] - dt * b, k as f64 + lat.o[2] - dt * c];
                 let gq = g[(k * lat.sy + j) * lat.sx + i];
                 let gf: &mut [f64] = match at {
                     At3::Centre => gs.as_deref_mut().expect("smoke adjoint"),
@@ -104,14 +106,14 @@ fn trace_adjoint<const WX: bool, const WY: bool, const WZ: bool>(
                     At3::W => &mut *gw,
                 };
                 let dp = sample3_adjoint::<WX, WY, WZ>(f, gf, lat, p, gq);
-                mac.velocity_adjoint(at, [&mut *gu, &mut *gv, &mut *gw], q, [-dp[0], -dp[1], -dp[2]]);
+                mac.velocity_adjoint(at, [&mut *gu, &mut *gv, &mut *gw], q, [-dt * dp[0], -dt * dp[1], -dt * dp[2]]);
             }
         }
     }
 }
 
 /// Steps 1–4 of P4: semi-Lagrangian advection of the smoke and of the
-/// velocity (unit time step, each component sampled at its own faces along
+/// velocity (time step `cfg.dt`, 1 in P4; each component sampled at its own faces along
 /// the velocity there), the closed walls, buoyancy along +y. Reads the
 /// packed state `x = [s, u, v, w]`, overwrites `y` (the velocity not yet
 /// divergence-free).
@@ -142,10 +144,10 @@ pub fn advect_buoyancy_slabs(cfg: &Smoke3d, x: &[f64], ks: Range<usize>, y: &mut
     let (u2, rest) = rest.split_at_mut(lens[1]);
     let (v2, w2) = rest.split_at_mut(lens[2]);
     let vel = [u, v, w];
-    trace(mac, At3::Centre, vel, s, 1.0, ks.clone(), s2);
-    trace(mac, At3::U, vel, u, 1.0, ks.clone(), u2);
-    trace(mac, At3::V, vel, v, 1.0, ks.clone(), v2);
-    trace(mac, At3::W, vel, w, 1.0, ks.clone(), w2);
+    trace(mac, At3::Centre, vel, s, cfg.dt, ks.clone(), s2);
+    trace(mac, At3::U, vel, u, cfg.dt, ks.clone(), u2);
+    trace(mac, At3::V, vel, v, cfg.dt, ks.clone(), v2);
+    trace(mac, At3::W, vel, w, cfg.dt, ks.clone(), w2);
     close_walls_slabs(cfg, ks.clone(), [u2, v2, w2]);
     add_buoyancy_slabs(cfg, cfg.buoyancy, ks.len(), s2, v2);
 }
@@ -163,10 +165,10 @@ pub fn advect_buoyancy_parallel(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
     let [s, u, v, w] = cfg.split(x);
     let [s2, u2, v2, w2] = cfg.split_mut(y);
     let vel = [u, v, w];
-    trace_parallel(mac, At3::Centre, vel, s, 1.0, s2);
-    trace_parallel(mac, At3::U, vel, u, 1.0, u2);
-    trace_parallel(mac, At3::V, vel, v, 1.0, v2);
-    trace_parallel(mac, At3::W, vel, w, 1.0, w2);
+    trace_parallel(mac, At3::Centre, vel, s, cfg.dt, s2);
+    trace_parallel(mac, At3::U, vel, u, cfg.dt, u2);
+    trace_parallel(mac, At3::V, vel, v, cfg.dt, v2);
+    trace_parallel(mac, At3::W, vel, w, cfg.dt, w2);
     close_walls(cfg, [u2, v2, w2]);
     add_buoyancy(cfg, cfg.buoyancy, s2, v2);
 }
@@ -248,10 +250,10 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke3d, x: &[f64], gy: &mut [f64], gx: &mu
     close_walls(cfg, [&mut *gu2, &mut *gv2, &mut *gw2]);
     let [gs, gu, gv, gw] = cfg.split_mut(gx);
     let vel = [u, v, w];
-    trace_adjoint(mac, At3::W, vel, w, gw2, None, [&mut *gu, &mut *gv, &mut *gw]);
-    trace_adjoint(mac, At3::V, vel, v, gv2, None, [&mut *gu, &mut *gv, &mut *gw]);
-    trace_adjoint(mac, At3::U, vel, u, gu2, None, [&mut *gu, &mut *gv, &mut *gw]);
-    trace_adjoint(mac, At3::Centre, vel, s, gs2, Some(gs), [gu, gv, gw]);
+    trace_adjoint(mac, At3::W, vel, w, cfg.dt, gw2, None, [&mut *gu, &mut *gv, &mut *gw]);
+    trace_adjoint(mac, At3::V, vel, v, cfg.dt, gv2, None, [&mut *gu, &mut *gv, &mut *gw]);
+    trace_adjoint(mac, At3::U, vel, u, cfg.dt, gu2, None, [&mut *gu, &mut *gv, &mut *gw]);
+    trace_adjoint(mac, At3::Centre, vel, s, cfg.dt, gs2, Some(gs), [gu, gv, gw]);
 }
 
 /// How far `x` may move along `d` before [`advect_buoyancy`] meets a kink:
@@ -273,7 +275,7 @@ pub fn advect_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
                     let vel = mac.velocity(at, [u, v, w], q);
                     let dvel = mac.velocity(at, [du, dv, dw], q);
                     for a in 0..3 {
-                        r = r.min(lattice_gap(q[a] as f64 - vel[a], dvel[a]));
+                        r = r.min(lattice_gap(q[a] as f64 - cfg.dt * vel[a], cfg.dt * dvel[a]));
                     }
                 }
             }

@@ -37,14 +37,23 @@ pub struct Smoke3d {
     pub ny: usize,
     /// Cells along z.
     pub nz: usize,
-    /// Buoyancy: `v += buoyancy · (smoke averaged to the y-face)`.
+    /// Buoyancy of the explicit step: `v += buoyancy · (smoke averaged to
+    /// the y-face)` (0: none; a scene adds buoyancy as its own effect).
     pub buoyancy: f64,
+    /// Time step of the advection, in cells per unit speed (P4: 1).
+    pub dt: f64,
 }
 
 impl Smoke3d {
-    /// The P4 setting: an `n³` closed box, buoyancy 0.1.
+    /// The P4 setting: an `n³` closed box, buoyancy 0.1, unit time step.
     pub fn p4(n: usize) -> Self {
-        Self { nx: n, ny: n, nz: n, buoyancy: 0.1 }
+        Self { nx: n, ny: n, nz: n, buoyancy: 0.1, dt: 1.0 }
+    }
+
+    /// A closed `nx × ny × nz` box advected with time step `dt`, without
+    /// buoyancy in the explicit step.
+    pub fn new(nx: usize, ny: usize, nz: usize, dt: f64) -> Self {
+        Self { nx, ny, nz, buoyancy: 0.0, dt }
     }
 
     /// Cells along each axis `[nx, ny, nz]`.
@@ -289,9 +298,13 @@ impl<const WX: bool, const WY: bool, const WZ: bool> Mac3<WX, WY, WZ> {
 }
 
 mod advect;
+mod forces;
+mod obstacles;
 mod p4;
 mod pressure;
 
 pub use advect::*;
+pub use forces::*;
+pub use obstacles::*;
 pub use p4::*;
 pub use pressure::*;

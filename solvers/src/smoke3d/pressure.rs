@@ -1,6 +1,7 @@
 //! The 3D pressure projection of the closed box: divergence over the six
-//! faces of each cell, the seven-point matrix, its solve by conjugate
-//! gradients ([`crate::cg`], preconditioned by the multigrid V-cycle of
+//! faces of each cell, the seven-point matrix (coupling fluid cells only
+//! when there are obstacles), its solve by conjugate gradients
+//! ([`crate::cg`], preconditioned by the multigrid V-cycle of
 //! [`crate::multigrid`]), and the projection's adjoint (the same solve).
 
 use super::*;
@@ -107,7 +108,17 @@ pub struct PressureSolver3 {
     /// The stopping rule.
     pub stop: Stop,
     mg: Option<Multigrid>,
+    obstacles: Option<Masked>,
     work: CgWork,
+}
+
+/// What the matrix with solid cells needs: the fluid mask `W`, the count of
+/// solid cells beside each cell `S`, and a buffer.
+#[derive(Clone, Debug)]
+struct Masked {
+    fluid: Vec<f64>,
+    solid_beside: Vec<f64>,
+    buf: Vec<f64>,
 }
 
 impl PressureSolver3 {
@@ -123,7 +134,30 @@ impl PressureSolver3 {
             Preconditioner::None => None,
             other => panic!("3D pressure solves take the multigrid preconditioner or none, not {other}"),
         };
-        Self { n, stop: Stop { tolerance, max_iterations }, mg, work: CgWork::new(n * n * n) }
+        Self { n, stop: Stop { tolerance, max_iterations }, mg, obstacles: None, work: CgWork::new(n * n * n) }
+    }
+
+    /// A solver for the `n × n × n` closed box with solid cells where
+    /// `fluid[c] = 0`: the matrix `W·(A_box·W − S) + (I − W)`, which couples
+    /// fluid cells across their shared faces only (`S` counts the solid
+    /// cells beside each cell) and keeps solid rows as the identity;
+    /// symmetric, the constants on the fluid cells its null space. The
+    /// multigrid preconditioner is the closed box's V-cycle on the fluid
+    /// cells, `W·M·W + (I − W)`: symmetric and positive, blind to the
+    /// obstacles' walls (they cost iterations, not accuracy).
+    ///
+    /// # Panics
+    /// As [`PressureSolver3::new`], or if `fluid` does not have `n³` values.
+    pub fn with_obstacles(n: usize, tolerance: f64, max_iterations: usize, precond: Preconditioner, fluid: Vec<f64>) -> Self {
+        assert_eq!(fluid.len(), n * n * n, "fluid mask length");
+        let solid_beside = super::solid_neighbours(&Smoke3d::new(n, n, n, 1.0), &fluid);
+        let obstacles = Some(Masked { buf: vec![0.0; fluid.len()], fluid, solid_beside });
+        Self { obstacles, ..Self::new(n, tolerance, max_iterations, precond) }
+    }
+
+    /// The fluid mask (1 fluid, 0 solid) when there are obstacles.
+    pub fn fluid(&self) -> Option<&[f64]> {
+        self.obstacles.as_ref().map(|m| &m.fluid[..])
     }
 
     /// The preconditioner in use.
@@ -145,28 +179,53 @@ impl PressureSolver3 {
 
 impl System for PressureSolver3 {
     fn apply(&mut self, p: &[f64], out: &mut [f64]) {
-        apply_box_matrix(self.n, self.n, p, out);
+        let Some(m) = &mut self.obstacles else {
+            return apply_box_matrix(self.n, self.n, p, out);
+        };
+        // W·(A_box·(W·p) − S·p) + (I − W)·p.
+        for ((b, &p), &w) in m.buf.iter_mut().zip(p).zip(&m.fluid) {
+            *b = w * p;
+        }
+        apply_box_matrix(self.n, self.n, &m.buf, out);
+        for (((o, &p), &w), &s) in out.iter_mut().zip(p).zip(&m.fluid).zip(&m.solid_beside) {
+            *o = w * (*o - s * p) + (1.0 - w) * p;
+        }
     }
 
-    /// Constants: the box is closed.
+    /// Constants (on the fluid cells): the box is closed.
     fn null(&self) -> Null<'_> {
-        Null::Constant(None)
+        Null::Constant(self.fluid())
     }
 
     fn precondition(&mut self, r: &[f64], z: &mut [f64]) -> bool {
-        match &mut self.mg {
-            Some(mg) => {
-                mg.apply(r, z);
-                true
+        let Some(mg) = &mut self.mg else {
+            return false;
+        };
+        match &mut self.obstacles {
+            None => mg.apply(r, z),
+            Some(m) => {
+                // W·M·(W·r) + (I − W)·r.
+                for ((b, &r), &w) in m.buf.iter_mut().zip(r).zip(&m.fluid) {
+                    *b = w * r;
+                }
+                mg.apply(&m.buf, z);
+                for ((z, &r), &w) in z.iter_mut().zip(r).zip(&m.fluid) {
+                    *z = w * *z + (1.0 - w) * r;
+                }
             }
-            None => false,
         }
+        true
     }
 }
 
 /// P4's step 5 in place on the velocity part of the packed state `y`: the
 /// solve `A·p = −D·(u, v, w)`, then `(u, v, w) −= G·p` on the interior
-/// faces. Returns the CG iterations.
+/// faces. Returns the CG iterations. With obstacles, the velocity must
+/// hold no flow through the faces of solid cells before (then `D·(u, v,
+/// w)` is zero in them) and be masked again after
+/// ([`apply_obstacle_mask3`](super::apply_obstacle_mask3)): the gradient
+/// across a face beside a solid cell is then dropped, and the result is
+/// divergence-free in every fluid cell.
 pub fn project(cfg: &Smoke3d, y: &mut [f64], solver: &mut PressureSolver3, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
     let [_, u, v, w] = cfg.split_mut(y);
     divergence(cfg, [u, v, w], &mut scratch.d);
