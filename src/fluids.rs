@@ -11,8 +11,33 @@ use std::cell::{Cell, RefCell};
 use diffsim_solvers::boundary::Boundary;
 use diffsim_solvers::diffusion::{self, Grid, ImplicitSolver, laplacian};
 use diffsim_solvers::smoke::{self, NoConvergence, Preconditioner, PressureSolver, ProjectScratch, Scheme, Smoke2d};
+use diffsim_solvers::smoke3d::{self, Smoke3d};
 
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+
+/// The sizes of a fluid operator on packed states: `self.cfg.n_state()`
+/// values in and out, and the parameters `|op| count` (none by default).
+/// Serves the 2D operators here and the 3D ones in [`crate::fluids3d`].
+macro_rules! state_sizes {
+    ($ty:ty) => {
+        $crate::fluids::state_sizes!($ty, |_op| 0);
+    };
+    ($ty:ty, |$op:ident| $params:expr) => {
+        impl $crate::op::Operator for $ty {
+            fn n_in(&self) -> usize {
+                self.cfg.n_state()
+            }
+            fn n_out(&self) -> usize {
+                self.cfg.n_state()
+            }
+            fn n_params(&self) -> usize {
+                let $op = self;
+                $params
+            }
+        }
+    };
+}
+pub(crate) use state_sizes;
 
 /// Explicit diffusion of a field on a lattice ([`Grid`]), `s' = s − κ·A·s`,
 /// with the parameter `p = [κ]` (κ = ν·dt). Derivatives by Enzyme, with
@@ -207,7 +232,55 @@ pub struct Diffuse<D> {
     parts: Vec<(usize, D)>,
     /// The box whose velocity boundary conditions are applied after a
     /// velocity diffusion.
-    velocity_box: Option<Smoke2d>,
+    velocity_box: Option<Walls>,
+}
+
+/// The velocity boundary conditions re-applied after a velocity diffusion.
+#[derive(Clone, Copy, Debug)]
+enum Walls {
+    /// A 2D box's sides ([`smoke::enforce_boundary`]).
+    Box(Smoke2d),
+    /// A closed 3D box ([`smoke3d::close_walls`]).
+    Box3(Smoke3d),
+}
+
+impl Walls {
+    /// The boundary conditions in place on a state.
+    fn apply(&self, y: &mut [f64]) {
+        match self {
+            Walls::Box(cfg) => {
+                let (_, u, v) = cfg.split_mut(y);
+                smoke::enforce_boundary(cfg, u, v);
+            }
+            Walls::Box3(cfg) => {
+                let [_, u, v, w] = cfg.split_mut(y);
+                smoke3d::close_walls(cfg, [u, v, w]);
+            }
+        }
+    }
+
+    /// Their linear part in place on a tangent.
+    fn apply_linear(&self, t: &mut [f64]) {
+        match self {
+            Walls::Box(cfg) => {
+                let (_, u, v) = cfg.split_mut(t);
+                smoke::enforce_boundary_linear(cfg, u, v);
+            }
+            Walls::Box3(_) => self.apply(t),
+        }
+    }
+
+    /// Their adjoint in place on an adjoint.
+    fn apply_adjoint(&self, g: &mut [f64]) {
+        match self {
+            Walls::Box(cfg) => {
+                let (_, gu, gv) = cfg.split_mut(g);
+                smoke::enforce_boundary_adjoint(cfg, gu, gv);
+            }
+            // Zeroing the walls' faces is its own transpose.
+            Walls::Box3(_) => self.apply(g),
+        }
+    }
 }
 
 impl<D: Operator> Diffuse<D> {
@@ -223,13 +296,26 @@ impl<D: Operator> Diffuse<D> {
             parts.push((ns, op(gu)));
             parts.push((ns + nu, op(gv)));
         }
-        Self { n: cfg.n_state(), parts, velocity_box: velocity.then_some(cfg) }
+        Self { n: cfg.n_state(), parts, velocity_box: velocity.then_some(Walls::Box(cfg)) }
+    }
+
+    /// The chosen fields of the closed 3D box `cfg` (`[s, u, v, w]`, each
+    /// velocity component on its own faces, the walls closed after).
+    pub fn in_box_3d(cfg: Smoke3d, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self {
+        let grids = Grid::of_state_3d(&cfg);
+        let mut parts = Vec::new();
+        for (f, grid) in grids.into_iter().enumerate() {
+            if (f == 0 && smoke) || (f > 0 && velocity) {
+                parts.push((cfg.slab_starts(0)[f], op(grid)));
+            }
+        }
+        Self { n: cfg.n_state(), parts, velocity_box: velocity.then_some(Walls::Box3(cfg)) }
     }
 
     /// The chosen fields of a line of `n` cells (state `[s, u]`, unit
     /// spacing: κ = ν·dt/dx²), periodic or closed.
     pub fn line(n: usize, periodic: bool, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self {
-        let grid = Grid { stride: n, nx: n, ny: 1, wrap_x: periodic, wrap_y: false };
+        let grid = Grid::line(n, periodic);
         let parts = [(smoke, 0), (velocity, n)].into_iter().filter(|(on, _)| *on).map(|(_, start)| (start, op(grid))).collect();
         Self { n: 2 * n, parts, velocity_box: None }
     }
@@ -277,9 +363,8 @@ impl<D: Forward> Forward for Diffuse<D> {
             let r = start..start + op.n_in();
             op.forward(&x[r.clone()], p, &mut y[r]);
         }
-        if let Some(cfg) = &self.velocity_box {
-            let (_, u, v) = cfg.split_mut(y);
-            smoke::enforce_boundary(cfg, u, v);
+        if let Some(walls) = &self.velocity_box {
+            walls.apply(y);
         }
     }
 
@@ -291,9 +376,8 @@ impl<D: Forward> Forward for Diffuse<D> {
 impl<D: Vjp> Vjp for Diffuse<D> {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         validate_vjp(self, "Diffuse", x, p, dy, dx, dp);
-        if let Some(cfg) = &self.velocity_box {
-            let (_, gu, gv) = cfg.split_mut(dy);
-            smoke::enforce_boundary_adjoint(cfg, gu, gv);
+        if let Some(walls) = &self.velocity_box {
+            walls.apply_adjoint(dy);
         }
         for (start, op) in self.parts() {
             let r = start..start + op.n_in();
@@ -317,11 +401,9 @@ impl<D: Jvp> Jvp for Diffuse<D> {
             let r = start..start + op.n_in();
             op.jvp(&x[r.clone()], p, &tx[r.clone()], tp, &mut y[r.clone()], &mut ty[r]);
         }
-        if let Some(cfg) = &self.velocity_box {
-            let (_, u, v) = cfg.split_mut(y);
-            smoke::enforce_boundary(cfg, u, v);
-            let (_, tu, tv) = cfg.split_mut(ty);
-            smoke::enforce_boundary_linear(cfg, tu, tv);
+        if let Some(walls) = &self.velocity_box {
+            walls.apply(y);
+            walls.apply_linear(ty);
         }
     }
 }
@@ -338,14 +420,7 @@ pub struct AdvectUpwind {
     pub dt: f64,
 }
 
-impl Operator for AdvectUpwind {
-    fn n_in(&self) -> usize {
-        self.cfg.n_state()
-    }
-    fn n_out(&self) -> usize {
-        self.cfg.n_state()
-    }
-}
+state_sizes!(AdvectUpwind);
 
 fn advect_upwind(op: &AdvectUpwind, x: &[f64], _p: &[f64], y: &mut [f64]) {
     smoke::advect_upwind(&op.cfg, op.dt, x, y)
@@ -384,14 +459,7 @@ impl Advect {
     }
 }
 
-impl Operator for Advect {
-    fn n_in(&self) -> usize {
-        self.cfg.n_state()
-    }
-    fn n_out(&self) -> usize {
-        self.cfg.n_state()
-    }
-}
+state_sizes!(Advect);
 
 fn advect(op: &Advect, x: &[f64], _p: &[f64], y: &mut [f64], scratch: &mut [f64]) {
     smoke::advect(&op.cfg, op.scheme, op.dt, op.smoke, op.velocity, x, y, scratch)
@@ -427,17 +495,7 @@ pub struct Force {
     pub dt: f64,
 }
 
-impl Operator for Force {
-    fn n_in(&self) -> usize {
-        self.cfg.n_state()
-    }
-    fn n_out(&self) -> usize {
-        self.cfg.n_state()
-    }
-    fn n_params(&self) -> usize {
-        self.cfg.n_vel()
-    }
-}
+state_sizes!(Force, |op| op.cfg.n_vel());
 
 fn force(op: &Force, x: &[f64], p: &[f64], y: &mut [f64]) {
     smoke::apply_force(&op.cfg, op.dt, x, p, y)
@@ -456,17 +514,7 @@ pub struct Inflow {
     pub region: [usize; 4],
 }
 
-impl Operator for Inflow {
-    fn n_in(&self) -> usize {
-        self.cfg.n_state()
-    }
-    fn n_out(&self) -> usize {
-        self.cfg.n_state()
-    }
-    fn n_params(&self) -> usize {
-        3
-    }
-}
+state_sizes!(Inflow, |_op| 3);
 
 fn inflow(op: &Inflow, x: &[f64], p: &[f64], y: &mut [f64]) {
     smoke::apply_inflow(&op.cfg, op.region, x, p, y)
@@ -651,17 +699,7 @@ pub struct Buoyancy {
     pub dt: f64,
 }
 
-impl Operator for Buoyancy {
-    fn n_in(&self) -> usize {
-        self.cfg.n_state()
-    }
-    fn n_out(&self) -> usize {
-        self.cfg.n_state()
-    }
-    fn n_params(&self) -> usize {
-        1
-    }
-}
+state_sizes!(Buoyancy, |_op| 1);
 
 fn buoyancy(op: &Buoyancy, x: &[f64], p: &[f64], y: &mut [f64]) {
     smoke::apply_buoyancy(&op.cfg, op.dt * p[0], x, y)

@@ -46,7 +46,7 @@ fn reference_table_48() {
     check_size(1, false);
 }
 
-fn field(n: usize, seed: u64) -> Vec<f64> {
+pub(crate) fn field(n: usize, seed: u64) -> Vec<f64> {
     (0..n).map(|k| (((k as f64 + 1.0) * 0.6180339887 * (seed as f64 + 0.7)).fract() - 0.5) * 2.0).collect()
 }
 
@@ -55,7 +55,7 @@ fn field(n: usize, seed: u64) -> Vec<f64> {
 /// step: the means a trace uses stay as far from 0, so every traced point
 /// lies at least 0.15 cells from the lattice planes where trilinear
 /// sampling kinks, as the Taylor test needs.
-fn state(cfg: &Smoke3d, seed: u64) -> Vec<f64> {
+pub(crate) fn state(cfg: &Smoke3d, seed: u64) -> Vec<f64> {
     let (ns, nu, nv) = (cfg.n_s(), cfg.n_face(0), cfg.n_face(1));
     field(cfg.n_state(), seed)
         .iter()

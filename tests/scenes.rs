@@ -208,7 +208,7 @@ fn one_d_scenes_burgers_and_heat() {
     let Domain::Line(l) = scene.domain else { panic!("a line") };
     let mut u = scene.x0[scene.domain.range(Field::Velocity)].to_vec();
     let cfg = diffsim_solvers::burgers::Burgers1d { n: l.n, dx: l.dx, dt: scene.dt, nu: 0.0 };
-    let grid = diffsim_solvers::diffusion::Grid { stride: l.n, nx: l.n, ny: 1, wrap_x: true, wrap_y: false };
+    let grid = diffsim_solvers::diffusion::Grid::line(l.n, true);
     let (_, kappa_index, _) = scene.named.iter().find(|(n, _, _)| n == "diffusion.viscosity").unwrap().clone();
     let mut tmp = vec![0.0; l.n];
     for _ in 0..5 {

@@ -13,19 +13,23 @@
 //!   symmetric positive definite, so its adjoint is the same solve.
 
 use crate::smoke::{NoConvergence, Smoke2d, apply_pressure_matrix};
+use crate::smoke3d::Smoke3d;
 
-/// A lattice of `nx × ny` samples at `f[l·stride + k]` in a slice of
-/// [`Grid::len`] values; on a wrapping axis the lattice is periodic, on the
-/// others no flux leaves it. Entries of the slice that are not samples (a
-/// periodic velocity's copy column or row) do not diffuse.
+/// A lattice of `nx × ny × nz` samples at `f[m·slab + l·stride + k]` in a
+/// slice of [`Grid::len`] values (a line or a plane: `nz = 1`); on a
+/// wrapping axis (x or y) the lattice is periodic, on the others no flux
+/// leaves it. Entries of the slice that are not samples (a periodic
+/// velocity's copy column or row) do not diffuse.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Grid {
     /// Distance between rows in the slice.
     pub stride: usize,
     /// Samples per row.
     pub nx: usize,
-    /// Rows.
+    /// Rows per slab.
     pub ny: usize,
+    /// Slabs (1 on a line or a plane).
+    pub nz: usize,
     /// The x axis wraps.
     pub wrap_x: bool,
     /// The y axis wraps.
@@ -33,9 +37,19 @@ pub struct Grid {
 }
 
 impl Grid {
+    /// A plane of `nx × ny` samples, rows `stride` apart.
+    pub fn plane(stride: usize, nx: usize, ny: usize, wrap_x: bool, wrap_y: bool) -> Self {
+        Self { stride, nx, ny, nz: 1, wrap_x, wrap_y }
+    }
+
+    /// A line of `n` samples, periodic or closed.
+    pub fn line(n: usize, periodic: bool) -> Self {
+        Self::plane(n, n, 1, periodic, false)
+    }
+
     /// The cells of the closed `n × n` box.
     pub fn square(n: usize) -> Self {
-        Self { stride: n, nx: n, ny: n, wrap_x: false, wrap_y: false }
+        Self::plane(n, n, n, false, false)
     }
 
     /// The three lattices of a smoke state `[s, u, v]` for `cfg`'s boundary:
@@ -43,28 +57,40 @@ impl Grid {
     pub fn of_state(cfg: &Smoke2d) -> [Grid; 3] {
         let (nx, ny, wx, wy) = (cfg.nx, cfg.ny, cfg.boundary.periodic_x(), cfg.boundary.periodic_y());
         [
-            Grid { stride: nx, nx, ny, wrap_x: wx, wrap_y: wy },
-            Grid { stride: nx + 1, nx: if wx { nx } else { nx + 1 }, ny, wrap_x: wx, wrap_y: wy },
-            Grid { stride: nx, nx, ny: if wy { ny } else { ny + 1 }, wrap_x: wx, wrap_y: wy },
+            Grid::plane(nx, nx, ny, wx, wy),
+            Grid::plane(nx + 1, if wx { nx } else { nx + 1 }, ny, wx, wy),
+            Grid::plane(nx, nx, if wy { ny } else { ny + 1 }, wx, wy),
         ]
+    }
+
+    /// The four lattices of a 3D state `[s, u, v, w]` in the closed box:
+    /// cell centres and the faces normal to x, y and z.
+    pub fn of_state_3d(cfg: &Smoke3d) -> [Grid; 4] {
+        let [nx, ny, nz] = cfg.dims();
+        [(nx, ny, nz), (nx + 1, ny, nz), (nx, ny + 1, nz), (nx, ny, nz + 1)].map(|(x, y, z)| Grid { stride: x, nx: x, ny: y, nz: z, wrap_x: false, wrap_y: false })
+    }
+
+    /// Distance between slabs in the slice.
+    pub fn slab(&self) -> usize {
+        if self.stride == self.nx { self.nx * self.ny } else { self.stride * self.ny }
     }
 
     /// Length of the slice holding the field.
     pub fn len(&self) -> usize {
-        if self.stride == self.nx { self.nx * self.ny } else { self.stride * self.ny }
+        self.slab() * self.nz
     }
 
     /// Largest stable `κ = ν·dt` of the explicit scheme on this lattice:
     /// `1/(2·d)` with `d` the number of axes with more than one sample
-    /// (1/4 in a box, 1/2 on a line).
+    /// (1/6 in a 3D box, 1/4 in a plane, 1/2 on a line).
     pub fn explicit_limit(&self) -> f64 {
-        let axes = usize::from(self.nx > 1) + usize::from(self.ny > 1);
+        let axes = usize::from(self.nx > 1) + usize::from(self.ny > 1) + usize::from(self.nz > 1);
         0.5 / axes.max(1) as f64
     }
 
     /// Whether the lattice has no samples.
     pub fn is_empty(&self) -> bool {
-        self.nx == 0 || self.ny == 0
+        self.nx == 0 || self.ny == 0 || self.nz == 0
     }
 }
 
@@ -73,41 +99,58 @@ impl Grid {
 /// periodic axis); zero at slice entries that are not samples. Symmetric
 /// positive semi-definite.
 pub fn laplacian(g: &Grid, s: &[f64], out: &mut [f64]) {
-    if !g.wrap_x && !g.wrap_y && g.stride == g.nx && g.nx >= 2 {
+    if !g.wrap_x && !g.wrap_y && g.stride == g.nx && g.nx >= 2 && g.nz == 1 {
         return apply_pressure_matrix(g.nx, g.ny, s, out);
     }
     for o in out.iter_mut() {
         *o = 0.0;
     }
-    let (nx, ny, st) = (g.nx, g.ny, g.stride);
-    for l in 0..ny {
-        for k in 0..nx {
-            let c = l * st + k;
-            let sc = s[c];
-            let mut acc = 0.0;
-            if k > 0 {
-                acc += sc - s[c - 1];
-            } else if g.wrap_x {
-                acc += sc - s[c + nx - 1];
+    let (nx, ny, nz, st, slab) = (g.nx, g.ny, g.nz, g.stride, g.slab());
+    for m in 0..nz {
+        for l in 0..ny {
+            for k in 0..nx {
+                let c = m * slab + l * st + k;
+                let mut acc = plane_terms(g, s, c, k, l, m * slab);
+                if m > 0 {
+                    acc += s[c] - s[c - slab];
+                }
+                if m + 1 < nz {
+                    acc += s[c] - s[c + slab];
+                }
+                out[c] = acc;
             }
-            if k + 1 < nx {
-                acc += sc - s[c + 1];
-            } else if g.wrap_x {
-                acc += sc - s[l * st];
-            }
-            if l > 0 {
-                acc += sc - s[c - st];
-            } else if g.wrap_y {
-                acc += sc - s[(ny - 1) * st + k];
-            }
-            if l + 1 < ny {
-                acc += sc - s[c + st];
-            } else if g.wrap_y {
-                acc += sc - s[k];
-            }
-            out[c] = acc;
         }
     }
+}
+
+/// The in-plane terms of [`laplacian`] at sample `c` = `(k, l)` of the slab
+/// starting at `base`.
+#[inline(always)]
+fn plane_terms(g: &Grid, s: &[f64], c: usize, k: usize, l: usize, base: usize) -> f64 {
+    let (nx, ny, st) = (g.nx, g.ny, g.stride);
+    let sc = s[c];
+    let mut acc = 0.0;
+    if k > 0 {
+        acc += sc - s[c - 1];
+    } else if g.wrap_x {
+        acc += sc - s[c + nx - 1];
+    }
+    if k + 1 < nx {
+        acc += sc - s[c + 1];
+    } else if g.wrap_x {
+        acc += sc - s[base + l * st];
+    }
+    if l > 0 {
+        acc += sc - s[c - st];
+    } else if g.wrap_y {
+        acc += sc - s[base + (ny - 1) * st + k];
+    }
+    if l + 1 < ny {
+        acc += sc - s[c + st];
+    } else if g.wrap_y {
+        acc += sc - s[base + k];
+    }
+    acc
 }
 
 /// Largest stable `κ = ν·dt` of the explicit scheme on unit cells.

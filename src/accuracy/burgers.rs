@@ -99,7 +99,7 @@ impl BurgersRun {
         let (n, dx) = (self.n, self.dx());
         let (steps, dt) = self.steps();
         let kappa = self.nu * dt / (dx * dx);
-        let line = Grid { stride: n, nx: n, ny: 1, wrap_x: true, wrap_y: false };
+        let line = Grid::line(n, true);
         if self.scheme.diffusion() == Diffusion::Explicit && kappa > line.explicit_limit() {
             return Err(AccuracyError::Operator { stage: "diffusion", step: 0, error: OpError::Unstable { value: kappa, limit: line.explicit_limit() } });
         }

@@ -14,7 +14,7 @@ use super::spec::{EffectSpec, SceneFile, ShapeSpec};
 use super::value::{count, finite, iterations, positive, tolerance};
 use super::{Array, Control, Domain, Field, Line, Scene, SceneError, SceneLoss};
 use crate::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, DiffuseExplicit, DiffuseImplicit, Force, Inflow, Project};
-use crate::fluids3d::{Buoyancy3, Inflow3};
+use crate::fluids3d::{Advect3, AdvectUpwind3, Buoyancy3, Force3, Inflow3};
 use crate::op::{AddParams, Chain, Effect, Part};
 use crate::problems::burgers::BurgersEnzyme;
 use crate::problems::smoke3d::{Project3, SmokeAdvect3};
@@ -337,7 +337,10 @@ impl Builder<'_> {
             Domain::Box(_) | Domain::Box3(_) => None,
         };
         let box_only = |kind: &str| SceneError::key(at("kind"), format!("{kind} needs a 2D or 3D domain"));
-        if let Domain::Box3(cfg) = domain {
+        // Diffusion and forces are built below for every domain.
+        if let Domain::Box3(cfg) = domain
+            && !matches!(e, EffectSpec::Diffusion(_) | EffectSpec::Force(_))
+        {
             return self.effect_3d(k, e, cfg);
         }
         match (e, domain) {
@@ -400,7 +403,8 @@ impl Builder<'_> {
                 self.effects.push("diffusion".into());
                 match d.scheme.as_str() {
                     "explicit" => {
-                        let limit = if line.is_some() { 0.5 } else { 0.25 };
+                        // 1/(2·axes): 1/2 on a line, 1/4 in a box, 1/6 in 3D.
+                        let limit = 0.5 / domain.dims() as f64;
                         if kappa > limit {
                             return Err(SceneError::key(
                                 at("scheme"),
@@ -410,17 +414,19 @@ impl Builder<'_> {
                                 ),
                             ));
                         }
-                        self.ops.push(match line {
-                            Some(l) => Box::new(Diffuse::line(l.n, l.periodic, s, v, DiffuseExplicit::on)),
-                            None => Box::new(Diffuse::explicit(*self_cfg(&domain), s, v)),
+                        self.ops.push(match (line, domain) {
+                            (Some(l), _) => Box::new(Diffuse::line(l.n, l.periodic, s, v, DiffuseExplicit::on)),
+                            (None, Domain::Box3(cfg)) => Box::new(Diffuse::in_box_3d(cfg, s, v, DiffuseExplicit::on)),
+                            (None, _) => Box::new(Diffuse::explicit(*self_cfg(&domain), s, v)),
                         });
                     }
                     "implicit" => {
                         let tol = tolerance(&at("tolerance"), d.tolerance)?;
                         let max = iterations(&at("max_iterations"), d.max_iterations, domain.n_state())?;
-                        self.ops.push(match line {
-                            Some(l) => Box::new(Diffuse::line(l.n, l.periodic, s, v, |g| DiffuseImplicit::on(g, tol, max))),
-                            None => Box::new(Diffuse::implicit(*self_cfg(&domain), s, v, tol, max)),
+                        self.ops.push(match (line, domain) {
+                            (Some(l), _) => Box::new(Diffuse::line(l.n, l.periodic, s, v, |g| DiffuseImplicit::on(g, tol, max))),
+                            (None, Domain::Box3(cfg)) => Box::new(Diffuse::in_box_3d(cfg, s, v, |g| DiffuseImplicit::on(g, tol, max))),
+                            (None, _) => Box::new(Diffuse::implicit(*self_cfg(&domain), s, v, tol, max)),
                         });
                     }
                     other => return Err(SceneError::key(at("scheme"), unknown("scheme", other, &["explicit", "implicit"]))),
@@ -456,10 +462,20 @@ impl Builder<'_> {
                         self.params.extend(std::iter::repeat_n(f.value[0], l.n));
                     }
                     None => {
-                        let cfg = *self_cfg(&domain);
-                        self.ops.push(Box::new(Force { cfg, dt }));
-                        self.params.extend(std::iter::repeat_n(f.value[0], cfg.n_u()));
-                        self.params.extend(std::iter::repeat_n(f.value[1], cfg.n_v()));
+                        let faces = match domain {
+                            Domain::Box3(cfg) => {
+                                self.ops.push(Box::new(Force3 { cfg, dt }));
+                                vec![cfg.n_face(0), cfg.n_face(1), cfg.n_face(2)]
+                            }
+                            _ => {
+                                let cfg = *self_cfg(&domain);
+                                self.ops.push(Box::new(Force { cfg, dt }));
+                                vec![cfg.n_u(), cfg.n_v()]
+                            }
+                        };
+                        for (&value, count) in f.value.iter().zip(faces) {
+                            self.params.extend(std::iter::repeat_n(value, count));
+                        }
                     }
                 }
             }
@@ -492,59 +508,48 @@ impl Builder<'_> {
                 self.params.push(finite(&at("coefficient"), b.coefficient)?);
             }
             (EffectSpec::Inflow(i), Domain::Box(cfg)) => {
-                let region = match i.region {
-                    ShapeSpec::Box { lower, upper } if lower.len() == 2 && upper.len() == 2 => {
-                        let clip = |v: f64, n: usize| v.clamp(0.0, n as f64).round() as usize;
-                        for v in lower.iter().chain(&upper) {
-                            finite(&at("region"), *v)?;
-                        }
-                        let (i0, j0) = (clip(lower[0], cfg.nx), clip(lower[1], cfg.ny));
-                        let (i1, j1) = (clip(upper[0], cfg.nx), clip(upper[1], cfg.ny));
-                        if i0 >= i1 || j0 >= j1 {
-                            return Err(SceneError::key(at("region"), "the box covers no cell of the domain"));
-                        }
-                        [i0, i1, j0, j1]
-                    }
-                    ShapeSpec::Box { .. } => return Err(SceneError::key(at("region"), "expected lower = [x, y], upper = [x, y]")),
-                    _ => return Err(SceneError::key(at("region"), "an inflow region must be a box")),
-                };
+                let (r, values) = inflow(k, &i, &[cfg.nx, cfg.ny])?;
                 self.effects.push("inflow".into());
-                self.ops.push(Box::new(Inflow { cfg, region }));
-                let velocity = inflow_velocity(&at("velocity"), &i.velocity, 2)?;
-                self.params.push(finite(&at("smoke"), i.smoke)?);
-                self.params.extend(velocity);
+                self.ops.push(Box::new(Inflow { cfg, region: [r[0], r[1], r[2], r[3]] }));
+                self.params.extend(values);
             }
             (_, Domain::Box3(_)) => unreachable!("3D effects are built by effect_3d"),
         }
         Ok(())
     }
 
-    /// An effect of a 3D scene. So far: semi-Lagrangian advection of smoke
-    /// and velocity together, buoyancy along any axis, inflow regions and
-    /// the pressure projection of a cube (with obstacles); diffusion and
-    /// forces are 2D only, and say so.
+    /// An effect of a 3D scene other than diffusion and forces (built with
+    /// the other domains'): advection (semi-Lagrangian, MacCormack, upwind),
+    /// buoyancy along any axis, inflow regions and the pressure projection
+    /// of a cube (with obstacles).
     fn effect_3d(&mut self, k: usize, e: EffectSpec, cfg: Smoke3d) -> Result<(), SceneError> {
         let at = |key: &str| format!("effects[{k}].{key}");
-        let not_yet = |kind: &str| SceneError::key(at("kind"), format!("{kind} is not available in 3D scenes yet (2D and 1D only)"));
         let n = cfg.n_state();
         match e {
             EffectSpec::Advection(a) => {
                 let (s, v) = self.fields_of(&at("fields"), &a.fields)?;
-                if !(s && v) {
-                    return Err(SceneError::key(
-                        at("fields"),
-                        "3D advection moves the smoke and the velocity together so far: fields = [\"smoke\", \"velocity\"]",
-                    ));
-                }
-                if a.scheme != "semi_lagrangian" {
-                    let known = ["semi_lagrangian", "maccormack", "upwind"];
-                    if !known.contains(&a.scheme.as_str()) {
-                        return Err(SceneError::key(at("scheme"), unknown("scheme", &a.scheme, &known)));
-                    }
-                    return Err(SceneError::key(at("scheme"), format!("3D advection is semi_lagrangian so far (\"{}\" is 2D only)", a.scheme)));
-                }
                 self.effects.push("advection".into());
-                self.ops.push(Box::new(SmokeAdvect3(cfg)));
+                match a.scheme.as_str() {
+                    // Both fields semi-Lagrangian: P4's step (in parallel, with its hand adjoint beside it).
+                    "semi_lagrangian" if s && v => self.ops.push(Box::new(SmokeAdvect3(cfg))),
+                    "semi_lagrangian" | "maccormack" => {
+                        let scheme = if a.scheme == "maccormack" { Scheme::MacCormack { limiter: a.limiter } } else { Scheme::SemiLagrangian };
+                        self.ops.push(Box::new(Advect3 { cfg, scheme, smoke: s, velocity: v }));
+                    }
+                    "upwind" => {
+                        if v {
+                            return Err(SceneError::key(
+                                at("scheme"),
+                                "upwind advects scalars only; advect the velocity in its own effect with semi_lagrangian or maccormack",
+                            ));
+                        }
+                        if !self.has(Field::Velocity) {
+                            return Err(SceneError::key(at("scheme"), "upwind needs a velocity field (add [fields.velocity])"));
+                        }
+                        self.ops.push(Box::new(AdvectUpwind3 { cfg }));
+                    }
+                    other => return Err(SceneError::key(at("scheme"), unknown("scheme", other, &["semi_lagrangian", "maccormack", "upwind"]))),
+                }
             }
             EffectSpec::Pressure(p) => {
                 self.need(&at("kind"), "pressure", &[Field::Velocity])?;
@@ -581,44 +586,51 @@ impl Builder<'_> {
                 self.params.push(finite(&at("coefficient"), b.coefficient)?);
             }
             EffectSpec::Inflow(i) => {
-                let dims = cfg.dims();
-                let region = match i.region {
-                    ShapeSpec::Box { lower, upper } if lower.len() == 3 && upper.len() == 3 => {
-                        for v in lower.iter().chain(&upper) {
-                            finite(&at("region"), *v)?;
-                        }
-                        let clip = |v: f64, a: usize| v.clamp(0.0, dims[a] as f64).round() as usize;
-                        let r = [clip(lower[0], 0), clip(upper[0], 0), clip(lower[1], 1), clip(upper[1], 1), clip(lower[2], 2), clip(upper[2], 2)];
-                        if r[0] >= r[1] || r[2] >= r[3] || r[4] >= r[5] {
-                            return Err(SceneError::key(at("region"), "the box covers no cell of the domain"));
-                        }
-                        r
-                    }
-                    ShapeSpec::Box { .. } => return Err(SceneError::key(at("region"), "expected lower = [x, y, z], upper = [x, y, z]")),
-                    _ => return Err(SceneError::key(at("region"), "an inflow region must be a box")),
-                };
+                let (r, values) = inflow(k, &i, &cfg.dims())?;
                 self.effects.push("inflow".into());
-                self.ops.push(Box::new(Inflow3 { cfg, region }));
-                let velocity = inflow_velocity(&at("velocity"), &i.velocity, 3)?;
-                self.params.push(finite(&at("smoke"), i.smoke)?);
-                self.params.extend(velocity);
+                self.ops.push(Box::new(Inflow3 { cfg, region: [r[0], r[1], r[2], r[3], r[4], r[5]] }));
+                self.params.extend(values);
             }
-            EffectSpec::Diffusion(_) => return Err(not_yet("diffusion")),
-            EffectSpec::Force(_) => return Err(not_yet("force")),
+            EffectSpec::Diffusion(_) | EffectSpec::Force(_) => unreachable!("built by effect for every domain"),
         }
         Ok(())
     }
 }
 
-/// An inflow's velocity: one finite value per axis (none: at rest).
-fn inflow_velocity(key: &str, v: &[f64], dims: usize) -> Result<Vec<f64>, SceneError> {
-    if v.is_empty() {
-        return Ok(vec![0.0; dims]);
+/// The `k`-th effect, an inflow in a box of `n` cells per axis: its
+/// region as half-open cell ranges per axis `[lo₀, hi₀, lo₁, hi₁, …]`
+/// (cells whose centre lies inside, clipped to the box) and its parameters
+/// `[smoke, velocity…]` (no velocity: at rest).
+fn inflow(k: usize, i: &super::spec::InflowSpec, n: &[usize]) -> Result<(Vec<usize>, Vec<f64>), SceneError> {
+    let at = |key: &str| format!("effects[{k}].{key}");
+    let dims = n.len();
+    let coords = ["x", "y", "z"][..dims].join(", ");
+    let ShapeSpec::Box { lower, upper } = &i.region else {
+        return Err(SceneError::key(at("region"), "an inflow region must be a box"));
+    };
+    if lower.len() != dims || upper.len() != dims {
+        return Err(SceneError::key(at("region"), format!("expected lower = [{coords}], upper = [{coords}]")));
     }
-    if v.len() != dims {
-        return Err(SceneError::key(key, format!("expected {dims} values, one per axis, got {}", v.len())));
+    let mut region = Vec::with_capacity(2 * dims);
+    for a in 0..dims {
+        let clip = |v: f64| -> Result<usize, SceneError> { Ok(finite(&at("region"), v)?.clamp(0.0, n[a] as f64).round() as usize) };
+        let (lo, hi) = (clip(lower[a])?, clip(upper[a])?);
+        if lo >= hi {
+            return Err(SceneError::key(at("region"), "the box covers no cell of the domain"));
+        }
+        region.extend([lo, hi]);
     }
-    v.iter().enumerate().map(|(a, &x)| finite(&format!("{key}[{a}]"), x)).collect()
+    let mut values = vec![finite(&at("smoke"), i.smoke)?];
+    match i.velocity.len() {
+        0 => values.extend(vec![0.0; dims]),
+        m if m == dims => {
+            for (a, &v) in i.velocity.iter().enumerate() {
+                values.push(finite(&at(&format!("velocity[{a}]")), v)?);
+            }
+        }
+        m => return Err(SceneError::key(at("velocity"), format!("expected {dims} values, one per axis, got {m}"))),
+    }
+    Ok((region, values))
 }
 
 /// A pressure effect's preconditioner, one of `known`.

@@ -252,7 +252,7 @@ fn limiter_on<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, dt: f64, smoke: 
 
 /// When a gap closing at `speed` reaches zero (∞ when it opens or stays;
 /// 0 when it is closed and about to open).
-fn crossing(gap: f64, speed: f64) -> f64 {
+pub(crate) fn crossing(gap: f64, speed: f64) -> f64 {
     if gap == 0.0 {
         if speed == 0.0 { f64::INFINITY } else { 0.0 }
     } else if gap * speed < 0.0 {

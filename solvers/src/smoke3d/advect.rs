@@ -11,7 +11,7 @@ use crate::par::for_pieces;
 /// `ks` (and the lattice's slabs past `nz` when `ks` reaches the top),
 /// `out` holding those slabs.
 #[inline(always)]
-fn trace<const WX: bool, const WY: bool, const WZ: bool>(
+pub(crate) fn trace<const WX: bool, const WY: bool, const WZ: bool>(
     mac: Mac3<WX, WY, WZ>,
     at: At3,
     vel: [&[f64]; 3],

@@ -84,3 +84,33 @@ pub fn apply_inflow3(cfg: &Smoke3d, region: [usize; 6], x: &[f64], p: &[f64], y:
         }
     }
 }
+
+/// An external force over a time step `dt`: `[s, u, v, w] ↦ [s, u + dt·fu,
+/// v + dt·fv, w + dt·fw]` on the interior faces, with the force `f`
+/// given per face (the velocity layout, [`Smoke3d::n_vel`] values); the
+/// faces on the box's sides keep their velocity.
+///
+/// # Panics
+/// If the lengths are wrong.
+pub fn apply_force3(cfg: &Smoke3d, dt: f64, x: &[f64], f: &[f64], y: &mut [f64]) {
+    assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && f.len() == cfg.n_vel(), "smoke3d: force lengths");
+    for (o, &a) in y.iter_mut().zip(x) {
+        *o = a;
+    }
+    let n = cfg.dims();
+    let ns = cfg.n_s();
+    for axis in 0..3 {
+        let (start, e) = faces(cfg, axis);
+        for k in 0..e[2] {
+            for j in 0..e[1] {
+                for i in 0..e[0] {
+                    let along = [i, j, k][axis];
+                    if along > 0 && along < n[axis] {
+                        let face = start + (k * e[1] + j) * e[0] + i;
+                        y[face] += dt * f[face - ns];
+                    }
+                }
+            }
+        }
+    }
+}

@@ -153,6 +153,26 @@ pub fn sample3<const WX: bool, const WY: bool, const WZ: bool>(f: &[f64], lat: L
     lo * gz + hi * fz
 }
 
+/// The smallest and largest of the eight samples [`sample3`] blends at `p`
+/// (MacCormack's limiter clamps to them).
+#[inline(always)]
+pub fn sample3_range<const WX: bool, const WY: bool, const WZ: bool>(f: &[f64], lat: Lattice3, p: [f64; 3]) -> (f64, f64) {
+    let (c, _) = corners3::<WX, WY, WZ>(lat, p);
+    let mut lo = f[c[0]];
+    let mut hi = lo;
+    for &k in &c[1..] {
+        lo = lo.min(f[k]);
+        hi = hi.max(f[k]);
+    }
+    (lo, hi)
+}
+
+/// The eight samples [`sample3`] blends at `p`, x fastest.
+#[inline(always)]
+pub fn sample3_corners<const WX: bool, const WY: bool, const WZ: bool>(lat: Lattice3, p: [f64; 3]) -> [usize; 8] {
+    corners3::<WX, WY, WZ>(lat, p).0
+}
+
 /// Adjoint of [`sample3`]: adds `g·∂value/∂f` into `gf` and returns
 /// `g·∂value/∂p`; the clamp passes derivatives as [`axis_passes`] says.
 #[inline(always)]
@@ -302,9 +322,11 @@ mod forces;
 mod obstacles;
 mod p4;
 mod pressure;
+mod schemes;
 
 pub use advect::*;
 pub use forces::*;
 pub use obstacles::*;
 pub use p4::*;
 pub use pressure::*;
+pub use schemes::*;
