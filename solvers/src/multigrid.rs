@@ -152,22 +152,30 @@ pub struct Multigrid {
 impl Multigrid {
     /// The hierarchy for an `n × n` box.
     pub fn new(n: usize) -> Self {
-        Self::hierarchy(n, false)
+        Self::hierarchy(n, 0)
     }
 
     /// The hierarchy for an `n × n × n` box.
     pub fn cube(n: usize) -> Self {
-        Self::hierarchy(n, true)
+        Self::hierarchy(n, n)
     }
 
-    fn hierarchy(n: usize, cube: bool) -> Self {
-        let depth = |m: usize| if cube { m } else { 1 };
-        let mut levels = vec![Level::new(n, depth(n), 1.0)];
-        let (mut m, mut scale) = (n, 1.0);
-        while m % 2 == 0 && m / 2 >= 2 && m > 4 {
+    /// The hierarchy for a box of `nz` square slabs of `n × n` cells (`nz =
+    /// n`: the cube); both are halved together while both are even.
+    pub fn slabs(n: usize, nz: usize) -> Self {
+        Self::hierarchy(n, nz)
+    }
+
+    /// `nz = 0`: the square (one slab, never coarsened along z).
+    fn hierarchy(n: usize, nz: usize) -> Self {
+        let square = nz == 0;
+        let mut levels = vec![Level::new(n, nz.max(1), 1.0)];
+        let (mut m, mut mz, mut scale) = (n, nz, 1.0);
+        while m % 2 == 0 && m / 2 >= 2 && m > 4 && (square || (mz % 2 == 0 && mz / 2 >= 2)) {
             m /= 2;
+            mz /= 2;
             scale *= 0.25;
-            levels.push(Level::new(m, depth(m), scale));
+            levels.push(Level::new(m, mz.max(1), scale));
         }
         Self { levels }
     }

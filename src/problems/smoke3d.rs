@@ -191,24 +191,24 @@ pub struct Project3 {
 }
 
 impl Project3 {
-    /// The projection of the closed cube `cfg` (`nx = ny = nz`), solves to
-    /// relative `tolerance` in at most `max_iterations` iterations,
-    /// preconditioned by multigrid or nothing.
+    /// The projection of the closed box `cfg`, solves to relative
+    /// `tolerance` in at most `max_iterations` iterations, preconditioned by
+    /// multigrid (a box whose sides all differ runs plain CG in its place),
+    /// MIC(0) or nothing.
     ///
     /// # Panics
-    /// If the box is not a cube or the preconditioner is not multigrid or none.
+    /// For the Cholesky preconditioner (2D only).
     pub fn new(cfg: Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
-        assert!(cfg.nx == cfg.ny && cfg.ny == cfg.nz, "3D projection: the box must be a cube (got {}×{}×{})", cfg.nx, cfg.ny, cfg.nz);
         Self {
             cfg,
             obstacles: None,
-            solver: RefCell::new(PressureSolver3::new(cfg.nx, tolerance, max_iterations, precond)),
+            solver: RefCell::new(PressureSolver3::new(&cfg, tolerance, max_iterations, for_box(&cfg, precond))),
             scratch: RefCell::new(ProjectScratch::new(cfg.n_s())),
             log: SolveLog::default(),
         }
     }
 
-    /// The projection of the closed cube `cfg` with solid cells where
+    /// The projection of the closed box `cfg` with solid cells where
     /// `solid[c]` is true (e.g. [`smoke3d::solid_cells`]): the obstacle mask
     /// ([`smoke3d::apply_obstacle_mask3`]), the solve coupling fluid cells
     /// only ([`PressureSolver3::with_obstacles`]), the mask again. The
@@ -223,7 +223,7 @@ impl Project3 {
         assert!(solid.iter().any(|&s| !s), "3D projection: every cell is solid");
         let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
         let open = smoke3d::open_faces(&cfg, &fluid);
-        let solver = PressureSolver3::with_obstacles(cfg.nx, tolerance, max_iterations, precond, fluid.clone());
+        let solver = PressureSolver3::with_obstacles(&cfg, tolerance, max_iterations, for_box(&cfg, precond), fluid.clone());
         Self { obstacles: Some((fluid, open)), solver: RefCell::new(solver), ..Self::new(cfg, tolerance, max_iterations, precond) }
     }
 
@@ -264,6 +264,14 @@ impl Project3 {
 
 crate::fluids::linear_projection!(Project3, "Project3");
 
+/// The preconditioner a box takes: multigrid needs two equal sides
+/// ([`smoke3d::slab_axis`]); a box whose sides all differ runs plain CG in
+/// its place (MIC(0), sequential, costs more than it saves here:
+/// docs/fluids3d.md).
+fn for_box(cfg: &Smoke3d, precond: Preconditioner) -> Preconditioner {
+    if precond == Preconditioner::Multigrid && smoke3d::slab_axis(cfg.dims()).is_none() { Preconditioner::None } else { precond }
+}
+
 /// One full P4 step: [`SmokeAdvect3`] (or its hand-written adjoint), then
 /// [`Project3`]. The VJP chains the projection's implicit adjoint with the
 /// explicit part's VJP; the JVP applies the (linear) projection to the
@@ -277,7 +285,7 @@ pub struct SmokeStep3 {
 }
 
 impl SmokeStep3 {
-    /// A step of the closed cube `cfg` (see [`Project3::new`]).
+    /// A step of the closed box `cfg` (see [`Project3::new`]).
     pub fn new(cfg: Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
         Self { advect: SmokeAdvect3(cfg), hand: false, project: Project3::new(cfg, tolerance, max_iterations, precond) }
     }

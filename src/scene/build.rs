@@ -555,13 +555,7 @@ impl Builder<'_> {
                 self.need(&at("kind"), "pressure", &[Field::Velocity])?;
                 let tol = tolerance(&at("tolerance"), p.tolerance)?;
                 let max = iterations(&at("max_iterations"), p.max_iterations, n)?;
-                let precond = preconditioner(&at("preconditioner"), &p.preconditioner, &["multigrid", "none"])?;
-                if !(cfg.nx == cfg.ny && cfg.ny == cfg.nz) {
-                    return Err(SceneError::key(
-                        at("kind"),
-                        format!("the 3D pressure solve needs a cube (nx = ny = nz) so far, got [{}, {}, {}]", cfg.nx, cfg.ny, cfg.nz),
-                    ));
-                }
+                let precond = preconditioner(&at("preconditioner"), &p.preconditioner, &["multigrid", "mic0", "none"])?;
                 self.effects.push("pressure".into());
                 self.ops.push(Box::new(match self.solid {
                     Some(s) => Project3::with_obstacles(cfg, tol, max, precond, s),

@@ -319,6 +319,7 @@ impl<const WX: bool, const WY: bool, const WZ: bool> Mac3<WX, WY, WZ> {
 
 mod advect;
 mod forces;
+mod mic;
 mod obstacles;
 mod p4;
 mod pressure;
@@ -326,6 +327,7 @@ mod schemes;
 
 pub use advect::*;
 pub use forces::*;
+pub use mic::*;
 pub use obstacles::*;
 pub use p4::*;
 pub use pressure::*;

@@ -1,12 +1,14 @@
-//! The 3D pressure projection of the closed box: divergence over the six
+//! The 3D pressure projection of a closed box: divergence over the six
 //! faces of each cell, the seven-point matrix (coupling fluid cells only
 //! when there are obstacles), its solve by conjugate gradients
 //! ([`crate::cg`], preconditioned by the multigrid V-cycle of
-//! [`crate::multigrid`]), and the projection's adjoint (the same solve).
+//! [`crate::multigrid`] in a cube or by MIC(0) in any box), and the
+//! projection's adjoint (the same solve).
 
 use super::*;
 use crate::cg::{CgWork, NoConvergence, Null, Stop, System};
 use crate::multigrid::{Multigrid, apply_box_matrix};
+use super::mic::{Mic3, apply_general_matrix3};
 use crate::smoke::{Preconditioner, ProjectScratch};
 
 /// Calls `f(c, faces)` for every cell `c` with the flat indices of its six
@@ -99,17 +101,65 @@ fn gradient_transpose(cfg: &Smoke3d, [u, v, w]: [&[f64]; 3], out: &mut [f64]) {
     }
 }
 
-/// Conjugate gradients on the pressure matrix of the closed `n³` box,
-/// preconditioned by a multigrid V-cycle or not at all, with its work
-/// vectors kept between solves.
+/// Conjugate gradients on the pressure matrix of a closed box, with or
+/// without solid cells, preconditioned by a multigrid V-cycle (a cube),
+/// MIC(0) of the matrix (any box) or not at all, with its work vectors
+/// kept between solves.
 #[derive(Clone, Debug)]
 pub struct PressureSolver3 {
-    n: usize,
+    dims: [usize; 3],
     /// The stopping rule.
     pub stop: Stop,
-    mg: Option<Multigrid>,
+    precond: Precond3,
     obstacles: Option<Masked>,
     work: CgWork,
+}
+
+/// The preconditioner of a 3D solve.
+#[derive(Clone, Debug)]
+enum Precond3 {
+    None,
+    /// The V-cycle of square slabs stacked along an axis, with two buffers
+    /// for the fields reordered so that axis comes last.
+    Multigrid(Multigrid, usize, [Vec<f64>; 2]),
+    Mic(Mic3),
+}
+
+/// The axis along which a box is a stack of square slabs (the other two
+/// sides equal), z first: what the multigrid needs.
+pub fn slab_axis([nx, ny, nz]: [usize; 3]) -> Option<usize> {
+    if nx == ny {
+        Some(2)
+    } else if nx == nz {
+        Some(1)
+    } else if ny == nz {
+        Some(0)
+    } else {
+        None
+    }
+}
+
+/// Reorders a field of the box `dims` so that `axis` comes last (slabs
+/// along it), or back (`back`). Along z it is a copy.
+fn reorder(dims: [usize; 3], axis: usize, from: &[f64], to: &mut [f64], back: bool) {
+    let [nx, ny, nz] = dims;
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                let c = (k * ny + j) * nx + i;
+                let r = match axis {
+                    2 => c,
+                    1 => (j * nz + k) * nx + i,
+                    _ => (i * nz + k) * ny + j,
+                };
+                if back {
+                    to[c] = from[r];
+                } else {
+                    to[r] = from[c];
+                }
+            }
+        }
+    }
 }
 
 /// What the matrix with solid cells needs: the fluid mask `W`, the count of
@@ -122,37 +172,50 @@ struct Masked {
 }
 
 impl PressureSolver3 {
-    /// A solver for the `n × n × n` closed box: relative `tolerance` on the
-    /// true residual, more than `max_iterations` an error, preconditioned by
-    /// [`Preconditioner::Multigrid`] or [`Preconditioner::None`].
+    /// A solver for the closed box `cfg`: relative `tolerance` on the true
+    /// residual, more than `max_iterations` an error, preconditioned by
+    /// [`Preconditioner::Multigrid`] (a box with two equal sides: a stack of
+    /// square slabs, reordered so that they lie along z when they do not),
+    /// [`Preconditioner::Mic0`] or [`Preconditioner::None`].
     ///
     /// # Panics
-    /// For another preconditioner (MIC(0) and Cholesky are 2D only).
-    pub fn new(n: usize, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
-        let mg = match precond {
-            Preconditioner::Multigrid => Some(Multigrid::cube(n)),
-            Preconditioner::None => None,
-            other => panic!("3D pressure solves take the multigrid preconditioner or none, not {other}"),
-        };
-        Self { n, stop: Stop { tolerance, max_iterations }, mg, obstacles: None, work: CgWork::new(n * n * n) }
+    /// For multigrid on a box whose sides all differ ([`slab_axis`]), or the
+    /// Cholesky preconditioner (2D only).
+    pub fn new(cfg: &Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
+        Self::build(cfg, tolerance, max_iterations, precond, None)
     }
 
-    /// A solver for the `n × n × n` closed box with solid cells where
-    /// `fluid[c] = 0`: the matrix `W·(A_box·W − S) + (I − W)`, which couples
-    /// fluid cells across their shared faces only (`S` counts the solid
-    /// cells beside each cell) and keeps solid rows as the identity;
-    /// symmetric, the constants on the fluid cells its null space. The
-    /// multigrid preconditioner is the closed box's V-cycle on the fluid
-    /// cells, `W·M·W + (I − W)`: symmetric and positive, blind to the
-    /// obstacles' walls (they cost iterations, not accuracy).
+    /// A solver for the closed box `cfg` with solid cells where `fluid[c] =
+    /// 0`: the matrix `W·(A_box·W − S) + (I − W)`, which couples fluid cells
+    /// across their shared faces only (`S` counts the solid cells beside
+    /// each cell) and keeps solid rows as the identity; symmetric, the
+    /// constants on the fluid cells its null space. The multigrid
+    /// preconditioner is the cube's V-cycle on the fluid cells, `W·M·W + (I −
+    /// W)`: symmetric and positive, blind to the obstacles' walls (they cost
+    /// iterations, not accuracy); MIC(0) is built for the matrix itself.
     ///
     /// # Panics
-    /// As [`PressureSolver3::new`], or if `fluid` does not have `n³` values.
-    pub fn with_obstacles(n: usize, tolerance: f64, max_iterations: usize, precond: Preconditioner, fluid: Vec<f64>) -> Self {
-        assert_eq!(fluid.len(), n * n * n, "fluid mask length");
-        let solid_beside = super::solid_neighbours(&Smoke3d::new(n, n, n, 1.0), &fluid);
-        let obstacles = Some(Masked { buf: vec![0.0; fluid.len()], fluid, solid_beside });
-        Self { obstacles, ..Self::new(n, tolerance, max_iterations, precond) }
+    /// As [`PressureSolver3::new`], or if `fluid` does not have a value per cell.
+    pub fn with_obstacles(cfg: &Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner, fluid: Vec<f64>) -> Self {
+        assert_eq!(fluid.len(), cfg.n_s(), "fluid mask length");
+        Self::build(cfg, tolerance, max_iterations, precond, Some(fluid))
+    }
+
+    fn build(cfg: &Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner, fluid: Option<Vec<f64>>) -> Self {
+        let dims = cfg.dims();
+        let precond = match (precond, slab_axis(dims)) {
+            (Preconditioner::Multigrid, Some(axis)) => {
+                let side = dims[(axis + 1) % 3];
+                let buffers = if axis == 2 { [Vec::new(), Vec::new()] } else { [vec![0.0; cfg.n_s()], vec![0.0; cfg.n_s()]] };
+                Precond3::Multigrid(Multigrid::slabs(side, dims[axis]), axis, buffers)
+            }
+            (Preconditioner::Multigrid, None) => panic!("the 3D multigrid preconditioner needs two equal sides, got {}×{}×{}", dims[0], dims[1], dims[2]),
+            (Preconditioner::Mic0, _) => Precond3::Mic(Mic3::new(cfg, fluid.as_deref())),
+            (Preconditioner::None, _) => Precond3::None,
+            (other, _) => panic!("3D pressure solves take multigrid, MIC(0) or no preconditioner, not {other}"),
+        };
+        let obstacles = fluid.map(|fluid| Masked { buf: vec![0.0; fluid.len()], solid_beside: super::solid_neighbours(cfg, &fluid), fluid });
+        Self { dims, stop: Stop { tolerance, max_iterations }, precond, obstacles, work: CgWork::new(cfg.n_s()) }
     }
 
     /// The fluid mask (1 fluid, 0 solid) when there are obstacles.
@@ -162,7 +225,11 @@ impl PressureSolver3 {
 
     /// The preconditioner in use.
     pub fn preconditioner(&self) -> Preconditioner {
-        if self.mg.is_some() { Preconditioner::Multigrid } else { Preconditioner::None }
+        match self.precond {
+            Precond3::None => Preconditioner::None,
+            Precond3::Multigrid(..) => Preconditioner::Multigrid,
+            Precond3::Mic(_) => Preconditioner::Mic0,
+        }
     }
 
     /// Solves `A·p = b` from `p = 0` to the tolerance (the matrix is
@@ -179,16 +246,22 @@ impl PressureSolver3 {
 
 impl System for PressureSolver3 {
     fn apply(&mut self, p: &[f64], out: &mut [f64]) {
-        let Some(m) = &mut self.obstacles else {
-            return apply_box_matrix(self.n, self.n, p, out);
-        };
-        // W·(A_box·(W·p) − S·p) + (I − W)·p.
-        for ((b, &p), &w) in m.buf.iter_mut().zip(p).zip(&m.fluid) {
-            *b = w * p;
-        }
-        apply_box_matrix(self.n, self.n, &m.buf, out);
-        for (((o, &p), &w), &s) in out.iter_mut().zip(p).zip(&m.fluid).zip(&m.solid_beside) {
-            *o = w * (*o - s * p) + (1.0 - w) * p;
+        let [nx, ny, nz] = self.dims;
+        match &mut self.obstacles {
+            // The square slabs' fast product.
+            None if nx == ny => apply_box_matrix(nx, nz, p, out),
+            None => apply_general_matrix3(self.dims, None, p, out),
+            Some(m) if nx == ny => {
+                // W·(A_box·(W·p) − S·p) + (I − W)·p.
+                for ((b, &p), &w) in m.buf.iter_mut().zip(p).zip(&m.fluid) {
+                    *b = w * p;
+                }
+                apply_box_matrix(nx, nz, &m.buf, out);
+                for (((o, &p), &w), &s) in out.iter_mut().zip(p).zip(&m.fluid).zip(&m.solid_beside) {
+                    *o = w * (*o - s * p) + (1.0 - w) * p;
+                }
+            }
+            Some(m) => apply_general_matrix3(self.dims, Some(&m.fluid), p, out),
         }
     }
 
@@ -198,17 +271,26 @@ impl System for PressureSolver3 {
     }
 
     fn precondition(&mut self, r: &[f64], z: &mut [f64]) -> bool {
-        let Some(mg) = &mut self.mg else {
-            return false;
+        let dims = self.dims;
+        // The V-cycle of the slabs along `axis`.
+        let cycle = |mg: &mut Multigrid, axis: usize, [a, b]: &mut [Vec<f64>; 2], r: &[f64], z: &mut [f64]| {
+            if axis == 2 {
+                return mg.apply(r, z);
+            }
+            reorder(dims, axis, r, a, false);
+            mg.apply(a, b);
+            reorder(dims, axis, b, z, true);
         };
-        match &mut self.obstacles {
-            None => mg.apply(r, z),
-            Some(m) => {
+        match (&mut self.precond, &mut self.obstacles) {
+            (Precond3::None, _) => return false,
+            (Precond3::Mic(mic), _) => mic.apply(r, z),
+            (Precond3::Multigrid(mg, axis, bufs), None) => cycle(mg, *axis, bufs, r, z),
+            (Precond3::Multigrid(mg, axis, bufs), Some(m)) => {
                 // W·M·(W·r) + (I − W)·r.
                 for ((b, &r), &w) in m.buf.iter_mut().zip(r).zip(&m.fluid) {
                     *b = w * r;
                 }
-                mg.apply(&m.buf, z);
+                cycle(mg, *axis, bufs, &m.buf, z);
                 for ((z, &r), &w) in z.iter_mut().zip(r).zip(&m.fluid) {
                     *z = w * *z + (1.0 - w) * r;
                 }
