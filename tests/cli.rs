@@ -681,3 +681,33 @@ fn the_rustc_wrapper_explains_a_compiler_killed_by_a_signal() {
     // It dies of the same signal, so that cargo reports it as before.
     assert_eq!(out.status.signal(), Some(6), "{:?}", out.status);
 }
+
+#[test]
+fn three_d_scenes_run_draw_and_check_their_gradient() {
+    let out = std::env::temp_dir().join(format!("diffsim-scene3d-{}", std::process::id()));
+    let o = out.to_str().unwrap();
+    let (code, _, err) = diffsim(&["run", "tests/scenes3d/moving.toml", "--out", o, "--quiet", "--slice", "x=2", "--mip", "y"]);
+    assert_eq!(code, 0, "{err}");
+    for f in ["smoke.npy", "velocity_u.npy", "velocity_v.npy", "velocity_w.npy", "smoke_slice_x2.png", "smoke_mip_y.png"] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    // The volume in numpy order [z, y, x], and the slice as a PNG of (z, y).
+    let bytes = std::fs::read(out.join("smoke.npy")).unwrap();
+    assert!(diffsim::scene::npy_values(&bytes, &[8, 10, 8]).is_ok());
+    let png = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(out.join("smoke_slice_x2.png")).unwrap())).read_info().unwrap();
+    assert_eq!((png.info().width, png.info().height), (8 * 4, 10 * 4));
+    fails_with(&["run", "tests/scenes3d/moving.toml", "--out", o, "--slice", "y=10"], "index 10 is past the 10 cells along y");
+    fails_with(&["run", "tests/scenes3d/moving.toml", "--out", o, "--mip", "w"], "expected an axis x, y or z");
+    // From a moving state every check passes.
+    let (code, stdout, err) = diffsim(&["grad", "tests/scenes3d/moving.toml", "--out", o, "--check"]);
+    assert_eq!(code, 0, "{stdout}\n{err}");
+    assert_eq!(stdout.matches("→ pass").count(), 3, "{stdout}");
+    for f in ["grad_smoke_init.npy", "grad_velocity_init_w.npy", "grad_buoyancy_coefficient.npy"] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    // From rest (2D here) the rollout kinks: inconclusive, said so, no failure.
+    let (code, stdout, err) = diffsim(&["grad", "scenes/smoke_obstacle.toml", "--out", o, "--check"]);
+    assert_eq!(code, 0, "{stdout}\n{err}");
+    assert!(!stdout.contains("FAIL"), "{stdout}");
+    assert!(stdout.contains("inconclusive (kink)") && stdout.contains("note: the rollout has a kink"), "{stdout}");
+}

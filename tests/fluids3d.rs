@@ -397,8 +397,8 @@ fn maccormack_in_3d_is_more_accurate_than_semi_lagrangian_on_a_smooth_translatio
     let bump = |p: [f64; 3]| (-((p[0] - 8.0).powi(2) + (p[1] - 8.0).powi(2) + (p[2] - 8.0).powi(2)) / 8.0).exp();
     let centre = |c: usize| [(c % n) as f64 + 0.5, ((c / n) % n) as f64 + 0.5, (c / (n * n)) as f64 + 0.5];
     let mut x = vec![0.0; cfg.n_state()];
-    for c in 0..cfg.n_s() {
-        x[c] = bump(centre(c));
+    for (c, s) in x[..cfg.n_s()].iter_mut().enumerate() {
+        *s = bump(centre(c));
     }
     // Every velocity sample the traces read (the walls' faces included:
     // the translation runs in the interior, far from them).

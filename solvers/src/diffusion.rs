@@ -67,7 +67,14 @@ impl Grid {
     /// cell centres and the faces normal to x, y and z.
     pub fn of_state_3d(cfg: &Smoke3d) -> [Grid; 4] {
         let [nx, ny, nz] = cfg.dims();
-        [(nx, ny, nz), (nx + 1, ny, nz), (nx, ny + 1, nz), (nx, ny, nz + 1)].map(|(x, y, z)| Grid { stride: x, nx: x, ny: y, nz: z, wrap_x: false, wrap_y: false })
+        [(nx, ny, nz), (nx + 1, ny, nz), (nx, ny + 1, nz), (nx, ny, nz + 1)].map(|(x, y, z)| Grid {
+            stride: x,
+            nx: x,
+            ny: y,
+            nz: z,
+            wrap_x: false,
+            wrap_y: false,
+        })
     }
 
     /// Distance between slabs in the slice.

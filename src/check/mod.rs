@@ -102,6 +102,12 @@ impl FullReport {
     pub fn passed(&self) -> bool {
         self.fd.verdict.passed() && self.taylor.verdict.passed() && self.dot.verdict.passed()
     }
+
+    /// True when some check failed (an inconclusive one, at a kink, is not
+    /// a failure).
+    pub fn failed(&self) -> bool {
+        [&self.fd.verdict, &self.taylor.verdict, &self.dot.verdict].iter().any(|v| matches!(v, Verdict::Fail(_)))
+    }
 }
 
 impl fmt::Display for FullReport {

@@ -412,7 +412,8 @@ impl SmokeBench for SmokeStep3 {
     const TITLE: &'static str = "P4 smoke3d";
     const DIM: u32 = 3;
     const PROBE: (&'static str, &'static str) = ("grad_mid", "∂L/∂s[mid]");
-    const PRECONDITIONERS: &'static [(&'static str, Preconditioner)] = &[("multigrid", Preconditioner::Multigrid), ("mic0", Preconditioner::Mic0), ("none", Preconditioner::None)];
+    const PRECONDITIONERS: &'static [(&'static str, Preconditioner)] =
+        &[("multigrid", Preconditioner::Multigrid), ("mic0", Preconditioner::Mic0), ("none", Preconditioner::None)];
     fn build(n: usize, steps: usize, precond: Preconditioner) -> P4 {
         P4::new(n, steps, precond)
     }

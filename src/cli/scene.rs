@@ -409,8 +409,15 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
         let op = RolloutOperator { rollout: scene.rollout(&p)?, mode };
         let report = check_all(&op, &scene.x0, &[], &CheckOptions::default());
         println!("{report}");
-        if !report.passed() {
+        if report.failed() {
             return Err(CliError::ChecksFailed);
+        }
+        if !report.passed() {
+            // A fluid at rest traces every point onto a lattice plane: the
+            // rollout kinks there, and no step can tell a gradient apart.
+            println!(
+                "note: the rollout has a kink at this initial state (a fluid at rest is one: every traced point lies on a lattice plane); the checks that say so are inconclusive, not failed: start from a moving state to check every direction"
+            );
         }
     }
     Ok(())

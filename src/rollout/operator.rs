@@ -87,7 +87,7 @@ impl<O, L> Clone for RolloutLoss<'_, O, L> {
 
 impl<O, L> Copy for RolloutLoss<'_, O, L> {}
 
-impl<'a, O: Forward, L: Loss> RolloutLoss<'a, O, L> {
+impl<'a, O: Jvp, L: Loss> RolloutLoss<'a, O, L> {
     /// The loss of `rollout` from `x0` as an operator of the inputs `wrt`
     /// names; the rollout's `p` and `x0` are the values of the inputs held
     /// fixed and the point [`RolloutLoss::point`] returns. `mode` is the
@@ -132,16 +132,46 @@ impl<O: Forward, L: Loss> Operator for RolloutLoss<'_, O, L> {
     }
 }
 
-impl<O: Forward, L: Loss> Forward for RolloutLoss<'_, O, L> {
+impl<O: Jvp, L: Loss> Forward for RolloutLoss<'_, O, L> {
     /// `y[0] = L(x_0, p)`.
     #[track_caller]
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         let (x0, r) = self.at(x, p);
         y[0] = r.loss(x0, self.loss).unwrap_or_else(|e| panic!("RolloutLoss: {e}"));
     }
+
+    /// The smallest radius of the steps, each at its state along the
+    /// tangent the JVPs carry to it (first order, as [`crate::op::Chain`]'s).
+    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+        let (x0, r) = self.at(x, p);
+        let zero = vec![0.0; x0.len()];
+        let tx = if self.wrt.x0() { dx } else { &zero[..] };
+        let zero_tp = vec![0.0; r.op.n_params()];
+        rollout_radius(&r, x0, tx, |t| if self.wrt.p() { &dp[r.block(t)] } else { &zero_tp[..] })
+    }
 }
 
-impl<O: Vjp, L: Loss> Vjp for RolloutLoss<'_, O, L> {
+/// The smallest kink radius over the steps of `r` from `x0` along the
+/// tangent `tx` (and `tp(t)` for step `t`'s parameters), each step's radius
+/// taken at its state along the tangent its predecessors' JVPs carry to it.
+fn rollout_radius<'b, O: Jvp>(r: &Rollout<'_, O>, x0: &[f64], tx: &[f64], tp: impl Fn(usize) -> &'b [f64]) -> f64 {
+    let n = x0.len();
+    let (mut xc, mut tc) = (x0.to_vec(), tx.to_vec());
+    let (mut xn, mut tn) = (vec![0.0; n], vec![0.0; n]);
+    let mut radius = f64::INFINITY;
+    for t in 0..r.steps {
+        let tp_t = tp(t);
+        radius = radius.min(r.op.smooth_radius(&xc, r.p_at(t), &tc, tp_t));
+        r.op.jvp(&xc, r.p_at(t), &tc, tp_t, &mut xn, &mut tn);
+        std::mem::swap(&mut xc, &mut xn);
+        std::mem::swap(&mut tc, &mut tn);
+    }
+    // Errors are the forward pass's to report.
+    let _ = r.op.take_error();
+    radius
+}
+
+impl<O: Vjp + Jvp, L: Loss> Vjp for RolloutLoss<'_, O, L> {
     #[track_caller]
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         let (x0, r) = self.at(x, p);
@@ -222,7 +252,7 @@ impl<O: Forward> Operator for RolloutOperator<'_, O> {
     }
 }
 
-impl<O: Forward> Forward for RolloutOperator<'_, O> {
+impl<O: Jvp> Forward for RolloutOperator<'_, O> {
     /// `y = x_T` from `x_0 = x` (the rollout's own parameters are used; the
     /// operator has no parameter input of its own).
     #[track_caller]
@@ -231,9 +261,16 @@ impl<O: Forward> Forward for RolloutOperator<'_, O> {
         let xt = self.rollout.final_state_unchecked(x);
         y.copy_from_slice(&xt);
     }
+
+    /// The smallest radius of the steps along the tangent the JVPs carry
+    /// (see [`RolloutLoss`]'s).
+    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+        let tp = vec![0.0; self.rollout.op.n_params()];
+        rollout_radius(&self.rollout, x, dx, |_| &tp[..])
+    }
 }
 
-impl<O: Vjp> Vjp for RolloutOperator<'_, O> {
+impl<O: Vjp + Jvp> Vjp for RolloutOperator<'_, O> {
     #[track_caller]
     fn vjp(&self, x: &[f64], _p: &[f64], dy: &mut [f64], dx: &mut [f64], _dp: &mut [f64]) {
         let seed = dy.to_vec();

@@ -256,11 +256,21 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke3d, x: &[f64], gy: &mut [f64], gx: &mu
     trace_adjoint(mac, At3::Centre, vel, s, cfg.dt, gs2, Some(gs), [gu, gv, gw]);
 }
 
+/// Whether point `q` of the lattice `at` is a face on a wall of the closed
+/// box: the walls set its value after the trace, so where its trace lands
+/// does not matter (no kink of the step).
+#[inline(always)]
+pub(crate) fn on_wall(at: At3, q: [usize; 3], n: [usize; 3]) -> bool {
+    let a = at.axis();
+    a < 3 && (q[a] == 0 || q[a] == n[a])
+}
+
 /// How far `x` may move along `d` before [`advect_buoyancy`] meets a kink:
 /// trilinear sampling is smooth between lattice planes and kinks where a
 /// traced point crosses one (or a clamped edge). The smallest, over the
-/// traced points of the four lattices, of the distance to the nearest plane
-/// over the speed at which `d` moves the point; ∞ when `d` moves none.
+/// traced points of the four lattices (the walls' own faces left out: the
+/// walls set them), of the distance to the nearest plane over the speed at
+/// which `d` moves the point; ∞ when `d` moves none.
 pub fn advect_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
     let mac = Mac3::<false, false, false> { n: cfg.dims() };
     let [_, u, v, w] = cfg.split(x);
@@ -272,6 +282,9 @@ pub fn advect_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
             for j in 0..lat.n[1] {
                 for i in 0..lat.n[0] {
                     let q = [i, j, k];
+                    if on_wall(at, q, mac.n) {
+                        continue;
+                    }
                     let vel = mac.velocity(at, [u, v, w], q);
                     let dvel = mac.velocity(at, [du, dv, dw], q);
                     for a in 0..3 {

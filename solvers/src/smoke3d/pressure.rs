@@ -5,10 +5,10 @@
 //! [`crate::multigrid`] in a cube or by MIC(0) in any box), and the
 //! projection's adjoint (the same solve).
 
+use super::mic::{Mic3, apply_general_matrix3};
 use super::*;
 use crate::cg::{CgWork, NoConvergence, Null, Stop, System};
 use crate::multigrid::{Multigrid, apply_box_matrix};
-use super::mic::{Mic3, apply_general_matrix3};
 use crate::smoke::{Preconditioner, ProjectScratch};
 
 /// Calls `f(c, faces)` for every cell `c` with the flat indices of its six

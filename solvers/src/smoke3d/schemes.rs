@@ -22,7 +22,17 @@ pub fn advect3_scratch_len(cfg: &Smoke3d, scheme: Scheme) -> usize {
 /// `tilde` are scratch of `f`'s length (MacCormack only).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn advect_field3(mac: Mac3<false, false, false>, at: At3, scheme: Scheme, dt: f64, vel: [&[f64]; 3], f: &[f64], out: &mut [f64], hat: &mut [f64], tilde: &mut [f64]) {
+fn advect_field3(
+    mac: Mac3<false, false, false>,
+    at: At3,
+    scheme: Scheme,
+    dt: f64,
+    vel: [&[f64]; 3],
+    f: &[f64],
+    out: &mut [f64],
+    hat: &mut [f64],
+    tilde: &mut [f64],
+) {
     let nz = mac.n[2];
     match scheme {
         Scheme::SemiLagrangian => trace(mac, at, vel, f, dt, 0..nz, out),
@@ -114,6 +124,11 @@ pub fn advect3_radius(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool
             for j in 0..lat.n[1] {
                 for i in 0..lat.n[0] {
                     let q = [i, j, k];
+                    // A face on a wall is set by the walls after the trace
+                    // (when the velocity is advected, as it is on its lattices).
+                    if on_wall(at, q, mac.n) {
+                        continue;
+                    }
                     let vel = mac.velocity(at, [u, v, w], q);
                     let dvel = mac.velocity(at, [du, dv, dw], q);
                     for &sign in steps {
@@ -165,6 +180,9 @@ pub fn limiter3_radius(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], d:
             for j in 0..lat.n[1] {
                 for i in 0..lat.n[0] {
                     let c = (k * lat.sy + j) * lat.sx + i;
+                    if on_wall(at, [i, j, k], mac.n) {
+                        continue;
+                    }
                     let [a, b, e] = mac.velocity(at, vel, [i, j, k]);
                     let p = [i as f64 + lat.o[0] - cfg.dt * a, j as f64 + lat.o[1] - cfg.dt * b, k as f64 + lat.o[2] - cfg.dt * e];
                     let mut order = sample3_corners::<false, false, false>(lat, p);
