@@ -371,24 +371,9 @@ impl Builder<'_> {
                     return Ok(());
                 }
                 let cfg = *self_cfg(&domain);
-                match a.scheme.as_str() {
-                    "semi_lagrangian" | "maccormack" => {
-                        let scheme = if a.scheme == "maccormack" { Scheme::MacCormack { limiter: a.limiter } } else { Scheme::SemiLagrangian };
-                        self.ops.push(Box::new(Advect { cfg, scheme, dt, smoke: s, velocity: v }));
-                    }
-                    "upwind" => {
-                        if v {
-                            return Err(SceneError::key(
-                                at("scheme"),
-                                "upwind advects scalars only; advect the velocity in its own effect with semi_lagrangian or maccormack",
-                            ));
-                        }
-                        if !self.has(Field::Velocity) {
-                            return Err(SceneError::key(at("scheme"), "upwind needs a velocity field (add [fields.velocity])"));
-                        }
-                        self.ops.push(Box::new(AdvectUpwind { cfg, dt }));
-                    }
-                    other => return Err(SceneError::key(at("scheme"), unknown("scheme", other, &["semi_lagrangian", "maccormack", "upwind"]))),
+                match self.advection_scheme(k, &a, v)? {
+                    Some(scheme) => self.ops.push(Box::new(Advect { cfg, scheme, dt, smoke: s, velocity: v })),
+                    None => self.ops.push(Box::new(AdvectUpwind { cfg, dt })),
                 }
             }
             (EffectSpec::Diffusion(d), _) => {
@@ -518,6 +503,23 @@ impl Builder<'_> {
         Ok(())
     }
 
+    /// The traced scheme of the `k`-th effect, an advection (`v`: it moves
+    /// the velocity), or `None` for upwind (scalars only, by a declared
+    /// velocity).
+    fn advection_scheme(&self, k: usize, a: &super::spec::AdvectionSpec, v: bool) -> Result<Option<Scheme>, SceneError> {
+        let at = |key: &str| format!("effects[{k}].{key}");
+        match a.scheme.as_str() {
+            "semi_lagrangian" => Ok(Some(Scheme::SemiLagrangian)),
+            "maccormack" => Ok(Some(Scheme::MacCormack { limiter: a.limiter })),
+            "upwind" if v => {
+                Err(SceneError::key(at("scheme"), "upwind advects scalars only; advect the velocity in its own effect with semi_lagrangian or maccormack"))
+            }
+            "upwind" if !self.has(Field::Velocity) => Err(SceneError::key(at("scheme"), "upwind needs a velocity field (add [fields.velocity])")),
+            "upwind" => Ok(None),
+            other => Err(SceneError::key(at("scheme"), unknown("scheme", other, &["semi_lagrangian", "maccormack", "upwind"]))),
+        }
+    }
+
     /// An effect of a 3D scene other than diffusion and forces (built with
     /// the other domains'): advection (semi-Lagrangian, MacCormack, upwind),
     /// buoyancy along any axis, inflow regions and the pressure projection
@@ -529,26 +531,11 @@ impl Builder<'_> {
             EffectSpec::Advection(a) => {
                 let (s, v) = self.fields_of(&at("fields"), &a.fields)?;
                 self.effects.push("advection".into());
-                match a.scheme.as_str() {
+                match self.advection_scheme(k, &a, v)? {
                     // Both fields semi-Lagrangian: P4's step (in parallel, with its hand adjoint beside it).
-                    "semi_lagrangian" if s && v => self.ops.push(Box::new(SmokeAdvect3(cfg))),
-                    "semi_lagrangian" | "maccormack" => {
-                        let scheme = if a.scheme == "maccormack" { Scheme::MacCormack { limiter: a.limiter } } else { Scheme::SemiLagrangian };
-                        self.ops.push(Box::new(Advect3 { cfg, scheme, smoke: s, velocity: v }));
-                    }
-                    "upwind" => {
-                        if v {
-                            return Err(SceneError::key(
-                                at("scheme"),
-                                "upwind advects scalars only; advect the velocity in its own effect with semi_lagrangian or maccormack",
-                            ));
-                        }
-                        if !self.has(Field::Velocity) {
-                            return Err(SceneError::key(at("scheme"), "upwind needs a velocity field (add [fields.velocity])"));
-                        }
-                        self.ops.push(Box::new(AdvectUpwind3 { cfg }));
-                    }
-                    other => return Err(SceneError::key(at("scheme"), unknown("scheme", other, &["semi_lagrangian", "maccormack", "upwind"]))),
+                    Some(Scheme::SemiLagrangian) if s && v => self.ops.push(Box::new(SmokeAdvect3(cfg))),
+                    Some(scheme) => self.ops.push(Box::new(Advect3 { cfg, scheme, smoke: s, velocity: v })),
+                    None => self.ops.push(Box::new(AdvectUpwind3 { cfg })),
                 }
             }
             EffectSpec::Pressure(p) => {

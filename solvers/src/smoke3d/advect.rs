@@ -272,27 +272,5 @@ pub(crate) fn on_wall(at: At3, q: [usize; 3], n: [usize; 3]) -> bool {
 /// walls set them), of the distance to the nearest plane over the speed at
 /// which `d` moves the point; ∞ when `d` moves none.
 pub fn advect_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
-    let mac = Mac3::<false, false, false> { n: cfg.dims() };
-    let [_, u, v, w] = cfg.split(x);
-    let [_, du, dv, dw] = cfg.split(d);
-    let mut r = f64::INFINITY;
-    for at in [At3::Centre, At3::U, At3::V, At3::W] {
-        let lat = mac.lattice(at);
-        for k in 0..lat.n[2] {
-            for j in 0..lat.n[1] {
-                for i in 0..lat.n[0] {
-                    let q = [i, j, k];
-                    if on_wall(at, q, mac.n) {
-                        continue;
-                    }
-                    let vel = mac.velocity(at, [u, v, w], q);
-                    let dvel = mac.velocity(at, [du, dv, dw], q);
-                    for a in 0..3 {
-                        r = r.min(lattice_gap(q[a] as f64 - cfg.dt * vel[a], cfg.dt * dvel[a]));
-                    }
-                }
-            }
-        }
-    }
-    r
+    advect3_radius(cfg, crate::smoke::Scheme::SemiLagrangian, true, true, x, d)
 }
