@@ -46,6 +46,14 @@ where
     }
 }
 
+/// Rows of `n` values per piece of a pass over a plane split by rows: at
+/// least 2048 values a piece (whole rows), so that small planes stay in
+/// few pieces. Passes without sums give the same values for any split.
+#[inline]
+pub fn rows_per_piece(n: usize) -> usize {
+    2048usize.div_ceil(n.max(1)).max(1)
+}
+
 /// Values per piece of a sum: each piece's partial sum is computed alone,
 /// then the partial sums are added in order.
 pub const SUM_PIECE: usize = 4096;

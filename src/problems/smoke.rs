@@ -197,7 +197,7 @@ macro_rules! smoke_step_operator {
 }
 pub(crate) use smoke_step_operator;
 
-smoke_step_operator!(SmokeStep, "SmokeStep", SmokeAdvectHand, smoke::advect_buoyancy, p2_radius);
+smoke_step_operator!(SmokeStep, "SmokeStep", SmokeAdvectHand, smoke::advect_buoyancy_parallel, p2_radius);
 
 impl LocalInverse for SmokeStep {
     /// The step run backwards in time on the perturbation, along the

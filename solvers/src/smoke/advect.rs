@@ -26,14 +26,36 @@ pub enum Scheme {
 /// returned pair when the closure is not inlined.)
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn trace<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, (u, v): (&[f64], &[f64]), f: &[f64], sdt: f64, out: &mut [f64]) {
+fn trace<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, uv: (&[f64], &[f64]), f: &[f64], sdt: f64, out: &mut [f64]) {
     let (lat, kx, ly) = mac.lattice(at);
     for l in 0..ly {
         for k in 0..kx {
-            let (a, b) = mac.velocity(at, u, v, k, l);
-            out[l * lat.stride + k] = sample::<WX, WY>(f, lat, k as f64 + lat.ox - sdt * a, l as f64 + lat.oy - sdt * b);
+            out[l * lat.stride + k] = traced(mac, at, lat, uv, f, sdt, k, l);
         }
     }
+}
+
+/// [`trace`] with blocks of rows split over threads (the same values). The
+/// serial loop stays as it is: Enzyme differentiates it.
+fn trace_parallel<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, uv: (&[f64], &[f64]), f: &[f64], sdt: f64, out: &mut [f64]) {
+    let (lat, kx, ly) = mac.lattice(at);
+    let rows = crate::par::rows_per_piece(lat.stride);
+    crate::par::for_pieces(out, rows * lat.stride, |b, o| {
+        let l0 = b * rows;
+        for l in l0..(l0 + o.len() / lat.stride).min(ly) {
+            for k in 0..kx {
+                o[(l - l0) * lat.stride + k] = traced(mac, at, lat, uv, f, sdt, k, l);
+            }
+        }
+    });
+}
+
+/// The value traced back to sample `(k, l)` of the lattice `at`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn traced<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, lat: Lattice, (u, v): (&[f64], &[f64]), f: &[f64], sdt: f64, k: usize, l: usize) -> f64 {
+    let (a, b) = mac.velocity(at, u, v, k, l);
+    sample::<WX, WY>(f, lat, k as f64 + lat.ox - sdt * a, l as f64 + lat.oy - sdt * b)
 }
 
 /// One field on the lattice `at` advected by `scheme`; `hat` and `tilde`
@@ -292,6 +314,27 @@ pub fn advect_buoyancy(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
     advect(cfg, Scheme::SemiLagrangian, 1.0, true, true, x, y, &mut []);
     // Buoyancy touches no closed, inflow or outflow face and refreshes its
     // own periodic copies, so the boundary conditions of `advect` still hold.
+    let (s2, _, v2) = cfg.split_mut(y);
+    add_buoyancy(cfg, cfg.buoyancy, s2, v2);
+}
+
+/// [`advect_buoyancy`] with each lattice's rows split over threads
+/// ([`crate::par`]): the same values for any thread count. Not for
+/// differentiated code (Enzyme differentiates [`advect_buoyancy`]).
+///
+/// # Panics
+/// As [`advect_buoyancy`].
+pub fn advect_buoyancy_parallel(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
+    assert!(cfg.nx.min(cfg.ny) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+    with_mac!(cfg, mac => {
+        let (s, u, v) = cfg.split(x);
+        let (s2, u2, v2) = cfg.split_mut(y);
+        trace_parallel(mac, At::Centre, (u, v), s, 1.0, s2);
+        trace_parallel(mac, At::UFace, (u, v), u, 1.0, u2);
+        trace_parallel(mac, At::VFace, (u, v), v, 1.0, v2);
+    });
+    let (_, u2, v2) = cfg.split_mut(y);
+    enforce_boundary(cfg, u2, v2);
     let (s2, _, v2) = cfg.split_mut(y);
     add_buoyancy(cfg, cfg.buoyancy, s2, v2);
 }
