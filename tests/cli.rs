@@ -686,7 +686,7 @@ fn the_rustc_wrapper_explains_a_compiler_killed_by_a_signal() {
 fn three_d_scenes_run_draw_and_check_their_gradient() {
     let out = std::env::temp_dir().join(format!("diffsim-scene3d-{}", std::process::id()));
     let o = out.to_str().unwrap();
-    let (code, _, err) = diffsim(&["run", "tests/scenes3d/moving.toml", "--out", o, "--quiet", "--slice", "x=2", "--mip", "y"]);
+    let (code, _, err) = diffsim(&["run", "tests/scenes_moving/moving3d.toml", "--out", o, "--quiet", "--slice", "x=2", "--mip", "y"]);
     assert_eq!(code, 0, "{err}");
     for f in ["smoke.npy", "velocity_u.npy", "velocity_v.npy", "velocity_w.npy", "smoke_slice_x2.png", "smoke_mip_y.png"] {
         assert!(out.join(f).exists(), "{f} missing");
@@ -696,15 +696,20 @@ fn three_d_scenes_run_draw_and_check_their_gradient() {
     assert!(diffsim::scene::npy_values(&bytes, &[8, 10, 8]).is_ok());
     let png = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(out.join("smoke_slice_x2.png")).unwrap())).read_info().unwrap();
     assert_eq!((png.info().width, png.info().height), (8 * 4, 10 * 4));
-    fails_with(&["run", "tests/scenes3d/moving.toml", "--out", o, "--slice", "y=10"], "index 10 is past the 10 cells along y");
-    fails_with(&["run", "tests/scenes3d/moving.toml", "--out", o, "--mip", "w"], "expected an axis x, y or z");
+    fails_with(&["run", "tests/scenes_moving/moving3d.toml", "--out", o, "--slice", "y=10"], "index 10 is past the 10 cells along y");
+    fails_with(&["run", "tests/scenes_moving/moving3d.toml", "--out", o, "--mip", "w"], "expected an axis x, y or z");
     // From a moving state every check passes.
-    let (code, stdout, err) = diffsim(&["grad", "tests/scenes3d/moving.toml", "--out", o, "--check"]);
+    let (code, stdout, err) = diffsim(&["grad", "tests/scenes_moving/moving3d.toml", "--out", o, "--check"]);
     assert_eq!(code, 0, "{stdout}\n{err}");
     assert_eq!(stdout.matches("→ pass").count(), 3, "{stdout}");
     for f in ["grad_smoke_init.npy", "grad_velocity_init_w.npy", "grad_buoyancy_coefficient.npy"] {
         assert!(out.join(f).exists(), "{f} missing");
     }
+    // A 2D scene from a moving state passes too (the faces the closed
+    // sides set are no kink of the step).
+    let (code, stdout, err) = diffsim(&["grad", "tests/scenes_moving/moving2d.toml", "--out", o, "--check"]);
+    assert_eq!(code, 0, "{stdout}\n{err}");
+    assert_eq!(stdout.matches("→ pass").count(), 3, "{stdout}");
     // From rest (2D here) the rollout kinks: inconclusive, said so, no failure.
     let (code, stdout, err) = diffsim(&["grad", "scenes/smoke_obstacle.toml", "--out", o, "--check"]);
     assert_eq!(code, 0, "{stdout}\n{err}");

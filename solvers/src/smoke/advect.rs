@@ -206,6 +206,9 @@ pub fn advect_radius(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, veloci
             let (_, kx, ly) = mac.lattice(at);
             for l in 0..ly {
                 for k in 0..kx {
+                    if set_by_boundary(cfg, at, k, l) {
+                        continue;
+                    }
                     let (a, b) = mac.velocity(at, u, v, k, l);
                     let (da, db) = mac.velocity(at, du, dv, k, l);
                     for &sdt in steps {
@@ -216,6 +219,20 @@ pub fn advect_radius(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, veloci
         }
         r
     })
+}
+
+/// Whether sample `(k, l)` of the lattice `at` is a face on a closed or
+/// inflow side: the boundary conditions set it after the trace, so where
+/// its trace lands does not matter (no kink of the step).
+#[inline(always)]
+fn set_by_boundary(cfg: &Smoke2d, at: At, k: usize, l: usize) -> bool {
+    let set = |side: Side| matches!(side, Side::Closed | Side::Inflow(_));
+    let b = &cfg.boundary;
+    match at {
+        At::UFace => (k == 0 && set(b.left)) || (k == cfg.nx && set(b.right)),
+        At::VFace => (l == 0 && set(b.bottom)) || (l == cfg.ny && set(b.top)),
+        At::Centre => false,
+    }
 }
 
 /// How far `x` may move along `d` before MacCormack's limiter switches: the
@@ -232,13 +249,22 @@ pub fn limiter_radius(cfg: &Smoke2d, dt: f64, smoke: bool, velocity: bool, x: &[
     }
     let eps = 1e-7 * (1.0 + x.iter().fold(0.0f64, |m, v| m.max(v.abs()))) / dmax;
     let xe: Vec<f64> = x.iter().zip(d).map(|(a, b)| a + eps * b).collect();
-    with_mac!(cfg, mac => limiter_on(mac, dt, smoke, velocity, [cfg.split(x), cfg.split(d), cfg.split(&xe)], eps))
+    with_mac!(cfg, mac => limiter_on(cfg, mac, dt, smoke, velocity, [cfg.split(x), cfg.split(d), cfg.split(&xe)], eps))
 }
 
 type Fields<'a> = (&'a [f64], &'a [f64], &'a [f64]);
 
 /// [`limiter_radius`] on one MAC grid: `[x, d, x + eps·d]` split.
-fn limiter_on<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, dt: f64, smoke: bool, velocity: bool, [x, d, xe]: [Fields<'_>; 3], eps: f64) -> f64 {
+#[allow(clippy::too_many_arguments)]
+fn limiter_on<const WX: bool, const WY: bool>(
+    cfg: &Smoke2d,
+    mac: Mac<WX, WY>,
+    dt: f64,
+    smoke: bool,
+    velocity: bool,
+    [x, d, xe]: [Fields<'_>; 3],
+    eps: f64,
+) -> f64 {
     let mut r = f64::INFINITY;
     // (One lattice at a time: the fields and their tangents by match, not a table.)
     for at in [At::Centre, At::UFace, At::VFace] {
@@ -253,6 +279,9 @@ fn limiter_on<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, dt: f64, smoke: 
         let vale = unclamped(mac, at, dt, (xe.1, xe.2), fe);
         for l in 0..ly {
             for k in 0..kx {
+                if set_by_boundary(cfg, at, k, l) {
+                    continue;
+                }
                 let c = l * lat.stride + k;
                 let (a, b) = mac.velocity(at, x.1, x.2, k, l);
                 let (idx, _, _) = corners::<WX, WY>(lat, k as f64 + lat.ox - dt * a, l as f64 + lat.oy - dt * b);
