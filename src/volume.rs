@@ -7,9 +7,12 @@
 //! y, (x, z); along x, (z, y). Images are row-major with row 0 at the
 //! bottom.
 
+/// The axes' names, by index.
+pub const AXES: [&str; 3] = ["x", "y", "z"];
+
 /// An axis by name: `"x"`, `"y"`, `"z"`.
 pub fn axis_index(name: &str) -> Option<usize> {
-    ["x", "y", "z"].iter().position(|&a| a == name)
+    AXES.iter().position(|&a| a == name)
 }
 
 /// A 2D image: `values[row·width + column]`, row 0 at the bottom.

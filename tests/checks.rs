@@ -162,6 +162,20 @@ fn the_vjp_contract_is_checked() {
     assert_eq!(r.contract, vec!["the seed dy was not consumed (zeroed)".to_string()]);
 }
 
+/// Runs `run` (a loss and a gradient) on pools of 1, 2 and 3 threads and
+/// asserts that all three give the same values bit for bit.
+pub(crate) fn assert_identical_for_any_thread_count(run: impl Fn(usize) -> (f64, Vec<f64>) + Send + Sync) {
+    let on = |threads: usize| rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(|| run(threads));
+    let (loss, grad) = on(1);
+    assert!(loss.is_finite() && grad.iter().any(|&v| v != 0.0));
+    for threads in [2, 3] {
+        let (l, g) = on(threads);
+        assert_eq!(l.to_bits(), loss.to_bits(), "loss with {threads} threads");
+        let differ = grad.iter().zip(&g).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
+        assert_eq!(differ, 0, "{differ} gradient entries differ between 1 and {threads} threads");
+    }
+}
+
 /// A seeded P2 state on an `n × n` box: smoke in [0, 1], velocities in
 /// [−0.3, 0.3] (so that the back-traces stay mostly inside cells).
 pub(crate) fn smoke_state(cfg: &diffsim_solvers::smoke::Smoke2d, seed: u64) -> Vec<f64> {

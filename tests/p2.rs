@@ -144,30 +144,19 @@ fn the_2d_step_is_identical_for_any_thread_count() {
     // vector code and ran slower, docs/p2.md).
     const N: usize = 96;
     const _: () = assert!(N * N > 2 * diffsim_solvers::par::MIN_PARALLEL);
-    let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-        pool.install(|| {
-            let p = P2::new(N, 4, Preconditioner::Multigrid);
-            let g = p.grad_in(&mut Workspace::new(), Checkpointing::Store).unwrap();
-            // The parallel advection is the serial one, value for value, on
-            // the closed box and with periodic sides.
-            for boundary in [Boundary::CLOSED, Boundary::axes(Side::Periodic, Side::Closed), Boundary::all(Side::Periodic)] {
-                let cfg = Smoke2d::p2(N).with_boundary(boundary);
-                let x: Vec<f64> = (0..cfg.n_state()).map(|k| ((k as f64 * 0.618).fract() - 0.5) * if k < cfg.n_s() { 2.0 } else { 0.9 }).collect();
-                let (mut serial, mut parallel) = (vec![0.0; x.len()], vec![0.0; x.len()]);
-                advect_buoyancy(&cfg, &x, &mut serial);
-                advect_buoyancy_parallel(&cfg, &x, &mut parallel);
-                assert!(serial.iter().zip(&parallel).all(|(a, b)| a.to_bits() == b.to_bits()), "{threads} threads, {boundary:?}");
-            }
-            (g.loss, g.dx0)
-        })
-    };
-    let (loss, grad) = run(1);
-    assert!(loss.is_finite() && grad.iter().any(|&v| v != 0.0));
-    for threads in [2, 3] {
-        let (l, g) = run(threads);
-        assert_eq!(l.to_bits(), loss.to_bits(), "loss with {threads} threads");
-        let differ = grad.iter().zip(&g).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
-        assert_eq!(differ, 0, "{differ} gradient entries differ between 1 and {threads} threads");
-    }
+    crate::checks::assert_identical_for_any_thread_count(|threads| {
+        let p = P2::new(N, 4, Preconditioner::Multigrid);
+        let g = p.grad_in(&mut Workspace::new(), Checkpointing::Store).unwrap();
+        // The parallel advection is the serial one, value for value, on the
+        // closed box and with periodic sides.
+        for boundary in [Boundary::CLOSED, Boundary::axes(Side::Periodic, Side::Closed), Boundary::all(Side::Periodic)] {
+            let cfg = Smoke2d::p2(N).with_boundary(boundary);
+            let x = crate::checks::smoke_state(&cfg, 17);
+            let (mut serial, mut parallel) = (vec![0.0; x.len()], vec![0.0; x.len()]);
+            advect_buoyancy(&cfg, &x, &mut serial);
+            advect_buoyancy_parallel(&cfg, &x, &mut parallel);
+            assert!(serial.iter().zip(&parallel).all(|(a, b)| a.to_bits() == b.to_bits()), "{threads} threads, {boundary:?}");
+        }
+        (g.loss, g.dx0)
+    });
 }

@@ -208,29 +208,15 @@ const _: () = assert!(THREADED_N * THREADED_N * THREADED_N > 3 * diffsim_solvers
 
 #[test]
 fn results_are_identical_for_any_thread_count() {
-    let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-        pool.install(|| {
-            let p = P4::new(THREADED_N, 3, Preconditioner::Multigrid);
-            let g = p.grad_in(&mut Workspace::new(), Checkpointing::Store).unwrap();
-            let cfg = Smoke3d::p4(THREADED_N);
-            let x = state(&cfg, 5);
-            let (mut serial, mut parallel) = (vec![0.0; x.len()], vec![0.0; x.len()]);
-            diffsim_solvers::smoke3d::advect_buoyancy(&cfg, &x, &mut serial);
-            diffsim_solvers::smoke3d::advect_buoyancy_parallel(&cfg, &x, &mut parallel);
-            assert!(
-                serial.iter().zip(&parallel).all(|(a, b)| a.to_bits() == b.to_bits()),
-                "{threads} threads: the parallel advection differs from the serial one"
-            );
-            (g.loss, g.dx0)
-        })
-    };
-    let (loss, grad) = run(1);
-    assert!(loss.is_finite() && grad.iter().any(|&v| v != 0.0));
-    for threads in [2, 3] {
-        let (l, g) = run(threads);
-        assert_eq!(l.to_bits(), loss.to_bits(), "loss with {threads} threads");
-        let differ = grad.iter().zip(&g).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
-        assert_eq!(differ, 0, "{differ} gradient entries differ between 1 and {threads} threads");
-    }
+    crate::checks::assert_identical_for_any_thread_count(|threads| {
+        let p = P4::new(THREADED_N, 3, Preconditioner::Multigrid);
+        let g = p.grad_in(&mut Workspace::new(), Checkpointing::Store).unwrap();
+        let cfg = Smoke3d::p4(THREADED_N);
+        let x = state(&cfg, 5);
+        let (mut serial, mut parallel) = (vec![0.0; x.len()], vec![0.0; x.len()]);
+        diffsim_solvers::smoke3d::advect_buoyancy(&cfg, &x, &mut serial);
+        diffsim_solvers::smoke3d::advect_buoyancy_parallel(&cfg, &x, &mut parallel);
+        assert!(serial.iter().zip(&parallel).all(|(a, b)| a.to_bits() == b.to_bits()), "{threads} threads: the parallel advection differs from the serial one");
+        (g.loss, g.dx0)
+    });
 }

@@ -67,7 +67,7 @@ impl Grid {
     /// cell centres and the faces normal to x, y and z.
     pub fn of_state_3d(cfg: &Smoke3d) -> [Grid; 4] {
         let [nx, ny, nz] = cfg.dims();
-        [(nx, ny, nz), (nx + 1, ny, nz), (nx, ny + 1, nz), (nx, ny, nz + 1)].map(|(x, y, z)| Grid {
+        [[nx, ny, nz], cfg.face_dims(0), cfg.face_dims(1), cfg.face_dims(2)].map(|[x, y, z]| Grid {
             stride: x,
             nx: x,
             ny: y,

@@ -163,7 +163,7 @@ fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64], views: Views) -
             } else {
                 ("speed", relative_speed_3d(cfg, x))
             };
-            let names_axis = ["x", "y", "z"];
+            let names_axis = crate::volume::AXES;
             let (ax, index) = views.slice;
             let k = index.unwrap_or(dims[ax] / 2);
             let plane = slice(dims, &values, ax, k);
@@ -196,8 +196,7 @@ fn relative_speed_3d(cfg: &diffsim_solvers::smoke3d::Smoke3d, x: &[f64]) -> Vec<
             (a * a + b * b + d * d).sqrt()
         })
         .collect();
-    let max = speed.iter().fold(0.0f64, |m, &s| m.max(s)).max(1e-300);
-    speed.iter().map(|s| s / max).collect()
+    scaled_to_max(speed)
 }
 
 /// The speed at cell centres of a MAC velocity `(u, v)` on `nx × ny`
@@ -211,8 +210,13 @@ fn relative_speed((n, ny): (usize, usize), u: &[f64], v: &[f64]) -> Vec<f64> {
             uc.hypot(vc)
         })
         .collect();
-    let max = speed.iter().fold(0.0f64, |m, &s| m.max(s)).max(1e-300);
-    speed.iter().map(|s| s / max).collect()
+    scaled_to_max(speed)
+}
+
+/// `values` divided by their maximum.
+fn scaled_to_max(values: Vec<f64>) -> Vec<f64> {
+    let max = values.iter().fold(0.0f64, |m, &s| m.max(s)).max(1e-300);
+    values.iter().map(|s| s / max).collect()
 }
 
 fn progress(steps: usize, quiet: bool) -> indicatif::ProgressBar {

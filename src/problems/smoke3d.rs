@@ -182,8 +182,9 @@ crate::problems::smoke::hand_explicit_operator!(SmokeAdvect3Hand, smoke3d::advec
 #[derive(Debug)]
 pub struct Project3 {
     cfg: Smoke3d,
-    /// The fluid mask and each axis's open faces, when there are obstacles.
-    obstacles: Option<(Vec<f64>, [Vec<f64>; 3])>,
+    /// Each axis's open faces, when there are obstacles (the fluid mask is
+    /// the solver's).
+    open: Option<[Vec<f64>; 3]>,
     solver: RefCell<PressureSolver3>,
     scratch: RefCell<ProjectScratch>,
     /// The solves' iteration counts and first failure.
@@ -199,13 +200,12 @@ impl Project3 {
     /// # Panics
     /// For the Cholesky preconditioner (2D only).
     pub fn new(cfg: Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
-        Self {
-            cfg,
-            obstacles: None,
-            solver: RefCell::new(PressureSolver3::new(&cfg, tolerance, max_iterations, for_box(&cfg, precond))),
-            scratch: RefCell::new(ProjectScratch::new(cfg.n_s())),
-            log: SolveLog::default(),
-        }
+        Self::with_solver(cfg, None, PressureSolver3::new(&cfg, tolerance, max_iterations, for_box(&cfg, precond)))
+    }
+
+    /// The projection with `solver` (and the open faces when it has obstacles).
+    fn with_solver(cfg: Smoke3d, open: Option<[Vec<f64>; 3]>, solver: PressureSolver3) -> Self {
+        Self { cfg, open, solver: RefCell::new(solver), scratch: RefCell::new(ProjectScratch::new(cfg.n_s())), log: SolveLog::default() }
     }
 
     /// The projection of the closed box `cfg` with solid cells where
@@ -223,19 +223,13 @@ impl Project3 {
         assert!(solid.iter().any(|&s| !s), "3D projection: every cell is solid");
         let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
         let open = smoke3d::open_faces(&cfg, &fluid);
-        let solver = PressureSolver3::with_obstacles(&cfg, tolerance, max_iterations, for_box(&cfg, precond), fluid.clone());
-        Self { obstacles: Some((fluid, open)), solver: RefCell::new(solver), ..Self::new(cfg, tolerance, max_iterations, precond) }
-    }
-
-    /// The fluid mask (1 fluid, 0 solid) when there are obstacles.
-    pub fn fluid(&self) -> Option<&[f64]> {
-        self.obstacles.as_ref().map(|(f, _)| &f[..])
+        Self::with_solver(cfg, Some(open), PressureSolver3::with_obstacles(&cfg, tolerance, max_iterations, for_box(&cfg, precond), fluid))
     }
 
     /// The obstacle mask in place (nothing without obstacles): linear and
     /// its own transpose.
     fn mask(&self, y: &mut [f64]) {
-        if let Some((fluid, open)) = &self.obstacles {
+        if let (Some(open), Some(fluid)) = (&self.open, self.solver.borrow().fluid()) {
             smoke3d::apply_obstacle_mask3(&self.cfg, fluid, open, y);
         }
     }

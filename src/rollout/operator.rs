@@ -155,20 +155,37 @@ impl<O: Jvp, L: Loss> Forward for RolloutLoss<'_, O, L> {
 /// tangent `tx` (and `tp(t)` for step `t`'s parameters), each step's radius
 /// taken at its state along the tangent its predecessors' JVPs carry to it.
 fn rollout_radius<'b, O: Jvp>(r: &Rollout<'_, O>, x0: &[f64], tx: &[f64], tp: impl Fn(usize) -> &'b [f64]) -> f64 {
-    let n = x0.len();
-    let (mut xc, mut tc) = (x0.to_vec(), tx.to_vec());
-    let (mut xn, mut tn) = (vec![0.0; n], vec![0.0; n]);
     let mut radius = f64::INFINITY;
-    for t in 0..r.steps {
-        let tp_t = tp(t);
-        radius = radius.min(r.op.smooth_radius(&xc, r.p_at(t), &tc, tp_t));
-        r.op.jvp(&xc, r.p_at(t), &tc, tp_t, &mut xn, &mut tn);
-        std::mem::swap(&mut xc, &mut xn);
-        std::mem::swap(&mut tc, &mut tn);
-    }
+    carry_tangent(r, x0, tx, tp, |t, x, tx, tp| radius = radius.min(r.op.smooth_radius(x, r.p_at(t), tx, tp)), |_, _, _| {});
     // Errors are the forward pass's to report.
     let _ = r.op.take_error();
     radius
+}
+
+/// Carries `(x_0, tx)` through the steps of `r` by their JVPs (step `t`
+/// with the parameter tangent `tp(t)`): `before(t, x_t, t_t, tp(t))` sees
+/// each step's input, `after(t + 1, x_{t+1}, t_{t+1})` its output.
+/// Returns `(x_T, t_T)`.
+fn carry_tangent<'b, O: Jvp>(
+    r: &Rollout<'_, O>,
+    x0: &[f64],
+    tx: &[f64],
+    tp: impl Fn(usize) -> &'b [f64],
+    mut before: impl FnMut(usize, &[f64], &[f64], &[f64]),
+    mut after: impl FnMut(usize, &[f64], &[f64]),
+) -> (Vec<f64>, Vec<f64>) {
+    let n = x0.len();
+    let (mut xc, mut tc) = (x0.to_vec(), tx.to_vec());
+    let (mut xn, mut tn) = (vec![0.0; n], vec![0.0; n]);
+    for t in 0..r.steps {
+        let tp_t = tp(t);
+        before(t, &xc, &tc, tp_t);
+        r.op.jvp(&xc, r.p_at(t), &tc, tp_t, &mut xn, &mut tn);
+        std::mem::swap(&mut xc, &mut xn);
+        std::mem::swap(&mut tc, &mut tn);
+        after(t + 1, &xc, &tc);
+    }
+    (xc, tc)
 }
 
 impl<O: Vjp + Jvp, L: Loss> Vjp for RolloutLoss<'_, O, L> {
@@ -192,9 +209,9 @@ impl<O: Jvp, L: Loss> Jvp for RolloutLoss<'_, O, L> {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         let (x0, r) = self.at(x, p);
         let n = x0.len();
-        let zero_tp = vec![0.0; r.op.n_params()];
-        let (mut xc, mut tc) = (x0.to_vec(), if self.wrt.x0() { tx.to_vec() } else { vec![0.0; n] });
-        let (mut xn, mut tn, mut g) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+        let (zero_tp, zero_tx) = (vec![0.0; r.op.n_params()], vec![0.0; n]);
+        let tx0 = if self.wrt.x0() { tx } else { &zero_tx[..] };
+        let mut g = vec![0.0; n];
         let (mut value, mut slope) = (0.0, 0.0);
         let mut term = |t: usize, x: &[f64], tx: &[f64]| {
             if self.loss.has_term(t, r.steps) {
@@ -203,16 +220,11 @@ impl<O: Jvp, L: Loss> Jvp for RolloutLoss<'_, O, L> {
             }
         };
         if r.steps == 0 {
-            term(0, &xc, &tc);
+            term(0, x0, tx0);
         }
-        for t in 0..r.steps {
-            // The tangent of the step from x_t: its block of tp (or zero).
-            let tp_t = if self.wrt.p() { &tp[r.block(t)] } else { &zero_tp[..] };
-            r.op.jvp(&xc, r.p_at(t), &tc, tp_t, &mut xn, &mut tn);
-            std::mem::swap(&mut xc, &mut xn);
-            std::mem::swap(&mut tc, &mut tn);
-            term(t + 1, &xc, &tc);
-        }
+        // The tangent of the step from x_t: its block of tp (or zero).
+        let tp_at = |t: usize| if self.wrt.p() { &tp[r.block(t)] } else { &zero_tp[..] };
+        carry_tangent(&r, x0, tx0, tp_at, |_, _, _, _| {}, &mut term);
         if let Some(e) = r.op.take_error() {
             panic!("RolloutLoss: in the forward pass: {e}");
         }
@@ -292,13 +304,8 @@ impl<O: Jvp> Jvp for RolloutOperator<'_, O> {
     #[track_caller]
     fn jvp(&self, x: &[f64], _p: &[f64], tx: &[f64], _tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         let tp = vec![0.0; self.rollout.op.n_params()];
-        let (mut xc, mut tc) = (x.to_vec(), tx.to_vec());
-        for t in 0..self.rollout.steps {
-            self.rollout.op.jvp(&xc, self.rollout.p_at(t), &tc, &tp, y, ty);
-            xc.copy_from_slice(y);
-            tc.copy_from_slice(ty);
-        }
-        y.copy_from_slice(&xc);
-        ty.copy_from_slice(&tc);
+        let (xt, tt) = carry_tangent(&self.rollout, x, tx, |_| &tp[..], |_, _, _, _| {}, |_, _, _| {});
+        y.copy_from_slice(&xt);
+        ty.copy_from_slice(&tt);
     }
 }

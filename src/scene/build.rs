@@ -9,7 +9,7 @@ use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d};
 use diffsim_solvers::smoke3d::Smoke3d;
 use toml::Spanned;
 
-use super::init::{field_init, shape_cells};
+use super::init::{axis_of, field_init, shape_cells};
 use super::spec::{EffectSpec, SceneFile, ShapeSpec};
 use super::value::{count, finite, iterations, positive, tolerance};
 use super::{Array, Control, Domain, Field, Line, Scene, SceneError, SceneLoss};
@@ -554,12 +554,7 @@ impl Builder<'_> {
                 if b.field != "smoke" {
                     return Err(SceneError::key(at("field"), unknown("field", &b.field, &["smoke"])));
                 }
-                let axis = match b.axis.as_str() {
-                    "x" => 0,
-                    "y" => 1,
-                    "z" => 2,
-                    other => return Err(SceneError::key(at("axis"), unknown("axis", other, &["x", "y", "z"]))),
-                };
+                let axis = axis_of(&at("axis"), &b.axis)?;
                 self.need(&at("kind"), "buoyancy", &[Field::Smoke, Field::Velocity])?;
                 self.effects.push("buoyancy".into());
                 self.ops.push(Box::new(Buoyancy3 { cfg, dt: self.dt, axis }));

@@ -66,14 +66,9 @@ fn only_3d(key: &str) -> SceneError {
     SceneError::key(key, "sphere, cylinder and npy shapes need a 3D domain (size = [nx, ny, nz])")
 }
 
-/// An axis by name.
-fn axis_of(key: &str, name: &str) -> Result<usize, SceneError> {
-    match name {
-        "x" => Ok(0),
-        "y" => Ok(1),
-        "z" => Ok(2),
-        other => Err(SceneError::key(key, crate::words::unknown("axis", other, &["x", "y", "z"]))),
-    }
+/// An axis by name (`x`, `y`, `z`), or an error at `key`.
+pub(super) fn axis_of(key: &str, name: &str) -> Result<usize, SceneError> {
+    crate::volume::axis_index(name).ok_or_else(|| SceneError::key(key, crate::words::unknown("axis", name, &crate::volume::AXES)))
 }
 
 /// The solid cells of a 3D shape (a cell is solid when its centre lies

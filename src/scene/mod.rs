@@ -182,7 +182,8 @@ impl Domain {
                     .enumerate()
                     .map(|(axis, suffix)| {
                         let len = cfg.n_face(axis);
-                        let shape = [cfg.nz, cfg.ny, cfg.nx].iter().enumerate().map(|(b, &n)| (n + (2 - b == axis) as usize) as u64).collect();
+                        // numpy order: z, y, x.
+                        let shape = cfg.face_dims(axis).iter().rev().map(|&n| n as u64).collect();
                         start += len;
                         Array { suffix, range: start - len..start, shape }
                     })

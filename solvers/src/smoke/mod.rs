@@ -328,7 +328,7 @@ macro_rules! with_mac {
 /// buffer Enzyme differentiates has given silently wrong gradients
 /// (ENZYME.md).
 #[inline(always)]
-fn copy(from: &[f64], to: &mut [f64]) {
+pub(crate) fn copy(from: &[f64], to: &mut [f64]) {
     for (o, &a) in to.iter_mut().zip(from) {
         *o = a;
     }

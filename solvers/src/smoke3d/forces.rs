@@ -4,14 +4,13 @@
 //! the coefficients).
 
 use super::Smoke3d;
+use crate::smoke::copy;
 
 /// Where the faces normal to `axis` start in the packed state, and their
 /// extents `[x, y, z]`.
 #[inline(always)]
 fn faces(cfg: &Smoke3d, axis: usize) -> (usize, [usize; 3]) {
-    let start = cfg.n_s() + (0..axis).map(|b| cfg.n_face(b)).sum::<usize>();
-    let [nx, ny, nz] = cfg.dims();
-    (start, [nx + (axis == 0) as usize, ny + (axis == 1) as usize, nz + (axis == 2) as usize])
+    (cfg.slab_starts(0)[1 + axis], cfg.face_dims(axis))
 }
 
 /// Buoyancy along `axis` (0 x, 1 y, 2 z; a negative coefficient pushes the
@@ -22,9 +21,7 @@ fn faces(cfg: &Smoke3d, axis: usize) -> (usize, [usize; 3]) {
 /// If `x` or `y` is not a packed state or `axis > 2`.
 pub fn apply_buoyancy3(cfg: &Smoke3d, axis: usize, coefficient: f64, x: &[f64], y: &mut [f64]) {
     assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && axis < 3, "smoke3d: buoyancy lengths");
-    for (o, &a) in y.iter_mut().zip(x) {
-        *o = a;
-    }
+    copy(x, y);
     let [nx, ny, _] = cfg.dims();
     let (start, e) = faces(cfg, axis);
     // Cells one step down `axis` from cell c are at c − stride.
@@ -57,9 +54,7 @@ pub fn apply_inflow3(cfg: &Smoke3d, region: [usize; 6], x: &[f64], p: &[f64], y:
         x.len() == cfg.n_state() && y.len() == cfg.n_state() && p.len() == 4 && i0 < i1 && i1 <= nx && j0 < j1 && j1 <= ny && k0 < k1 && k1 <= nz,
         "smoke3d: inflow"
     );
-    for (o, &a) in y.iter_mut().zip(x) {
-        *o = a;
-    }
+    copy(x, y);
     for k in k0..k1 {
         for j in j0..j1 {
             for i in i0..i1 {
@@ -94,9 +89,7 @@ pub fn apply_inflow3(cfg: &Smoke3d, region: [usize; 6], x: &[f64], p: &[f64], y:
 /// If the lengths are wrong.
 pub fn apply_force3(cfg: &Smoke3d, dt: f64, x: &[f64], f: &[f64], y: &mut [f64]) {
     assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && f.len() == cfg.n_vel(), "smoke3d: force lengths");
-    for (o, &a) in y.iter_mut().zip(x) {
-        *o = a;
-    }
+    copy(x, y);
     let n = cfg.dims();
     let ns = cfg.n_s();
     for axis in 0..3 {

@@ -66,11 +66,16 @@ impl Smoke3d {
         self.nx * self.ny * self.nz
     }
 
-    /// Number of faces normal to `axis` (0 x, 1 y, 2 z): the cells with one
-    /// more along that axis.
-    pub fn n_face(&self, axis: usize) -> usize {
+    /// Extents `[x, y, z]` of the array of faces normal to `axis` (0 x, 1 y,
+    /// 2 z): the cells with one more along that axis.
+    pub fn face_dims(&self, axis: usize) -> [usize; 3] {
         let d = self.dims();
-        (0..3).map(|a| d[a] + (a == axis) as usize).product()
+        [0, 1, 2].map(|a| d[a] + (a == axis) as usize)
+    }
+
+    /// Number of faces normal to `axis`.
+    pub fn n_face(&self, axis: usize) -> usize {
+        self.face_dims(axis).iter().product()
     }
 
     /// Number of velocities `n_u + n_v + n_w`.

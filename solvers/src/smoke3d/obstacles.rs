@@ -71,9 +71,9 @@ pub fn solid_cells(cfg: &Smoke3d, shapes: &[Solid3]) -> Vec<bool> {
 /// flat indices of the cells below and above it (`None` beyond the box).
 #[inline]
 pub fn for_each_face3(cfg: &Smoke3d, axis: usize, mut f: impl FnMut(usize, Option<usize>, Option<usize>)) {
-    let [nx, ny, nz] = cfg.dims();
-    let ext = [nx + (axis == 0) as usize, ny + (axis == 1) as usize, nz + (axis == 2) as usize];
     let n = cfg.dims();
+    let [nx, ny, _] = n;
+    let ext = cfg.face_dims(axis);
     let mut face = 0;
     for k in 0..ext[2] {
         for j in 0..ext[1] {

@@ -7,7 +7,7 @@
 //! functions here.
 
 use super::*;
-use crate::smoke::Scheme;
+use crate::smoke::{Scheme, copy};
 
 /// Scratch [`advect3`] needs: for MacCormack two fields of the largest
 /// lattice, none for semi-Lagrangian.
@@ -81,9 +81,7 @@ pub fn advect3(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool, x: &[
     if smoke {
         advect_field3(mac, At3::Centre, scheme, cfg.dt, vel, s, s2, &mut hat[..len(s.len())], &mut tilde[..len(s.len())]);
     } else {
-        for (o, &a) in s2.iter_mut().zip(s) {
-            *o = a;
-        }
+        copy(s, s2);
     }
     if velocity {
         advect_field3(mac, At3::U, scheme, cfg.dt, vel, u, u2, &mut hat[..len(u.len())], &mut tilde[..len(u.len())]);
@@ -91,9 +89,9 @@ pub fn advect3(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool, x: &[
         advect_field3(mac, At3::W, scheme, cfg.dt, vel, w, w2, &mut hat[..len(w.len())], &mut tilde[..len(w.len())]);
         close_walls(cfg, [u2, v2, w2]);
     } else {
-        for (o, &a) in u2.iter_mut().chain(v2.iter_mut()).chain(w2.iter_mut()).zip(u.iter().chain(v).chain(w)) {
-            *o = a;
-        }
+        copy(u, u2);
+        copy(v, v2);
+        copy(w, w2);
     }
 }
 
@@ -210,9 +208,7 @@ pub fn limiter3_radius(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], d:
 /// If a length is wrong.
 pub fn advect_upwind3(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
     assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
-    for (o, &a) in y.iter_mut().zip(x) {
-        *o = a;
-    }
+    copy(x, y);
     let ns = cfg.n_s();
     let (s, s2) = (&x[..ns], &mut y[..ns]);
     let [_, u, v, w] = cfg.split(x);
