@@ -176,6 +176,26 @@ pub(crate) fn assert_identical_for_any_thread_count(run: impl Fn(usize) -> (f64,
     }
 }
 
+/// Asserts that `apply` (`z = M·r`) is symmetric and positive, as CG needs
+/// of a preconditioner: `⟨Mr, s⟩ = ⟨r, Ms⟩` to 1e-12 and `⟨Mr, r⟩ > 0` for
+/// two seeded vectors of length `len`, made mean-free when `mean_free` (a
+/// singular matrix's preconditioner acts on those). `what` names the case.
+pub(crate) fn assert_symmetric_positive(what: &str, len: usize, mean_free: bool, mut apply: impl FnMut(&[f64], &mut [f64])) {
+    let vector = |seed: u64| -> Vec<f64> {
+        let v = state(len, seed);
+        let m = if mean_free { v.iter().sum::<f64>() / len as f64 } else { 0.0 };
+        v.iter().map(|x| x - m).collect()
+    };
+    let (r, s) = (vector(1), vector(2));
+    let (mut mr, mut ms) = (vec![0.0; len], vec![0.0; len]);
+    apply(&r, &mut mr);
+    apply(&s, &mut ms);
+    let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+    let (a, b) = (dot(&mr, &s), dot(&r, &ms));
+    assert!((a - b).abs() <= 1e-12 * a.abs().max(b.abs()), "{what}: ⟨Mr, s⟩ {a} vs ⟨r, Ms⟩ {b}");
+    assert!(dot(&mr, &r) > 0.0, "{what}: not positive");
+}
+
 /// A seeded P2 state on an `n × n` box: smoke in [0, 1], velocities in
 /// [−0.3, 0.3] (so that the back-traces stay mostly inside cells).
 pub(crate) fn smoke_state(cfg: &diffsim_solvers::smoke::Smoke2d, seed: u64) -> Vec<f64> {

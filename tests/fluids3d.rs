@@ -448,13 +448,7 @@ fn projection_of_any_box_with_mic0_passes_the_checks() {
     // The factor is symmetric and positive (the CG needs both).
     let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
     let mut mic = Mic3::new(&cfg, Some(&fluid));
-    let (a, b) = (field(cfg.n_s(), 1), field(cfg.n_s(), 2));
-    let (mut ma, mut mb) = (vec![0.0; a.len()], vec![0.0; a.len()]);
-    mic.apply(&a, &mut ma);
-    mic.apply(&b, &mut mb);
-    let dot = |p: &[f64], q: &[f64]| p.iter().zip(q).map(|(x, y)| x * y).sum::<f64>();
-    assert!((dot(&ma, &b) - dot(&a, &mb)).abs() <= 1e-12 * dot(&ma, &b).abs(), "⟨Ma, b⟩ ≠ ⟨a, Mb⟩");
-    assert!(dot(&ma, &a) > 0.0);
+    crate::checks::assert_symmetric_positive("MIC(0)", cfg.n_s(), false, |r, z| mic.apply(r, z));
 }
 
 #[test]
@@ -498,19 +492,7 @@ fn multigrid_takes_any_box_with_two_equal_sides() {
     let (n, nz) = (8, 24);
     let mut mg = Multigrid::slabs(n, nz);
     assert!(mg.depth() >= 2);
-    let len = n * n * nz;
-    let mean_free = |seed: u64| -> Vec<f64> {
-        let v = field(len, seed);
-        let m = v.iter().sum::<f64>() / len as f64;
-        v.iter().map(|x| x - m).collect()
-    };
-    let (a, b) = (mean_free(1), mean_free(2));
-    let (mut ma, mut mb) = (vec![0.0; len], vec![0.0; len]);
-    mg.apply(&a, &mut ma);
-    mg.apply(&b, &mut mb);
-    let dot = |p: &[f64], q: &[f64]| p.iter().zip(q).map(|(x, y)| x * y).sum::<f64>();
-    assert!((dot(&ma, &b) - dot(&a, &mb)).abs() <= 1e-12 * dot(&ma, &b).abs());
-    assert!(dot(&ma, &a) > 0.0);
+    crate::checks::assert_symmetric_positive("slabs 8² × 24", n * n * nz, true, |r, z| mg.apply(r, z));
 }
 
 #[test]

@@ -71,19 +71,7 @@ fn multigrid_preconditioner_is_symmetric_and_positive() {
     use diffsim_solvers::multigrid::Multigrid;
     for n in [8, 12, 32] {
         let mut mg = Multigrid::new(n);
-        let mean_free = |seed: u64| -> Vec<f64> {
-            let v: Vec<f64> = (0..n * n).map(|k| ((k as f64 + 1.0) * 0.7548776662 * (seed as f64 + 1.3)).fract() - 0.5).collect();
-            let m = v.iter().sum::<f64>() / v.len() as f64;
-            v.iter().map(|x| x - m).collect()
-        };
-        let (r, s) = (mean_free(1), mean_free(2));
-        let (mut mr, mut ms) = (vec![0.0; n * n], vec![0.0; n * n]);
-        mg.apply(&r, &mut mr);
-        mg.apply(&s, &mut ms);
-        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
-        let (a, b) = (dot(&mr, &s), dot(&r, &ms));
-        assert!((a - b).abs() <= 1e-12 * a.abs().max(b.abs()), "n = {n}: {a} vs {b}");
-        assert!(dot(&mr, &r) > 0.0);
+        crate::checks::assert_symmetric_positive(&format!("n = {n}"), n * n, true, |r, z| mg.apply(r, z));
     }
 }
 

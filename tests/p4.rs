@@ -183,20 +183,7 @@ fn multigrid_preconditioner_is_symmetric_and_positive_in_3d() {
     use diffsim_solvers::multigrid::Multigrid;
     for n in [8, 12] {
         let mut mg = Multigrid::cube(n);
-        let len = n * n * n;
-        let mean_free = |seed: u64| -> Vec<f64> {
-            let v = field(len, seed);
-            let m = v.iter().sum::<f64>() / len as f64;
-            v.iter().map(|x| x - m).collect()
-        };
-        let (r, s) = (mean_free(1), mean_free(2));
-        let (mut mr, mut ms) = (vec![0.0; len], vec![0.0; len]);
-        mg.apply(&r, &mut mr);
-        mg.apply(&s, &mut ms);
-        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
-        let (a, b) = (dot(&mr, &s), dot(&r, &ms));
-        assert!((a - b).abs() <= 1e-12 * a.abs().max(b.abs()), "n = {n}: ⟨Mr, s⟩ {a} vs ⟨r, Ms⟩ {b}");
-        assert!(dot(&mr, &r) > 0.0, "n = {n}: not positive");
+        crate::checks::assert_symmetric_positive(&format!("n = {n}"), n * n * n, true, |r, z| mg.apply(r, z));
     }
 }
 
