@@ -240,7 +240,7 @@ pub struct Diffuse<D> {
 enum Walls {
     /// A 2D box's sides ([`smoke::enforce_boundary`]).
     Box(Smoke2d),
-    /// A closed 3D box ([`smoke3d::close_walls`]).
+    /// A 3D box's sides ([`smoke3d::enforce_boundary3`]).
     Box3(Smoke3d),
 }
 
@@ -254,7 +254,7 @@ impl Walls {
             }
             Walls::Box3(cfg) => {
                 let [_, u, v, w] = cfg.split_mut(y);
-                smoke3d::close_walls(cfg, [u, v, w]);
+                smoke3d::enforce_boundary3(cfg, [u, v, w]);
             }
         }
     }
@@ -266,7 +266,10 @@ impl Walls {
                 let (_, u, v) = cfg.split_mut(t);
                 smoke::enforce_boundary_linear(cfg, u, v);
             }
-            Walls::Box3(_) => self.apply(t),
+            Walls::Box3(cfg) => {
+                let [_, u, v, w] = cfg.split_mut(t);
+                smoke3d::enforce_boundary3_linear(cfg, [u, v, w]);
+            }
         }
     }
 
@@ -277,8 +280,10 @@ impl Walls {
                 let (_, gu, gv) = cfg.split_mut(g);
                 smoke::enforce_boundary_adjoint(cfg, gu, gv);
             }
-            // Zeroing the walls' faces is its own transpose.
-            Walls::Box3(_) => self.apply(g),
+            Walls::Box3(cfg) => {
+                let [_, gu, gv, gw] = cfg.split_mut(g);
+                smoke3d::enforce_boundary3_adjoint(cfg, [gu, gv, gw]);
+            }
         }
     }
 }

@@ -705,6 +705,10 @@ fn three_d_scenes_run_draw_and_check_their_gradient() {
     for f in ["grad_smoke_init.npy", "grad_velocity_init_w.npy", "grad_buoyancy_coefficient.npy"] {
         assert!(out.join(f).exists(), "{f} missing");
     }
+    // A 3D channel (inflow, outflow, periodic z, a sphere) passes too.
+    let (code, stdout, err) = diffsim(&["grad", "tests/scenes_moving/channel3d.toml", "--out", o, "--check"]);
+    assert_eq!(code, 0, "{stdout}\n{err}");
+    assert_eq!(stdout.matches("→ pass").count(), 3, "{stdout}");
     // A 2D scene from a moving state passes too (the faces the closed
     // sides set are no kink of the step).
     let (code, stdout, err) = diffsim(&["grad", "tests/scenes_moving/moving2d.toml", "--out", o, "--check"]);

@@ -4,6 +4,7 @@
 
 mod accuracy;
 mod boundaries;
+mod boundaries3d;
 mod checks;
 mod cli;
 mod doc_examples;

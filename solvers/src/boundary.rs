@@ -1,7 +1,11 @@
-//! Boundary conditions of the 2D box, per side: closed walls, periodic
-//! wrap, inflow with a prescribed velocity profile, and free outflow.
+//! Boundary conditions of the 2D and 3D box, per side: closed walls,
+//! periodic wrap, inflow with a prescribed velocity profile, and free
+//! outflow. [`Boundary`] holds the four sides of a 2D box, [`Boundary3`]
+//! the six of a 3D one; the rules below act on one axis at a time
+//! ([`axis_face`], [`validate_axes`]) and are shared by both.
 //!
-//! What each kind means for the MAC grid of [`crate::smoke`]:
+//! What each kind means for the MAC grids of [`crate::smoke`] and
+//! [`crate::smoke3d`]:
 //!
 //! | kind | normal velocity on the side's faces | pressure | advection |
 //! |---|---|---|---|
@@ -19,7 +23,8 @@
 use std::fmt;
 
 /// Velocity profile of an inflow side, as the inward normal speed at the
-/// position `t ∈ (0, 1)` along the side (from its lower-left end).
+/// position `t ∈ (0, 1)` along the side (from its lower-left end), or in
+/// 3D at `(t₁, t₂)` across the side ([`Profile::across`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Profile {
     /// The same speed everywhere.
@@ -35,6 +40,17 @@ impl Profile {
         match *self {
             Profile::Uniform(s) => s,
             Profile::Parabolic(peak) => 4.0 * peak * t * (1.0 - t),
+        }
+    }
+
+    /// The inward speed at `(t₁, t₂) ∈ (0, 1)²` on a side of a 3D box (the
+    /// side's two axes in x, y, z order): the parabolic profile is the
+    /// product `16·peak·t₁(1 − t₁)·t₂(1 − t₂)`, zero on the side's edges
+    /// and `peak` in its middle (a square duct's profile to leading order).
+    pub fn across(&self, t1: f64, t2: f64) -> f64 {
+        match *self {
+            Profile::Uniform(s) => s,
+            Profile::Parabolic(peak) => 16.0 * peak * t1 * (1.0 - t1) * t2 * (1.0 - t2),
         }
     }
 }
@@ -70,7 +86,7 @@ pub struct Boundary {
 pub enum BoundaryError {
     /// One side of an axis is periodic and the other is not.
     HalfPeriodic {
-        /// `"x"` or `"y"`.
+        /// `"x"`, `"y"` or `"z"`.
         axis: &'static str,
     },
     /// Fluid flows in but no side lets it out.
@@ -126,17 +142,119 @@ impl Boundary {
 
     /// Checks that the sides can be simulated together.
     pub fn validate(&self) -> Result<(), BoundaryError> {
-        if (self.left == Side::Periodic) != (self.right == Side::Periodic) {
-            return Err(BoundaryError::HalfPeriodic { axis: "x" });
-        }
-        if (self.bottom == Side::Periodic) != (self.top == Side::Periodic) {
-            return Err(BoundaryError::HalfPeriodic { axis: "y" });
-        }
-        if self.sides().iter().any(|s| matches!(s, Side::Inflow(_))) && !self.has_outflow() {
-            return Err(BoundaryError::InflowWithoutOutflow);
-        }
-        Ok(())
+        validate_axes(&[[self.left, self.right], [self.bottom, self.top]])
     }
+}
+
+/// Checks that the sides of a box, `[lower, upper]` per axis (x, y, z),
+/// can be simulated together: a periodic side's opposite side is periodic,
+/// and fluid that flows in has an outflow side to leave by.
+pub fn validate_axes(axes: &[[Side; 2]]) -> Result<(), BoundaryError> {
+    for (a, [lo, hi]) in axes.iter().enumerate() {
+        if (*lo == Side::Periodic) != (*hi == Side::Periodic) {
+            return Err(BoundaryError::HalfPeriodic { axis: ["x", "y", "z"][a] });
+        }
+    }
+    let sides = || axes.iter().flatten();
+    if sides().any(|s| matches!(s, Side::Inflow(_))) && !sides().any(|s| *s == Side::Outflow) {
+        return Err(BoundaryError::InflowWithoutOutflow);
+    }
+    Ok(())
+}
+
+/// The six sides of a 3D box (x to the right, y up, z towards the viewer).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Boundary3 {
+    /// `x = 0`.
+    pub left: Side,
+    /// `x = Nx`.
+    pub right: Side,
+    /// `y = 0`.
+    pub bottom: Side,
+    /// `y = Ny`.
+    pub top: Side,
+    /// `z = 0`.
+    pub back: Side,
+    /// `z = Nz`.
+    pub front: Side,
+}
+
+impl Boundary3 {
+    /// Closed walls all round (P4).
+    pub const CLOSED: Boundary3 = Boundary3::all(Side::Closed);
+
+    /// Every side the same kind.
+    pub const fn all(side: Side) -> Self {
+        Self::axes(side, side, side)
+    }
+
+    /// `x` sides `sx`, `y` sides `sy`, `z` sides `sz`.
+    pub const fn axes(sx: Side, sy: Side, sz: Side) -> Self {
+        Self { left: sx, right: sx, bottom: sy, top: sy, back: sz, front: sz }
+    }
+
+    /// The sides `[lower, upper]` of `axis` (0 x, 1 y, 2 z).
+    pub fn axis(&self, axis: usize) -> [Side; 2] {
+        match axis {
+            0 => [self.left, self.right],
+            1 => [self.bottom, self.top],
+            _ => [self.back, self.front],
+        }
+    }
+
+    /// Which axes wrap.
+    pub fn wraps(&self) -> [bool; 3] {
+        [0, 1, 2].map(|a| self.axis(a)[0] == Side::Periodic)
+    }
+
+    /// Whether some side is an outflow (the pressure matrix is then definite).
+    pub fn has_outflow(&self) -> bool {
+        (0..3).any(|a| self.axis(a).contains(&Side::Outflow))
+    }
+
+    /// Checks that the sides can be simulated together ([`validate_axes`]).
+    pub fn validate(&self) -> Result<(), BoundaryError> {
+        validate_axes(&[self.axis(0), self.axis(1), self.axis(2)])
+    }
+}
+
+impl Default for Boundary3 {
+    fn default() -> Self {
+        Self::CLOSED
+    }
+}
+
+/// Face `k` (of `0..=n`) of an axis of `n` cells whose sides are `lo` and
+/// `hi`, along that axis alone: the rule [`for_each_face`] (2D) and
+/// [`crate::smoke3d::for_each_face3`] (3D) apply per axis. `None` for the
+/// duplicate last face of a periodic axis (a copy of face `0`).
+#[inline(always)]
+pub fn axis_face(k: usize, n: usize, lo: Side, hi: Side) -> Option<AxisFace> {
+    if k > 0 && k < n {
+        Some(AxisFace { lower: Some(k - 1), upper: Some(k), projected: true, side: None, copy: None })
+    } else if k == 0 {
+        let wrap = lo == Side::Periodic;
+        Some(AxisFace { lower: wrap.then_some(n - 1), upper: Some(0), projected: wrap || lo == Side::Outflow, side: Some(lo), copy: wrap.then_some(n) })
+    } else if hi != Side::Periodic {
+        Some(AxisFace { lower: Some(n - 1), upper: None, projected: hi == Side::Outflow, side: Some(hi), copy: None })
+    } else {
+        None
+    }
+}
+
+/// One face along one axis ([`axis_face`]): positions along the axis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AxisFace {
+    /// The cell below the face, `None` outside the box.
+    pub lower: Option<usize>,
+    /// The cell above it.
+    pub upper: Option<usize>,
+    /// Whether the projection changes the face's velocity.
+    pub projected: bool,
+    /// The side the face lies on; `None` inside the box.
+    pub side: Option<Side>,
+    /// On a periodic axis, face `0`'s duplicate (`n`).
+    pub copy: Option<usize>,
 }
 
 /// A fluid region that an inflow side feeds and no outflow side drains
@@ -249,15 +367,15 @@ pub fn for_each_face(nx: usize, ny: usize, b: &Boundary, axis: usize, mut visit:
     let cell = |along: usize, across: usize| if axis == 0 { across * nx + along } else { along * nx + across };
     let index = |k: usize, across: usize| if axis == 0 { across * (nx + 1) + k } else { k * nx + across };
     let mut at = |k: usize, across: usize| {
-        if k > 0 && k < n {
-            visit(Face { index: index(k, across), lower: Some(cell(k - 1, across)), upper: Some(cell(k, across)), projected: true, side: None, copy: None });
-        } else if k == 0 {
-            let wrap = lo == Side::Periodic;
-            let lower = wrap.then(|| cell(n - 1, across));
-            let copy = wrap.then(|| index(n, across));
-            visit(Face { index: index(0, across), lower, upper: Some(cell(0, across)), projected: wrap || lo == Side::Outflow, side: Some(lo), copy });
-        } else if hi != Side::Periodic {
-            visit(Face { index: index(n, across), lower: Some(cell(n - 1, across)), upper: None, projected: hi == Side::Outflow, side: Some(hi), copy: None });
+        if let Some(f) = axis_face(k, n, lo, hi) {
+            visit(Face {
+                index: index(k, across),
+                lower: f.lower.map(|l| cell(l, across)),
+                upper: f.upper.map(|u| cell(u, across)),
+                projected: f.projected,
+                side: f.side,
+                copy: f.copy.map(|c| index(c, across)),
+            });
         }
     };
     // Row by row in memory: x-faces along a row, y-face rows one after another.

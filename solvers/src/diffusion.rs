@@ -17,8 +17,7 @@ use crate::smoke3d::Smoke3d;
 
 /// A lattice of `nx × ny × nz` samples at `f[m·slab + l·stride + k]` in a
 /// slice of [`Grid::len`] values (a line or a plane: `nz = 1`); on a
-/// wrapping axis (x or y) the lattice is periodic, on the others no flux
-/// leaves it. Entries of the slice that are not samples (a periodic
+/// wrapping axis the lattice is periodic, on the others no flux leaves it. Entries of the slice that are not samples (a periodic
 /// velocity's copy column or row) do not diffuse.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Grid {
@@ -34,12 +33,17 @@ pub struct Grid {
     pub wrap_x: bool,
     /// The y axis wraps.
     pub wrap_y: bool,
+    /// The z axis wraps.
+    pub wrap_z: bool,
+    /// Rows per slab in the slice (`ny`, or one more where a periodic y
+    /// axis keeps its copy row inside each slab).
+    pub rows: usize,
 }
 
 impl Grid {
     /// A plane of `nx × ny` samples, rows `stride` apart.
     pub fn plane(stride: usize, nx: usize, ny: usize, wrap_x: bool, wrap_y: bool) -> Self {
-        Self { stride, nx, ny, nz: 1, wrap_x, wrap_y }
+        Self { stride, nx, ny, nz: 1, wrap_x, wrap_y, wrap_z: false, rows: ny }
     }
 
     /// A line of `n` samples, periodic or closed.
@@ -63,23 +67,22 @@ impl Grid {
         ]
     }
 
-    /// The four lattices of a 3D state `[s, u, v, w]` in the closed box:
-    /// cell centres and the faces normal to x, y and z.
+    /// The four lattices of a 3D state `[s, u, v, w]` for `cfg`'s sides:
+    /// cell centres and the faces normal to x, y and z (a periodic axis's
+    /// copy faces left out).
     pub fn of_state_3d(cfg: &Smoke3d) -> [Grid; 4] {
-        let [nx, ny, nz] = cfg.dims();
-        [[nx, ny, nz], cfg.face_dims(0), cfg.face_dims(1), cfg.face_dims(2)].map(|[x, y, z]| Grid {
-            stride: x,
-            nx: x,
-            ny: y,
-            nz: z,
-            wrap_x: false,
-            wrap_y: false,
+        let w = cfg.boundary.wraps();
+        [3, 0, 1, 2].map(|axis| {
+            // The array's extents, and the samples (own faces) per axis.
+            let ext = if axis == 3 { cfg.dims() } else { cfg.face_dims(axis) };
+            let own = [0, 1, 2].map(|a| ext[a] - (a == axis && w[a]) as usize);
+            Grid { stride: ext[0], nx: own[0], ny: own[1], nz: own[2], wrap_x: w[0], wrap_y: w[1], wrap_z: w[2], rows: ext[1] }
         })
     }
 
     /// Distance between slabs in the slice.
     pub fn slab(&self) -> usize {
-        if self.stride == self.nx { self.nx * self.ny } else { self.stride * self.ny }
+        self.stride * self.rows
     }
 
     /// Length of the slice holding the field.
@@ -106,7 +109,7 @@ impl Grid {
 /// periodic axis); zero at slice entries that are not samples. Symmetric
 /// positive semi-definite.
 pub fn laplacian(g: &Grid, s: &[f64], out: &mut [f64]) {
-    if !g.wrap_x && !g.wrap_y && g.stride == g.nx && g.nx >= 2 && g.nz == 1 {
+    if !g.wrap_x && !g.wrap_y && g.stride == g.nx && g.nx >= 2 && g.nz == 1 && g.rows == g.ny {
         return apply_pressure_matrix(g.nx, g.ny, s, out);
     }
     for o in out.iter_mut() {
@@ -120,9 +123,13 @@ pub fn laplacian(g: &Grid, s: &[f64], out: &mut [f64]) {
                 let mut acc = plane_terms(g, s, c, k, l, m * slab);
                 if m > 0 {
                     acc += s[c] - s[c - slab];
+                } else if g.wrap_z {
+                    acc += s[c] - s[c + (nz - 1) * slab];
                 }
                 if m + 1 < nz {
                     acc += s[c] - s[c + slab];
+                } else if g.wrap_z {
+                    acc += s[c] - s[c - (nz - 1) * slab];
                 }
                 out[c] = acc;
             }

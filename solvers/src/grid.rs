@@ -64,3 +64,16 @@ pub fn own_faces<const WRAP: bool>(n: usize) -> usize {
 pub fn lattice_gap(pos: f64, speed: f64) -> f64 {
     if speed == 0.0 { f64::INFINITY } else { (pos - pos.round()).abs() / speed.abs() }
 }
+
+/// [`axis_position`] for an axis that wraps when `wrap` (a value known at
+/// run time, or folded away where it is a constant).
+#[inline(always)]
+pub fn position(wrap: bool, m: usize, r: f64) -> (usize, usize, f64) {
+    if wrap { axis_position::<true>(m, r) } else { axis_position::<false>(m, r) }
+}
+
+/// [`axis_passes`] for an axis that wraps when `wrap`.
+#[inline(always)]
+pub fn passes(wrap: bool, m: usize, r: f64) -> f64 {
+    if wrap { axis_passes::<true>(m, r) } else { axis_passes::<false>(m, r) }
+}

@@ -186,9 +186,9 @@ fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64], views: Views) -
 /// The speed at the cell centres of a 3D MAC velocity, scaled to its
 /// maximum.
 fn relative_speed_3d(cfg: &diffsim_solvers::smoke3d::Smoke3d, x: &[f64]) -> Vec<f64> {
-    use diffsim_solvers::smoke3d::{At3, Mac3};
+    use diffsim_solvers::smoke3d::At3;
     let [_, u, v, w] = cfg.split(x);
-    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let mac = cfg.mac();
     let [nx, ny, _] = cfg.dims();
     let speed: Vec<f64> = (0..cfg.n_s())
         .map(|c| {

@@ -43,6 +43,7 @@ state_operator!(SmokeAdvect3, o => o.0);
 impl Forward for SmokeAdvect3 {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "SmokeAdvect3", x, p, y);
+        closed_only(&self.0);
         smoke3d::advect_buoyancy_parallel(&self.0, x, y);
     }
 
@@ -54,6 +55,7 @@ impl Forward for SmokeAdvect3 {
 impl Vjp for SmokeAdvect3 {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         validate_vjp(self, "SmokeAdvect3", x, p, dy, dx, dp);
+        closed_only(&self.0);
         let cfg = self.0;
         let ranges = slab_ranges(cfg.nz);
         if ranges.len() == 1 {
@@ -102,8 +104,14 @@ impl Vjp for SmokeAdvect3 {
 impl Jvp for SmokeAdvect3 {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         validate_jvp(self, "SmokeAdvect3", x, p, tx, tp, y, ty);
+        closed_only(&self.0);
         SmokeAdvect3Slabs::new(self.0, 0..self.0.nz).jvp(x, p, tx, tp, y, ty);
     }
+}
+
+/// P4's step is the closed box's: checked before the generated code runs.
+fn closed_only(cfg: &Smoke3d) {
+    assert!(cfg.is_closed(), "SmokeAdvect3 is P4's step of the closed box; a box with other sides takes fluids3d::Advect3");
 }
 
 thread_local! {
@@ -192,10 +200,10 @@ pub struct Project3 {
 }
 
 impl Project3 {
-    /// The projection of the closed box `cfg`, solves to relative
+    /// The projection of the box `cfg` (any sides), solves to relative
     /// `tolerance` in at most `max_iterations` iterations, preconditioned by
-    /// multigrid (a box whose sides all differ runs plain CG in its place),
-    /// MIC(0) or nothing.
+    /// multigrid (a box that is not closed or whose sides all differ runs
+    /// plain CG in its place), MIC(0) or nothing.
     ///
     /// # Panics
     /// For the Cholesky preconditioner (2D only).
@@ -258,12 +266,13 @@ impl Project3 {
 
 crate::fluids::linear_projection!(Project3, "Project3");
 
-/// The preconditioner a box takes: multigrid needs two equal sides
-/// ([`smoke3d::slab_axis`]); a box whose sides all differ runs plain CG in
-/// its place (MIC(0), sequential, costs more than it saves here:
+/// The preconditioner a box takes: multigrid needs a closed box with two
+/// equal sides ([`smoke3d::slab_axis`]); other boxes (all sides different,
+/// or periodic, inflow or outflow sides) run plain CG in its place (MIC(0), sequential, costs more than it saves here:
 /// docs/fluids3d.md).
 fn for_box(cfg: &Smoke3d, precond: Preconditioner) -> Preconditioner {
-    if precond == Preconditioner::Multigrid && smoke3d::slab_axis(cfg.dims()).is_none() { Preconditioner::None } else { precond }
+    let multigrid_fits = cfg.is_closed() && smoke3d::slab_axis(cfg.dims()).is_some();
+    if precond == Preconditioner::Multigrid && !multigrid_fits { Preconditioner::None } else { precond }
 }
 
 /// One full P4 step: [`SmokeAdvect3`] (or its hand-written adjoint), then

@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use diffsim_solvers::boundary::{Boundary, Profile, Side};
+use diffsim_solvers::boundary::{Boundary, Boundary3, Profile, Side};
 use diffsim_solvers::burgers::Burgers1d;
 use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d};
 use diffsim_solvers::smoke3d::Smoke3d;
@@ -78,17 +78,15 @@ fn domain(file: &SceneFile, text: &str) -> Result<Domain, SceneError> {
                 if d.length.is_some() {
                     return Err(SceneError::key("domain.length", "a box has unit cells; `length` is for 1D domains"));
                 }
-                match &d.boundary {
-                    None => {}
-                    Some(toml::Value::String(s)) if s == "closed" => {}
-                    Some(_) => {
-                        return Err(SceneError::key(
-                            "domain.boundary",
-                            "3D boxes are closed on every side so far (periodic, inflow and outflow sides are 2D only)",
-                        ));
+                let boundary = match &d.boundary {
+                    None => Boundary3::CLOSED,
+                    Some(v) => {
+                        let [[left, right], [bottom, top], [back, front]] = <[[Side; 2]; 3]>::try_from(boundary_sides(v, 3)?).expect("three axes");
+                        Boundary3 { left, right, bottom, top, back, front }
                     }
-                }
-                Ok(Domain::Box3(Smoke3d::new(nx, ny, nz, 1.0)))
+                };
+                boundary.validate().map_err(|e| SceneError::key("domain.boundary", e.to_string()))?;
+                Ok(Domain::Box3(Smoke3d::new(nx, ny, nz, 1.0).with_boundary(boundary)))
             }
             k => Err(SceneError::key("domain.size", format!("expected [n] (1D), [nx, ny] (2D) or [nx, ny, nz] (3D), got {k} value(s)"))),
         }
@@ -116,11 +114,14 @@ fn grid_fits(sizes: &[u64], arrays: u64) -> Result<(), SceneError> {
         .map_err(|e| SceneError::key("domain.size", e.to_string()))
 }
 
-/// A box's `domain.boundary` (default closed).
+/// A 2D box's `domain.boundary` (default closed).
 pub(super) fn domain_boundary(d: &super::spec::DomainSpec) -> Result<Boundary, SceneError> {
     match &d.boundary {
         None => Ok(Boundary::CLOSED),
-        Some(v) => boundary(v),
+        Some(v) => {
+            let [[left, right], [bottom, top]] = <[[Side; 2]; 2]>::try_from(boundary_sides(v, 2)?).expect("two axes");
+            Ok(Boundary { left, right, bottom, top })
+        }
     }
 }
 
@@ -533,7 +534,7 @@ impl Builder<'_> {
                 self.effects.push("advection".into());
                 match self.advection_scheme(k, &a, v)? {
                     // Both fields semi-Lagrangian: P4's step (in parallel, with its hand adjoint beside it).
-                    Some(Scheme::SemiLagrangian) if s && v => self.ops.push(Box::new(SmokeAdvect3(cfg))),
+                    Some(Scheme::SemiLagrangian) if s && v && cfg.is_closed() => self.ops.push(Box::new(SmokeAdvect3(cfg))),
                     Some(scheme) => self.ops.push(Box::new(Advect3 { cfg, scheme, smoke: s, velocity: v })),
                     None => self.ops.push(Box::new(AdvectUpwind3 { cfg })),
                 }
@@ -627,76 +628,92 @@ fn self_cfg(domain: &Domain) -> &Smoke2d {
     }
 }
 
-/// The boundary of `domain.boundary`.
-fn boundary(v: &toml::Value) -> Result<Boundary, SceneError> {
+/// The sides `[lower, upper]` of each of a box's `dims` axes from
+/// `domain.boundary`: one kind for every side, one per axis (`{ x = …, y =
+/// … }`, and `z` in 3D), or one per side (`left`, `right`, `bottom`, `top`,
+/// and `back`, `front` in 3D; sides not named are closed).
+fn boundary_sides(v: &toml::Value, dims: usize) -> Result<Vec<[Side; 2]>, SceneError> {
     const KEY: &str = "domain.boundary";
+    const AXES: [&str; 3] = ["x", "y", "z"];
+    const SIDES: [&str; 6] = ["left", "right", "bottom", "top", "back", "front"];
+    let (axes, sides) = (&AXES[..dims], &SIDES[..2 * dims]);
     match v {
         toml::Value::String(_) => {
             let s = side(KEY, v, None)?;
             if matches!(s, Side::Inflow(_)) {
                 return Err(SceneError::key(KEY, "inflow must be given per side"));
             }
-            Ok(Boundary::all(s))
+            Ok(vec![[s, s]; dims])
         }
-        toml::Value::Table(t) if t.contains_key("x") || t.contains_key("y") => {
+        toml::Value::Table(t) if axes.iter().any(|a| t.contains_key(*a)) => {
             for k in t.keys() {
-                if k != "x" && k != "y" {
-                    return Err(SceneError::key(format!("{KEY}.{k}"), unknown("axis", k, &["x", "y"])));
+                if !axes.contains(&k.as_str()) {
+                    return Err(SceneError::key(format!("{KEY}.{k}"), unknown("axis", k, axes)));
                 }
             }
-            let axis = |a: &str| t.get(a).map_or(Ok(Side::Closed), |v| side(&format!("{KEY}.{a}"), v, None));
-            Ok(Boundary::axes(axis("x")?, axis("y")?))
+            axes.iter()
+                .map(|a| {
+                    let s = t.get(*a).map_or(Ok(Side::Closed), |v| side(&format!("{KEY}.{a}"), v, None))?;
+                    Ok([s, s])
+                })
+                .collect()
         }
         toml::Value::Table(t) => {
-            const SIDES: [&str; 4] = ["left", "right", "bottom", "top"];
             for k in t.keys() {
-                if !SIDES.contains(&k.as_str()) {
-                    return Err(SceneError::key(format!("{KEY}.{k}"), unknown("side", k, &["left", "right", "bottom", "top", "x", "y"])));
+                if !sides.contains(&k.as_str()) {
+                    let known: Vec<&str> = sides.iter().chain(axes).copied().collect();
+                    return Err(SceneError::key(format!("{KEY}.{k}"), unknown("side", k, &known)));
                 }
             }
-            let one = |name: &str, inward: [f64; 2]| t.get(name).map_or(Ok(Side::Closed), |v| side(&format!("{KEY}.{name}"), v, Some(inward)));
-            Ok(Boundary {
-                left: one("left", [1.0, 0.0])?,
-                right: one("right", [-1.0, 0.0])?,
-                bottom: one("bottom", [0.0, 1.0])?,
-                top: one("top", [0.0, -1.0])?,
-            })
+            // Side 2a + h is the lower (h = 0) or upper side of axis a; its inward normal.
+            let one = |k: usize| {
+                let mut inward = vec![0.0; dims];
+                inward[k / 2] = if k % 2 == 0 { 1.0 } else { -1.0 };
+                t.get(sides[k]).map_or(Ok(Side::Closed), |v| side(&format!("{KEY}.{}", sides[k]), v, Some(&inward)))
+            };
+            (0..dims).map(|a| Ok([one(2 * a)?, one(2 * a + 1)?])).collect()
         }
         _ => Err(SceneError::key(
             KEY,
-            "expected a kind (\"closed\", \"periodic\", \"outflow\"), { x = …, y = … } or { left = …, right = …, bottom = …, top = … }",
+            format!("expected a kind (\"closed\", \"periodic\", \"outflow\"), {{ {} = … }} or {{ {} = … }}", axes.join(" = …, "), sides.join(" = …, ")),
         )),
     }
 }
 
-/// One side: a kind, or `{ inflow = [vx, vy], profile = "uniform" | "parabolic" }`
-/// (`inward`: the side's inward normal, for the inflow speed).
-fn side(key: &str, v: &toml::Value, inward: Option<[f64; 2]>) -> Result<Side, SceneError> {
+/// One side: a kind, or `{ inflow = [vx, vy(, vz)], profile = "uniform" |
+/// "parabolic" }` (`inward`: the side's inward normal, for the inflow
+/// speed; its length is the box's dimension).
+fn side(key: &str, v: &toml::Value, inward: Option<&[f64]>) -> Result<Side, SceneError> {
     const KINDS: [&str; 4] = ["closed", "periodic", "outflow", "inflow"];
+    let coords = |n: usize| ["vx", "vy", "vz"][..n].join(", ");
     match v {
         toml::Value::String(s) => match s.as_str() {
             "closed" => Ok(Side::Closed),
             "periodic" => Ok(Side::Periodic),
             "outflow" => Ok(Side::Outflow),
-            "inflow" => Err(SceneError::key(key, "inflow needs its velocity: { inflow = [vx, vy] }")),
+            "inflow" => Err(SceneError::key(key, format!("inflow needs its velocity: {{ inflow = [{}] }}", coords(inward.map_or(2, <[f64]>::len))))),
             other => Err(SceneError::key(key, unknown("boundary kind", other, &KINDS))),
         },
         toml::Value::Table(t) => {
             let Some(normal) = inward else {
-                return Err(SceneError::key(key, "inflow is given per side (left, right, bottom, top)"));
+                return Err(SceneError::key(key, "inflow is given per side (left, right, bottom, top, and back, front in 3D)"));
             };
+            let dims = normal.len();
             for k in t.keys() {
                 if k != "inflow" && k != "profile" {
                     return Err(SceneError::key(format!("{key}.{k}"), unknown("key", k, &["inflow", "profile"])));
                 }
             }
-            let vel: [f64; 2] = t
+            let numbers = ["two", "three"][dims - 2];
+            let vel: Vec<f64> = t
                 .get("inflow")
-                .ok_or_else(|| SceneError::key(key, "expected { inflow = [vx, vy] }"))?
+                .ok_or_else(|| SceneError::key(key, format!("expected {{ inflow = [{}] }}", coords(dims))))?
                 .clone()
                 .try_into()
-                .map_err(|_| SceneError::key(format!("{key}.inflow"), "expected two numbers [vx, vy]"))?;
-            let speed = finite(&format!("{key}.inflow"), vel[0] * normal[0] + vel[1] * normal[1])?;
+                .ok()
+                .filter(|v: &Vec<f64>| v.len() == dims)
+                .ok_or_else(|| SceneError::key(format!("{key}.inflow"), format!("expected {numbers} numbers [{}]", coords(dims))))?;
+            let speed = finite(&format!("{key}.inflow"), vel.iter().zip(normal).map(|(v, n)| v * n).sum())?;
             if speed <= 0.0 {
                 return Err(SceneError::key(format!("{key}.inflow"), format!("the velocity {vel:?} does not point into the domain")));
             }
@@ -706,6 +723,6 @@ fn side(key: &str, v: &toml::Value, inward: Option<[f64; 2]>) -> Result<Side, Sc
                 other => Err(SceneError::key(format!("{key}.profile"), unknown("profile", other, &["uniform", "parabolic"]))),
             }
         }
-        _ => Err(SceneError::key(key, "expected a kind or { inflow = [vx, vy] }")),
+        _ => Err(SceneError::key(key, "expected a kind or { inflow = [...] }")),
     }
 }

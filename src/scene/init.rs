@@ -9,7 +9,7 @@ use std::path::Path;
 
 use diffsim_solvers::flow::Shape;
 use diffsim_solvers::smoke::{enforce_boundary, obstacle_box, obstacle_disc};
-use diffsim_solvers::smoke3d::{Smoke3d, Solid3, close_walls, solid_cells};
+use diffsim_solvers::smoke3d::{Smoke3d, Solid3, enforce_boundary3, solid_cells};
 
 use super::spec::{InitSpec, NpyPaths, ShapeSpec};
 use super::value::{finite, positive};
@@ -222,7 +222,7 @@ pub(super) fn field_init(key: &str, domain: &Domain, field: Field, init: &InitSp
         (Field::Velocity, Domain::Box3(cfg)) => {
             let (u, rest) = values.split_at_mut(cfg.n_face(0));
             let (v, w) = rest.split_at_mut(cfg.n_face(1));
-            close_walls(cfg, [u, v, w]);
+            enforce_boundary3(cfg, [u, v, w]);
         }
         _ => {}
     }

@@ -11,8 +11,8 @@ use crate::par::for_pieces;
 /// `ks` (and the lattice's slabs past `nz` when `ks` reaches the top),
 /// `out` holding those slabs.
 #[inline(always)]
-pub(crate) fn trace<const WX: bool, const WY: bool, const WZ: bool>(
-    mac: Mac3<WX, WY, WZ>,
+pub(crate) fn trace<W: Wraps>(
+    mac: Mac3<W>,
     at: At3,
     vel: [&[f64]; 3],
     f: &[f64],
@@ -34,7 +34,7 @@ pub(crate) fn trace<const WX: bool, const WY: bool, const WZ: bool>(
 /// [`trace`] with the slabs split over threads (the same values). The
 /// serial loop above stays as it is: Enzyme differentiates it, and slicing
 /// the output per slab there trips its reverse pass (docs/enzyme.md).
-fn trace_parallel<const WX: bool, const WY: bool, const WZ: bool>(mac: Mac3<WX, WY, WZ>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, out: &mut [f64]) {
+fn trace_parallel<W: Wraps>(mac: Mac3<W>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, out: &mut [f64]) {
     let lat = mac.lattice(at);
     let slab = lat.sy * lat.sx;
     // One arm per lattice, so that each slab's loop is compiled for a known
@@ -49,7 +49,7 @@ fn trace_parallel<const WX: bool, const WY: bool, const WZ: bool>(mac: Mac3<WX, 
 
 /// Slab `k` of [`trace`] into `o` (that slab of the lattice's array).
 #[inline(always)]
-fn trace_slab<const WX: bool, const WY: bool, const WZ: bool>(mac: Mac3<WX, WY, WZ>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, k: usize, o: &mut [f64]) {
+fn trace_slab<W: Wraps>(mac: Mac3<W>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, k: usize, o: &mut [f64]) {
     let lat = mac.lattice(at);
     for j in 0..lat.n[1] {
         for i in 0..lat.n[0] {
@@ -60,8 +60,8 @@ fn trace_slab<const WX: bool, const WY: bool, const WZ: bool>(mac: Mac3<WX, WY, 
 
 /// The value traced back to point `q` of the lattice `at`.
 #[inline(always)]
-fn traced<const WX: bool, const WY: bool, const WZ: bool>(
-    mac: Mac3<WX, WY, WZ>,
+fn traced<W: Wraps>(
+    mac: Mac3<W>,
     at: At3,
     lat: Lattice3,
     vel: [&[f64]; 3],
@@ -71,7 +71,7 @@ fn traced<const WX: bool, const WY: bool, const WZ: bool>(
 ) -> f64 {
     let [a, b, c] = mac.velocity(at, vel, q);
     let p = [q[0] as f64 + lat.o[0] - dt * a, q[1] as f64 + lat.o[1] - dt * b, q[2] as f64 + lat.o[2] - dt * c];
-    sample3::<WX, WY, WZ>(f, lat, p)
+    sample3(mac.wraps(), f, lat, p)
 }
 
 /// Adjoint of [`trace`] at time step `dt`: adds `Jᵀ·g` into the velocity's
@@ -80,8 +80,8 @@ fn traced<const WX: bool, const WY: bool, const WZ: bool>(
 /// sampled and one of the velocities that trace it).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn trace_adjoint<const WX: bool, const WY: bool, const WZ: bool>(
-    mac: Mac3<WX, WY, WZ>,
+fn trace_adjoint<W: Wraps>(
+    mac: Mac3<W>,
     at: At3,
     vel: [&[f64]; 3],
     f: &[f64],
@@ -105,7 +105,7 @@ fn trace_adjoint<const WX: bool, const WY: bool, const WZ: bool>(
                     At3::V => &mut *gv,
                     At3::W => &mut *gw,
                 };
-                let dp = sample3_adjoint::<WX, WY, WZ>(f, gf, lat, p, gq);
+                let dp = sample3_adjoint(mac.wraps(), f, gf, lat, p, gq);
                 mac.velocity_adjoint(at, [&mut *gu, &mut *gv, &mut *gw], q, [-dt * dp[0], -dt * dp[1], -dt * dp[2]]);
             }
         }
@@ -138,7 +138,7 @@ pub fn advect_buoyancy_slabs(cfg: &Smoke3d, x: &[f64], ks: Range<usize>, y: &mut
     let lens = cfg.slab_lens(ks.clone());
     assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == cfg.n_state() && y.len() == lens.iter().sum::<usize>(), "smoke3d: state lengths");
     assert!(ks.start < ks.end && ks.end <= cfg.nz, "smoke3d: slabs {ks:?} of {}", cfg.nz);
-    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let mac = Mac3::bounded(cfg.dims());
     let [s, u, v, w] = cfg.split(x);
     let (s2, rest) = y.split_at_mut(lens[0]);
     let (u2, rest) = rest.split_at_mut(lens[1]);
@@ -161,7 +161,7 @@ pub fn advect_buoyancy_slabs(cfg: &Smoke3d, x: &[f64], ks: Range<usize>, y: &mut
 /// As [`advect_buoyancy`].
 pub fn advect_buoyancy_parallel(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
     assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
-    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let mac = Mac3::bounded(cfg.dims());
     let [s, u, v, w] = cfg.split(x);
     let [s2, u2, v2, w2] = cfg.split_mut(y);
     let vel = [u, v, w];
@@ -233,7 +233,7 @@ fn add_buoyancy_slabs(cfg: &Smoke3d, coefficient: f64, slabs: usize, s: &[f64], 
 pub fn advect_buoyancy_adjoint(cfg: &Smoke3d, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
     let n = cfg.n_state();
     assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == n && gy.len() == n && gx.len() == n, "smoke3d: state lengths");
-    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let mac = Mac3::bounded(cfg.dims());
     let [nx, ny, nz] = cfg.dims();
     let [s, u, v, w] = cfg.split(x);
     let [gs2, gu2, gv2, gw2] = cfg.split_mut(gy);
@@ -254,15 +254,6 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke3d, x: &[f64], gy: &mut [f64], gx: &mu
     trace_adjoint(mac, At3::V, vel, v, cfg.dt, gv2, None, [&mut *gu, &mut *gv, &mut *gw]);
     trace_adjoint(mac, At3::U, vel, u, cfg.dt, gu2, None, [&mut *gu, &mut *gv, &mut *gw]);
     trace_adjoint(mac, At3::Centre, vel, s, cfg.dt, gs2, Some(gs), [gu, gv, gw]);
-}
-
-/// Whether point `q` of the lattice `at` is a face on a wall of the closed
-/// box: the walls set its value after the trace, so where its trace lands
-/// does not matter (no kink of the step).
-#[inline(always)]
-pub(crate) fn on_wall(at: At3, q: [usize; 3], n: [usize; 3]) -> bool {
-    let a = at.axis();
-    a < 3 && (q[a] == 0 || q[a] == n[a])
 }
 
 /// How far `x` may move along `d` before [`advect_buoyancy`] meets a kink:

@@ -14,8 +14,10 @@ fn faces(cfg: &Smoke3d, axis: usize) -> (usize, [usize; 3]) {
 }
 
 /// Buoyancy along `axis` (0 x, 1 y, 2 z; a negative coefficient pushes the
-/// other way): `y = x` with the velocity component of `axis` on its
-/// interior faces raised by `coefficient · (smoke averaged to the face)`.
+/// other way): `y = x` with the velocity component of `axis` on its faces
+/// between two cells (interior, and across a periodic side: the last cell
+/// and the first, the copy refreshed) raised by `coefficient · (smoke
+/// averaged to the face)`.
 ///
 /// # Panics
 /// If `x` or `y` is not a packed state or `axis > 2`.
@@ -27,13 +29,39 @@ pub fn apply_buoyancy3(cfg: &Smoke3d, axis: usize, coefficient: f64, x: &[f64], 
     // Cells one step down `axis` from cell c are at c − stride.
     let stride = [1, nx, nx * ny][axis];
     let n = cfg.dims()[axis];
+    let wrap = cfg.boundary.wraps()[axis];
     for k in 0..e[2] {
         for j in 0..e[1] {
             for i in 0..e[0] {
                 let along = [i, j, k][axis];
+                let c = (k * ny + j) * nx + i;
                 if along > 0 && along < n {
-                    let c = (k * ny + j) * nx + i;
                     y[start + (k * e[1] + j) * e[0] + i] += coefficient * 0.5 * (x[c - stride] + x[c]);
+                } else if wrap && along == 0 {
+                    y[start + (k * e[1] + j) * e[0] + i] += coefficient * 0.5 * (x[c + (n - 1) * stride] + x[c]);
+                }
+            }
+        }
+    }
+    refresh_copies(cfg, axis, y);
+}
+
+/// On a periodic `axis`, each last face of the packed state `y` set to the
+/// copy of its face `0`.
+#[inline(always)]
+fn refresh_copies(cfg: &Smoke3d, axis: usize, y: &mut [f64]) {
+    if !cfg.boundary.wraps()[axis] {
+        return;
+    }
+    let (start, e) = faces(cfg, axis);
+    let n = cfg.dims()[axis];
+    let step = [1, e[0], e[0] * e[1]][axis];
+    for k in 0..e[2] {
+        for j in 0..e[1] {
+            for i in 0..e[0] {
+                if [i, j, k][axis] == 0 {
+                    let face = start + (k * e[1] + j) * e[0] + i;
+                    y[face + n * step] = y[face];
                 }
             }
         }
@@ -81,9 +109,10 @@ pub fn apply_inflow3(cfg: &Smoke3d, region: [usize; 6], x: &[f64], p: &[f64], y:
 }
 
 /// An external force over a time step `dt`: `[s, u, v, w] ↦ [s, u + dt·fu,
-/// v + dt·fv, w + dt·fw]` on the interior faces, with the force `f`
-/// given per face (the velocity layout, [`Smoke3d::n_vel`] values); the
-/// faces on the box's sides keep their velocity.
+/// v + dt·fv, w + dt·fw]` on the interior faces and those that wrap across
+/// a periodic side (copies refreshed), with the force `f` given per face
+/// (the velocity layout, [`Smoke3d::n_vel`] values); the faces on the
+/// other sides keep their velocity.
 ///
 /// # Panics
 /// If the lengths are wrong.
@@ -92,18 +121,21 @@ pub fn apply_force3(cfg: &Smoke3d, dt: f64, x: &[f64], f: &[f64], y: &mut [f64])
     copy(x, y);
     let n = cfg.dims();
     let ns = cfg.n_s();
+    let wraps = cfg.boundary.wraps();
     for axis in 0..3 {
         let (start, e) = faces(cfg, axis);
+        let first = 1 - wraps[axis] as usize;
         for k in 0..e[2] {
             for j in 0..e[1] {
                 for i in 0..e[0] {
                     let along = [i, j, k][axis];
-                    if along > 0 && along < n[axis] {
+                    if along >= first && along < n[axis] {
                         let face = start + (k * e[1] + j) * e[0] + i;
                         y[face] += dt * f[face - ns];
                     }
                 }
             }
         }
+        refresh_copies(cfg, axis, y);
     }
 }

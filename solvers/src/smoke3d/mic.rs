@@ -5,41 +5,46 @@
 //! Graphics*, §5), with the same safety factors.
 
 use super::Smoke3d;
+use crate::boundary::Side;
 use crate::par::for_pieces;
 
-/// The seven-point pressure matrix of the closed box `dims` with solid cells
-/// where `fluid[c] = 0` (`None`: none): `out[c] = w_c·Σ_m w_m·(p_c − p_m) +
-/// (1 − w_c)·p_c` over the neighbours `m` inside the box. Symmetric; the
-/// constants on the fluid cells its null space. Slab by slab, in parallel
-/// on large boxes.
-pub fn apply_general_matrix3(dims: [usize; 3], fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
-    let [nx, ny, nz] = dims;
+/// The seven-point pressure matrix of the box `cfg` (any sides) with solid
+/// cells where `fluid[c] = 0` (`None`: none): `out[c] = w_c·Σ_m w_m·(p_c −
+/// p_m) + (1 − w_c)·p_c` over the neighbours `m` across the cell's faces
+/// that the projection changes (inside the box, wrapped across a periodic
+/// side, and a ghost `p = 0` across an outflow side); closed and inflow
+/// sides add nothing (Neumann). Symmetric; without an outflow side the
+/// constants on the fluid cells are its null space. Slab by slab, in
+/// parallel on large boxes.
+pub fn apply_general_matrix3(cfg: &Smoke3d, fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
+    let [nx, ny, nz] = cfg.dims();
     let slab = nx * ny;
     let w = |c: usize| fluid.map_or(1.0, |f| f[c]);
+    let b = cfg.boundary;
+    let strides = [1, nx, slab];
+    let dims = [nx, ny, nz];
     for_pieces(&mut out[..slab * nz], slab, |k, o| {
         for j in 0..ny {
             for i in 0..nx {
                 let c = (k * ny + j) * nx + i;
+                let q = [i, j, k];
                 let (pc, wc) = (p[c], w(c));
                 let mut acc = 0.0;
-                let mut add = |m: usize| acc += w(m) * (pc - p[m]);
-                if i > 0 {
-                    add(c - 1);
-                }
-                if i + 1 < nx {
-                    add(c + 1);
-                }
-                if j > 0 {
-                    add(c - nx);
-                }
-                if j + 1 < ny {
-                    add(c + nx);
-                }
-                if k > 0 {
-                    add(c - slab);
-                }
-                if k + 1 < nz {
-                    add(c + slab);
+                for a in 0..3 {
+                    let [lo, hi] = b.axis(a);
+                    let span = (dims[a] - 1) * strides[a];
+                    // Down the axis, then up: the neighbour inside, or what the side does.
+                    for (inside, m, side, wrapped) in [(q[a] > 0, c.wrapping_sub(strides[a]), lo, c + span), (q[a] + 1 < dims[a], c + strides[a], hi, c.wrapping_sub(span))] {
+                        if inside {
+                            acc += w(m) * (pc - p[m]);
+                        } else {
+                            match side {
+                                Side::Periodic => acc += w(wrapped) * (pc - p[wrapped]),
+                                Side::Outflow => acc += pc,
+                                Side::Closed | Side::Inflow(_) => {}
+                            }
+                        }
+                    }
                 }
                 o[j * nx + i] = wc * acc + (1.0 - wc) * pc;
             }
@@ -64,8 +69,11 @@ pub struct Mic3 {
 }
 
 impl Mic3 {
-    /// The factor for the closed box `cfg` with solid cells where `fluid[c]
-    /// = 0` (`None`: none).
+    /// The factor for the box `cfg` with solid cells where `fluid[c] = 0`
+    /// (`None`: none): its diagonal counts every coupling of the matrix
+    /// (periodic and outflow sides too), its off-diagonal part the
+    /// couplings inside the box (those across a periodic side are left
+    /// out, as in 2D).
     pub fn new(cfg: &Smoke3d, fluid: Option<&[f64]>) -> Self {
         const TAU: f64 = 0.97;
         const SIGMA: f64 = 0.25;
@@ -81,11 +89,15 @@ impl Mic3 {
                 let q = at(c);
                 let mut s = 0.0;
                 for a in 0..3 {
-                    if q[a] > 0 {
-                        s += w(c - strides[a]);
-                    }
-                    if q[a] + 1 < dims[a] {
-                        s += w(c + strides[a]);
+                    let [lo, hi] = cfg.boundary.axis(a);
+                    let span = (dims[a] - 1) * strides[a];
+                    for (inside, m, side, wrapped) in [(q[a] > 0, c.wrapping_sub(strides[a]), lo, c + span), (q[a] + 1 < dims[a], c + strides[a], hi, c.wrapping_sub(span))] {
+                        s += match (inside, side) {
+                            (true, _) => w(m),
+                            (false, Side::Periodic) => w(wrapped),
+                            (false, Side::Outflow) => 1.0,
+                            (false, _) => 0.0,
+                        };
                     }
                 }
                 w(c) * s + (1.0 - w(c))

@@ -25,10 +25,11 @@
 
 use std::ops::Range;
 
-use crate::grid::{axis_passes, axis_position, beside, lattice_gap, next, own_faces};
+use crate::boundary::{Boundary3, Side};
+use crate::grid::{beside, lattice_gap, next, own_faces, passes, position};
 
-/// Grid of the 3D smoke problem: `nx × ny × nz` unit cells in a closed box,
-/// and the buoyancy coefficient (along +y).
+/// Grid of the 3D smoke problem: `nx × ny × nz` unit cells, the buoyancy
+/// coefficient (along +y) of P4's step, the time step and the six sides.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Smoke3d {
     /// Cells along x.
@@ -42,18 +43,37 @@ pub struct Smoke3d {
     pub buoyancy: f64,
     /// Time step of the advection, in cells per unit speed (P4: 1).
     pub dt: f64,
+    /// The six sides (closed for P4). Check with [`Boundary3::validate`]
+    /// before simulating.
+    pub boundary: Boundary3,
 }
 
 impl Smoke3d {
     /// The P4 setting: an `n³` closed box, buoyancy 0.1, unit time step.
     pub fn p4(n: usize) -> Self {
-        Self { nx: n, ny: n, nz: n, buoyancy: 0.1, dt: 1.0 }
+        Self { nx: n, ny: n, nz: n, buoyancy: 0.1, dt: 1.0, boundary: Boundary3::CLOSED }
     }
 
     /// A closed `nx × ny × nz` box advected with time step `dt`, without
     /// buoyancy in the explicit step.
     pub fn new(nx: usize, ny: usize, nz: usize, dt: f64) -> Self {
-        Self { nx, ny, nz, buoyancy: 0.0, dt }
+        Self { nx, ny, nz, buoyancy: 0.0, dt, boundary: Boundary3::CLOSED }
+    }
+
+    /// The same grid with other sides.
+    pub fn with_boundary(self, boundary: Boundary3) -> Self {
+        Self { boundary, ..self }
+    }
+
+    /// Whether every side is closed (P4's box).
+    pub fn is_closed(&self) -> bool {
+        self.boundary == Boundary3::CLOSED
+    }
+
+    /// The index rules of this grid's MAC lattices, its axes wrapping where
+    /// the sides are periodic.
+    pub fn mac(&self) -> Mac3<[bool; 3]> {
+        Mac3 { n: self.dims(), wrap: self.boundary.wraps() }
     }
 
     /// Cells along each axis `[nx, ny, nz]`.
@@ -138,20 +158,21 @@ pub struct Lattice3 {
 
 /// The eight samples around `p` (x fastest) and the fractions along each axis.
 #[inline(always)]
-fn corners3<const WX: bool, const WY: bool, const WZ: bool>(lat: Lattice3, p: [f64; 3]) -> ([usize; 8], [f64; 3]) {
-    let (i0, i1, fx) = axis_position::<WX>(lat.n[0], p[0] - lat.o[0]);
-    let (j0, j1, fy) = axis_position::<WY>(lat.n[1], p[1] - lat.o[1]);
-    let (k0, k1, fz) = axis_position::<WZ>(lat.n[2], p[2] - lat.o[2]);
+fn corners3(wrap: [bool; 3], lat: Lattice3, p: [f64; 3]) -> ([usize; 8], [f64; 3]) {
+    let (i0, i1, fx) = position(wrap[0], lat.n[0], p[0] - lat.o[0]);
+    let (j0, j1, fy) = position(wrap[1], lat.n[1], p[1] - lat.o[1]);
+    let (k0, k1, fz) = position(wrap[2], lat.n[2], p[2] - lat.o[2]);
     let (sx, sy) = (lat.sx, lat.sy);
     let (r00, r10, r01, r11) = ((k0 * sy + j0) * sx, (k0 * sy + j1) * sx, (k1 * sy + j0) * sx, (k1 * sy + j1) * sx);
     ([r00 + i0, r00 + i1, r10 + i0, r10 + i1, r01 + i0, r01 + i1, r11 + i0, r11 + i1], [fx, fy, fz])
 }
 
 /// Trilinear sample of the lattice `f` at `p`; outside it, positions are
-/// clamped to its edge per axis (P4's rule) or wrap on the axes marked.
+/// clamped to its edge per axis (P4's rule) or wrap on the axes marked in
+/// `wrap` (x, y, z).
 #[inline(always)]
-pub fn sample3<const WX: bool, const WY: bool, const WZ: bool>(f: &[f64], lat: Lattice3, p: [f64; 3]) -> f64 {
-    let (c, [fx, fy, fz]) = corners3::<WX, WY, WZ>(lat, p);
+pub fn sample3(wrap: [bool; 3], f: &[f64], lat: Lattice3, p: [f64; 3]) -> f64 {
+    let (c, [fx, fy, fz]) = corners3(wrap, lat, p);
     let (gx, gy, gz) = (1.0 - fx, 1.0 - fy, 1.0 - fz);
     let lo = (f[c[0]] * gx + f[c[1]] * fx) * gy + (f[c[2]] * gx + f[c[3]] * fx) * fy;
     let hi = (f[c[4]] * gx + f[c[5]] * fx) * gy + (f[c[6]] * gx + f[c[7]] * fx) * fy;
@@ -161,8 +182,8 @@ pub fn sample3<const WX: bool, const WY: bool, const WZ: bool>(f: &[f64], lat: L
 /// The smallest and largest of the eight samples [`sample3`] blends at `p`
 /// (MacCormack's limiter clamps to them).
 #[inline(always)]
-pub fn sample3_range<const WX: bool, const WY: bool, const WZ: bool>(f: &[f64], lat: Lattice3, p: [f64; 3]) -> (f64, f64) {
-    let (c, _) = corners3::<WX, WY, WZ>(lat, p);
+pub fn sample3_range(wrap: [bool; 3], f: &[f64], lat: Lattice3, p: [f64; 3]) -> (f64, f64) {
+    let (c, _) = corners3(wrap, lat, p);
     let mut lo = f[c[0]];
     let mut hi = lo;
     for &k in &c[1..] {
@@ -174,15 +195,16 @@ pub fn sample3_range<const WX: bool, const WY: bool, const WZ: bool>(f: &[f64], 
 
 /// The eight samples [`sample3`] blends at `p`, x fastest.
 #[inline(always)]
-pub fn sample3_corners<const WX: bool, const WY: bool, const WZ: bool>(lat: Lattice3, p: [f64; 3]) -> [usize; 8] {
-    corners3::<WX, WY, WZ>(lat, p).0
+pub fn sample3_corners(wrap: [bool; 3], lat: Lattice3, p: [f64; 3]) -> [usize; 8] {
+    corners3(wrap, lat, p).0
 }
 
 /// Adjoint of [`sample3`]: adds `g·∂value/∂f` into `gf` and returns
-/// `g·∂value/∂p`; the clamp passes derivatives as [`axis_passes`] says.
+/// `g·∂value/∂p`; the clamp passes derivatives as
+/// [`crate::grid::axis_passes`] says.
 #[inline(always)]
-pub fn sample3_adjoint<const WX: bool, const WY: bool, const WZ: bool>(f: &[f64], gf: &mut [f64], lat: Lattice3, p: [f64; 3], g: f64) -> [f64; 3] {
-    let (c, [fx, fy, fz]) = corners3::<WX, WY, WZ>(lat, p);
+pub fn sample3_adjoint(wrap: [bool; 3], f: &[f64], gf: &mut [f64], lat: Lattice3, p: [f64; 3], g: f64) -> [f64; 3] {
+    let (c, [fx, fy, fz]) = corners3(wrap, lat, p);
     let (gx, gy, gz) = (1.0 - fx, 1.0 - fy, 1.0 - fz);
     let w = [gx * gy * gz, fx * gy * gz, gx * fy * gz, fx * fy * gz, gx * gy * fz, fx * gy * fz, gx * fy * fz, fx * fy * fz];
     for (&c, &w) in c.iter().zip(&w) {
@@ -194,9 +216,9 @@ pub fn sample3_adjoint<const WX: bool, const WY: bool, const WZ: bool>(f: &[f64]
     let dy = ((v[2] - v[0]) * gx + (v[3] - v[1]) * fx) * gz + ((v[6] - v[4]) * gx + (v[7] - v[5]) * fx) * fz;
     let dz = ((v[4] - v[0]) * gx + (v[5] - v[1]) * fx) * gy + ((v[6] - v[2]) * gx + (v[7] - v[3]) * fx) * fy;
     [
-        g * dx * axis_passes::<WX>(lat.n[0], p[0] - lat.o[0]),
-        g * dy * axis_passes::<WY>(lat.n[1], p[1] - lat.o[1]),
-        g * dz * axis_passes::<WZ>(lat.n[2], p[2] - lat.o[2]),
+        g * dx * passes(wrap[0], lat.n[0], p[0] - lat.o[0]),
+        g * dy * passes(wrap[1], lat.n[1], p[1] - lat.o[1]),
+        g * dz * passes(wrap[2], lat.n[2], p[2] - lat.o[2]),
     ]
 }
 
@@ -227,40 +249,75 @@ impl At3 {
     }
 }
 
-/// Index rules of the MAC grid of an `nx × ny × nz` box whose axes wrap
-/// as marked, written once for the forward operators and their adjoints.
-#[derive(Clone, Copy, Debug)]
-pub struct Mac3<const WX: bool, const WY: bool, const WZ: bool> {
-    /// Cells per axis.
-    pub n: [usize; 3],
+/// Which axes of a 3D grid wrap: [`Bounded`] (none, known when compiling:
+/// P4's closed box, whose loops then carry no test) or `[bool; 3]` (known
+/// at run time: any boundary).
+pub trait Wraps: Copy + Send + Sync {
+    /// Whether x, y and z wrap.
+    fn wraps(self) -> [bool; 3];
 }
 
-impl<const WX: bool, const WY: bool, const WZ: bool> Mac3<WX, WY, WZ> {
+/// No axis wraps (every side bounded).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Bounded;
+
+impl Wraps for Bounded {
+    #[inline(always)]
+    fn wraps(self) -> [bool; 3] {
+        [false; 3]
+    }
+}
+
+impl Wraps for [bool; 3] {
+    #[inline(always)]
+    fn wraps(self) -> [bool; 3] {
+        self
+    }
+}
+
+/// Index rules of the MAC grid of an `nx × ny × nz` box whose axes wrap
+/// as `wrap` says, written once for the forward operators and their
+/// adjoints.
+#[derive(Clone, Copy, Debug)]
+pub struct Mac3<W: Wraps = Bounded> {
+    /// Cells per axis.
+    pub n: [usize; 3],
+    /// The axes that wrap.
+    pub wrap: W,
+}
+
+impl Mac3<Bounded> {
+    /// The closed box of `n` cells per axis.
+    pub fn bounded(n: [usize; 3]) -> Self {
+        Self { n, wrap: Bounded }
+    }
+}
+
+impl<W: Wraps> Mac3<W> {
+    /// Which axes wrap.
+    #[inline(always)]
+    pub fn wraps(self) -> [bool; 3] {
+        self.wrap.wraps()
+    }
+
     /// The cell after `k` along `axis`.
     #[inline(always)]
     fn next(self, axis: usize, k: usize) -> usize {
-        match axis {
-            0 => next::<WX>(self.n[0], k),
-            1 => next::<WY>(self.n[1], k),
-            _ => next::<WZ>(self.n[2], k),
-        }
+        if self.wraps()[axis] { next::<true>(self.n[axis], k) } else { next::<false>(self.n[axis], k) }
     }
 
     /// The two cells beside face `k` of `axis`.
     #[inline(always)]
     fn beside(self, axis: usize, k: usize) -> (usize, usize) {
-        match axis {
-            0 => beside::<WX>(self.n[0], k),
-            1 => beside::<WY>(self.n[1], k),
-            _ => beside::<WZ>(self.n[2], k),
-        }
+        if self.wraps()[axis] { beside::<true>(self.n[axis], k) } else { beside::<false>(self.n[axis], k) }
     }
 
     /// The lattice of `at`: array extents, own samples and origin.
     #[inline(always)]
     pub fn lattice(self, at: At3) -> Lattice3 {
         let a = at.axis();
-        let own = [own_faces::<WX>(self.n[0]), own_faces::<WY>(self.n[1]), own_faces::<WZ>(self.n[2])];
+        let w = self.wraps();
+        let own = [0, 1, 2].map(|b| if w[b] { own_faces::<true>(self.n[b]) } else { own_faces::<false>(self.n[b]) });
         let ext = |b: usize| self.n[b] + (a == b) as usize;
         let pick = |b: usize| if a == b { own[b] } else { self.n[b] };
         let org = |b: usize| if a == b { 0.0 } else { 0.5 };
@@ -329,6 +386,7 @@ mod obstacles;
 mod p4;
 mod pressure;
 mod schemes;
+mod sides;
 
 pub use advect::*;
 pub use forces::*;
@@ -337,3 +395,4 @@ pub use obstacles::*;
 pub use p4::*;
 pub use pressure::*;
 pub use schemes::*;
+pub use sides::*;

@@ -5,7 +5,7 @@
 //! As in 2D, a cell is solid when its centre lies inside a shape; the
 //! projection then couples fluid cells only ([`PressureSolver3::with_obstacles`](super::PressureSolver3::with_obstacles)).
 
-use super::Smoke3d;
+use super::{Smoke3d, for_each_face3};
 
 /// A solid shape in cell units (x first; cell `(i, j, k)` has its centre at
 /// `(i + ½, j + ½, k + ½)`).
@@ -67,48 +67,30 @@ pub fn solid_cells(cfg: &Smoke3d, shapes: &[Solid3]) -> Vec<bool> {
         .collect()
 }
 
-/// Calls `f(face, lower, upper)` for every face normal to `axis` with the
-/// flat indices of the cells below and above it (`None` beyond the box).
-#[inline]
-pub fn for_each_face3(cfg: &Smoke3d, axis: usize, mut f: impl FnMut(usize, Option<usize>, Option<usize>)) {
-    let n = cfg.dims();
-    let [nx, ny, _] = n;
-    let ext = cfg.face_dims(axis);
-    let mut face = 0;
-    for k in 0..ext[2] {
-        for j in 0..ext[1] {
-            for i in 0..ext[0] {
-                let q = [i, j, k];
-                let cell = |q: [usize; 3]| (q[2] * ny + q[1]) * nx + q[0];
-                let lower = (q[axis] > 0).then(|| {
-                    let mut l = q;
-                    l[axis] -= 1;
-                    cell(l)
-                });
-                let upper = (q[axis] < n[axis]).then(|| cell(q));
-                f(face, lower, upper);
-                face += 1;
-            }
-        }
-    }
-}
-
 /// The open fraction of every face of each axis: 1 between two fluid cells
-/// (or a fluid cell and a side of the box), 0 where a solid cell touches it.
+/// (or a fluid cell and a side of the box; across a periodic side, the
+/// last cell and the first), 0 where a solid cell touches it.
 pub fn open_faces(cfg: &Smoke3d, fluid: &[f64]) -> [Vec<f64>; 3] {
     [0, 1, 2].map(|axis| {
         let mut open = vec![0.0; cfg.n_face(axis)];
-        for_each_face3(cfg, axis, |face, lo, hi| open[face] = lo.map_or(1.0, |c| fluid[c]) * hi.map_or(1.0, |c| fluid[c]));
+        for_each_face3(cfg, axis, |f| {
+            let o = f.lower.map_or(1.0, |c| fluid[c]) * f.upper.map_or(1.0, |c| fluid[c]);
+            open[f.index] = o;
+            if let Some(k) = f.copy {
+                open[k] = o;
+            }
+        });
         open
     })
 }
 
-/// The number of solid cells beside each cell (at most six).
+/// The number of solid cells beside each cell (at most six; across a
+/// periodic side too).
 pub fn solid_neighbours(cfg: &Smoke3d, fluid: &[f64]) -> Vec<f64> {
     let mut count = vec![0.0; cfg.n_s()];
     for axis in 0..3 {
-        for_each_face3(cfg, axis, |_, lo, hi| {
-            if let (Some(a), Some(b)) = (lo, hi) {
+        for_each_face3(cfg, axis, |f| {
+            if let (Some(a), Some(b)) = (f.lower, f.upper) {
                 count[a] += 1.0 - fluid[b];
                 count[b] += 1.0 - fluid[a];
             }

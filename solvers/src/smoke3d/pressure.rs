@@ -1,9 +1,10 @@
-//! The 3D pressure projection of a closed box: divergence over the six
-//! faces of each cell, the seven-point matrix (coupling fluid cells only
-//! when there are obstacles), its solve by conjugate gradients
-//! ([`crate::cg`], preconditioned by the multigrid V-cycle of
-//! [`crate::multigrid`] in a cube or by MIC(0) in any box), and the
-//! projection's adjoint (the same solve).
+//! The 3D pressure projection: divergence over the six faces of each cell,
+//! the seven-point matrix (coupling fluid cells only when there are
+//! obstacles; across periodic sides; a ghost `p = 0` beyond outflow
+//! sides), its solve by conjugate gradients ([`crate::cg`], preconditioned
+//! by the multigrid V-cycle of [`crate::multigrid`] in a closed box with
+//! two equal sides, or by MIC(0) in any box), and the projection's adjoint
+//! (the same solve).
 
 use super::mic::{Mic3, apply_general_matrix3};
 use super::*;
@@ -28,13 +29,34 @@ fn for_each_cell(cfg: &Smoke3d, mut f: impl FnMut(usize, [usize; 6])) {
 }
 
 /// Divergence of the MAC velocity, `d[c] = Σ` outward flux over the six
-/// faces of cell `c` (overwrites `d`).
+/// faces of cell `c` (overwrites `d`); across a periodic side the flux of
+/// face `0` (its copy is not read).
 pub fn divergence(cfg: &Smoke3d, [u, v, w]: [&[f64]; 3], d: &mut [f64]) {
+    if !cfg.is_closed() {
+        d.fill(0.0);
+        for (axis, vel) in [u, v, w].into_iter().enumerate() {
+            for_each_face3(cfg, axis, |f| {
+                if let Some(c) = f.lower {
+                    d[c] += vel[f.index];
+                }
+                if let Some(c) = f.upper {
+                    d[c] -= vel[f.index];
+                }
+            });
+        }
+        return;
+    }
     for_each_cell(cfg, |c, f| d[c] = (u[f[1]] - u[f[0]]) + (v[f[3]] - v[f[2]]) + (w[f[5]] - w[f[4]]));
 }
 
 /// Transpose of [`divergence`]: `(u, v, w) += Dᵀ·d` (accumulates).
 pub fn divergence_transpose(cfg: &Smoke3d, d: &[f64], [u, v, w]: [&mut [f64]; 3]) {
+    if !cfg.is_closed() {
+        for (axis, vel) in [u, v, w].into_iter().enumerate() {
+            for_each_face3(cfg, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
+        }
+        return;
+    }
     for_each_cell(cfg, |c, f| {
         let g = d[c];
         u[f[1]] += g;
@@ -46,9 +68,24 @@ pub fn divergence_transpose(cfg: &Smoke3d, d: &[f64], [u, v, w]: [&mut [f64]; 3]
     });
 }
 
-/// `(u, v, w) −= s·G·p` on the interior faces: the pressure difference
-/// across each face, upper cell minus lower, scaled by `s`.
+/// `(u, v, w) −= s·G·p` on the faces the projection changes (interior,
+/// periodic, outflow): the pressure difference across each face, upper
+/// cell minus lower (`p = 0` beyond an outflow side), scaled by `s`;
+/// periodic copies refreshed.
 fn subtract_gradient(cfg: &Smoke3d, scale: f64, p: &[f64], [u, v, w]: [&mut [f64]; 3]) {
+    if !cfg.is_closed() {
+        for (axis, vel) in [u, v, w].into_iter().enumerate() {
+            for_each_face3(cfg, axis, |f| {
+                if f.projected {
+                    vel[f.index] -= scale * (f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]));
+                    if let Some(k) = f.copy {
+                        vel[k] = vel[f.index];
+                    }
+                }
+            });
+        }
+        return;
+    }
     let [nx, ny, nz] = cfg.dims();
     for k in 0..nz {
         for j in 0..ny {
@@ -72,9 +109,30 @@ fn subtract_gradient(cfg: &Smoke3d, scale: f64, p: &[f64], [u, v, w]: [&mut [f64
     }
 }
 
-/// Transpose of `G` on the interior faces: `out = Gᵀ·g` (overwrites).
-fn gradient_transpose(cfg: &Smoke3d, [u, v, w]: [&[f64]; 3], out: &mut [f64]) {
+/// Transpose of `G` on the faces the projection changes: `out = Gᵀ·g`
+/// (overwrites), after each periodic copy's adjoint is handed to its face
+/// `0` (the copy is written from it, never read).
+fn gradient_transpose(cfg: &Smoke3d, [u, v, w]: [&mut [f64]; 3], out: &mut [f64]) {
     out.fill(0.0);
+    if !cfg.is_closed() {
+        for (axis, g) in [u, v, w].into_iter().enumerate() {
+            for_each_face3(cfg, axis, |f| {
+                if f.projected {
+                    if let Some(k) = f.copy {
+                        g[f.index] += g[k];
+                        g[k] = 0.0;
+                    }
+                    if let Some(c) = f.upper {
+                        out[c] += g[f.index];
+                    }
+                    if let Some(c) = f.lower {
+                        out[c] -= g[f.index];
+                    }
+                }
+            });
+        }
+        return;
+    }
     let [nx, ny, nz] = cfg.dims();
     for k in 0..nz {
         for j in 0..ny {
@@ -101,13 +159,13 @@ fn gradient_transpose(cfg: &Smoke3d, [u, v, w]: [&[f64]; 3], out: &mut [f64]) {
     }
 }
 
-/// Conjugate gradients on the pressure matrix of a closed box, with or
+/// Conjugate gradients on the pressure matrix of a box (any sides), with or
 /// without solid cells, preconditioned by a multigrid V-cycle (a cube),
 /// MIC(0) of the matrix (any box) or not at all, with its work vectors
 /// kept between solves.
 #[derive(Clone, Debug)]
 pub struct PressureSolver3 {
-    dims: [usize; 3],
+    cfg: Smoke3d,
     /// The stopping rule.
     pub stop: Stop,
     precond: Precond3,
@@ -172,7 +230,7 @@ struct Masked {
 }
 
 impl PressureSolver3 {
-    /// A solver for the closed box `cfg`: relative `tolerance` on the true
+    /// A solver for the box `cfg` (any sides): relative `tolerance` on the true
     /// residual, more than `max_iterations` an error, preconditioned by
     /// [`Preconditioner::Multigrid`] (a box with two equal sides: a stack of
     /// square slabs, reordered so that they lie along z when they do not),
@@ -185,7 +243,7 @@ impl PressureSolver3 {
         Self::build(cfg, tolerance, max_iterations, precond, None)
     }
 
-    /// A solver for the closed box `cfg` with solid cells where `fluid[c] =
+    /// A solver for the box `cfg` with solid cells where `fluid[c] =
     /// 0`: the matrix `W·(A_box·W − S) + (I − W)`, which couples fluid cells
     /// across their shared faces only (`S` counts the solid cells beside
     /// each cell) and keeps solid rows as the identity; symmetric, the
@@ -204,6 +262,7 @@ impl PressureSolver3 {
     fn build(cfg: &Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner, fluid: Option<Vec<f64>>) -> Self {
         let dims = cfg.dims();
         let precond = match (precond, slab_axis(dims)) {
+            (Preconditioner::Multigrid, _) if !cfg.is_closed() => panic!("the 3D multigrid preconditioner is for closed boxes (periodic, inflow and outflow sides take MIC(0) or none)"),
             (Preconditioner::Multigrid, Some(axis)) => {
                 let side = dims[(axis + 1) % 3];
                 let buffers = if axis == 2 { [Vec::new(), Vec::new()] } else { [vec![0.0; cfg.n_s()], vec![0.0; cfg.n_s()]] };
@@ -215,7 +274,7 @@ impl PressureSolver3 {
             (other, _) => panic!("3D pressure solves take multigrid, MIC(0) or no preconditioner, not {other}"),
         };
         let obstacles = fluid.map(|fluid| Masked { buf: vec![0.0; fluid.len()], solid_beside: super::solid_neighbours(cfg, &fluid), fluid });
-        Self { dims, stop: Stop { tolerance, max_iterations }, precond, obstacles, work: CgWork::new(cfg.n_s()) }
+        Self { cfg: *cfg, stop: Stop { tolerance, max_iterations }, precond, obstacles, work: CgWork::new(cfg.n_s()) }
     }
 
     /// The fluid mask (1 fluid, 0 solid) when there are obstacles.
@@ -246,12 +305,13 @@ impl PressureSolver3 {
 
 impl System for PressureSolver3 {
     fn apply(&mut self, p: &[f64], out: &mut [f64]) {
-        let [nx, ny, nz] = self.dims;
+        let [nx, ny, nz] = self.cfg.dims();
+        let square = nx == ny && self.cfg.is_closed();
         match &mut self.obstacles {
             // The square slabs' fast product.
-            None if nx == ny => apply_box_matrix(nx, nz, p, out),
-            None => apply_general_matrix3(self.dims, None, p, out),
-            Some(m) if nx == ny => {
+            None if square => apply_box_matrix(nx, nz, p, out),
+            None => apply_general_matrix3(&self.cfg, None, p, out),
+            Some(m) if square => {
                 // W·(A_box·(W·p) − S·p) + (I − W)·p.
                 for ((b, &p), &w) in m.buf.iter_mut().zip(p).zip(&m.fluid) {
                     *b = w * p;
@@ -261,17 +321,17 @@ impl System for PressureSolver3 {
                     *o = w * (*o - s * p) + (1.0 - w) * p;
                 }
             }
-            Some(m) => apply_general_matrix3(self.dims, Some(&m.fluid), p, out),
+            Some(m) => apply_general_matrix3(&self.cfg, Some(&m.fluid), p, out),
         }
     }
 
-    /// Constants (on the fluid cells): the box is closed.
+    /// Constants (on the fluid cells) unless a side is an outflow.
     fn null(&self) -> Null<'_> {
-        Null::Constant(self.fluid())
+        if self.cfg.boundary.has_outflow() { Null::None } else { Null::Constant(self.fluid()) }
     }
 
     fn precondition(&mut self, r: &[f64], z: &mut [f64]) -> bool {
-        let dims = self.dims;
+        let dims = self.cfg.dims();
         // The V-cycle of the slabs along `axis`.
         let cycle = |mg: &mut Multigrid, axis: usize, [a, b]: &mut [Vec<f64>; 2], r: &[f64], z: &mut [f64]| {
             if axis == 2 {
@@ -325,7 +385,7 @@ pub fn project(cfg: &Smoke3d, y: &mut [f64], solver: &mut PressureSolver3, scrat
 /// the CG iterations.
 pub fn project_adjoint(cfg: &Smoke3d, g: &mut [f64], solver: &mut PressureSolver3, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
     let [_, gu, gv, gw] = cfg.split_mut(g);
-    gradient_transpose(cfg, [gu, gv, gw], &mut scratch.d);
+    gradient_transpose(cfg, [&mut *gu, &mut *gv, &mut *gw], &mut scratch.d);
     for d in scratch.d.iter_mut() {
         *d = -*d;
     }

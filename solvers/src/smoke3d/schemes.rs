@@ -23,7 +23,7 @@ pub fn advect3_scratch_len(cfg: &Smoke3d, scheme: Scheme) -> usize {
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn advect_field3(
-    mac: Mac3<false, false, false>,
+    mac: Mac3<[bool; 3]>,
     at: At3,
     scheme: Scheme,
     dt: f64,
@@ -48,7 +48,7 @@ fn advect_field3(
                         if limiter {
                             let [a, b, d] = mac.velocity(at, vel, [i, j, k]);
                             let p = [i as f64 + lat.o[0] - dt * a, j as f64 + lat.o[1] - dt * b, k as f64 + lat.o[2] - dt * d];
-                            let (lo, hi) = sample3_range::<false, false, false>(f, lat, p);
+                            let (lo, hi) = sample3_range(mac.wraps(), f, lat, p);
                             val = val.clamp(lo, hi);
                         }
                         out[c] = val;
@@ -60,8 +60,10 @@ fn advect_field3(
 }
 
 /// Advection over `cfg.dt` of the smoke (if `smoke`) and of the velocity by
-/// itself (if `velocity`) in the closed box by `scheme`, each field sampled
-/// back along the velocity at its own points; then the walls closed. Fields
+/// itself (if `velocity`) in the box by `scheme`, each field sampled back
+/// along the velocity at its own points (wrapping across periodic sides,
+/// clamped at the others); then the boundary conditions
+/// ([`enforce_boundary3`]). Fields
 /// not advected are copied. Reads `x = [s, u, v, w]`, overwrites `y`;
 /// `scratch` holds [`advect3_scratch_len`] values.
 ///
@@ -71,7 +73,7 @@ fn advect_field3(
 pub fn advect3(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
     assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
     assert!(scratch.len() >= advect3_scratch_len(cfg, scheme), "smoke3d: advection scratch");
-    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let mac = cfg.mac();
     let [s, u, v, w] = cfg.split(x);
     let [s2, u2, v2, w2] = cfg.split_mut(y);
     let vel = [u, v, w];
@@ -87,7 +89,7 @@ pub fn advect3(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool, x: &[
         advect_field3(mac, At3::U, scheme, cfg.dt, vel, u, u2, &mut hat[..len(u.len())], &mut tilde[..len(u.len())]);
         advect_field3(mac, At3::V, scheme, cfg.dt, vel, v, v2, &mut hat[..len(v.len())], &mut tilde[..len(v.len())]);
         advect_field3(mac, At3::W, scheme, cfg.dt, vel, w, w2, &mut hat[..len(w.len())], &mut tilde[..len(w.len())]);
-        close_walls(cfg, [u2, v2, w2]);
+        enforce_boundary3(cfg, [u2, v2, w2]);
     } else {
         copy(u, u2);
         copy(v, v2);
@@ -105,7 +107,7 @@ fn lattices(smoke: bool, velocity: bool) -> [(bool, At3); 4] {
 /// for MacCormack also the forward one. MacCormack's limiter is
 /// [`limiter3_radius`].
 pub fn advect3_radius(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
-    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let mac = cfg.mac();
     let [_, u, v, w] = cfg.split(x);
     let [_, du, dv, dw] = cfg.split(d);
     let steps: &[f64] = match scheme {
@@ -124,7 +126,7 @@ pub fn advect3_radius(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool
                     let q = [i, j, k];
                     // A face on a wall is set by the walls after the trace
                     // (when the velocity is advected, as it is on its lattices).
-                    if on_wall(at, q, mac.n) {
+                    if set_by_boundary(cfg, at, q) {
                         continue;
                     }
                     let vel = mac.velocity(at, [u, v, w], q);
@@ -143,7 +145,7 @@ pub fn advect3_radius(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool
 }
 
 /// MacCormack's value before the limiter at every point of the lattice `at`.
-fn unclamped3(mac: Mac3<false, false, false>, at: At3, dt: f64, vel: [&[f64]; 3], f: &[f64]) -> Vec<f64> {
+fn unclamped3(mac: Mac3<[bool; 3]>, at: At3, dt: f64, vel: [&[f64]; 3], f: &[f64]) -> Vec<f64> {
     let (mut hat, mut tilde) = (vec![0.0; f.len()], vec![0.0; f.len()]);
     trace(mac, at, vel, f, dt, 0..mac.n[2], &mut hat);
     trace(mac, at, vel, &hat, -dt, 0..mac.n[2], &mut tilde);
@@ -162,7 +164,7 @@ pub fn limiter3_radius(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], d:
     }
     let eps = 1e-7 * (1.0 + x.iter().fold(0.0f64, |m, v| m.max(v.abs()))) / dmax;
     let xe: Vec<f64> = x.iter().zip(d).map(|(a, b)| a + eps * b).collect();
-    let mac = Mac3::<false, false, false> { n: cfg.dims() };
+    let mac = cfg.mac();
     let (fx, fd, fe) = (cfg.split(x), cfg.split(d), cfg.split(&xe));
     let (vel, vele) = ([fx[1], fx[2], fx[3]], [fe[1], fe[2], fe[3]]);
     let mut r = f64::INFINITY;
@@ -178,12 +180,12 @@ pub fn limiter3_radius(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], d:
             for j in 0..lat.n[1] {
                 for i in 0..lat.n[0] {
                     let c = (k * lat.sy + j) * lat.sx + i;
-                    if on_wall(at, [i, j, k], mac.n) {
+                    if set_by_boundary(cfg, at, [i, j, k]) {
                         continue;
                     }
                     let [a, b, e] = mac.velocity(at, vel, [i, j, k]);
                     let p = [i as f64 + lat.o[0] - cfg.dt * a, j as f64 + lat.o[1] - cfg.dt * b, k as f64 + lat.o[2] - cfg.dt * e];
-                    let mut order = sample3_corners::<false, false, false>(lat, p);
+                    let mut order = sample3_corners(mac.wraps(), lat, p);
                     order.sort_by(|&m, &n| f[m].total_cmp(&f[n]));
                     let (lo, lo2, hi2, hi) = (order[0], order[1], order[6], order[7]);
                     let rate = (vale[c] - val[c]) / eps;
@@ -200,8 +202,8 @@ pub fn limiter3_radius(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], d:
 }
 
 /// First-order upwind advection of the smoke by the MAC velocity over
-/// `cfg.dt`, in flux form through every interior face (none through the
-/// closed walls): smoke is conserved. Reads `x = [s, u, v, w]`, writes
+/// `cfg.dt`, in flux form through every face between two cells (across
+/// periodic sides too; none through the other sides): smoke is conserved. Reads `x = [s, u, v, w]`, writes
 /// `y = [s', u, v, w]`.
 ///
 /// # Panics
@@ -209,19 +211,23 @@ pub fn limiter3_radius(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], d:
 pub fn advect_upwind3(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
     assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
     copy(x, y);
-    let ns = cfg.n_s();
-    let (s, s2) = (&x[..ns], &mut y[..ns]);
-    let [_, u, v, w] = cfg.split(x);
     let dt = cfg.dt;
-    for (axis, vel) in [u, v, w].into_iter().enumerate() {
-        for_each_face3(cfg, axis, |face, lower, upper| {
-            if let (Some(lo), Some(hi)) = (lower, upper) {
-                let c = dt * vel[face];
-                let flux = c * if c > 0.0 { s[lo] } else { s[hi] };
-                s2[lo] -= flux;
-                s2[hi] += flux;
+    for axis in 0..3 {
+        // The component's faces in the packed state.
+        let start = cfg.slab_starts(0)[1 + axis];
+        let e = cfg.face_dims(axis);
+        for k in 0..e[2] {
+            for j in 0..e[1] {
+                for i in 0..e[0] {
+                    if let Some((lo, hi)) = cells_beside(cfg, axis, [i, j, k]) {
+                        let c = dt * x[start + (k * e[1] + j) * e[0] + i];
+                        let flux = c * if c > 0.0 { x[lo] } else { x[hi] };
+                        y[lo] -= flux;
+                        y[hi] += flux;
+                    }
+                }
             }
-        });
+        }
     }
 }
 
@@ -232,9 +238,9 @@ pub fn upwind3_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
     let [_, du, dv, dw] = cfg.split(d);
     let mut r = f64::INFINITY;
     for (axis, (vel, dvel)) in [(u, du), (v, dv), (w, dw)].into_iter().enumerate() {
-        for_each_face3(cfg, axis, |face, lower, upper| {
-            if lower.is_some() && upper.is_some() && dvel[face] != 0.0 {
-                r = r.min((vel[face] / dvel[face]).abs());
+        for_each_face3(cfg, axis, |f| {
+            if f.lower.is_some() && f.upper.is_some() && dvel[f.index] != 0.0 {
+                r = r.min((vel[f.index] / dvel[f.index]).abs());
             }
         });
     }

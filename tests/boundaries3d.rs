@@ -1,0 +1,228 @@
+//! Boundary kinds of the 3D fluid (closed, periodic, inflow with a profile,
+//! outflow on any of the six sides): validation, agreement with the 2D
+//! solver on flows that do not vary along a periodic z, the exact
+//! behaviour each kind promises, and the three gradient checks of every 3D
+//! operator under every kind, with and without an obstacle.
+
+use diffsim::check::{CheckOptions, Verdict, check_all};
+use diffsim::fluids::{Diffuse, DiffuseExplicit, DiffuseImplicit};
+use diffsim::fluids3d::{Advect3, AdvectUpwind3, Buoyancy3, Force3};
+use diffsim::op::OperatorExt;
+use diffsim::problems::smoke3d::Project3;
+use diffsim_solvers::boundary::{Boundary, Boundary3, BoundaryError, Profile, Side};
+use diffsim_solvers::smoke::{self, Preconditioner, PressureSolver, ProjectScratch, Scheme, Smoke2d};
+use diffsim_solvers::smoke3d::{Smoke3d, Solid3, divergence, for_each_face3, solid_cells};
+
+use crate::p4::{field, state};
+
+/// One boundary of each kind on every axis, and mixtures.
+fn boundaries() -> Vec<Boundary3> {
+    vec![
+        Boundary3::all(Side::Periodic),
+        Boundary3 { left: Side::Inflow(Profile::Parabolic(0.4)), right: Side::Outflow, ..Boundary3::axes(Side::Closed, Side::Closed, Side::Periodic) },
+        Boundary3 { front: Side::Inflow(Profile::Uniform(0.3)), top: Side::Outflow, ..Boundary3::axes(Side::Periodic, Side::Closed, Side::Closed) },
+        Boundary3 { back: Side::Outflow, ..Boundary3::all(Side::Outflow) },
+    ]
+}
+
+#[test]
+fn invalid_3d_boundaries_are_refused_with_the_reason() {
+    let half = Boundary3 { front: Side::Periodic, ..Boundary3::CLOSED };
+    assert_eq!(half.validate(), Err(BoundaryError::HalfPeriodic { axis: "z" }));
+    let inflow = Boundary3 { back: Side::Inflow(Profile::Uniform(1.0)), ..Boundary3::CLOSED };
+    assert_eq!(inflow.validate(), Err(BoundaryError::InflowWithoutOutflow));
+    for b in boundaries() {
+        assert!(b.validate().is_ok(), "{b:?}");
+    }
+}
+
+#[test]
+fn faces_of_a_periodic_axis_wrap_and_skip_the_copy() {
+    let cfg = Smoke3d::new(3, 4, 5, 1.0).with_boundary(Boundary3::axes(Side::Closed, Side::Outflow, Side::Periodic));
+    let mut z = Vec::new();
+    for_each_face3(&cfg, 2, |f| z.push(f));
+    assert_eq!(z.len(), 3 * 4 * 5, "periodic z: Nz face slabs");
+    // Face (0, 0, 0) wraps from the last slab's cell to the first's; its copy is face (0, 0, 5).
+    assert_eq!((z[0].lower, z[0].upper, z[0].projected, z[0].copy), (Some(4 * 12), Some(0), true, Some(5 * 12)));
+    let mut y = Vec::new();
+    for_each_face3(&cfg, 1, |f| y.push(f));
+    assert_eq!(y.len(), 3 * 5 * 5);
+    // The outflow bottom and top faces are projected with one cell each.
+    assert_eq!((y[0].lower, y[0].upper, y[0].projected), (None, Some(0), true));
+    assert_eq!((y[4 * 3].lower, y[4 * 3].upper, y[4 * 3].projected), (Some(9), None, true));
+}
+
+/// The 2D box `nx × ny` and the 3D box `nx × ny × nz` with the same x and
+/// y sides and a periodic z.
+fn twins(nx: usize, ny: usize, nz: usize, b: Boundary) -> (Smoke2d, Smoke3d) {
+    let cfg2 = Smoke2d::new(nx, ny).with_boundary(b);
+    let b3 = Boundary3 { left: b.left, right: b.right, bottom: b.bottom, top: b.top, back: Side::Periodic, front: Side::Periodic };
+    (cfg2, Smoke3d::new(nx, ny, nz, 0.8).with_boundary(b3))
+}
+
+/// A 2D state lifted to the 3D twin: the same in every z slab, `w = 0`.
+fn lift(cfg2: &Smoke2d, cfg3: &Smoke3d, x: &[f64]) -> Vec<f64> {
+    let (s, u, v) = cfg2.split(x);
+    let nz = cfg3.nz;
+    let mut y = Vec::with_capacity(cfg3.n_state());
+    for f in [s, u, v] {
+        for _ in 0..nz {
+            y.extend_from_slice(f);
+        }
+    }
+    y.resize(cfg3.n_state(), 0.0);
+    y
+}
+
+#[test]
+fn flows_that_do_not_vary_along_a_periodic_z_match_the_2d_solver() {
+    // Independent code: the 2D advection and projection (their own loops,
+    // face lists and matrices) against the 3D ones on a z-invariant state.
+    let kinds = [
+        Boundary::all(Side::Periodic),
+        Boundary { left: Side::Inflow(Profile::Uniform(0.4)), right: Side::Outflow, ..Boundary::CLOSED },
+        Boundary { bottom: Side::Inflow(Profile::Uniform(0.5)), top: Side::Outflow, ..Boundary::axes(Side::Periodic, Side::Closed) },
+        Boundary::all(Side::Outflow),
+    ];
+    for b in kinds {
+        let (cfg2, cfg3) = twins(7, 6, 4, b);
+        let mut x2 = crate::checks::smoke_state(&cfg2, 11);
+        {
+            let (_, u, v) = cfg2.split_mut(&mut x2);
+            smoke::enforce_boundary(&cfg2, u, v);
+        }
+        let x3 = lift(&cfg2, &cfg3, &x2);
+        let close = |a: &[f64], b: &[f64], what: &str| {
+            let worst = a.iter().zip(b).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            assert!(worst < 1e-10, "{b:?}: {what} differs from 2D by {worst:e}");
+        };
+        for scheme in [Scheme::SemiLagrangian, Scheme::MacCormack { limiter: true }] {
+            let mut y2 = vec![0.0; cfg2.n_state()];
+            let mut scratch = vec![0.0; smoke::advect_scratch_len(&cfg2, scheme)];
+            smoke::advect(&cfg2, scheme, cfg3.dt, true, true, &x2, &mut y2, &mut scratch);
+            let y3 = Advect3 { cfg: cfg3, scheme, smoke: true, velocity: true }.eval(&x3, &[]);
+            close(&y3, &lift(&cfg2, &cfg3, &y2), &format!("{scheme:?} advection"));
+        }
+        let mut y2 = x2.clone();
+        let mut solver = PressureSolver::general(cfg2.nx, cfg2.ny, b, 1e-13, 2000, None);
+        smoke::project(&cfg2, &mut y2, &mut solver, &mut ProjectScratch::new(cfg2.n_s())).unwrap();
+        for precond in [Preconditioner::Mic0, Preconditioner::None] {
+            let y3 = Project3::new(cfg3, 1e-13, 2000, precond).eval(&x3, &[]);
+            close(&y3, &lift(&cfg2, &cfg3, &y2), &format!("projection ({precond})"));
+        }
+    }
+}
+
+/// The largest divergence over the fluid cells of a packed state.
+fn max_divergence(cfg: &Smoke3d, x: &[f64], solid: Option<&[bool]>) -> f64 {
+    let [_, u, v, w] = cfg.split(x);
+    let mut d = vec![0.0; cfg.n_s()];
+    divergence(cfg, [u, v, w], &mut d);
+    d.iter().enumerate().filter(|(c, _)| solid.is_none_or(|s| !s[*c])).map(|(_, d)| d.abs()).fold(0.0, f64::max)
+}
+
+#[test]
+fn projection_under_every_kind_leaves_no_divergence_and_keeps_the_sides() {
+    for b in boundaries() {
+        let cfg = Smoke3d::new(8, 7, 6, 1.0).with_boundary(b);
+        let x = state(&cfg, 7);
+        let sphere = solid_cells(&cfg, &[Solid3::Sphere { center: [4.0, 3.5, 3.0], radius: 1.6 }]);
+        for (solid, name) in [(None, "no obstacle"), (Some(&sphere[..]), "a sphere")] {
+            let op = match solid {
+                Some(s) => Project3::with_obstacles(cfg, 1e-12, 3000, Preconditioner::Mic0, s),
+                None => Project3::new(cfg, 1e-12, 3000, Preconditioner::Mic0),
+            };
+            let y = op.eval(&x, &[]);
+            let scale = y[cfg.n_s()..].iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            let d = max_divergence(&cfg, &y, solid);
+            assert!(d < 1e-9 * scale, "{b:?}, {name}: divergence {d:e}");
+            // Projecting twice is projecting once.
+            let z = op.eval(&y, &[]);
+            let again = z.iter().zip(&y).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            assert!(again < 1e-9 * scale, "{b:?}, {name}: not idempotent ({again:e})");
+            // Periodic copies hold their face 0; closed and inflow faces keep their value.
+            for axis in 0..3 {
+                let start = cfg.slab_starts(0)[1 + axis];
+                for_each_face3(&cfg, axis, |f| {
+                    if let Some(k) = f.copy {
+                        assert_eq!(y[start + k], y[start + f.index], "{b:?}: copy of face {}", f.index);
+                    }
+                    if !f.projected {
+                        assert_eq!(y[start + f.index], x[start + f.index], "{b:?}: side face {} changed", f.index);
+                    }
+                });
+            }
+        }
+    }
+}
+
+#[test]
+fn a_uniform_through_flow_is_left_as_it_is_and_periodic_advection_shifts_exactly() {
+    // Inflow on the left at 0.5, outflow on the right: u = 0.5 everywhere
+    // is divergence-free and the projection keeps it (p = 0).
+    let b = Boundary3 { left: Side::Inflow(Profile::Uniform(0.5)), right: Side::Outflow, ..Boundary3::CLOSED };
+    let cfg = Smoke3d::new(6, 5, 4, 1.0).with_boundary(b);
+    let mut x = vec![0.0; cfg.n_state()];
+    let start = cfg.n_s();
+    x[start..start + cfg.n_face(0)].fill(0.5);
+    let y = Project3::new(cfg, 1e-13, 500, Preconditioner::None).eval(&x, &[]);
+    let worst = y.iter().zip(&x).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+    assert!(worst < 1e-12, "uniform through-flow changed by {worst:e}");
+    // Every axis periodic, velocity (1, 0, 0) and a unit step: each step
+    // moves every field one cell along x exactly; Nx steps bring it back.
+    let cfg = Smoke3d::new(5, 4, 3, 1.0).with_boundary(Boundary3::all(Side::Periodic));
+    let mut x = field(cfg.n_state(), 5);
+    let [ns, nu] = [cfg.n_s(), cfg.n_face(0)];
+    x[ns..ns + nu].fill(1.0);
+    x[ns + nu..].fill(0.0);
+    let op = Advect3 { cfg, scheme: Scheme::SemiLagrangian, smoke: true, velocity: true };
+    let one = op.eval(&x, &[]);
+    for c in 0..ns {
+        let (i, rest) = (c % 5, c - c % 5);
+        assert_eq!(one[c], x[rest + (i + 4) % 5], "smoke cell {c} after one step");
+    }
+    let mut y = x.clone();
+    for _ in 0..5 {
+        y = op.eval(&y, &[]);
+    }
+    assert_eq!(y, x, "five steps around the period");
+}
+
+#[test]
+fn every_3d_operator_passes_all_checks_under_every_boundary() {
+    let opts = CheckOptions::default();
+    let no_fail = |r: &diffsim::check::FullReport, what: &str| {
+        for v in [&r.fd.verdict, &r.taylor.verdict, &r.dot.verdict] {
+            assert!(!matches!(v, Verdict::Fail(_)), "{what}:\n{r}");
+        }
+    };
+    for b in boundaries() {
+        let cfg = Smoke3d::new(6, 5, 4, 0.8).with_boundary(b);
+        let x = state(&cfg, 31);
+        let name = |op: &str| format!("{op} under {b:?}");
+        for scheme in [Scheme::SemiLagrangian, Scheme::MacCormack { limiter: false }] {
+            let r = check_all(&Advect3 { cfg, scheme, smoke: true, velocity: true }, &x, &[], &opts);
+            assert!(r.passed(), "{}:\n{r}", name(&format!("{scheme:?}")));
+        }
+        no_fail(&check_all(&Advect3 { cfg, scheme: Scheme::MacCormack { limiter: true }, smoke: true, velocity: true }, &x, &[], &opts), &name("limited MacCormack"));
+        let r = check_all(&AdvectUpwind3 { cfg }, &x, &[], &opts);
+        assert!(r.passed(), "{}:\n{r}", name("upwind"));
+        for axis in 0..3 {
+            let r = check_all(&Buoyancy3 { cfg, dt: 0.5, axis }, &x, &[0.3], &opts);
+            assert!(r.passed(), "{}:\n{r}", name(&format!("buoyancy along {axis}")));
+        }
+        let r = check_all(&Force3 { cfg, dt: 0.5 }, &x, &field(cfg.n_vel(), 8), &opts);
+        assert!(r.passed(), "{}:\n{r}", name("force"));
+        let r = check_all(&Diffuse::in_box_3d(cfg, true, true, DiffuseExplicit::on), &x, &[0.1], &opts);
+        assert!(r.passed(), "{}:\n{r}", name("explicit diffusion"));
+        let r = check_all(&Diffuse::in_box_3d(cfg, true, true, |g| DiffuseImplicit::on(g, 1e-13, 500)), &x, &[0.7], &opts);
+        assert!(r.passed(), "{}:\n{r}", name("implicit diffusion"));
+        for precond in [Preconditioner::Mic0, Preconditioner::None] {
+            let r = check_all(&Project3::new(cfg, 1e-13, 2000, precond), &x, &[], &opts);
+            assert!(r.passed(), "{}:\n{r}", name(&format!("projection ({precond})")));
+        }
+        let solid = solid_cells(&cfg, &[Solid3::Box { lower: [2.0, 1.0, 1.0], upper: [4.0, 3.0, 3.0] }]);
+        let r = check_all(&Project3::with_obstacles(cfg, 1e-13, 2000, Preconditioner::Mic0, &solid), &x, &[], &opts);
+        assert!(r.passed(), "{}:\n{r}", name("projection with a box"));
+    }
+}
