@@ -203,7 +203,7 @@ fn regions_cut_off_from_the_outflow_are_found() {
     let (nx, ny) = (6, 4);
     // A wall across the channel at column 2: columns 0-1 are fed and sealed.
     let wall: Vec<bool> = (0..nx * ny).map(|c| c % nx == 2).collect();
-    assert_eq!(sealed_region(nx, ny, &b, &wall), Some(SealedRegion { cells: 8, at: (0, 0) }));
+    assert_eq!(sealed_region(nx, ny, &b, &wall), Some(SealedRegion { cells: 8, at: [0, 0] }));
     // A gap in the wall drains it; a pocket with no inflow is no concern.
     let gap: Vec<bool> = (0..nx * ny).map(|c| c % nx == 2 && c / nx != 3).collect();
     assert_eq!(sealed_region(nx, ny, &b, &gap), None);
@@ -213,7 +213,7 @@ fn regions_cut_off_from_the_outflow_are_found() {
     // a full solid row 1, outflow at the top.
     let bt = Boundary { bottom: Side::Inflow(Profile::Uniform(0.1)), top: Side::Outflow, ..Boundary::axes(Side::Periodic, Side::Closed) };
     let row: Vec<bool> = (0..nx * ny).map(|c| c / nx == 1).collect();
-    assert_eq!(sealed_region(nx, ny, &bt, &row), Some(SealedRegion { cells: 6, at: (0, 0) }));
+    assert_eq!(sealed_region(nx, ny, &bt, &row), Some(SealedRegion { cells: 6, at: [0, 0] }));
     // The projection of such a box cannot converge: that is why scenes refuse it.
     let cfg = Smoke2d { nx, ny, ..Smoke2d::p2(nx).with_boundary(bt) };
     let op = Project::with_obstacles(cfg, 1e-10, 500, &row);

@@ -258,13 +258,14 @@ pub struct AxisFace {
 }
 
 /// A fluid region that an inflow side feeds and no outflow side drains
-/// ([`sealed_region`]).
+/// ([`sealed_region`], [`sealed_region3`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct SealedRegion {
+pub struct SealedRegion<const D: usize = 2> {
     /// Its fluid cells.
     pub cells: usize,
-    /// One of its cells touching the inflow side, `(i, j)`.
-    pub at: (usize, usize),
+    /// One of its cells touching the inflow side, `(i, j)` in 2D, `[i, j,
+    /// k]` in 3D.
+    pub at: [usize; D],
 }
 
 /// The first fluid region (cells joined through faces, across periodic
@@ -273,12 +274,28 @@ pub struct SealedRegion {
 /// outflow side: obstacles have cut it off. No divergence-free velocity
 /// exists there, so a pressure solve cannot converge; `None` when every
 /// fed region drains.
-pub fn sealed_region(nx: usize, ny: usize, b: &Boundary, solid: &[bool]) -> Option<SealedRegion> {
-    assert_eq!(solid.len(), nx * ny, "sealed_region: mask length");
-    let feeds = |side: Side, t: f64| matches!(side, Side::Inflow(p) if p.at(t) != 0.0);
-    let mut region = vec![usize::MAX; nx * ny];
+pub fn sealed_region(nx: usize, ny: usize, b: &Boundary, solid: &[bool]) -> Option<SealedRegion<2>> {
+    sealed_in([nx, ny], [[b.left, b.right], [b.bottom, b.top]], solid)
+}
+
+/// [`sealed_region`] for a 3D box of `dims` cells (`[k][j][i]` flattened).
+pub fn sealed_region3(dims: [usize; 3], b: &Boundary3, solid: &[bool]) -> Option<SealedRegion<3>> {
+    sealed_in(dims, [b.axis(0), b.axis(1), b.axis(2)], solid)
+}
+
+/// [`sealed_region`] in `D` dimensions (x fastest in `solid`).
+fn sealed_in<const D: usize>(dims: [usize; D], sides: [[Side; 2]; D], solid: &[bool]) -> Option<SealedRegion<D>> {
+    let n: usize = dims.iter().product();
+    assert_eq!(solid.len(), n, "sealed_region: mask length");
+    let strides: [usize; D] = std::array::from_fn(|a| dims[..a].iter().product());
+    // Whether an inflow side feeds the cell at `q` (its position across the side).
+    let feeds = |side: Side, q: &[usize; D], a: usize| {
+        let t: Vec<f64> = (0..D).filter(|&o| o != a).map(|o| (q[o] as f64 + 0.5) / dims[o] as f64).collect();
+        matches!(side, Side::Inflow(p) if match t[..] { [t] => p.at(t), [t1, t2] => p.across(t1, t2), _ => 0.0 } != 0.0)
+    };
+    let mut region = vec![usize::MAX; n];
     let mut stack = Vec::new();
-    for start in 0..nx * ny {
+    for start in 0..n {
         if solid[start] || region[start] != usize::MAX {
             continue;
         }
@@ -287,36 +304,32 @@ pub fn sealed_region(nx: usize, ny: usize, b: &Boundary, solid: &[bool]) -> Opti
         let (mut cells, mut fed, mut drains) = (0, None, false);
         while let Some(c) = stack.pop() {
             cells += 1;
-            let (i, j) = (c % nx, c / nx);
-            let (tx, ty) = ((j as f64 + 0.5) / ny as f64, (i as f64 + 0.5) / nx as f64);
-            // Sides this cell lies on.
-            let on = [(i == 0, b.left, tx), (i + 1 == nx, b.right, tx), (j == 0, b.bottom, ty), (j + 1 == ny, b.top, ty)];
-            for (edge, side, t) in on.iter().copied() {
-                if edge {
-                    drains |= side == Side::Outflow;
-                    if fed.is_none() && feeds(side, t) {
-                        fed = Some((i, j));
+            let q: [usize; D] = std::array::from_fn(|a| (c / strides[a]) % dims[a]);
+            for a in 0..D {
+                let [lo, hi] = sides[a];
+                let periodic = lo == Side::Periodic;
+                // Up first, then down: the order 2D has always searched in.
+                for (edge, side, up) in [(q[a] + 1 == dims[a], hi, true), (q[a] == 0, lo, false)] {
+                    if edge {
+                        drains |= side == Side::Outflow;
+                        if fed.is_none() && feeds(side, &q, a) {
+                            fed = Some(q);
+                        }
                     }
-                }
-            }
-            let wrap = |k: usize, n: usize, up: bool, periodic: bool| -> Option<usize> {
-                match (up, k) {
-                    (true, k) if k + 1 < n => Some(k + 1),
-                    (true, _) => periodic.then_some(0),
-                    (false, 0) => periodic.then_some(n - 1),
-                    (false, k) => Some(k - 1),
-                }
-            };
-            let neighbours = [
-                wrap(i, nx, true, b.periodic_x()).map(|i2| j * nx + i2),
-                wrap(i, nx, false, b.periodic_x()).map(|i2| j * nx + i2),
-                wrap(j, ny, true, b.periodic_y()).map(|j2| j2 * nx + i),
-                wrap(j, ny, false, b.periodic_y()).map(|j2| j2 * nx + i),
-            ];
-            for m in neighbours.into_iter().flatten() {
-                if !solid[m] && region[m] == usize::MAX {
-                    region[m] = start;
-                    stack.push(m);
+                    // The neighbour across this face, if fluid can pass.
+                    let m = match (edge, up) {
+                        (false, true) => Some(c + strides[a]),
+                        (false, false) => Some(c - strides[a]),
+                        (true, true) => periodic.then(|| c - (dims[a] - 1) * strides[a]),
+                        (true, false) => periodic.then(|| c + (dims[a] - 1) * strides[a]),
+                    };
+                    if let Some(m) = m
+                        && !solid[m]
+                        && region[m] == usize::MAX
+                    {
+                        region[m] = start;
+                        stack.push(m);
+                    }
                 }
             }
         }

@@ -202,13 +202,13 @@ pub struct Project3 {
 impl Project3 {
     /// The projection of the box `cfg` (any sides), solves to relative
     /// `tolerance` in at most `max_iterations` iterations, preconditioned by
-    /// multigrid (a box that is not closed or whose sides all differ runs
-    /// plain CG in its place), MIC(0) or nothing.
+    /// multigrid (the geometric V-cycle in a closed box with two equal
+    /// sides, the aggregation V-cycle in any other box), MIC(0) or nothing.
     ///
     /// # Panics
     /// For the Cholesky preconditioner (2D only).
     pub fn new(cfg: Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
-        Self::with_solver(cfg, None, PressureSolver3::new(&cfg, tolerance, max_iterations, for_box(&cfg, precond)))
+        Self::with_solver(cfg, None, PressureSolver3::new(&cfg, tolerance, max_iterations, precond))
     }
 
     /// The projection with `solver` (and the open faces when it has obstacles).
@@ -231,7 +231,7 @@ impl Project3 {
         assert!(solid.iter().any(|&s| !s), "3D projection: every cell is solid");
         let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
         let open = smoke3d::open_faces(&cfg, &fluid);
-        Self::with_solver(cfg, Some(open), PressureSolver3::with_obstacles(&cfg, tolerance, max_iterations, for_box(&cfg, precond), fluid))
+        Self::with_solver(cfg, Some(open), PressureSolver3::with_obstacles(&cfg, tolerance, max_iterations, precond, fluid))
     }
 
     /// The obstacle mask in place (nothing without obstacles): linear and
@@ -266,14 +266,6 @@ impl Project3 {
 
 crate::fluids::linear_projection!(Project3, "Project3");
 
-/// The preconditioner a box takes: multigrid needs a closed box with two
-/// equal sides ([`smoke3d::slab_axis`]); other boxes (all sides different,
-/// or periodic, inflow or outflow sides) run plain CG in its place (MIC(0), sequential, costs more than it saves here:
-/// docs/fluids3d.md).
-fn for_box(cfg: &Smoke3d, precond: Preconditioner) -> Preconditioner {
-    let multigrid_fits = cfg.is_closed() && smoke3d::slab_axis(cfg.dims()).is_some();
-    if precond == Preconditioner::Multigrid && !multigrid_fits { Preconditioner::None } else { precond }
-}
 
 /// One full P4 step: [`SmokeAdvect3`] (or its hand-written adjoint), then
 /// [`Project3`]. The VJP chains the projection's implicit adjoint with the

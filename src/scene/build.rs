@@ -163,21 +163,27 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
     {
         return Err(placed(text, last, SceneError::key("obstacles", "the obstacles cover every cell of the domain: no fluid is left to simulate")));
     }
-    if let (Some(all), Some(last), Domain::Box(cfg)) = (&solid, file.obstacles.last(), &domain)
-        && let Some(r) = diffsim_solvers::boundary::sealed_region(cfg.nx, cfg.ny, &cfg.boundary, all)
-    {
-        let (i, j) = r.at;
-        return Err(placed(
-            text,
-            last,
-            SceneError::key(
-                "obstacles",
-                format!(
-                    "the obstacles cut off {} fluid cells (the region of cell [{i}, {j}]) that the inflow feeds and no outflow side drains: no divergence-free flow exists there; open a path to an outflow side",
-                    r.cells
+    if let (Some(all), Some(last)) = (&solid, file.obstacles.last()) {
+        use diffsim_solvers::boundary::{sealed_region, sealed_region3};
+        let sealed = match &domain {
+            Domain::Box(cfg) => sealed_region(cfg.nx, cfg.ny, &cfg.boundary, all).map(|r| (r.cells, r.at.to_vec())),
+            Domain::Box3(cfg) => sealed_region3(cfg.dims(), &cfg.boundary, all).map(|r| (r.cells, r.at.to_vec())),
+            Domain::Line(_) => None,
+        };
+        if let Some((cells, at)) = sealed {
+            let at: Vec<String> = at.iter().map(usize::to_string).collect();
+            return Err(placed(
+                text,
+                last,
+                SceneError::key(
+                    "obstacles",
+                    format!(
+                        "the obstacles cut off {cells} fluid cells (the region of cell [{}]) that the inflow feeds and no outflow side drains: no divergence-free flow exists there; open a path to an outflow side",
+                        at.join(", ")
+                    ),
                 ),
-            ),
-        ));
+            ));
+        }
     }
 
     // Initial state.
@@ -629,9 +635,10 @@ fn self_cfg(domain: &Domain) -> &Smoke2d {
 }
 
 /// The sides `[lower, upper]` of each of a box's `dims` axes from
-/// `domain.boundary`: one kind for every side, one per axis (`{ x = …, y =
-/// … }`, and `z` in 3D), or one per side (`left`, `right`, `bottom`, `top`,
-/// and `back`, `front` in 3D; sides not named are closed).
+/// `domain.boundary`: one kind for every side, or a table of axes (`{ x =
+/// …, y = … }`, and `z` in 3D) and sides (`left`, `right`, `bottom`, `top`,
+/// and `back`, `front` in 3D), a side overriding its axis; sides named by
+/// neither are closed.
 fn boundary_sides(v: &toml::Value, dims: usize) -> Result<Vec<[Side; 2]>, SceneError> {
     const KEY: &str = "domain.boundary";
     const AXES: [&str; 3] = ["x", "y", "z"];
@@ -645,31 +652,23 @@ fn boundary_sides(v: &toml::Value, dims: usize) -> Result<Vec<[Side; 2]>, SceneE
             }
             Ok(vec![[s, s]; dims])
         }
-        toml::Value::Table(t) if axes.iter().any(|a| t.contains_key(*a)) => {
-            for k in t.keys() {
-                if !axes.contains(&k.as_str()) {
-                    return Err(SceneError::key(format!("{KEY}.{k}"), unknown("axis", k, axes)));
-                }
-            }
-            axes.iter()
-                .map(|a| {
-                    let s = t.get(*a).map_or(Ok(Side::Closed), |v| side(&format!("{KEY}.{a}"), v, None))?;
-                    Ok([s, s])
-                })
-                .collect()
-        }
         toml::Value::Table(t) => {
             for k in t.keys() {
-                if !sides.contains(&k.as_str()) {
+                if !sides.contains(&k.as_str()) && !axes.contains(&k.as_str()) {
                     let known: Vec<&str> = sides.iter().chain(axes).copied().collect();
                     return Err(SceneError::key(format!("{KEY}.{k}"), unknown("side", k, &known)));
                 }
             }
-            // Side 2a + h is the lower (h = 0) or upper side of axis a; its inward normal.
+            // An axis sets both its sides; a side named overrides its axis.
+            // Side 2a + h is the lower (h = 0) or upper side of axis a.
             let one = |k: usize| {
                 let mut inward = vec![0.0; dims];
                 inward[k / 2] = if k % 2 == 0 { 1.0 } else { -1.0 };
-                t.get(sides[k]).map_or(Ok(Side::Closed), |v| side(&format!("{KEY}.{}", sides[k]), v, Some(&inward)))
+                match (t.get(sides[k]), t.get(axes[k / 2])) {
+                    (Some(v), _) => side(&format!("{KEY}.{}", sides[k]), v, Some(&inward)),
+                    (None, Some(v)) => side(&format!("{KEY}.{}", axes[k / 2]), v, None),
+                    (None, None) => Ok(Side::Closed),
+                }
             };
             (0..dims).map(|a| Ok([one(2 * a)?, one(2 * a + 1)?])).collect()
         }

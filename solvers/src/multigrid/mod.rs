@@ -1,7 +1,9 @@
 //! A geometric multigrid V-cycle for the closed-box pressure matrix, used as
 //! the preconditioner of conjugate gradients: one hierarchy for the square
 //! (2D, five-point matrix) and the cube (3D, seven-point matrix; a square is
-//! a cube one cell deep that is never coarsened along z).
+//! a cube one cell deep that is never coarsened along z). Boxes with other
+//! sides or whose sides all differ take the aggregation V-cycle of
+//! [`AggregateMultigrid`].
 //!
 //! Cell-centred grids halve per level while the side stays even and ≥ 4.
 //! Prolongation `P` is bilinear or trilinear (weights ¾, ¼ per axis,
@@ -16,6 +18,10 @@
 
 use crate::par::{SUM_PIECE, for_pieces, sum_pieces};
 use crate::smoke::apply_pressure_matrix;
+
+mod aggregate;
+
+pub use aggregate::{Across, AggregateMultigrid, OVER_CORRECTION, across, apply_weighted3};
 
 /// The pressure matrix of the closed box of `n × n × nz` cells (`nz = 1`:
 /// the square's five-point matrix): `(A·p)[c] = Σ_{neighbours m of c inside

@@ -5,7 +5,7 @@
 //! Graphics*, §5), with the same safety factors.
 
 use super::Smoke3d;
-use crate::boundary::Side;
+use crate::multigrid::{Across, across};
 use crate::par::for_pieces;
 
 /// The seven-point pressure matrix of the box `cfg` (any sides) with solid
@@ -17,33 +17,24 @@ use crate::par::for_pieces;
 /// constants on the fluid cells are its null space. Slab by slab, in
 /// parallel on large boxes.
 pub fn apply_general_matrix3(cfg: &Smoke3d, fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
-    let [nx, ny, nz] = cfg.dims();
+    let dims = cfg.dims();
+    let [nx, ny, nz] = dims;
     let slab = nx * ny;
     let w = |c: usize| fluid.map_or(1.0, |f| f[c]);
     let b = cfg.boundary;
-    let strides = [1, nx, slab];
-    let dims = [nx, ny, nz];
     for_pieces(&mut out[..slab * nz], slab, |k, o| {
         for j in 0..ny {
             for i in 0..nx {
                 let c = (k * ny + j) * nx + i;
-                let q = [i, j, k];
                 let (pc, wc) = (p[c], w(c));
                 let mut acc = 0.0;
                 for a in 0..3 {
-                    let [lo, hi] = b.axis(a);
-                    let span = (dims[a] - 1) * strides[a];
-                    // Down the axis, then up: the neighbour inside, or what the side does.
-                    for (inside, m, side, wrapped) in [(q[a] > 0, c.wrapping_sub(strides[a]), lo, c + span), (q[a] + 1 < dims[a], c + strides[a], hi, c.wrapping_sub(span))] {
-                        if inside {
-                            acc += w(m) * (pc - p[m]);
-                        } else {
-                            match side {
-                                Side::Periodic => acc += w(wrapped) * (pc - p[wrapped]),
-                                Side::Outflow => acc += pc,
-                                Side::Closed | Side::Inflow(_) => {}
-                            }
-                        }
+                    for m in across(dims, &b, c, [i, j, k], a) {
+                        acc += match m {
+                            Across::Cell(m) => w(m) * (pc - p[m]),
+                            Across::Ghost => pc,
+                            Across::Wall => 0.0,
+                        };
                     }
                 }
                 o[j * nx + i] = wc * acc + (1.0 - wc) * pc;
@@ -89,14 +80,11 @@ impl Mic3 {
                 let q = at(c);
                 let mut s = 0.0;
                 for a in 0..3 {
-                    let [lo, hi] = cfg.boundary.axis(a);
-                    let span = (dims[a] - 1) * strides[a];
-                    for (inside, m, side, wrapped) in [(q[a] > 0, c.wrapping_sub(strides[a]), lo, c + span), (q[a] + 1 < dims[a], c + strides[a], hi, c.wrapping_sub(span))] {
-                        s += match (inside, side) {
-                            (true, _) => w(m),
-                            (false, Side::Periodic) => w(wrapped),
-                            (false, Side::Outflow) => 1.0,
-                            (false, _) => 0.0,
+                    for m in across(dims, &cfg.boundary, c, q, a) {
+                        s += match m {
+                            Across::Cell(m) => w(m),
+                            Across::Ghost => 1.0,
+                            Across::Wall => 0.0,
                         };
                     }
                 }

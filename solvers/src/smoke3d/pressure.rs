@@ -9,7 +9,7 @@
 use super::mic::{Mic3, apply_general_matrix3};
 use super::*;
 use crate::cg::{CgWork, NoConvergence, Null, Stop, System};
-use crate::multigrid::{Multigrid, apply_box_matrix};
+use crate::multigrid::{AggregateMultigrid, Multigrid, apply_box_matrix};
 use crate::smoke::{Preconditioner, ProjectScratch};
 
 /// Calls `f(c, faces)` for every cell `c` with the flat indices of its six
@@ -180,6 +180,8 @@ enum Precond3 {
     /// The V-cycle of square slabs stacked along an axis, with two buffers
     /// for the fields reordered so that axis comes last.
     Multigrid(Multigrid, usize, [Vec<f64>; 2]),
+    /// The aggregation V-cycle of any box and sides.
+    Aggregate(AggregateMultigrid),
     Mic(Mic3),
 }
 
@@ -262,13 +264,12 @@ impl PressureSolver3 {
     fn build(cfg: &Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner, fluid: Option<Vec<f64>>) -> Self {
         let dims = cfg.dims();
         let precond = match (precond, slab_axis(dims)) {
-            (Preconditioner::Multigrid, _) if !cfg.is_closed() => panic!("the 3D multigrid preconditioner is for closed boxes (periodic, inflow and outflow sides take MIC(0) or none)"),
-            (Preconditioner::Multigrid, Some(axis)) => {
+            (Preconditioner::Multigrid, Some(axis)) if cfg.is_closed() => {
                 let side = dims[(axis + 1) % 3];
                 let buffers = if axis == 2 { [Vec::new(), Vec::new()] } else { [vec![0.0; cfg.n_s()], vec![0.0; cfg.n_s()]] };
                 Precond3::Multigrid(Multigrid::slabs(side, dims[axis]), axis, buffers)
             }
-            (Preconditioner::Multigrid, None) => panic!("the 3D multigrid preconditioner needs two equal sides, got {}×{}×{}", dims[0], dims[1], dims[2]),
+            (Preconditioner::Multigrid, _) => Precond3::Aggregate(AggregateMultigrid::new(dims, cfg.boundary)),
             (Preconditioner::Mic0, _) => Precond3::Mic(Mic3::new(cfg, fluid.as_deref())),
             (Preconditioner::None, _) => Precond3::None,
             (other, _) => panic!("3D pressure solves take multigrid, MIC(0) or no preconditioner, not {other}"),
@@ -286,7 +287,7 @@ impl PressureSolver3 {
     pub fn preconditioner(&self) -> Preconditioner {
         match self.precond {
             Precond3::None => Preconditioner::None,
-            Precond3::Multigrid(..) => Preconditioner::Multigrid,
+            Precond3::Multigrid(..) | Precond3::Aggregate(_) => Preconditioner::Multigrid,
             Precond3::Mic(_) => Preconditioner::Mic0,
         }
     }
@@ -345,6 +346,17 @@ impl System for PressureSolver3 {
             (Precond3::None, _) => return false,
             (Precond3::Mic(mic), _) => mic.apply(r, z),
             (Precond3::Multigrid(mg, axis, bufs), None) => cycle(mg, *axis, bufs, r, z),
+            (Precond3::Aggregate(mg), None) => mg.apply(r, z),
+            (Precond3::Aggregate(mg), Some(m)) => {
+                // W·M·(W·r) + (I − W)·r, as for the geometric V-cycle.
+                for ((b, &r), &w) in m.buf.iter_mut().zip(r).zip(&m.fluid) {
+                    *b = w * r;
+                }
+                mg.apply(&m.buf, z);
+                for ((z, &r), &w) in z.iter_mut().zip(r).zip(&m.fluid) {
+                    *z = w * *z + (1.0 - w) * r;
+                }
+            }
             (Precond3::Multigrid(mg, axis, bufs), Some(m)) => {
                 // W·M·(W·r) + (I − W)·r.
                 for ((b, &r), &w) in m.buf.iter_mut().zip(r).zip(&m.fluid) {
