@@ -265,3 +265,42 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke3d, x: &[f64], gy: &mut [f64], gx: &mu
 pub fn advect_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
     advect3_radius(cfg, crate::smoke::Scheme::SemiLagrangian, true, true, x, d)
 }
+
+/// Hand-written adjoint of [`advect3`] with the semi-Lagrangian scheme, in
+/// any box: `gx += Jᵀ·gy` at the state `x` (accumulates into `gx`; `gy` is
+/// used as scratch and left unspecified). The reference for Enzyme's
+/// generated adjoint of [`advect3`] under every boundary
+/// kind (P4's closed step has its own, [`advect_buoyancy_adjoint`]).
+///
+/// # Panics
+/// As [`advect3`], and if `gy` or `gx` has the wrong length.
+pub fn advect3_adjoint(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
+    let n = cfg.n_state();
+    assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == n && gy.len() == n && gx.len() == n, "smoke3d: state lengths");
+    let mac = cfg.mac();
+    let [s, u, v, w] = cfg.split(x);
+    let [gs2, gu2, gv2, gw2] = cfg.split_mut(gy);
+    let [gs, gu, gv, gw] = cfg.split_mut(gx);
+    let vel = [u, v, w];
+    if velocity {
+        // The boundary conditions came last: set faces pass nothing back,
+        // periodic copies hand theirs to face 0.
+        enforce_boundary3_adjoint(cfg, [&mut *gu2, &mut *gv2, &mut *gw2]);
+        trace_adjoint(mac, At3::W, vel, w, cfg.dt, gw2, None, [&mut *gu, &mut *gv, &mut *gw]);
+        trace_adjoint(mac, At3::V, vel, v, cfg.dt, gv2, None, [&mut *gu, &mut *gv, &mut *gw]);
+        trace_adjoint(mac, At3::U, vel, u, cfg.dt, gu2, None, [&mut *gu, &mut *gv, &mut *gw]);
+    } else {
+        for (g, g2) in [(&mut *gu, &*gu2), (&mut *gv, &*gv2), (&mut *gw, &*gw2)] {
+            for (g, &g2) in g.iter_mut().zip(g2) {
+                *g += g2;
+            }
+        }
+    }
+    if smoke {
+        trace_adjoint(mac, At3::Centre, vel, s, cfg.dt, gs2, Some(gs), [gu, gv, gw]);
+    } else {
+        for (g, &g2) in gs.iter_mut().zip(&*gs2) {
+            *g += g2;
+        }
+    }
+}
