@@ -257,7 +257,26 @@ fn direction_body(beta: f64, z: &[f64], d: &mut [f64]) {
 /// neither the machine nor the thread count.
 #[inline]
 pub fn dot(a: &[f64], b: &[f64]) -> f64 {
-    par::sum_pieces(a, b, dot_piece)
+    par::sum_pieces(a, b, dot_dispatch)
+}
+
+crate::simd_dispatch! {
+    fn dot_dispatch(a: &[f64], b: &[f64]) -> f64 => dot_piece
+}
+
+/// `Σ a` with eight independent partial sums (a single running sum waits
+/// on each addition; this one vectorises).
+#[inline(always)]
+pub fn sum_piece(a: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 8];
+    let ca = a.chunks_exact(8);
+    let tail: f64 = ca.remainder().iter().sum();
+    for x in ca {
+        for k in 0..8 {
+            acc[k] += x[k];
+        }
+    }
+    acc.iter().sum::<f64>() + tail
 }
 
 /// `a·b` with eight independent partial sums.

@@ -5,6 +5,7 @@ pub mod burgers;
 pub mod drag;
 pub mod heat;
 pub mod oscillators;
+pub mod ranges;
 pub mod smoke;
 pub mod smoke3d;
 

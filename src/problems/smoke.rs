@@ -12,7 +12,11 @@ use crate::fluids::Project;
 use crate::op::{Forward, Jvp, LocalInverse, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
 /// Steps 1–4 of P2 (advection, walls, buoyancy) on the packed state
-/// `[s, u, v]`, with Enzyme-generated VJP and JVP.
+/// `[s, u, v]`, with Enzyme-generated VJP and JVP. In a closed box of 16
+/// rows or more the VJP is Enzyme's adjoint of [`SmokeAdvectRows`] over
+/// two fixed row ranges in parallel, summed in a fixed order
+/// ([`super::ranges`]): the same result for any thread count; otherwise
+/// the adjoint of the whole step.
 #[derive(Clone, Copy, Debug)]
 pub struct SmokeAdvect(pub Smoke2d);
 
@@ -25,8 +29,51 @@ impl Operator for SmokeAdvect {
     }
 }
 
+impl Forward for SmokeAdvect {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        SmokeAdvectWhole(self.0).forward(x, p, y)
+    }
+
+    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+        p2_radius(&self.0, x, dx)
+    }
+}
+
+impl Vjp for SmokeAdvect {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        let cfg = self.0;
+        let ranges = super::ranges::split_ranges(cfg.ny);
+        if cfg.boundary != diffsim_solvers::boundary::Boundary::CLOSED || ranges.len() == 1 {
+            return SmokeAdvectWhole(cfg).vjp(x, p, dy, dx, dp);
+        }
+        validate_vjp(self, "SmokeAdvect", x, p, dy, dx, dp);
+        // Each field's rows are contiguous in the packed state.
+        let pieces = |js: &std::ops::Range<usize>| smoke::row_lens(&cfg, js.clone()).iter().zip(&smoke::row_starts(&cfg, js.start)).map(|(&len, &start)| (start, len)).collect();
+        super::ranges::vjp_over_ranges(&ranges, |js| SmokeAdvectRows::new(cfg, js), pieces, x, dy, dx);
+    }
+}
+
+impl Jvp for SmokeAdvect {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        SmokeAdvectWhole(self.0).jvp(x, p, tx, tp, y, ty)
+    }
+}
+
+/// The whole of [`SmokeAdvect`], as Enzyme differentiates it.
+#[derive(Clone, Copy, Debug)]
+struct SmokeAdvectWhole(Smoke2d);
+
+impl Operator for SmokeAdvectWhole {
+    fn n_in(&self) -> usize {
+        self.0.n_state()
+    }
+    fn n_out(&self) -> usize {
+        self.0.n_state()
+    }
+}
+
 /// The thin wrapper Enzyme differentiates.
-fn smoke_advect(op: &SmokeAdvect, x: &[f64], _p: &[f64], y: &mut [f64]) {
+fn smoke_advect(op: &SmokeAdvectWhole, x: &[f64], _p: &[f64], y: &mut [f64]) {
     smoke::advect_buoyancy(&op.0, x, y)
 }
 
@@ -36,11 +83,54 @@ fn p2_radius(cfg: &Smoke2d, x: &[f64], dx: &[f64]) -> f64 {
     smoke::advect_radius(cfg, smoke::Scheme::SemiLagrangian, 1.0, true, true, x, dx)
 }
 
-fn smoke_advect_radius(op: &SmokeAdvect, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+fn smoke_advect_radius(op: &SmokeAdvectWhole, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
     p2_radius(&op.0, x, dx)
 }
 
-crate::differentiable!(SmokeAdvect => smoke_advect, smooth_radius = smoke_advect_radius);
+crate::differentiable!(SmokeAdvectWhole => smoke_advect, smooth_radius = smoke_advect_radius);
+
+/// Rows `j0..j1` of [`SmokeAdvect`]'s output in the closed box, packed as
+/// [`smoke::row_lens`] says, with Enzyme-generated VJP and JVP: the piece
+/// of the step whose adjoints [`SmokeAdvect`] runs in parallel. Over
+/// `0..ny` it is [`SmokeAdvect`].
+#[derive(Clone, Copy, Debug)]
+pub struct SmokeAdvectRows {
+    cfg: Smoke2d,
+    j0: usize,
+    j1: usize,
+}
+
+impl SmokeAdvectRows {
+    /// Rows `js` of the closed box `cfg`.
+    ///
+    /// # Panics
+    /// If the box is not closed, or `js` is empty or reaches past `ny`.
+    pub fn new(cfg: Smoke2d, js: std::ops::Range<usize>) -> Self {
+        assert!(cfg.boundary == diffsim_solvers::boundary::Boundary::CLOSED, "SmokeAdvectRows: the closed box only");
+        assert!(js.start < js.end && js.end <= cfg.ny, "SmokeAdvectRows: rows {js:?} of {}", cfg.ny);
+        Self { cfg, j0: js.start, j1: js.end }
+    }
+}
+
+impl Operator for SmokeAdvectRows {
+    fn n_in(&self) -> usize {
+        self.cfg.n_state()
+    }
+    fn n_out(&self) -> usize {
+        smoke::row_lens(&self.cfg, self.j0..self.j1).iter().sum()
+    }
+}
+
+/// The thin wrapper Enzyme differentiates.
+fn smoke_advect_rows(op: &SmokeAdvectRows, x: &[f64], _p: &[f64], y: &mut [f64]) {
+    smoke::advect_buoyancy_rows(&op.cfg, x, op.j0..op.j1, y)
+}
+
+fn smoke_advect_rows_radius(op: &SmokeAdvectRows, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+    p2_radius(&op.cfg, x, dx)
+}
+
+crate::differentiable!(SmokeAdvectRows => smoke_advect_rows, smooth_radius = smoke_advect_rows_radius);
 
 /// Steps 1–4 of P2 with the hand-written adjoint (the reference for
 /// [`SmokeAdvect`]'s generated one).

@@ -8,8 +8,7 @@ use std::cell::RefCell;
 use diffsim_solvers::smoke::{Preconditioner, ProjectScratch};
 use diffsim_solvers::smoke3d::{self, PressureSolver3, Smoke3d};
 
-use diffsim_solvers::par::{SUM_PIECE, for_pieces};
-use rayon::prelude::*;
+use super::ranges::{split_ranges, vjp_over_ranges};
 
 use crate::fluids::SolveLog;
 use crate::op::{Forward, Jvp, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
@@ -61,43 +60,9 @@ impl Vjp for SmokeAdvect3 {
         if ranges.len() == 1 {
             return SmokeAdvect3Slabs::new(cfg, 0..cfg.nz).vjp(x, p, dy, dx, dp);
         }
-        let n = cfg.n_state();
-        let mut parts = PARTS.take();
-        parts.resize_with(ranges.len(), Vec::new);
-        let (first, rest) = parts.split_at_mut(1);
-        // The first range's adjoint straight into dx (its buffer holds only
-        // dy_0), each other range's into its own buffer `[dx_r | dy_r]`, all
-        // at once; dy_r gathered from dy (each field's slabs are contiguous).
-        let gather = |ks: &std::ops::Range<usize>, dy_r: &mut [f64]| {
-            let mut o = 0;
-            for (&len, &start) in cfg.slab_lens(ks.clone()).iter().zip(&cfg.slab_starts(ks.start)) {
-                dy_r[o..o + len].copy_from_slice(&dy[start..start + len]);
-                o += len;
-            }
-        };
-        let range_vjp = |ks: &std::ops::Range<usize>, buf: &mut Vec<f64>, own: usize, dx: Option<&mut [f64]>| {
-            buf.clear();
-            buf.resize(own + cfg.slab_lens(ks.clone()).iter().sum::<usize>(), 0.0);
-            let (dx_r, dy_r) = buf.split_at_mut(own);
-            gather(ks, dy_r);
-            SmokeAdvect3Slabs::new(cfg, ks.clone()).vjp(x, &[], dy_r, dx.unwrap_or(dx_r), &mut []);
-        };
-        rayon::join(
-            || range_vjp(&ranges[0], &mut first[0], 0, Some(&mut *dx)),
-            || rest.par_iter_mut().zip(&ranges[1..]).for_each(|(buf, ks)| range_vjp(ks, buf, n, None)),
-        );
-        // dx += Σ_r dx_r, in the order of the ranges.
-        let rest = &parts[1..];
-        for_pieces(dx, SUM_PIECE, |k, d| {
-            let o = k * SUM_PIECE;
-            for part in rest {
-                for (d, &v) in d.iter_mut().zip(&part[o..o + SUM_PIECE.min(n - o)]) {
-                    *d += v;
-                }
-            }
-        });
-        PARTS.set(parts);
-        dy.fill(0.0);
+        // Each field's slabs are contiguous in the packed state.
+        let pieces = |ks: &std::ops::Range<usize>| cfg.slab_lens(ks.clone()).iter().zip(&cfg.slab_starts(ks.start)).map(|(&len, &start)| (start, len)).collect();
+        vjp_over_ranges(&ranges, |ks| SmokeAdvect3Slabs::new(cfg, ks), pieces, x, dy, dx);
     }
 }
 
@@ -114,20 +79,10 @@ fn closed_only(cfg: &Smoke3d) {
     assert!(cfg.is_closed(), "SmokeAdvect3 is P4's step of the closed box; a box with other sides takes fluids3d::Advect3");
 }
 
-thread_local! {
-    /// The buffers of [`SmokeAdvect3`]'s VJP, one per slab range, kept
-    /// between calls.
-    static PARTS: std::cell::Cell<Vec<Vec<f64>>> = const { std::cell::Cell::new(Vec::new()) };
-}
-
-/// The fixed slab ranges [`SmokeAdvect3`]'s VJP splits `nz` slabs into:
-/// two from 16 slabs on, else one. Fixed by the grid alone, so that the
-/// sum over them does not depend on the thread count; each range past the
-/// first costs one state of memory, and two keep the two cores of the
-/// machines here busy.
+/// The fixed slab ranges [`SmokeAdvect3`]'s VJP splits `nz` slabs into
+/// ([`split_ranges`]).
 pub fn slab_ranges(nz: usize) -> Vec<std::ops::Range<usize>> {
-    let count = (nz / 8).clamp(1, 2);
-    (0..count).map(|r| r * nz / count..(r + 1) * nz / count).collect()
+    split_ranges(nz)
 }
 
 /// Slabs `k0..k1` (along z) of [`SmokeAdvect3`]'s output, packed as

@@ -219,7 +219,7 @@ impl AggregateMultigrid {
             f.sweep(&b);
         }
         let e = &self.levels[0].e;
-        let mean = if b.has_outflow() { 0.0 } else { sum_pieces(e, e, |a, _| a.iter().sum()) / z.len() as f64 };
+        let mean = if b.has_outflow() { 0.0 } else { sum_pieces(e, e, |a, _| crate::cg::sum_piece(a)) / z.len() as f64 };
         for_pieces(z, SUM_PIECE, |k, z| {
             for (z, &e) in z.iter_mut().zip(&e[k * SUM_PIECE..]) {
                 *z = e - mean;

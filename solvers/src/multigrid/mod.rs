@@ -101,12 +101,14 @@ impl Level {
     #[inline(always)]
     fn smooth_from_zero(&mut self, sweeps: usize) {
         let (r, w, len) = (&self.r, &self.omega_inv_diag, self.n * self.n);
-        for_pieces(&mut self.e, len, |k, e| {
-            let o = k * len..k * len + e.len();
-            for ((e, &r), &w) in e.iter_mut().zip(&r[o.clone()]).zip(&w[o]) {
-                *e = w * r;
-            }
-        });
+        if self.nz == 1 {
+            // One slab: straight here, so that it is compiled with the
+            // caller's vector instructions (a closure handed to the
+            // parallel pass is compiled apart, without them).
+            first_sweep_piece(0, len, r, w, &mut self.e);
+        } else {
+            for_pieces(&mut self.e, len, |k, e| first_sweep_piece(k, len, r, w, e));
+        }
         self.smooth(sweeps - 1);
     }
 
@@ -125,13 +127,11 @@ impl Level {
     fn sweep(&mut self) {
         let (n, nz, scale) = (self.n, self.nz, self.scale);
         let (e, r, w) = (&self.e, &self.r, &self.omega_inv_diag);
-        for_pieces(&mut self.t[..n * n * nz], n * n, |k, t| {
-            box_matrix_slab(n, nz, k, e, t);
-            let o = k * n * n..(k + 1) * n * n;
-            for (((t, &e), &r), &w) in t.iter_mut().zip(&e[o.clone()]).zip(&r[o.clone()]).zip(&w[o]) {
-                *t = e + w * (r - scale * *t);
-            }
-        });
+        if nz == 1 {
+            sweep_slab(n, nz, scale, 0, e, r, w, &mut self.t);
+        } else {
+            for_pieces(&mut self.t[..n * n * nz], n * n, |k, t| sweep_slab(n, nz, scale, k, e, r, w, t));
+        }
         std::mem::swap(&mut self.e, &mut self.t);
     }
 
@@ -140,12 +140,40 @@ impl Level {
     fn residual(&mut self) {
         let (n, nz, scale) = (self.n, self.nz, self.scale);
         let (e, r) = (&self.e, &self.r);
-        for_pieces(&mut self.t[..n * n * nz], n * n, |k, t| {
-            box_matrix_slab(n, nz, k, e, t);
-            for (t, &r) in t.iter_mut().zip(&r[k * n * n..(k + 1) * n * n]) {
-                *t = r - scale * *t;
-            }
-        });
+        if nz == 1 {
+            residual_slab(n, nz, scale, 0, e, r, &mut self.t);
+        } else {
+            for_pieces(&mut self.t[..n * n * nz], n * n, |k, t| residual_slab(n, nz, scale, k, e, r, t));
+        }
+    }
+}
+
+/// Piece `k` (of `len` values) of the first sweep from zero, `e = ω·D⁻¹·r`.
+#[inline(always)]
+fn first_sweep_piece(k: usize, len: usize, r: &[f64], w: &[f64], e: &mut [f64]) {
+    let o = k * len..k * len + e.len();
+    for ((e, &r), &w) in e.iter_mut().zip(&r[o.clone()]).zip(&w[o]) {
+        *e = w * r;
+    }
+}
+
+/// Slab `k` of a damped-Jacobi sweep into `t`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn sweep_slab(n: usize, nz: usize, scale: f64, k: usize, e: &[f64], r: &[f64], w: &[f64], t: &mut [f64]) {
+    box_matrix_slab(n, nz, k, e, t);
+    let o = k * n * n..(k + 1) * n * n;
+    for (((t, &e), &r), &w) in t.iter_mut().zip(&e[o.clone()]).zip(&r[o.clone()]).zip(&w[o]) {
+        *t = e + w * (r - scale * *t);
+    }
+}
+
+/// Slab `k` of the residual `t = r − scale·A·e`.
+#[inline(always)]
+fn residual_slab(n: usize, nz: usize, scale: f64, k: usize, e: &[f64], r: &[f64], t: &mut [f64]) {
+    box_matrix_slab(n, nz, k, e, t);
+    for (t, &r) in t.iter_mut().zip(&r[k * n * n..(k + 1) * n * n]) {
+        *t = r - scale * *t;
     }
 }
 
@@ -203,7 +231,14 @@ impl Multigrid {
         let depth = self.levels.len();
         // Restriction averages the 8 (cube) or 4 (square) fine cells of a coarse one.
         let average = if self.levels[0].nz > 1 { 0.125 } else { 0.25 };
-        for_pieces(&mut self.levels[0].r, SUM_PIECE, |k, piece| piece.copy_from_slice(&r[k * SUM_PIECE..k * SUM_PIECE + piece.len()]));
+        // Small grids straight here (with the vector instructions of the
+        // dispatch), large ones in pieces over threads.
+        let small = r.len() < crate::par::MIN_PARALLEL;
+        if small {
+            self.levels[0].r.copy_from_slice(r);
+        } else {
+            for_pieces(&mut self.levels[0].r, SUM_PIECE, |k, piece| piece.copy_from_slice(&r[k * SUM_PIECE..k * SUM_PIECE + piece.len()]));
+        }
         // Down: smooth, then restrict the residual, r_c = Pᵀ·(r − A·e) / 2^d.
         for k in 0..depth - 1 {
             let (fine, coarse) = self.levels.split_at_mut(k + 1);
@@ -221,12 +256,18 @@ impl Multigrid {
             f.smooth(SWEEPS);
         }
         let e = &self.levels[0].e;
-        let mean = sum_pieces(e, e, |a, _| a.iter().sum()) / z.len() as f64;
-        for_pieces(z, SUM_PIECE, |k, z| {
-            for (z, &e) in z.iter_mut().zip(&e[k * SUM_PIECE..]) {
+        let mean = sum_pieces(e, e, |a, _| crate::cg::sum_piece(a)) / z.len() as f64;
+        if small {
+            for (z, &e) in z.iter_mut().zip(e) {
                 *z = e - mean;
             }
-        });
+        } else {
+            for_pieces(z, SUM_PIECE, |k, z| {
+                for (z, &e) in z.iter_mut().zip(&e[k * SUM_PIECE..]) {
+                    *z = e - mean;
+                }
+            });
+        }
     }
 }
 

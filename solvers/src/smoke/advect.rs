@@ -347,6 +347,87 @@ pub fn advect_buoyancy(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
     add_buoyancy(cfg, cfg.buoyancy, s2, v2);
 }
 
+/// Rows `rows` of the lattice `at` traced back over a unit step into `out`,
+/// whose first row is row `j0`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn trace_rows(mac: Mac<false, false>, at: At, uv: (&[f64], &[f64]), f: &[f64], rows: std::ops::Range<usize>, j0: usize, out: &mut [f64]) {
+    let (lat, kx, _) = mac.lattice(at);
+    for l in rows {
+        for k in 0..kx {
+            out[(l - j0) * lat.stride + k] = traced(mac, at, lat, uv, f, 1.0, k, l);
+        }
+    }
+}
+
+/// Lengths of rows `js` of `[s, u, v]` in the closed box (P2): `js.len()`
+/// rows of each field, and for `v` also its top row when `js` reaches it.
+/// Over `0..ny`, the packed state.
+pub fn row_lens(cfg: &Smoke2d, js: std::ops::Range<usize>) -> [usize; 3] {
+    let (n, m) = (cfg.nx, js.len());
+    [m * n, m * (n + 1), (m + (js.end == cfg.ny) as usize) * n]
+}
+
+/// Where row `j` of each field starts in the packed state.
+pub fn row_starts(cfg: &Smoke2d, j: usize) -> [usize; 3] {
+    let n = cfg.nx;
+    [j * n, cfg.n_s() + j * (n + 1), cfg.n_s() + cfg.n_u() + j * n]
+}
+
+/// Rows `js` of [`advect_buoyancy`]'s output in the closed box (P2),
+/// packed as [`row_lens`] says (`y` of their total length): each output row
+/// depends on the whole input but on no other output row (the buoyancy of
+/// a range's first y-face traces the smoke row below it again), so that an
+/// adjoint can be taken row range by row range in parallel, then summed in
+/// a fixed order. The same values as [`advect_buoyancy`], operation for
+/// operation.
+///
+/// # Panics
+/// If the box is not closed, a length is wrong, or `js` is empty or past
+/// `ny`.
+pub fn advect_buoyancy_rows(cfg: &Smoke2d, x: &[f64], js: std::ops::Range<usize>, y: &mut [f64]) {
+    let (n, ny) = (cfg.nx, cfg.ny);
+    let lens = row_lens(cfg, js.clone());
+    assert!(
+        cfg.boundary == Boundary::CLOSED && n.min(ny) >= 2 && x.len() == cfg.n_state() && y.len() == lens.iter().sum::<usize>(),
+        "smoke: rows of the closed box's step"
+    );
+    assert!(js.start < js.end && js.end <= ny, "smoke: rows {js:?} of {ny}");
+    let mac = Mac::<false, false> { nx: n, ny };
+    let (s, u, v) = cfg.split(x);
+    let (s2, rest) = y.split_at_mut(lens[0]);
+    let (u2, v2) = rest.split_at_mut(lens[1]);
+    let uv = (u, v);
+    let j0 = js.start;
+    let v_end = js.end + (js.end == ny) as usize;
+    // One call per field (a loop over an array of (lattice, slice) pairs
+    // trips Enzyme, docs/pitfalls.md).
+    trace_rows(mac, At::Centre, uv, s, j0..js.end, j0, s2);
+    trace_rows(mac, At::UFace, uv, u, j0..js.end, j0, u2);
+    trace_rows(mac, At::VFace, uv, v, j0..v_end, j0, v2);
+    // The closed walls (indexed stores: a fill is a memset Enzyme cannot type).
+    for r in 0..js.len() {
+        u2[r * (n + 1)] = 0.0;
+        u2[r * (n + 1) + n] = 0.0;
+    }
+    for i in 0..n {
+        if j0 == 0 {
+            v2[i] = 0.0;
+        }
+        if js.end == ny {
+            v2[js.len() * n + i] = 0.0;
+        }
+    }
+    // Buoyancy on the interior y-faces of the range.
+    let (centre, _, _) = mac.lattice(At::Centre);
+    for l in j0.max(1)..js.end {
+        for i in 0..n {
+            let below = if l > j0 { s2[(l - 1 - j0) * n + i] } else { traced(mac, At::Centre, centre, uv, s, 1.0, i, l - 1) };
+            v2[(l - j0) * n + i] += cfg.buoyancy * 0.5 * (below + s2[(l - j0) * n + i]);
+        }
+    }
+}
+
 /// [`advect_buoyancy`] with each lattice's rows split over threads
 /// ([`crate::par`]): the same values for any thread count. Not for
 /// differentiated code (Enzyme differentiates [`advect_buoyancy`]).

@@ -10,6 +10,16 @@ use std::fmt;
 /// of cell `c` (overwrites `d`): `u[j][i+1] − u[j][i] + v[j+1][i] − v[j][i]`
 /// inside the box; a periodic axis's face `N` is not read (face `0` wraps).
 pub fn divergence(cfg: &Smoke2d, u: &[f64], v: &[f64], d: &mut [f64]) {
+    if cfg.boundary == Boundary::CLOSED {
+        // P2's box in plain loops (the face list's sums in its order).
+        let (n, nu) = (cfg.nx, cfg.nx + 1);
+        for j in 0..cfg.ny {
+            for i in 0..n {
+                d[j * n + i] = -u[j * nu + i] + u[j * nu + i + 1] - v[j * n + i] + v[(j + 1) * n + i];
+            }
+        }
+        return;
+    }
     d.fill(0.0);
     for (axis, vel) in [u, v].into_iter().enumerate() {
         for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
@@ -26,6 +36,21 @@ pub fn divergence(cfg: &Smoke2d, u: &[f64], v: &[f64], d: &mut [f64]) {
 
 /// Transpose of [`divergence`]: `(u, v) += Dᵀ·d` (accumulates).
 pub fn divergence_transpose(cfg: &Smoke2d, d: &[f64], u: &mut [f64], v: &mut [f64]) {
+    if cfg.boundary == Boundary::CLOSED {
+        let (n, ny, nu) = (cfg.nx, cfg.ny, cfg.nx + 1);
+        let at = |j: usize, i: usize| if j < ny && i < n { d[j * n + i] } else { 0.0 };
+        for j in 0..ny {
+            for i in 0..=n {
+                u[j * nu + i] += (if i > 0 { at(j, i - 1) } else { 0.0 }) - at(j, i);
+            }
+        }
+        for j in 0..=ny {
+            for i in 0..n {
+                v[j * n + i] += (if j > 0 { at(j - 1, i) } else { 0.0 }) - at(j, i);
+            }
+        }
+        return;
+    }
     for (axis, vel) in [u, v].into_iter().enumerate() {
         for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
     }
@@ -750,6 +775,21 @@ pub fn project_velocity(
     }
     let iterations = if warm { solver.solve_from(&scratch.d, &mut scratch.p)? } else { solver.solve(&scratch.d, &mut scratch.p)? };
     let (p, fluid) = (&scratch.p, solver.fluid());
+    if cfg.boundary == Boundary::CLOSED && fluid.is_none() && apertures.is_none() && grad_scale.is_none() {
+        // P2's box: the interior faces in plain loops.
+        let (n, nu) = (cfg.nx, cfg.nx + 1);
+        for j in 0..cfg.ny {
+            for i in 1..n {
+                u[j * nu + i] -= p[j * n + i] - p[j * n + i - 1];
+            }
+        }
+        for j in 1..cfg.ny {
+            for i in 0..n {
+                v[j * n + i] -= p[j * n + i] - p[(j - 1) * n + i];
+            }
+        }
+        return Ok(iterations);
+    }
     for (axis, vel) in [u, v].into_iter().enumerate() {
         for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
             if f.projected {
@@ -780,6 +820,37 @@ pub fn project_adjoint(cfg: &Smoke2d, g: &mut [f64], solver: &mut PressureSolver
     let (_, gu, gv) = cfg.split_mut(g);
     let lp = &mut scratch.d;
     lp.fill(0.0);
+    if cfg.boundary == Boundary::CLOSED && solver.fluid().is_none() {
+        // P2's box: the interior faces in plain loops, in the face list's order.
+        let (n, nu) = (cfg.nx, cfg.nx + 1);
+        for j in 0..cfg.ny {
+            for i in 1..n {
+                let l = gu[j * nu + i];
+                lp[j * n + i] -= l;
+                lp[j * n + i - 1] += l;
+            }
+        }
+        for j in 1..cfg.ny {
+            for i in 0..n {
+                let l = gv[j * n + i];
+                lp[j * n + i] -= l;
+                lp[(j - 1) * n + i] += l;
+            }
+        }
+    } else {
+        project_adjoint_faces(cfg, solver.fluid(), gu, gv, lp);
+    }
+    let iterations = solver.solve(lp, &mut scratch.p)?;
+    for (c, m) in scratch.p.iter_mut().enumerate() {
+        *m = -*m * solver.fluid().map_or(1.0, |w| w[c]);
+    }
+    divergence_transpose(cfg, &scratch.p, gu, gv);
+    Ok(iterations)
+}
+
+/// `λ_p = −Gᵀ·λ` of [`project_adjoint`] through the face list (periodic
+/// copies handed to their originals first), accumulated into `lp`.
+fn project_adjoint_faces(cfg: &Smoke2d, fluid: Option<&[f64]>, gu: &mut [f64], gv: &mut [f64], lp: &mut [f64]) {
     for (axis, gvel) in [&mut *gu, &mut *gv].into_iter().enumerate() {
         for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
             if !f.projected {
@@ -789,7 +860,7 @@ pub fn project_adjoint(cfg: &Smoke2d, g: &mut [f64], solver: &mut PressureSolver
                 gvel[f.index] += gvel[k];
                 gvel[k] = 0.0;
             }
-            let l = open(solver.fluid(), &f) * gvel[f.index];
+            let l = open(fluid, &f) * gvel[f.index];
             if let Some(c) = f.upper {
                 lp[c] -= l;
             }
@@ -798,10 +869,4 @@ pub fn project_adjoint(cfg: &Smoke2d, g: &mut [f64], solver: &mut PressureSolver
             }
         });
     }
-    let iterations = solver.solve(lp, &mut scratch.p)?;
-    for (c, m) in scratch.p.iter_mut().enumerate() {
-        *m = -*m * solver.fluid().map_or(1.0, |w| w[c]);
-    }
-    divergence_transpose(cfg, &scratch.p, gu, gv);
-    Ok(iterations)
 }
