@@ -5,6 +5,8 @@
 # 2D and in 3D; then a short training run through the solver.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# Open MPI and libclang, installed when missing (the `mpi` feature links them).
+scripts/system-packages
 scripts/cargo-enzyme build --release --bin diffsim
 # The gradient of a whole P1 rollout through the three checks.
 target/release/diffsim check --n 256 --steps 256

@@ -5,6 +5,8 @@
 # `diffsim new` in a temporary folder, then builds and runs it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# Open MPI and libclang, installed when missing (the `mpi` feature links them).
+scripts/system-packages
 guard=scripts/cargo-enzyme
 
 $guard build --release --all-targets

@@ -108,6 +108,7 @@
 pub mod accuracy;
 pub mod check;
 pub mod cli;
+pub mod distributed;
 pub mod files;
 pub mod fluids;
 pub mod fluids3d;

@@ -82,6 +82,9 @@ pub enum CliError {
     /// A training configuration is malformed.
     #[error(transparent)]
     Config(#[from] crate::train::config::ConfigError),
+    /// The processes of an mpirun cannot work together.
+    #[error(transparent)]
+    Distributed(#[from] crate::distributed::DistributedError),
     /// The thread pool could not be built.
     #[error("cannot start {threads} threads: {source}")]
     Threads {
@@ -143,6 +146,9 @@ enum Command {
     /// Adam fit; the toolchain file, the profile settings and the Enzyme log
     /// guard. Then: cd PATH && cargo run --release.
     New(new::NewArgs),
+    /// What this build has (version, threads, MPI) and, under `mpirun -np
+    /// K`, the ranks it runs as, checked by an exchange between them.
+    Info,
 }
 
 #[derive(Debug, clap::Args)]
@@ -196,7 +202,23 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
     if let Some(b) = &cli.memory_budget {
         crate::memory::set_budget(crate::memory::parse_bytes(b)?);
     }
+    let world = crate::distributed::World::from_launch()?;
+    let name = match &cli.command {
+        Command::Info => return info(&world),
+        Command::Bench(_) => "bench",
+        Command::Demo(_) => "demo",
+        Command::Check(_) => "check",
+        Command::Run(_) => "run",
+        Command::Grad(_) => "grad",
+        Command::Train(_) => "train",
+        Command::Experiment(_) => "experiment",
+        Command::Pareto(_) => "pareto",
+        Command::Stability(_) => "stability",
+        Command::New(_) => "new",
+    };
+    world.one_process(name)?;
     match cli.command {
+        Command::Info => unreachable!("answered above"),
         Command::Bench(b) => bench::run(b),
         Command::Demo(DemoCommand::Plume(a)) => demo::plume(a),
         Command::Check(a) => check_p1(a),
@@ -208,6 +230,21 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         Command::Stability(a) => accuracy::stability(a),
         Command::New(a) => new::new(a),
     }
+}
+
+/// `diffsim info`: the build, and the ranks with an exchange between them
+/// (each rank's number and threads gathered on every rank; rank 0 prints).
+fn info(world: &crate::distributed::World) -> Result<(), CliError> {
+    let threads = rayon::current_num_threads();
+    let all = world.all_gather(&[world.rank() as f64, threads as f64]);
+    let ranks_ok = all.chunks(2).enumerate().all(|(r, c)| c[0] == r as f64);
+    if world.is_root() {
+        println!("diffsim {}", env!("CARGO_PKG_VERSION"));
+        println!("MPI: {}", crate::distributed::World::library().unwrap_or_else(|| "not in this build (built without the `mpi` feature)".into()));
+        let per_rank: Vec<String> = all.chunks(2).map(|c| format!("{}", c[1])).collect();
+        println!("ranks: {} (threads per rank: {}); exchange between the ranks: {}", world.size(), per_rank.join(", "), if ranks_ok { "ok" } else { "WRONG" });
+    }
+    Ok(())
 }
 
 /// Runs the three gradient checks on the P1 rollout `u0 ↦ u_T`.
