@@ -744,6 +744,13 @@ fn info_runs_as_several_mpi_ranks_and_one_process_commands_refuse_them() {
     assert_eq!(code, 0, "{out}\n{err}");
     assert!(out.contains("ranks: 3") && out.contains("exchange between the ranks: ok"), "{out}");
     assert_eq!(out.matches("diffsim ").count(), 1, "only rank 0 prints: {out}");
+    // The exchange benchmark over two ranks: a line per size, the data checked.
+    let (code, out, err) = mpirun(2, &["bench", "exchange", "--repetitions", "3", "--json"]);
+    assert_eq!(code, 0, "{out}\n{err}");
+    let lines: Vec<serde_json::Value> = out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(lines.len(), 6, "{out}");
+    assert!(lines.iter().all(|l| l["ranks"] == 2 && l["time_s"].as_f64().unwrap() > 0.0), "{out}");
+    assert_eq!(lines[5]["bytes_in_per_rank"], 8 << 20);
     // A command that runs in one process says so and every rank exits non-zero.
     let (code, _, err) = mpirun(2, &["check", "--n", "8", "--steps", "2"]);
     assert_ne!(code, 0);

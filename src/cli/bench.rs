@@ -41,6 +41,22 @@ pub(super) enum BenchCommand {
     /// error against the f64 SVD on the real batch and on a near-singular
     /// one, the whole update and an Adam update.
     Hig(HigBenchArgs),
+    /// The exchange between MPI ranks (`mpirun -np K diffsim bench
+    /// exchange`): the time of an all-gather of n values per rank over a
+    /// range of n, its latency and bandwidth (the inputs of the scaling
+    /// model in docs/distributed.md).
+    Exchange(ExchangeArgs),
+}
+
+#[derive(Debug, Args)]
+pub(super) struct ExchangeArgs {
+    /// Timed exchanges per size at the smallest size (fewer at large sizes,
+    /// about 64 MB moved per size at most); the median is reported.
+    #[arg(long, default_value_t = 200)]
+    repetitions: usize,
+    /// Print one JSON line per size instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -173,8 +189,9 @@ pub(super) struct P1Args {
     json: bool,
 }
 
-pub(super) fn run(cmd: BenchCommand) -> Result<(), CliError> {
+pub(super) fn run(cmd: BenchCommand, world: &crate::distributed::World) -> Result<(), CliError> {
     match cmd {
+        BenchCommand::Exchange(a) => exchange(a, world),
         BenchCommand::P1(a) => p1(a),
         BenchCommand::P2(a) => p2(a),
         BenchCommand::P4(a) => p4(a),
@@ -183,6 +200,48 @@ pub(super) fn run(cmd: BenchCommand) -> Result<(), CliError> {
         BenchCommand::P4Cost(a) => p4_cost(a),
         BenchCommand::Hig(a) => hig(a),
     }
+}
+
+/// `bench exchange`: the median time of an all-gather of `n` values per
+/// rank for n from 1 to 2²⁰, measured on rank 0 (every rank takes part;
+/// the exchange itself keeps them in step), with the bytes each rank
+/// receives and the bandwidth that makes; the latency is the time at n = 1.
+fn exchange(a: ExchangeArgs, world: &crate::distributed::World) -> Result<(), CliError> {
+    if a.repetitions == 0 {
+        return Err(CliError::Argument { arg: "--repetitions", reason: "need at least 1".into() });
+    }
+    let k = world.size();
+    if world.is_root() && !a.json {
+        println!("all-gather over {k} rank(s), median of timed repetitions (rank 0's clock)");
+        println!("{:>9} {:>14} {:>12} {:>14}", "values", "bytes in/rank", "time µs", "bandwidth MB/s");
+    }
+    for n in [1usize, 16, 256, 4096, 65536, 1 << 20] {
+        let mine = vec![world.rank() as f64; n];
+        let reps = a.repetitions.min((1 << 23) / (n * k.max(1))).max(3);
+        // One exchange to warm up and to check what arrives.
+        let all = world.all_gather(&mine);
+        if all.len() != n * k || (0..k).any(|r| all[r * n] != r as f64) {
+            return Err(CliError::Argument { arg: "bench exchange", reason: format!("the all-gather of {n} values per rank returned wrong data") });
+        }
+        let mut times = Vec::with_capacity(reps);
+        for _ in 0..reps {
+            let t0 = std::time::Instant::now();
+            std::hint::black_box(world.all_gather(&mine));
+            times.push(t0.elapsed().as_secs_f64());
+        }
+        times.sort_by(f64::total_cmp);
+        let t = times[reps / 2];
+        let bytes = (k - 1) * n * 8;
+        let bandwidth = if t > 0.0 { bytes as f64 / t / 1e6 } else { 0.0 };
+        if world.is_root() {
+            if a.json {
+                println!("{}", json!({"bench": "exchange", "ranks": k, "values": n, "bytes_in_per_rank": bytes, "time_s": t, "bandwidth_mb_s": bandwidth, "repetitions": reps}));
+            } else {
+                println!("{n:>9} {bytes:>14} {:>12.2} {bandwidth:>14.1}", t * 1e6);
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The JSON key of P3's `k`-th time share.
