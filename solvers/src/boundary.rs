@@ -68,6 +68,20 @@ pub enum Side {
     Outflow,
 }
 
+impl Side {
+    /// Whether the side sets its faces' normal velocity (closed: 0, inflow:
+    /// the profile), so that nothing computed there before survives.
+    pub fn sets_faces(self) -> bool {
+        matches!(self, Side::Closed | Side::Inflow(_))
+    }
+
+    /// The side with its inhomogeneous part dropped (an inflow closed): the
+    /// condition a tangent obeys.
+    pub fn homogeneous(self) -> Side {
+        if let Side::Inflow(_) = self { Side::Closed } else { self }
+    }
+}
+
 /// The four sides of the box (x to the right, y up).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Boundary {
@@ -133,6 +147,12 @@ impl Boundary {
     /// Whether some side is an outflow (the pressure matrix is then definite).
     pub fn has_outflow(&self) -> bool {
         self.sides().contains(&Side::Outflow)
+    }
+
+    /// Every side [`Side::homogeneous`].
+    pub fn homogeneous(&self) -> Self {
+        let h = Side::homogeneous;
+        Self { left: h(self.left), right: h(self.right), bottom: h(self.bottom), top: h(self.top) }
     }
 
     /// The sides in the order left, right, bottom, top.
@@ -210,6 +230,12 @@ impl Boundary3 {
     /// Whether some side is an outflow (the pressure matrix is then definite).
     pub fn has_outflow(&self) -> bool {
         (0..3).any(|a| self.axis(a).contains(&Side::Outflow))
+    }
+
+    /// Every side [`Side::homogeneous`].
+    pub fn homogeneous(&self) -> Self {
+        let h = Side::homogeneous;
+        Self { left: h(self.left), right: h(self.right), bottom: h(self.bottom), top: h(self.top), back: h(self.back), front: h(self.front) }
     }
 
     /// Checks that the sides can be simulated together ([`validate_axes`]).

@@ -67,24 +67,34 @@ pub fn across(dims: [usize; 3], b: &Boundary3, c: usize, q: [usize; 3], axis: us
 /// nothing at a wall). Overwrites `out`; slab by slab, in parallel on large
 /// boxes.
 pub fn apply_weighted3(dims: [usize; 3], b: &Boundary3, w: [f64; 3], p: &[f64], out: &mut [f64]) {
+    apply_stencil3(dims, b, w, None, p, out);
+}
+
+/// The seven-point matrix of [`apply_weighted3`] with solid cells where
+/// `fluid[c] = 0` (`None`: none): `out[c] = f_c·Σ_a w_a·Σ_m f_m·(p_c − p_m)
+/// + (1 − f_c)·p_c` (a ghost counts `p_c`), which couples fluid cells only
+/// and keeps solid rows as the identity. The one loop behind both 3D
+/// pressure matrices (this one's and [`crate::smoke3d::apply_general_matrix3`]).
+pub fn apply_stencil3(dims: [usize; 3], b: &Boundary3, w: [f64; 3], fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
     let [nx, ny, nz] = dims;
     let slab = nx * ny;
+    let f = |c: usize| fluid.map_or(1.0, |f| f[c]);
     for_pieces(&mut out[..slab * nz], slab, |k, o| {
         for j in 0..ny {
             for i in 0..nx {
                 let c = (k * ny + j) * nx + i;
-                let pc = p[c];
+                let (pc, fc) = (p[c], f(c));
                 let mut acc = 0.0;
                 for (a, &wa) in w.iter().enumerate() {
                     for m in across(dims, b, c, [i, j, k], a) {
                         acc += wa * match m {
-                            Across::Cell(m) => pc - p[m],
+                            Across::Cell(m) => f(m) * (pc - p[m]),
                             Across::Ghost => pc,
                             Across::Wall => 0.0,
                         };
                     }
                 }
-                o[j * nx + i] = acc;
+                o[j * nx + i] = fc * acc + (1.0 - fc) * pc;
             }
         }
     });

@@ -226,11 +226,10 @@ pub fn advect_radius(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, veloci
 /// its trace lands does not matter (no kink of the step).
 #[inline(always)]
 fn set_by_boundary(cfg: &Smoke2d, at: At, k: usize, l: usize) -> bool {
-    let set = |side: Side| matches!(side, Side::Closed | Side::Inflow(_));
     let b = &cfg.boundary;
     match at {
-        At::UFace => (k == 0 && set(b.left)) || (k == cfg.nx && set(b.right)),
-        At::VFace => (l == 0 && set(b.bottom)) || (l == cfg.ny && set(b.top)),
+        At::UFace => (k == 0 && b.left.sets_faces()) || (k == cfg.nx && b.right.sets_faces()),
+        At::VFace => (l == 0 && b.bottom.sets_faces()) || (l == cfg.ny && b.top.sets_faces()),
         At::Centre => false,
     }
 }

@@ -44,10 +44,7 @@ pub fn enforce_boundary(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
 /// The linear part of [`enforce_boundary`] (inflow faces set to 0, not to
 /// the profile), for tangents: closed and inflow faces 0, periodic copies.
 pub fn enforce_boundary_linear(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
-    let homogeneous = |s: Side| if let Side::Inflow(_) = s { Side::Closed } else { s };
-    let b = cfg.boundary;
-    let linear = Boundary { left: homogeneous(b.left), right: homogeneous(b.right), bottom: homogeneous(b.bottom), top: homogeneous(b.top) };
-    enforce_boundary(&cfg.with_boundary(linear), u, v);
+    enforce_boundary(&cfg.with_boundary(cfg.boundary.homogeneous()), u, v);
 }
 
 /// Adjoint of [`enforce_boundary`] (of its linear part) on the velocity
@@ -62,10 +59,10 @@ pub fn enforce_boundary_adjoint(cfg: &Smoke2d, gu: &mut [f64], gv: &mut [f64]) {
             gu[j * nu] += gu[j * nu + nx];
             gu[j * nu + nx] = 0.0;
         }
-        if let Side::Closed | Side::Inflow(_) = b.left {
+        if b.left.sets_faces() {
             gu[j * nu] = 0.0;
         }
-        if let Side::Closed | Side::Inflow(_) = b.right {
+        if b.right.sets_faces() {
             gu[j * nu + nx] = 0.0;
         }
     }
@@ -75,10 +72,10 @@ pub fn enforce_boundary_adjoint(cfg: &Smoke2d, gu: &mut [f64], gv: &mut [f64]) {
             gv[i] += gv[top + i];
             gv[top + i] = 0.0;
         }
-        if let Side::Closed | Side::Inflow(_) = b.bottom {
+        if b.bottom.sets_faces() {
             gv[i] = 0.0;
         }
-        if let Side::Closed | Side::Inflow(_) = b.top {
+        if b.top.sets_faces() {
             gv[top + i] = 0.0;
         }
     }

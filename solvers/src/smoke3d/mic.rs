@@ -1,12 +1,11 @@
-//! The pressure matrix of any closed `nx × ny × nz` box with solid cells,
-//! and its modified incomplete Cholesky factor MIC(0) as the
-//! preconditioner where the multigrid (a cube's) does not apply: the 3D
-//! form of the 2D solver's MIC(0) (Bridson, *Fluid Simulation for Computer
+//! The pressure matrix of any `nx × ny × nz` box and sides with solid
+//! cells, and its modified incomplete Cholesky factor MIC(0), a
+//! preconditioner one may pick instead of the multigrid: the 3D form of
+//! the 2D solver's MIC(0) (Bridson, *Fluid Simulation for Computer
 //! Graphics*, §5), with the same safety factors.
 
 use super::Smoke3d;
-use crate::multigrid::{Across, across};
-use crate::par::for_pieces;
+use crate::multigrid::{Across, across, apply_stencil3};
 
 /// The seven-point pressure matrix of the box `cfg` (any sides) with solid
 /// cells where `fluid[c] = 0` (`None`: none): `out[c] = w_c·Σ_m w_m·(p_c −
@@ -17,30 +16,7 @@ use crate::par::for_pieces;
 /// constants on the fluid cells are its null space. Slab by slab, in
 /// parallel on large boxes.
 pub fn apply_general_matrix3(cfg: &Smoke3d, fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
-    let dims = cfg.dims();
-    let [nx, ny, nz] = dims;
-    let slab = nx * ny;
-    let w = |c: usize| fluid.map_or(1.0, |f| f[c]);
-    let b = cfg.boundary;
-    for_pieces(&mut out[..slab * nz], slab, |k, o| {
-        for j in 0..ny {
-            for i in 0..nx {
-                let c = (k * ny + j) * nx + i;
-                let (pc, wc) = (p[c], w(c));
-                let mut acc = 0.0;
-                for a in 0..3 {
-                    for m in across(dims, &b, c, [i, j, k], a) {
-                        acc += match m {
-                            Across::Cell(m) => w(m) * (pc - p[m]),
-                            Across::Ghost => pc,
-                            Across::Wall => 0.0,
-                        };
-                    }
-                }
-                o[j * nx + i] = wc * acc + (1.0 - wc) * pc;
-            }
-        }
-    });
+    apply_stencil3(cfg.dims(), &cfg.boundary, [1.0; 3], fluid, p, out);
 }
 
 /// MIC(0) of [`apply_general_matrix3`]'s matrix: `M = (D + L)·D⁻¹·(D + L)ᵀ`

@@ -2,9 +2,9 @@
 //! the seven-point matrix (coupling fluid cells only when there are
 //! obstacles; across periodic sides; a ghost `p = 0` beyond outflow
 //! sides), its solve by conjugate gradients ([`crate::cg`], preconditioned
-//! by the multigrid V-cycle of [`crate::multigrid`] in a closed box with
-//! two equal sides, or by MIC(0) in any box), and the projection's adjoint
-//! (the same solve).
+//! by a multigrid V-cycle of [`crate::multigrid`]: the geometric one in a
+//! closed box with two equal sides, the aggregation one in any other box;
+//! or by MIC(0)), and the projection's adjoint (the same solve).
 
 use super::mic::{Mic3, apply_general_matrix3};
 use super::*;
@@ -160,9 +160,8 @@ fn gradient_transpose(cfg: &Smoke3d, [u, v, w]: [&mut [f64]; 3], out: &mut [f64]
 }
 
 /// Conjugate gradients on the pressure matrix of a box (any sides), with or
-/// without solid cells, preconditioned by a multigrid V-cycle (a cube),
-/// MIC(0) of the matrix (any box) or not at all, with its work vectors
-/// kept between solves.
+/// without solid cells, preconditioned by a multigrid V-cycle, MIC(0) of
+/// the matrix or not at all, with its work vectors kept between solves.
 #[derive(Clone, Debug)]
 pub struct PressureSolver3 {
     cfg: Smoke3d,
@@ -234,13 +233,14 @@ struct Masked {
 impl PressureSolver3 {
     /// A solver for the box `cfg` (any sides): relative `tolerance` on the true
     /// residual, more than `max_iterations` an error, preconditioned by
-    /// [`Preconditioner::Multigrid`] (a box with two equal sides: a stack of
-    /// square slabs, reordered so that they lie along z when they do not),
-    /// [`Preconditioner::Mic0`] or [`Preconditioner::None`].
+    /// [`Preconditioner::Multigrid`] (a closed box with two equal sides: the
+    /// geometric V-cycle of a stack of square slabs, reordered so that they
+    /// lie along z when they do not; any other box: the aggregation V-cycle
+    /// of [`AggregateMultigrid`]), [`Preconditioner::Mic0`] or
+    /// [`Preconditioner::None`].
     ///
     /// # Panics
-    /// For multigrid on a box whose sides all differ ([`slab_axis`]), or the
-    /// Cholesky preconditioner (2D only).
+    /// For the Cholesky preconditioner (2D only).
     pub fn new(cfg: &Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
         Self::build(cfg, tolerance, max_iterations, precond, None)
     }
@@ -249,10 +249,11 @@ impl PressureSolver3 {
     /// 0`: the matrix `W·(A_box·W − S) + (I − W)`, which couples fluid cells
     /// across their shared faces only (`S` counts the solid cells beside
     /// each cell) and keeps solid rows as the identity; symmetric, the
-    /// constants on the fluid cells its null space. The multigrid
-    /// preconditioner is the cube's V-cycle on the fluid cells, `W·M·W + (I −
-    /// W)`: symmetric and positive, blind to the obstacles' walls (they cost
-    /// iterations, not accuracy); MIC(0) is built for the matrix itself.
+    /// constants on the fluid cells its null space (with no outflow side).
+    /// The multigrid preconditioner is the box's V-cycle on the fluid cells,
+    /// `W·M·W + (I − W)`: symmetric and positive, blind to the obstacles'
+    /// walls (they cost iterations, not accuracy); MIC(0) is built for the
+    /// matrix itself.
     ///
     /// # Panics
     /// As [`PressureSolver3::new`], or if `fluid` does not have a value per cell.

@@ -61,17 +61,7 @@ fn set_sides(cfg: &Smoke3d, a: usize, f: &mut [f64]) {
 /// choosing between the profile and 0 leaves Enzyme a value it cannot
 /// type, docs/pitfalls.md.)
 pub fn enforce_boundary3_linear(cfg: &Smoke3d, vel: [&mut [f64]; 3]) {
-    let homogeneous = |s: Side| if let Side::Inflow(_) = s { Side::Closed } else { s };
-    let b = cfg.boundary;
-    let linear = crate::boundary::Boundary3 {
-        left: homogeneous(b.left),
-        right: homogeneous(b.right),
-        bottom: homogeneous(b.bottom),
-        top: homogeneous(b.top),
-        back: homogeneous(b.back),
-        front: homogeneous(b.front),
-    };
-    enforce_boundary3(&cfg.with_boundary(linear), vel);
+    enforce_boundary3(&cfg.with_boundary(cfg.boundary.homogeneous()), vel);
 }
 
 /// Adjoint of [`enforce_boundary3`] (of its linear part) on the velocity
@@ -79,21 +69,15 @@ pub fn enforce_boundary3_linear(cfg: &Smoke3d, vel: [&mut [f64]; 3]) {
 /// its adjoint to face `0`.
 pub fn enforce_boundary3_adjoint(cfg: &Smoke3d, vel: [&mut [f64]; 3]) {
     for (a, g) in vel.into_iter().enumerate() {
-        let [lo, hi] = cfg.boundary.axis(a);
         for_each_face3(cfg, a, |f| {
             if let Some(k) = f.copy {
                 g[f.index] += g[k];
                 g[k] = 0.0;
             }
+            if f.side.is_some_and(Side::sets_faces) {
+                g[f.index] = 0.0;
+            }
         });
-        let set = |s: Side| matches!(s, Side::Closed | Side::Inflow(_));
-        if set(lo) || set(hi) {
-            for_each_face3(cfg, a, |f| {
-                if f.side.is_some_and(set) {
-                    g[f.index] = 0.0;
-                }
-            });
-        }
     }
 }
 
@@ -169,6 +153,5 @@ pub(crate) fn set_by_boundary(cfg: &Smoke3d, at: At3, q: [usize; 3]) -> bool {
         return false;
     }
     let [lo, hi] = cfg.boundary.axis(a);
-    let set = |s: Side| matches!(s, Side::Closed | Side::Inflow(_));
-    (q[a] == 0 && set(lo)) || (q[a] == cfg.dims()[a] && set(hi))
+    (q[a] == 0 && lo.sets_faces()) || (q[a] == cfg.dims()[a] && hi.sets_faces())
 }
