@@ -4,7 +4,7 @@
 use std::process::Command;
 
 /// Runs `diffsim` and returns (exit code, stdout, stderr).
-fn diffsim(args: &[&str]) -> (i32, String, String) {
+pub(crate) fn diffsim(args: &[&str]) -> (i32, String, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_diffsim")).args(args).output().unwrap();
     (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
 }
@@ -555,7 +555,7 @@ fn bench_p3_json_line() {
 }
 
 /// A fresh temporary folder under the target directory.
-fn scratch_dir(name: &str) -> std::path::PathBuf {
+pub(crate) fn scratch_dir(name: &str) -> std::path::PathBuf {
     let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join(name);
     let _ = std::fs::remove_dir_all(&dir);
     dir
@@ -719,52 +719,4 @@ fn three_d_scenes_run_draw_and_check_their_gradient() {
     assert_eq!(code, 0, "{stdout}\n{err}");
     assert!(!stdout.contains("FAIL"), "{stdout}");
     assert!(stdout.contains("inconclusive (kink)") && stdout.contains("note: the rollout has a kink"), "{stdout}");
-}
-
-/// `mpirun -np K diffsim ARGS` (as root, several ranks on these two cores).
-fn mpirun(k: usize, args: &[&str]) -> (i32, String, String) {
-    let out = Command::new("mpirun")
-        .args(["-np", &k.to_string(), "--oversubscribe", env!("CARGO_BIN_EXE_diffsim")])
-        .args(args)
-        .env("OMPI_ALLOW_RUN_AS_ROOT", "1")
-        .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
-        .output()
-        .expect("mpirun (scripts/system-packages installs Open MPI)");
-    (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
-}
-
-#[test]
-fn info_runs_as_several_mpi_ranks_and_one_process_commands_refuse_them() {
-    // One process without mpirun is a world of one.
-    let (code, out, err) = diffsim(&["info"]);
-    assert_eq!(code, 0, "{err}");
-    assert!(out.contains("ranks: 1") && out.contains("Open MPI"), "{out}");
-    // Three ranks exchange their numbers; rank 0 alone prints.
-    let (code, out, err) = mpirun(3, &["info"]);
-    assert_eq!(code, 0, "{out}\n{err}");
-    assert!(out.contains("ranks: 3") && out.contains("exchange between the ranks: ok"), "{out}");
-    assert_eq!(out.matches("diffsim ").count(), 1, "only rank 0 prints: {out}");
-    // The exchange benchmark over two ranks: a line per size, the data checked.
-    let (code, out, err) = mpirun(2, &["bench", "exchange", "--repetitions", "3", "--json"]);
-    assert_eq!(code, 0, "{out}\n{err}");
-    let lines: Vec<serde_json::Value> = out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
-    assert_eq!(lines.len(), 6, "{out}");
-    assert!(lines.iter().all(|l| l["ranks"] == 2 && l["time_s"].as_f64().unwrap() > 0.0), "{out}");
-    assert_eq!(lines[5]["bytes_in_per_rank"], 8 << 20);
-    // A command that runs in one process says so and every rank exits non-zero.
-    let (code, _, err) = mpirun(2, &["check", "--n", "8", "--steps", "2"]);
-    assert_ne!(code, 0);
-    assert!(err.contains("`diffsim check` runs in one process; it was started by mpirun as 2 processes"), "{err}");
-}
-
-#[test]
-fn a_launch_is_recognised_from_its_environment() {
-    use diffsim::distributed::{DistributedError, launched_size_in};
-    let env = |pairs: &'static [(&'static str, &'static str)]| move |k: &str| pairs.iter().find(|(n, _)| *n == k).map(|(_, v)| v.to_string());
-    assert_eq!(launched_size_in(env(&[])), None);
-    assert_eq!(launched_size_in(env(&[("OMPI_COMM_WORLD_SIZE", "4")])), Some(4));
-    assert_eq!(launched_size_in(env(&[("PMI_SIZE", "2")])), Some(2));
-    // What a build without MPI says when started as several processes.
-    let e = DistributedError::BuiltWithoutMpi { size: 3 }.to_string();
-    assert!(e.contains("built without MPI") && e.contains("one of 3 processes"), "{e}");
 }

@@ -7,6 +7,7 @@ mod boundaries;
 mod boundaries3d;
 mod checks;
 mod cli;
+mod distributed;
 mod doc_examples;
 mod flow;
 mod fluids;

@@ -5,6 +5,7 @@
 //! thread count, and a resumed training run repeats an uninterrupted one.
 
 use diffsim::check::{CheckOptions, dot_product_between};
+use diffsim::distributed::World;
 use diffsim::nn::enzyme::{Conv1dEnzyme, DenseEnzyme};
 use diffsim::nn::{Activation, Conv1d, Conv2d, Init, Layer, Net, NetError, Padding, ParamStore, presets};
 use diffsim::op::{Operator, OperatorExt};
@@ -274,18 +275,20 @@ fn resumed_training_repeats_an_uninterrupted_run() {
     let theta0 = params(&net, 6);
     let (mut a, mut opt_a) = (theta0.clone(), Optimizer::adam(1e-3));
     let mut losses = Vec::new();
-    train(&setup, &net, &mut a, &mut opt_a, TrainData::Fixed(&data), &s, |r, _, _| {
+    train(&setup, &net, &mut a, &mut opt_a, TrainData::Fixed(&data), &s, &World::single(), |r, _, _| {
         losses.push(r.loss);
         std::ops::ControlFlow::Continue(())
     })
     .unwrap();
     // The same in two halves, with the state through JSON in between.
     let (mut b, mut opt_b) = (theta0.clone(), Optimizer::adam(1e-3));
-    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, ..s }, |_, _, _| std::ops::ControlFlow::Continue(()))
-        .unwrap();
+    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, ..s }, &World::single(), |_, _, _| {
+        std::ops::ControlFlow::Continue(())
+    })
+    .unwrap();
     let saved = serde_json::to_string(&(&b, &opt_b)).unwrap();
     let (mut b, mut opt_b): (Vec<f64>, Optimizer) = serde_json::from_str(&saved).unwrap();
-    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, first: 4, ..s }, |_, _, _| {
+    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, first: 4, ..s }, &World::single(), |_, _, _| {
         std::ops::ControlFlow::Continue(())
     })
     .unwrap();

@@ -177,7 +177,15 @@ fn the_step_by_row_ranges_is_the_step_and_its_parallel_adjoint_is_the_hand_one()
     let away: Vec<f64> = crate::p4::field(cfg.n_state(), 5)
         .iter()
         .enumerate()
-        .map(|(k, v)| if k < ns { 1.0 + v } else if k < ns + nu { 0.3 + 0.15 * v } else { -0.3 - 0.15 * v })
+        .map(|(k, v)| {
+            if k < ns {
+                1.0 + v
+            } else if k < ns + nu {
+                0.3 + 0.15 * v
+            } else {
+                -0.3 - 0.15 * v
+            }
+        })
         .collect();
     for js in [0..5, 12..20] {
         let r = check_all(&SmokeAdvectRows::new(cfg, js.clone()), &away, &[], &CheckOptions::default());

@@ -235,7 +235,10 @@ fn exchange(a: ExchangeArgs, world: &crate::distributed::World) -> Result<(), Cl
         let bandwidth = if t > 0.0 { bytes as f64 / t / 1e6 } else { 0.0 };
         if world.is_root() {
             if a.json {
-                println!("{}", json!({"bench": "exchange", "ranks": k, "values": n, "bytes_in_per_rank": bytes, "time_s": t, "bandwidth_mb_s": bandwidth, "repetitions": reps}));
+                println!(
+                    "{}",
+                    json!({"bench": "exchange", "ranks": k, "values": n, "bytes_in_per_rank": bytes, "time_s": t, "bandwidth_mb_s": bandwidth, "repetitions": reps})
+                );
             } else {
                 println!("{n:>9} {bytes:>14} {:>12.2} {bandwidth:>14.1}", t * 1e6);
             }

@@ -8,6 +8,7 @@ mod measure;
 mod new;
 mod pg;
 mod scene;
+mod sweep;
 mod train;
 
 use clap::{Parser, Subcommand};
@@ -29,6 +30,9 @@ pub enum CliError {
     /// A rollout failed.
     #[error(transparent)]
     Rollout(#[from] crate::rollout::RolloutError),
+    /// Training failed (a rollout, or ranks that no longer agree).
+    #[error("training: {0}")]
+    Train(#[from] crate::train::sol::TrainError),
     /// A file could not be written.
     #[error("cannot write {path}: {source}")]
     Io {
@@ -124,6 +128,10 @@ enum Command {
     /// The loss of a scene file and its gradient with respect to the inputs
     /// its [loss] names, as .npy; --check runs the gradient checks.
     Grad(scene::GradArgs),
+    /// Run a scene for every combination of values of some of its keys
+    /// (`--set KEY=V1,V2,…`), spread over the ranks under `mpirun -np K`;
+    /// writes each run's fields and pictures and one table of the runs.
+    Sweep(sweep::SweepArgs),
     /// Train a correction network through the coarse Burgers solver from a
     /// TOML configuration; writes the loss log, its plot, the model and a
     /// checkpoint to resume from.
@@ -211,24 +219,58 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         Command::Check(_) => "check",
         Command::Run(_) => "run",
         Command::Grad(_) => "grad",
-        Command::Train(_) => "train",
+        Command::Train(_) | Command::Sweep(_) => "",
+        Command::Experiment(train::ExperimentCommand::SolBurgers(_) | train::ExperimentCommand::SolWake(_) | train::ExperimentCommand::HigOscillators(_)) => "",
         Command::Experiment(_) => "experiment",
         Command::Pareto(_) => "pareto",
         Command::Stability(_) => "stability",
         Command::New(_) => "new",
     };
-    if !name.is_empty() {
-        world.one_process(name)?;
+    let result = if name.is_empty() { Ok(()) } else { world.one_process(name).map_err(CliError::from) }.and_then(|()| dispatch(cli.command, &world));
+    match result {
+        // An error on some ranks only (bad input one rank sees, a failed
+        // write on rank 0) stops every rank: the others may be waiting in
+        // an exchange for this one.
+        Err(e) if world.size() > 1 && !e.on_every_rank() => {
+            eprintln!("error on rank {} of {}: {e}", world.rank(), world.size());
+            world.abort(e.exit_code())
+        }
+        // The same error on every rank: rank 0 says it, all exit alike.
+        Err(e) if !world.is_root() => {
+            let code = e.exit_code();
+            drop(world);
+            std::process::exit(code)
+        }
+        r => r,
     }
-    match cli.command {
-        Command::Info => info(&world),
-        Command::Bench(b) => bench::run(b, &world),
+}
+
+impl CliError {
+    /// The exit code: 130 for a run stopped by a signal (the shell's code
+    /// for SIGINT), 1 for every other error.
+    pub fn exit_code(&self) -> i32 {
+        if matches!(self, CliError::Interrupted { .. }) { 130 } else { 1 }
+    }
+
+    /// Whether every rank of a run reaches this error together (a refusal
+    /// of several ranks, a stop all ranks agreed on), so that they can end
+    /// normally; any other error stops the run at once.
+    fn on_every_rank(&self) -> bool {
+        matches!(self, CliError::Interrupted { .. } | CliError::Distributed(crate::distributed::DistributedError::OneProcessOnly { .. }))
+    }
+}
+
+fn dispatch(command: Command, world: &crate::distributed::World) -> Result<(), CliError> {
+    match command {
+        Command::Info => info(world),
+        Command::Bench(b) => bench::run(b, world),
         Command::Demo(DemoCommand::Plume(a)) => demo::plume(a),
         Command::Check(a) => check_p1(a),
         Command::Run(a) => scene::run(a),
         Command::Grad(a) => scene::grad(a),
-        Command::Train(a) => train::train_cmd(a),
-        Command::Experiment(e) => train::experiment(e),
+        Command::Train(a) => train::train_cmd(a, world),
+        Command::Sweep(a) => sweep::sweep(a, world),
+        Command::Experiment(e) => train::experiment(e, world),
         Command::Pareto(a) => accuracy::pareto(a),
         Command::Stability(a) => accuracy::stability(a),
         Command::New(a) => new::new(a),

@@ -39,9 +39,16 @@ pub struct RunArgs {
 /// The pictures of a 3D scene: a slice (axis, cell index) and the axis of
 /// a maximum-intensity projection.
 #[derive(Clone, Copy, Debug)]
-struct Views {
+pub(super) struct Views {
     slice: (usize, Option<usize>),
     mip: usize,
+}
+
+impl Default for Views {
+    /// `diffsim run`'s defaults: the middle z plane and the projection along z.
+    fn default() -> Self {
+        Views { slice: (2, None), mip: 2 }
+    }
 }
 
 impl Views {
@@ -92,7 +99,7 @@ pub struct GradArgs {
     checkpoint: String,
 }
 
-fn create_dir(out: &Path) -> Result<(), CliError> {
+pub(super) fn create_dir(out: &Path) -> Result<(), CliError> {
     std::fs::create_dir_all(out).map_err(|source| CliError::Io { path: out.to_path_buf(), source })
 }
 
@@ -108,7 +115,7 @@ fn write_npy(path: &Path, shape: &[u64], values: &[f64]) -> Result<(), CliError>
 /// The declared fields of a state as `.npy` files (`smoke.npy`; a 2D
 /// velocity as `velocity_u.npy` `[N, N+1]` and `velocity_v.npy` `[N+1, N]`,
 /// rows = y). Returns the file names.
-fn write_state(scene: &Scene, out: &Path, x: &[f64]) -> Result<Vec<String>, CliError> {
+pub(super) fn write_state(scene: &Scene, out: &Path, x: &[f64]) -> Result<Vec<String>, CliError> {
     let mut names = Vec::new();
     for &field in &scene.fields {
         for a in scene.domain.arrays(field) {
@@ -123,7 +130,7 @@ fn write_state(scene: &Scene, out: &Path, x: &[f64]) -> Result<Vec<String>, CliE
 /// An image of a state: the smoke of a box (the speed when it has no smoke),
 /// a slice and a maximum-intensity projection of it in 3D, or a plot of
 /// each field of a line. Returns the file names.
-fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64], views: Views) -> Result<Vec<String>, CliError> {
+pub(super) fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64], views: Views) -> Result<Vec<String>, CliError> {
     let io = |path: PathBuf| move |source| CliError::Io { path, source };
     let mut names = Vec::new();
     match &scene.domain {
@@ -430,7 +437,7 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
 /// Writes a solved steady scene: `velocity_u.npy`, `velocity_v.npy`,
 /// `pressure.npy` (rows = y) and `speed.png` (bodies' cells dark red).
 /// Returns the file names.
-fn write_steady(scene: &SteadyScene, run: &crate::scene::SteadyRun, out: &Path) -> Result<Vec<String>, CliError> {
+pub(super) fn write_steady(scene: &SteadyScene, run: &crate::scene::SteadyRun, out: &Path) -> Result<Vec<String>, CliError> {
     let (nx, ny) = (scene.flow.nx as u64, scene.flow.ny as u64);
     let (u, v) = run.state.x.split_at(scene.flow.n_u());
     write_npy(&out.join("velocity_u.npy"), &[ny, nx + 1], u)?;

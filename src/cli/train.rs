@@ -9,6 +9,7 @@ use serde::Deserialize;
 use serde::de::IntoDeserializer;
 
 use super::{CliError, plot_or_warn};
+use crate::distributed::World;
 use crate::nn::{Activation, ParamStore};
 use crate::plot::{Axes, Series};
 use crate::train::Optimizer;
@@ -43,6 +44,11 @@ pub struct TrainArgs {
     /// … or once this many seconds have passed since the last one.
     #[arg(long, value_name = "SECONDS", default_value_t = 30.0)]
     checkpoint_seconds: f64,
+    /// Stop after this iteration, with its checkpoint written (a run cut
+    /// into slices, as under a batch system's time limit); `--resume`
+    /// continues it, under any number of ranks.
+    #[arg(long, value_name = "ITERATION")]
+    until: Option<u64>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -124,6 +130,10 @@ pub struct HigArgs {
     /// train for 3600; 10 is a quick look).
     #[arg(long, default_value_t = 60.0)]
     budget: f64,
+    /// Instead of the time budget, this many updates per optimizer and
+    /// problem: the same curves on any machine and any number of ranks.
+    #[arg(long)]
+    updates: Option<usize>,
     /// How HIG and Gauss-Newton decompose the batch Jacobian: auto (the
     /// Gram eigendecomposition in f64 where it is as accurate as the SVD,
     /// else the f64 SVD), svd, gram, or svd-f32 (the published code's
@@ -360,57 +370,39 @@ fn trim_log(path: &Path, done: u64) -> Result<(), CliError> {
     crate::files::write_atomic(path, format!("{}\n", kept.join("\n")).as_bytes()).map_err(io(path))
 }
 
-pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
+/// `diffsim train CONFIG`, in one process or data-parallel over the ranks
+/// of `world` (`mpirun -np K diffsim train CONFIG`): every rank reads the
+/// configuration and builds the data; rank 0 reads or starts the
+/// checkpoint and sends it to the others, and alone writes the outputs.
+/// The parameters are the same, bit for bit, for any number of ranks.
+pub(super) fn train_cmd(a: TrainArgs, world: &World) -> Result<(), CliError> {
     let text = crate::files::read_text(&a.config, MAX_CONFIG_BYTES, "training configuration")?;
     let cfg = TrainConfig::parse(&text)?;
     if a.checkpoint_every == 0 || !(a.checkpoint_seconds.is_finite() && a.checkpoint_seconds > 0.0) {
         return Err(CliError::Argument { arg: "--checkpoint-every/--checkpoint-seconds", reason: "must be positive".into() });
     }
-    std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+    // Every rank must train the same configuration.
+    let bytes: Vec<f64> = text.bytes().map(f64::from).collect();
+    world.check_same("configurations", || format!("reading {}", a.config.display()), &[&bytes])?;
     let ckpt_path = a.out.join("checkpoint.json");
     let log_path = a.out.join("loss.csv");
     let names = cfg.net.param_names();
     let mut layout = ParamStore::new();
     layout.add("net.", &names, &vec![0.0; cfg.net_params()]);
     let total = cfg.settings.iterations as u64;
-    let continuing = a.resume || a.extend.is_some();
-    let (mut store, mut opt, done) = if continuing {
-        if !ckpt_path.exists() {
-            return Err(CliError::Argument {
-                arg: if a.resume { "--resume" } else { "--extend" },
-                reason: format!("nothing to continue: {} does not exist (start the run without it)", ckpt_path.display()),
-            });
-        }
-        let c = Checkpoint::load(&ckpt_path)?;
-        c.check(&ckpt_path, &text, &layout, &cfg.optimizer)?;
-        if a.resume && c.iterations_done > total {
-            return Err(CliError::Argument {
-                arg: "--resume",
-                reason: format!("the checkpoint has {} iterations, more than the configured {total} (use --extend to train further)", c.iterations_done),
-            });
-        }
-        trim_log(&log_path, c.iterations_done)?;
-        (c.params, c.optimizer, c.iterations_done)
-    } else {
-        if !a.overwrite
-            && let Some(what) = existing_run(&a.out, &text)
-        {
-            return Err(CliError::Argument { arg: "--out", reason: what });
-        }
-        let mut store = layout.clone();
-        store.values = initial_params(&cfg.net, cfg.settings.seed);
-        let opt = if cfg.optimizer == "sgd" { Optimizer::sgd(cfg.settings.lr) } else { Optimizer::adam(cfg.settings.lr) };
-        // Iteration 0 is a checkpoint too: from the first moment the folder
-        // names its configuration and can be resumed.
-        Checkpoint { format: FORMAT, config: text.clone(), iterations_done: 0, params: store.clone(), optimizer: opt.clone() }.save(&ckpt_path)?;
-        trim_log(&log_path, 0)?;
-        (store, opt, 0)
-    };
-    let target = match a.extend {
+    let (mut store, mut opt, done) = world.from_root(|| start_or_continue(&a, &cfg, &text, &layout))?;
+    let full = match a.extend {
         Some(n) => done + n as u64,
         None => total,
     };
-    if a.resume && done == total {
+    let target = match a.until {
+        Some(until) if until <= done => {
+            return Err(CliError::Argument { arg: "--until", reason: format!("the run is at iteration {done} already") });
+        }
+        Some(until) => full.min(until),
+        None => full,
+    };
+    if world.is_root() && a.resume && done == total {
         eprintln!("the run had finished ({done} iterations); writing its outputs again");
     }
     let mut rng = <rand::rngs::StdRng as rand::SeedableRng>::seed_from_u64(cfg.settings.seed);
@@ -422,36 +414,41 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
     };
     let iterations = usize::try_from(target - done).map_err(|_| CliError::Argument { arg: "--extend", reason: "too many iterations".into() })?;
     let settings = crate::train::burgers::TrainSettings { first: done as usize + 1, iterations, ..cfg.settings };
-    let log_file = std::fs::OpenOptions::new().append(true).open(&log_path).map_err(io(&log_path))?;
-    let mut log = std::io::BufWriter::new(log_file);
+    let mut log = match world.is_root() {
+        true => Some(std::io::BufWriter::new(std::fs::OpenOptions::new().append(true).open(&log_path).map_err(io(&log_path))?)),
+        false => None,
+    };
     // Ctrl-C or a termination request: checkpoint and stop after the
     // current iteration (a second handler cannot be set; ignore).
     let _ = ctrlc::set_handler(|| STOP.store(true, std::sync::atomic::Ordering::SeqCst));
-    let progress = bar(settings.iterations, a.quiet, &settings.method.name());
+    let progress = bar(settings.iterations, a.quiet || !world.is_root(), &settings.method.name());
     let mut rows: Vec<LogRow> = Vec::new();
     let mut failure: Option<CliError> = None;
     let mut stopped_at = None;
     let (mut last_it, mut last_time) = (done, std::time::Instant::now());
-    let time = train(&cfg.setup, &cfg.net, &mut store.values, &mut opt, data, &settings, |r, theta, opt| {
-        if let Err(e) = writeln!(log, "{},{:.9e},{:.6e},{:.4}", r.iteration, r.loss, r.grad_norm, r.seconds) {
-            failure.get_or_insert(io(&log_path)(e));
-        }
-        progress.set_message(format!("loss {:.3e}", r.loss));
-        progress.inc(1);
+    let time = train(&cfg.setup, &cfg.net, &mut store.values, &mut opt, data, &settings, world, |r, theta, opt| {
         rows.push(r);
         let it = r.iteration as u64;
-        let stop = STOP.load(std::sync::atomic::Ordering::SeqCst);
-        if stop || it - last_it >= a.checkpoint_every as u64 || last_time.elapsed().as_secs_f64() >= a.checkpoint_seconds {
-            // The log first: it never lags the checkpoint.
-            if let Err(e) = log.flush() {
+        // A stop every rank takes at the same iteration.
+        let stop = world.any(STOP.load(std::sync::atomic::Ordering::SeqCst));
+        if let Some(log) = &mut log {
+            if let Err(e) = writeln!(log, "{},{:.9e},{:.6e},{:.4}", r.iteration, r.loss, r.grad_norm, r.seconds) {
                 failure.get_or_insert(io(&log_path)(e));
             }
-            let params = ParamStore { entries: layout.entries.clone(), values: theta.to_vec() };
-            let c = Checkpoint { format: FORMAT, config: text.clone(), iterations_done: it, params, optimizer: opt.clone() };
-            if let Err(e) = c.save(&ckpt_path) {
-                failure.get_or_insert(e.into());
+            progress.set_message(format!("loss {:.3e}", r.loss));
+            progress.inc(1);
+            if stop || it - last_it >= a.checkpoint_every as u64 || last_time.elapsed().as_secs_f64() >= a.checkpoint_seconds {
+                // The log first: it never lags the checkpoint.
+                if let Err(e) = log.flush() {
+                    failure.get_or_insert(io(&log_path)(e));
+                }
+                let params = ParamStore { entries: layout.entries.clone(), values: theta.to_vec() };
+                let c = Checkpoint { format: FORMAT, config: text.clone(), iterations_done: it, params, optimizer: opt.clone() };
+                if let Err(e) = c.save(&ckpt_path) {
+                    failure.get_or_insert(e.into());
+                }
+                (last_it, last_time) = (it, std::time::Instant::now());
             }
-            (last_it, last_time) = (it, std::time::Instant::now());
         }
         if stop || failure.is_some() {
             stopped_at = Some(it);
@@ -460,17 +457,29 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
         std::ops::ControlFlow::Continue(())
     })?;
     progress.finish_and_clear();
-    log.flush().map_err(io(&log_path))?;
     if let Some(e) = failure {
         return Err(e);
     }
+    let Some(mut log) = log else {
+        // Rank 0 writes the outputs; the other ranks are done.
+        return match stopped_at {
+            Some(at) => Err(interrupted(&a, at, target)),
+            None => Ok(()),
+        };
+    };
+    log.flush().map_err(io(&log_path))?;
     if let Some(at) = stopped_at {
-        return Err(CliError::Interrupted {
-            done: at,
-            target,
-            detail: String::new(),
-            resume: format!("diffsim train {} --out {} --resume", a.config.display(), a.out.display()),
-        });
+        return Err(interrupted(&a, at, target));
+    }
+    let checkpoint = Checkpoint { format: FORMAT, config: text.clone(), iterations_done: target, params: store.clone(), optimizer: opt };
+    checkpoint.save(&ckpt_path)?;
+    if target < full {
+        println!(
+            "stopped after iteration {target} of {total} as asked (--until); continue with: diffsim train {} --out {} --resume",
+            a.config.display(),
+            a.out.display()
+        );
+        return Ok(());
     }
     // The whole loss history (this run and earlier ones) for the plot.
     let history = crate::files::read_text(&log_path, 1 << 30, "loss log")?;
@@ -488,14 +497,14 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
         &[Series { name: settings.method.name(), points, color: 0, markers: false }],
     );
     let done = target;
-    Checkpoint { format: FORMAT, config: text.clone(), iterations_done: done, params: store.clone(), optimizer: opt }.save(&ckpt_path)?;
     store.save(&a.out.join("model.json")).map_err(|e| CliError::Argument { arg: "--out", reason: e.to_string() })?;
     let source =
         evaluate(&cfg.setup, &cfg.net, None, &test_set, cfg.data.test_steps).map_err(|e| CliError::Argument { arg: "config", reason: e.to_string() })?;
     let corrected = evaluate(&cfg.setup, &cfg.net, Some(&store.values), &test_set, cfg.data.test_steps)
         .map_err(|e| CliError::Argument { arg: "config", reason: e.to_string() })?;
+    let ranks = if world.size() > 1 { format!(" over {} ranks", world.size()) } else { String::new() };
     println!(
-        "{} iterations ({} in total) in {:.1} s ({:.1} ms/iteration); last loss {:.3e}",
+        "{} iterations ({} in total){ranks} in {:.1} s ({:.1} ms/iteration); last loss {:.3e}",
         settings.iterations,
         done,
         time.total,
@@ -512,11 +521,62 @@ pub(super) fn train_cmd(a: TrainArgs) -> Result<(), CliError> {
     Ok(())
 }
 
-pub(super) fn experiment(c: ExperimentCommand) -> Result<(), CliError> {
+/// A run stopped at a signal after iteration `at`.
+fn interrupted(a: &TrainArgs, at: u64, target: u64) -> CliError {
+    CliError::Interrupted {
+        done: at,
+        target,
+        detail: String::new(),
+        resume: format!("diffsim train {} --out {} --resume", a.config.display(), a.out.display()),
+    }
+}
+
+/// Rank 0's part of starting `diffsim train`: the parameters, optimizer
+/// and iterations done, from the checkpoint (`--resume`, `--extend`) or
+/// fresh (then written as the checkpoint of iteration 0).
+fn start_or_continue(a: &TrainArgs, cfg: &TrainConfig, text: &str, layout: &ParamStore) -> Result<(ParamStore, Optimizer, u64), CliError> {
+    std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+    let ckpt_path = a.out.join("checkpoint.json");
+    let log_path = a.out.join("loss.csv");
+    let total = cfg.settings.iterations as u64;
+    if a.resume || a.extend.is_some() {
+        if !ckpt_path.exists() {
+            return Err(CliError::Argument {
+                arg: if a.resume { "--resume" } else { "--extend" },
+                reason: format!("nothing to continue: {} does not exist (start the run without it)", ckpt_path.display()),
+            });
+        }
+        let c = Checkpoint::load(&ckpt_path)?;
+        c.check(&ckpt_path, text, layout, &cfg.optimizer)?;
+        if a.resume && c.iterations_done > total {
+            return Err(CliError::Argument {
+                arg: "--resume",
+                reason: format!("the checkpoint has {} iterations, more than the configured {total} (use --extend to train further)", c.iterations_done),
+            });
+        }
+        trim_log(&log_path, c.iterations_done)?;
+        return Ok((c.params, c.optimizer, c.iterations_done));
+    }
+    if !a.overwrite
+        && let Some(what) = existing_run(&a.out, text)
+    {
+        return Err(CliError::Argument { arg: "--out", reason: what });
+    }
+    let mut store = layout.clone();
+    store.values = initial_params(&cfg.net, cfg.settings.seed);
+    let opt = if cfg.optimizer == "sgd" { Optimizer::sgd(cfg.settings.lr) } else { Optimizer::adam(cfg.settings.lr) };
+    // Iteration 0 is a checkpoint too: from the first moment the folder
+    // names its configuration and can be resumed.
+    Checkpoint { format: FORMAT, config: text.to_string(), iterations_done: 0, params: store.clone(), optimizer: opt.clone() }.save(&ckpt_path)?;
+    trim_log(&log_path, 0)?;
+    Ok((store, opt, 0))
+}
+
+pub(super) fn experiment(c: ExperimentCommand, world: &World) -> Result<(), CliError> {
     match c {
-        ExperimentCommand::SolBurgers(a) => sol_burgers(a),
-        ExperimentCommand::SolWake(a) => sol_wake(a),
-        ExperimentCommand::HigOscillators(a) => hig_oscillators(a),
+        ExperimentCommand::SolBurgers(a) => sol_burgers(a, world),
+        ExperimentCommand::SolWake(a) => sol_wake(a, world),
+        ExperimentCommand::HigOscillators(a) => hig_oscillators(a, world),
         ExperimentCommand::SipHeat(a) => sip_heat(a),
         ExperimentCommand::SipSmoke(a) => super::pg::sip_smoke(a),
         ExperimentCommand::Cavity(a) => super::flow::cavity(a),
@@ -529,11 +589,24 @@ pub(super) fn experiment(c: ExperimentCommand) -> Result<(), CliError> {
 /// Part `name` of a study: read back from `parts` when an earlier run
 /// finished it (with `--resume`), else run and saved.
 fn part<T: serde::Serialize + serde::de::DeserializeOwned>(parts: &Parts, name: &str, run: impl FnOnce() -> Result<T, CliError>) -> Result<T, CliError> {
-    if let Some(done) = parts.finished(name)? {
+    part_over(&World::single(), parts, name, run)
+}
+
+/// [`part`] over the ranks of `world`: rank 0 reads a finished part and
+/// sends it to the others; all run it otherwise; rank 0 saves it.
+fn part_over<T: serde::Serialize + serde::de::DeserializeOwned>(
+    world: &World,
+    parts: &Parts,
+    name: &str,
+    run: impl FnOnce() -> Result<T, CliError>,
+) -> Result<T, CliError> {
+    if let Some(done) = world.from_root(|| parts.finished(name))? {
         return Ok(done);
     }
     let value = run()?;
-    parts.finish(name, &value)?;
+    if world.is_root() {
+        parts.finish(name, &value)?;
+    }
     Ok(value)
 }
 
@@ -658,7 +731,7 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
     Ok(())
 }
 
-fn hig_oscillators(a: HigArgs) -> Result<(), CliError> {
+fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
     use crate::train::oscillators::{Curve, OscConfig, OscMethod, compare};
     if !(a.budget.is_finite() && a.budget > 0.0) {
         return Err(CliError::Argument { arg: "--budget", reason: format!("must be a positive number of seconds, got {}", a.budget) });
@@ -676,22 +749,34 @@ fn hig_oscillators(a: HigArgs) -> Result<(), CliError> {
             });
         }
     };
-    std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+    if a.updates == Some(0) {
+        return Err(CliError::Argument { arg: "--updates", reason: "must be at least 1".into() });
+    }
     let (mut lin, mut nonlin) = (OscConfig::linear(a.budget), OscConfig::nonlinear(a.budget));
     (lin.hig.method, lin.gn.method, nonlin.hig.method, nonlin.gn.method) = (method, method, method, method);
-    let parts = Parts::open(&a.out.join("parts"), format!("hig-oscillators\n{lin:#?}\n{nonlin:#?}"), a.resume)?;
+    (lin.updates, nonlin.updates) = (a.updates, a.updates);
+    let settings = format!("hig-oscillators\n{lin:#?}\n{nonlin:#?}");
+    let parts = if world.is_root() {
+        std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+        Parts::open(&a.out.join("parts"), settings, a.resume)?
+    } else {
+        Parts::kept_elsewhere(&a.out.join("parts"), settings)
+    };
     exit_on_interrupt(&a.out, "each problem's runs (timed by the wall clock)");
     let fail = |e: crate::train::hig::HigError| CliError::Argument { arg: "hig-oscillators", reason: e.to_string() };
     let say = |problem: &'static str| {
-        let quiet = a.json;
+        let quiet = a.json || !world.is_root();
         move |m: OscMethod, t: f64| {
             if !quiet {
                 eprint!("\r{problem}: {} {t:.0} s   ", m.name());
             }
         }
     };
-    let linear: Vec<Curve> = part(&parts, "linear", || compare(&lin, &OscMethod::ALL, say("linear")).map_err(fail))?;
-    let nonlinear: Vec<Curve> = part(&parts, "nonlinear", || compare(&nonlin, &OscMethod::ALL, say("nonlinear")).map_err(fail))?;
+    let linear: Vec<Curve> = part_over(world, &parts, "linear", || compare(&lin, &OscMethod::ALL, world, say("linear")).map_err(fail))?;
+    let nonlinear: Vec<Curve> = part_over(world, &parts, "nonlinear", || compare(&nonlin, &OscMethod::ALL, world, say("nonlinear")).map_err(fail))?;
+    if !world.is_root() {
+        return Ok(());
+    }
     if !a.json {
         eprintln!();
     }
@@ -734,7 +819,7 @@ fn hig_oscillators(a: HigArgs) -> Result<(), CliError> {
     Ok(())
 }
 
-fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
+fn sol_burgers(a: SolArgs, world: &World) -> Result<(), CliError> {
     let mut cfg = StudyConfig::standard(a.study.quick);
     if a.width == 0 {
         return Err(CliError::Argument { arg: "--width", reason: "must be at least 1".into() });
@@ -742,10 +827,10 @@ fn sol_burgers(a: SolArgs) -> Result<(), CliError> {
     let act = a.study.activation(crate::train::burgers::STUDY_ACTIVATION)?;
     cfg.net = crate::train::burgers::correction_net(&a.net, cfg.setup.coarse.n, a.width, act).map_err(|reason| CliError::Argument { arg: "--net", reason })?;
     a.study.apply(&mut cfg)?;
-    run_sol_study(&cfg, "sol-burgers", "Burgers", &a.study, &a.out)
+    run_sol_study(&cfg, "sol-burgers", "Burgers", &a.study, &a.out, world)
 }
 
-fn sol_wake(a: SolWakeArgs) -> Result<(), CliError> {
+fn sol_wake(a: SolWakeArgs, world: &World) -> Result<(), CliError> {
     let mut cfg = StudyConfig::wake(a.study.quick);
     cfg.net = cfg.setup.network(a.study.activation(crate::train::wake::STUDY_ACTIVATION)?);
     a.study.apply(&mut cfg)?;
@@ -756,36 +841,43 @@ fn sol_wake(a: SolWakeArgs) -> Result<(), CliError> {
         cfg.eval_steps = t;
         cfg.train_steps = t + 16;
     }
-    if !a.study.json {
+    if !a.study.json && world.is_root() {
         let fine = cfg.setup.fine();
         println!("computing {} reference trajectories on the {}×{} grid …", cfg.train + cfg.test, fine.nx, fine.ny);
     }
-    run_sol_study(&cfg, "sol-wake", "flow past a disc", &a.study, &a.out)
+    run_sol_study(&cfg, "sol-wake", "flow past a disc", &a.study, &a.out, world)
 }
 
 /// Runs a solver-in-the-loop study; writes its table, errors per step,
 /// plots and (with `json`) the one-line result.
 /// Saved parts live in `OUT/parts`; with `resume` the study goes on from
 /// them. Ctrl-C checkpoints the variant in progress and exits with the
-/// command that resumes.
+/// command that resumes. Over several ranks the variants train
+/// data-parallel and rank 0 writes every file.
 fn run_sol_study<P: SolProblem + std::fmt::Debug>(
     cfg: &StudyConfig<P>,
     command: &'static str,
     title: &str,
     study_args: &StudyArgs,
     out: &Path,
+    world: &World,
 ) -> Result<(), CliError> {
     use crate::train::sol::{Resumable, StudyError};
     let json = study_args.json;
-    std::fs::create_dir_all(out).map_err(io(out))?;
     // Everything the results depend on, one setting per line.
-    let parts = Parts::open(&out.join("parts"), format!("{command}\n{cfg:#?}"), study_args.resume)?;
+    let settings = format!("{command}\n{cfg:#?}");
+    let parts = if world.is_root() {
+        std::fs::create_dir_all(out).map_err(io(out))?;
+        Parts::open(&out.join("parts"), settings, study_args.resume)?
+    } else {
+        Parts::kept_elsewhere(&out.join("parts"), settings)
+    };
     let total = cfg.methods.len() * cfg.settings.iterations;
-    let progress = bar(total, json, "train");
+    let progress = bar(total, json || !world.is_root(), "train");
     let _ = ctrlc::set_handler(|| STOP.store(true, std::sync::atomic::Ordering::SeqCst));
     let stop = || STOP.load(std::sync::atomic::Ordering::SeqCst);
     let resumable = Resumable { parts: &parts, every_s: study_args.checkpoint_seconds, stop: &stop };
-    let results = study(cfg, Some(resumable), |name, r| {
+    let results = study(cfg, Some(resumable), world, |name, r| {
         progress.set_message(format!("{name} loss {:.3e}", r.loss));
         progress.inc(1);
     });
@@ -798,6 +890,9 @@ fn run_sol_study<P: SolProblem + std::fmt::Debug>(
         Err(StudyError::Part(e)) => return Err(e.into()),
         Err(e) => return Err(CliError::Argument { arg: command, reason: e.to_string() }),
     };
+    if !world.is_root() {
+        return Ok(());
+    }
 
     // Table.
     let source = results[0].mean_error;

@@ -48,7 +48,9 @@ impl Vjp for SmokeAdvect {
         }
         validate_vjp(self, "SmokeAdvect", x, p, dy, dx, dp);
         // Each field's rows are contiguous in the packed state.
-        let pieces = |js: &std::ops::Range<usize>| smoke::row_lens(&cfg, js.clone()).iter().zip(&smoke::row_starts(&cfg, js.start)).map(|(&len, &start)| (start, len)).collect();
+        let pieces = |js: &std::ops::Range<usize>| {
+            smoke::row_lens(&cfg, js.clone()).iter().zip(&smoke::row_starts(&cfg, js.start)).map(|(&len, &start)| (start, len)).collect()
+        };
         super::ranges::vjp_over_ranges(&ranges, |js| SmokeAdvectRows::new(cfg, js), pieces, x, dy, dx);
     }
 }

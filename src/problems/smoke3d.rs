@@ -61,7 +61,8 @@ impl Vjp for SmokeAdvect3 {
             return SmokeAdvect3Slabs::new(cfg, 0..cfg.nz).vjp(x, p, dy, dx, dp);
         }
         // Each field's slabs are contiguous in the packed state.
-        let pieces = |ks: &std::ops::Range<usize>| cfg.slab_lens(ks.clone()).iter().zip(&cfg.slab_starts(ks.start)).map(|(&len, &start)| (start, len)).collect();
+        let pieces =
+            |ks: &std::ops::Range<usize>| cfg.slab_lens(ks.clone()).iter().zip(&cfg.slab_starts(ks.start)).map(|(&len, &start)| (start, len)).collect();
         vjp_over_ranges(&ranges, |ks| SmokeAdvect3Slabs::new(cfg, ks), pieces, x, dy, dx);
     }
 }
@@ -220,7 +221,6 @@ impl Project3 {
 }
 
 crate::fluids::linear_projection!(Project3, "Project3");
-
 
 /// One full P4 step: [`SmokeAdvect3`] (or its hand-written adjoint), then
 /// [`Project3`]. The VJP chains the projection's implicit adjoint with the

@@ -114,6 +114,11 @@ impl SolProblem for Setup {
         Setup::dataset(self, count, steps, rng)
     }
 
+    fn dataset_share(&self, count: usize, steps: usize, rng: &mut StdRng, share: std::ops::Range<usize>) -> Vec<Trajectory> {
+        let initial: Vec<Vec<f64>> = (0..count).map(|_| self.initial(rng)).collect();
+        initial[share].iter().map(|u0| self.reference(u0, steps)).collect()
+    }
+
     fn with_viscosity(&self, nu: f64) -> Self {
         Setup::new(self.coarse.n, self.fine.n / self.coarse.n, self.time_factor, nu, self.modes)
     }

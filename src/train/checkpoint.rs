@@ -223,6 +223,12 @@ impl Parts {
         Ok(Parts { dir: dir.to_path_buf(), settings })
     }
 
+    /// The parts another process keeps (rank 0 of a distributed run): the
+    /// same names, no file touched here.
+    pub fn kept_elsewhere(dir: &Path, settings: String) -> Parts {
+        Parts { dir: dir.to_path_buf(), settings }
+    }
+
     fn path(&self, name: &str, kind: &str) -> PathBuf {
         self.dir.join(format!("{name}.{kind}.json"))
     }

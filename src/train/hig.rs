@@ -13,9 +13,16 @@
 //! as accurate and cheaper, the eigendecomposition of the smaller Gram
 //! matrix (`linalg::PowerMethod::AUTO`); the Jacobian rows are computed in
 //! parallel over the samples.
+//!
+//! Over the ranks of a [`World`] ([`hig_step_over`],
+//! [`loss_and_gradient_over`]) each rank computes the rows of its share of
+//! the batch; rank 0 gathers them, decomposes the whole Jacobian once and
+//! sends the update (or the failure) to every rank: the same step as one
+//! process, bit for bit.
 
 use rayon::prelude::*;
 
+use crate::distributed::World;
 use crate::op::Vjp;
 
 pub use diffsim_solvers::linalg::{Decomposition, PowerMethod};
@@ -89,8 +96,23 @@ pub struct ControlSample {
 /// `(L, ∂L/∂θ)` over a batch by one VJP per sample (for gradient-based
 /// optimizers such as Adam), reduced in sample order.
 pub fn loss_and_gradient<P: Vjp + Sync, N: Vjp + Sync>(physics: &P, net: &N, theta: &[f64], batch: &[ControlSample]) -> (f64, Vec<f64>) {
-    let b = batch.len() as f64;
-    let parts: Vec<(f64, Vec<f64>)> = batch
+    loss_and_gradient_over(&World::single(), physics, net, theta, batch, batch.len())
+}
+
+/// [`loss_and_gradient`] of a batch of `batch_len` samples shared among
+/// the ranks of `world`: this rank differentiates `mine` (its
+/// [`World::share`]), every rank receives every sample's part and reduces
+/// them in sample order.
+pub fn loss_and_gradient_over<P: Vjp + Sync, N: Vjp + Sync>(
+    world: &World,
+    physics: &P,
+    net: &N,
+    theta: &[f64],
+    mine: &[ControlSample],
+    batch_len: usize,
+) -> (f64, Vec<f64>) {
+    let b = batch_len as f64;
+    let parts: Vec<(f64, Vec<f64>)> = mine
         .par_iter()
         .map(|s| {
             let u = net_eval(net, &s.target, theta);
@@ -101,11 +123,13 @@ pub fn loss_and_gradient<P: Vjp + Sync, N: Vjp + Sync>(physics: &P, net: &N, the
             (loss, chain_vjp(physics, net, theta, s, &u, &mut seed))
         })
         .collect();
+    let rows: Vec<f64> = parts.into_iter().flat_map(|(l, d)| std::iter::once(l).chain(d)).collect();
+    let all = world.all_gather(&rows);
     let mut g = vec![0.0; theta.len()];
     let mut loss = 0.0;
-    for (l, d) in parts {
-        loss += l;
-        for (a, v) in g.iter_mut().zip(&d) {
+    for row in all.chunks_exact(1 + theta.len()) {
+        loss += row[0];
+        for (a, v) in g.iter_mut().zip(&row[1..]) {
             *a += v;
         }
     }
@@ -155,17 +179,30 @@ pub fn batch_jacobian<P: Vjp + Sync, N: Vjp + Sync>(
     batch: &[ControlSample],
     memory_budget: usize,
 ) -> Result<BatchJacobian, HigError> {
-    let n_out = physics.n_out();
-    let (rows, cols) = (batch.len() * n_out, theta.len());
+    let (rows, cols) = within_budget(physics.n_out(), batch.len(), theta.len(), memory_budget)?;
+    let (jac, grad) = jacobian_rows(physics, net, theta, batch, batch.len());
+    finish(rows, cols, jac, grad, batch.len())
+}
+
+/// The Jacobian's shape, refused above the budget.
+fn within_budget(n_out: usize, batch_len: usize, cols: usize, memory_budget: usize) -> Result<(usize, usize), HigError> {
+    let rows = batch_len * n_out;
     let bytes = rows * cols * std::mem::size_of::<f64>();
     if bytes > memory_budget {
         return Err(HigError::Budget { rows, cols, bytes, budget: memory_budget });
     }
-    let b = batch.len() as f64;
-    let mut jac = vec![0.0; rows * cols];
-    let mut grad = vec![0.0; rows];
+    Ok((rows, cols))
+}
+
+/// The Jacobian rows and `∂L/∂y` of the samples `mine` of a batch of
+/// `batch_len`, sample after sample.
+fn jacobian_rows<P: Vjp + Sync, N: Vjp + Sync>(physics: &P, net: &N, theta: &[f64], mine: &[ControlSample], batch_len: usize) -> (Vec<f64>, Vec<f64>) {
+    let (n_out, cols) = (physics.n_out(), theta.len());
+    let b = batch_len as f64;
+    let mut jac = vec![0.0; mine.len() * n_out * cols];
+    let mut grad = vec![0.0; mine.len() * n_out];
     // Each sample writes its own rows and gradient entries.
-    jac.par_chunks_mut(n_out * cols).zip(grad.par_chunks_mut(n_out)).zip(batch.par_iter()).for_each(|((jrows, g), s)| {
+    jac.par_chunks_mut(n_out * cols).zip(grad.par_chunks_mut(n_out)).zip(mine.par_iter()).for_each(|((jrows, g), s)| {
         let u = net_eval(net, &s.target, theta);
         let mut y = vec![0.0; n_out];
         physics.forward(&s.x0, &u, &mut y);
@@ -179,6 +216,12 @@ pub fn batch_jacobian<P: Vjp + Sync, N: Vjp + Sync>(
             jrows[k * cols..(k + 1) * cols].copy_from_slice(&chain_vjp(physics, net, theta, s, &u, &mut seed));
         }
     });
+    (jac, grad)
+}
+
+/// The whole batch's Jacobian with its loss, checked for finite values.
+fn finish(rows: usize, cols: usize, jac: Vec<f64>, grad: Vec<f64>, batch_len: usize) -> Result<BatchJacobian, HigError> {
+    let b = batch_len as f64;
     let loss = grad.iter().map(|g| (g * b / 2.0).powi(2)).sum::<f64>() / b;
     if !loss.is_finite() || jac.iter().any(|v| !v.is_finite()) {
         return Err(HigError::NonFinite);
@@ -186,17 +229,77 @@ pub fn batch_jacobian<P: Vjp + Sync, N: Vjp + Sync>(
     Ok(BatchJacobian { rows, cols, jac, grad, loss })
 }
 
-/// One HIG (or Gauss-Newton) step on `theta` (in place); returns the batch
-/// loss before it.
-pub fn hig_step<P: Vjp + Sync, N: Vjp + Sync>(physics: &P, net: &N, theta: &mut [f64], batch: &[ControlSample], h: &Hig) -> Result<f64, HigError> {
-    let j = batch_jacobian(physics, net, theta, batch, h.memory_budget)?;
+/// The update `J^{−power}·∂L/∂y` of a batch Jacobian.
+fn update_of(j: &BatchJacobian, h: &Hig) -> Result<Vec<f64>, HigError> {
     let update = diffsim_solvers::linalg::pseudo_inverse_power_apply_with(j.rows, j.cols, &j.jac, &j.grad, h.power, h.truncation, h.method())
         .map_err(|_| HigError::Svd)?;
     if update.iter().any(|v| !v.is_finite()) {
         return Err(HigError::NonFinite);
     }
+    Ok(update)
+}
+
+/// One HIG (or Gauss-Newton) step on `theta` (in place); returns the batch
+/// loss before it.
+pub fn hig_step<P: Vjp + Sync, N: Vjp + Sync>(physics: &P, net: &N, theta: &mut [f64], batch: &[ControlSample], h: &Hig) -> Result<f64, HigError> {
+    hig_step_over(&World::single(), physics, net, theta, batch, batch.len(), h)
+}
+
+/// [`hig_step`] on a batch of `batch_len` samples shared among the ranks
+/// of `world`: this rank computes the Jacobian rows of `mine` (its
+/// [`World::share`]); rank 0 gathers the rows in sample order, checks
+/// them, decomposes the whole Jacobian (once, there) and sends the update,
+/// or the failure, to every rank. Every rank takes the same step as one
+/// process, or returns the same error.
+#[allow(clippy::too_many_arguments)]
+pub fn hig_step_over<P: Vjp + Sync, N: Vjp + Sync>(
+    world: &World,
+    physics: &P,
+    net: &N,
+    theta: &mut [f64],
+    mine: &[ControlSample],
+    batch_len: usize,
+    h: &Hig,
+) -> Result<f64, HigError> {
+    let n_out = physics.n_out();
+    let (rows, cols) = within_budget(n_out, batch_len, theta.len(), h.memory_budget)?;
+    let (jac, grad) = jacobian_rows(physics, net, theta, mine, batch_len);
+    let step = if world.size() == 1 {
+        finish(rows, cols, jac, grad, batch_len).and_then(|j| Ok((j.loss, update_of(&j, h)?)))
+    } else {
+        // Each rank's rows, then its gradient entries; on rank 0 the
+        // blocks are put back in sample order.
+        let block: Vec<f64> = jac.into_iter().chain(grad).collect();
+        let on_root = world.gather(&block).map(|all| {
+            let (mut jac, mut grad) = (Vec::with_capacity(rows * cols), Vec::with_capacity(rows));
+            let mut at = 0;
+            for r in 0..world.size() {
+                let n = world.share_of(r, batch_len).len() * n_out;
+                jac.extend_from_slice(&all[at..at + n * cols]);
+                grad.extend_from_slice(&all[at + n * cols..at + n * cols + n]);
+                at += n * cols + n;
+            }
+            finish(rows, cols, jac, grad, batch_len).and_then(|j| Ok((j.loss, update_of(&j, h)?)))
+        });
+        // [0, loss, update…] or [1] (the SVD failed) or [2] (non-finite).
+        let message = match on_root {
+            Some(Ok((loss, update))) => [0.0, loss].into_iter().chain(update).collect(),
+            Some(Err(HigError::Svd)) => vec![1.0],
+            Some(Err(_)) => vec![2.0],
+            None => Vec::new(),
+        };
+        let message = world.broadcast(message);
+        if message[0] == 0.0 {
+            Ok((message[1], message[2..].to_vec()))
+        } else if message[0] == 1.0 {
+            Err(HigError::Svd)
+        } else {
+            Err(HigError::NonFinite)
+        }
+    };
+    let (loss, update) = step?;
     for (t, d) in theta.iter_mut().zip(&update) {
         *t -= h.lr * d;
     }
-    Ok(j.loss)
+    Ok(loss)
 }

@@ -26,6 +26,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
+use crate::distributed::World;
 use crate::op::{Forward, Jvp, OpError, Operator, Real, Vjp, validate_forward, validate_jvp, validate_vjp};
 use crate::rollout::{AtSteps, Checkpointing, Rollout, RolloutError};
 
@@ -357,9 +358,31 @@ pub fn batch_gradient<R: Real, O: Vjp<R> + Sync>(
     batch: &[Sample<R>],
     mode: Checkpointing,
 ) -> Result<(f64, Vec<R>), RolloutError> {
+    batch_gradient_over(&World::single(), op, theta, unroll, loss_steps, batch, batch.len(), mode)
+}
+
+/// [`batch_gradient`] of a batch of `batch_len` samples shared among the
+/// ranks of `world`: this rank unrolls `mine`, the samples
+/// [`World::share`]`(batch_len)`, and every rank receives every sample's
+/// loss and gradient ([`World::all_gather`], in sample order) and sums them
+/// in sample order as one process does. The result is the same, bit for
+/// bit, for any number of ranks and threads; the exchange is
+/// `batch_len × (parameters + 1)` numbers.
+#[allow(clippy::too_many_arguments)]
+pub fn batch_gradient_over<R: Real, O: Vjp<R> + Sync>(
+    world: &World,
+    op: &O,
+    theta: &[R],
+    unroll: usize,
+    loss_steps: &[usize],
+    mine: &[Sample<R>],
+    batch_len: usize,
+    mode: Checkpointing,
+) -> Result<(f64, Vec<R>), RolloutError> {
+    debug_assert_eq!(mine.len(), world.share(batch_len).len());
     let rollout = Rollout::new(op, theta, unroll)?;
     let scale = 1.0 / (loss_steps.len() * op.n_out()) as f64;
-    let per_sample: Vec<_> = batch
+    let per_sample: Vec<_> = mine
         .par_iter()
         .map(|s| {
             let loss = AtSteps {
@@ -379,16 +402,25 @@ pub fn batch_gradient<R: Real, O: Vjp<R> + Sync>(
             rollout.value_and_grad(&s.x0, &loss, mode)
         })
         .collect();
-    let mut grad = vec![R::zero(); theta.len()];
-    let mut total = 0.0;
+    // Each sample's loss and gradient as `[loss, dp…]`; a rank's rows in
+    // sample order, the ranks' in rank order: the whole batch in order.
+    let width = 1 + theta.len();
+    let mut rows = Vec::with_capacity(mine.len() * width);
     for g in per_sample {
         let g = g?;
-        total += g.loss;
-        for (a, b) in grad.iter_mut().zip(&g.dp) {
-            *a += *b;
+        rows.push(g.loss);
+        rows.extend(g.dp.iter().map(|v| v.as_f64()));
+    }
+    let all = world.all_gather(&rows);
+    let mut grad = vec![R::zero(); theta.len()];
+    let mut total = 0.0;
+    for row in all.chunks_exact(width) {
+        total += row[0];
+        for (a, &b) in grad.iter_mut().zip(&row[1..]) {
+            *a += R::of(b);
         }
     }
-    let b = batch.len().max(1) as f64;
+    let b = batch_len.max(1) as f64;
     let inv = R::of(1.0 / b);
     for a in &mut grad {
         *a *= inv;

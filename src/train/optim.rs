@@ -50,6 +50,17 @@ impl Optimizer {
         Optimizer::Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, m: Vec::new(), v: Vec::new(), t: 0 }
     }
 
+    /// Every number of its state (rates, moments, step count), for
+    /// comparing two optimizers' states exactly.
+    pub fn state(&self) -> Vec<f64> {
+        match self {
+            Optimizer::Sgd { lr, momentum, velocity } => [*lr, *momentum].into_iter().chain(velocity.iter().copied()).collect(),
+            Optimizer::Adam { lr, beta1, beta2, eps, m, v, t } => {
+                [*lr, *beta1, *beta2, *eps, *t as f64].into_iter().chain(m.iter().copied()).chain(v.iter().copied()).collect()
+            }
+        }
+    }
+
     /// `"adam"` or `"sgd"`, as in a training configuration.
     pub fn kind(&self) -> &'static str {
         match self {

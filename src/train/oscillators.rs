@@ -7,7 +7,8 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 use super::Optimizer;
-use super::hig::{ControlSample, Hig, HigError, hig_step, loss_and_gradient};
+use super::hig::{ControlSample, Hig, HigError, hig_step_over, loss_and_gradient_over};
+use crate::distributed::World;
 use crate::nn::{Activation, Init, Net, presets};
 use crate::op::Forward;
 use crate::problems::oscillators::Oscillators;
@@ -62,6 +63,10 @@ pub struct OscConfig {
     pub adam_lr: f64,
     /// Training seconds per optimizer.
     pub budget_s: f64,
+    /// A fixed number of updates per optimizer instead of the time budget
+    /// (the curve then has a point every 1/40 of them): the same run on
+    /// any machine and any number of ranks.
+    pub updates: Option<usize>,
     /// Seed of data and weights.
     pub seed: u64,
 }
@@ -83,6 +88,7 @@ impl OscConfig {
             adam_batch: 256,
             adam_lr: 1e-3,
             budget_s,
+            updates: None,
             seed: 1,
         }
     }
@@ -178,16 +184,22 @@ pub fn dataset_loss(physics: &Oscillators, net: &Net, theta: &[f64], data: &[Con
 }
 
 /// Trains the same initial network with each of `methods`, each for
-/// `budget_s` seconds of training (evaluation excluded), recording the
-/// test-set loss about 40 times along the way. A run whose step or loss
-/// stops being finite ends there, with [`Curve::diverged_after`] set (a
-/// result of the comparison, not an error). `progress(method, seconds)` is
-/// called after each evaluation.
-pub fn compare(cfg: &OscConfig, methods: &[OscMethod], mut progress: impl FnMut(OscMethod, f64)) -> Result<Vec<Curve>, HigError> {
+/// `budget_s` seconds of training (evaluation excluded) or
+/// [`OscConfig::updates`] updates, recording the test-set loss about 40
+/// times along the way. A run whose step or loss stops being finite ends
+/// there, with [`Curve::diverged_after`] set (a result of the comparison,
+/// not an error). `progress(method, seconds)` is called after each
+/// evaluation.
+///
+/// Over the ranks of `world` each batch is shared ([`hig_step_over`],
+/// [`loss_and_gradient_over`]) and rank 0's clock decides for all when a
+/// time budget is spent.
+pub fn compare(cfg: &OscConfig, methods: &[OscMethod], world: &World, mut progress: impl FnMut(OscMethod, f64)) -> Result<Vec<Curve>, HigError> {
     let (data, test) = datasets(cfg);
     let net = cfg.network();
     let theta0 = cfg.initial_params(&net);
     let every = cfg.budget_s / 40.0;
+    let every_update = cfg.updates.map(|n| (n / 40).max(1));
     let mut curves = Vec::new();
     for &method in methods {
         let mut theta = theta0.clone();
@@ -197,21 +209,22 @@ pub fn compare(cfg: &OscConfig, methods: &[OscMethod], mut progress: impl FnMut(
             OscMethod::Adam => cfg.adam_batch,
             OscMethod::GaussNewton => cfg.gn_batch,
         };
+        let mine = world.share(batch);
         let mut points = vec![(0.0, dataset_loss(&cfg.problem, &net, &theta, &test))];
         let (mut trained, mut next, mut updates, mut at) = (0.0, every, 0, 0);
         let mut diverged_after = None;
-        while trained < cfg.budget_s {
+        while cfg.updates.map_or(trained < cfg.budget_s, |n| updates < n) {
             if at + batch > data.len() {
                 at = 0;
             }
-            let b = &data[at..at + batch];
+            let b = &data[at..at + batch][mine.clone()];
             at += batch;
             let t = std::time::Instant::now();
             let step = match method {
-                OscMethod::Hig => hig_step(&cfg.problem, &net, &mut theta, b, &cfg.hig).map(drop),
-                OscMethod::GaussNewton => hig_step(&cfg.problem, &net, &mut theta, b, &cfg.gn).map(drop),
+                OscMethod::Hig => hig_step_over(world, &cfg.problem, &net, &mut theta, b, batch, &cfg.hig).map(drop),
+                OscMethod::GaussNewton => hig_step_over(world, &cfg.problem, &net, &mut theta, b, batch, &cfg.gn).map(drop),
                 OscMethod::Adam => {
-                    let (l, g) = loss_and_gradient(&cfg.problem, &net, &theta, b);
+                    let (l, g) = loss_and_gradient_over(world, &cfg.problem, &net, &theta, b, batch);
                     if l.is_finite() && g.iter().all(|v| v.is_finite()) {
                         adam.step(&mut theta, &g);
                         Ok(())
@@ -220,7 +233,8 @@ pub fn compare(cfg: &OscConfig, methods: &[OscMethod], mut progress: impl FnMut(
                     }
                 }
             };
-            trained += t.elapsed().as_secs_f64();
+            // Rank 0's clock decides for every rank.
+            trained = world.broadcast(vec![trained + t.elapsed().as_secs_f64()])[0];
             match step {
                 Ok(()) => updates += 1,
                 Err(HigError::NonFinite) => {
@@ -229,7 +243,11 @@ pub fn compare(cfg: &OscConfig, methods: &[OscMethod], mut progress: impl FnMut(
                 }
                 Err(e) => return Err(e),
             }
-            if trained >= next || trained >= cfg.budget_s {
+            let evaluate = match (cfg.updates, every_update) {
+                (Some(n), Some(e)) => updates % e == 0 || updates == n,
+                _ => trained >= next || trained >= cfg.budget_s,
+            };
+            if evaluate {
                 let l = dataset_loss(&cfg.problem, &net, &theta, &test);
                 if !l.is_finite() {
                     diverged_after = Some(updates);

@@ -18,9 +18,10 @@ use rand::{Rng, SeedableRng};
 
 pub use super::TimeShares;
 use super::checkpoint::{CheckpointError, PartProgress, Parts};
-use super::{Coupled, Coupling, Optimizer, Sample, batch_gradient, clip_by_norm};
+use super::{Coupled, Coupling, Optimizer, Sample, batch_gradient_over, clip_by_norm};
+use crate::distributed::{DistributedError, World};
 use crate::nn::Net;
-use crate::op::{Forward, Jvp, Vjp};
+use crate::op::{Forward, Jvp, Operator, Vjp};
 use crate::rollout::{Checkpointing, RolloutError};
 
 /// A reference trajectory: coarse states `0..=steps`.
@@ -37,6 +38,17 @@ pub trait SolProblem: Sized + Sync {
     /// `count` reference trajectories of `steps` coarse steps from random
     /// initial states.
     fn dataset(&self, count: usize, steps: usize, rng: &mut StdRng) -> Vec<Trajectory>;
+
+    /// The trajectories `share` of [`SolProblem::dataset`]`(count, steps,
+    /// rng)`, the same values and the generator left in the same state,
+    /// without simulating the others (a rank's share of a batch drawn
+    /// afresh). The default simulates all and keeps the share.
+    fn dataset_share(&self, count: usize, steps: usize, rng: &mut StdRng, share: std::ops::Range<usize>) -> Vec<Trajectory> {
+        let mut all = self.dataset(count, steps, rng);
+        all.truncate(share.end);
+        all.drain(..share.start);
+        all
+    }
 
     /// The same problem with another viscosity (the physical parameter
     /// [`TrainData::Random`] draws per batch).
@@ -129,10 +141,23 @@ pub struct LogRow {
     pub seconds: f64,
 }
 
+/// How often the ranks of a distributed run compare their parameters and
+/// optimizer state ([`World::check_same`]), in iterations (and after the
+/// last).
+pub const SAME_STATE_EVERY: usize = 20;
+
 /// Trains `theta` in place on batches from `data`; calls
 /// `progress(row, theta, optimizer)` after every iteration, which may stop
 /// the run early by returning `ControlFlow::Break` (for checkpoints and
 /// interrupts). Returns where the time went.
+///
+/// Over the ranks of `world` (data-parallel training), every rank holds
+/// the same `theta` and `opt` on entry, draws the same batches and unrolls
+/// its share of each ([`batch_gradient_over`]); the updates, and so the
+/// parameters, are those of one process bit for bit, and the ranks check
+/// that they agree every [`SAME_STATE_EVERY`] iterations. `progress` runs
+/// on every rank.
+#[allow(clippy::too_many_arguments)]
 pub fn train<P: SolProblem>(
     setup: &P,
     net: &Net,
@@ -140,8 +165,9 @@ pub fn train<P: SolProblem>(
     opt: &mut Optimizer,
     data: TrainData<'_>,
     s: &TrainSettings,
+    world: &World,
     mut progress: impl FnMut(LogRow, &[f64], &Optimizer) -> std::ops::ControlFlow<()>,
-) -> Result<TimeShares, RolloutError> {
+) -> Result<TimeShares, TrainError> {
     let k = s.method.unroll();
     let steps: Vec<usize> = (1..=k).collect();
     let mut shares = TimeShares::default();
@@ -149,8 +175,13 @@ pub fn train<P: SolProblem>(
     // batch for data drawn with a new viscosity.
     let fixed_source = setup.source();
     let start = std::time::Instant::now();
-    for it in s.first..s.first + s.iterations {
-        // The batch of iteration `it` depends only on the seed and `it`.
+    let mine = world.share(s.batch);
+    let state_len = fixed_source.n_in();
+    let last = s.first + s.iterations - 1;
+    for it in s.first..=last {
+        // The batch of iteration `it` depends only on the seed and `it`;
+        // every rank draws all of it (the generator's stream), keeping and
+        // simulating only its share.
         let mut rng = StdRng::seed_from_u64(s.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ it as u64);
         let random_setup: P;
         let generated: Vec<Trajectory>;
@@ -159,26 +190,32 @@ pub fn train<P: SolProblem>(
             TrainData::Random { nu, horizon } => {
                 let nu = if nu.1 > nu.0 { rng.random_range(nu.0..nu.1) } else { nu.0 };
                 random_setup = setup.with_viscosity(nu);
-                generated = random_setup.dataset(s.batch, horizon + k, &mut rng);
+                generated = random_setup.dataset_share(s.batch, horizon + k, &mut rng, mine.clone());
                 (&random_setup, &generated)
             }
         };
-        let batch: Vec<Sample> = (0..s.batch)
-            .map(|b| {
-                let traj = match data {
-                    TrainData::Fixed(_) => &trajectories[rng.random_range(0..trajectories.len())],
-                    TrainData::Random { .. } => &trajectories[b],
-                };
-                let t0 = rng.random_range(0..traj.len() - k);
-                let mut x0 = traj[t0].clone();
-                if let Method::Noise(sigma) = s.method {
-                    for v in &mut x0 {
-                        *v += sigma * crate::nn::normal(&mut rng);
-                    }
+        let mut batch: Vec<Sample> = Vec::with_capacity(mine.len());
+        for b in 0..s.batch {
+            let (traj, len) = match data {
+                TrainData::Fixed(d) => {
+                    let t = &d[rng.random_range(0..d.len())];
+                    (Some(t), t.len())
                 }
-                Sample { x0, targets: traj[t0 + 1..=t0 + k].to_vec() }
-            })
-            .collect();
+                TrainData::Random { horizon, .. } => (mine.contains(&b).then(|| &trajectories[b - mine.start]), horizon + k + 1),
+            };
+            let t0 = rng.random_range(0..len - k);
+            let noise: Vec<f64> = match s.method {
+                Method::Noise(sigma) => (0..state_len).map(|_| sigma * crate::nn::normal(&mut rng)).collect(),
+                _ => Vec::new(),
+            };
+            if let Some(traj) = traj.filter(|_| mine.contains(&b)) {
+                let mut x0 = traj[t0].clone();
+                for (v, e) in x0.iter_mut().zip(&noise) {
+                    *v += e;
+                }
+                batch.push(Sample { x0, targets: traj[t0 + 1..=t0 + k].to_vec() });
+            }
+        }
         let batch_source;
         let source = match data {
             TrainData::Fixed(_) => &fixed_source,
@@ -188,14 +225,17 @@ pub fn train<P: SolProblem>(
             }
         };
         let coupled = Coupled::new(source, &[], net, Coupling::Add).expect("the study's network fits the solver");
-        let (loss, mut grad) =
-            batch_gradient(&coupled, theta, k, &steps, &batch, if k <= 64 { Checkpointing::Store } else { Checkpointing::periodic_sqrt(k) })?;
+        let mode = if k <= 64 { Checkpointing::Store } else { Checkpointing::periodic_sqrt(k) };
+        let (loss, mut grad) = batch_gradient_over(world, &coupled, theta, k, &steps, &batch, s.batch, mode)?;
         shares.add_timers(&coupled.timers);
         let grad_norm = clip_by_norm(&mut grad, s.clip);
         let t = std::time::Instant::now();
         opt.set_lr(s.lr_at(it));
         opt.step(theta, &grad);
         shares.optimizer += t.elapsed().as_secs_f64();
+        if it % SAME_STATE_EVERY == 0 || it == last {
+            world.check_same("parameters and optimizer state", || format!("iteration {it}"), &[theta, &opt.state()])?;
+        }
         if progress(LogRow { iteration: it, loss, grad_norm, seconds: start.elapsed().as_secs_f64() }, theta, opt).is_break() {
             break;
         }
@@ -230,6 +270,17 @@ pub fn evaluate<P: SolProblem>(setup: &P, net: &Net, theta: Option<&[f64]>, data
         }
     }
     Ok(err)
+}
+
+/// A training run that failed.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// A rollout failed (a non-finite loss or gradient, with where).
+    #[error(transparent)]
+    Rollout(#[from] RolloutError),
+    /// The ranks of a distributed run no longer agree.
+    #[error(transparent)]
+    Distributed(#[from] DistributedError),
 }
 
 /// A rollout that blew up during evaluation.
@@ -334,9 +385,14 @@ pub struct Resumable<'a> {
 /// progress goes on from its checkpoint, and the results are those of an
 /// uninterrupted run (the batches of iteration `i` depend on the seed and
 /// `i` alone; the times are this run's).
+///
+/// Over the ranks of `world` every variant trains data-parallel
+/// ([`train`]); rank 0 alone reads and writes the parts and sends what it
+/// read to the others; a stop is taken when any rank is asked to stop.
 pub fn study<P: SolProblem>(
     cfg: &StudyConfig<P>,
     resume: Option<Resumable<'_>>,
+    world: &World,
     mut progress: impl FnMut(&str, LogRow),
 ) -> Result<Vec<VariantResult>, StudyError> {
     let mut rng = StdRng::seed_from_u64(cfg.settings.seed);
@@ -361,9 +417,11 @@ pub fn study<P: SolProblem>(
     let total = cfg.settings.iterations;
     for &method in &cfg.methods {
         let name = method.name();
-        if let Some(r) = &resume
-            && let Some(done) = r.parts.finished::<VariantResult>(&name)?
-        {
+        let finished = match &resume {
+            Some(r) => world.from_root(|| r.parts.finished::<VariantResult>(&name))?,
+            None => None,
+        };
+        if let Some(done) = finished {
             for (k, &loss) in done.loss.iter().enumerate() {
                 progress(&name, LogRow { iteration: k + 1, loss, grad_norm: f64::NAN, seconds: 0.0 });
             }
@@ -373,9 +431,11 @@ pub fn study<P: SolProblem>(
         let mut theta = theta0.clone();
         let mut opt = Optimizer::adam(cfg.settings.lr);
         let mut loss = Vec::with_capacity(total);
-        if let Some(r) = &resume
-            && let Some(p) = r.parts.progress(&name, theta.len(), total)?
-        {
+        let saved = match &resume {
+            Some(r) => world.from_root(|| r.parts.progress(&name, theta.len(), total))?,
+            None => None,
+        };
+        if let Some(p) = saved {
             (theta, opt, loss) = (p.theta, p.optimizer, p.loss);
             for (k, &l) in loss.iter().enumerate() {
                 progress(&name, LogRow { iteration: k + 1, loss: l, grad_norm: f64::NAN, seconds: 0.0 });
@@ -386,12 +446,12 @@ pub fn study<P: SolProblem>(
         let mut last_save = std::time::Instant::now();
         let mut failure: Option<CheckpointError> = None;
         let mut stopped = false;
-        let time = train(&cfg.setup, &cfg.net, &mut theta, &mut opt, TrainData::Fixed(&train_set), &s, |row, theta, opt| {
+        let time = train(&cfg.setup, &cfg.net, &mut theta, &mut opt, TrainData::Fixed(&train_set), &s, world, |row, theta, opt| {
             loss.push(row.loss);
             progress(&name, row);
             let Some(r) = &resume else { return std::ops::ControlFlow::Continue(()) };
-            stopped = (r.stop)();
-            if stopped || last_save.elapsed().as_secs_f64() >= r.every_s {
+            stopped = world.any((r.stop)());
+            if world.is_root() && (stopped || last_save.elapsed().as_secs_f64() >= r.every_s) {
                 let p = PartProgress { iterations_done: row.iteration, theta: theta.to_vec(), optimizer: opt.clone(), loss: loss.clone() };
                 if let Err(e) = r.parts.save_progress(&name, &p) {
                     failure = Some(e);
@@ -410,7 +470,9 @@ pub fn study<P: SolProblem>(
         let train_mean_error = mean(&evaluate(&cfg.setup, &cfg.net, Some(&theta), &train_set, cfg.eval_steps)?);
         let ran = (total + 1 - first).max(1);
         let result = VariantResult { name, mean_error: mean(&error), train_mean_error, error, loss, s_per_iter: time.total / ran as f64, time };
-        if let Some(r) = &resume {
+        if let Some(r) = &resume
+            && world.is_root()
+        {
             r.parts.finish(&result.name, &result)?;
         }
         out.push(result);
@@ -439,7 +501,7 @@ pub fn mean(v: &[f64]) -> f64 {
 pub enum StudyError {
     /// Training failed (a non-finite loss or gradient, with where).
     #[error("training: {0}")]
-    Train(#[from] RolloutError),
+    Train(#[from] TrainError),
     /// A saved part cannot be written or used.
     #[error(transparent)]
     Part(#[from] CheckpointError),

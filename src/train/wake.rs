@@ -310,8 +310,12 @@ impl SolProblem for WakeSetup {
     /// # Panics
     /// If a reference pressure solve fails (the standard setup's do not).
     fn dataset(&self, count: usize, steps: usize, rng: &mut StdRng) -> Vec<Trajectory> {
+        self.dataset_share(count, steps, rng, 0..count)
+    }
+
+    fn dataset_share(&self, count: usize, steps: usize, rng: &mut StdRng, share: std::ops::Range<usize>) -> Vec<Trajectory> {
         let seeds: Vec<u64> = (0..count).map(|_| rng.random()).collect();
-        seeds
+        seeds[share]
             .par_iter()
             .map(|&s| {
                 let x0 = self.initial(&mut StdRng::seed_from_u64(s));

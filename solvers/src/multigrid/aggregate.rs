@@ -87,11 +87,12 @@ pub fn apply_stencil3(dims: [usize; 3], b: &Boundary3, w: [f64; 3], fluid: Optio
                 let mut acc = 0.0;
                 for (a, &wa) in w.iter().enumerate() {
                     for m in across(dims, b, c, [i, j, k], a) {
-                        acc += wa * match m {
-                            Across::Cell(m) => f(m) * (pc - p[m]),
-                            Across::Ghost => pc,
-                            Across::Wall => 0.0,
-                        };
+                        acc += wa
+                            * match m {
+                                Across::Cell(m) => f(m) * (pc - p[m]),
+                                Across::Ghost => pc,
+                                Across::Wall => 0.0,
+                            };
                     }
                 }
                 o[j * nx + i] = fc * acc + (1.0 - fc) * pc;

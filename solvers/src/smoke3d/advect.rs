@@ -11,15 +11,7 @@ use crate::par::for_pieces;
 /// `ks` (and the lattice's slabs past `nz` when `ks` reaches the top),
 /// `out` holding those slabs.
 #[inline(always)]
-pub(crate) fn trace<W: Wraps>(
-    mac: Mac3<W>,
-    at: At3,
-    vel: [&[f64]; 3],
-    f: &[f64],
-    dt: f64,
-    ks: Range<usize>,
-    out: &mut [f64],
-) {
+pub(crate) fn trace<W: Wraps>(mac: Mac3<W>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, ks: Range<usize>, out: &mut [f64]) {
     let lat = mac.lattice(at);
     let end = if ks.end == mac.n[2] { lat.n[2] } else { ks.end };
     for k in ks.start..end {
@@ -60,15 +52,7 @@ fn trace_slab<W: Wraps>(mac: Mac3<W>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: 
 
 /// The value traced back to point `q` of the lattice `at`.
 #[inline(always)]
-fn traced<W: Wraps>(
-    mac: Mac3<W>,
-    at: At3,
-    lat: Lattice3,
-    vel: [&[f64]; 3],
-    f: &[f64],
-    dt: f64,
-    q: [usize; 3],
-) -> f64 {
+fn traced<W: Wraps>(mac: Mac3<W>, at: At3, lat: Lattice3, vel: [&[f64]; 3], f: &[f64], dt: f64, q: [usize; 3]) -> f64 {
     let [a, b, c] = mac.velocity(at, vel, q);
     let p = [q[0] as f64 + lat.o[0] - dt * a, q[1] as f64 + lat.o[1] - dt * b, q[2] as f64 + lat.o[2] - dt * c];
     sample3(mac.wraps(), f, lat, p)
@@ -80,16 +64,7 @@ fn traced<W: Wraps>(
 /// sampled and one of the velocities that trace it).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn trace_adjoint<W: Wraps>(
-    mac: Mac3<W>,
-    at: At3,
-    vel: [&[f64]; 3],
-    f: &[f64],
-    dt: f64,
-    g: &[f64],
-    mut gs: Option<&mut [f64]>,
-    gvel: [&mut [f64]; 3],
-) {
+fn trace_adjoint<W: Wraps>(mac: Mac3<W>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, g: &[f64], mut gs: Option<&mut [f64]>, gvel: [&mut [f64]; 3]) {
     let lat = mac.lattice(at);
     let [gu, gv, gw] = gvel;
     for k in 0..lat.n[2] {

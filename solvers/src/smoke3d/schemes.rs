@@ -22,17 +22,7 @@ pub fn advect3_scratch_len(cfg: &Smoke3d, scheme: Scheme) -> usize {
 /// `tilde` are scratch of `f`'s length (MacCormack only).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn advect_field3(
-    mac: Mac3<[bool; 3]>,
-    at: At3,
-    scheme: Scheme,
-    dt: f64,
-    vel: [&[f64]; 3],
-    f: &[f64],
-    out: &mut [f64],
-    hat: &mut [f64],
-    tilde: &mut [f64],
-) {
+fn advect_field3(mac: Mac3<[bool; 3]>, at: At3, scheme: Scheme, dt: f64, vel: [&[f64]; 3], f: &[f64], out: &mut [f64], hat: &mut [f64], tilde: &mut [f64]) {
     let nz = mac.n[2];
     match scheme {
         Scheme::SemiLagrangian => trace(mac, at, vel, f, dt, 0..nz, out),
