@@ -54,6 +54,24 @@ fn info_runs_as_several_mpi_ranks_and_one_process_commands_refuse_them() {
 }
 
 #[test]
+fn the_scaling_benchmark_measures_two_ranks_and_predicts_more() {
+    let (code, out, err) = mpirun(2, &["bench", "scaling", "--workload", "p3", "--iterations", "2", "--threads", "1", "--json"]);
+    assert_eq!(code, 0, "{out}\n{err}");
+    let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}"));
+    assert_eq!((v["ranks"].as_u64(), v["batch"].as_u64(), v["threads_per_rank"].as_u64()), (Some(2), Some(32), Some(1)));
+    // Rank 0 receives rank 1's 16 samples: parameters and loss each.
+    let params = v["params"].as_u64().unwrap();
+    assert_eq!(v["bytes_in_per_rank"].as_u64(), Some(16 * (params + 1) * 8));
+    for key in ["iteration_s", "share_s", "exchange_s", "efficiency_8", "efficiency_512", "rank_limit"] {
+        assert!(v[key].as_f64().is_some_and(|x| x > 0.0), "{key}: {v}");
+    }
+    // Batch 32 over 64 ranks leaves ranks idle: at most half efficiency.
+    assert!(v["efficiency_64"].as_f64().unwrap() <= 0.5, "{v}");
+    let (code, _, err) = diffsim(&["bench", "scaling", "--workload", "p5"]);
+    assert!(code != 0 && err.contains("unknown workload `p5`"), "{err}");
+}
+
+#[test]
 fn a_launch_is_recognised_from_its_environment() {
     use diffsim::distributed::{DistributedError, launched_size_in};
     let env = |pairs: &'static [(&'static str, &'static str)]| move |k: &str| pairs.iter().find(|(n, _)| *n == k).map(|(_, v)| v.to_string());

@@ -46,6 +46,11 @@ pub(super) enum BenchCommand {
     /// range of n, its latency and bandwidth (the inputs of the scaling
     /// model in docs/distributed.md).
     Exchange(ExchangeArgs),
+    /// Data-parallel training iterations (`mpirun -np K diffsim bench
+    /// scaling`): time per iteration, the share of the gradient and the
+    /// exchange alone, and the scaling model's predicted efficiency at 8,
+    /// 64 and 512 ranks.
+    Scaling(super::scaling::ScalingArgs),
 }
 
 #[derive(Debug, Args)]
@@ -192,6 +197,7 @@ pub(super) struct P1Args {
 pub(super) fn run(cmd: BenchCommand, world: &crate::distributed::World) -> Result<(), CliError> {
     match cmd {
         BenchCommand::Exchange(a) => exchange(a, world),
+        BenchCommand::Scaling(a) => super::scaling::scaling(a, world),
         BenchCommand::P1(a) => p1(a),
         BenchCommand::P2(a) => p2(a),
         BenchCommand::P4(a) => p4(a),
@@ -584,7 +590,7 @@ const SMOKE_ARRAYS: u64 = 64;
 /// More threads than this per core only add switching.
 const MAX_THREADS_PER_CORE: usize = 8;
 
-fn threads(requested: Option<usize>) -> Result<usize, CliError> {
+pub(super) fn threads(requested: Option<usize>) -> Result<usize, CliError> {
     let threads = requested.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     if threads < 1 {
         return Err(CliError::Argument { arg: "--threads", reason: "need at least 1 thread".into() });

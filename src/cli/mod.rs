@@ -7,6 +7,7 @@ mod flow;
 mod measure;
 mod new;
 mod pg;
+mod scaling;
 mod scene;
 mod sweep;
 mod train;
@@ -213,7 +214,7 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
     let world = crate::distributed::World::from_launch()?;
     // The commands that run over several ranks so far; the others refuse them.
     let name = match &cli.command {
-        Command::Info | Command::Bench(bench::BenchCommand::Exchange(_)) => "",
+        Command::Info | Command::Bench(bench::BenchCommand::Exchange(_) | bench::BenchCommand::Scaling(_)) => "",
         Command::Bench(_) => "bench",
         Command::Demo(_) => "demo",
         Command::Check(_) => "check",

@@ -8,6 +8,9 @@
 //! refuses to run as one of several processes, instead of running K
 //! copies that each believe they are alone.
 
+mod model;
+
+pub use model::ScalingModel;
 use thiserror::Error;
 
 /// Why the processes of a run cannot work together.
