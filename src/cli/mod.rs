@@ -236,8 +236,14 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
             eprintln!("error on rank {} of {}: {e}", world.rank(), world.size());
             world.abort(e.exit_code())
         }
-        // The same error on every rank: rank 0 says it, all exit alike.
-        Err(e) if !world.is_root() => {
+        // The same error on every rank: rank 0 says it, then all exit
+        // alike (after it has: mpirun stops the job at the first non-zero
+        // exit).
+        Err(e) if world.size() > 1 => {
+            if world.is_root() {
+                eprintln!("error: {e}");
+            }
+            world.barrier();
             let code = e.exit_code();
             drop(world);
             std::process::exit(code)
