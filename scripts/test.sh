@@ -12,6 +12,11 @@ guard=scripts/cargo-enzyme
 $guard build --release --all-targets
 $guard test --release
 
+# The Python package (python/): built under the guard, installed into .venv
+# with NumPy, JAX and pytest, and its tests run (docs/python.md).
+scripts/python-install
+"${DIFFSIM_VENV:-.venv}/bin/python" -m pytest -q python/tests
+
 # A crate of one's own, as a new user makes it (docs/own-solver.md): it
 # builds under its copy of the guard (into this checkout's target folder,
 # as `diffsim new` sets up), checks its gradients and fits its parameters.

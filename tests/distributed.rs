@@ -203,8 +203,19 @@ fn a_sweep_over_three_ranks_writes_the_files_of_one_process() {
     let dir = scratch_dir("mpi-sweep");
     let o = |d: &str| dir.join(d).to_str().unwrap().to_string();
     let sweep = |out: String| {
-        ["sweep", "tests/scenes_moving/moving2d.toml", "--set", "effects[1].coefficient=0.05,0.1,0.2", "--set", "time.steps=2,3", "--out", &out, "--quiet", "--json"]
-            .map(String::from)
+        [
+            "sweep",
+            "tests/scenes_moving/moving2d.toml",
+            "--set",
+            "effects[1].coefficient=0.05,0.1,0.2",
+            "--set",
+            "time.steps=2,3",
+            "--out",
+            &out,
+            "--quiet",
+            "--json",
+        ]
+        .map(String::from)
     };
     let (code, one, err) = diffsim(&sweep(o("one")).each_ref().map(String::as_str));
     assert_eq!(code, 0, "{one}\n{err}");
@@ -214,8 +225,7 @@ fn a_sweep_over_three_ranks_writes_the_files_of_one_process() {
     // Every run's fields and pictures, byte for byte.
     for run in 0..6 {
         let folder = format!("run-{run:04}");
-        let mut files: Vec<String> =
-            std::fs::read_dir(dir.join("one").join(&folder)).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
+        let mut files: Vec<String> = std::fs::read_dir(dir.join("one").join(&folder)).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
         files.sort();
         assert!(files.contains(&"smoke.npy".to_string()) && files.iter().any(|f| f.ends_with(".png")), "{files:?}");
         for f in &files {

@@ -149,10 +149,8 @@ fn measure<S: Vjp + Sync>(a: &ScalingArgs, world: &World, threads: usize, w: Wor
         latency_s: a.latency_us.map_or(latency_s, |l| l * 1e-6),
         bandwidth: a.bandwidth_gbs.map_or(if k > 1 { bytes_in as f64 / (exchange_s - latency_s).max(1e-9) } else { f64::NAN }, |b| b * 1e9),
     };
-    let predicted: Vec<_> = [8usize, 64, 512]
-        .iter()
-        .map(|&r| (r, model.efficiency(r, batch_len), model.efficiency(r, batch_len * r), model.batch_for(r, 0.5)))
-        .collect();
+    let predicted: Vec<_> =
+        [8usize, 64, 512].iter().map(|&r| (r, model.efficiency(r, batch_len), model.efficiency(r, batch_len * r), model.batch_for(r, 0.5))).collect();
     let modelled = model.bandwidth.is_finite();
     if a.json {
         let mut line = json!({

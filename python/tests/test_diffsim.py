@@ -1,0 +1,119 @@
+"""diffsim's Python module on NumPy arrays: values and gradients against
+independent computations, the three checks, errors as exceptions, the GIL
+released and Ctrl-C honoured."""
+
+import os
+import signal
+import threading
+import time
+
+import jax
+import numpy as np
+import pytest
+
+import diffsim
+from conftest import jax_p1_loss
+
+
+def test_p1_loss_and_gradient_match_plain_jax():
+    n, steps = 64, 40
+    p1 = diffsim.p1_problem(n, steps)
+    assert p1["u0"].shape == (n,) and p1["steps"] == steps
+    op = diffsim.p1_loss(n, steps)
+    assert (op.n_in, op.n_out, op.n_params) == (n, 1, 0)
+    value = op.forward(p1["u0"])
+    du0, dp = op.vjp(p1["u0"], None, np.ones(1))
+    ref = jax_p1_loss(n, steps)
+    ref_value, ref_grad = jax.value_and_grad(ref)(p1["u0"])
+    assert value.shape == (1,) and dp.shape == (0,)
+    assert abs(value[0] - ref_value) <= 1e-12 * abs(ref_value)
+    assert np.linalg.norm(du0 - ref_grad) <= 1e-10 * np.linalg.norm(ref_grad)
+
+
+def test_a_batch_runs_each_element():
+    op = diffsim.burgers_step(32, 0.01, 0.01)
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((3, 2, 32))
+    y = op.forward(x)
+    assert y.shape == (3, 2, 32)
+    for i in range(3):
+        for j in range(2):
+            np.testing.assert_array_equal(y[i, j], op.forward(x[i, j]))
+    dy = rng.standard_normal(y.shape)
+    dx, dp = op.vjp(x, None, dy)
+    assert dx.shape == x.shape and dp.shape == (3, 2, 0)
+    # The VJP is the transpose of the JVP: <dy, J tx> = <J^T dy, tx>.
+    tx = rng.standard_normal(x.shape)
+    _, ty = op.jvp(x, None, tx)
+    assert abs(np.sum(dy * ty) - np.sum(dx * tx)) <= 1e-12 * np.sum(np.abs(dy * ty))
+
+
+def test_the_three_checks_pass_from_python(scenes):
+    p1 = diffsim.p1_problem(32, 20)
+    report = diffsim.check(diffsim.p1_loss(32, 20), p1["u0"])
+    assert report.count("pass") >= 3, report
+    rng = np.random.default_rng(1)
+    diffsim.check(diffsim.burgers_step(16, 0.05, 0.01), rng.standard_normal(16))
+    smoke = diffsim.SceneFile(scenes / "tests/scenes_moving/moving2d.toml")
+    diffsim.check(smoke.loss_operator(), smoke.x0)
+
+
+def test_scenes_run_and_differentiate(scenes):
+    fields = diffsim.run_scene(scenes / "tests/scenes_moving/moving2d.toml")
+    assert fields["smoke"].shape == (16, 16) and set(fields) == {"smoke", "velocity_u", "velocity_v"}
+    loss, grads = diffsim.scene_gradient(scenes / "tests/scenes_moving/moving2d.toml")
+    assert loss > 0 and grads["smoke_init"].shape == (16, 16)
+    # The loss operator's VJP at the scene's own state is that gradient.
+    scene = diffsim.SceneFile(scenes / "tests/scenes_moving/moving2d.toml")
+    op = scene.loss_operator()
+    assert abs(op.forward(scene.x0)[0] - loss) <= 1e-12 * loss
+    dx0, _ = op.vjp(scene.x0, None, np.ones(1))
+    np.testing.assert_allclose(scene.unpack(dx0)["smoke"], grads["smoke_init"], rtol=1e-12, atol=1e-15)
+
+
+def test_mistakes_are_exceptions_with_diffsim_messages(tmp_path, scenes):
+    op = diffsim.burgers_step(16, 0.05, 0.01)
+    with pytest.raises(ValueError, match=r"x has shape \[15\]; its last axis must have length 16"):
+        op.forward(np.zeros(15))
+    with pytest.raises(diffsim.DiffsimError, match="non-finite"):
+        op.forward(np.full(16, np.nan))
+    with pytest.raises(diffsim.DiffsimError, match="unstable"):
+        diffsim.burgers_step(64, 1.0, 0.1)
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[domain]\nsize = [8, 8]\n[time]\ndt = 0.1\nsteps = 2\n[[effects]]\nkind = "advection"\nschem = "maccormack"\n')
+    with pytest.raises(diffsim.DiffsimError, match="did you mean `scheme`"):
+        diffsim.SceneFile(bad)
+    with pytest.raises(diffsim.DiffsimError, match="cannot read"):
+        diffsim.SceneFile(tmp_path / "missing.toml")
+    with pytest.raises(diffsim.DiffsimError, match="no \\[loss\\]"):
+        diffsim.SceneFile(scenes / "scenes/plume.toml").loss_operator()
+
+
+def test_long_calls_release_the_gil_and_stop_at_ctrl_c():
+    op = diffsim.p1_loss(2048, 4000)
+    u0 = diffsim.p1_problem(2048, 4000)["u0"]
+    ticks = []
+    stop = threading.Event()
+
+    def count():
+        while not stop.is_set():
+            ticks.append(1)
+            time.sleep(0.001)
+
+    t = threading.Thread(target=count)
+    t.start()
+    start = time.perf_counter()
+    op.forward(u0)
+    elapsed = time.perf_counter() - start
+    stop.set()
+    t.join()
+    # The other thread ran while diffsim computed.
+    assert len(ticks) > 0.2 * elapsed / 0.001, (len(ticks), elapsed)
+    # Ctrl-C in the middle of a gradient: KeyboardInterrupt, promptly.
+    timer = threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGINT))
+    timer.start()
+    start = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        for _ in range(100):
+            op.vjp(u0, None, np.ones(1))
+    assert time.perf_counter() - start < 0.3 + 1.0
