@@ -3,10 +3,11 @@
 1. The worked example (examples/sol_jax.py: P3's training, network in JAX,
    16 unrolled diffsim steps) against the same program in pure JAX, time
    per iteration, interleaved rounds.
-2. The fixed cost of one call from a jitted JAX function into diffsim
-   (``jax.pure_callback``): an empty callback; diffsim's P2 smoke step
-   called directly from NumPy and through JAX at 64² and 128², forward and
-   forward + VJP; the difference is the call's overhead.
+2. The fixed cost of one call from a jitted JAX function into diffsim,
+   through XLA's FFI (the default) and through ``jax.pure_callback``: an
+   empty callback; diffsim's P2 smoke step called directly from NumPy and
+   from JAX at 64² and 128², forward and forward + VJP; the difference is
+   the call's overhead.
 
     python examples/bench.py [--iterations 40] [--json]
 """
@@ -60,32 +61,47 @@ def main():
     noop = jax.jit(lambda x: jax.pure_callback(lambda v: np.asarray(v), jax.ShapeDtypeStruct(x.shape, x.dtype), x))
     x = jnp.zeros(1000)
     out["empty_callback_us"] = median_us(lambda: noop(x).block_until_ready(), 2000)
+    # The fixed cost of an FFI call: a 32-cell Burgers step (nanoseconds of
+    # work) against a trivial jitted JAX function.
+    tiny, trivial = jax.jit(djax.burgers_step(32, 0.05, 0.01)), jax.jit(lambda v: v + 1.0)
+    u = jnp.asarray(np.sin(np.arange(32) * 0.2))
+    out["ffi_tiny_step_us"] = median_us(lambda: tiny(u).block_until_ready(), 5000)
+    out["jax_trivial_us"] = median_us(lambda: trivial(u).block_until_ready(), 5000)
     for n in (64, 128):
         op = diffsim.smoke_step(n)
-        step = djax.smoke_step(n)
         x0 = np.random.default_rng(0).random(op.n_in) * 0.1
         xj = jnp.asarray(x0)
-        fwd = jax.jit(step)
-        def fwd_vjp(x):
-            y, back = jax.vjp(step, x)
-            return y, back(x)[0]
-
-        both = jax.jit(fwd_vjp)
         reps = 200 if n == 64 else 60
         out[f"p2_{n}_values"] = op.n_in
         out[f"p2_{n}_direct_forward_us"] = median_us(lambda: op.forward(x0), reps)
-        out[f"p2_{n}_jax_forward_us"] = median_us(lambda: fwd(xj).block_until_ready(), reps)
         out[f"p2_{n}_direct_both_us"] = median_us(lambda: (op.forward(x0), op.vjp(x0, None, x0)), reps)
-        out[f"p2_{n}_jax_both_us"] = median_us(lambda: jax.block_until_ready(both(xj)), reps)
+        for via in ("ffi", "callback"):
+            f = djax.operator(op, via)
+            empty = jnp.zeros((0,))
+
+            def step(x, f=f):
+                return f(x, empty)
+
+            def fwd_vjp(x, step=step):
+                y, back = jax.vjp(step, x)
+                return y, back(x)[0]
+
+            fwd, both = jax.jit(step), jax.jit(fwd_vjp)
+            out[f"p2_{n}_{via}_forward_us"] = median_us(lambda: fwd(xj).block_until_ready(), reps)
+            out[f"p2_{n}_{via}_both_us"] = median_us(lambda: jax.block_until_ready(both(xj)), reps)
     if a.json:
         print(json.dumps(out))
         return
     print(f"example (P3, 16 steps, batch 32): diffsim solver {out['example_diffsim_ms']:.2f} ms, pure JAX {out['example_jax_ms']:.2f} ms per iteration")
     print(f"an empty jax.pure_callback: {out['empty_callback_us']:.1f} µs")
+    print(f"a jitted FFI call of a 32-cell step: {out['ffi_tiny_step_us']:.2f} µs; a trivial jitted JAX function: {out['jax_trivial_us']:.2f} µs")
     for n in (64, 128):
-        f, fj = out[f"p2_{n}_direct_forward_us"], out[f"p2_{n}_jax_forward_us"]
-        b, bj = out[f"p2_{n}_direct_both_us"], out[f"p2_{n}_jax_both_us"]
-        print(f"P2 step {n}² ({out[f'p2_{n}_values']} values): forward {f:.0f} µs direct, {fj:.0f} µs from JAX (+{fj - f:.0f}); forward + VJP {b:.0f} / {bj:.0f} µs (+{bj - b:.0f})")
+        f, b = out[f"p2_{n}_direct_forward_us"], out[f"p2_{n}_direct_both_us"]
+        line = f"P2 step {n}² ({out[f'p2_{n}_values']} values): direct forward {f:.0f} µs, forward + VJP {b:.0f} µs"
+        for via in ("ffi", "callback"):
+            fj, bj = out[f"p2_{n}_{via}_forward_us"], out[f"p2_{n}_{via}_both_us"]
+            line += f"; via {via} {fj:.0f} (+{fj - f:.0f}) / {bj:.0f} (+{bj - b:.0f})"
+        print(line)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ programs written entirely in JAX."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import diffsim
 import diffsim.jax as djax
@@ -78,3 +79,27 @@ def test_scene_loss_is_a_jax_function_of_the_initial_state(scenes):
     value, grads = loss.scene.gradient()
     assert abs(loss(loss.x0) - value) <= 1e-12 * value
     np.testing.assert_allclose(np.asarray(loss.scene.unpack(np.asarray(g))["smoke"]), grads["smoke_init"], rtol=1e-12, atol=1e-15)
+
+
+def test_the_ffi_and_the_callback_give_the_same_values_and_gradients():
+    op = diffsim.burgers_step(24, 0.02, 0.01)
+    via_ffi, via_callback = djax.operator(op), djax.operator(op, via="callback")
+    rng = np.random.default_rng(4)
+    x = jnp.asarray(rng.standard_normal((3, 24)))
+    empty = jnp.zeros((0,))
+    a = jax.jit(via_ffi)(x, empty)
+    b = jax.jit(via_callback)(x, empty)
+    np.testing.assert_array_equal(np.asarray(a), op.forward(np.asarray(x)))
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    ga = jax.grad(lambda x: jnp.sum(via_ffi(x, empty) ** 2))(x)
+    gb = jax.grad(lambda x: jnp.sum(via_callback(x, empty) ** 2))(x)
+    np.testing.assert_array_equal(np.asarray(ga), np.asarray(gb))
+
+
+def test_mistakes_inside_jax_are_diffsim_errors():
+    step = djax.burgers_step(16, 0.05, 0.01)
+    with pytest.raises(diffsim.DiffsimError, match="last axis must have length 16"):
+        jax.jit(step)(jnp.zeros(15))
+    # A non-finite state is refused at run time, naming it.
+    with pytest.raises(Exception, match="x holds a non-finite value"):
+        jax.block_until_ready(jax.jit(step)(jnp.full(16, jnp.nan)))

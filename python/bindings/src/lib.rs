@@ -23,6 +23,8 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use rayon::prelude::*;
 
+mod ffi;
+
 use diffsim::check::{CheckOptions, check_all};
 use diffsim::op::{Jvp, Vjp};
 use diffsim::problems::burgers::{BurgersEnzyme, P1};
@@ -146,9 +148,14 @@ trait PyOp: Send + Sync {
 /// (measured: 85 µs against 20 µs for 32 steps of 32 cells).
 const PARALLEL_FROM: usize = 1 << 16;
 
+/// Whether a batch of `count` elements is worth rayon's threads.
+fn parallel(op: &dyn PyOp, count: usize) -> bool {
+    count > 1 && (op.heavy() || count * op.sizes().0 >= PARALLEL_FROM)
+}
+
 /// `f(k)` for every element `k < count`, in parallel when the work is large.
 fn over_batch<T: Send>(op: &dyn PyOp, count: usize, f: impl Fn(usize) -> Result<T, Failure> + Sync + Send) -> Result<Vec<T>, Failure> {
-    if op.heavy() || count * op.sizes().0 >= PARALLEL_FROM { (0..count).into_par_iter().map(f).collect() } else { (0..count).map(f).collect() }
+    if parallel(op, count) { (0..count).into_par_iter().map(f).collect() } else { (0..count).map(f).collect() }
 }
 
 /// A diffsim step operator (no state of its own between calls).
@@ -235,6 +242,8 @@ impl PyOp for P1Loss {
 struct Operator {
     op: Arc<dyn PyOp>,
     name: String,
+    /// Its id in the FFI registry, once handed to XLA.
+    ffi_id: std::sync::OnceLock<usize>,
 }
 
 /// `x` and `p` checked: the batch shape and whether `p` is batched.
@@ -293,6 +302,17 @@ impl Operator {
     #[getter]
     fn name(&self) -> String {
         self.name.clone()
+    }
+
+    /// The id by which compiled JAX code calls this operator through XLA's
+    /// FFI (the `op_id` attribute of the targets `ffi_targets()` lists);
+    /// registered on the first call.
+    fn ffi_id(&self) -> usize {
+        *self.ffi_id.get_or_init(|| {
+            let mut registry = ffi::REGISTRY.lock().unwrap_or_else(|e| e.into_inner());
+            registry.push(self.op.clone());
+            registry.len() - 1
+        })
     }
 
     fn __repr__(&self) -> String {
@@ -420,6 +440,19 @@ impl Operator {
     }
 }
 
+impl Operator {
+    fn new(op: Arc<dyn PyOp>, name: String) -> Self {
+        Self { op, name, ffi_id: std::sync::OnceLock::new() }
+    }
+}
+
+/// The XLA FFI targets (name, function address) that `diffsim.jax`
+/// registers with `jax.ffi.register_ffi_target`.
+#[pyfunction]
+fn ffi_targets() -> Vec<(&'static str, usize)> {
+    ffi::targets()
+}
+
 /// One step of P1's Burgers scheme (upwind advection, explicit diffusion) on
 /// a periodic line of `n` cells and length `length`: `u ↦ u_next`, no
 /// parameters, Enzyme's VJP.
@@ -442,7 +475,7 @@ fn burgers_step(n: usize, dt: f64, nu: f64, length: f64) -> PyResult<Operator> {
         return Err(DiffsimError::new_err(format!("dt = {dt} is unstable for the explicit diffusion: need dt ≤ dx²/(2ν) = {}", 0.5 * dx * dx / nu)));
     }
     let cfg = diffsim_solvers::burgers::Burgers1d { n, dx, dt, nu };
-    Ok(Operator { op: Arc::new(StepOp(BurgersEnzyme(cfg))), name: format!("burgers_step(n={n}, dt={dt}, nu={nu})") })
+    Ok(Operator::new(Arc::new(StepOp(BurgersEnzyme(cfg))), format!("burgers_step(n={n}, dt={dt}, nu={nu})")))
 }
 
 /// P1 of the shared benchmarks at `n` cells and `steps` steps:
@@ -472,7 +505,7 @@ fn p1(n: usize, steps: usize) -> PyResult<P1> {
 /// through Enzyme's step VJPs.
 #[pyfunction]
 fn p1_loss(n: usize, steps: usize) -> PyResult<Operator> {
-    Ok(Operator { op: Arc::new(P1Loss { problem: p1(n, steps)? }), name: format!("p1_loss(n={n}, steps={steps})") })
+    Ok(Operator::new(Arc::new(P1Loss { problem: p1(n, steps)? }), format!("p1_loss(n={n}, steps={steps})")))
 }
 
 /// One step of P2's smoke solver on `n × n` cells (semi-Lagrangian
@@ -485,7 +518,7 @@ fn smoke_step(n: usize) -> PyResult<Operator> {
     }
     // One solver (with its work buffers) per thread of the batch.
     let step = diffsim::op::PerThread::new(|| diffsim::problems::smoke::P2::new(n, 1, diffsim_solvers::smoke::Preconditioner::Multigrid).step);
-    Ok(Operator { op: Arc::new(StepOp(step)), name: format!("smoke_step(n={n})") })
+    Ok(Operator::new(Arc::new(StepOp(step)), format!("smoke_step(n={n})")))
 }
 
 /// A scene file, read and checked: its initial state, and the runs, losses
@@ -595,7 +628,7 @@ impl SceneFile {
     fn loss_operator(&self) -> PyResult<Operator> {
         self.needs_loss()?;
         let op = SceneLoss { text: self.text.clone(), dir: self.dir.clone(), n: self.x0.len() };
-        Ok(Operator { op: Arc::new(op), name: format!("scene_loss({})", self.path) })
+        Ok(Operator::new(Arc::new(op), format!("scene_loss({})", self.path)))
     }
 }
 
@@ -687,5 +720,6 @@ pub fn _diffsim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(smoke_step, m)?)?;
     m.add_function(wrap_pyfunction!(p1_problem, m)?)?;
     m.add_function(wrap_pyfunction!(p1_loss, m)?)?;
+    m.add_function(wrap_pyfunction!(ffi_targets, m)?)?;
     Ok(())
 }
