@@ -237,6 +237,32 @@ fn p_block(len: usize, dims: &[usize], n_params: usize, count: usize) -> Result<
     Ok((count / blocks).max(1))
 }
 
+/// What both handlers read first: the operator, `x` and `p` (arguments 0
+/// and 1, checked), the number of elements and how many share a block of
+/// `p`.
+struct Inputs<'a> {
+    op: Arc<dyn PyOp>,
+    x: &'a [f64],
+    p: &'a [f64],
+    count: usize,
+    per: usize,
+}
+
+unsafe fn inputs<'a>(f: &CallFrame) -> Result<Inputs<'a>, String> {
+    let op = unsafe { operator(f)? };
+    let (n_in, _, n_params) = op.sizes();
+    let (x, _) = unsafe { input(f, 0, "x")? };
+    let (p, pdims) = unsafe { input(f, 1, "p")? };
+    let count = x.len() / n_in.max(1);
+    if x.len() != count * n_in {
+        return Err("x does not fit the operator".into());
+    }
+    let per = p_block(p.len(), &pdims, n_params, count)?;
+    finite(x, "x")?;
+    finite(p, "p")?;
+    Ok(Inputs { op, x, p, count, per })
+}
+
 /// `y = f(x, p)`: args `x [..., n_in]`, `p [..., n_params]` (broadcast to
 /// `x`'s batch) or `[n_params]`; result `y [..., n_out]`.
 ///
@@ -245,16 +271,10 @@ fn p_block(len: usize, dims: &[usize], n_params: usize, count: usize) -> Result<
 unsafe extern "C" fn diffsim_forward(frame: *mut CallFrame) -> *mut c_void {
     unsafe {
         run(frame, |f| {
-            let op = operator(f)?;
+            let Inputs { op, x, p, count, per } = inputs(f)?;
             let (n_in, n_out, n_params) = op.sizes();
-            let (x, _) = input(f, 0, "x")?;
-            let (p, pdims) = input(f, 1, "p")?;
             let y = output(f, 0, "y")?;
-            let count = x.len() / n_in.max(1);
-            let per = p_block(p.len(), &pdims, n_params, count)?;
-            finite(x, "x")?;
-            finite(p, "p")?;
-            if x.len() != count * n_in || y.len() != count * n_out {
+            if y.len() != count * n_out {
                 return Err("buffer sizes do not fit the operator".into());
             }
             // Each element writes its own rows of the result (in parallel
@@ -282,17 +302,11 @@ unsafe extern "C" fn diffsim_forward(frame: *mut CallFrame) -> *mut c_void {
 unsafe extern "C" fn diffsim_vjp(frame: *mut CallFrame) -> *mut c_void {
     unsafe {
         run(frame, |f| {
-            let op = operator(f)?;
+            let Inputs { op, x, p, count, per } = inputs(f)?;
             let (n_in, n_out, n_params) = op.sizes();
-            let (x, _) = input(f, 0, "x")?;
-            let (p, pdims) = input(f, 1, "p")?;
             let (dy, _) = input(f, 2, "dy")?;
             let dx = output(f, 0, "dx")?;
             let dp = output(f, 1, "dp")?;
-            let count = x.len() / n_in.max(1);
-            let per = p_block(p.len(), &pdims, n_params, count)?;
-            finite(x, "x")?;
-            finite(p, "p")?;
             finite(dy, "dy")?;
             if dy.len() != count * n_out || dx.len() != x.len() || dp.len() != count * n_params {
                 return Err("buffer sizes do not fit the operator".into());

@@ -135,7 +135,7 @@ trait PyOp: Send + Sync {
     /// `dx = J_xᵀ·dy`, `dp = J_pᵀ·dy` (overwritten).
     fn vjp(&self, x: &[f64], p: &[f64], dy: &[f64], dx: &mut [f64], dp: &mut [f64]) -> Result<(), Failure>;
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure>;
-    fn check(&self, x: &[f64], p: &[f64]) -> Result<(bool, String), Failure>;
+    fn check(&self, x: &[f64], p: &[f64]) -> Result<(&'static str, String), Failure>;
     /// A whole rollout or scene per element (rather than one step): worth
     /// a thread per element even in small batches.
     fn heavy(&self) -> bool {
@@ -156,6 +156,18 @@ fn parallel(op: &dyn PyOp, count: usize) -> bool {
 /// `f(k)` for every element `k < count`, in parallel when the work is large.
 fn over_batch<T: Send>(op: &dyn PyOp, count: usize, f: impl Fn(usize) -> Result<T, Failure> + Sync + Send) -> Result<Vec<T>, Failure> {
     if parallel(op, count) { (0..count).into_par_iter().map(f).collect() } else { (0..count).map(f).collect() }
+}
+
+/// `pass`, `fail`, or `inconclusive` (a check that met a kink and could
+/// not decide: not a failure).
+fn verdict(r: &diffsim::check::FullReport) -> &'static str {
+    if r.passed() {
+        "pass"
+    } else if r.failed() {
+        "fail"
+    } else {
+        "inconclusive"
+    }
 }
 
 /// A diffsim step operator (no state of its own between calls).
@@ -180,9 +192,9 @@ impl<O: Vjp + Jvp + Send + Sync> PyOp for StepOp<O> {
         self.0.jvp(x, p, tx, tp, y, ty);
         self.0.take_error().map_or(Ok(()), |e| Err(simulation(e)))
     }
-    fn check(&self, x: &[f64], p: &[f64]) -> Result<(bool, String), Failure> {
+    fn check(&self, x: &[f64], p: &[f64]) -> Result<(&'static str, String), Failure> {
         let r = check_all(&self.0, x, p, &CheckOptions::default());
-        Ok((r.passed(), r.to_string()))
+        Ok((verdict(&r), r.to_string()))
     }
 }
 
@@ -225,14 +237,118 @@ impl PyOp for P1Loss {
         op.jvp(x, p, tx, tp, y, ty);
         Ok(())
     }
-    fn check(&self, x: &[f64], _p: &[f64]) -> Result<(bool, String), Failure> {
+    fn check(&self, x: &[f64], _p: &[f64]) -> Result<(&'static str, String), Failure> {
         let step = BurgersEnzyme(self.problem.cfg);
         let rollout = Rollout::new(&step, &[], self.problem.steps).map_err(simulation)?;
         let loss = self.problem.loss();
         let op = RolloutLoss::new(rollout, x, &loss, Checkpointing::periodic_sqrt(self.problem.steps), Wrt::X0).map_err(simulation)?;
         let r = check_all(&op, x, &[], &CheckOptions::default());
-        Ok((r.passed(), r.to_string()))
+        Ok((verdict(&r), r.to_string()))
     }
+}
+
+/// A smoke benchmark's loss (P2, P4) as an operator of the packed initial
+/// state (one output): the rollout forward, its VJP through Enzyme's step
+/// adjoints and the implicit adjoint of the pressure solves. The problem
+/// owns solver buffers: one call at a time.
+struct SmokeLoss<S> {
+    problem: std::sync::Mutex<diffsim::problems::SmokeBenchmark<S>>,
+    n: usize,
+}
+
+impl<S: Vjp + Jvp + Send> PyOp for SmokeLoss<S> {
+    fn heavy(&self) -> bool {
+        true
+    }
+    fn sizes(&self) -> (usize, usize, usize) {
+        (self.n, 1, 0)
+    }
+    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) -> Result<(), Failure> {
+        let mut b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
+        b.x0.copy_from_slice(x);
+        y[0] = b.value().map_err(simulation)?;
+        Ok(())
+    }
+    fn vjp(&self, x: &[f64], _p: &[f64], dy: &[f64], dx: &mut [f64], _dp: &mut [f64]) -> Result<(), Failure> {
+        let mut b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
+        b.x0.copy_from_slice(x);
+        let g = b.grad_in(&mut diffsim::rollout::Workspace::default(), Checkpointing::periodic_sqrt(b.steps)).map_err(simulation)?;
+        for (d, g) in dx.iter_mut().zip(&g.dx0) {
+            *d = dy[0] * g;
+        }
+        Ok(())
+    }
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+        let b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
+        let loss = b.loss();
+        let op = RolloutLoss::new(Rollout::new(&b.step, &[], b.steps).map_err(simulation)?, x, &loss, Checkpointing::Store, Wrt::X0).map_err(simulation)?;
+        op.jvp(x, p, tx, tp, y, ty);
+        Ok(())
+    }
+    fn check(&self, x: &[f64], _p: &[f64]) -> Result<(&'static str, String), Failure> {
+        let b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
+        let loss = b.loss();
+        let op = RolloutLoss::new(Rollout::new(&b.step, &[], b.steps).map_err(simulation)?, x, &loss, Checkpointing::periodic_sqrt(b.steps), Wrt::X0)
+            .map_err(simulation)?;
+        let r = check_all(&op, x, &[], &CheckOptions::default());
+        Ok((verdict(&r), r.to_string()))
+    }
+}
+
+/// A smoke benchmark's data as a dict: `{"x0", "target", "steps"}`.
+fn smoke_problem<'py, S>(py: Python<'py>, b: &diffsim::problems::SmokeBenchmark<S>) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("x0", PyArray1::from_vec(py, b.x0.clone()))?;
+    d.set_item("target", PyArray1::from_vec(py, b.target.clone()))?;
+    d.set_item("steps", b.steps)?;
+    Ok(d)
+}
+
+fn smoke_sizes(what: &str, n: usize, steps: usize, max: usize) -> PyResult<()> {
+    if !(4..=max).contains(&n) || steps < 1 {
+        return Err(DiffsimError::new_err(format!("{what} needs 4 ≤ n ≤ {max} and steps ≥ 1, got n = {n}, steps = {steps}")));
+    }
+    Ok(())
+}
+
+fn p2(n: usize, steps: usize) -> PyResult<diffsim::problems::smoke::P2> {
+    smoke_sizes("P2", n, steps, 1024)?;
+    Ok(diffsim::problems::smoke::P2::new(n, steps, diffsim_solvers::smoke::Preconditioner::Multigrid))
+}
+
+fn p4(n: usize, steps: usize) -> PyResult<diffsim::problems::smoke3d::P4> {
+    smoke_sizes("P4", n, steps, 256)?;
+    Ok(diffsim::problems::smoke3d::P4::new(n, steps, diffsim_solvers::smoke::Preconditioner::Multigrid))
+}
+
+/// P2 of the shared benchmarks (2D smoke, `n × n`, `steps` steps):
+/// `{"x0": packed initial state, "target": target smoke, "steps"}`.
+#[pyfunction]
+fn p2_problem<'py>(py: Python<'py>, n: usize, steps: usize) -> PyResult<Bound<'py, PyDict>> {
+    smoke_problem(py, &p2(n, steps)?)
+}
+
+/// P2's loss `½·Σ (s_T − s*)²` as an operator of the packed initial state.
+#[pyfunction]
+fn p2_loss(n: usize, steps: usize) -> PyResult<Operator> {
+    let b = p2(n, steps)?;
+    let size = b.x0.len();
+    Ok(Operator::new(Arc::new(SmokeLoss { problem: std::sync::Mutex::new(b), n: size }), format!("p2_loss(n={n}, steps={steps})")))
+}
+
+/// P4 of the shared benchmarks (3D smoke, `n³`, `steps` steps), as
+/// `p2_problem`.
+#[pyfunction]
+fn p4_problem<'py>(py: Python<'py>, n: usize, steps: usize) -> PyResult<Bound<'py, PyDict>> {
+    smoke_problem(py, &p4(n, steps)?)
+}
+
+/// P4's loss as an operator of the packed initial state.
+#[pyfunction]
+fn p4_loss(n: usize, steps: usize) -> PyResult<Operator> {
+    let b = p4(n, steps)?;
+    let size = b.x0.len();
+    Ok(Operator::new(Arc::new(SmokeLoss { problem: std::sync::Mutex::new(b), n: size }), format!("p4_loss(n={n}, steps={steps})")))
 }
 
 /// A diffsim operator: `y = f(x, p)` with its VJP and JVP, all computed by
@@ -416,10 +532,11 @@ impl Operator {
     }
 
     /// The three gradient checks (finite differences, Taylor remainder,
-    /// dot product) at one point `(x, p)` (no batch axes): `(passed,
-    /// report)`.
+    /// dot product) at one point `(x, p)` (no batch axes): `(verdict,
+    /// report)`, the verdict `"pass"`, `"fail"` or `"inconclusive"` (a
+    /// kink within the steps, as a fluid at rest has: not a failure).
     #[pyo3(signature = (x, p = None))]
-    fn check<'py>(&self, py: Python<'py>, x: PyReadonlyArrayDyn<'py, f64>, p: Option<PyReadonlyArrayDyn<'py, f64>>) -> PyResult<(bool, String)> {
+    fn check<'py>(&self, py: Python<'py>, x: PyReadonlyArrayDyn<'py, f64>, p: Option<PyReadonlyArrayDyn<'py, f64>>) -> PyResult<(&'static str, String)> {
         let (x, p) = (read(&x), p.as_ref().map_or(Array { shape: vec![0], values: vec![] }, read));
         let op = self.op.clone();
         interruptible(py, move || {
@@ -436,7 +553,7 @@ impl Operator {
     /// Runs `f`: on this thread when the operator is one step, on an
     /// interruptible worker when it is a whole rollout.
     fn call<T: Send + 'static>(&self, py: Python<'_>, f: impl FnOnce() -> Result<T, Failure> + Send + 'static) -> PyResult<T> {
-        if self.name.starts_with("p1_loss") || self.name.starts_with("scene_loss") { interruptible(py, f) } else { quick(py, f) }
+        if self.op.heavy() { interruptible(py, f) } else { quick(py, f) }
     }
 }
 
@@ -690,7 +807,7 @@ impl PyOp for SceneLoss {
         op.jvp(x, p, tx, tp, y, ty);
         Ok(())
     }
-    fn check(&self, x: &[f64], _p: &[f64]) -> Result<(bool, String), Failure> {
+    fn check(&self, x: &[f64], _p: &[f64]) -> Result<(&'static str, String), Failure> {
         let scene = build(&self.text, &self.dir)?;
         let loss = scene.loss.as_ref().ok_or_else(|| input("no [loss]"))?;
         let params = scene.rollout_params();
@@ -698,7 +815,7 @@ impl PyOp for SceneLoss {
         let op =
             RolloutLoss::new(scene.rollout(&params).map_err(simulation)?, x, &terms, Checkpointing::periodic_sqrt(scene.steps), Wrt::X0).map_err(simulation)?;
         let r = check_all(&op, x, &[], &CheckOptions::default());
-        Ok((r.passed(), r.to_string()))
+        Ok((verdict(&r), r.to_string()))
     }
 }
 
@@ -721,5 +838,9 @@ pub fn _diffsim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(p1_problem, m)?)?;
     m.add_function(wrap_pyfunction!(p1_loss, m)?)?;
     m.add_function(wrap_pyfunction!(ffi_targets, m)?)?;
+    m.add_function(wrap_pyfunction!(p2_problem, m)?)?;
+    m.add_function(wrap_pyfunction!(p2_loss, m)?)?;
+    m.add_function(wrap_pyfunction!(p4_problem, m)?)?;
+    m.add_function(wrap_pyfunction!(p4_loss, m)?)?;
     Ok(())
 }
