@@ -108,6 +108,12 @@ def test_mistakes_are_exceptions_with_diffsim_messages(tmp_path, scenes):
         op.forward(np.full(16, np.nan))
     with pytest.raises(diffsim.DiffsimError, match="unstable"):
         diffsim.burgers_step(64, 1.0, 0.1)
+    # A rollout that blows up is a SimulationError naming where, in every pass.
+    loss = diffsim.p1_loss(32, 200)
+    huge = np.full(32, 1e200)
+    for call in (lambda: loss.forward(huge), lambda: loss.vjp(huge, None, np.ones(1)), lambda: loss.jvp(huge, None, np.ones(32))):
+        with pytest.raises(diffsim.SimulationError, match="not finite|non-finite"):
+            call()
     bad = tmp_path / "bad.toml"
     bad.write_text('[domain]\nsize = [8, 8]\n[time]\ndt = 0.1\nsteps = 2\n[[effects]]\nkind = "advection"\nschem = "maccormack"\n')
     with pytest.raises(diffsim.DiffsimError, match="did you mean `scheme`"):

@@ -230,6 +230,9 @@ impl PyOp for P1Loss {
         Ok(())
     }
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+        // A rollout that fails is a simulation error, not the panic of
+        // RolloutLoss's JVP.
+        self.forward(x, p, y)?;
         let step = BurgersEnzyme(self.problem.cfg);
         let rollout = Rollout::new(&step, &[], self.problem.steps).map_err(simulation)?;
         let loss = self.problem.loss();
@@ -279,6 +282,7 @@ impl<S: Vjp + Jvp + Send> PyOp for SmokeLoss<S> {
         Ok(())
     }
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+        self.forward(x, p, y)?;
         let b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
         let loss = b.loss();
         let op = RolloutLoss::new(Rollout::new(&b.step, &[], b.steps).map_err(simulation)?, x, &loss, Checkpointing::Store, Wrt::X0).map_err(simulation)?;
@@ -799,6 +803,7 @@ impl PyOp for SceneLoss {
         Ok(())
     }
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+        self.forward(x, p, y)?;
         let scene = build(&self.text, &self.dir)?;
         let loss = scene.loss.as_ref().ok_or_else(|| input("no [loss]"))?;
         let params = scene.rollout_params();
