@@ -23,3 +23,15 @@ def test_the_example_trains_through_diffsim_as_through_jax():
     assert mixed[-1] < 0.9 * mixed[0], mixed
     # Same step, same gradients: the same training, to rounding.
     np.testing.assert_allclose(mixed, plain, rtol=1e-9)
+
+
+def test_a_jax_program_around_the_smoke_solver_matches_the_same_in_jax():
+    path = pathlib.Path(__file__).resolve().parents[1] / "examples" / "smoke_jax.py"
+    spec = importlib.util.spec_from_file_location("smoke_jax", path)
+    smoke = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(smoke)
+    (f, theta), (g, _) = smoke.make("diffsim", 16, 4), smoke.make("jax", 16, 4)
+    (lv, gv), (lj, gj) = f(theta), g(theta)
+    # Both solve the pressure to a relative residual of 1e-8.
+    assert abs(lv - lj) <= 1e-9 * abs(lj)
+    assert np.linalg.norm(gv - gj) <= 1e-8 * np.linalg.norm(gj)
