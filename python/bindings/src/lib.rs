@@ -11,8 +11,12 @@
 //! GIL; the long ones (rollouts, scenes, checks) run on a worker thread
 //! and return at Ctrl-C with `KeyboardInterrupt` (the worker finishes
 //! alone and its result is dropped).
+//!
+//! Here: the errors, the runners (GIL, Ctrl-C), arrays in and out, the
+//! [`PyOp`] contract and the `Operator` class that serves any of them.
+//! [`ops`]: the solver steps and benchmark losses; [`scene`]: scene files;
+//! [`ffi`]: the same operators as XLA FFI custom calls for `diffsim.jax`.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -20,16 +24,11 @@ use numpy::{IxDyn, PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
 use rayon::prelude::*;
 
 mod ffi;
-
-use diffsim::check::{CheckOptions, check_all};
-use diffsim::op::{Jvp, Vjp};
-use diffsim::problems::burgers::{BurgersEnzyme, P1};
-use diffsim::rollout::{Checkpointing, Rollout, RolloutLoss, Wrt};
-use diffsim::scene::{AnyScene, Scene};
+mod ops;
+mod scene;
 
 create_exception!(_diffsim, DiffsimError, PyValueError, "An input diffsim cannot use: a malformed scene, a bad argument, an array of the wrong shape.");
 create_exception!(_diffsim, SimulationError, PyRuntimeError, "A simulation or gradient that failed: a non-finite state, a diverging solve.");
@@ -156,203 +155,6 @@ fn parallel(op: &dyn PyOp, count: usize) -> bool {
 /// `f(k)` for every element `k < count`, in parallel when the work is large.
 fn over_batch<T: Send>(op: &dyn PyOp, count: usize, f: impl Fn(usize) -> Result<T, Failure> + Sync + Send) -> Result<Vec<T>, Failure> {
     if parallel(op, count) { (0..count).into_par_iter().map(f).collect() } else { (0..count).map(f).collect() }
-}
-
-/// `pass`, `fail`, or `inconclusive` (a check that met a kink and could
-/// not decide: not a failure).
-fn verdict(r: &diffsim::check::FullReport) -> &'static str {
-    if r.passed() {
-        "pass"
-    } else if r.failed() {
-        "fail"
-    } else {
-        "inconclusive"
-    }
-}
-
-/// A diffsim step operator (no state of its own between calls).
-struct StepOp<O>(O);
-
-impl<O: Vjp + Jvp + Send + Sync> PyOp for StepOp<O> {
-    fn sizes(&self) -> (usize, usize, usize) {
-        (self.0.n_in(), self.0.n_out(), self.0.n_params())
-    }
-    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) -> Result<(), Failure> {
-        self.0.forward(x, p, y);
-        self.0.take_error().map_or(Ok(()), |e| Err(simulation(e)))
-    }
-    fn vjp(&self, x: &[f64], p: &[f64], dy: &[f64], dx: &mut [f64], dp: &mut [f64]) -> Result<(), Failure> {
-        dx.fill(0.0);
-        dp.fill(0.0);
-        let mut dy = dy.to_vec();
-        self.0.vjp(x, p, &mut dy, dx, dp);
-        self.0.take_error().map_or(Ok(()), |e| Err(simulation(e)))
-    }
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
-        self.0.jvp(x, p, tx, tp, y, ty);
-        self.0.take_error().map_or(Ok(()), |e| Err(simulation(e)))
-    }
-    fn check(&self, x: &[f64], p: &[f64]) -> Result<(&'static str, String), Failure> {
-        let r = check_all(&self.0, x, p, &CheckOptions::default());
-        Ok((verdict(&r), r.to_string()))
-    }
-}
-
-/// P1's loss `L(u_0) = ½·dx·Σ (u_T − u*)²` as an operator of `u_0` (one
-/// output), through the whole rollout with the Enzyme-generated step VJPs
-/// (periodic √T checkpointing).
-struct P1Loss {
-    problem: P1,
-}
-
-impl P1Loss {
-    fn at(&self, x: &[f64]) -> P1 {
-        P1 { u0: x.to_vec(), target: self.problem.target.clone(), ..self.problem }
-    }
-}
-
-impl PyOp for P1Loss {
-    fn heavy(&self) -> bool {
-        true
-    }
-    fn sizes(&self) -> (usize, usize, usize) {
-        (self.problem.cfg.n, 1, 0)
-    }
-    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) -> Result<(), Failure> {
-        y[0] = self.at(x).value().map_err(simulation)?;
-        Ok(())
-    }
-    fn vjp(&self, x: &[f64], _p: &[f64], dy: &[f64], dx: &mut [f64], _dp: &mut [f64]) -> Result<(), Failure> {
-        let g = self.at(x).grad_enzyme(Checkpointing::periodic_sqrt(self.problem.steps)).map_err(simulation)?;
-        for (d, g) in dx.iter_mut().zip(&g.dx0) {
-            *d = dy[0] * g;
-        }
-        Ok(())
-    }
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
-        // A rollout that fails is a simulation error, not the panic of
-        // RolloutLoss's JVP.
-        self.forward(x, p, y)?;
-        let step = BurgersEnzyme(self.problem.cfg);
-        let rollout = Rollout::new(&step, &[], self.problem.steps).map_err(simulation)?;
-        let loss = self.problem.loss();
-        let op = RolloutLoss::new(rollout, x, &loss, Checkpointing::Store, Wrt::X0).map_err(simulation)?;
-        op.jvp(x, p, tx, tp, y, ty);
-        Ok(())
-    }
-    fn check(&self, x: &[f64], _p: &[f64]) -> Result<(&'static str, String), Failure> {
-        let step = BurgersEnzyme(self.problem.cfg);
-        let rollout = Rollout::new(&step, &[], self.problem.steps).map_err(simulation)?;
-        let loss = self.problem.loss();
-        let op = RolloutLoss::new(rollout, x, &loss, Checkpointing::periodic_sqrt(self.problem.steps), Wrt::X0).map_err(simulation)?;
-        let r = check_all(&op, x, &[], &CheckOptions::default());
-        Ok((verdict(&r), r.to_string()))
-    }
-}
-
-/// A smoke benchmark's loss (P2, P4) as an operator of the packed initial
-/// state (one output): the rollout forward, its VJP through Enzyme's step
-/// adjoints and the implicit adjoint of the pressure solves. The problem
-/// owns solver buffers: one call at a time.
-struct SmokeLoss<S> {
-    problem: std::sync::Mutex<diffsim::problems::SmokeBenchmark<S>>,
-    n: usize,
-}
-
-impl<S: Vjp + Jvp + Send> PyOp for SmokeLoss<S> {
-    fn heavy(&self) -> bool {
-        true
-    }
-    fn sizes(&self) -> (usize, usize, usize) {
-        (self.n, 1, 0)
-    }
-    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) -> Result<(), Failure> {
-        let mut b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
-        b.x0.copy_from_slice(x);
-        y[0] = b.value().map_err(simulation)?;
-        Ok(())
-    }
-    fn vjp(&self, x: &[f64], _p: &[f64], dy: &[f64], dx: &mut [f64], _dp: &mut [f64]) -> Result<(), Failure> {
-        let mut b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
-        b.x0.copy_from_slice(x);
-        let g = b.grad_in(&mut diffsim::rollout::Workspace::default(), Checkpointing::periodic_sqrt(b.steps)).map_err(simulation)?;
-        for (d, g) in dx.iter_mut().zip(&g.dx0) {
-            *d = dy[0] * g;
-        }
-        Ok(())
-    }
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
-        self.forward(x, p, y)?;
-        let b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
-        let loss = b.loss();
-        let op = RolloutLoss::new(Rollout::new(&b.step, &[], b.steps).map_err(simulation)?, x, &loss, Checkpointing::Store, Wrt::X0).map_err(simulation)?;
-        op.jvp(x, p, tx, tp, y, ty);
-        Ok(())
-    }
-    fn check(&self, x: &[f64], _p: &[f64]) -> Result<(&'static str, String), Failure> {
-        let b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
-        let loss = b.loss();
-        let op = RolloutLoss::new(Rollout::new(&b.step, &[], b.steps).map_err(simulation)?, x, &loss, Checkpointing::periodic_sqrt(b.steps), Wrt::X0)
-            .map_err(simulation)?;
-        let r = check_all(&op, x, &[], &CheckOptions::default());
-        Ok((verdict(&r), r.to_string()))
-    }
-}
-
-/// A smoke benchmark's data as a dict: `{"x0", "target", "steps"}`.
-fn smoke_problem<'py, S>(py: Python<'py>, b: &diffsim::problems::SmokeBenchmark<S>) -> PyResult<Bound<'py, PyDict>> {
-    let d = PyDict::new(py);
-    d.set_item("x0", PyArray1::from_vec(py, b.x0.clone()))?;
-    d.set_item("target", PyArray1::from_vec(py, b.target.clone()))?;
-    d.set_item("steps", b.steps)?;
-    Ok(d)
-}
-
-fn smoke_sizes(what: &str, n: usize, steps: usize, max: usize) -> PyResult<()> {
-    if !(4..=max).contains(&n) || steps < 1 {
-        return Err(DiffsimError::new_err(format!("{what} needs 4 ≤ n ≤ {max} and steps ≥ 1, got n = {n}, steps = {steps}")));
-    }
-    Ok(())
-}
-
-fn p2(n: usize, steps: usize) -> PyResult<diffsim::problems::smoke::P2> {
-    smoke_sizes("P2", n, steps, 1024)?;
-    Ok(diffsim::problems::smoke::P2::new(n, steps, diffsim_solvers::smoke::Preconditioner::Multigrid))
-}
-
-fn p4(n: usize, steps: usize) -> PyResult<diffsim::problems::smoke3d::P4> {
-    smoke_sizes("P4", n, steps, 256)?;
-    Ok(diffsim::problems::smoke3d::P4::new(n, steps, diffsim_solvers::smoke::Preconditioner::Multigrid))
-}
-
-/// P2 of the shared benchmarks (2D smoke, `n × n`, `steps` steps):
-/// `{"x0": packed initial state, "target": target smoke, "steps"}`.
-#[pyfunction]
-fn p2_problem<'py>(py: Python<'py>, n: usize, steps: usize) -> PyResult<Bound<'py, PyDict>> {
-    smoke_problem(py, &p2(n, steps)?)
-}
-
-/// P2's loss `½·Σ (s_T − s*)²` as an operator of the packed initial state.
-#[pyfunction]
-fn p2_loss(n: usize, steps: usize) -> PyResult<Operator> {
-    let b = p2(n, steps)?;
-    let size = b.x0.len();
-    Ok(Operator::new(Arc::new(SmokeLoss { problem: std::sync::Mutex::new(b), n: size }), format!("p2_loss(n={n}, steps={steps})")))
-}
-
-/// P4 of the shared benchmarks (3D smoke, `n³`, `steps` steps), as
-/// `p2_problem`.
-#[pyfunction]
-fn p4_problem<'py>(py: Python<'py>, n: usize, steps: usize) -> PyResult<Bound<'py, PyDict>> {
-    smoke_problem(py, &p4(n, steps)?)
-}
-
-/// P4's loss as an operator of the packed initial state.
-#[pyfunction]
-fn p4_loss(n: usize, steps: usize) -> PyResult<Operator> {
-    let b = p4(n, steps)?;
-    let size = b.x0.len();
-    Ok(Operator::new(Arc::new(SmokeLoss { problem: std::sync::Mutex::new(b), n: size }), format!("p4_loss(n={n}, steps={steps})")))
 }
 
 /// A diffsim operator: `y = f(x, p)` with its VJP and JVP, all computed by
@@ -574,256 +376,6 @@ fn ffi_targets() -> Vec<(&'static str, usize)> {
     ffi::targets()
 }
 
-/// One step of P1's Burgers scheme (upwind advection, explicit diffusion) on
-/// a periodic line of `n` cells and length `length`: `u ↦ u_next`, no
-/// parameters, Enzyme's VJP.
-#[pyfunction]
-#[pyo3(signature = (n, dt, nu, length = std::f64::consts::TAU))]
-fn burgers_step(n: usize, dt: f64, nu: f64, length: f64) -> PyResult<Operator> {
-    if n < 3 {
-        return Err(DiffsimError::new_err(format!("n = {n}: need at least 3 cells")));
-    }
-    for (name, v) in [("dt", dt), ("length", length)] {
-        if !(v.is_finite() && v > 0.0) {
-            return Err(DiffsimError::new_err(format!("{name} = {v}: must be positive")));
-        }
-    }
-    if !(nu.is_finite() && nu >= 0.0) {
-        return Err(DiffsimError::new_err(format!("nu = {nu}: must be zero or positive")));
-    }
-    let dx = length / n as f64;
-    if nu > 0.0 && dt > 0.5 * dx * dx / nu {
-        return Err(DiffsimError::new_err(format!("dt = {dt} is unstable for the explicit diffusion: need dt ≤ dx²/(2ν) = {}", 0.5 * dx * dx / nu)));
-    }
-    let cfg = diffsim_solvers::burgers::Burgers1d { n, dx, dt, nu };
-    Ok(Operator::new(Arc::new(StepOp(BurgersEnzyme(cfg))), format!("burgers_step(n={n}, dt={dt}, nu={nu})")))
-}
-
-/// P1 of the shared benchmarks at `n` cells and `steps` steps:
-/// `{"u0", "target", "dx", "dt", "nu"}`.
-#[pyfunction]
-fn p1_problem<'py>(py: Python<'py>, n: usize, steps: usize) -> PyResult<Bound<'py, PyDict>> {
-    let p = p1(n, steps)?;
-    let d = PyDict::new(py);
-    d.set_item("u0", PyArray1::from_vec(py, p.u0.clone()))?;
-    d.set_item("target", PyArray1::from_vec(py, p.target.clone()))?;
-    d.set_item("dx", p.cfg.dx)?;
-    d.set_item("dt", p.cfg.dt)?;
-    d.set_item("nu", p.cfg.nu)?;
-    d.set_item("steps", steps)?;
-    Ok(d)
-}
-
-fn p1(n: usize, steps: usize) -> PyResult<P1> {
-    if n < 3 || steps < 1 {
-        return Err(DiffsimError::new_err(format!("P1 needs n ≥ 3 and steps ≥ 1, got n = {n}, steps = {steps}")));
-    }
-    Ok(P1::new(n, steps))
-}
-
-/// P1's loss as an operator of `u0` (`n_in = n`, one output, no
-/// parameters): the whole rollout of `steps` steps in diffsim, its VJP
-/// through Enzyme's step VJPs.
-#[pyfunction]
-fn p1_loss(n: usize, steps: usize) -> PyResult<Operator> {
-    Ok(Operator::new(Arc::new(P1Loss { problem: p1(n, steps)? }), format!("p1_loss(n={n}, steps={steps})")))
-}
-
-/// One step of P2's smoke solver on `n × n` cells (semi-Lagrangian
-/// advection, buoyancy, pressure projection by multigrid-preconditioned
-/// CG): the packed state (smoke, then the face velocities) in and out.
-#[pyfunction]
-fn smoke_step(n: usize) -> PyResult<Operator> {
-    if !(4..=1024).contains(&n) {
-        return Err(DiffsimError::new_err(format!("n = {n}: need 4 ≤ n ≤ 1024")));
-    }
-    // One solver (with its work buffers) per thread of the batch.
-    let step = diffsim::op::PerThread::new(|| diffsim::problems::smoke::P2::new(n, 1, diffsim_solvers::smoke::Preconditioner::Multigrid).step);
-    Ok(Operator::new(Arc::new(StepOp(step)), format!("smoke_step(n={n})")))
-}
-
-/// A scene file, read and checked: its initial state, and the runs, losses
-/// and gradients of the scene (each call builds the scene afresh from the
-/// text read here).
-#[pyclass(frozen, module = "diffsim._diffsim")]
-struct SceneFile {
-    text: String,
-    dir: PathBuf,
-    path: String,
-    x0: Vec<f64>,
-    fields: Vec<(String, Vec<usize>, std::ops::Range<usize>)>,
-    has_loss: bool,
-}
-
-fn build(text: &str, dir: &std::path::Path) -> Result<Scene, Failure> {
-    match AnyScene::parse_in(text, dir).map_err(|e| input(e.to_string()))? {
-        AnyScene::Stepped(s) => Ok(*s),
-        AnyScene::Steady(_) => Err(input("a steady scene ([steady]) has no state stepped in time; run it with `diffsim run`")),
-    }
-}
-
-#[pymethods]
-impl SceneFile {
-    #[new]
-    fn new(path: PathBuf) -> PyResult<Self> {
-        let text = diffsim::files::read_text(&path, diffsim::scene::MAX_SCENE_BYTES, "scene file").map_err(|e| DiffsimError::new_err(e.to_string()))?;
-        let dir = path.parent().map_or_else(|| PathBuf::from("."), |d| d.to_path_buf());
-        let scene = build(&text, &dir).map_err(|e| PyErr::from(Failure::Input(format!("{}: {}", path.display(), message(e)))))?;
-        let fields = scene
-            .fields
-            .iter()
-            .flat_map(|&f| {
-                scene.domain.arrays(f).into_iter().map(move |a| (format!("{}{}", f.name(), a.suffix), a.shape.iter().map(|&s| s as usize).collect(), a.range))
-            })
-            .collect();
-        Ok(Self { x0: scene.x0.clone(), fields, has_loss: scene.loss.is_some(), text, dir, path: path.display().to_string() })
-    }
-
-    fn __repr__(&self) -> String {
-        format!("SceneFile({:?}, state of {} values)", self.path, self.x0.len())
-    }
-
-    /// The packed initial state (every field, in the order of `fields`).
-    #[getter]
-    fn x0<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_vec(py, self.x0.clone())
-    }
-
-    /// The fields' names in the packed state (`smoke`, `velocity_u`, …).
-    #[getter]
-    fn fields(&self) -> Vec<String> {
-        self.fields.iter().map(|f| f.0.clone()).collect()
-    }
-
-    /// A packed state as a dict of arrays shaped as the fields.
-    fn unpack<'py>(&self, py: Python<'py>, x: PyReadonlyArrayDyn<'py, f64>) -> PyResult<Bound<'py, PyDict>> {
-        let x = read(&x);
-        if x.values.len() != self.x0.len() {
-            return Err(DiffsimError::new_err(format!("a state of this scene has {} values, got {}", self.x0.len(), x.values.len())));
-        }
-        let d = PyDict::new(py);
-        for (name, shape, range) in &self.fields {
-            d.set_item(name, to_numpy(py, shape, x.values[range.clone()].to_vec())?)?;
-        }
-        Ok(d)
-    }
-
-    /// Runs the scene from `x0` (default: its own initial state); returns
-    /// the final fields as a dict of arrays.
-    #[pyo3(signature = (x0 = None))]
-    fn run<'py>(&self, py: Python<'py>, x0: Option<PyReadonlyArrayDyn<'py, f64>>) -> PyResult<Bound<'py, PyDict>> {
-        let x0 = self.state(x0.as_ref())?;
-        let (text, dir) = (self.text.clone(), self.dir.clone());
-        let x = interruptible(py, move || {
-            let mut scene = build(&text, &dir)?;
-            scene.x0 = x0;
-            scene.run(|_, _| {}).map_err(simulation)
-        })?;
-        self.unpack(py, PyArray1::from_vec(py, x).to_dyn().readonly())
-    }
-
-    /// The loss and its gradient with respect to every input the scene's
-    /// `[loss]` names (`with_respect_to`): `(loss, {name: array})`, the
-    /// arrays named and shaped as `diffsim grad` writes them.
-    fn gradient<'py>(&self, py: Python<'py>) -> PyResult<(f64, Bound<'py, PyDict>)> {
-        self.needs_loss()?;
-        let (text, dir) = (self.text.clone(), self.dir.clone());
-        let g = interruptible(py, move || {
-            let scene = build(&text, &dir)?;
-            let loss = scene.loss.as_ref().expect("checked above");
-            scene.gradient(loss, Checkpointing::periodic_sqrt(scene.steps)).map_err(simulation)
-        })?;
-        let d = PyDict::new(py);
-        for input in g.inputs {
-            for (stem, shape, values) in input.arrays {
-                let shape: Vec<usize> = shape.iter().map(|&s| s as usize).collect();
-                d.set_item(stem.trim_start_matches("grad_"), to_numpy(py, &shape, values)?)?;
-            }
-        }
-        Ok((g.loss, d))
-    }
-
-    /// The scene's loss as an operator of the packed initial state (`n_in`
-    /// = the state's length, one output, no parameters): forward, VJP
-    /// (through every step) and JVP by diffsim.
-    fn loss_operator(&self) -> PyResult<Operator> {
-        self.needs_loss()?;
-        let op = SceneLoss { text: self.text.clone(), dir: self.dir.clone(), n: self.x0.len() };
-        Ok(Operator::new(Arc::new(op), format!("scene_loss({})", self.path)))
-    }
-}
-
-impl SceneFile {
-    fn needs_loss(&self) -> PyResult<()> {
-        if self.has_loss { Ok(()) } else { Err(DiffsimError::new_err(format!("{}: the scene has no [loss] table", self.path))) }
-    }
-
-    /// `x0` checked against the scene's state, or its own.
-    fn state(&self, x0: Option<&PyReadonlyArrayDyn<'_, f64>>) -> PyResult<Vec<f64>> {
-        let Some(x0) = x0 else { return Ok(self.x0.clone()) };
-        let x = read(x0);
-        if x.values.len() != self.x0.len() || x.shape.len() != 1 {
-            return Err(DiffsimError::new_err(format!("x0 has shape {:?}; this scene's packed state has {} values", x.shape, self.x0.len())));
-        }
-        finite(&x, "x0")?;
-        Ok(x.values)
-    }
-}
-
-/// A scene's loss as an operator of its packed initial state (the scene
-/// is built afresh per call: its operators stay on the calling thread).
-struct SceneLoss {
-    text: String,
-    dir: PathBuf,
-    n: usize,
-}
-
-impl PyOp for SceneLoss {
-    fn heavy(&self) -> bool {
-        true
-    }
-    fn sizes(&self) -> (usize, usize, usize) {
-        (self.n, 1, 0)
-    }
-    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) -> Result<(), Failure> {
-        let scene = build(&self.text, &self.dir)?;
-        let loss = scene.loss.as_ref().ok_or_else(|| input("no [loss]"))?;
-        y[0] = scene.loss_value(loss, x, &scene.rollout_params()).map_err(simulation)?;
-        Ok(())
-    }
-    fn vjp(&self, x: &[f64], _p: &[f64], dy: &[f64], dx: &mut [f64], _dp: &mut [f64]) -> Result<(), Failure> {
-        let scene = build(&self.text, &self.dir)?;
-        let loss = scene.loss.as_ref().ok_or_else(|| input("no [loss]"))?;
-        let p = scene.rollout_params();
-        let g =
-            scene.rollout(&p).map_err(simulation)?.value_and_grad(x, &scene.loss_terms(loss), Checkpointing::periodic_sqrt(scene.steps)).map_err(simulation)?;
-        for (d, g) in dx.iter_mut().zip(&g.dx0) {
-            *d = dy[0] * g;
-        }
-        Ok(())
-    }
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
-        self.forward(x, p, y)?;
-        let scene = build(&self.text, &self.dir)?;
-        let loss = scene.loss.as_ref().ok_or_else(|| input("no [loss]"))?;
-        let params = scene.rollout_params();
-        let terms = scene.loss_terms(loss);
-        let op = RolloutLoss::new(scene.rollout(&params).map_err(simulation)?, x, &terms, Checkpointing::Store, Wrt::X0).map_err(simulation)?;
-        op.jvp(x, p, tx, tp, y, ty);
-        Ok(())
-    }
-    fn check(&self, x: &[f64], _p: &[f64]) -> Result<(&'static str, String), Failure> {
-        let scene = build(&self.text, &self.dir)?;
-        let loss = scene.loss.as_ref().ok_or_else(|| input("no [loss]"))?;
-        let params = scene.rollout_params();
-        let terms = scene.loss_terms(loss);
-        let op =
-            RolloutLoss::new(scene.rollout(&params).map_err(simulation)?, x, &terms, Checkpointing::periodic_sqrt(scene.steps), Wrt::X0).map_err(simulation)?;
-        let r = check_all(&op, x, &[], &CheckOptions::default());
-        Ok((verdict(&r), r.to_string()))
-    }
-}
-
 fn message(f: Failure) -> String {
     match f {
         Failure::Input(m) | Failure::Simulation(m) | Failure::Panic(m) => m,
@@ -837,15 +389,15 @@ pub fn _diffsim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("SimulationError", m.py().get_type::<SimulationError>())?;
     m.add("InternalError", m.py().get_type::<InternalError>())?;
     m.add_class::<Operator>()?;
-    m.add_class::<SceneFile>()?;
-    m.add_function(wrap_pyfunction!(burgers_step, m)?)?;
-    m.add_function(wrap_pyfunction!(smoke_step, m)?)?;
-    m.add_function(wrap_pyfunction!(p1_problem, m)?)?;
-    m.add_function(wrap_pyfunction!(p1_loss, m)?)?;
+    m.add_class::<scene::SceneFile>()?;
+    m.add_function(wrap_pyfunction!(ops::burgers_step, m)?)?;
+    m.add_function(wrap_pyfunction!(ops::smoke_step, m)?)?;
+    m.add_function(wrap_pyfunction!(ops::p1_problem, m)?)?;
+    m.add_function(wrap_pyfunction!(ops::p1_loss, m)?)?;
     m.add_function(wrap_pyfunction!(ffi_targets, m)?)?;
-    m.add_function(wrap_pyfunction!(p2_problem, m)?)?;
-    m.add_function(wrap_pyfunction!(p2_loss, m)?)?;
-    m.add_function(wrap_pyfunction!(p4_problem, m)?)?;
-    m.add_function(wrap_pyfunction!(p4_loss, m)?)?;
+    m.add_function(wrap_pyfunction!(ops::p2_problem, m)?)?;
+    m.add_function(wrap_pyfunction!(ops::p2_loss, m)?)?;
+    m.add_function(wrap_pyfunction!(ops::p4_problem, m)?)?;
+    m.add_function(wrap_pyfunction!(ops::p4_loss, m)?)?;
     Ok(())
 }

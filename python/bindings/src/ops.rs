@@ -1,0 +1,282 @@
+//! The operators diffsim offers Python: a step of a solver
+//! ([`StepOp`]: P1's Burgers, P2's smoke) and the benchmarks' losses
+//! through whole rollouts ([`P1Loss`], [`SmokeLoss`]), with the functions
+//! that make them.
+
+use std::sync::Arc;
+
+use numpy::PyArray1;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use diffsim::check::{CheckOptions, check_all};
+use diffsim::op::{Jvp, Vjp};
+use diffsim::problems::burgers::{BurgersEnzyme, P1};
+use diffsim::rollout::{Checkpointing, Rollout, RolloutLoss, Wrt};
+
+use super::{DiffsimError, Failure, Operator, PyOp, simulation};
+
+/// `pass`, `fail`, or `inconclusive` (a check that met a kink and could
+/// not decide: not a failure).
+pub(crate) fn verdict(r: &diffsim::check::FullReport) -> &'static str {
+    if r.passed() {
+        "pass"
+    } else if r.failed() {
+        "fail"
+    } else {
+        "inconclusive"
+    }
+}
+
+/// A diffsim step operator (no state of its own between calls).
+struct StepOp<O>(O);
+
+impl<O: Vjp + Jvp + Send + Sync> PyOp for StepOp<O> {
+    fn sizes(&self) -> (usize, usize, usize) {
+        (self.0.n_in(), self.0.n_out(), self.0.n_params())
+    }
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) -> Result<(), Failure> {
+        self.0.forward(x, p, y);
+        self.0.take_error().map_or(Ok(()), |e| Err(simulation(e)))
+    }
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &[f64], dx: &mut [f64], dp: &mut [f64]) -> Result<(), Failure> {
+        dx.fill(0.0);
+        dp.fill(0.0);
+        let mut dy = dy.to_vec();
+        self.0.vjp(x, p, &mut dy, dx, dp);
+        self.0.take_error().map_or(Ok(()), |e| Err(simulation(e)))
+    }
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+        self.0.jvp(x, p, tx, tp, y, ty);
+        self.0.take_error().map_or(Ok(()), |e| Err(simulation(e)))
+    }
+    fn check(&self, x: &[f64], p: &[f64]) -> Result<(&'static str, String), Failure> {
+        let r = check_all(&self.0, x, p, &CheckOptions::default());
+        Ok((verdict(&r), r.to_string()))
+    }
+}
+
+/// P1's loss `L(u_0) = ½·dx·Σ (u_T − u*)²` as an operator of `u_0` (one
+/// output), through the whole rollout with the Enzyme-generated step VJPs
+/// (periodic √T checkpointing).
+struct P1Loss {
+    problem: P1,
+}
+
+impl P1Loss {
+    fn at(&self, x: &[f64]) -> P1 {
+        P1 { u0: x.to_vec(), target: self.problem.target.clone(), ..self.problem }
+    }
+}
+
+impl PyOp for P1Loss {
+    fn heavy(&self) -> bool {
+        true
+    }
+    fn sizes(&self) -> (usize, usize, usize) {
+        (self.problem.cfg.n, 1, 0)
+    }
+    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) -> Result<(), Failure> {
+        y[0] = self.at(x).value().map_err(simulation)?;
+        Ok(())
+    }
+    fn vjp(&self, x: &[f64], _p: &[f64], dy: &[f64], dx: &mut [f64], _dp: &mut [f64]) -> Result<(), Failure> {
+        let g = self.at(x).grad_enzyme(Checkpointing::periodic_sqrt(self.problem.steps)).map_err(simulation)?;
+        for (d, g) in dx.iter_mut().zip(&g.dx0) {
+            *d = dy[0] * g;
+        }
+        Ok(())
+    }
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+        // A rollout that fails is a simulation error, not the panic of
+        // RolloutLoss's JVP.
+        self.forward(x, p, y)?;
+        let step = BurgersEnzyme(self.problem.cfg);
+        let rollout = Rollout::new(&step, &[], self.problem.steps).map_err(simulation)?;
+        let loss = self.problem.loss();
+        let op = RolloutLoss::new(rollout, x, &loss, Checkpointing::Store, Wrt::X0).map_err(simulation)?;
+        op.jvp(x, p, tx, tp, y, ty);
+        Ok(())
+    }
+    fn check(&self, x: &[f64], _p: &[f64]) -> Result<(&'static str, String), Failure> {
+        let step = BurgersEnzyme(self.problem.cfg);
+        let rollout = Rollout::new(&step, &[], self.problem.steps).map_err(simulation)?;
+        let loss = self.problem.loss();
+        let op = RolloutLoss::new(rollout, x, &loss, Checkpointing::periodic_sqrt(self.problem.steps), Wrt::X0).map_err(simulation)?;
+        let r = check_all(&op, x, &[], &CheckOptions::default());
+        Ok((verdict(&r), r.to_string()))
+    }
+}
+
+/// A smoke benchmark's loss (P2, P4) as an operator of the packed initial
+/// state (one output): the rollout forward, its VJP through Enzyme's step
+/// adjoints and the implicit adjoint of the pressure solves. The problem
+/// owns solver buffers: one call at a time.
+struct SmokeLoss<S> {
+    problem: std::sync::Mutex<diffsim::problems::SmokeBenchmark<S>>,
+    n: usize,
+}
+
+impl<S: Vjp + Jvp + Send> PyOp for SmokeLoss<S> {
+    fn heavy(&self) -> bool {
+        true
+    }
+    fn sizes(&self) -> (usize, usize, usize) {
+        (self.n, 1, 0)
+    }
+    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) -> Result<(), Failure> {
+        let mut b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
+        b.x0.copy_from_slice(x);
+        y[0] = b.value().map_err(simulation)?;
+        Ok(())
+    }
+    fn vjp(&self, x: &[f64], _p: &[f64], dy: &[f64], dx: &mut [f64], _dp: &mut [f64]) -> Result<(), Failure> {
+        let mut b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
+        b.x0.copy_from_slice(x);
+        let g = b.grad_in(&mut diffsim::rollout::Workspace::default(), Checkpointing::periodic_sqrt(b.steps)).map_err(simulation)?;
+        for (d, g) in dx.iter_mut().zip(&g.dx0) {
+            *d = dy[0] * g;
+        }
+        Ok(())
+    }
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+        self.forward(x, p, y)?;
+        let b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
+        let loss = b.loss();
+        let op = RolloutLoss::new(Rollout::new(&b.step, &[], b.steps).map_err(simulation)?, x, &loss, Checkpointing::Store, Wrt::X0).map_err(simulation)?;
+        op.jvp(x, p, tx, tp, y, ty);
+        Ok(())
+    }
+    fn check(&self, x: &[f64], _p: &[f64]) -> Result<(&'static str, String), Failure> {
+        let b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
+        let loss = b.loss();
+        let op = RolloutLoss::new(Rollout::new(&b.step, &[], b.steps).map_err(simulation)?, x, &loss, Checkpointing::periodic_sqrt(b.steps), Wrt::X0)
+            .map_err(simulation)?;
+        let r = check_all(&op, x, &[], &CheckOptions::default());
+        Ok((verdict(&r), r.to_string()))
+    }
+}
+
+/// A smoke benchmark's data as a dict: `{"x0", "target", "steps"}`.
+fn smoke_problem<'py, S>(py: Python<'py>, b: &diffsim::problems::SmokeBenchmark<S>) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("x0", PyArray1::from_vec(py, b.x0.clone()))?;
+    d.set_item("target", PyArray1::from_vec(py, b.target.clone()))?;
+    d.set_item("steps", b.steps)?;
+    Ok(d)
+}
+
+fn smoke_sizes(what: &str, n: usize, steps: usize, max: usize) -> PyResult<()> {
+    if !(4..=max).contains(&n) || steps < 1 {
+        return Err(DiffsimError::new_err(format!("{what} needs 4 ≤ n ≤ {max} and steps ≥ 1, got n = {n}, steps = {steps}")));
+    }
+    Ok(())
+}
+
+fn p2(n: usize, steps: usize) -> PyResult<diffsim::problems::smoke::P2> {
+    smoke_sizes("P2", n, steps, 1024)?;
+    Ok(diffsim::problems::smoke::P2::new(n, steps, diffsim_solvers::smoke::Preconditioner::Multigrid))
+}
+
+fn p4(n: usize, steps: usize) -> PyResult<diffsim::problems::smoke3d::P4> {
+    smoke_sizes("P4", n, steps, 256)?;
+    Ok(diffsim::problems::smoke3d::P4::new(n, steps, diffsim_solvers::smoke::Preconditioner::Multigrid))
+}
+
+/// P2 of the shared benchmarks (2D smoke, `n × n`, `steps` steps):
+/// `{"x0": packed initial state, "target": target smoke, "steps"}`.
+#[pyfunction]
+pub(crate) fn p2_problem<'py>(py: Python<'py>, n: usize, steps: usize) -> PyResult<Bound<'py, PyDict>> {
+    smoke_problem(py, &p2(n, steps)?)
+}
+
+/// P2's loss `½·Σ (s_T − s*)²` as an operator of the packed initial state.
+#[pyfunction]
+pub(crate) fn p2_loss(n: usize, steps: usize) -> PyResult<Operator> {
+    let b = p2(n, steps)?;
+    let size = b.x0.len();
+    Ok(Operator::new(Arc::new(SmokeLoss { problem: std::sync::Mutex::new(b), n: size }), format!("p2_loss(n={n}, steps={steps})")))
+}
+
+/// P4 of the shared benchmarks (3D smoke, `n³`, `steps` steps), as
+/// `p2_problem`.
+#[pyfunction]
+pub(crate) fn p4_problem<'py>(py: Python<'py>, n: usize, steps: usize) -> PyResult<Bound<'py, PyDict>> {
+    smoke_problem(py, &p4(n, steps)?)
+}
+
+/// P4's loss as an operator of the packed initial state.
+#[pyfunction]
+pub(crate) fn p4_loss(n: usize, steps: usize) -> PyResult<Operator> {
+    let b = p4(n, steps)?;
+    let size = b.x0.len();
+    Ok(Operator::new(Arc::new(SmokeLoss { problem: std::sync::Mutex::new(b), n: size }), format!("p4_loss(n={n}, steps={steps})")))
+}
+
+/// One step of P1's Burgers scheme (upwind advection, explicit diffusion) on
+/// a periodic line of `n` cells and length `length`: `u ↦ u_next`, no
+/// parameters, Enzyme's VJP.
+#[pyfunction]
+#[pyo3(signature = (n, dt, nu, length = std::f64::consts::TAU))]
+pub(crate) fn burgers_step(n: usize, dt: f64, nu: f64, length: f64) -> PyResult<Operator> {
+    if n < 3 {
+        return Err(DiffsimError::new_err(format!("n = {n}: need at least 3 cells")));
+    }
+    for (name, v) in [("dt", dt), ("length", length)] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(DiffsimError::new_err(format!("{name} = {v}: must be positive")));
+        }
+    }
+    if !(nu.is_finite() && nu >= 0.0) {
+        return Err(DiffsimError::new_err(format!("nu = {nu}: must be zero or positive")));
+    }
+    let dx = length / n as f64;
+    if nu > 0.0 && dt > 0.5 * dx * dx / nu {
+        return Err(DiffsimError::new_err(format!("dt = {dt} is unstable for the explicit diffusion: need dt ≤ dx²/(2ν) = {}", 0.5 * dx * dx / nu)));
+    }
+    let cfg = diffsim_solvers::burgers::Burgers1d { n, dx, dt, nu };
+    Ok(Operator::new(Arc::new(StepOp(BurgersEnzyme(cfg))), format!("burgers_step(n={n}, dt={dt}, nu={nu})")))
+}
+
+/// P1 of the shared benchmarks at `n` cells and `steps` steps:
+/// `{"u0", "target", "dx", "dt", "nu"}`.
+#[pyfunction]
+pub(crate) fn p1_problem<'py>(py: Python<'py>, n: usize, steps: usize) -> PyResult<Bound<'py, PyDict>> {
+    let p = p1(n, steps)?;
+    let d = PyDict::new(py);
+    d.set_item("u0", PyArray1::from_vec(py, p.u0.clone()))?;
+    d.set_item("target", PyArray1::from_vec(py, p.target.clone()))?;
+    d.set_item("dx", p.cfg.dx)?;
+    d.set_item("dt", p.cfg.dt)?;
+    d.set_item("nu", p.cfg.nu)?;
+    d.set_item("steps", steps)?;
+    Ok(d)
+}
+
+fn p1(n: usize, steps: usize) -> PyResult<P1> {
+    if n < 3 || steps < 1 {
+        return Err(DiffsimError::new_err(format!("P1 needs n ≥ 3 and steps ≥ 1, got n = {n}, steps = {steps}")));
+    }
+    Ok(P1::new(n, steps))
+}
+
+/// P1's loss as an operator of `u0` (`n_in = n`, one output, no
+/// parameters): the whole rollout of `steps` steps in diffsim, its VJP
+/// through Enzyme's step VJPs.
+#[pyfunction]
+pub(crate) fn p1_loss(n: usize, steps: usize) -> PyResult<Operator> {
+    Ok(Operator::new(Arc::new(P1Loss { problem: p1(n, steps)? }), format!("p1_loss(n={n}, steps={steps})")))
+}
+
+/// One step of P2's smoke solver on `n × n` cells (semi-Lagrangian
+/// advection, buoyancy, pressure projection by multigrid-preconditioned
+/// CG): the packed state (smoke, then the face velocities) in and out.
+#[pyfunction]
+pub(crate) fn smoke_step(n: usize) -> PyResult<Operator> {
+    if !(4..=1024).contains(&n) {
+        return Err(DiffsimError::new_err(format!("n = {n}: need 4 ≤ n ≤ 1024")));
+    }
+    // One solver (with its work buffers) per thread of the batch.
+    let step = diffsim::op::PerThread::new(|| diffsim::problems::smoke::P2::new(n, 1, diffsim_solvers::smoke::Preconditioner::Multigrid).step);
+    Ok(Operator::new(Arc::new(StepOp(step)), format!("smoke_step(n={n})")))
+}
