@@ -11,8 +11,6 @@
 use std::ffi::{CString, c_void};
 use std::sync::{Arc, Mutex};
 
-use rayon::prelude::*;
-
 use super::PyOp;
 
 /// Every operator handed to XLA, by id (never removed: compiled JAX code
@@ -272,23 +270,12 @@ unsafe extern "C" fn diffsim_forward(frame: *mut CallFrame) -> *mut c_void {
     unsafe {
         run(frame, |f| {
             let Inputs { op, x, p, count, per } = inputs(f)?;
-            let (n_in, n_out, n_params) = op.sizes();
+            let n_out = op.sizes().1;
             let y = output(f, 0, "y")?;
             if y.len() != count * n_out {
                 return Err("buffer sizes do not fit the operator".into());
             }
-            // Each element writes its own rows of the result (in parallel
-            // when the work is large): no buffers in between.
-            let one = |(k, yk): (usize, &mut [f64])| {
-                let b = k / per;
-                op.forward(&x[k * n_in..(k + 1) * n_in], &p[b * n_params..(b + 1) * n_params], yk)
-            };
-            if super::parallel(&*op, count) {
-                y.par_chunks_mut(n_out.max(1)).enumerate().try_for_each(one)
-            } else {
-                y.chunks_mut(n_out.max(1)).enumerate().try_for_each(one)
-            }
-            .map_err(super::message)?;
+            super::forward_rows(&*op, x, p, per, y).map_err(super::message)?;
             Ok(())
         })
     }
@@ -303,7 +290,7 @@ unsafe extern "C" fn diffsim_vjp(frame: *mut CallFrame) -> *mut c_void {
     unsafe {
         run(frame, |f| {
             let Inputs { op, x, p, count, per } = inputs(f)?;
-            let (n_in, n_out, n_params) = op.sizes();
+            let (_, n_out, n_params) = op.sizes();
             let (dy, _) = input(f, 2, "dy")?;
             let dx = output(f, 0, "dx")?;
             let dp = output(f, 1, "dp")?;
@@ -311,25 +298,7 @@ unsafe extern "C" fn diffsim_vjp(frame: *mut CallFrame) -> *mut c_void {
             if dy.len() != count * n_out || dx.len() != x.len() || dp.len() != count * n_params {
                 return Err("buffer sizes do not fit the operator".into());
             }
-            let one = |(k, (dxk, dpk)): (usize, (&mut [f64], &mut [f64]))| {
-                let b = k / per;
-                op.vjp(&x[k * n_in..(k + 1) * n_in], &p[b * n_params..(b + 1) * n_params], &dy[k * n_out..(k + 1) * n_out], dxk, dpk)
-            };
-            // `dp` has no rows when there are no parameters: chunks of
-            // length 1 of an empty slice would be none, so pair by index.
-            let mut empty: Vec<&mut [f64]> = (0..count).map(|_| &mut [][..]).collect();
-            if n_params == 0 {
-                if super::parallel(&*op, count) {
-                    dx.par_chunks_mut(n_in).zip(empty.par_iter_mut().map(std::mem::take)).enumerate().try_for_each(one)
-                } else {
-                    dx.chunks_mut(n_in).zip(empty.iter_mut().map(std::mem::take)).enumerate().try_for_each(one)
-                }
-            } else if super::parallel(&*op, count) {
-                dx.par_chunks_mut(n_in).zip(dp.par_chunks_mut(n_params)).enumerate().try_for_each(one)
-            } else {
-                dx.chunks_mut(n_in).zip(dp.chunks_mut(n_params)).enumerate().try_for_each(one)
-            }
-            .map_err(super::message)?;
+            super::vjp_rows(&*op, x, p, per, dy, dx, dp).map_err(super::message)?;
             Ok(())
         })
     }

@@ -186,21 +186,41 @@ fn inputs(op: &dyn PyOp, x: &Array, p: &Array) -> Result<(Vec<usize>, bool), Fai
     Ok((batch, p_batched))
 }
 
-/// Applies `f(x_k, p_k)` to every batch element ([`over_batch`]).
-fn per_element<T: Send>(
-    op: &dyn PyOp,
-    batch: &[usize],
-    x: &Array,
-    p: &Array,
-    p_batched: bool,
-    f: impl Fn(&[f64], &[f64]) -> Result<T, Failure> + Sync + Send,
-) -> Result<Vec<T>, Failure> {
-    let count: usize = batch.iter().product();
-    let (n_in, _, n_params) = op.sizes();
-    over_batch(op, count, |k| {
-        let pk = if p_batched { &p.values[k * n_params..(k + 1) * n_params] } else { &p.values[..] };
-        f(&x.values[k * n_in..(k + 1) * n_in], pk)
-    })
+/// `y_k = f(x_k, p_b)` for every element `k`, `b = k / per` (`per`
+/// consecutive elements share a block of `p`: all of them for a shared
+/// `p`, one for `p` batched like `x`), written into `y`'s rows, in
+/// parallel when the work is large. The Python methods and the XLA FFI
+/// handlers both run batches through here.
+fn forward_rows(op: &dyn PyOp, x: &[f64], p: &[f64], per: usize, y: &mut [f64]) -> Result<(), Failure> {
+    let (n_in, n_out, n_params) = op.sizes();
+    let one = |(k, yk): (usize, &mut [f64])| {
+        let b = k / per;
+        op.forward(&x[k * n_in..(k + 1) * n_in], &p[b * n_params..(b + 1) * n_params], yk)
+    };
+    if parallel(op, y.len() / n_out.max(1)) {
+        y.par_chunks_mut(n_out.max(1)).enumerate().try_for_each(one)
+    } else {
+        y.chunks_mut(n_out.max(1)).enumerate().try_for_each(one)
+    }
+}
+
+/// `(dx_k, dp_k) = (J_xᵀ·dy_k, J_pᵀ·dy_k)` for every element, as
+/// [`forward_rows`].
+fn vjp_rows(op: &dyn PyOp, x: &[f64], p: &[f64], per: usize, dy: &[f64], dx: &mut [f64], dp: &mut [f64]) -> Result<(), Failure> {
+    let (n_in, n_out, n_params) = op.sizes();
+    let count = dx.len() / n_in.max(1);
+    // `dp`'s rows; with no parameters, empty rows (chunks of an empty
+    // slice would be none at all).
+    let mut dp_rows: Vec<&mut [f64]> = if n_params == 0 { (0..count).map(|_| &mut [][..]).collect() } else { dp.chunks_mut(n_params).collect() };
+    let one = |(k, (dxk, dpk)): (usize, (&mut [f64], &mut &mut [f64]))| {
+        let b = k / per;
+        op.vjp(&x[k * n_in..(k + 1) * n_in], &p[b * n_params..(b + 1) * n_params], &dy[k * n_out..(k + 1) * n_out], dxk, dpk)
+    };
+    if parallel(op, count) {
+        dx.par_chunks_mut(n_in.max(1)).zip(dp_rows.par_iter_mut()).enumerate().try_for_each(one)
+    } else {
+        dx.chunks_mut(n_in.max(1)).zip(dp_rows.iter_mut()).enumerate().try_for_each(one)
+    }
 }
 
 #[pymethods]
@@ -249,13 +269,10 @@ impl Operator {
         let op = self.op.clone();
         let (batch, out) = self.call(py, move || {
             let (batch, pb) = inputs(&*op, &x, &p)?;
-            let n_out = op.sizes().1;
-            let ys = per_element(&*op, &batch, &x, &p, pb, |xk, pk| {
-                let mut y = vec![0.0; n_out];
-                op.forward(xk, pk, &mut y)?;
-                Ok(y)
-            })?;
-            Ok((batch, ys.concat()))
+            let count: usize = batch.iter().product();
+            let mut y = vec![0.0; count * op.sizes().1];
+            forward_rows(&*op, &x.values, &p.values, if pb { 1 } else { count.max(1) }, &mut y)?;
+            Ok((batch, y))
         })?;
         to_numpy(py, &[batch, vec![self.op.sizes().1]].concat(), out)
     }
@@ -280,14 +297,9 @@ impl Operator {
             }
             finite(&dy, "dy")?;
             let count: usize = batch.iter().product();
-            let parts = over_batch(&*op, count, |k| {
-                let pk = if pb { &p.values[k * n_params..(k + 1) * n_params] } else { &p.values[..] };
-                let (mut dx, mut dp) = (vec![0.0; n_in], vec![0.0; n_params]);
-                op.vjp(&x.values[k * n_in..(k + 1) * n_in], pk, &dy.values[k * n_out..(k + 1) * n_out], &mut dx, &mut dp)?;
-                Ok((dx, dp))
-            })?;
-            let (dx, dp): (Vec<Vec<f64>>, Vec<Vec<f64>>) = parts.into_iter().unzip();
-            Ok((batch, dx.concat(), dp.concat()))
+            let (mut dx, mut dp) = (vec![0.0; count * n_in], vec![0.0; count * n_params]);
+            vjp_rows(&*op, &x.values, &p.values, if pb { 1 } else { count.max(1) }, &dy.values, &mut dx, &mut dp)?;
+            Ok((batch, dx, dp))
         })?;
         let (n_in, _, n_params) = self.op.sizes();
         Ok((to_numpy(py, &[batch.clone(), vec![n_in]].concat(), dx)?, to_numpy(py, &[batch, vec![n_params]].concat(), dp)?))

@@ -12,7 +12,7 @@ use pyo3::types::PyDict;
 use diffsim::check::{CheckOptions, check_all};
 use diffsim::op::{Jvp, Vjp};
 use diffsim::problems::burgers::{BurgersEnzyme, P1};
-use diffsim::rollout::{Checkpointing, Rollout, RolloutLoss, Wrt};
+use diffsim::rollout::{Checkpointing, Loss, Rollout, RolloutLoss, Wrt};
 
 use super::{DiffsimError, Failure, Operator, PyOp, simulation};
 
@@ -87,25 +87,42 @@ impl PyOp for P1Loss {
         }
         Ok(())
     }
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], _tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
         // A rollout that fails is a simulation error, not the panic of
         // RolloutLoss's JVP.
         self.forward(x, p, y)?;
         let step = BurgersEnzyme(self.problem.cfg);
-        let rollout = Rollout::new(&step, &[], self.problem.steps).map_err(simulation)?;
-        let loss = self.problem.loss();
-        let op = RolloutLoss::new(rollout, x, &loss, Checkpointing::Store, Wrt::X0).map_err(simulation)?;
-        op.jvp(x, p, tx, tp, y, ty);
-        Ok(())
+        rollout_loss_jvp(Rollout::new(&step, &[], self.problem.steps).map_err(simulation)?, &self.problem.loss(), x, tx, y, ty)
     }
     fn check(&self, x: &[f64], _p: &[f64]) -> Result<(&'static str, String), Failure> {
         let step = BurgersEnzyme(self.problem.cfg);
-        let rollout = Rollout::new(&step, &[], self.problem.steps).map_err(simulation)?;
-        let loss = self.problem.loss();
-        let op = RolloutLoss::new(rollout, x, &loss, Checkpointing::periodic_sqrt(self.problem.steps), Wrt::X0).map_err(simulation)?;
-        let r = check_all(&op, x, &[], &CheckOptions::default());
-        Ok((verdict(&r), r.to_string()))
+        rollout_loss_check(Rollout::new(&step, &[], self.problem.steps).map_err(simulation)?, &self.problem.loss(), x)
     }
+}
+
+/// The JVP of a rollout's loss with respect to its initial state `x`
+/// (forward mode through every step; the caller has run the rollout
+/// forward, so a failing one is already its error).
+pub(crate) fn rollout_loss_jvp<O: Jvp, L: Loss>(
+    rollout: Rollout<'_, O>,
+    loss: &L,
+    x: &[f64],
+    tx: &[f64],
+    y: &mut [f64],
+    ty: &mut [f64],
+) -> Result<(), Failure> {
+    let op = RolloutLoss::new(rollout, x, loss, Checkpointing::Store, Wrt::X0).map_err(simulation)?;
+    op.jvp(x, &[], tx, &[], y, ty);
+    Ok(())
+}
+
+/// The three checks of a rollout's loss with respect to its initial state
+/// `x`, the VJP under periodic √T checkpointing.
+pub(crate) fn rollout_loss_check<O: Vjp + Jvp, L: Loss>(rollout: Rollout<'_, O>, loss: &L, x: &[f64]) -> Result<(&'static str, String), Failure> {
+    let mode = Checkpointing::periodic_sqrt(rollout.steps);
+    let op = RolloutLoss::new(rollout, x, loss, mode, Wrt::X0).map_err(simulation)?;
+    let r = check_all(&op, x, &[], &CheckOptions::default());
+    Ok((verdict(&r), r.to_string()))
 }
 
 /// A smoke benchmark's loss (P2, P4) as an operator of the packed initial
@@ -139,22 +156,21 @@ impl<S: Vjp + Jvp + Send> PyOp for SmokeLoss<S> {
         }
         Ok(())
     }
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], _tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
         self.forward(x, p, y)?;
         let b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
-        let loss = b.loss();
-        let op = RolloutLoss::new(Rollout::new(&b.step, &[], b.steps).map_err(simulation)?, x, &loss, Checkpointing::Store, Wrt::X0).map_err(simulation)?;
-        op.jvp(x, p, tx, tp, y, ty);
-        Ok(())
+        rollout_loss_jvp(Rollout::new(&b.step, &[], b.steps).map_err(simulation)?, &b.loss(), x, tx, y, ty)
     }
     fn check(&self, x: &[f64], _p: &[f64]) -> Result<(&'static str, String), Failure> {
         let b = self.problem.lock().unwrap_or_else(|e| e.into_inner());
-        let loss = b.loss();
-        let op = RolloutLoss::new(Rollout::new(&b.step, &[], b.steps).map_err(simulation)?, x, &loss, Checkpointing::periodic_sqrt(b.steps), Wrt::X0)
-            .map_err(simulation)?;
-        let r = check_all(&op, x, &[], &CheckOptions::default());
-        Ok((verdict(&r), r.to_string()))
+        rollout_loss_check(Rollout::new(&b.step, &[], b.steps).map_err(simulation)?, &b.loss(), x)
     }
+}
+
+/// A smoke benchmark's loss as an `Operator` named `name`.
+fn smoke_loss<S: Vjp + Jvp + Send + 'static>(b: diffsim::problems::SmokeBenchmark<S>, name: String) -> Operator {
+    let n = b.x0.len();
+    Operator::new(Arc::new(SmokeLoss { problem: std::sync::Mutex::new(b), n }), name)
 }
 
 /// A smoke benchmark's data as a dict: `{"x0", "target", "steps"}`.
@@ -193,9 +209,7 @@ pub(crate) fn p2_problem<'py>(py: Python<'py>, n: usize, steps: usize) -> PyResu
 /// P2's loss `½·Σ (s_T − s*)²` as an operator of the packed initial state.
 #[pyfunction]
 pub(crate) fn p2_loss(n: usize, steps: usize) -> PyResult<Operator> {
-    let b = p2(n, steps)?;
-    let size = b.x0.len();
-    Ok(Operator::new(Arc::new(SmokeLoss { problem: std::sync::Mutex::new(b), n: size }), format!("p2_loss(n={n}, steps={steps})")))
+    Ok(smoke_loss(p2(n, steps)?, format!("p2_loss(n={n}, steps={steps})")))
 }
 
 /// P4 of the shared benchmarks (3D smoke, `n³`, `steps` steps), as
@@ -208,9 +222,7 @@ pub(crate) fn p4_problem<'py>(py: Python<'py>, n: usize, steps: usize) -> PyResu
 /// P4's loss as an operator of the packed initial state.
 #[pyfunction]
 pub(crate) fn p4_loss(n: usize, steps: usize) -> PyResult<Operator> {
-    let b = p4(n, steps)?;
-    let size = b.x0.len();
-    Ok(Operator::new(Arc::new(SmokeLoss { problem: std::sync::Mutex::new(b), n: size }), format!("p4_loss(n={n}, steps={steps})")))
+    Ok(smoke_loss(p4(n, steps)?, format!("p4_loss(n={n}, steps={steps})")))
 }
 
 /// One step of P1's Burgers scheme (upwind advection, explicit diffusion) on

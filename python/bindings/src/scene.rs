@@ -8,12 +8,10 @@ use numpy::{PyArray1, PyArrayMethods, PyReadonlyArrayDyn};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use diffsim::check::{CheckOptions, check_all};
-use diffsim::op::Jvp;
-use diffsim::rollout::{Checkpointing, RolloutLoss, Wrt};
+use diffsim::rollout::Checkpointing;
 use diffsim::scene::{AnyScene, Scene};
 
-use super::ops::verdict;
+use super::ops::{rollout_loss_check, rollout_loss_jvp};
 use super::{DiffsimError, Failure, Operator, PyOp, finite, input, interruptible, message, read, simulation, to_numpy};
 
 /// A scene file, read and checked: its initial state, and the runs, losses
@@ -176,24 +174,17 @@ impl PyOp for SceneLoss {
         }
         Ok(())
     }
-    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], _tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
         self.forward(x, p, y)?;
         let scene = build(&self.text, &self.dir)?;
         let loss = scene.loss.as_ref().ok_or_else(|| input("no [loss]"))?;
         let params = scene.rollout_params();
-        let terms = scene.loss_terms(loss);
-        let op = RolloutLoss::new(scene.rollout(&params).map_err(simulation)?, x, &terms, Checkpointing::Store, Wrt::X0).map_err(simulation)?;
-        op.jvp(x, p, tx, tp, y, ty);
-        Ok(())
+        rollout_loss_jvp(scene.rollout(&params).map_err(simulation)?, &scene.loss_terms(loss), x, tx, y, ty)
     }
     fn check(&self, x: &[f64], _p: &[f64]) -> Result<(&'static str, String), Failure> {
         let scene = build(&self.text, &self.dir)?;
         let loss = scene.loss.as_ref().ok_or_else(|| input("no [loss]"))?;
         let params = scene.rollout_params();
-        let terms = scene.loss_terms(loss);
-        let op =
-            RolloutLoss::new(scene.rollout(&params).map_err(simulation)?, x, &terms, Checkpointing::periodic_sqrt(scene.steps), Wrt::X0).map_err(simulation)?;
-        let r = check_all(&op, x, &[], &CheckOptions::default());
-        Ok((verdict(&r), r.to_string()))
+        rollout_loss_check(scene.rollout(&params).map_err(simulation)?, &scene.loss_terms(loss), x)
     }
 }
