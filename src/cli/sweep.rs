@@ -74,7 +74,8 @@ pub(super) fn sweep(a: SweepArgs, world: &World) -> Result<(), CliError> {
             for ((key, _), v) in axes.iter().zip(&values) {
                 set_key(&mut t, key, v.clone()).map_err(|reason| CliError::Argument { arg: "--set", reason: format!("`{key}`: {reason}") })?;
             }
-            let text = toml::to_string(&t).expect("a TOML table prints");
+            let text =
+                toml::to_string(&t).map_err(|e| CliError::Argument { arg: "--set", reason: format!("run {i}: cannot write the scene back as TOML: {e}") })?;
             AnyScene::parse_in(&text, dir).map_err(|e| CliError::Argument { arg: "--set", reason: format!("run {i} ({}): {e}", label(&axes, &values)) })?;
             Ok(text)
         })
@@ -123,13 +124,16 @@ fn run_one(text: &str, dir: &Path, out: &Path, run: usize) -> Result<RunRow, Cli
     let mut figures = Vec::new();
     let status = match scene {
         AnyScene::Stepped(scene) => {
+            // The scene's own loss terms, added up as the run passes them.
+            use crate::rollout::Loss;
+            let terms = scene.loss.as_ref().map(|l| scene.loss_terms(l));
+            let mut scratch = vec![0.0; scene.x0.len()];
             let mut loss = 0.0;
             let result = scene.run(|k, x| {
-                if let Some(l) = &scene.loss
-                    && l.steps.contains(&k)
+                if let Some(t) = &terms
+                    && t.has_term(k, scene.steps)
                 {
-                    let r = scene.domain.range(l.field);
-                    loss += x[r].iter().zip(&l.target).map(|(x, t)| 0.5 * (x - t) * (x - t)).sum::<f64>();
+                    loss += t.term(k, x, &mut scratch);
                 }
             });
             match result {

@@ -46,6 +46,13 @@ pub enum DistributedError {
     },
 }
 
+/// Where each rank's part starts in a gathered buffer: the running sums of
+/// `counts`.
+#[cfg(feature = "mpi")]
+fn offsets(counts: &[i32]) -> Vec<i32> {
+    counts.iter().scan(0, |acc, &c| Some(std::mem::replace(acc, *acc + c))).collect()
+}
+
 /// The number of processes a launcher started this one among (Open MPI's
 /// `OMPI_COMM_WORLD_SIZE`, or PMI's `PMI_SIZE` for MPICH and others);
 /// `None` when no launcher started it.
@@ -149,7 +156,7 @@ impl World {
             use mpi::traits::CommunicatorCollectives;
             let mut counts = vec![0i32; self.size];
             comm.all_gather_into(&(mine.len() as i32), &mut counts[..]);
-            let displs: Vec<i32> = counts.iter().scan(0, |acc, &c| Some(std::mem::replace(acc, *acc + c))).collect();
+            let displs = offsets(&counts);
             let mut all = vec![0.0; counts.iter().map(|&c| c as usize).sum()];
             let mut parts = PartitionMut::new(&mut all[..], counts, displs);
             comm.all_gather_varcount_into(mine, &mut parts);
@@ -162,7 +169,7 @@ impl World {
     /// sweep) this rank owns: rank `r` of `K` owns `r·n/K .. (r+1)·n/K`, so
     /// the shares in rank order are the items in order.
     pub fn share(&self, n: usize) -> std::ops::Range<usize> {
-        self.rank * n / self.size..(self.rank + 1) * n / self.size
+        self.share_of(self.rank, n)
     }
 
     /// The share of `n` items rank `rank` owns (see [`World::share`]).
@@ -197,7 +204,7 @@ impl World {
         }
         let mut counts = vec![0i32; self.size];
         root.gather_into_root(&count, &mut counts[..]);
-        let displs: Vec<i32> = counts.iter().scan(0, |acc, &c| Some(std::mem::replace(acc, *acc + c))).collect();
+        let displs = offsets(&counts);
         let mut all = vec![T::default(); counts.iter().map(|&c| c as usize).sum()];
         let mut parts = PartitionMut::new(&mut all[..], &counts[..], &displs[..]);
         root.gather_varcount_into_root(mine, &mut parts);

@@ -124,16 +124,7 @@ pub fn loss_and_gradient_over<P: Vjp + Sync, N: Vjp + Sync>(
         })
         .collect();
     let rows: Vec<f64> = parts.into_iter().flat_map(|(l, d)| std::iter::once(l).chain(d)).collect();
-    let all = world.all_gather(&rows);
-    let mut g = vec![0.0; theta.len()];
-    let mut loss = 0.0;
-    for row in all.chunks_exact(1 + theta.len()) {
-        loss += row[0];
-        for (a, v) in g.iter_mut().zip(&row[1..]) {
-            *a += v;
-        }
-    }
-    (loss, g)
+    super::sum_in_sample_order(world, &rows, theta.len())
 }
 
 fn net_eval<N: Vjp>(net: &N, input: &[f64], theta: &[f64]) -> Vec<f64> {
@@ -264,8 +255,10 @@ pub fn hig_step_over<P: Vjp + Sync, N: Vjp + Sync>(
     let n_out = physics.n_out();
     let (rows, cols) = within_budget(n_out, batch_len, theta.len(), h.memory_budget)?;
     let (jac, grad) = jacobian_rows(physics, net, theta, mine, batch_len);
+    // The loss and the update of the whole batch's Jacobian.
+    let decompose = |jac, grad| finish(rows, cols, jac, grad, batch_len).and_then(|j| Ok((j.loss, update_of(&j, h)?)));
     let step = if world.size() == 1 {
-        finish(rows, cols, jac, grad, batch_len).and_then(|j| Ok((j.loss, update_of(&j, h)?)))
+        decompose(jac, grad)
     } else {
         // Each rank's rows, then its gradient entries; on rank 0 the
         // blocks are put back in sample order.
@@ -279,7 +272,7 @@ pub fn hig_step_over<P: Vjp + Sync, N: Vjp + Sync>(
                 grad.extend_from_slice(&all[at + n * cols..at + n * cols + n]);
                 at += n * cols + n;
             }
-            finish(rows, cols, jac, grad, batch_len).and_then(|j| Ok((j.loss, update_of(&j, h)?)))
+            decompose(jac, grad)
         });
         // [0, loss, update…] or [1] (the SVD failed) or [2] (non-finite).
         let message = match on_root {

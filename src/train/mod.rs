@@ -335,6 +335,24 @@ impl<R: Real, S: Vjp<R> + Jvp<R>, N: Vjp<R> + Jvp<R>> Jvp<R> for Coupled<'_, S, 
     }
 }
 
+/// The sums over a batch shared among the ranks of `world`: `rows` holds
+/// this rank's samples in order, each as `[loss, gradient (n values)]`;
+/// every rank receives every rank's rows ([`World::all_gather`], rank
+/// order: the whole batch in sample order) and adds them in that order, the
+/// loss in `f64`, the gradient in `R`: one process's sums, bit for bit.
+pub(crate) fn sum_in_sample_order<R: Real>(world: &World, rows: &[f64], n: usize) -> (f64, Vec<R>) {
+    let all = world.all_gather(rows);
+    let mut grad = vec![R::zero(); n];
+    let mut total = 0.0;
+    for row in all.chunks_exact(1 + n) {
+        total += row[0];
+        for (a, &b) in grad.iter_mut().zip(&row[1..]) {
+            *a += R::of(b);
+        }
+    }
+    (total, grad)
+}
+
 /// One training sample: an initial state and the targets at the loss steps.
 #[derive(Clone, Debug)]
 pub struct Sample<R = f64> {
@@ -402,24 +420,13 @@ pub fn batch_gradient_over<R: Real, O: Vjp<R> + Sync>(
             rollout.value_and_grad(&s.x0, &loss, mode)
         })
         .collect();
-    // Each sample's loss and gradient as `[loss, dp…]`; a rank's rows in
-    // sample order, the ranks' in rank order: the whole batch in order.
-    let width = 1 + theta.len();
-    let mut rows = Vec::with_capacity(mine.len() * width);
+    let mut rows = Vec::with_capacity(mine.len() * (1 + theta.len()));
     for g in per_sample {
         let g = g?;
         rows.push(g.loss);
         rows.extend(g.dp.iter().map(|v| v.as_f64()));
     }
-    let all = world.all_gather(&rows);
-    let mut grad = vec![R::zero(); theta.len()];
-    let mut total = 0.0;
-    for row in all.chunks_exact(width) {
-        total += row[0];
-        for (a, &b) in grad.iter_mut().zip(&row[1..]) {
-            *a += R::of(b);
-        }
-    }
+    let (total, mut grad) = sum_in_sample_order::<R>(world, &rows, theta.len());
     let b = batch_len.max(1) as f64;
     let inv = R::of(1.0 / b);
     for a in &mut grad {
