@@ -39,3 +39,28 @@ def scenes():
 
     root = pathlib.Path(__file__).resolve().parents[2]
     return root
+
+
+def jax_oscillators(kind):
+    """diffsim.oscillators(kind) in plain JAX: (x0 (4), u (steps)) -> s_T by
+    RK4, the coupled oscillators of src/problems/oscillators.rs."""
+    steps, dt, linear, cubic, control = (24, 0.5, 0.2, 0.0, 1.0) if kind == "linear" else (96, 0.125, 0.0, 1.0, 3.0)
+
+    def rhs(s, u):
+        d = s[0] - s[1]
+        f = cubic * d**3
+        return jnp.stack([s[2], s[3], -s[0] - linear * d - f, -s[1] + linear * d + f + control * u])
+
+    def step(s, u):
+        k1 = rhs(s, u)
+        k2 = rhs(s + 0.5 * dt * k1, u)
+        k3 = rhs(s + 0.5 * dt * k2, u)
+        k4 = rhs(s + dt * k3, u)
+        return s + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4), None
+
+    def run(x0, u):
+        assert u.shape == (steps,)
+        s, _ = jax.lax.scan(step, x0, u)
+        return s
+
+    return run

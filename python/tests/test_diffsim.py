@@ -124,6 +124,17 @@ def test_mistakes_are_exceptions_with_diffsim_messages(tmp_path, scenes):
         diffsim.SceneFile(scenes / "scenes/plume.toml").loss_operator()
 
 
+def test_a_panic_inside_diffsim_is_an_internal_error():
+    op = diffsim._diffsim._panicking_operator()
+    x, one = np.zeros(1), np.ones(1)
+    calls = {"forward": lambda: op.forward(x), "vjp": lambda: op.vjp(x, None, one), "jvp": lambda: op.jvp(x, None, one), "check": lambda: op.check(x)}
+    for name, call in calls.items():
+        with pytest.raises(diffsim.InternalError, match=f"diffsim panicked: a deliberate panic in {name}"):
+            call()
+    # The interpreter goes on.
+    assert diffsim.burgers_step(8, 0.01, 0.01).forward(np.ones(8)).shape == (8,)
+
+
 def test_long_calls_release_the_gil_and_stop_at_ctrl_c():
     op = diffsim.p1_loss(2048, 4000)
     u0 = diffsim.p1_problem(2048, 4000)["u0"]

@@ -8,7 +8,7 @@ import pytest
 
 import diffsim
 import diffsim.jax as djax
-from conftest import jax_p1_loss
+from conftest import jax_oscillators, jax_p1_loss
 
 
 def mlp(theta, z):
@@ -50,6 +50,77 @@ def test_vmap_batches_reach_diffsim_as_one_call():
     ref = jax.vmap(jax.grad(jax_p1_loss(n, steps)))(us)
     assert batched.shape == (5, n)
     assert jnp.linalg.norm(batched - ref) <= 1e-10 * jnp.linalg.norm(ref)
+
+
+def close(a, b, rtol):
+    a, b = np.asarray(a), np.asarray(b)
+    assert np.linalg.norm(a - b) <= rtol * np.linalg.norm(b), (a, b)
+
+
+def test_forward_mode_is_diffsims_jvp():
+    n, steps = 24, 12
+    loss, ref = djax.p1_loss(n, steps), jax_p1_loss(n, steps)
+    rng = np.random.default_rng(5)
+    u = jnp.asarray(diffsim.p1_problem(n, steps)["u0"])
+    t = jnp.asarray(rng.standard_normal(n))
+    v, tv = jax.jit(lambda u, t: jax.jvp(loss, (u,), (t,)))(u, t)
+    rv, rtv = jax.jvp(ref, (u,), (t,))
+    close(v, rv, 1e-12)
+    close(tv, rtv, 1e-10)
+    # jacfwd (diffsim's JVP, one column per tangent) against jacrev
+    # (diffsim's VJP) and against the Jacobian of P1's step in JAX.
+    step = djax.burgers_step(12, 0.02, 0.01)
+    x = jnp.asarray(1.0 + 0.5 * np.sin(np.arange(12) * 0.5))
+    fwd, rev = jax.jit(jax.jacfwd(step))(x), jax.jacrev(step)(x)
+    # Reverse mode transposes the JVP's call, never runs it; forward mode
+    # runs it, never the VJP.
+    grad_text = jax.jit(jax.grad(lambda x: jnp.sum(step(x)))).lower(x).as_text()
+    jvp_text = jax.jit(lambda x: jax.jvp(step, (x,), (x,))).lower(x).as_text()
+    assert "diffsim_vjp" in grad_text and "diffsim_jvp" not in grad_text
+    assert "diffsim_jvp" in jvp_text and "diffsim_vjp" not in jvp_text
+    close(fwd, rev, 1e-13)
+    assert np.count_nonzero(np.asarray(fwd)) == 3 * 12
+    # The same through the callback path, and under vmap.
+    via_callback = djax.operator(step.operator, via="callback")
+    empty = jnp.zeros((0,))
+    close(jax.jacfwd(lambda x: via_callback(x, empty))(x), rev, 1e-13)
+    xs = jnp.stack([x, 1.1 * x])
+    ts = jnp.asarray(rng.standard_normal((2, 12)))
+    ys, tys = jax.vmap(lambda x, t: jax.jvp(step, (x,), (t,)))(xs, ts)
+    for k in range(2):
+        close(ys[k], step(xs[k]), 1e-15)
+        close(tys[k], jax.jacrev(step)(xs[k]) @ ts[k], 1e-12)
+
+
+@pytest.mark.parametrize("via", ["ffi", "callback"])
+def test_parameters_shared_or_batched_have_diffsims_derivatives(via):
+    f = djax.operator(diffsim.oscillators("nonlinear"), via)
+    ref = jax_oscillators("nonlinear")
+    rng = np.random.default_rng(6)
+    xs = jnp.asarray(rng.standard_normal((5, 4)) * 0.5)
+    u = jnp.asarray(rng.standard_normal(96) * 0.3)
+    us = jnp.asarray(rng.standard_normal((5, 96)) * 0.3)
+    # Forward, p shared by a batch of states.
+    close(jax.jit(f)(xs, u), jax.vmap(ref, (0, None))(xs, u), 1e-13)
+
+    # Reverse mode: a shared p's gradient sums over the batch.
+    def loss(g):
+        return lambda x, u: jnp.sum(jnp.sin(g(x, u)))
+
+    gx, gu = jax.jit(jax.grad(loss(f), argnums=(0, 1)))(xs, u)
+    rx, ru = jax.grad(loss(jax.vmap(ref, (0, None))), argnums=(0, 1))(xs, u)
+    close(gx, rx, 1e-11)
+    close(gu, ru, 1e-11)
+    # p batched by vmap, one gradient per sample.
+    per = jax.jit(jax.vmap(jax.grad(loss(f), argnums=(0, 1))))(xs, us)
+    ref_per = jax.vmap(jax.grad(loss(ref), argnums=(0, 1)))(xs, us)
+    for a, b in zip(per, ref_per):
+        close(a, b, 1e-11)
+    # Forward mode in the parameters.
+    tu = jnp.asarray(rng.standard_normal(96))
+    _, ty = jax.jit(lambda u, t: jax.jvp(lambda u: f(xs, u), (u,), (t,)))(u, tu)
+    _, rty = jax.jvp(lambda u: jax.vmap(ref, (0, None))(xs, u), (u,), (tu,))
+    close(ty, rty, 1e-11)
 
 
 def test_a_jax_network_acts_between_smoke_steps():
@@ -103,3 +174,18 @@ def test_mistakes_inside_jax_are_diffsim_errors():
     # A non-finite state is refused at run time, naming it.
     with pytest.raises(Exception, match="x holds a non-finite value"):
         jax.block_until_ready(jax.jit(step)(jnp.full(16, jnp.nan)))
+
+
+def test_a_panic_inside_diffsim_is_an_error_in_jax_too():
+    f = djax.operator(diffsim._diffsim._panicking_operator())
+    x, empty = jnp.zeros(1), jnp.zeros((0,))
+    with pytest.raises(Exception, match="diffsim panicked: a deliberate panic in forward"):
+        jax.block_until_ready(jax.jit(f)(x, empty))
+    # (The gradient and the tangent alone: XLA drops the unused forward.)
+    with pytest.raises(Exception, match="diffsim panicked: a deliberate panic in vjp"):
+        jax.block_until_ready(jax.jit(jax.grad(lambda x: jnp.sum(f(x, empty))))(x))
+    with pytest.raises(Exception, match="diffsim panicked: a deliberate panic in jvp"):
+        jax.block_until_ready(jax.jit(lambda x: jax.jvp(lambda x: f(x, empty), (x,), (x,))[1])(x))
+    # The process goes on.
+    step = djax.burgers_step(8, 0.01, 0.01)
+    assert jax.jit(step)(jnp.ones(8)).shape == (8,)

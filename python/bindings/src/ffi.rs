@@ -1,5 +1,5 @@
 //! diffsim's operators as XLA FFI custom calls: `jax.ffi.ffi_call`
-//! reaches [`diffsim_forward`] and [`diffsim_vjp`] straight from compiled
+//! reaches [`diffsim_forward`], [`diffsim_vjp`] and [`diffsim_jvp`] straight from compiled
 //! JAX code, with XLA's buffers (no Python, no GIL, no copies in or out).
 //! The operator is named by the scalar attribute `op_id`, its index in
 //! [`REGISTRY`] (filled by `Operator.ffi_id()`).
@@ -304,8 +304,39 @@ unsafe extern "C" fn diffsim_vjp(frame: *mut CallFrame) -> *mut c_void {
     }
 }
 
+/// `ty = J_x·tx + J_p·tp` (the JVP, linear in the tangents): args `x`, `p`,
+/// `tx` (`x`'s shape), `tp` (`p`'s shape); result `ty [..., n_out]`. The
+/// value `y` is computed on the way and dropped: `diffsim.jax` asks for it
+/// through [`diffsim_forward`], so that JAX can transpose this call alone.
+///
+/// # Safety
+/// Called by XLA with a valid call frame.
+unsafe extern "C" fn diffsim_jvp(frame: *mut CallFrame) -> *mut c_void {
+    unsafe {
+        run(frame, |f| {
+            let Inputs { op, x, p, count, per } = inputs(f)?;
+            let n_out = op.sizes().1;
+            let (tx, _) = input(f, 2, "tx")?;
+            let (tp, _) = input(f, 3, "tp")?;
+            let ty = output(f, 0, "ty")?;
+            finite(tx, "tx")?;
+            finite(tp, "tp")?;
+            if tx.len() != x.len() || tp.len() != p.len() || ty.len() != count * n_out {
+                return Err("buffer sizes do not fit the operator".into());
+            }
+            let mut y = vec![0.0; ty.len()];
+            super::jvp_rows(&*op, x, p, per, tx, tp, &mut y, ty).map_err(super::message)?;
+            Ok(())
+        })
+    }
+}
+
 /// The targets to register with `jax.ffi.register_ffi_target`: names and
 /// function addresses.
 pub(crate) fn targets() -> Vec<(&'static str, usize)> {
-    vec![("diffsim_forward", diffsim_forward as *const () as usize), ("diffsim_vjp", diffsim_vjp as *const () as usize)]
+    vec![
+        ("diffsim_forward", diffsim_forward as *const () as usize),
+        ("diffsim_vjp", diffsim_vjp as *const () as usize),
+        ("diffsim_jvp", diffsim_jvp as *const () as usize),
+    ]
 }

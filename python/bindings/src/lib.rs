@@ -152,11 +152,6 @@ fn parallel(op: &dyn PyOp, count: usize) -> bool {
     count > 1 && (op.heavy() || count * op.sizes().0 >= PARALLEL_FROM)
 }
 
-/// `f(k)` for every element `k < count`, in parallel when the work is large.
-fn over_batch<T: Send>(op: &dyn PyOp, count: usize, f: impl Fn(usize) -> Result<T, Failure> + Sync + Send) -> Result<Vec<T>, Failure> {
-    if parallel(op, count) { (0..count).into_par_iter().map(f).collect() } else { (0..count).map(f).collect() }
-}
-
 /// A diffsim operator: `y = f(x, p)` with its VJP and JVP, all computed by
 /// diffsim. `x` may have leading batch axes (`[..., n_in]`), evaluated in
 /// parallel; `p` is shared (`[n_params]`) or batched like `x`.
@@ -220,6 +215,23 @@ fn vjp_rows(op: &dyn PyOp, x: &[f64], p: &[f64], per: usize, dy: &[f64], dx: &mu
         dx.par_chunks_mut(n_in.max(1)).zip(dp_rows.par_iter_mut()).enumerate().try_for_each(one)
     } else {
         dx.chunks_mut(n_in.max(1)).zip(dp_rows.iter_mut()).enumerate().try_for_each(one)
+    }
+}
+
+/// `(y_k, ty_k) = (f(x_k, p_b), J_x·tx_k + J_p·tp_b)` for every element
+/// (`tp` laid out as `p`), as [`forward_rows`].
+#[allow(clippy::too_many_arguments)]
+fn jvp_rows(op: &dyn PyOp, x: &[f64], p: &[f64], per: usize, tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+    let (n_in, n_out, n_params) = op.sizes();
+    let one = |(k, (yk, tyk)): (usize, (&mut [f64], &mut [f64]))| {
+        let (xs, ps) = (k * n_in..(k + 1) * n_in, (k / per) * n_params..(k / per + 1) * n_params);
+        op.jvp(&x[xs.clone()], &p[ps.clone()], &tx[xs], &tp[ps], yk, tyk)
+    };
+    let m = n_out.max(1);
+    if parallel(op, y.len() / m) {
+        y.par_chunks_mut(m).zip(ty.par_chunks_mut(m)).enumerate().try_for_each(one)
+    } else {
+        y.chunks_mut(m).zip(ty.chunks_mut(m)).enumerate().try_for_each(one)
     }
 }
 
@@ -320,7 +332,7 @@ impl Operator {
         let op = self.op.clone();
         let (batch, y, ty) = self.call(py, move || {
             let (batch, pb) = inputs(&*op, &x, &p)?;
-            let (n_in, n_out, n_params) = op.sizes();
+            let n_out = op.sizes().1;
             if tx.shape != x.shape {
                 return Err(input(format!("tx has shape {:?}; x has {:?}", tx.shape, x.shape)));
             }
@@ -331,19 +343,9 @@ impl Operator {
             finite(&tx, "tx")?;
             finite(&tp, "tp")?;
             let count: usize = batch.iter().product();
-            let parts = over_batch(&*op, count, |k| {
-                let (pk, tpk) = if pb {
-                    (&p.values[k * n_params..(k + 1) * n_params], &tp.values[k * n_params..(k + 1) * n_params])
-                } else {
-                    (&p.values[..], &tp.values[..])
-                };
-                let (mut y, mut ty) = (vec![0.0; n_out], vec![0.0; n_out]);
-                let xs = k * n_in..(k + 1) * n_in;
-                op.jvp(&x.values[xs.clone()], pk, &tx.values[xs], tpk, &mut y, &mut ty)?;
-                Ok((y, ty))
-            })?;
-            let (y, ty): (Vec<Vec<f64>>, Vec<Vec<f64>>) = parts.into_iter().unzip();
-            Ok((batch, y.concat(), ty.concat()))
+            let (mut y, mut ty) = (vec![0.0; count * n_out], vec![0.0; count * n_out]);
+            jvp_rows(&*op, &x.values, &p.values, if pb { 1 } else { count.max(1) }, &tx.values, &tp.values, &mut y, &mut ty)?;
+            Ok((batch, y, ty))
         })?;
         let shape = [batch, vec![self.op.sizes().1]].concat();
         Ok((to_numpy(py, &shape, y)?, to_numpy(py, &shape, ty)?))
@@ -394,6 +396,36 @@ fn message(f: Failure) -> String {
     }
 }
 
+/// An operator that panics in every method (a bug stood in for): for the
+/// tests of the panic path, which must end in `InternalError` (or an XLA
+/// error) with the panic's message and leave the interpreter running.
+struct Panics;
+
+impl PyOp for Panics {
+    fn sizes(&self) -> (usize, usize, usize) {
+        (1, 1, 0)
+    }
+    fn forward(&self, _: &[f64], _: &[f64], _: &mut [f64]) -> Result<(), Failure> {
+        panic!("a deliberate panic in forward")
+    }
+    fn vjp(&self, _: &[f64], _: &[f64], _: &[f64], _: &mut [f64], _: &mut [f64]) -> Result<(), Failure> {
+        panic!("a deliberate panic in vjp")
+    }
+    fn jvp(&self, _: &[f64], _: &[f64], _: &[f64], _: &[f64], _: &mut [f64], _: &mut [f64]) -> Result<(), Failure> {
+        panic!("a deliberate panic in jvp")
+    }
+    fn check(&self, _: &[f64], _: &[f64]) -> Result<(&'static str, String), Failure> {
+        panic!("a deliberate panic in check")
+    }
+}
+
+/// An operator (one input, one output) whose every method panics: only for
+/// testing that a panic inside diffsim becomes an exception.
+#[pyfunction]
+fn _panicking_operator() -> Operator {
+    Operator::new(Arc::new(Panics), "_panicking_operator()".into())
+}
+
 /// diffsim's Python module.
 #[pymodule]
 pub fn _diffsim(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -411,5 +443,7 @@ pub fn _diffsim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(ops::p2_loss, m)?)?;
     m.add_function(wrap_pyfunction!(ops::p4_problem, m)?)?;
     m.add_function(wrap_pyfunction!(ops::p4_loss, m)?)?;
+    m.add_function(wrap_pyfunction!(ops::oscillators, m)?)?;
+    m.add_function(wrap_pyfunction!(_panicking_operator, m)?)?;
     Ok(())
 }

@@ -292,3 +292,17 @@ pub(crate) fn smoke_step(n: usize) -> PyResult<Operator> {
     let step = diffsim::op::PerThread::new(|| diffsim::problems::smoke::P2::new(n, 1, diffsim_solvers::smoke::Preconditioner::Multigrid).step);
     Ok(Operator::new(Arc::new(StepOp(step)), format!("smoke_step(n={n})")))
 }
+
+/// The coupled oscillators of the half-inverse-gradients problem
+/// (`kind`: `"linear"`, 24 RK4 steps of 0.5, or `"nonlinear"`, 96 steps of
+/// 0.125): the initial state `(x₁, x₂, v₁, v₂)` and one control per step
+/// (the parameters `p`) in, the final state out; Enzyme's derivatives.
+#[pyfunction]
+pub(crate) fn oscillators(kind: &str) -> PyResult<Operator> {
+    let op = match kind {
+        "linear" => diffsim::problems::oscillators::Oscillators::linear(),
+        "nonlinear" => diffsim::problems::oscillators::Oscillators::nonlinear(),
+        _ => return Err(DiffsimError::new_err(format!("oscillators: kind {kind:?} is not \"linear\" or \"nonlinear\""))),
+    };
+    Ok(Operator::new(Arc::new(StepOp(op)), format!("oscillators({kind:?})")))
+}

@@ -1,15 +1,23 @@
 """diffsim operators inside JAX programs.
 
 ``operator(op)`` turns a :class:`diffsim.Operator` into a JAX function
-``(x, p) -> y`` with a custom VJP: diffsim computes the forward and the
-gradient, called from compiled JAX code through XLA's FFI
-(``jax.ffi.ffi_call`` into the custom-call targets ``diffsim_forward`` and
-``diffsim_vjp``, with XLA's buffers: no Python and no copies in between).
-``operator(op, via="callback")`` uses ``jax.pure_callback`` instead (host
-callbacks on NumPy arrays). It works under ``jax.jit``, ``jax.grad`` and
-``jax.vmap`` (``vmap_method="broadcast_all"``: a batch reaches diffsim as a
-leading axis and runs in parallel there). Forward-mode (``jax.jvp``) is not
-wired: use ``Operator.jvp`` directly.
+``(x, p) -> y`` whose derivatives diffsim computes: the forward, the JVP and
+the VJP are called from compiled JAX code through XLA's FFI
+(``jax.ffi.ffi_call`` into the custom-call targets ``diffsim_forward``,
+``diffsim_jvp`` and ``diffsim_vjp``, with XLA's buffers: no Python and no
+copies in between). ``operator(op, via="callback")`` uses
+``jax.pure_callback`` instead (host callbacks on NumPy arrays).
+
+The function has a custom JVP whose tangent part is a JAX primitive of its
+own: diffsim's JVP, declared linear in the tangents, with diffsim's VJP as
+its transpose. So ``jax.jvp`` and ``jax.jacfwd`` run diffsim's forward
+mode, ``jax.grad``, ``jax.vjp`` and ``jax.jacrev`` its reverse mode (JAX
+transposes the tangent; the JVP is never evaluated then), and both work
+under ``jax.jit`` and ``jax.vmap`` (``vmap_method="broadcast_all"``: a
+batch reaches diffsim as a leading axis and runs in parallel there).
+``jax.jvp`` costs one forward and one JVP call (the JVP computes the value
+again: JAX needs the value from a call it does not have to transpose).
+First derivatives only.
 
 Needs ``jax`` with float64 enabled (``jax.config.update("jax_enable_x64",
 True)``; this module turns it on when imported).
@@ -24,6 +32,8 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
 
 from . import _diffsim
 
@@ -48,9 +58,47 @@ def _batched_p(x: np.ndarray, p: np.ndarray, n_params: int) -> np.ndarray:
     return np.broadcast_to(p.reshape(p.shape[:-1] + (1,) * extra + p.shape[-1:]), batch + (n_params,))
 
 
+def _linear_primitive(name: str, jvp: Callable, vjp: Callable, n_out: int) -> Primitive:
+    """A JAX primitive ``t(x, p, tx, tp) = jvp(x, p, tx, tp)``, linear in
+    the tangents ``(tx, tp)``, whose transpose is ``vjp(x, p, ct) -> (dx,
+    dp)``: the tangent part of an operator's JVP rule. Forward mode
+    evaluates it; reverse mode transposes it (``jvp`` is never called
+    then). Batched by vmapping ``jvp`` (whose FFI call batches as a leading
+    axis). First derivatives only: it has no JVP of its own."""
+    prim = Primitive(name)
+    prim.def_impl(jvp)
+    prim.def_abstract_eval(lambda x, p, tx, tp: jax.core.ShapedArray(x.shape[:-1] + (n_out,), jnp.float64))
+    mlir.register_lowering(prim, mlir.lower_fun(jvp, multiple_results=False))
+
+    def batch(args, dims):
+        # The batch axis first on x and tx (broadcast where absent), on p
+        # and tp too when either is batched (else they stay shared): the
+        # layouts diffsim takes.
+        size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
+
+        def front(a, d):
+            return jnp.moveaxis(a, d, 0) if d is not None else jnp.broadcast_to(a, (size,) + a.shape)
+
+        x, p, tx, tp = args
+        x, tx = front(x, dims[0]), front(tx, dims[2])
+        if dims[1] is not None or dims[3] is not None:
+            p, tp = front(p, dims[1]), front(tp, dims[3])
+        return prim.bind(x, p, tx, tp), 0
+
+    def transpose(ct, x, p, tx, tp):
+        if ad.is_undefined_primal(x) or ad.is_undefined_primal(p):
+            raise NotImplementedError("diffsim's JVP is linear in the tangents only")
+        dx, dp = vjp(x, p, ad.instantiate_zeros(ct))
+        return None, None, dx if ad.is_undefined_primal(tx) else None, dp if ad.is_undefined_primal(tp) else None
+
+    batching.primitive_batchers[prim] = batch
+    ad.primitive_transposes[prim] = transpose
+    return prim
+
+
 def operator(op: _diffsim.Operator, via: str = "ffi") -> Callable[[jax.Array, jax.Array], jax.Array]:
     """``op`` as a JAX function ``f(x, p) -> y`` (``y``: ``x``'s batch axes
-    and ``n_out``) whose VJP is diffsim's. ``p`` has ``op.n_params`` values
+    and ``n_out``) whose JVP and VJP are diffsim's. ``p`` has ``op.n_params`` values
     (an empty array when there are none). ``via``: ``"ffi"`` (XLA's FFI,
     the default) or ``"callback"`` (``jax.pure_callback``)."""
     n_in, n_out, n_params = op.n_in, op.n_out, op.n_params
@@ -66,16 +114,23 @@ def operator(op: _diffsim.Operator, via: str = "ffi") -> Callable[[jax.Array, ja
         if p.ndim != 1 or p.shape[0] != n_params:
             raise _diffsim.DiffsimError(f"p has shape {tuple(p.shape)}; this operator has {n_params} parameters")
 
+    def y_shape(x):
+        return jax.ShapeDtypeStruct(x.shape[:-1] + (n_out,), jnp.float64)
+
+    def grad_shapes(x):
+        return (jax.ShapeDtypeStruct(x.shape, jnp.float64), jax.ShapeDtypeStruct(x.shape[:-1] + (n_params,), jnp.float64))
+
     if via == "ffi":
         op_id = np.int64(op.ffi_id())
 
         def call_forward(x, p):
-            out = jax.ShapeDtypeStruct(x.shape[:-1] + (n_out,), jnp.float64)
-            return jax.ffi.ffi_call("diffsim_forward", out, vmap_method="broadcast_all")(x, p, op_id=op_id)
+            return jax.ffi.ffi_call("diffsim_forward", y_shape(x), vmap_method="broadcast_all")(x, p, op_id=op_id)
+
+        def call_jvp(x, p, tx, tp):
+            return jax.ffi.ffi_call("diffsim_jvp", y_shape(x), vmap_method="broadcast_all")(x, p, tx, tp, op_id=op_id)
 
         def call_vjp(x, p, dy):
-            shapes = (jax.ShapeDtypeStruct(x.shape, jnp.float64), jax.ShapeDtypeStruct(x.shape[:-1] + (n_params,), jnp.float64))
-            return jax.ffi.ffi_call("diffsim_vjp", shapes, vmap_method="broadcast_all")(x, p, dy, op_id=op_id)
+            return jax.ffi.ffi_call("diffsim_vjp", grad_shapes(x), vmap_method="broadcast_all")(x, p, dy, op_id=op_id)
 
     else:
 
@@ -87,35 +142,47 @@ def operator(op: _diffsim.Operator, via: str = "ffi") -> Callable[[jax.Array, ja
             x = np.asarray(x, dtype=np.float64)
             return op.forward(x, params(x, p))
 
+        def jvp_host(x, p, tx, tp):
+            x = np.asarray(x, dtype=np.float64)
+            return op.jvp(x, params(x, p), np.asarray(tx, dtype=np.float64), params(x, tp))[1]
+
         def vjp_host(x, p, dy):
             x = np.asarray(x, dtype=np.float64)
             return op.vjp(x, params(x, p), np.asarray(dy, dtype=np.float64))
 
         def call_forward(x, p):
-            out = jax.ShapeDtypeStruct(x.shape[:-1] + (n_out,), jnp.float64)
-            return jax.pure_callback(forward_host, out, x, p, vmap_method="broadcast_all")
+            return jax.pure_callback(forward_host, y_shape(x), x, p, vmap_method="broadcast_all")
+
+        def call_jvp(x, p, tx, tp):
+            return jax.pure_callback(jvp_host, y_shape(x), x, p, tx, tp, vmap_method="broadcast_all")
 
         def call_vjp(x, p, dy):
-            shapes = (jax.ShapeDtypeStruct(x.shape, jnp.float64), jax.ShapeDtypeStruct(x.shape[:-1] + (n_params,), jnp.float64))
-            return jax.pure_callback(vjp_host, shapes, x, p, dy, vmap_method="broadcast_all")
+            return jax.pure_callback(vjp_host, grad_shapes(x), x, p, dy, vmap_method="broadcast_all")
 
-    @jax.custom_vjp
+    def cotangent(x, p, dy):
+        """``(J_xᵀ·dy, J_pᵀ·dy)``, shaped as ``x`` and ``p``."""
+        dx, dp = call_vjp(x, p, dy)
+        # p shared by some of x's batch axes (all of them for p of shape
+        # [n_params]): its gradient is the sum over those.
+        return dx, dp.sum(axis=tuple(range(p.ndim - 1, dp.ndim - 1)))
+
+    tangent = _linear_primitive(f"diffsim_jvp[{op.name}]", call_jvp, cotangent, n_out)
+
+    def as_f64(x, p):
+        return jnp.asarray(x, jnp.float64), jnp.asarray(p, jnp.float64)
+
+    @jax.custom_jvp
     def f(x, p):
         check(x, p)
-        return call_forward(jnp.asarray(x, jnp.float64), jnp.asarray(p, jnp.float64))
+        return call_forward(*as_f64(x, p))
 
-    def f_fwd(x, p):
-        return f(x, p), (x, p)
+    @f.defjvp
+    def f_jvp(primals, tangents):
+        x, p = as_f64(*primals)
+        check(x, p)
+        t = as_f64(*tangents)
+        return call_forward(x, p), tangent.bind(x, p, *t)
 
-    def f_bwd(res, dy):
-        x, p = res
-        dx, dp = call_vjp(x, p, dy)
-        # A shared p: its gradient is the sum over x's batch axes.
-        if p.ndim == 1:
-            dp = dp.sum(axis=tuple(range(dp.ndim - 1)))
-        return dx, dp.reshape(p.shape)
-
-    f.defvjp(f_fwd, f_bwd)
     f.__doc__ = f"{op!r} as a JAX function (x, p) -> y."
     return f
 
