@@ -9,7 +9,7 @@
    from JAX at 64² and 128², forward and forward + VJP; the difference is
    the call's overhead.
 
-    python examples/bench.py [--iterations 40] [--json]
+    python examples/bench.py [--iterations 40] [--rounds 7] [--json]
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ def median_us(f, repeats):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--iterations", type=int, default=40)
+    ap.add_argument("--rounds", type=int, default=7, help="interleaved rounds of the example")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     out = {}
@@ -52,11 +53,16 @@ def main():
     spec.loader.exec_module(sol)
     # Interleaved: one round of each, several times, medians.
     mixed, plain = [], []
-    for _ in range(3):
+    for _ in range(a.rounds):
         mixed.append(sol.train("diffsim", a.iterations)[1])
         plain.append(sol.train("jax", a.iterations)[1])
     out["example_diffsim_ms"] = 1e3 * float(np.median(mixed))
     out["example_jax_ms"] = 1e3 * float(np.median(plain))
+    # Each round's ratio (the two runs of a round share the machine's load).
+    ratios = np.asarray(mixed) / np.asarray(plain)
+    out["example_ratio_median"] = float(np.median(ratios))
+    out["example_ratio_min"], out["example_ratio_max"] = float(ratios.min()), float(ratios.max())
+    out["example_rounds_diffsim_faster"] = int((ratios < 1).sum())
 
     noop = jax.jit(lambda x: jax.pure_callback(lambda v: np.asarray(v), jax.ShapeDtypeStruct(x.shape, x.dtype), x))
     x = jnp.zeros(1000)
@@ -93,6 +99,10 @@ def main():
         print(json.dumps(out))
         return
     print(f"example (P3, 16 steps, batch 32): diffsim solver {out['example_diffsim_ms']:.2f} ms, pure JAX {out['example_jax_ms']:.2f} ms per iteration")
+    print(
+        f"  ratio diffsim/JAX per round: median {out['example_ratio_median']:.3f} (min {out['example_ratio_min']:.3f}, max {out['example_ratio_max']:.3f});"
+        f" diffsim faster in {out['example_rounds_diffsim_faster']} of {a.rounds} rounds"
+    )
     print(f"an empty jax.pure_callback: {out['empty_callback_us']:.1f} µs")
     print(f"a jitted FFI call of a 32-cell step: {out['ffi_tiny_step_us']:.2f} µs; a trivial jitted JAX function: {out['jax_trivial_us']:.2f} µs")
     for n in (64, 128):
