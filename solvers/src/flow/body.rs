@@ -722,19 +722,22 @@ impl Cut {
 }
 
 /// A cell-centred field (the pressure) at the point `(x, y)`, from fluid
-/// cells only: the value at the point of the least-squares plane through
-/// the fluid cells whose centres lie within `2.5·h` of it (second order;
+/// cells only: the value at the point of the least-squares quadratic
+/// `a + b·dx + c·dy + d·dx² + e·dx·dy + f·dy²` through the fluid cells
+/// whose centres lie within `3.5·h` of it (third order for a smooth field;
 /// usable on a body's boundary, where bilinear interpolation would mix in
-/// cells inside the body). `None` when fewer than three fluid cells, or
-/// only collinear ones, are near.
+/// cells inside the body, and exact at an extremum such as a stagnation
+/// point, where a plane's fit is biased by the curvature). `None` when the
+/// near fluid cells do not determine the quadratic.
 pub fn fluid_value_at(cfg: &Flow2d, cut: Option<&Cut>, field: &[f64], x: f64, y: f64) -> Option<f64> {
+    const TERMS: usize = 6;
+    let (radius, terms) = (3.5, TERMS);
     let (nx, ny, h) = (cfg.nx, cfg.ny, cfg.h);
-    let reach = 2.5 * h;
+    let reach = radius * h;
     let (i0, i1) = (((x - reach) / h - 0.5).floor().max(0.0) as usize, (((x + reach) / h - 0.5).ceil().max(0.0) as usize).min(nx - 1));
     let (j0, j1) = (((y - reach) / h - 0.5).floor().max(0.0) as usize, (((y + reach) / h - 0.5).ceil().max(0.0) as usize).min(ny - 1));
-    // Normal equations of the plane a + b·dx + c·dy, in units of h.
-    let mut m = [[0.0f64; 3]; 3];
-    let mut r = [0.0f64; 3];
+    // Normal equations in units of h.
+    let mut m = [[0.0f64; TERMS + 1]; TERMS];
     let mut count = 0;
     for j in j0..=j1 {
         for i in i0..=i1 {
@@ -743,34 +746,44 @@ pub fn fluid_value_at(cfg: &Flow2d, cut: Option<&Cut>, field: &[f64], x: f64, y:
                 continue;
             }
             let (dx, dy) = ((((i as f64) + 0.5) * h - x) / h, (((j as f64) + 0.5) * h - y) / h);
-            if dx.hypot(dy) > 2.5 {
+            if dx.hypot(dy) > radius {
                 continue;
             }
-            let basis = [1.0, dx, dy];
-            for a in 0..3 {
-                for b in 0..3 {
+            let basis = [1.0, dx, dy, dx * dx, dx * dy, dy * dy];
+            for a in 0..terms {
+                for b in 0..terms {
                     m[a][b] += basis[a] * basis[b];
                 }
-                r[a] += basis[a] * field[c];
+                m[a][TERMS] += basis[a] * field[c];
             }
             count += 1;
         }
     }
-    if count < 3 {
+    if count < terms {
         return None;
     }
-    // Cramer's rule for the intercept.
-    let det3 = |m: [[f64; 3]; 3]| {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
-    };
-    let d = det3(m);
-    if d.abs() < 1e-9 * (count as f64).powi(3) {
-        return None;
+    // Gaussian elimination with partial pivoting; the intercept is the value.
+    let scale = m[0][0];
+    for k in 0..terms {
+        let pivot = (k..terms).max_by(|&a, &b| m[a][k].abs().total_cmp(&m[b][k].abs()))?;
+        if m[pivot][k].abs() < 1e-10 * scale {
+            return None;
+        }
+        m.swap(k, pivot);
+        for r in k + 1..terms {
+            let f = m[r][k] / m[k][k];
+            for c in k..=TERMS {
+                m[r][c] -= f * m[k][c];
+            }
+        }
     }
-    let mut mr = m;
-    for (row, &rv) in mr.iter_mut().zip(&r) {
-        row[0] = rv;
+    let mut sol = [0.0f64; TERMS];
+    for k in (0..terms).rev() {
+        let mut v = m[k][TERMS];
+        for c in k + 1..terms {
+            v -= m[k][c] * sol[c];
+        }
+        sol[k] = v / m[k][k];
     }
-    Some(det3(mr) / d)
+    Some(sol[0])
 }
