@@ -122,6 +122,19 @@ def test_parameters_shared_or_batched_have_diffsims_derivatives(via):
     _, rty = jax.jvp(lambda u: jax.vmap(ref, (0, None))(xs, u), (u,), (tu,))
     close(ty, rty, 1e-11)
 
+    # Nested vmaps: controls batched by the inner one only.
+    def tangent_in_u(g):
+        return lambda x, u, t: jax.jvp(lambda u: g(x, u), (u,), (t,))[1]
+
+    grid = jnp.asarray(rng.standard_normal((3, 5, 4)) * 0.5)
+    ts = jnp.asarray(rng.standard_normal((5, 96)))
+    nested = jax.vmap(jax.vmap(tangent_in_u(f)), in_axes=(0, None, None))
+    ref_nested = jax.vmap(jax.vmap(tangent_in_u(ref)), in_axes=(0, None, None))
+    close(jax.jit(nested)(grid, us, ts), ref_nested(grid, us, ts), 1e-11)
+    gnested = jax.vmap(jax.vmap(jax.grad(loss(f), argnums=1)), in_axes=(0, None))
+    ref_gnested = jax.vmap(jax.vmap(jax.grad(loss(ref), argnums=1)), in_axes=(0, None))
+    close(jax.jit(gnested)(grid, us), ref_gnested(grid, us), 1e-11)
+
 
 def test_a_jax_network_acts_between_smoke_steps():
     n = 8

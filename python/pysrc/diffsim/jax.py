@@ -63,17 +63,19 @@ def _linear_primitive(name: str, jvp: Callable, vjp: Callable, n_out: int) -> Pr
     the tangents ``(tx, tp)``, whose transpose is ``vjp(x, p, ct) -> (dx,
     dp)``: the tangent part of an operator's JVP rule. Forward mode
     evaluates it; reverse mode transposes it (``jvp`` is never called
-    then). Batched by vmapping ``jvp`` (whose FFI call batches as a leading
-    axis). First derivatives only: it has no JVP of its own."""
+    then). Under ``vmap`` it binds itself again on the batch-first layout
+    diffsim takes, so that a batched tangent stays transposable. First
+    derivatives only: it has no JVP of its own."""
     prim = Primitive(name)
     prim.def_impl(jvp)
     prim.def_abstract_eval(lambda x, p, tx, tp: jax.core.ShapedArray(x.shape[:-1] + (n_out,), jnp.float64))
     mlir.register_lowering(prim, mlir.lower_fun(jvp, multiple_results=False))
 
     def batch(args, dims):
-        # The batch axis first on x and tx (broadcast where absent), on p
-        # and tp too when either is batched (else they stay shared): the
-        # layouts diffsim takes.
+        # The batch axis first on x and tx (broadcast where absent), and on
+        # p and tp when either is batched here or was by an inner vmap
+        # (diffsim reads a batched p's blocks along x's leading axes); a p
+        # shared so far stays shared.
         size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
 
         def front(a, d):
@@ -81,7 +83,7 @@ def _linear_primitive(name: str, jvp: Callable, vjp: Callable, n_out: int) -> Pr
 
         x, p, tx, tp = args
         x, tx = front(x, dims[0]), front(tx, dims[2])
-        if dims[1] is not None or dims[3] is not None:
+        if dims[1] is not None or dims[3] is not None or p.ndim > 1:
             p, tp = front(p, dims[1]), front(tp, dims[3])
         return prim.bind(x, p, tx, tp), 0
 
