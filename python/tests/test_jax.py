@@ -187,6 +187,11 @@ def test_mistakes_inside_jax_are_diffsim_errors():
     # A non-finite state is refused at run time, naming it.
     with pytest.raises(Exception, match="x holds a non-finite value"):
         jax.block_until_ready(jax.jit(step)(jnp.full(16, jnp.nan)))
+    # So is a non-finite tangent or cotangent.
+    with pytest.raises(Exception, match="tx holds a non-finite value"):
+        jax.block_until_ready(jax.jit(lambda t: jax.jvp(step, (jnp.ones(16),), (t,))[1])(jnp.full(16, jnp.inf)))
+    with pytest.raises(Exception, match="dy holds a non-finite value"):
+        jax.block_until_ready(jax.jit(lambda c: jax.vjp(step, jnp.ones(16))[1](c)[0])(jnp.full(16, jnp.nan)))
 
 
 def test_a_panic_inside_diffsim_is_an_error_in_jax_too():
