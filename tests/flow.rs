@@ -4,7 +4,7 @@
 
 use diffsim_solvers::boundary::{Boundary, Profile, Side};
 use diffsim_solvers::flow::cylinder::{poiseuille, schafer_turek};
-use diffsim_solvers::flow::{Flow2d, FlowError, Integrator, SteadyOptions, Stepper, WallSpeed, cavity_extrema, ghia, march_to_steady};
+use diffsim_solvers::flow::{Convection, Flow2d, FlowError, Integrator, SteadyOptions, Stepper, WallSpeed, cavity_extrema, ghia, march_to_steady};
 use diffsim_solvers::smoke::divergence;
 
 fn steady(cfg: Flow2d, tolerance: f64) -> (Vec<f64>, Stepper) {
@@ -32,6 +32,7 @@ fn a_channel_reaches_poiseuille_flow_at_second_order() {
             nu,
             boundary: Boundary { left: Side::Inflow(Profile::Parabolic(1.0)), right: Side::Outflow, bottom: Side::Closed, top: Side::Closed },
             wall_speed: WallSpeed::default(),
+            convection: Convection::default(),
         };
         let (x, stepper) = steady(cfg, 1e-9);
         let (u, v) = x.split_at(cfg.n_u());
@@ -137,6 +138,56 @@ fn the_direct_pressure_solve_matches_mic0_under_every_boundary() {
             assert!(iterations <= 2, "{b:?}, obstacle {with_obstacle}: {iterations} iterations");
         }
     }
+}
+
+/// The advection term on a Taylor–Green field (`u = sin kx cos ky`, `v =
+/// −cos kx sin ky`, `(u·∇)u = (k/2)·(sin 2kx, sin 2ky)`), away from the
+/// sides: both interpolations converge at second order, the four-point one
+/// with the smaller error.
+#[test]
+fn the_advection_converges_with_either_interpolation() {
+    use diffsim_solvers::flow::{Pads, momentum};
+    let k = 2.0 * std::f64::consts::PI;
+    let error = |n: usize, convection: Convection| {
+        let cfg = Flow2d { nx: n, ny: n, h: 1.0 / n as f64, nu: 0.0, boundary: Boundary::CLOSED, wall_speed: WallSpeed::default(), convection };
+        let (n_u, h) = (cfg.n_u(), cfg.h);
+        let mut x = vec![0.0; cfg.n_vel()];
+        for j in 0..n {
+            for i in 0..=n {
+                let (px, py) = (i as f64 * h, (j as f64 + 0.5) * h);
+                x[j * (n + 1) + i] = (k * px).sin() * (k * py).cos();
+            }
+        }
+        for j in 0..=n {
+            for i in 0..n {
+                let (px, py) = ((i as f64 + 0.5) * h, j as f64 * h);
+                x[n_u + j * n + i] = -(k * px).cos() * (k * py).sin();
+            }
+        }
+        let mut out = vec![0.0; cfg.n_vel()];
+        momentum(&cfg, &x, &mut Pads::new(&cfg), &mut out);
+        let mut worst = 0.0f64;
+        // −(u·∇)u at u-faces (x = i·h) and v-faces (y = j·h).
+        for j in 3..n - 3 {
+            for i in 3..n - 3 {
+                let (at_u, at_v) = (i as f64 * h, j as f64 * h);
+                worst = worst.max((out[j * (n + 1) + i] + 0.5 * k * (2.0 * k * at_u).sin()).abs());
+                worst = worst.max((out[n_u + j * n + i] + 0.5 * k * (2.0 * k * at_v).sin()).abs());
+            }
+        }
+        worst
+    };
+    // (One call per scheme: arrays iterated by value in this crate can
+    // crash Enzyme's type analysis, docs/pitfalls.md.)
+    let second_order = |convection: Convection| {
+        let (coarse, fine) = (error(32, convection), error(64, convection));
+        let order = (coarse / fine).log2();
+        assert!((1.8..2.3).contains(&order), "{convection:?}: errors {coarse:e}, {fine:e}, order {order}");
+    };
+    second_order(Convection::Second);
+    second_order(Convection::Fourth);
+    let (second, fourth) = (error(64, Convection::Second), error(64, Convection::Fourth));
+    assert!(fourth < 0.5 * second, "four-point {fourth:e} against two-point {second:e}");
 }
 
 /// The value of a cell field on a body's boundary comes from fluid cells

@@ -7,7 +7,7 @@ use diffsim::check::{CheckOptions, check_all};
 use diffsim::op::{Forward, OpError, OperatorExt};
 use diffsim::problems::drag::{CutOperator, FourierLevel, SteadyForce};
 use diffsim_solvers::boundary::{Boundary, Profile, Side};
-use diffsim_solvers::flow::{Flow2d, FlowError, Shape, ShapeError, SteadyFlow, WallSpeed};
+use diffsim_solvers::flow::{Convection, Flow2d, FlowError, Shape, ShapeError, SteadyFlow, WallSpeed};
 
 /// A short channel (0.5 × 0.41, 10 cells per 0.1) with the Schäfer–Turek
 /// inflow of peak 0.3 and ν = 10⁻³: Re 20 around a body of size 0.1.
@@ -19,6 +19,7 @@ fn short_channel() -> Flow2d {
         nu: 1e-3,
         boundary: Boundary { left: Side::Inflow(Profile::Parabolic(0.3)), right: Side::Outflow, bottom: Side::Closed, top: Side::Closed },
         wall_speed: WallSpeed::default(),
+        convection: Convection::default(),
     }
 }
 

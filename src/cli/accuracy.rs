@@ -149,6 +149,7 @@ pub fn pareto(a: ParetoArgs) -> Result<(), CliError> {
 /// discrete steady state, reached two ways): c_D's relative error against
 /// the tight reference value.
 fn cylinder_rows(budget: f64, quick: bool) -> Vec<Measurement> {
+    use diffsim_solvers::flow::Convection;
     use diffsim_solvers::flow::cylinder::{reference, run_2d1, run_2d1_newton};
     let (newton, march): (&[usize], &[usize]) = if quick { (&[10, 20], &[10]) } else { (&[10, 20, 30, 40], &[10, 20]) };
     let mut rows = Vec::new();
@@ -156,8 +157,9 @@ fn cylinder_rows(budget: f64, quick: bool) -> Vec<Measurement> {
     // Enzyme's type analysis in this crate; docs/pitfalls.md.)
     let mut sweep = |solver: &str, list: &[usize]| {
         for &per_d in list {
-            let (result, time_s, peak) =
-                measure(budget, || if solver == "newton" { run_2d1_newton(per_d) } else { run_2d1(per_d, 1e-6, 1_000_000, |_, _, _| {}) });
+            let (result, time_s, peak) = measure(budget, || {
+                if solver == "newton" { run_2d1_newton(per_d, Convection::Second) } else { run_2d1(per_d, Convection::Second, 1e-6, 1_000_000, |_, _, _| {}) }
+            });
             let mut params = Map::new();
             params.insert("solver".into(), json!(solver));
             params.insert("cells_per_d".into(), json!(per_d));

@@ -192,6 +192,25 @@ pub enum SteadySolver {
     March,
 }
 
+/// The advection's interpolation (`diffsim_solvers::flow::Convection`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum ConvectionArg {
+    /// Two-point averages (second-order central).
+    Second,
+    /// Four-point interpolation of the transported and transporting
+    /// velocities (less dispersive).
+    Fourth,
+}
+
+impl From<ConvectionArg> for diffsim_solvers::flow::Convection {
+    fn from(c: ConvectionArg) -> Self {
+        match c {
+            ConvectionArg::Second => Self::Second,
+            ConvectionArg::Fourth => Self::Fourth,
+        }
+    }
+}
+
 /// Arguments of `diffsim experiment cylinder`.
 #[derive(Debug, clap::Args)]
 pub struct CylinderArgs {
@@ -206,6 +225,10 @@ pub struct CylinderArgs {
     /// steady state).
     #[arg(long, value_enum, default_value_t = SteadySolver::Newton)]
     solver: SteadySolver,
+    /// The advection's interpolation (default: second for 2d-1, fourth
+    /// for 2d-2).
+    #[arg(long, value_enum)]
+    convection: Option<ConvectionArg>,
     /// 2d-1 with --solver march: steady when max |du/dt| falls below this.
     #[arg(long, default_value_t = 1e-6)]
     tolerance: f64,
@@ -241,8 +264,19 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
             reason: format!("cells per diameter must be a multiple of 10 between 10 and 200 (the channel is 4.1 diameters high), got {per_d}"),
         });
     }
+    let convection = a
+        .convection
+        .unwrap_or(match a.case {
+            CylinderCase::Steady => ConvectionArg::Second,
+            CylinderCase::Periodic => ConvectionArg::Fourth,
+        })
+        .into();
+    let scheme = match convection {
+        diffsim_solvers::flow::Convection::Second => "second",
+        diffsim_solvers::flow::Convection::Fourth => "fourth",
+    };
     if !a.sweep.is_empty() {
-        return cylinder_sweep(&a);
+        return cylinder_sweep(&a, convection);
     }
     let start = Instant::now();
     let spinner = if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new_spinner() };
@@ -256,9 +290,9 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
                 SteadySolver::Newton => {
                     spinner.set_message(format!("2D-1, {per_d} cells per diameter: Newton's method"));
                     spinner.tick();
-                    run_2d1_newton(per_d)?
+                    run_2d1_newton(per_d, convection)?
                 }
-                SteadySolver::March => run_2d1(per_d, a.tolerance, a.max_steps, |step, t, rate| {
+                SteadySolver::March => run_2d1(per_d, convection, a.tolerance, a.max_steps, |step, t, rate| {
                     if step % 200 == 0 {
                         spinner.set_message(format!("2D-1, {per_d} cells per diameter: step {step}, t = {t:.2}, max |du/dt| = {rate:.2e}"));
                         spinner.tick();
@@ -272,7 +306,7 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
                     SteadySolver::Newton => "newton",
                     SteadySolver::March => "march",
                 };
-                let obj = serde_json::json!({"case": "2d-1", "solver": solver, "resolution": per_d, "cd": r.cd, "cl": r.cl, "dp": r.dp, "cells": r.cells, "steps": r.steps, "time_s": time_s});
+                let obj = serde_json::json!({"case": "2d-1", "solver": solver, "convection": scheme, "resolution": per_d, "cd": r.cd, "cl": r.cl, "dp": r.dp, "cells": r.cells, "steps": r.steps, "time_s": time_s});
                 println!("{obj}");
                 return Ok(());
             }
@@ -280,7 +314,10 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
                 SteadySolver::Newton => "Newton steps",
                 SteadySolver::March => "pseudo-time steps",
             };
-            println!("Schäfer–Turek 2D-1 (Re 20), {per_d} cells per diameter, {} cells: steady after {} {how}, {time_s:.1} s", r.cells, r.steps);
+            println!(
+                "Schäfer–Turek 2D-1 (Re 20), {per_d} cells per diameter, {} cells, {scheme}-order convection: steady after {} {how}, {time_s:.1} s",
+                r.cells, r.steps
+            );
             println!("| quantity | diffsim | published | |\n|---|---|---|---|");
             println!(
                 "| c_D | {:.4} | 5.57–5.59 (5.5795) | {} ({:+.2} % from 5.5795) |",
@@ -295,7 +332,7 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
             if !(a.t_end.is_finite() && a.t_end > 2.5) {
                 return Err(CliError::Argument { arg: "--t-end", reason: format!("must exceed 2.5 (the last 2 time units are measured), got {}", a.t_end) });
             }
-            let r = run_2d2(per_d, a.t_end, 2.0, |t, cl| {
+            let r = run_2d2(per_d, convection, a.t_end, 2.0, |t, cl| {
                 spinner.set_message(format!("2D-2, {per_d} cells per diameter: t = {t:.2} of {}, c_L = {cl:+.3}", a.t_end));
                 spinner.tick();
             })?;
@@ -305,11 +342,14 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
                 write_force_series(dir, &r.series, per_d)?;
             }
             if a.json {
-                let obj = serde_json::json!({"case": "2d-2", "resolution": per_d, "cd_max": r.cd_max, "cl_max": r.cl_max, "st": r.st, "cells": r.cells, "steps": r.steps, "time_s": time_s});
+                let obj = serde_json::json!({"case": "2d-2", "convection": scheme, "resolution": per_d, "cd_max": r.cd_max, "cl_max": r.cl_max, "st": r.st, "cells": r.cells, "steps": r.steps, "time_s": time_s});
                 println!("{obj}");
                 return Ok(());
             }
-            println!("Schäfer–Turek 2D-2 (Re 100), {per_d} cells per diameter, {} cells: {} steps to t = {}, {time_s:.1} s", r.cells, r.steps, a.t_end);
+            println!(
+                "Schäfer–Turek 2D-2 (Re 100), {per_d} cells per diameter, {} cells, {scheme}-order convection: {} steps to t = {}, {time_s:.1} s",
+                r.cells, r.steps, a.t_end
+            );
             println!("| quantity | diffsim | published | |\n|---|---|---|---|");
             println!("| c_D,max | {:.4} | 3.22–3.24 | {} |", r.cd_max, within(r.cd_max, reference::CD_MAX_2D2));
             println!("| c_L,max | {:.4} | 0.99–1.01 | {} |", r.cl_max, within(r.cl_max, reference::CL_MAX_2D2));
@@ -321,7 +361,7 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
 
 /// 2D-1 by Newton at several resolutions: error against wall time (c_D and
 /// Δp against the tight values).
-fn cylinder_sweep(a: &CylinderArgs) -> Result<(), CliError> {
+fn cylinder_sweep(a: &CylinderArgs, convection: diffsim_solvers::flow::Convection) -> Result<(), CliError> {
     use diffsim_solvers::flow::cylinder::{reference, run_2d1_newton};
     if a.case != CylinderCase::Steady {
         return Err(CliError::Argument { arg: "--sweep", reason: "only case 2d-1 has a sweep".into() });
@@ -333,7 +373,7 @@ fn cylinder_sweep(a: &CylinderArgs) -> Result<(), CliError> {
     let mut rows = Vec::new();
     for &per_d in &a.sweep {
         let t = Instant::now();
-        let r = run_2d1_newton(per_d)?;
+        let r = run_2d1_newton(per_d, convection)?;
         rows.push((per_d, r, t.elapsed().as_secs_f64()));
     }
     let cd_err = |cd: f64| (cd / reference::CD_2D1_TIGHT - 1.0).abs();

@@ -9,7 +9,7 @@
 //! an outflow side has zero pressure outside.
 
 use diffsim_solvers::boundary::Side;
-use diffsim_solvers::flow::{Flow2d, FlowError, NewtonOptions, Shape, SteadyFlow, SteadyState, WallSpeed};
+use diffsim_solvers::flow::{Convection, Flow2d, FlowError, NewtonOptions, Shape, SteadyFlow, SteadyState, WallSpeed};
 
 use super::SceneError;
 use super::build::{at, domain_boundary, placed};
@@ -211,7 +211,7 @@ pub(super) fn build(file: SceneFile, text: &str) -> Result<SteadyScene, SceneErr
         }
         newton_fits(nx as u64, ny as u64)?;
         let h = positive("domain.cell", d.cell.unwrap_or(1.0))?;
-        let flow = Flow2d { nx, ny, h, nu, boundary: domain_boundary(d)?, wall_speed: WallSpeed::default() };
+        let flow = Flow2d { nx, ny, h, nu, boundary: domain_boundary(d)?, wall_speed: WallSpeed::default(), convection: Convection::default() };
         flow.validate().map_err(|e| SceneError::key("domain.boundary", e.to_string()))?;
         Ok(flow)
     })?;

@@ -3,13 +3,21 @@
 //! values of Ghia, Ghia & Shin, J. Comput. Phys. 48 (1982) 387–411, Tables I
 //! and II (a 129 × 129 grid; their tabulated points, as printed).
 
-use super::{Flow2d, WallSpeed};
+use super::{Convection, Flow2d, WallSpeed};
 use crate::boundary::Boundary;
 
 impl Flow2d {
     /// The lid-driven cavity of `n × n` cells at Reynolds number `re`.
     pub fn cavity(n: usize, re: f64) -> Self {
-        Flow2d { nx: n, ny: n, h: 1.0 / n as f64, nu: 1.0 / re, boundary: Boundary::CLOSED, wall_speed: WallSpeed { top: 1.0, ..WallSpeed::default() } }
+        Flow2d {
+            nx: n,
+            ny: n,
+            h: 1.0 / n as f64,
+            nu: 1.0 / re,
+            boundary: Boundary::CLOSED,
+            wall_speed: WallSpeed { top: 1.0, ..WallSpeed::default() },
+            convection: Convection::default(),
+        }
     }
 }
 

@@ -5,8 +5,8 @@
 //! steady; case 2D-2 (peak 1.5, Re 100) sheds vortices periodically.
 
 use super::{
-    Flow2d, FlowError, Integrator, NewtonOptions, Shape, SteadyFlow, SteadyOptions, SteadyState, Stepper, WallSpeed, fluid_value_at, ladder, march_to_steady,
-    max_speed,
+    Convection, Flow2d, FlowError, Integrator, NewtonOptions, Shape, SteadyFlow, SteadyOptions, SteadyState, Stepper, WallSpeed, fluid_value_at, ladder,
+    march_to_steady, max_speed,
 };
 use crate::boundary::{Boundary, Profile, Side};
 
@@ -45,6 +45,7 @@ pub fn schafer_turek(cells_per_d: usize, u_max: f64) -> (Flow2d, Shape) {
         nu: 1e-3,
         boundary: Boundary { left: Side::Inflow(Profile::Parabolic(u_max)), right: Side::Outflow, bottom: Side::Closed, top: Side::Closed },
         wall_speed: WallSpeed::default(),
+        convection: Convection::Second,
     };
     (cfg, Shape::Circle { center: [0.2, 0.2], radius: 0.5 * DIAMETER })
 }
@@ -91,11 +92,19 @@ pub struct Steady2d1 {
     pub steps: usize,
 }
 
-/// Case 2D-1: marched from Poiseuille flow to the steady state (`max
-/// |du/dt| < tolerance`). `observe(step, time, rate)` after every step.
-pub fn run_2d1(cells_per_d: usize, tolerance: f64, max_steps: usize, observe: impl FnMut(usize, f64, f64)) -> Result<Steady2d1, FlowError> {
+/// Case 2D-1 with the advection's `convection`: marched from Poiseuille
+/// flow to the steady state (`max |du/dt| < tolerance`). `observe(step,
+/// time, rate)` after every step.
+pub fn run_2d1(
+    cells_per_d: usize,
+    convection: Convection,
+    tolerance: f64,
+    max_steps: usize,
+    observe: impl FnMut(usize, f64, f64),
+) -> Result<Steady2d1, FlowError> {
     let u_max = 0.3;
     let (cfg, shape) = schafer_turek(cells_per_d, u_max);
+    let cfg = Flow2d { convection, ..cfg };
     let mut stepper = Stepper::with_bodies(cfg, 1e-10, std::slice::from_ref(&shape))?;
     let mut x = poiseuille(&cfg, u_max);
     let report = march_to_steady(&mut stepper, &mut x, &SteadyOptions { tolerance, max_steps, reference_speed: 1.5 * u_max }, observe)?;
@@ -108,11 +117,12 @@ pub fn run_2d1(cells_per_d: usize, tolerance: f64, max_steps: usize, observe: im
 /// Case 2D-1 by Newton's method on the discrete steady equations
 /// ([`SteadyFlow`], the same equations the march of [`run_2d1`] converges
 /// to), from Poiseuille flow; `steps` counts Newton steps.
-pub fn run_2d1_newton(cells_per_d: usize) -> Result<Steady2d1, FlowError> {
+pub fn run_2d1_newton(cells_per_d: usize, convection: Convection) -> Result<Steady2d1, FlowError> {
     let u_max = 0.3;
-    let (_, shape) = schafer_turek(cells_per_d, u_max);
-    let (flow, state) = steady_in_channel(cells_per_d, &shape, u_max)?;
-    let cfg = *flow.config();
+    let (cfg, shape) = schafer_turek(cells_per_d, u_max);
+    let cfg = Flow2d { convection, ..cfg };
+    let flow = SteadyFlow::new(cfg, std::slice::from_ref(&shape))?;
+    let state = flow.solve(&poiseuille(&cfg, u_max), &NewtonOptions::default())?;
     let [cd, cl] = coefficients(flow.force(&state, force_box(&cfg)), u_max);
     let at = |x: f64| fluid_value_at(&cfg, Some(flow.cut()), &state.pressure, x, 0.2).unwrap_or(f64::NAN);
     Ok(Steady2d1 { cd, cl, dp: at(0.15) - at(0.25), cells: cfg.nx * cfg.ny, steps: state.steps })
@@ -145,14 +155,16 @@ pub struct Periodic2d2 {
     pub series: Vec<[f64; 3]>,
 }
 
-/// Case 2D-2: SSP-RK3 from Poiseuille flow to `t_end`, the step the
+/// Case 2D-2 with the advection's `convection`: SSP-RK3 from Poiseuille
+/// flow to `t_end`, the step the
 /// largest stable one (Courant number 0.8 of RK3's limit) for the current
 /// speed; the force at the middle of every step. Maxima and the period
 /// (mean spacing of the lift's upward crossings of its mean) over the last
 /// `measure` time units. An error when fewer than two periods fit.
-pub fn run_2d2(cells_per_d: usize, t_end: f64, measure: f64, mut observe: impl FnMut(f64, f64)) -> Result<Periodic2d2, FlowError> {
+pub fn run_2d2(cells_per_d: usize, convection: Convection, t_end: f64, measure: f64, mut observe: impl FnMut(f64, f64)) -> Result<Periodic2d2, FlowError> {
     let u_max = 1.5;
     let (cfg, shape) = schafer_turek(cells_per_d, u_max);
+    let cfg = Flow2d { convection, ..cfg };
     let mut stepper = Stepper::with_bodies(cfg, 1e-10, std::slice::from_ref(&shape))?;
     let mut x = poiseuille(&cfg, u_max);
     let (mut t, mut steps) = (0.0, 0);

@@ -2,7 +2,7 @@
 //! the velocity copied into arrays padded with one ring of ghost values that
 //! carry the side conditions, then one branch-free stencil per face.
 
-use super::Flow2d;
+use super::{Convection, Flow2d};
 use crate::boundary::Side;
 
 /// The velocity with a ring of ghost values: `u` with columns `−1..=Nx+1`
@@ -77,9 +77,11 @@ pub fn advanced_faces(lo: Side, hi: Side, n: usize) -> std::ops::RangeInclusive<
     first..=last
 }
 
-/// `out = F(x)`: advection in divergence form with central (second-order)
-/// averages, `−∂(uu)/∂x − ∂(uv)/∂y` for `u` and `−∂(uv)/∂x − ∂(vv)/∂y`
-/// for `v`, plus `ν·Δ` with the five-point Laplacian, on every advanced face
+/// `out = F(x)`: advection in divergence form, `−∂(uu)/∂x − ∂(uv)/∂y` for
+/// `u` and `−∂(uv)/∂x − ∂(vv)/∂y` for `v` (central flux differences, the
+/// velocities interpolated to the flux points as `cfg.convection` says:
+/// two-point averages, or four-point where the points fit), plus `ν·Δ`
+/// with the five-point Laplacian, on every advanced face
 /// ([`advanced_faces`]); zero on faces the boundary sets.
 pub fn momentum(cfg: &Flow2d, x: &[f64], pads: &mut Pads, out: &mut [f64]) {
     fill_pads(cfg, x, pads);
@@ -92,19 +94,37 @@ pub fn momentum(cfg: &Flow2d, x: &[f64], pads: &mut Pads, out: &mut [f64]) {
     let (su, sv) = (nx + 3, nx + 2);
     // u at x-face (i, j): padded U(i, j) = pu[(j+1)·su + i+1], V(i, j) = pv[(j+1)·sv + i+1].
     let faces = advanced_faces(b.left, b.right, nx);
+    // Fourth order: four-point interpolation wherever its points lie in
+    // the padded arrays (two-point averages next to the sides).
+    let high = cfg.convection == Convection::Fourth;
+    let i4 = |a: f64, b: f64, c: f64, d: f64| (9.0 * (b + c) - (a + d)) / 16.0;
     for j in 0..ny {
         let (r, rd, rn) = ((j + 1) * su, j * su, (j + 2) * su);
         let (vr, vn) = ((j + 1) * sv, (j + 2) * sv);
         for i in faces.clone() {
             let c = r + i + 1;
             let uc = pu[c];
-            let ue = 0.5 * (uc + pu[c + 1]);
-            let uw = 0.5 * (pu[c - 1] + uc);
-            let un = 0.5 * (uc + pu[rn + i + 1]);
-            let us = 0.5 * (pu[rd + i + 1] + uc);
+            let mut ue = 0.5 * (uc + pu[c + 1]);
+            let mut uw = 0.5 * (pu[c - 1] + uc);
+            let mut un = 0.5 * (uc + pu[rn + i + 1]);
+            let mut us = 0.5 * (pu[rd + i + 1] + uc);
+            if high {
+                if i >= 2 && i + 2 <= nx {
+                    ue = i4(pu[c - 1], uc, pu[c + 1], pu[c + 2]);
+                    uw = i4(pu[c - 2], pu[c - 1], uc, pu[c + 1]);
+                }
+                if j >= 1 && j + 3 <= ny + 1 {
+                    un = i4(pu[rd + i + 1], uc, pu[rn + i + 1], pu[rn + su + i + 1]);
+                    us = i4(pu[rd - su + i + 1], pu[rd + i + 1], uc, pu[rn + i + 1]);
+                }
+            }
             // Corners above and below the face: v averaged over the face's two columns.
-            let vn_ = 0.5 * (pv[vn + i] + pv[vn + i + 1]);
-            let vs = 0.5 * (pv[vr + i] + pv[vr + i + 1]);
+            let mut vn_ = 0.5 * (pv[vn + i] + pv[vn + i + 1]);
+            let mut vs = 0.5 * (pv[vr + i] + pv[vr + i + 1]);
+            if high && i >= 2 && i + 2 <= nx {
+                vn_ = i4(pv[vn + i - 1], pv[vn + i], pv[vn + i + 1], pv[vn + i + 2]);
+                vs = i4(pv[vr + i - 1], pv[vr + i], pv[vr + i + 1], pv[vr + i + 2]);
+            }
             let adv = (ue * ue - uw * uw + un * vn_ - us * vs) * inv_h;
             let lap = pu[c + 1] + pu[c - 1] + pu[rn + i + 1] + pu[rd + i + 1] - 4.0 * uc;
             ou[j * (nx + 1) + i] = nu_h2 * lap - adv;
@@ -117,13 +137,27 @@ pub fn momentum(cfg: &Flow2d, x: &[f64], pads: &mut Pads, out: &mut [f64]) {
         for i in 0..nx {
             let c = r + i + 1;
             let vc = pv[c];
-            let vn_ = 0.5 * (vc + pv[rn + i + 1]);
-            let vs = 0.5 * (pv[rd + i + 1] + vc);
-            let ve = 0.5 * (vc + pv[c + 1]);
-            let vw = 0.5 * (pv[c - 1] + vc);
+            let mut vn_ = 0.5 * (vc + pv[rn + i + 1]);
+            let mut vs = 0.5 * (pv[rd + i + 1] + vc);
+            let mut ve = 0.5 * (vc + pv[c + 1]);
+            let mut vw = 0.5 * (pv[c - 1] + vc);
+            if high {
+                if j >= 2 && j + 2 <= ny {
+                    vn_ = i4(pv[rd + i + 1], vc, pv[rn + i + 1], pv[rn + sv + i + 1]);
+                    vs = i4(pv[rd - sv + i + 1], pv[rd + i + 1], vc, pv[rn + i + 1]);
+                }
+                if i >= 1 && i + 2 <= nx {
+                    ve = i4(pv[c - 1], vc, pv[c + 1], pv[c + 2]);
+                    vw = i4(pv[c - 2], pv[c - 1], vc, pv[c + 1]);
+                }
+            }
             // Corners right and left of the face: u averaged over the face's two rows.
-            let ue = 0.5 * (pu[ud + i + 2] + pu[ur + i + 2]);
-            let uw = 0.5 * (pu[ud + i + 1] + pu[ur + i + 1]);
+            let mut ue = 0.5 * (pu[ud + i + 2] + pu[ur + i + 2]);
+            let mut uw = 0.5 * (pu[ud + i + 1] + pu[ur + i + 1]);
+            if high && j >= 2 && j + 2 <= ny {
+                ue = i4(pu[ud - su + i + 2], pu[ud + i + 2], pu[ur + i + 2], pu[ur + su + i + 2]);
+                uw = i4(pu[ud - su + i + 1], pu[ud + i + 1], pu[ur + i + 1], pu[ur + su + i + 1]);
+            }
             let adv = (ue * ve - uw * vw + vn_ * vn_ - vs * vs) * inv_h;
             let lap = pv[c + 1] + pv[c - 1] + pv[rn + i + 1] + pv[rd + i + 1] - 4.0 * vc;
             ov[j * nx + i] = nu_h2 * lap - adv;

@@ -23,7 +23,7 @@
 //! transposed Jacobian, `λ = J⁻ᵀ·∂L/∂z`, then `dL/ds = −λᵀ·∂R/∂s` with
 //! `∂R/∂s` from the cut's sensitivities ([`super::CutSensitivity`]).
 
-use super::{Cut, CutSensitivity, Flow2d, FlowError, Pads, Shape, advanced_faces, momentum};
+use super::{Convection, Cut, CutSensitivity, Flow2d, FlowError, Pads, Shape, advanced_faces, momentum};
 use crate::boundary::Side;
 use crate::linalg::SparseLu;
 use crate::smoke::enforce_boundary;
@@ -278,13 +278,23 @@ impl SteadyFlow {
         let mut entries = Vec::with_capacity(14 * n);
         let mut shifted = vec![0.0; n];
         let position = |k: usize| if k < n_u { (k % (nx + 1), k / (nx + 1)) } else { ((k - n_u) % nx, (k - n_u) / nx) };
-        for colour in 0..18 {
-            let is_u = colour < 9;
-            let (ci, cj) = ((colour % 9) / 3, colour % 3);
+        // How far a row reads its own component (`reach`), and the other
+        // component's block: second order reads ±1 and a 2 × 2 block, the
+        // fourth-order interpolation ±2 and a 2 × 4 block. Columns of one
+        // colour lie `period` apart, so that no row reads two of them.
+        let (reach, wide): (isize, bool) = match cfg.convection {
+            Convection::Second => (1, false),
+            Convection::Fourth => (2, true),
+        };
+        let period = (2 * reach + 1) as usize;
+        let per_component = period * period;
+        for colour in 0..2 * per_component {
+            let is_u = colour < per_component;
+            let (ci, cj) = ((colour % per_component) / period, colour % period);
             let columns: Vec<usize> = (0..n)
                 .filter(|&k| {
                     let (i, j) = position(k);
-                    (k < n_u) == is_u && i % 3 == ci && j % 3 == cj && self.cut.fluid[k] > 0.0
+                    (k < n_u) == is_u && i % period == ci && j % period == cj && self.cut.fluid[k] > 0.0
                 })
                 .collect();
             if columns.is_empty() {
@@ -300,22 +310,27 @@ impl SteadyFlow {
             for &g in &columns {
                 let (i, j) = position(g);
                 let (i, j) = (i as isize, j as isize);
-                // Rows that read column g: same component within ±1, the
-                // other component in a 2 × 2 block.
-                let mut rows: Vec<usize> = Vec::with_capacity(13);
+                // Rows that read column g: same component within ±reach,
+                // the other component in its block.
+                let mut rows: Vec<usize> = Vec::with_capacity(33);
                 let (same_w, same_h, other_w, other_h, other_off) = if is_u { (nx + 1, ny, nx, ny + 1, n_u) } else { (nx, ny + 1, nx + 1, ny, 0) };
                 let same_off = if is_u { 0 } else { n_u };
-                for dj in -1..=1 {
-                    for di in -1..=1 {
+                for dj in -reach..=reach {
+                    for di in -reach..=reach {
                         let (a, b) = (i + di, j + dj);
                         if a >= 0 && b >= 0 && (a as usize) < same_w && (b as usize) < same_h {
                             rows.push(same_off + b as usize * same_w + a as usize);
                         }
                     }
                 }
-                let (di_range, dj_range) = if is_u { ([-1, 0], [0, 1]) } else { ([0, 1], [-1, 0]) };
-                for dj in dj_range {
-                    for di in di_range {
+                // A v-row (a, b) reads u in columns a, a + 1 and rows
+                // b − 1, b (b − 2 … b + 1 when wide); a u-row (a, b) reads v
+                // in rows b, b + 1 and columns a − 1, a (a − 2 … a + 1 when
+                // wide). So column g is read from these offsets.
+                let spread: &[isize] = if wide { &[-1, 0, 1, 2] } else { &[0, 1] };
+                let (di_range, dj_range): (&[isize], &[isize]) = if is_u { (&[-1, 0], spread) } else { (spread, &[-1, 0]) };
+                for &dj in dj_range {
+                    for &di in di_range {
                         let (a, b) = (i + di, j + dj);
                         if a >= 0 && b >= 0 && (a as usize) < other_w && (b as usize) < other_h {
                             rows.push(other_off + b as usize * other_w + a as usize);
