@@ -731,9 +731,9 @@ impl Cut {
 /// near fluid cells do not determine the quadratic.
 pub fn fluid_value_at(cfg: &Flow2d, cut: Option<&Cut>, field: &[f64], x: f64, y: f64) -> Option<f64> {
     const TERMS: usize = 6;
-    let (radius, terms) = (3.5, TERMS);
+    const RADIUS: f64 = 3.5;
     let (nx, ny, h) = (cfg.nx, cfg.ny, cfg.h);
-    let reach = radius * h;
+    let reach = RADIUS * h;
     let (i0, i1) = (((x - reach) / h - 0.5).floor().max(0.0) as usize, (((x + reach) / h - 0.5).ceil().max(0.0) as usize).min(nx - 1));
     let (j0, j1) = (((y - reach) / h - 0.5).floor().max(0.0) as usize, (((y + reach) / h - 0.5).ceil().max(0.0) as usize).min(ny - 1));
     // Normal equations in units of h.
@@ -746,12 +746,12 @@ pub fn fluid_value_at(cfg: &Flow2d, cut: Option<&Cut>, field: &[f64], x: f64, y:
                 continue;
             }
             let (dx, dy) = ((((i as f64) + 0.5) * h - x) / h, (((j as f64) + 0.5) * h - y) / h);
-            if dx.hypot(dy) > radius {
+            if dx.hypot(dy) > RADIUS {
                 continue;
             }
             let basis = [1.0, dx, dy, dx * dx, dx * dy, dy * dy];
-            for a in 0..terms {
-                for b in 0..terms {
+            for a in 0..TERMS {
+                for b in 0..TERMS {
                     m[a][b] += basis[a] * basis[b];
                 }
                 m[a][TERMS] += basis[a] * field[c];
@@ -759,18 +759,18 @@ pub fn fluid_value_at(cfg: &Flow2d, cut: Option<&Cut>, field: &[f64], x: f64, y:
             count += 1;
         }
     }
-    if count < terms {
+    if count < TERMS {
         return None;
     }
     // Gaussian elimination with partial pivoting; the intercept is the value.
     let scale = m[0][0];
-    for k in 0..terms {
-        let pivot = (k..terms).max_by(|&a, &b| m[a][k].abs().total_cmp(&m[b][k].abs()))?;
+    for k in 0..TERMS {
+        let pivot = (k..TERMS).max_by(|&a, &b| m[a][k].abs().total_cmp(&m[b][k].abs()))?;
         if m[pivot][k].abs() < 1e-10 * scale {
             return None;
         }
         m.swap(k, pivot);
-        for r in k + 1..terms {
+        for r in k + 1..TERMS {
             let f = m[r][k] / m[k][k];
             for c in k..=TERMS {
                 m[r][c] -= f * m[k][c];
@@ -778,9 +778,9 @@ pub fn fluid_value_at(cfg: &Flow2d, cut: Option<&Cut>, field: &[f64], x: f64, y:
         }
     }
     let mut sol = [0.0f64; TERMS];
-    for k in (0..terms).rev() {
+    for k in (0..TERMS).rev() {
         let mut v = m[k][TERMS];
-        for c in k + 1..terms {
+        for c in k + 1..TERMS {
             v -= m[k][c] * sol[c];
         }
         sol[k] = v / m[k][k];

@@ -121,8 +121,7 @@ pub fn run_2d1_newton(cells_per_d: usize, convection: Convection) -> Result<Stea
     let u_max = 0.3;
     let (cfg, shape) = schafer_turek(cells_per_d, u_max);
     let cfg = Flow2d { convection, ..cfg };
-    let flow = SteadyFlow::new(cfg, std::slice::from_ref(&shape))?;
-    let state = flow.solve(&poiseuille(&cfg, u_max), &NewtonOptions::default())?;
+    let (flow, state) = steady_from_poiseuille(cfg, &shape, u_max)?;
     let [cd, cl] = coefficients(flow.force(&state, force_box(&cfg)), u_max);
     let at = |x: f64| fluid_value_at(&cfg, Some(flow.cut()), &state.pressure, x, 0.2).unwrap_or(f64::NAN);
     Ok(Steady2d1 { cd, cl, dp: at(0.15) - at(0.25), cells: cfg.nx * cfg.ny, steps: state.steps })
@@ -132,7 +131,12 @@ pub fn run_2d1_newton(cells_per_d: usize, convection: Convection) -> Result<Stea
 /// `cells_per_d` cells per diameter and peak inflow `u_max`, by Newton's
 /// method from Poiseuille flow.
 pub fn steady_in_channel(cells_per_d: usize, shape: &Shape, u_max: f64) -> Result<(SteadyFlow, SteadyState), FlowError> {
-    let (cfg, _) = schafer_turek(cells_per_d, u_max);
+    steady_from_poiseuille(schafer_turek(cells_per_d, u_max).0, shape, u_max)
+}
+
+/// The steady flow around `shape` on `cfg`, by Newton's method from
+/// Poiseuille flow of peak `u_max`.
+fn steady_from_poiseuille(cfg: Flow2d, shape: &Shape, u_max: f64) -> Result<(SteadyFlow, SteadyState), FlowError> {
     let flow = SteadyFlow::new(cfg, std::slice::from_ref(shape))?;
     let state = flow.solve(&poiseuille(&cfg, u_max), &NewtonOptions::default())?;
     Ok((flow, state))

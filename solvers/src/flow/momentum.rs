@@ -108,20 +108,20 @@ pub fn momentum(cfg: &Flow2d, x: &[f64], pads: &mut Pads, out: &mut [f64]) {
             let mut uw = 0.5 * (pu[c - 1] + uc);
             let mut un = 0.5 * (uc + pu[rn + i + 1]);
             let mut us = 0.5 * (pu[rd + i + 1] + uc);
-            if high {
-                if i >= 2 && i + 2 <= nx {
-                    ue = i4(pu[c - 1], uc, pu[c + 1], pu[c + 2]);
-                    uw = i4(pu[c - 2], pu[c - 1], uc, pu[c + 1]);
-                }
-                if j >= 1 && j + 3 <= ny + 1 {
-                    un = i4(pu[rd + i + 1], uc, pu[rn + i + 1], pu[rn + su + i + 1]);
-                    us = i4(pu[rd - su + i + 1], pu[rd + i + 1], uc, pu[rn + i + 1]);
-                }
+            // Four points along x fit from face 2 to face nx − 2.
+            let wide_x = high && i >= 2 && i + 2 <= nx;
+            if wide_x {
+                ue = i4(pu[c - 1], uc, pu[c + 1], pu[c + 2]);
+                uw = i4(pu[c - 2], pu[c - 1], uc, pu[c + 1]);
+            }
+            if high && j >= 1 && j + 3 <= ny + 1 {
+                un = i4(pu[rd + i + 1], uc, pu[rn + i + 1], pu[rn + su + i + 1]);
+                us = i4(pu[rd - su + i + 1], pu[rd + i + 1], uc, pu[rn + i + 1]);
             }
             // Corners above and below the face: v averaged over the face's two columns.
             let mut vn_ = 0.5 * (pv[vn + i] + pv[vn + i + 1]);
             let mut vs = 0.5 * (pv[vr + i] + pv[vr + i + 1]);
-            if high && i >= 2 && i + 2 <= nx {
+            if wide_x {
                 vn_ = i4(pv[vn + i - 1], pv[vn + i], pv[vn + i + 1], pv[vn + i + 2]);
                 vs = i4(pv[vr + i - 1], pv[vr + i], pv[vr + i + 1], pv[vr + i + 2]);
             }
@@ -141,20 +141,20 @@ pub fn momentum(cfg: &Flow2d, x: &[f64], pads: &mut Pads, out: &mut [f64]) {
             let mut vs = 0.5 * (pv[rd + i + 1] + vc);
             let mut ve = 0.5 * (vc + pv[c + 1]);
             let mut vw = 0.5 * (pv[c - 1] + vc);
-            if high {
-                if j >= 2 && j + 2 <= ny {
-                    vn_ = i4(pv[rd + i + 1], vc, pv[rn + i + 1], pv[rn + sv + i + 1]);
-                    vs = i4(pv[rd - sv + i + 1], pv[rd + i + 1], vc, pv[rn + i + 1]);
-                }
-                if i >= 1 && i + 2 <= nx {
-                    ve = i4(pv[c - 1], vc, pv[c + 1], pv[c + 2]);
-                    vw = i4(pv[c - 2], pv[c - 1], vc, pv[c + 1]);
-                }
+            // Four points along y fit from face 2 to face ny − 2.
+            let wide_y = high && j >= 2 && j + 2 <= ny;
+            if wide_y {
+                vn_ = i4(pv[rd + i + 1], vc, pv[rn + i + 1], pv[rn + sv + i + 1]);
+                vs = i4(pv[rd - sv + i + 1], pv[rd + i + 1], vc, pv[rn + i + 1]);
+            }
+            if high && i >= 1 && i + 2 <= nx {
+                ve = i4(pv[c - 1], vc, pv[c + 1], pv[c + 2]);
+                vw = i4(pv[c - 2], pv[c - 1], vc, pv[c + 1]);
             }
             // Corners right and left of the face: u averaged over the face's two rows.
             let mut ue = 0.5 * (pu[ud + i + 2] + pu[ur + i + 2]);
             let mut uw = 0.5 * (pu[ud + i + 1] + pu[ur + i + 1]);
-            if high && j >= 2 && j + 2 <= ny {
+            if wide_y {
                 ue = i4(pu[ud - su + i + 2], pu[ud + i + 2], pu[ur + i + 2], pu[ur + su + i + 2]);
                 uw = i4(pu[ud - su + i + 1], pu[ud + i + 1], pu[ur + i + 1], pu[ur + su + i + 1]);
             }
