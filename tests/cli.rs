@@ -407,9 +407,13 @@ fn cylinder_experiment_reports_both_cases_as_json() {
     let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-2", "--resolution", "10", "--t-end", "8", "--json"]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-    for key in ["cd_max", "cl_max", "st", "time_s"] {
+    for key in ["cd_max", "cl_max", "cl_min", "cl_mean", "st", "dp", "time_s"] {
         assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
     }
+    let f = |k: &str| last[k].as_f64().unwrap();
+    assert!(f("cl_min") < f("cl_mean") && f("cl_mean") < f("cl_max"), "{last}");
+    // Δp converges from below (2.20 at 10 cells per D against 2.46–2.50).
+    assert!((f("dp") - 2.48).abs() < 0.12 * 2.48, "{last}");
     // 10 cells per diameter with the default fourth-order interpolation:
     // the period within 5 %, the lift peak within 5 %, the drag peak
     // within 7 % (it converges from above).

@@ -342,7 +342,7 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
                 write_force_series(dir, &r.series, per_d)?;
             }
             if a.json {
-                let obj = serde_json::json!({"case": "2d-2", "convection": scheme, "resolution": per_d, "cd_max": r.cd_max, "cl_max": r.cl_max, "st": r.st, "cells": r.cells, "steps": r.steps, "time_s": time_s});
+                let obj = serde_json::json!({"case": "2d-2", "convection": scheme, "resolution": per_d, "cd_max": r.cd_max, "cl_max": r.cl_max, "cl_min": r.cl_min, "cl_mean": r.cl_mean, "st": r.st, "dp": r.dp, "cells": r.cells, "steps": r.steps, "time_s": time_s});
                 println!("{obj}");
                 return Ok(());
             }
@@ -354,6 +354,9 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
             println!("| c_D,max | {:.4} | 3.22–3.24 | {} |", r.cd_max, within(r.cd_max, reference::CD_MAX_2D2));
             println!("| c_L,max | {:.4} | 0.99–1.01 | {} |", r.cl_max, within(r.cl_max, reference::CL_MAX_2D2));
             println!("| St | {:.4} | 0.295–0.305 | {} |", r.st, within(r.st, reference::ST_2D2));
+            println!("| Δp(t₀ + 1/2f) | {:.4} | 2.46–2.50 | {} |", r.dp, within(r.dp, reference::DP_2D2));
+            println!("| c_L,min | {:.4} | (not published) | |", r.cl_min);
+            println!("| mean c_L | {:+.4} | (not published) | |", r.cl_mean);
         }
     }
     Ok(())
@@ -416,11 +419,11 @@ fn cylinder_sweep(a: &CylinderArgs, convection: diffsim_solvers::flow::Convectio
 }
 
 /// c_D and c_L over time as CSV and a plot.
-fn write_force_series(dir: &std::path::Path, series: &[[f64; 3]], per_d: usize) -> Result<(), CliError> {
+fn write_force_series(dir: &std::path::Path, series: &[[f64; 4]], per_d: usize) -> Result<(), CliError> {
     std::fs::create_dir_all(dir).map_err(|source| CliError::Io { path: dir.to_path_buf(), source })?;
-    let mut csv = String::from("t,cd,cl\n");
+    let mut csv = String::from("t,cd,cl,dp\n");
     for s in series {
-        csv.push_str(&format!("{:.6},{:.8},{:.8}\n", s[0], s[1], s[2]));
+        csv.push_str(&format!("{:.6},{:.8},{:.8},{:.8}\n", s[0], s[1], s[2], s[3]));
     }
     let path = dir.join("cylinder_2d2.csv");
     std::fs::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;

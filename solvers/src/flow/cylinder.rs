@@ -27,6 +27,9 @@ pub mod reference {
     pub const CL_MAX_2D2: (f64, f64) = (0.99, 1.01);
     /// 2D-2: Strouhal number.
     pub const ST_2D2: (f64, f64) = (0.295, 0.305);
+    /// 2D-2: pressure difference `p(0.15, 0.2) − p(0.25, 0.2)` half a period
+    /// after the lift's maximum.
+    pub const DP_2D2: (f64, f64) = (2.46, 2.50);
     /// The tight 2D-1 drag coefficient of the later high-accuracy computations.
     pub const CD_2D1_TIGHT: f64 = 5.57953523384;
     /// The tight 2D-1 pressure difference of the same computations.
@@ -149,22 +152,30 @@ pub struct Periodic2d2 {
     pub cd_max: f64,
     /// Largest lift coefficient over the measured periods.
     pub cl_max: f64,
+    /// Smallest lift coefficient over the measured periods.
+    pub cl_min: f64,
+    /// Time-averaged lift coefficient over the measured periods (the
+    /// channel is not symmetric about the cylinder, so it is not zero).
+    pub cl_mean: f64,
     /// Strouhal number `f·D/Ū` from the lift's period.
     pub st: f64,
+    /// Pressure difference `p(0.15, 0.2) − p(0.25, 0.2)` half a period
+    /// after the lift's maximum (the benchmark's `ΔP(t₀ + 1/(2f))`).
+    pub dp: f64,
     /// Cells.
     pub cells: usize,
     /// Time steps.
     pub steps: usize,
-    /// `(t, c_D, c_L)` at the middle of every step.
-    pub series: Vec<[f64; 3]>,
+    /// `(t, c_D, c_L, Δp)` at the middle of every step.
+    pub series: Vec<[f64; 4]>,
 }
 
 /// Case 2D-2 with the advection's `convection`: SSP-RK3 from Poiseuille
 /// flow to `t_end`, the step the
 /// largest stable one (Courant number 0.8 of RK3's limit) for the current
-/// speed; the force at the middle of every step. Maxima and the period
-/// (mean spacing of the lift's upward crossings of its mean) over the last
-/// `measure` time units. An error when fewer than two periods fit.
+/// speed; the force and `Δp` (the pressure by [`fluid_value_at`]) at the
+/// middle of every step, measured over the last `measure` time units by
+/// [`periodic_measures`].
 pub fn run_2d2(cells_per_d: usize, convection: Convection, t_end: f64, measure: f64, mut observe: impl FnMut(f64, f64)) -> Result<Periodic2d2, FlowError> {
     let u_max = 1.5;
     let (cfg, shape) = schafer_turek(cells_per_d, u_max);
@@ -185,14 +196,48 @@ pub fn run_2d2(cells_per_d: usize, convection: Convection, t_end: f64, measure: 
             *d = (b - a) / dt;
         }
         let [cd, cl] = coefficients(stepper.force_in_box(&mid, Some(&dudt), cells), u_max);
-        series.push([t + 0.5 * dt, cd, cl]);
+        let p = stepper.pressure();
+        let at = |x: f64| fluid_value_at(&cfg, stepper.cut(), &p, x, 0.2).unwrap_or(f64::NAN);
+        series.push([t + 0.5 * dt, cd, cl, at(0.15) - at(0.25)]);
         t += dt;
         steps += 1;
         observe(t, cl);
     }
-    let tail: Vec<[f64; 3]> = series.iter().copied().filter(|s| s[0] >= t_end - measure).collect();
+    let m = periodic_measures(&series, t_end - measure)?;
+    let st = DIAMETER / (m.period * 2.0 * u_max / 3.0);
+    Ok(Periodic2d2 { cd_max: m.cd_max, cl_max: m.cl_max, cl_min: m.cl_min, cl_mean: m.cl_mean, st, dp: m.dp, cells: cfg.nx * cfg.ny, steps, series })
+}
+
+/// What case 2D-2 measures of a periodic series.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PeriodicMeasures {
+    /// Largest drag coefficient.
+    pub cd_max: f64,
+    /// Largest lift coefficient.
+    pub cl_max: f64,
+    /// Smallest lift coefficient.
+    pub cl_min: f64,
+    /// The lift's time average over whole periods.
+    pub cl_mean: f64,
+    /// The lift's period.
+    pub period: f64,
+    /// `Δp` half a period after the lift's maximum.
+    pub dp: f64,
+}
+
+/// The benchmark's measures of the samples `(t, c_D, c_L, Δp)` from time
+/// `from` on: the extrema; the period as the mean spacing of the lift's
+/// upward crossings of its sample mean (interpolated linearly); the lift's
+/// time average over the whole periods between the first and the last
+/// crossing (trapezoidal rule); `Δp` at `t₀ + T/2`, `t₀` the time of the
+/// largest lift sample (at `t₀ − T/2`, the same phase, when that falls past
+/// the end), interpolated linearly. An error when fewer than two periods
+/// fit.
+pub fn periodic_measures(series: &[[f64; 4]], from: f64) -> Result<PeriodicMeasures, FlowError> {
+    let tail: Vec<[f64; 4]> = series.iter().copied().filter(|s| s[0] >= from).collect();
     let cd_max = tail.iter().map(|s| s[1]).fold(f64::NEG_INFINITY, f64::max);
     let cl_max = tail.iter().map(|s| s[2]).fold(f64::NEG_INFINITY, f64::max);
+    let cl_min = tail.iter().map(|s| s[2]).fold(f64::INFINITY, f64::min);
     let mean = tail.iter().map(|s| s[2]).sum::<f64>() / tail.len().max(1) as f64;
     let mut ups = Vec::new();
     for w in tail.windows(2) {
@@ -204,7 +249,21 @@ pub fn run_2d2(cells_per_d: usize, convection: Convection, t_end: f64, measure: 
     if ups.len() < 3 {
         return Err(FlowError::NotPeriodic { crossings: ups.len() });
     }
-    let period = (ups[ups.len() - 1] - ups[0]) / (ups.len() - 1) as f64;
-    let st = DIAMETER / (period * 2.0 * u_max / 3.0);
-    Ok(Periodic2d2 { cd_max, cl_max, st, cells: cfg.nx * cfg.ny, steps, series })
+    let (first, last) = (ups[0], ups[ups.len() - 1]);
+    let period = (last - first) / (ups.len() - 1) as f64;
+    // Column `k` at time `t`, interpolated linearly between samples.
+    let at = |t: f64, k: usize| {
+        tail.windows(2).find(|w| w[0][0] <= t && t <= w[1][0]).map_or(f64::NAN, |w| w[0][k] + (w[1][k] - w[0][k]) * (t - w[0][0]) / (w[1][0] - w[0][0]))
+    };
+    // The samples between the first and the last crossing, with the lift
+    // interpolated at both ends, integrated by the trapezoidal rule.
+    let mut points = vec![(first, at(first, 2))];
+    points.extend(tail.iter().filter(|s| s[0] > first && s[0] < last).map(|s| (s[0], s[2])));
+    points.push((last, at(last, 2)));
+    let area: f64 = points.windows(2).map(|w| 0.5 * (w[0].1 + w[1].1) * (w[1].0 - w[0].0)).sum();
+    let cl_mean = area / (last - first);
+    let t0 = tail.iter().fold((f64::NAN, f64::NEG_INFINITY), |best, s| if s[2] > best.1 { (s[0], s[2]) } else { best }).0;
+    let end = tail[tail.len() - 1][0];
+    let phase = if t0 + 0.5 * period <= end { t0 + 0.5 * period } else { t0 - 0.5 * period };
+    Ok(PeriodicMeasures { cd_max, cl_max, cl_min, cl_mean, period, dp: at(phase, 3) })
 }
