@@ -350,3 +350,48 @@ fn the_periodic_measures_recover_a_known_signal() {
     // Less than two periods after `from`: not periodic enough to measure.
     assert!(periodic_measures(&series, 3.6).is_err());
 }
+
+/// The discretisation has the channel's mirror symmetry: the cylinder of
+/// case 2D-2 at y = 0.2 and at its mirror image y = 0.21 about the
+/// channel's middle, 150 steps from Poiseuille flow with the four-point
+/// advection: mirrored velocities (`u` alike, `v` of opposite sign) and
+/// lifts of opposite sign, to rounding. (So the mean lift of 2D-2 is the
+/// flow's, not a bias of the stencils.)
+#[test]
+fn the_flow_around_a_cylinder_mirrors_with_the_channel() {
+    use diffsim_solvers::flow::Shape;
+    let u_max = 1.5;
+    let (cfg, _) = schafer_turek(10, u_max);
+    let cfg = Flow2d { convection: Convection::Fourth, ..cfg };
+    let run = |y: f64| {
+        let circle = Shape::Circle { center: [0.2, y], radius: 0.05 };
+        let mut stepper = Stepper::with_bodies(cfg, 1e-12, std::slice::from_ref(&circle)).unwrap();
+        let mut x = poiseuille(&cfg, u_max);
+        let dt = Integrator::Rk3.stable_dt(&cfg, 1.5 * u_max);
+        for _ in 0..150 {
+            stepper.step(&mut x, dt, Integrator::Rk3).unwrap();
+        }
+        // A box symmetric about the channel's middle, around either cylinder.
+        let force = stepper.force_in_box(&x, None, [5, 35, 5, cfg.ny - 5]);
+        (x, force)
+    };
+    let (below, f_below) = run(0.2);
+    let (above, f_above) = run(0.21);
+    let (nx, ny, n_u) = (cfg.nx, cfg.ny, cfg.n_u());
+    let scale = below.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let mut worst = 0.0f64;
+    for j in 0..ny {
+        for i in 0..=nx {
+            worst = worst.max((below[j * (nx + 1) + i] - above[(ny - 1 - j) * (nx + 1) + i]).abs());
+        }
+    }
+    for j in 0..=ny {
+        for i in 0..nx {
+            worst = worst.max((below[n_u + j * nx + i] + above[n_u + (ny - j) * nx + i]).abs());
+        }
+    }
+    assert!(worst < 1e-9 * scale, "the mirrored flows differ by {worst} (scale {scale})");
+    assert!(f_below[1].abs() > 1e-6 * f_below[0], "no lift to compare: {f_below:?}");
+    assert!((f_below[0] - f_above[0]).abs() < 1e-9 * f_below[0], "drag {f_below:?} against {f_above:?}");
+    assert!((f_below[1] + f_above[1]).abs() < 1e-9 * f_below[0], "lift {f_below:?} against {f_above:?}");
+}
