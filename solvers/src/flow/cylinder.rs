@@ -171,11 +171,10 @@ pub struct Periodic2d2 {
 }
 
 /// Case 2D-2 with the advection's `convection`: SSP-RK3 from Poiseuille
-/// flow to `t_end`, the step the
-/// largest stable one (Courant number 0.8 of RK3's limit) for the current
-/// speed; the force and `Δp` (the pressure by [`fluid_value_at`]) at the
-/// middle of every step, measured over the last `measure` time units by
-/// [`periodic_measures`].
+/// flow to `t_end`, the step the largest stable one (Courant number 0.8 of
+/// RK3's limit) for the current speed; the force and `Δp` (the pressure by
+/// [`fluid_value_at`]) at the middle of every step, measured over the last
+/// `measure` time units by [`periodic_measures`].
 pub fn run_2d2(cells_per_d: usize, convection: Convection, t_end: f64, measure: f64, mut observe: impl FnMut(f64, f64)) -> Result<Periodic2d2, FlowError> {
     let u_max = 1.5;
     let (cfg, shape) = schafer_turek(cells_per_d, u_max);
