@@ -9,19 +9,23 @@ two share nothing but the problem's definition.
 - Discretisation: P2 velocity, P1 pressure (inf-sup stable), the Laplacian
   form of the viscous term, so the natural condition at the outlet is the
   benchmark's "do-nothing" condition ν ∂u/∂n − p n = 0.
-- 2D-1: Newton's method on the steady equations. 2D-2: BDF2 in time with
-  the advecting velocity extrapolated (2uⁿ − uⁿ⁻¹), one linear solve per
-  step, from rest with the inflow ramped up over the first time unit.
+- 2D-1: Newton's method on the steady equations. 2D-2 (`--scheme`): BDF2
+  with the advecting velocity extrapolated (2uⁿ − uⁿ⁻¹), one linear solve
+  per step, or Crank–Nicolson with the convection implicit, by Newton's
+  method; from rest with the inflow ramped up over the first time unit,
+  or from a saved state (`--load-state`, interpolated from its own mesh
+  when that differs, so a finer mesh starts on the limit cycle).
 - Forces: the volume (weak-residual) form of John & Matthies: c = −20 ·
   R(u, p; v) with v a finite-element function equal to the unit vector on
   the body and zero on every other node; superconvergent, and free of any
   derivative evaluated on the boundary.
 
-Reproduce (docs/cylinder.md, "An independent reference"):
+Reproduce (docs/cylinder.md, "An independent reference"; `dfg-fem` beside
+this file makes the virtual environment with the pinned packages):
 
-    python3 -m venv /tmp/femv && /tmp/femv/bin/pip install numpy scipy scikit-fem triangle
-    /tmp/femv/bin/python scripts/reference/dfg_cylinder_fem.py --case 2d-1 --h 0.005
-    /tmp/femv/bin/python scripts/reference/dfg_cylinder_fem.py --case 2d-2 --h 0.005 --dt 0.0025
+    scripts/reference/dfg-fem --case 2d-1 --h 0.005
+    scripts/reference/dfg-fem --case 2d-2 --h 0.0075 --dt 0.0025 --save-state s.npz
+    scripts/reference/dfg-fem --case 2d-2 --h 0.0075 --scheme cn --load-state s.npz --t-end 11 --t-measure 10
 
 Prints one JSON line with the same keys as `diffsim experiment cylinder`.
 """
@@ -148,12 +152,15 @@ class Problem:
         x[f] = spla.splu(S[f][:, f].tocsc(), permc_spec="COLAMD").solve(b[f])
         return x[:n], x[n:]
 
-    def coefficients(self, u, p, dudt):
+    def coefficients(self, states, p, dudt):
         """c_D and c_L from the weak residual tested with the body's unit
-        vectors (2/(Ū² D) = 20 for Ū = 2/3·umax, D = 0.1, scaled to Ū)."""
+        vectors (2/(Ū² D) = 20 for Ū = 2/3·umax, D = 0.1, scaled to Ū); the
+        viscous and convective terms are averaged over `states` (one state
+        for BDF2 and the steady case, the step's two ends for Crank–Nicolson)."""
         ubar = 2.0 * self.umax / 3.0
         scale = 2.0 / (ubar**2 * 2 * RADIUS)
-        r = self.M @ dudt + self.K @ u + self.conv_matrix(u) @ u - self.B.T @ p
+        spatial = sum(self.K @ u + self.conv_matrix(u) @ u for u in states) / len(states)
+        r = self.M @ dudt + spatial - self.B.T @ p
         return -scale * (self.vd @ r), -scale * (self.vl @ r)
 
     def dp(self, p):
@@ -174,10 +181,20 @@ def steady(prob):
     return u, p, it + 1
 
 
-def periodic(prob, dt, t_end, t_measure, state=None):
-    """BDF2 from rest (or from `state` = (t, u, u_old) of a run on the same
-    mesh, restarting with one backward-Euler step); returns the rows
-    (t, c_D, c_L, Δp) from `t_measure` on, the step count and the final state."""
+def periodic(prob, dt, t_end, t_measure, state=None, scheme="bdf2"):
+    """Time steps from rest (or from `state` = (t, u, u_old) of a run on the
+    same mesh); returns the rows (t, c_D, c_L, Δp) from `t_measure` on, the
+    step count and the final state.
+
+    - "bdf2": BDF2 with the advecting velocity extrapolated (2uⁿ − uⁿ⁻¹),
+      one linear solve per step; the first step (and the first after a
+      restart) is backward Euler.
+    - "cn": Crank–Nicolson with the convection fully implicit, solved by
+      Newton's method to a relative change below 1e-6 (two linear solves a
+      step; converging quadratically, a third would move it by about
+      1e-14); the pressure and the forces belong to the half step t − Δt/2,
+      where the scheme is second order. Neither damps (BDF2 does) nor lags
+      (the extrapolation does)."""
     n = prob.nu_
     t, u, u_old = (0.0, np.zeros(n), np.zeros(n)) if state is None else state
     rows = []
@@ -185,21 +202,74 @@ def periodic(prob, dt, t_end, t_measure, state=None):
     while t < t_end - 1e-12:
         t += dt
         steps += 1
-        ramp = min(1.0, t)
-        if steps > 1:  # BDF2, the advecting velocity extrapolated
-            a, c_new, hist = 2 * u - u_old, 1.5 / dt, (4 * u - u_old) / (2 * dt)
-        else:  # backward Euler
-            a, c_new, hist = u, 1.0 / dt, u / dt
-        A = c_new * prob.M + prob.K + prob.conv_matrix(a)
-        u_new, p = prob.solve(A, prob.M @ hist, ramp * prob.inflow)
-        dudt = c_new * u_new - hist
+        bc = min(1.0, t) * prob.inflow
+        if scheme == "cn":
+            # The first step from rest guesses u itself (no history yet).
+            u_new, p = cn_step(prob, dt, u, u_old if steps > 1 or state else u, bc)
+            dudt, at, states = (u_new - u) / dt, t - 0.5 * dt, (u, u_new)
+        else:
+            if steps > 1:  # BDF2, the advecting velocity extrapolated
+                a, c_new, hist = 2 * u - u_old, 1.5 / dt, (4 * u - u_old) / (2 * dt)
+            else:  # backward Euler
+                a, c_new, hist = u, 1.0 / dt, u / dt
+            A = c_new * prob.M + prob.K + prob.conv_matrix(a)
+            u_new, p = prob.solve(A, prob.M @ hist, bc)
+            dudt, at, states = c_new * u_new - hist, t, (u_new,)
         u_old, u = u, u_new
-        if t >= t_measure - 1e-12:
-            cd, cl = prob.coefficients(u, p, dudt)
-            rows.append((t, cd, cl, prob.dp(p)))
+        if at >= t_measure - 1e-12:
+            cd, cl = prob.coefficients(states, p, dudt)
+            rows.append((at, cd, cl, prob.dp(p)))
         if steps % 200 == 0:
             print(f"t = {t:.3f}", file=sys.stderr, flush=True)
     return np.array(rows), steps, (t, u, u_old)
+
+
+def cn_step(prob, dt, u, u_prev, bc):
+    """One Crank–Nicolson step: M(u' − u)/Δt + ½(K + C(u'))u' + ½(K + C(u))u
+    − Bᵀq = 0, B u' = 0, by Newton from the extrapolation 2u − u_prev
+    (C(w)w is quadratic, so C(w)w ≈ (C(g) + C'(g))w − C'(g)g about g).
+    Returns u' and the half-step pressure q."""
+    explicit = prob.M @ u / dt - 0.5 * (prob.K @ u + prob.conv_matrix(u) @ u)
+    guess = 2 * u - u_prev
+    for _ in range(20):
+        jac = prob.conv_matrix(guess, convection_jacobian)
+        A = prob.M / dt + 0.5 * (prob.K + prob.conv_matrix(guess) + jac)
+        u_new, p = prob.solve(A, explicit + 0.5 * (jac @ guess), bc)
+        change = np.linalg.norm(u_new - guess) / max(np.linalg.norm(u_new), 1e-300)
+        guess = u_new
+        if change < 1e-6:  # quadratic: the next iterate would move by ~1e-14
+            break
+    else:
+        sys.exit("Crank–Nicolson: Newton did not converge in 20 iterations; lower --dt")
+    return u_new, p
+
+
+def load_state(prob, path):
+    """A state saved by `--save-state`: as it is on the same mesh, else
+    interpolated from the mesh saved with it onto this one (both velocities
+    become the interpolant; the first Crank–Nicolson step projects it onto
+    this mesh's divergence-free fields). Points of this mesh that fall just
+    outside the other's, between the two inscribed polygons, are read 10⁻⁴
+    off the body, where the velocity is within 10⁻³ of the wall's zero."""
+    z = np.load(path)
+    t, u, u_old = float(z["t"]), z["u"], z["u_old"]
+    same = "mesh_p" not in z or (z["mesh_p"].shape == prob.mesh.p.shape and np.array_equal(z["mesh_p"], prob.mesh.p))
+    if same:
+        if u.size != prob.nu_:
+            sys.exit(f"{path}: a state of {u.size} velocity unknowns without its mesh cannot start a mesh of {prob.nu_}")
+        return t, u, u_old
+    source = Basis(MeshTri(z["mesh_p"], z["mesh_t"]), ElementVector(ElementTriP2()), intorder=4)
+    x = prob.vb.doflocs.copy()
+    off = np.hypot(x[0] - CENTER[0], x[1] - CENTER[1])
+    near = off < RADIUS + 1e-4
+    for k in range(2):
+        x[k, near] = CENTER[k] + (x[k, near] - CENTER[k]) * (RADIUS + 1e-4) / off[near]
+    ix, iy = prob.vb.split_indices()
+    v = np.zeros(prob.nu_)
+    v[ix] = (source.probes(x[:, ix]) @ u)[: ix.size]
+    v[iy] = (source.probes(x[:, iy]) @ u)[iy.size :]
+    v[prob.body] = 0.0
+    return t, v, v
 
 
 def measures(series):
@@ -240,11 +310,12 @@ def main():
     ap.add_argument("--h", type=float, default=0.005, help="element size at the body")
     ap.add_argument("--segments", type=int, default=0, help="polygon sides for the body (default: 2πr/(h/4))")
     ap.add_argument("--dt", type=float, default=0.0025)
+    ap.add_argument("--scheme", choices=["bdf2", "cn"], default="bdf2", help="time stepping of 2d-2 (see `periodic`)")
     ap.add_argument("--t-end", type=float, default=8.0)
     ap.add_argument("--t-measure", type=float, default=6.0)
     ap.add_argument("--out", help="CSV of t, c_D, c_L, Δp (2d-2)")
     ap.add_argument("--save-state", help="write the final (t, u, u_old) to this .npz (2d-2)")
-    ap.add_argument("--load-state", help="start from a saved state of the same mesh instead of rest (2d-2)")
+    ap.add_argument("--load-state", help="start from a saved state instead of rest, interpolated if its mesh differs (2d-2)")
     args = ap.parse_args()
     segments = args.segments or int(np.ceil(2 * np.pi * RADIUS / (args.h / 4)))
     start = time.time()
@@ -253,19 +324,16 @@ def main():
                unknowns=prob.nu_ + prob.np_)
     if args.case == "2d-1":
         u, p, its = steady(prob)
-        cd, cl = prob.coefficients(u, p, np.zeros_like(u))
+        cd, cl = prob.coefficients((u,), p, np.zeros_like(u))
         out.update(cd=cd, cl=cl, dp=prob.dp(p), newton=its)
     else:
-        state = None
-        if args.load_state:
-            z = np.load(args.load_state)
-            state = (float(z["t"]), z["u"], z["u_old"])
-        series, steps, (t, u, u_old) = periodic(prob, args.dt, args.t_end, args.t_measure, state)
+        state = load_state(prob, args.load_state) if args.load_state else None
+        series, steps, (t, u, u_old) = periodic(prob, args.dt, args.t_end, args.t_measure, state, args.scheme)
         if args.save_state:
-            np.savez(args.save_state, t=t, u=u, u_old=u_old)
+            np.savez(args.save_state, t=t, u=u, u_old=u_old, mesh_p=prob.mesh.p, mesh_t=prob.mesh.t)
         if args.out:
             np.savetxt(args.out, series, delimiter=",", header="t,cd,cl,dp", comments="")
-        out.update(measures(series), dt=args.dt, steps=steps)
+        out.update(measures(series), dt=args.dt, scheme=args.scheme, steps=steps)
     out["time_s"] = time.time() - start
     print(json.dumps({k: (v.item() if hasattr(v, "item") else v) for k, v in out.items()}))
 
