@@ -15,6 +15,8 @@ two share nothing but the problem's definition.
   method; from rest with the inflow ramped up over the first time unit,
   or from a saved state (`--load-state`, interpolated from its own mesh
   when that differs, so a finer mesh starts on the limit cycle).
+- `--length` changes the channel's length (the outlet's place; the
+  benchmark's is 2.2).
 - Forces: the volume (weak-residual) form of John & Matthies: c = −20 ·
   R(u, p; v) with v a finite-element function equal to the unit vector on
   the body and zero on every other node; superconvergent, and free of any
@@ -305,10 +307,12 @@ def measures(series):
 
 
 def main():
+    global LENGTH
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--case", choices=["2d-1", "2d-2"], default="2d-1")
     ap.add_argument("--h", type=float, default=0.005, help="element size at the body")
     ap.add_argument("--segments", type=int, default=0, help="polygon sides for the body (default: 2πr/(h/4))")
+    ap.add_argument("--length", type=float, default=LENGTH, help="the channel's length (the benchmark's is 2.2), to see what the outflow's place does")
     ap.add_argument("--dt", type=float, default=0.0025)
     ap.add_argument("--scheme", choices=["bdf2", "cn"], default="bdf2", help="time stepping of 2d-2 (see `periodic`)")
     ap.add_argument("--t-end", type=float, default=8.0)
@@ -317,6 +321,7 @@ def main():
     ap.add_argument("--save-state", help="write the final (t, u, u_old) to this .npz (2d-2)")
     ap.add_argument("--load-state", help="start from a saved state instead of rest, interpolated if its mesh differs (2d-2)")
     args = ap.parse_args()
+    LENGTH = args.length
     segments = args.segments or int(np.ceil(2 * np.pi * RADIUS / (args.h / 4)))
     start = time.time()
     prob = Problem(args.h, segments, 0.3 if args.case == "2d-1" else 1.5)
