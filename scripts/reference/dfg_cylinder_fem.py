@@ -50,12 +50,12 @@ NU = 1e-3
 P_FRONT, P_BACK = (0.15, 0.2), (0.25, 0.2)
 
 
-def build_mesh(h, segments):
-    """The channel minus the cylinder's inscribed polygon, graded from `h` at
-    the body to `8h` (and `2h` in the near wake)."""
+def build_mesh(h, segments, length=LENGTH):
+    """The channel of `length` minus the cylinder's inscribed polygon,
+    graded from `h` at the body to `8h` (and `2h` in the near wake)."""
     theta = 2 * np.pi * np.arange(segments) / segments
     circle = np.c_[CENTER[0] + RADIUS * np.cos(theta), CENTER[1] + RADIUS * np.sin(theta)]
-    corners = np.array([[0, 0], [LENGTH, 0], [LENGTH, HEIGHT], [0, HEIGHT]], dtype=float)
+    corners = np.array([[0, 0], [length, 0], [length, HEIGHT], [0, HEIGHT]], dtype=float)
     vertices = np.vstack([corners, circle])
     seg_box = [[i, (i + 1) % 4] for i in range(4)]
     seg_circle = [[4 + i, 4 + (i + 1) % segments] for i in range(segments)]
@@ -110,8 +110,8 @@ def convection_jacobian(u, v, w):
 
 
 class Problem:
-    def __init__(self, h, segments, umax):
-        self.mesh = build_mesh(h, segments)
+    def __init__(self, h, segments, umax, length=LENGTH):
+        self.mesh = build_mesh(h, segments, length)
         self.vb = Basis(self.mesh, ElementVector(ElementTriP2()), intorder=4)
         self.pb = Basis(self.mesh, ElementTriP1(), intorder=4)
         self.nu_, self.np_ = self.vb.N, self.pb.N
@@ -122,7 +122,7 @@ class Problem:
         facets = self.mesh.boundary_facets()
         mid = self.mesh.p[:, self.mesh.facets[:, facets]].mean(axis=1)
         self.body_facets = facets[np.hypot(mid[0] - CENTER[0], mid[1] - CENTER[1]) < 2 * RADIUS]
-        dirichlet_facets = facets[mid[0] < LENGTH - 1e-9]
+        dirichlet_facets = facets[mid[0] < length - 1e-9]
         self.dirichlet = self.vb.get_dofs(dirichlet_facets).all()
         self.body = self.vb.get_dofs(self.body_facets).all()
         inlet = np.zeros(self.nu_)
@@ -154,14 +154,17 @@ class Problem:
         x[f] = spla.splu(S[f][:, f].tocsc(), permc_spec="COLAMD").solve(b[f])
         return x[:n], x[n:]
 
-    def coefficients(self, states, p, dudt):
+    def spatial(self, u):
+        """The viscous and convective terms K u + C(u) u."""
+        return self.K @ u + self.conv_matrix(u) @ u
+
+    def coefficients(self, spatial, p, dudt):
         """c_D and c_L from the weak residual tested with the body's unit
-        vectors (2/(Ū² D) = 20 for Ū = 2/3·umax, D = 0.1, scaled to Ū); the
-        viscous and convective terms are averaged over `states` (one state
-        for BDF2 and the steady case, the step's two ends for Crank–Nicolson)."""
+        vectors (2/(Ū² D) = 20 for Ū = 2/3·umax, D = 0.1, scaled to Ū);
+        `spatial` is `self.spatial` of the state (for Crank–Nicolson, the
+        mean over the step's two ends)."""
         ubar = 2.0 * self.umax / 3.0
         scale = 2.0 / (ubar**2 * 2 * RADIUS)
-        spatial = sum(self.K @ u + self.conv_matrix(u) @ u for u in states) / len(states)
         r = self.M @ dudt + spatial - self.B.T @ p
         return -scale * (self.vd @ r), -scale * (self.vl @ r)
 
@@ -184,8 +187,8 @@ def steady(prob):
 
 
 def periodic(prob, dt, t_end, t_measure, state=None, scheme="bdf2"):
-    """Time steps from rest (or from `state` = (t, u, u_old) of a run on the
-    same mesh); returns the rows (t, c_D, c_L, Δp) from `t_measure` on, the
+    """Time steps from rest (or from `state` = (t, u, u_old) on this mesh,
+    as `load_state` gives it); returns the rows (t, c_D, c_L, Δp) from `t_measure` on, the
     step count and the final state.
 
     - "bdf2": BDF2 with the advecting velocity extrapolated (2uⁿ − uⁿ⁻¹),
@@ -201,14 +204,17 @@ def periodic(prob, dt, t_end, t_measure, state=None, scheme="bdf2"):
     t, u, u_old = (0.0, np.zeros(n), np.zeros(n)) if state is None else state
     rows = []
     steps = 0
+    s_u = prob.spatial(u) if scheme == "cn" else None  # carried from step to step
     while t < t_end - 1e-12:
         t += dt
         steps += 1
         bc = min(1.0, t) * prob.inflow
         if scheme == "cn":
             # The first step from rest guesses u itself (no history yet).
-            u_new, p = cn_step(prob, dt, u, u_old if steps > 1 or state else u, bc)
-            dudt, at, states = (u_new - u) / dt, t - 0.5 * dt, (u, u_new)
+            u_new, p = cn_step(prob, dt, u, s_u, u_old if steps > 1 or state else u, bc)
+            s_new = prob.spatial(u_new)
+            dudt, at, spatial = (u_new - u) / dt, t - 0.5 * dt, 0.5 * (s_u + s_new)
+            s_u = s_new
         else:
             if steps > 1:  # BDF2, the advecting velocity extrapolated
                 a, c_new, hist = 2 * u - u_old, 1.5 / dt, (4 * u - u_old) / (2 * dt)
@@ -216,22 +222,22 @@ def periodic(prob, dt, t_end, t_measure, state=None, scheme="bdf2"):
                 a, c_new, hist = u, 1.0 / dt, u / dt
             A = c_new * prob.M + prob.K + prob.conv_matrix(a)
             u_new, p = prob.solve(A, prob.M @ hist, bc)
-            dudt, at, states = c_new * u_new - hist, t, (u_new,)
+            dudt, at, spatial = c_new * u_new - hist, t, None
         u_old, u = u, u_new
         if at >= t_measure - 1e-12:
-            cd, cl = prob.coefficients(states, p, dudt)
+            cd, cl = prob.coefficients(prob.spatial(u) if spatial is None else spatial, p, dudt)
             rows.append((at, cd, cl, prob.dp(p)))
         if steps % 200 == 0:
             print(f"t = {t:.3f}", file=sys.stderr, flush=True)
     return np.array(rows), steps, (t, u, u_old)
 
 
-def cn_step(prob, dt, u, u_prev, bc):
+def cn_step(prob, dt, u, s_u, u_prev, bc):
     """One Crank–Nicolson step: M(u' − u)/Δt + ½(K + C(u'))u' + ½(K + C(u))u
     − Bᵀq = 0, B u' = 0, by Newton from the extrapolation 2u − u_prev
     (C(w)w is quadratic, so C(w)w ≈ (C(g) + C'(g))w − C'(g)g about g).
-    Returns u' and the half-step pressure q."""
-    explicit = prob.M @ u / dt - 0.5 * (prob.K @ u + prob.conv_matrix(u) @ u)
+    `s_u` is `prob.spatial(u)`. Returns u' and the half-step pressure q."""
+    explicit = prob.M @ u / dt - 0.5 * s_u
     guess = 2 * u - u_prev
     for _ in range(20):
         jac = prob.conv_matrix(guess, convection_jacobian)
@@ -307,7 +313,6 @@ def measures(series):
 
 
 def main():
-    global LENGTH
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--case", choices=["2d-1", "2d-2"], default="2d-1")
     ap.add_argument("--h", type=float, default=0.005, help="element size at the body")
@@ -321,15 +326,14 @@ def main():
     ap.add_argument("--save-state", help="write the final (t, u, u_old) to this .npz (2d-2)")
     ap.add_argument("--load-state", help="start from a saved state instead of rest, interpolated if its mesh differs (2d-2)")
     args = ap.parse_args()
-    LENGTH = args.length
     segments = args.segments or int(np.ceil(2 * np.pi * RADIUS / (args.h / 4)))
     start = time.time()
-    prob = Problem(args.h, segments, 0.3 if args.case == "2d-1" else 1.5)
+    prob = Problem(args.h, segments, 0.3 if args.case == "2d-1" else 1.5, args.length)
     out = dict(case=args.case, h=args.h, segments=segments, triangles=prob.mesh.t.shape[1],
                unknowns=prob.nu_ + prob.np_)
     if args.case == "2d-1":
         u, p, its = steady(prob)
-        cd, cl = prob.coefficients((u,), p, np.zeros_like(u))
+        cd, cl = prob.coefficients(prob.spatial(u), p, np.zeros_like(u))
         out.update(cd=cd, cl=cl, dp=prob.dp(p), newton=its)
     else:
         state = load_state(prob, args.load_state) if args.load_state else None
