@@ -457,6 +457,35 @@ fn drag_shape_experiment_lowers_the_drag_at_fixed_area() {
     }
     fails_with(&["experiment", "drag-shape", "--modes", "1"], "invalid argument --modes");
     fails_with(&["experiment", "drag-shape", "--u-max", "2"], "invalid argument --u-max");
+    fails_with(&["experiment", "drag-shape", "--re", "50"], "invalid argument --re");
+    fails_with(&["experiment", "drag-shape", "--free-stream", "1"], "invalid argument --free-stream");
+    // Continuing from the final shape: the start is that shape, its drag the
+    // end's (same grid, r₀ recomputed from the area), and the reduction
+    // still counts from the cylinder.
+    let saved = out.join("end.json");
+    std::fs::write(&saved, &stdout).unwrap();
+    let (code, again, err) = diffsim(&[
+        "experiment",
+        "drag-shape",
+        "--quick",
+        "--modes",
+        "4",
+        "--max-iterations",
+        "0",
+        "--no-verify",
+        "--json",
+        "--start-shape",
+        saved.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let next: serde_json::Value = serde_json::from_str(again.lines().last().unwrap()).unwrap();
+    let g = |k: &str| next[k].as_f64().unwrap();
+    assert!((g("cd_start") - f("cd_end")).abs() < 1e-8 * f("cd_end"), "{next} after {last}");
+    assert!((g("cd_cylinder") - f("cd_start")).abs() < 1e-8 * f("cd_start"), "{next}");
+    assert!((g("reduction_pct") - f("reduction_pct")).abs() < 1e-6, "{next}");
+    assert!(next["cd_start_fine"].is_null(), "--no-verify still verified: {next}");
+    std::fs::write(&saved, "{\"shape\": {\"params\": [0.2, 0.2, 0.05, 0.01, 0.0, 0.0, 0.0]}}").unwrap();
+    fails_with(&["experiment", "drag-shape", "--start-shape", saved.to_str().unwrap()], "its mode 1 is not zero");
     std::fs::remove_dir_all(&out).ok();
 }
 

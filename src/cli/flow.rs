@@ -451,11 +451,30 @@ pub struct DragShapeArgs {
     #[arg(long, default_value_t = 8)]
     modes: usize,
     /// Peak inflow speed (0.3: Re 20, the benchmark's 2D-1; Re = 2/3·u_max·D/ν).
-    #[arg(long, default_value_t = 0.3)]
+    #[arg(long, default_value_t = 0.3, conflicts_with = "re")]
     u_max: f64,
+    /// The Reynolds number Ū·D/ν instead of --u-max (up to 40).
+    #[arg(long)]
+    re: Option<f64>,
+    /// Put the body in a free stream instead of the benchmark's channel: a
+    /// square box reaching this many diameters from the body's centre to
+    /// each side (uniform inflow, outflow, the top and bottom walls sliding
+    /// with the stream).
+    #[arg(long, value_name = "HALF_WIDTH")]
+    free_stream: Option<f64>,
     /// L-BFGS iterations at most.
     #[arg(long, default_value_t = 60)]
     max_iterations: usize,
+    /// Start from the final shape of an earlier run instead of the cylinder:
+    /// a file whose last line is that run's `--json` line (its Fourier
+    /// modes 2.., rescaled to the cylinder's area; to continue on a finer
+    /// grid or in another stream).
+    #[arg(long, value_name = "FILE")]
+    start_shape: Option<PathBuf>,
+    /// Skip the re-simulation on a grid twice as fine (it needs about four
+    /// times the memory: a wide free stream may not fit).
+    #[arg(long)]
+    no_verify: bool,
     /// Print the result as one JSON object on the last line.
     #[arg(long)]
     json: bool,
@@ -465,7 +484,7 @@ pub struct DragShapeArgs {
 }
 
 pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
-    use diffsim_solvers::flow::drag_shape::{DragShapeOptions, drag_coefficient, optimise};
+    use diffsim_solvers::flow::drag_shape::{DragShapeOptions, Stream, drag_coefficient, optimise_from, shape_at_area};
     let per_d = a.resolution.unwrap_or(if a.quick { 10 } else { 20 });
     if !(10..=100).contains(&per_d) || per_d % 10 != 0 {
         return Err(CliError::Argument { arg: "--resolution", reason: format!("cells per diameter must be a multiple of 10 between 10 and 100, got {per_d}") });
@@ -473,23 +492,59 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
     if !(2..=16).contains(&a.modes) {
         return Err(CliError::Argument { arg: "--modes", reason: format!("the highest mode must be between 2 and 16, got {}", a.modes) });
     }
-    if !(a.u_max.is_finite() && a.u_max > 0.0 && a.u_max <= 0.6) {
+    let u_max = match a.re {
+        Some(re) if re.is_finite() && re > 0.0 && re <= 40.0 => 1.5 * re * 1e-3 / diffsim_solvers::flow::cylinder::DIAMETER,
+        Some(re) => return Err(CliError::Argument { arg: "--re", reason: format!("must be in (0, 40] (where the flow stays steady), got {re}") }),
+        None => a.u_max,
+    };
+    if !(u_max.is_finite() && u_max > 0.0 && u_max <= 0.6) {
         return Err(CliError::Argument { arg: "--u-max", reason: format!("must be in (0, 0.6] (Re up to 40, where the flow stays steady), got {}", a.u_max) });
     }
-    let opts = DragShapeOptions { cells_per_d: per_d, modes: a.modes, u_max: a.u_max, max_iterations: a.max_iterations, gradient_reduction: 100.0 };
+    let stream = match a.free_stream {
+        None => Stream::Channel,
+        Some(w) if w.is_finite() && (2.0..=40.0).contains(&w) => Stream::Free { half_width: w },
+        Some(w) => {
+            return Err(CliError::Argument { arg: "--free-stream", reason: format!("the box's half-width must be between 2 and 40 diameters, got {w}") });
+        }
+    };
+    let opts = DragShapeOptions { stream, cells_per_d: per_d, modes: a.modes, u_max, max_iterations: a.max_iterations, gradient_reduction: 100.0 };
+    let place = match stream {
+        Stream::Channel => "the channel".to_string(),
+        Stream::Free { half_width } => format!("a free stream ({half_width} diameters to each side)"),
+    };
+    // The Reynolds number without the rounding noise of u_max's round trip.
+    let re_shown = (opts.reynolds() * 1e6).round() / 1e6;
     let start = Instant::now();
     if !a.json {
-        eprintln!("minimising the drag at Re {:.0}, {per_d} cells per diameter, modes 2..={} …", opts.reynolds(), a.modes);
+        eprintln!("minimising the drag in {place} at Re {re_shown}, {per_d} cells per diameter, modes 2..={} …", a.modes);
     }
-    let r = optimise(&opts)?;
+    let setting = stream.setting(per_d, u_max)?;
+    let q0 = match &a.start_shape {
+        None => vec![0.0; 2 * (a.modes - 1)],
+        Some(path) => {
+            let q = start_coefficients(path, a.modes)?;
+            let shape = shape_at_area(setting.cylinder.area(), a.modes, setting.center, &q).ok_or_else(|| CliError::Argument {
+                arg: "--start-shape",
+                reason: format!("{}: its modes leave no room for r₀ at the cylinder's area", path.display()),
+            })?;
+            shape.validate(&setting.cfg).map_err(|e| CliError::Argument { arg: "--start-shape", reason: format!("{}: {e}", path.display()) })?;
+            q
+        }
+    };
+    let r = optimise_from(&opts, &q0)?;
+    // The reduction is against the cylinder, whatever the start.
+    let cd_cylinder = if a.start_shape.is_some() { drag_coefficient(&setting, &setting.cylinder)? } else { r.cd_start };
     let optimise_s = start.elapsed().as_secs_f64();
     // Verification: both shapes again on a grid twice as fine.
-    let (_, circle) = diffsim_solvers::flow::cylinder::schafer_turek(per_d, a.u_max);
-    let fine_start = drag_coefficient(2 * per_d, &circle, a.u_max)?;
-    let fine_end = drag_coefficient(2 * per_d, &r.shape, a.u_max)?;
+    let fine = if a.no_verify {
+        None
+    } else {
+        let fine = stream.setting(2 * per_d, u_max)?;
+        Some((drag_coefficient(&fine, &fine.cylinder)?, drag_coefficient(&fine, &r.shape)?))
+    };
     let time_s = start.elapsed().as_secs_f64();
-    let reduction = 100.0 * (1.0 - r.cd_end / r.cd_start);
-    let fine_reduction = 100.0 * (1.0 - fine_end / fine_start);
+    let reduction = 100.0 * (1.0 - r.cd_end / cd_cylinder);
+    let fine_reduction = fine.map(|(start, end)| 100.0 * (1.0 - end / start));
     let shrink = r.gradient_start / r.gradient_end;
     if let Some(dir) = &a.out {
         write_drag_shapes(dir, &r, per_d)?;
@@ -497,10 +552,12 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
     if a.json {
         let obj = serde_json::json!({
             "re": opts.reynolds(), "resolution": per_d, "modes": a.modes,
-            "cd_start": r.cd_start, "cd_end": r.cd_end, "area_start": r.area_start, "area_end": r.area_end,
+            "stream": match stream { Stream::Channel => "channel", Stream::Free { .. } => "free" },
+            "half_width": match stream { Stream::Channel => None, Stream::Free { half_width } => Some(half_width) },
+            "cd_start": r.cd_start, "cd_end": r.cd_end, "cd_cylinder": cd_cylinder, "area_start": r.area_start, "area_end": r.area_end,
             "iterations": r.iterations, "solves": r.solves, "time_s": time_s, "optimise_s": optimise_s,
             "gradient_start": r.gradient_start, "gradient_end": r.gradient_end, "gradient_shrink": shrink,
-            "fine_resolution": 2 * per_d, "cd_start_fine": fine_start, "cd_end_fine": fine_end,
+            "fine_resolution": fine.map(|_| 2 * per_d), "cd_start_fine": fine.map(|f| f.0), "cd_end_fine": fine.map(|f| f.1),
             "reduction_pct": reduction, "reduction_fine_pct": fine_reduction,
             "shape": {"r0": match &r.shape { diffsim_solvers::flow::Shape::Fourier { r0, .. } => *r0, _ => f64::NAN }, "params": r.shape.params()},
             "stopped": r.stopped,
@@ -509,18 +566,20 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
         return Ok(());
     }
     println!(
-        "Minimum drag at fixed area, Re {:.0}, {per_d} cells per diameter, Fourier modes 2..={}: {} L-BFGS iterations, {} steady solves, {optimise_s:.1} s",
-        opts.reynolds(),
-        a.modes,
-        r.iterations,
-        r.solves
+        "Minimum drag at fixed area in {place}, Re {re_shown}, {per_d} cells per diameter, Fourier modes 2..={}: {} L-BFGS iterations, {} steady solves, {optimise_s:.1} s",
+        a.modes, r.iterations, r.solves
     );
     if let Some(why) = &r.stopped {
         println!("(the optimiser stopped early: {why})");
     }
+    if let Some(path) = &a.start_shape {
+        println!("(started from {}: c_D {:.4})", path.display(), r.cd_start);
+    }
     println!("| | cylinder | optimised | reduction |\n|---|---|---|---|");
-    println!("| c_D ({per_d} per D) | {:.4} | {:.4} | {reduction:.2} % |", r.cd_start, r.cd_end);
-    println!("| c_D ({} per D, re-simulated) | {fine_start:.4} | {fine_end:.4} | {fine_reduction:.2} % |", 2 * per_d);
+    println!("| c_D ({per_d} per D) | {cd_cylinder:.4} | {:.4} | {reduction:.2} % |", r.cd_end);
+    if let (Some((fine_start, fine_end)), Some(fine_reduction)) = (fine, fine_reduction) {
+        println!("| c_D ({} per D, re-simulated) | {fine_start:.4} | {fine_end:.4} | {fine_reduction:.2} % |", 2 * per_d);
+    }
     println!("| area | {:.6e} | {:.6e} | {:+.2e} % |", r.area_start, r.area_end, 100.0 * (r.area_end / r.area_start - 1.0));
     println!("| projected gradient | {:.3e} | {:.3e} | shrunk {shrink:.0}× |", r.gradient_start, r.gradient_end);
     if shrink < 100.0 {
@@ -529,6 +588,34 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
         );
     }
     Ok(())
+}
+
+/// The free Fourier coefficients `(a₂…a_K, b₂…b_K)` of the final shape of
+/// an earlier `drag-shape --json` run (the last line of `path`), padded to
+/// `modes`.
+fn start_coefficients(path: &std::path::Path, modes: usize) -> Result<Vec<f64>, CliError> {
+    let fail = |reason: String| CliError::Argument { arg: "--start-shape", reason: format!("{}: {reason}", path.display()) };
+    let text = std::fs::read_to_string(path).map_err(|e| fail(e.to_string()))?;
+    let line = text.lines().rev().find(|l| !l.trim().is_empty()).ok_or_else(|| fail("the file is empty".into()))?;
+    let json: serde_json::Value = serde_json::from_str(line).map_err(|e| fail(format!("its last line is not a JSON object: {e}")))?;
+    let params: Vec<f64> = json["shape"]["params"]
+        .as_array()
+        .and_then(|a| a.iter().map(|v| v.as_f64()).collect())
+        .ok_or_else(|| fail("its last line has no shape.params (the --json line of drag-shape)".into()))?;
+    // [cx, cy, r₀, a₁…a_K, b₁…b_K]
+    if params.len() < 5 || params.len() % 2 == 0 {
+        return Err(fail(format!("shape.params has {} numbers, not those of a Fourier shape [cx, cy, r0, a1..aK, b1..bK]", params.len())));
+    }
+    let k = (params.len() - 3) / 2;
+    let (cos, sin) = params[3..].split_at(k);
+    if cos[0] != 0.0 || sin[0] != 0.0 {
+        return Err(fail("its mode 1 is not zero (the optimiser keeps the body in place and leaves mode 1 out)".into()));
+    }
+    if cos.iter().chain(sin).enumerate().any(|(i, &c)| i % k >= modes && c != 0.0) {
+        return Err(fail(format!("it has modes up to {k}, above --modes {modes}")));
+    }
+    let pick = |part: &[f64]| (2..=modes).map(|m| part.get(m - 1).copied().unwrap_or(0.0)).collect::<Vec<f64>>();
+    Ok([pick(cos), pick(sin)].concat())
 }
 
 /// The shapes over the iterations (PNG) and the drag history (CSV, PNG).

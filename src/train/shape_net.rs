@@ -18,8 +18,8 @@ use rand::rngs::StdRng;
 
 use diffsim_solvers::flow::FlowError;
 use diffsim_solvers::flow::ShapeError;
-use diffsim_solvers::flow::cylinder::{DIAMETER, poiseuille, schafer_turek};
-use diffsim_solvers::flow::drag_shape::{DragShapeOptions, drag_coefficient, optimise, reduced_gradient, shape_at_area, steady_drag};
+use diffsim_solvers::flow::cylinder::DIAMETER;
+use diffsim_solvers::flow::drag_shape::{DragShapeOptions, Stream, drag_coefficient, optimise, reduced_gradient, shape_at_area, steady_drag};
 
 use crate::nn::{Activation, Init, Layer, Net};
 use crate::op::{Forward, Vjp};
@@ -160,10 +160,9 @@ pub fn train(opts: &ShapeNetOptions, mut progress: impl FnMut(usize, f64)) -> Re
     // Per training Re: the channel, the cylinder's drag, Newton's start.
     let mut samples = Vec::new();
     for &re in &opts.train_re {
-        let u = u_max_for(re);
-        let (cfg, circle) = schafer_turek(per_d, u);
-        let (cd_cylinder, _, x) = steady_drag(&cfg, &circle, u, &poiseuille(&cfg, u)).map_err(flow_err(re))?;
-        samples.push((re, cfg, cd_cylinder, x));
+        let setting = Stream::Channel.setting(per_d, u_max_for(re)).map_err(flow_err(re))?;
+        let (cd_cylinder, _, x) = steady_drag(&setting, &setting.cylinder, &setting.start).map_err(flow_err(re))?;
+        samples.push((re, setting, cd_cylinder, x));
     }
     let mut adam = Optimizer::adam(opts.lr);
     let mut losses = Vec::with_capacity(opts.iterations);
@@ -172,12 +171,11 @@ pub fn train(opts: &ShapeNetOptions, mut progress: impl FnMut(usize, f64)) -> Re
     for it in 0..opts.iterations {
         grad.fill(0.0);
         let mut loss = 0.0;
-        for (re, cfg, cd_cylinder, x) in samples.iter_mut() {
+        for (re, setting, cd_cylinder, x) in samples.iter_mut() {
             let q = propose(&net, &theta, *re, &bound);
-            let shape = shape_at_area(area, opts.modes, &q).expect("the output bounds keep ½Σq² below the area's r₀²");
+            let shape = shape_at_area(area, opts.modes, setting.center, &q).expect("the output bounds keep ½Σq² below the area's r₀²");
             // (Validated by the steady solve before any derivative runs.)
-            let u = u_max_for(*re);
-            let (cd, full, state) = steady_drag(cfg, &shape, u, x).map_err(flow_err(*re))?;
+            let (cd, full, state) = steady_drag(setting, &shape, x).map_err(flow_err(*re))?;
             *x = state;
             let n = opts.train_re.len() as f64;
             loss += cd / *cd_cylinder / n;
@@ -195,16 +193,23 @@ pub fn train(opts: &ShapeNetOptions, mut progress: impl FnMut(usize, f64)) -> Re
     let mut held_out = Vec::new();
     for &re in &opts.test_re {
         let u = u_max_for(re);
-        let (_, circle) = schafer_turek(per_d, u);
-        let cd_cylinder = drag_coefficient(per_d, &circle, u).map_err(flow_err(re))?;
+        let setting = Stream::Channel.setting(per_d, u).map_err(flow_err(re))?;
+        let cd_cylinder = drag_coefficient(&setting, &setting.cylinder).map_err(flow_err(re))?;
         let t = Instant::now();
         let q = propose(&net, &theta, re, &bound);
-        let shape = shape_at_area(area, opts.modes, &q).expect("the output bounds keep ½Σq² below the area's r₀²");
-        let cd_network = drag_coefficient(per_d, &shape, u).map_err(flow_err(re))?;
+        let shape = shape_at_area(area, opts.modes, setting.center, &q).expect("the output bounds keep ½Σq² below the area's r₀²");
+        let cd_network = drag_coefficient(&setting, &shape).map_err(flow_err(re))?;
         let time_network_s = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let one = optimise(&DragShapeOptions { cells_per_d: per_d, modes: opts.modes, u_max: u, max_iterations: 60, gradient_reduction: 100.0 })
-            .map_err(flow_err(re))?;
+        let one = optimise(&DragShapeOptions {
+            stream: Stream::Channel,
+            cells_per_d: per_d,
+            modes: opts.modes,
+            u_max: u,
+            max_iterations: 60,
+            gradient_reduction: 100.0,
+        })
+        .map_err(flow_err(re))?;
         held_out.push(HeldOut { re, cd_cylinder, cd_network, cd_optimised: one.cd_end, time_network_s, time_optimised_s: t.elapsed().as_secs_f64() });
     }
     Ok(ShapeNetReport { losses, train_s, held_out })

@@ -130,13 +130,6 @@ pub fn run_2d1_newton(cells_per_d: usize, convection: Convection) -> Result<Stea
     Ok(Steady2d1 { cd, cl, dp: at(0.15) - at(0.25), cells: cfg.nx * cfg.ny, steps: state.steps })
 }
 
-/// The steady flow around `shape` in the benchmark's channel at
-/// `cells_per_d` cells per diameter and peak inflow `u_max`, by Newton's
-/// method from Poiseuille flow.
-pub fn steady_in_channel(cells_per_d: usize, shape: &Shape, u_max: f64) -> Result<(SteadyFlow, SteadyState), FlowError> {
-    steady_from_poiseuille(schafer_turek(cells_per_d, u_max).0, shape, u_max)
-}
-
 /// The steady flow around `shape` on `cfg`, by Newton's method from
 /// Poiseuille flow of peak `u_max`.
 fn steady_from_poiseuille(cfg: Flow2d, shape: &Shape, u_max: f64) -> Result<(SteadyFlow, SteadyState), FlowError> {

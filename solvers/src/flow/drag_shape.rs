@@ -1,6 +1,7 @@
-//! Minimum-drag shapes of a given area in the steady channel flow of
-//! Schäfer & Turek's case 2D-1 (Re 20 at the benchmark's inflow), by L-BFGS
-//! (argmin) on the gradient of the steady drag ([`SteadyFlow::force_gradient`]).
+//! Minimum-drag shapes of a given area in a steady flow, by L-BFGS (argmin)
+//! on the gradient of the steady drag ([`SteadyFlow::force_gradient`]): in
+//! the channel of Schäfer & Turek's case 2D-1 (Re 20 at the benchmark's
+//! inflow) or in a free stream (a wide box, [`Stream::Free`]).
 //!
 //! The body is a Fourier shape about the cylinder's centre,
 //! `r(θ) = r₀ + Σ_{k=2..K} aₖ cos kθ + bₖ sin kθ`. The modes `k = 1` are left
@@ -13,22 +14,104 @@
 use std::cell::RefCell;
 use std::rc::Rc;
 
-use argmin::core::{CostFunction, Error, Executor, Gradient, State};
+use argmin::core::{CostFunction, Error, Executor, Gradient, State, TerminationReason};
 use argmin::solver::linesearch::BacktrackingLineSearch;
 use argmin::solver::linesearch::condition::ArmijoCondition;
 use argmin::solver::quasinewton::LBFGS;
 
-use super::cylinder::{DIAMETER, coefficients, force_box, poiseuille, schafer_turek, steady_in_channel};
-use super::{Flow2d, FlowError, NewtonOptions, Shape, SteadyFlow};
+use super::cylinder::{DIAMETER, coefficients, force_box, poiseuille, schafer_turek};
+use super::{Convection, Flow2d, FlowError, NewtonOptions, Shape, SteadyFlow, WallSpeed};
+use crate::boundary::{Boundary, Profile, Side};
+
+/// The flow a body sits in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Stream {
+    /// Schäfer & Turek's channel, 2.2 × 0.41 with the body at (0.2, 0.2)
+    /// and a parabolic inflow of peak `u_max`: the cylinder blocks 24 % of
+    /// its height.
+    Channel,
+    /// A square box `2·half_width` diameters wide with the body at its
+    /// centre: a uniform inflow `Ū = 2·u_max/3` on the left, outflow on the
+    /// right, the top and bottom no-slip walls sliding at `Ū` (so they
+    /// carry the free stream and shed no boundary layer). An unbounded
+    /// stream as far as the box reaches.
+    Free {
+        /// Distance from the body's centre to each side, in diameters.
+        half_width: f64,
+    },
+}
+
+/// A [`Stream`] on a grid: what a solve of the steady flow around a body
+/// in it needs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Setting {
+    /// The grid and sides.
+    pub cfg: Flow2d,
+    /// Where bodies are centred.
+    pub center: [f64; 2],
+    /// The cylinder of diameter [`DIAMETER`] there.
+    pub cylinder: Shape,
+    /// Peak inflow speed of the channel (the free stream's speed is
+    /// `2·u_max/3`, so that `Re = Ū·D/ν` alike).
+    pub u_max: f64,
+    /// The flow without a body: Newton's start.
+    pub start: Vec<f64>,
+    /// The control volume of the force, cells `[i0, i1) × [j0, j1)`: one
+    /// diameter around the cylinder's bounding box.
+    pub cells: [usize; 4],
+}
+
+impl Stream {
+    /// The stream at `cells_per_d` cells per diameter and peak inflow
+    /// `u_max`. A free stream's box has `round(2·half_width·cells_per_d)`
+    /// cells a side; it must reach beyond the force's control volume
+    /// (`half_width ≥ 2`), else [`FlowError::Grid`].
+    pub fn setting(self, cells_per_d: usize, u_max: f64) -> Result<Setting, FlowError> {
+        match self {
+            Stream::Channel => {
+                let (cfg, cylinder) = schafer_turek(cells_per_d, u_max);
+                let start = poiseuille(&cfg, u_max);
+                Ok(Setting { cells: force_box(&cfg), cfg, center: [0.2, 0.2], cylinder, u_max, start })
+            }
+            Stream::Free { half_width } => {
+                if !(half_width.is_finite() && half_width >= 2.0) {
+                    return Err(FlowError::Grid);
+                }
+                let h = DIAMETER / cells_per_d as f64;
+                // An even count puts the centre on a grid node, as in the channel.
+                let n = 2 * (half_width * cells_per_d as f64).round() as usize;
+                let ubar = 2.0 * u_max / 3.0;
+                let cfg = Flow2d {
+                    nx: n,
+                    ny: n,
+                    h,
+                    nu: 1e-3,
+                    boundary: Boundary { left: Side::Inflow(Profile::Uniform(ubar)), right: Side::Outflow, bottom: Side::Closed, top: Side::Closed },
+                    wall_speed: WallSpeed { bottom: ubar, top: ubar, ..WallSpeed::default() },
+                    convection: Convection::Second,
+                };
+                let c = 0.5 * n as f64 * h;
+                let mut start = cfg.rest();
+                start[..cfg.n_u()].fill(ubar);
+                let reach = (1.5 * cells_per_d as f64).round() as usize;
+                let cells = [n / 2 - reach, n / 2 + reach, n / 2 - reach, n / 2 + reach];
+                Ok(Setting { cfg, center: [c, c], cylinder: Shape::Circle { center: [c, c], radius: 0.5 * DIAMETER }, u_max, start, cells })
+            }
+        }
+    }
+}
 
 /// What to optimise.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DragShapeOptions {
+    /// The flow around the body.
+    pub stream: Stream,
     /// Grid cells per cylinder diameter (a multiple of 10).
     pub cells_per_d: usize,
     /// Highest Fourier mode `K` (modes 2..=K, cosine and sine).
     pub modes: usize,
-    /// Peak inflow speed (0.3 for Re 20; `Re = (2/3)·u_max·D/ν`).
+    /// Peak inflow speed of the channel (0.3 for Re 20; `Re =
+    /// (2/3)·u_max·D/ν`; a free stream flows at `2·u_max/3`).
     pub u_max: f64,
     /// L-BFGS iterations at most.
     pub max_iterations: usize,
@@ -37,7 +120,7 @@ pub struct DragShapeOptions {
 }
 
 impl DragShapeOptions {
-    /// The Reynolds number `Ū·D/ν` of the channel, `Ū = 2·u_max/3`.
+    /// The Reynolds number `Ū·D/ν`, `Ū = 2·u_max/3`.
     pub fn reynolds(&self) -> f64 {
         2.0 * self.u_max / 3.0 * DIAMETER / 1e-3
     }
@@ -57,7 +140,8 @@ pub struct DragIterate {
 /// How an optimisation went.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DragShapeResult {
-    /// Drag coefficient of the cylinder.
+    /// Drag coefficient of the start (the cylinder, unless
+    /// [`optimise_from`] started elsewhere).
     pub cd_start: f64,
     /// Drag coefficient of the final shape.
     pub cd_end: f64,
@@ -86,31 +170,30 @@ pub struct DragShapeResult {
     pub stopped: Option<String>,
 }
 
-/// The steady drag of one shape in the channel: `(c_D, ∂c_D/∂params, the
+/// The steady drag of one shape in `setting`: `(c_D, ∂c_D/∂params, the
 /// state's velocity)`, Newton starting from `start`.
-pub fn steady_drag(cfg: &Flow2d, shape: &Shape, u_max: f64, start: &[f64]) -> Result<(f64, Vec<f64>, Vec<f64>), FlowError> {
-    let flow = SteadyFlow::new(*cfg, std::slice::from_ref(shape))?;
+pub fn steady_drag(setting: &Setting, shape: &Shape, start: &[f64]) -> Result<(f64, Vec<f64>, Vec<f64>), FlowError> {
+    let flow = SteadyFlow::new(setting.cfg, std::slice::from_ref(shape))?;
     let state = flow.solve(start, &NewtonOptions::default())?;
-    let cells = force_box(cfg);
-    let scale = coefficients([1.0, 0.0], u_max)[0];
-    let cd = flow.force(&state, cells)[0] * scale;
-    let grad = flow.force_gradient(&state, cells, [scale, 0.0]);
+    let scale = coefficients([1.0, 0.0], setting.u_max)[0];
+    let cd = flow.force(&state, setting.cells)[0] * scale;
+    let grad = flow.force_gradient(&state, setting.cells, [scale, 0.0]);
     Ok((cd, grad, state.x))
 }
 
-/// The steady drag coefficient of `shape` in the benchmark's channel at
-/// `cells_per_d` cells per diameter and peak inflow `u_max` (Newton from
-/// Poiseuille flow): for re-simulating an optimised shape on another grid.
-pub fn drag_coefficient(cells_per_d: usize, shape: &Shape, u_max: f64) -> Result<f64, FlowError> {
-    let (flow, state) = steady_in_channel(cells_per_d, shape, u_max)?;
-    Ok(flow.force(&state, force_box(flow.config()))[0] * coefficients([1.0, 0.0], u_max)[0])
+/// The steady drag coefficient of `shape` in `setting` (Newton from the
+/// flow without a body): for re-simulating an optimised shape on another
+/// grid.
+pub fn drag_coefficient(setting: &Setting, shape: &Shape) -> Result<f64, FlowError> {
+    let flow = SteadyFlow::new(setting.cfg, std::slice::from_ref(shape))?;
+    let state = flow.solve(&setting.start, &NewtonOptions::default())?;
+    Ok(flow.force(&state, setting.cells)[0] * coefficients([1.0, 0.0], setting.u_max)[0])
 }
 
-/// The Fourier body about the cylinder's centre `(0.2, 0.2)` with free
-/// coefficients `q = (a₂…a_K, b₂…b_K)` (`K = modes`, `a₁ = b₁ = 0`) and
-/// `r₀` chosen so that the area is `area`; `None` when no positive `r₀`
-/// fits.
-pub fn shape_at_area(area: f64, modes: usize, q: &[f64]) -> Option<Shape> {
+/// The Fourier body about `center` with free coefficients `q = (a₂…a_K,
+/// b₂…b_K)` (`K = modes`, `a₁ = b₁ = 0`) and `r₀` chosen so that the area
+/// is `area`; `None` when no positive `r₀` fits.
+pub fn shape_at_area(area: f64, modes: usize, center: [f64; 2], q: &[f64]) -> Option<Shape> {
     let m = modes - 1;
     assert_eq!(q.len(), 2 * m, "shape_at_area: coefficient count");
     let squares: f64 = q.iter().map(|c| c * c).sum();
@@ -120,7 +203,7 @@ pub fn shape_at_area(area: f64, modes: usize, q: &[f64]) -> Option<Shape> {
     }
     let cos = std::iter::once(0.0).chain(q[..m].iter().copied()).collect();
     let sin = std::iter::once(0.0).chain(q[m..].iter().copied()).collect();
-    Some(Shape::Fourier { center: [0.2, 0.2], r0: r0sq.sqrt(), cos, sin })
+    Some(Shape::Fourier { center, r0: r0sq.sqrt(), cos, sin })
 }
 
 /// The gradient with respect to the free coefficients `q` of
@@ -143,8 +226,7 @@ type Evaluation = (Vec<f64>, f64, Vec<f64>);
 
 /// The optimisation problem in scaled free coefficients `z = q/s`.
 struct Problem {
-    cfg: Flow2d,
-    u_max: f64,
+    setting: Setting,
     modes: usize,
     area: f64,
     scale: f64,
@@ -167,7 +249,7 @@ const MAX_TRIALS: usize = 40;
 
 impl Problem {
     fn shape(&self, q: &[f64]) -> Option<Shape> {
-        shape_at_area(self.area, self.modes, q)
+        shape_at_area(self.area, self.modes, self.setting.center, q)
     }
 
     /// `c_D` and its gradient in `z`, cached; `None` for a shape that is
@@ -181,7 +263,7 @@ impl Problem {
         let q: Vec<f64> = z.iter().map(|v| v * self.scale).collect();
         let Some(shape) = self.shape(&q) else { return Ok(None) };
         let start = self.start.borrow().clone();
-        let (cd, full, x) = match steady_drag(&self.cfg, &shape, self.u_max, &start) {
+        let (cd, full, x) = match steady_drag(&self.setting, &shape, &start) {
             Ok(v) => v,
             // Not a body in the domain (validated before any solve).
             Err(FlowError::Shape(_)) => return Ok(None),
@@ -241,23 +323,35 @@ impl Gradient for Problem {
     }
 }
 
-/// Minimises the drag at fixed area from the cylinder of the benchmark.
+/// Minimises the drag at fixed area from the cylinder of the stream.
 /// Errors: a steady solve that fails (the first one, or one the optimiser
 /// asks for).
 pub fn optimise(opts: &DragShapeOptions) -> Result<DragShapeResult, FlowError> {
-    let (cfg, circle) = schafer_turek(opts.cells_per_d, opts.u_max);
+    optimise_from(opts, &vec![0.0; 2 * opts.modes.saturating_sub(1)])
+}
+
+/// [`optimise`] from the body of [`shape_at_area`]`(cylinder's area,
+/// modes, centre, q0)` instead of the cylinder: to continue an optimum of
+/// a coarser grid or another stream (`q0 = (a₂…a_K, b₂…b_K)`, `K =
+/// opts.modes`). Errors: `q0` of the wrong length, or leaving no positive
+/// `r₀` at the area (as [`FlowError::Shape`]); then as [`optimise`].
+pub fn optimise_from(opts: &DragShapeOptions, q0: &[f64]) -> Result<DragShapeResult, FlowError> {
+    let setting = opts.stream.setting(opts.cells_per_d, opts.u_max)?;
     let m = opts.modes.saturating_sub(1);
     if m == 0 {
         return Err(FlowError::Grid);
     }
-    let area = circle.area();
-    let start = poiseuille(&cfg, opts.u_max);
+    if q0.len() != 2 * m {
+        return Err(FlowError::Shape(super::ShapeError::Parameters { expected: 2 * m, given: q0.len() }));
+    }
+    let (cfg, area) = (setting.cfg, setting.cylinder.area());
+    // r₀² = A/π − ½Σq² must stay positive.
+    let first = shape_at_area(area, opts.modes, setting.center, q0).ok_or(FlowError::Shape(super::ShapeError::Radius { angle: 0.0, radius: 0.0 }))?;
+    let start = setting.start.clone();
     // The start, and the scale that makes L-BFGS's first (unit) step move
     // the boundary by about a tenth of the radius.
-    let q0 = vec![0.0; 2 * m];
     let probe = Problem {
-        cfg,
-        u_max: opts.u_max,
+        setting,
         modes: opts.modes,
         area,
         scale: 1.0,
@@ -268,11 +362,15 @@ pub fn optimise(opts: &DragShapeOptions) -> Result<DragShapeResult, FlowError> {
         solves: Rc::new(RefCell::new(0)),
         trials: RefCell::new(0),
     };
-    let (cd_start, g0) = probe.evaluate(&q0)?.expect("the cylinder is a body in the domain");
+    // (At scale 1, z = q.)
+    let Some((cd_start, g0)) = probe.evaluate(q0)? else {
+        return Err(FlowError::Shape(first.validate(&cfg).err().unwrap_or(super::ShapeError::NotFinite)));
+    };
     let g0_norm = g0.iter().map(|v| v * v).sum::<f64>().sqrt();
     let scale = (0.1 * 0.5 * DIAMETER / g0_norm.max(1e-12)).sqrt();
-    // The start's evaluation carries over (z = 0 at any scale; ∂c_D/∂z = s·∂c_D/∂q).
-    let cached = (q0.clone(), cd_start, g0.iter().map(|v| v * scale).collect());
+    // The start's evaluation carries over (z = q/s; ∂c_D/∂z = s·∂c_D/∂q).
+    let z0: Vec<f64> = q0.iter().map(|q| q / scale).collect();
+    let cached = (z0.clone(), cd_start, g0.iter().map(|v| v * scale).collect());
     let problem = Problem { scale, cache: RefCell::new(Some(cached)), ..probe };
     let linesearch = BacktrackingLineSearch::new(ArmijoCondition::new(1e-4).expect("a valid Armijo constant")).rho(0.5).expect("a valid contraction");
     let solver = LBFGS::new(linesearch, 8)
@@ -281,14 +379,21 @@ pub fn optimise(opts: &DragShapeOptions) -> Result<DragShapeResult, FlowError> {
         .with_tolerance_cost(0.0)
         .expect("a non-negative tolerance");
     let (error, history, solves) = (problem.error.clone(), problem.history.clone(), problem.solves.clone());
-    let run = Executor::new(problem, solver).configure(|s| s.param(q0.clone()).max_iters(opts.max_iterations as u64)).run();
+    let run = Executor::new(problem, solver).configure(|s| s.param(z0).max_iters(opts.max_iterations as u64)).run();
     if let Some(e) = error.borrow_mut().take() {
         return Err(e);
     }
     // A run that stopped otherwise (a line search finding no decrease at a
-    // kink of the discrete drag) ends where it was: its iterates stand.
+    // kink of the discrete drag: L-BFGS ends with the search's error as
+    // its reason) ends where it was: its iterates stand.
     let (iterations, stopped) = match run {
-        Ok(r) => (r.state().get_iter() as usize, None),
+        Ok(r) => {
+            let why = match r.state().get_termination_reason() {
+                Some(TerminationReason::SolverExit(why)) => Some(why.clone()),
+                _ => None,
+            };
+            (r.state().get_iter() as usize, why)
+        }
         Err(e) => (history.borrow().len().saturating_sub(1), Some(e.to_string())),
     };
     let history = history.borrow().clone();
@@ -299,7 +404,7 @@ pub fn optimise(opts: &DragShapeOptions) -> Result<DragShapeResult, FlowError> {
         cd_end: last.cd,
         area_start: area,
         area_end: last.shape.area(),
-        cut_area_start: cut_area(&circle),
+        cut_area_start: cut_area(&first),
         cut_area_end: cut_area(&last.shape),
         gradient_start: history[0].gradient_norm,
         gradient_end: last.gradient_norm,
