@@ -512,12 +512,6 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
         Stream::Channel => "the channel".to_string(),
         Stream::Free { half_width } => format!("a free stream ({half_width} diameters to each side)"),
     };
-    // The Reynolds number without the rounding noise of u_max's round trip.
-    let re_shown = (opts.reynolds() * 1e6).round() / 1e6;
-    let start = Instant::now();
-    if !a.json {
-        eprintln!("minimising the drag in {place} at Re {re_shown}, {per_d} cells per diameter, modes 2..={} …", a.modes);
-    }
     let setting = stream.setting(per_d, u_max)?;
     let q0 = match &a.start_shape {
         None => vec![0.0; 2 * (a.modes - 1)],
@@ -531,6 +525,12 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
             q
         }
     };
+    // The Reynolds number without the rounding noise of u_max's round trip.
+    let re_shown = (opts.reynolds() * 1e6).round() / 1e6;
+    let start = Instant::now();
+    if !a.json {
+        eprintln!("minimising the drag in {place} at Re {re_shown}, {per_d} cells per diameter, modes 2..={} …", a.modes);
+    }
     let r = optimise_from(&opts, &q0)?;
     // The reduction is against the cylinder, whatever the start.
     let cd_cylinder = if a.start_shape.is_some() { drag_coefficient(&setting, &setting.cylinder)? } else { r.cd_start };
@@ -573,7 +573,7 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
         println!("(the optimiser stopped early: {why})");
     }
     if let Some(path) = &a.start_shape {
-        println!("(started from {}: c_D {:.4})", path.display(), r.cd_start);
+        println!("(started from {}: c_D {:.4}; the gradient below shrinks from that start's)", path.display(), r.cd_start);
     }
     println!("| | cylinder | optimised | reduction |\n|---|---|---|---|");
     println!("| c_D ({per_d} per D) | {cd_cylinder:.4} | {:.4} | {reduction:.2} % |", r.cd_end);
