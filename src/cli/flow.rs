@@ -264,17 +264,14 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
             reason: format!("cells per diameter must be a multiple of 10 between 10 and 200 (the channel is 4.1 diameters high), got {per_d}"),
         });
     }
-    let convection = a
+    let convection: diffsim_solvers::flow::Convection = a
         .convection
         .unwrap_or(match a.case {
             CylinderCase::Steady => ConvectionArg::Second,
             CylinderCase::Periodic => ConvectionArg::Fourth,
         })
         .into();
-    let scheme = match convection {
-        diffsim_solvers::flow::Convection::Second => "second",
-        diffsim_solvers::flow::Convection::Fourth => "fourth",
-    };
+    let scheme = convection.name();
     if !a.sweep.is_empty() {
         return cylinder_sweep(&a, convection);
     }

@@ -85,6 +85,17 @@ pub enum Convection {
     Fourth,
 }
 
+impl Convection {
+    /// `"second"` or `"fourth"`: the interpolation's order, as reports and
+    /// the command line name it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Convection::Second => "second",
+            Convection::Fourth => "fourth",
+        }
+    }
+}
+
 /// Why a flow cannot be simulated or a simulation stopped.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum FlowError {
