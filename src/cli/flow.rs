@@ -481,7 +481,7 @@ pub struct DragShapeArgs {
 }
 
 pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
-    use diffsim_solvers::flow::drag_shape::{DragShapeOptions, Stream, drag_coefficient, optimise_from, shape_at_area};
+    use diffsim_solvers::flow::drag_shape::{DragShapeOptions, Stream, drag_coefficient, optimise_from, start_shape};
     let per_d = a.resolution.unwrap_or(if a.quick { 10 } else { 20 });
     if !(10..=100).contains(&per_d) || per_d % 10 != 0 {
         return Err(CliError::Argument { arg: "--resolution", reason: format!("cells per diameter must be a multiple of 10 between 10 and 100, got {per_d}") });
@@ -514,11 +514,7 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
         None => vec![0.0; 2 * (a.modes - 1)],
         Some(path) => {
             let q = start_coefficients(path, a.modes)?;
-            let shape = shape_at_area(setting.cylinder.area(), a.modes, setting.center, &q).ok_or_else(|| CliError::Argument {
-                arg: "--start-shape",
-                reason: format!("{}: its modes leave no room for r₀ at the cylinder's area", path.display()),
-            })?;
-            shape.validate(&setting.cfg).map_err(|e| CliError::Argument { arg: "--start-shape", reason: format!("{}: {e}", path.display()) })?;
+            start_shape(&setting, a.modes, &q).map_err(|e| CliError::Argument { arg: "--start-shape", reason: format!("{}: {e}", path.display()) })?;
             q
         }
     };

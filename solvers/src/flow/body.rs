@@ -71,6 +71,12 @@ pub enum ShapeError {
         /// Given length.
         given: usize,
     },
+    /// Fourier coefficients too large for the area asked of the body: no
+    /// positive `r₀` gives it (`π r₀² = A − (π/2)·Σ(aₖ² + bₖ²)`).
+    NoRadiusForArea {
+        /// The area asked.
+        area: f64,
+    },
 }
 
 impl std::fmt::Display for ShapeError {
@@ -84,6 +90,7 @@ impl std::fmt::Display for ShapeError {
                 write!(f, "shape: the body reaches ({:.4}, {:.4}), within one cell of the domain's sides or outside", point[0], point[1])
             }
             ShapeError::Parameters { expected, given } => write!(f, "shape: {given} parameters given, the shape has {expected}"),
+            ShapeError::NoRadiusForArea { area } => write!(f, "shape: the Fourier modes leave no positive r0 for the area {area:.4e}"),
         }
     }
 }

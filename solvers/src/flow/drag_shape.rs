@@ -20,7 +20,7 @@ use argmin::solver::linesearch::condition::ArmijoCondition;
 use argmin::solver::quasinewton::LBFGS;
 
 use super::cylinder::{DIAMETER, coefficients, force_box, poiseuille, schafer_turek};
-use super::{Convection, Flow2d, FlowError, NewtonOptions, Shape, SteadyFlow, WallSpeed};
+use super::{Convection, Flow2d, FlowError, NewtonOptions, Shape, ShapeError, SteadyFlow, WallSpeed};
 use crate::boundary::{Boundary, Profile, Side};
 
 /// The flow a body sits in.
@@ -170,11 +170,17 @@ pub struct DragShapeResult {
     pub stopped: Option<String>,
 }
 
+/// The steady flow around `shape` in `setting`, by Newton from `start`.
+fn solve_in(setting: &Setting, shape: &Shape, start: &[f64]) -> Result<(SteadyFlow, super::SteadyState), FlowError> {
+    let flow = SteadyFlow::new(setting.cfg, std::slice::from_ref(shape))?;
+    let state = flow.solve(start, &NewtonOptions::default())?;
+    Ok((flow, state))
+}
+
 /// The steady drag of one shape in `setting`: `(c_D, ∂c_D/∂params, the
 /// state's velocity)`, Newton starting from `start`.
 pub fn steady_drag(setting: &Setting, shape: &Shape, start: &[f64]) -> Result<(f64, Vec<f64>, Vec<f64>), FlowError> {
-    let flow = SteadyFlow::new(setting.cfg, std::slice::from_ref(shape))?;
-    let state = flow.solve(start, &NewtonOptions::default())?;
+    let (flow, state) = solve_in(setting, shape, start)?;
     let scale = coefficients([1.0, 0.0], setting.u_max)[0];
     let cd = flow.force(&state, setting.cells)[0] * scale;
     let grad = flow.force_gradient(&state, setting.cells, [scale, 0.0]);
@@ -185,8 +191,7 @@ pub fn steady_drag(setting: &Setting, shape: &Shape, start: &[f64]) -> Result<(f
 /// flow without a body): for re-simulating an optimised shape on another
 /// grid.
 pub fn drag_coefficient(setting: &Setting, shape: &Shape) -> Result<f64, FlowError> {
-    let flow = SteadyFlow::new(setting.cfg, std::slice::from_ref(shape))?;
-    let state = flow.solve(&setting.start, &NewtonOptions::default())?;
+    let (flow, state) = solve_in(setting, shape, &setting.start)?;
     Ok(flow.force(&state, setting.cells)[0] * coefficients([1.0, 0.0], setting.u_max)[0])
 }
 
@@ -330,23 +335,31 @@ pub fn optimise(opts: &DragShapeOptions) -> Result<DragShapeResult, FlowError> {
     optimise_from(opts, &vec![0.0; 2 * opts.modes.saturating_sub(1)])
 }
 
-/// [`optimise`] from the body of [`shape_at_area`]`(cylinder's area,
-/// modes, centre, q0)` instead of the cylinder: to continue an optimum of
-/// a coarser grid or another stream (`q0 = (a₂…a_K, b₂…b_K)`, `K =
-/// opts.modes`). Errors: `q0` of the wrong length, or leaving no positive
-/// `r₀` at the area (as [`FlowError::Shape`]); then as [`optimise`].
+/// The body of [`shape_at_area`]`(the cylinder's area, modes, centre, q)`
+/// in `setting`, checked: `q = (a₂…a_K, b₂…b_K)` of the right length,
+/// leaving a positive `r₀`, a body inside the domain.
+pub fn start_shape(setting: &Setting, modes: usize, q: &[f64]) -> Result<Shape, ShapeError> {
+    let expected = 2 * modes.saturating_sub(1);
+    if q.len() != expected {
+        return Err(ShapeError::Parameters { expected, given: q.len() });
+    }
+    let area = setting.cylinder.area();
+    let shape = shape_at_area(area, modes.max(1), setting.center, q).ok_or(ShapeError::NoRadiusForArea { area })?;
+    shape.validate(&setting.cfg)?;
+    Ok(shape)
+}
+
+/// [`optimise`] from the body [`start_shape`]`(setting, opts.modes, q0)`
+/// instead of the cylinder: to continue an optimum of a coarser grid or
+/// another stream. Errors: that body's ([`FlowError::Shape`]); then as
+/// [`optimise`].
 pub fn optimise_from(opts: &DragShapeOptions, q0: &[f64]) -> Result<DragShapeResult, FlowError> {
     let setting = opts.stream.setting(opts.cells_per_d, opts.u_max)?;
-    let m = opts.modes.saturating_sub(1);
-    if m == 0 {
+    if opts.modes < 2 {
         return Err(FlowError::Grid);
     }
-    if q0.len() != 2 * m {
-        return Err(FlowError::Shape(super::ShapeError::Parameters { expected: 2 * m, given: q0.len() }));
-    }
+    let first = start_shape(&setting, opts.modes, q0).map_err(FlowError::Shape)?;
     let (cfg, area) = (setting.cfg, setting.cylinder.area());
-    // r₀² = A/π − ½Σq² must stay positive.
-    let first = shape_at_area(area, opts.modes, setting.center, q0).ok_or(FlowError::Shape(super::ShapeError::Radius { angle: 0.0, radius: 0.0 }))?;
     let start = setting.start.clone();
     // The start, and the scale that makes L-BFGS's first (unit) step move
     // the boundary by about a tenth of the radius.
@@ -363,9 +376,7 @@ pub fn optimise_from(opts: &DragShapeOptions, q0: &[f64]) -> Result<DragShapeRes
         trials: RefCell::new(0),
     };
     // (At scale 1, z = q.)
-    let Some((cd_start, g0)) = probe.evaluate(q0)? else {
-        return Err(FlowError::Shape(first.validate(&cfg).err().unwrap_or(super::ShapeError::NotFinite)));
-    };
+    let (cd_start, g0) = probe.evaluate(q0)?.expect("start_shape checked the body as the solve does");
     let g0_norm = g0.iter().map(|v| v * v).sum::<f64>().sqrt();
     let scale = (0.1 * 0.5 * DIAMETER / g0_norm.max(1e-12)).sqrt();
     // The start's evaluation carries over (z = q/s; ∂c_D/∂z = s·∂c_D/∂q).
