@@ -441,7 +441,8 @@ fn cylinder_experiment_reports_both_cases_as_json() {
 fn drag_shape_experiment_lowers_the_drag_at_fixed_area() {
     let out = std::env::temp_dir().join(format!("diffsim-drag-shape-{}", std::process::id()));
     let dir = out.to_str().unwrap();
-    let (code, stdout, err) = diffsim(&["experiment", "drag-shape", "--quick", "--modes", "4", "--max-iterations", "8", "--json", "--out", dir]);
+    let (code, stdout, err) =
+        diffsim(&["experiment", "drag-shape", "--quick", "--modes", "4", "--max-iterations", "8", "--sampling-iterations", "1", "--json", "--out", dir]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     for key in ["cd_start", "cd_end", "area_start", "area_end", "time_s", "cd_start_fine", "cd_end_fine"] {
@@ -452,6 +453,15 @@ fn drag_shape_experiment_lowers_the_drag_at_fixed_area() {
     assert!(f("cd_end") < 0.9 * f("cd_start"), "{last}");
     assert!((f("area_end") / f("area_start") - 1.0).abs() < 1e-12, "{last}");
     assert!((f("reduction_pct") - f("reduction_fine_pct")).abs() < 2.0, "{last}");
+    // Gradient sampling follows when 8 L-BFGS steps leave the gradient
+    // above a hundredth of the start's, else it does not run.
+    let sampling = &last["sampling"];
+    if f("gradient_shrink") < 100.0 {
+        assert_eq!(sampling["iterations"].as_u64(), Some(1), "{last}");
+        assert!(sampling["min_norm"].as_f64().is_some_and(|g| g > 0.0) && sampling["radius"].as_f64().is_some_and(|r| r > 0.0), "{last}");
+    } else {
+        assert!(sampling.is_null(), "{last}");
+    }
     for file in ["drag_shapes.png", "drag_shape_history.png", "drag_shape_history.csv"] {
         assert!(out.join(file).exists(), "{file} not written");
     }
@@ -471,6 +481,8 @@ fn drag_shape_experiment_lowers_the_drag_at_fixed_area() {
         "--modes",
         "4",
         "--max-iterations",
+        "0",
+        "--sampling-iterations",
         "0",
         "--no-verify",
         "--json",

@@ -15,6 +15,7 @@ mod fluids3d;
 mod fuzz_replay;
 mod inputs;
 mod nn;
+mod nonsmooth;
 mod p1;
 mod p2;
 mod p4;

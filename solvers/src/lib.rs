@@ -26,6 +26,7 @@ pub mod grid;
 pub mod linalg;
 pub mod multigrid;
 pub mod nn;
+pub mod nonsmooth;
 pub mod par;
 pub mod real;
 pub mod simd;

@@ -208,6 +208,7 @@ pub fn train(opts: &ShapeNetOptions, mut progress: impl FnMut(usize, f64)) -> Re
             u_max: u,
             max_iterations: 60,
             gradient_reduction: 100.0,
+            sampling_iterations: 0,
         })
         .map_err(flow_err(re))?;
         held_out.push(HeldOut { re, cd_cylinder, cd_network, cd_optimised: one.cd_end, time_network_s, time_optimised_s: t.elapsed().as_secs_f64() });

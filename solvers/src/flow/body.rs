@@ -460,6 +460,32 @@ fn crossing(shape: &Shape, a: [f64; 2], b: [f64; 2], fa: f64, fb: f64) -> f64 {
     if flo.abs() < fhi.abs() { lo } else { hi }
 }
 
+/// The crossing nearest to `a` on the segment from `a` (outside the body)
+/// to `b` (inside), as a fraction of the segment: the first of 16 equal
+/// pieces whose end lies inside, refined by [`crossing`]. Where the segment
+/// crosses the boundary once (a body resolved by the grid) this is
+/// `crossing` on the whole segment; where a feature of the body's own
+/// scale below a cell makes it cross three times, it is the wall nearest
+/// the face, and it does not jump from one root to another as the body
+/// moves (regula falsi on the whole segment may converge to any of them).
+fn first_crossing(shape: &Shape, a: [f64; 2], b: [f64; 2]) -> f64 {
+    const PIECES: usize = 16;
+    let along = |t: f64| [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])];
+    let (mut t0, mut f0) = (0.0, shape.level(a[0], a[1]));
+    for k in 1..=PIECES {
+        let t1 = k as f64 / PIECES as f64;
+        let p1 = along(t1);
+        let f1 = shape.level(p1[0], p1[1]);
+        if f1 < 0.0 {
+            return t0 + (t1 - t0) * crossing(shape, along(t0), p1, f0, f1);
+        }
+        (t0, f0) = (t1, f1);
+    }
+    // `b` is inside: its level is negative, so the loop has returned
+    // (reached only through rounding at `b` itself).
+    1.0
+}
+
 /// The open (fluid) fraction of the segment from `a` to `b`, and the
 /// crossings it is made of: the fraction is a constant plus `Σ sign·t` over
 /// the returned `(sign, t)` pairs (`t` the crossing's position along the
@@ -661,7 +687,7 @@ impl Cut {
                 if level(b[0], b[1]) < 0.0 {
                     let m = nearest(b[0], b[1]);
                     let s = &shapes[m];
-                    let theta = crossing(s, c, b, s.level(c[0], c[1]), s.level(b[0], b[1]));
+                    let theta = first_crossing(s, c, b);
                     *w += 1.0 / theta.max(1e-12) - 1.0;
                     if let Some(row) = row.as_mut() {
                         // ∂(1/θ) = −∂θ/θ².

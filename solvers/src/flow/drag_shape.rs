@@ -22,6 +22,7 @@ use argmin::solver::quasinewton::LBFGS;
 use super::cylinder::{DIAMETER, coefficients, force_box, poiseuille, schafer_turek};
 use super::{Convection, Flow2d, FlowError, NewtonOptions, Shape, ShapeError, SteadyFlow, WallSpeed};
 use crate::boundary::{Boundary, Profile, Side};
+use crate::nonsmooth::{SamplingOptions, gradient_sampling};
 
 /// The flow a body sits in.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -117,6 +118,10 @@ pub struct DragShapeOptions {
     pub max_iterations: usize,
     /// Stop when the projected gradient has shrunk by this factor.
     pub gradient_reduction: f64,
+    /// Iterations of gradient sampling ([`crate::nonsmooth`]) after
+    /// L-BFGS when it stopped short of `gradient_reduction` (at a kink of
+    /// the discrete drag, where its line search stalls); 0 for none.
+    pub sampling_iterations: usize,
 }
 
 impl DragShapeOptions {
@@ -165,9 +170,29 @@ pub struct DragShapeResult {
     pub history: Vec<DragIterate>,
     /// The final shape.
     pub shape: Shape,
-    /// Why the optimiser stopped early, if it did (else it met the
-    /// gradient tolerance or ran its iterations).
+    /// Why L-BFGS stopped early, if it did (else it met the gradient
+    /// tolerance or ran its iterations).
     pub stopped: Option<String>,
+    /// Gradient sampling after L-BFGS, if it ran: its iterations, and the
+    /// smallest element of the hull of the projected gradients sampled
+    /// around the final shape (the stationarity measure at a kink) with
+    /// the radius of that sample (in the coefficients `q`).
+    pub sampling: Option<SamplingSummary>,
+}
+
+/// What gradient sampling did after L-BFGS ([`DragShapeResult::sampling`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SamplingSummary {
+    /// Iterations run.
+    pub iterations: usize,
+    /// Steps it accepted (added to the history).
+    pub steps: usize,
+    /// The smallest element of the sampled gradients' hull, final shape.
+    pub min_norm: f64,
+    /// The sampling ball's radius there (in `q`).
+    pub radius: f64,
+    /// `min_norm` within the tolerance at the smallest radius.
+    pub converged: bool,
 }
 
 /// The steady flow around `shape` in `setting`, by Newton from `start`.
@@ -238,7 +263,7 @@ struct Problem {
     /// Last evaluation: `(z, c_D, ∂c_D/∂z)`.
     cache: RefCell<Option<Evaluation>>,
     /// The last steady velocity (Newton's next start).
-    start: RefCell<Vec<f64>>,
+    start: Rc<RefCell<Vec<f64>>>,
     /// Shared with the caller, which reads them whatever way the run ends.
     error: Rc<RefCell<Option<FlowError>>>,
     history: Rc<RefCell<Vec<DragIterate>>>,
@@ -360,7 +385,8 @@ pub fn optimise_from(opts: &DragShapeOptions, q0: &[f64]) -> Result<DragShapeRes
     }
     let first = start_shape(&setting, opts.modes, q0).map_err(FlowError::Shape)?;
     let (cfg, area) = (setting.cfg, setting.cylinder.area());
-    let start = setting.start.clone();
+    let start = Rc::new(RefCell::new(setting.start.clone()));
+    let sampling_setting = setting.clone();
     // The start, and the scale that makes L-BFGS's first (unit) step move
     // the boundary by about a tenth of the radius.
     let probe = Problem {
@@ -369,7 +395,7 @@ pub fn optimise_from(opts: &DragShapeOptions, q0: &[f64]) -> Result<DragShapeRes
         area,
         scale: 1.0,
         cache: RefCell::new(None),
-        start: RefCell::new(start),
+        start: start.clone(),
         error: Rc::new(RefCell::new(None)),
         history: Rc::new(RefCell::new(Vec::new())),
         solves: Rc::new(RefCell::new(0)),
@@ -407,7 +433,13 @@ pub fn optimise_from(opts: &DragShapeOptions, q0: &[f64]) -> Result<DragShapeRes
         }
         Err(e) => (history.borrow().len().saturating_sub(1), Some(e.to_string())),
     };
-    let history = history.borrow().clone();
+    let mut history = history.borrow().clone();
+    let sampling =
+        if opts.sampling_iterations > 0 && history.last().expect("at least the start").gradient_norm > history[0].gradient_norm / opts.gradient_reduction {
+            Some(sample_from(opts, &sampling_setting, &start, &solves, &mut history)?)
+        } else {
+            None
+        };
     let last = history.last().cloned().expect("at least the start");
     let cut_area = |s: &Shape| super::Cut::new(&cfg, std::slice::from_ref(s)).solid_area(&cfg);
     Ok(DragShapeResult {
@@ -422,7 +454,63 @@ pub fn optimise_from(opts: &DragShapeOptions, q0: &[f64]) -> Result<DragShapeRes
         iterations,
         solves: *solves.borrow(),
         stopped,
+        sampling,
         shape: last.shape.clone(),
         history,
     })
+}
+
+/// The free coefficients `q = (a₂…a_K, b₂…b_K)` of a Fourier body.
+fn free_coefficients(shape: &Shape, modes: usize) -> Vec<f64> {
+    match shape {
+        Shape::Fourier { cos, sin, .. } => cos[1..modes].iter().chain(&sin[1..modes]).copied().collect(),
+        _ => unreachable!("the optimiser's bodies are Fourier bodies"),
+    }
+}
+
+/// Gradient sampling from the last iterate of `history` (appending the
+/// steps it accepts): balls of radius h/2 down to h/32 in the coefficients
+/// `q`, as many samples as coefficients + 1, stationary when the sampled
+/// hull's smallest gradient has shrunk `gradient_reduction` times from the
+/// start's gradient.
+fn sample_from(
+    opts: &DragShapeOptions,
+    setting: &Setting,
+    start: &Rc<RefCell<Vec<f64>>>,
+    solves: &Rc<RefCell<usize>>,
+    history: &mut Vec<DragIterate>,
+) -> Result<SamplingSummary, FlowError> {
+    let (area, modes, center) = (setting.cylinder.area(), opts.modes, setting.center);
+    let last = history.last().cloned().expect("at least the start");
+    let q0 = free_coefficients(&last.shape, modes);
+    let evaluate = |q: &[f64]| -> Result<Option<(f64, Vec<f64>)>, FlowError> {
+        let Some(shape) = shape_at_area(area, modes, center, q) else { return Ok(None) };
+        let from = start.borrow().clone();
+        match steady_drag(setting, &shape, &from) {
+            Ok((cd, full, x)) => {
+                *solves.borrow_mut() += 1;
+                *start.borrow_mut() = x;
+                Ok(Some((cd, reduced_gradient(&full, q, area, modes))))
+            }
+            Err(FlowError::Shape(_)) => Ok(None),
+            Err(e) => Err(e),
+        }
+    };
+    let (cd0, g0) = evaluate(&q0)?.expect("an iterate is a body in the domain");
+    let h = DIAMETER / opts.cells_per_d as f64;
+    let sampling = SamplingOptions {
+        radius: 0.5 * h,
+        min_radius: h / 32.0,
+        samples: q0.len() + 1,
+        max_iterations: opts.sampling_iterations,
+        tolerance: history[0].gradient_norm / opts.gradient_reduction,
+        seed: 1,
+    };
+    let out = gradient_sampling(evaluate, &q0, cd0, &g0, &sampling)?;
+    let norm = |v: &[f64]| v.iter().map(|a| a * a).sum::<f64>().sqrt();
+    for (q, cd, g) in &out.accepted {
+        let shape = shape_at_area(area, modes, center, q).expect("an accepted point is a body");
+        history.push(DragIterate { cd: *cd, gradient_norm: norm(g), shape });
+    }
+    Ok(SamplingSummary { iterations: out.iterations, steps: out.accepted.len(), min_norm: out.min_norm, radius: out.radius, converged: out.converged })
 }
