@@ -177,7 +177,6 @@ pub fn gradient_sampling<E>(
     grad0: &[f64],
     opts: &SamplingOptions,
 ) -> Result<SamplingOutcome, E> {
-    let n = x0.len();
     let norm = |v: &[f64]| v.iter().map(|a| a * a).sum::<f64>().sqrt();
     let mut rng = SplitMix(opts.seed);
     let (mut x, mut value, mut grad) = (x0.to_vec(), value0, grad0.to_vec());
@@ -196,23 +195,11 @@ pub fn gradient_sampling<E>(
     // Every gradient evaluated so far, with its point: those within the
     // ball of a later iteration join its sample at no cost.
     let mut pool: Vec<(Vec<f64>, Vec<f64>)> = Vec::new();
-    let distance = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| (p - q) * (p - q)).sum::<f64>().sqrt();
+    let mut moved = false;
     for it in 0..opts.max_iterations {
         out.iterations = it + 1;
-        let mut grads = vec![grad.clone()];
-        grads.extend(pool.iter().filter(|(y, _)| distance(y, &x) <= eps).map(|(_, g)| g.clone()));
-        for _ in 0..opts.samples {
-            for _attempt in 0..10 {
-                let y: Vec<f64> = x.iter().zip(rng.in_ball(n, eps)).map(|(a, b)| a + b).collect();
-                out.evaluations += 1;
-                if let Some((_, g)) = f(&y)? {
-                    grads.push(g.clone());
-                    pool.push((y, g));
-                    break;
-                }
-            }
-        }
-        let (g, _) = min_norm_point(&grads);
+        moved = false;
+        let g = sampled_hull(&mut f, &mut rng, (&x, &grad), eps, opts.samples, &mut pool, &mut out.evaluations)?;
         let g_norm = norm(&g);
         (out.min_norm, out.radius) = (g_norm, eps);
         if g_norm <= opts.tolerance {
@@ -226,7 +213,6 @@ pub fn gradient_sampling<E>(
         // Armijo backtracking along −g/‖g‖, from a step of twice the radius.
         let d: Vec<f64> = g.iter().map(|v| -v / g_norm).collect();
         let mut t = 2.0 * eps;
-        let mut moved = false;
         for _ in 0..12 {
             let y: Vec<f64> = x.iter().zip(&d).map(|(a, b)| a + t * b).collect();
             out.evaluations += 1;
@@ -249,8 +235,44 @@ pub fn gradient_sampling<E>(
             eps = (0.5 * eps).max(opts.min_radius);
         }
     }
+    // A run that ran out of iterations right after a step measures the
+    // point it ended at.
+    if moved && out.iterations == opts.max_iterations {
+        let g = sampled_hull(&mut f, &mut rng, (&x, &grad), eps, opts.samples, &mut pool, &mut out.evaluations)?;
+        (out.min_norm, out.radius) = (norm(&g), eps);
+        out.converged = out.min_norm <= opts.tolerance && eps <= opts.min_radius;
+    }
     (out.x, out.value, out.gradient) = (x, value, grad);
     Ok(out)
+}
+
+/// The smallest element of the hull of the gradients within `eps` of the
+/// point `x` (gradient `grad`): its own, the pool's, and `samples` new ones
+/// drawn from the ball (added to the pool).
+fn sampled_hull<E>(
+    f: &mut impl FnMut(&[f64]) -> Result<Option<(f64, Vec<f64>)>, E>,
+    rng: &mut SplitMix,
+    (x, grad): (&[f64], &[f64]),
+    eps: f64,
+    samples: usize,
+    pool: &mut Vec<(Vec<f64>, Vec<f64>)>,
+    evaluations: &mut usize,
+) -> Result<Vec<f64>, E> {
+    let distance = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| (p - q) * (p - q)).sum::<f64>().sqrt();
+    let mut grads = vec![grad.to_vec()];
+    grads.extend(pool.iter().filter(|(y, _)| distance(y, x) <= eps).map(|(_, g)| g.clone()));
+    for _ in 0..samples {
+        for _attempt in 0..10 {
+            let y: Vec<f64> = x.iter().zip(rng.in_ball(x.len(), eps)).map(|(a, b)| a + b).collect();
+            *evaluations += 1;
+            if let Some((_, g)) = f(&y)? {
+                grads.push(g.clone());
+                pool.push((y, g));
+                break;
+            }
+        }
+    }
+    Ok(min_norm_point(&grads).0)
 }
 
 /// SplitMix64 (Steele, Lea & Flood 2014): a small, seeded generator of
