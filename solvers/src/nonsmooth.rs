@@ -13,7 +13,10 @@
 //! combination of nearby gradients vanishes, the point is (Clarke)
 //! stationary up to `ε`. The discrete drag of a cut-cell body is such a
 //! function (a kink wherever a grid node or face centre crosses the
-//! boundary; [`crate::flow::drag_shape`]).
+//! boundary; [`crate::flow::drag_shape`]). Where a function jumps instead
+//! of kinking, no step across the jump decreases it and no combination of
+//! gradients need vanish there: the method stops without a measure of
+//! stationarity, as it should.
 
 use crate::linalg::pseudo_inverse_power_apply;
 
@@ -147,7 +150,7 @@ pub struct SamplingOutcome {
     pub min_norm: f64,
     /// The radius of that last sample.
     pub radius: f64,
-    /// Iterations run; points accepted (each with its value).
+    /// Iterations run.
     pub iterations: usize,
     /// Every accepted point: `(x, value, gradient)`.
     pub accepted: Vec<(Vec<f64>, f64, Vec<f64>)>,
