@@ -291,20 +291,30 @@ impl Problem {
             return Ok(Some((*cd, g.clone())));
         }
         let q: Vec<f64> = z.iter().map(|v| v * self.scale).collect();
-        let Some(shape) = self.shape(&q) else { return Ok(None) };
-        let start = self.start.borrow().clone();
-        let (cd, full, x) = match steady_drag(&self.setting, &shape, &start) {
-            Ok(v) => v,
-            // Not a body in the domain (validated before any solve).
-            Err(FlowError::Shape(_)) => return Ok(None),
-            Err(e) => return Err(e),
-        };
-        *self.solves.borrow_mut() += 1;
-        *self.start.borrow_mut() = x;
-        let g: Vec<f64> = reduced_gradient(&full, &q, self.area, self.modes).iter().map(|v| v * self.scale).collect();
+        let Some((cd, gq)) = drag_at(&self.setting, self.modes, &q, &self.start, &self.solves)? else { return Ok(None) };
+        let g: Vec<f64> = gq.iter().map(|v| v * self.scale).collect();
         *self.cache.borrow_mut() = Some((z.to_vec(), cd, g.clone()));
         Ok(Some((cd, g)))
     }
+}
+
+/// `c_D` and its projected gradient in the free coefficients `q` of the
+/// body [`shape_at_area`]`(the cylinder's area, modes, centre, q)` in
+/// `setting`, Newton from `start` (which becomes the new state; `solves`
+/// counts the solve); `None` for a shape that is not a body in the domain.
+fn drag_at(setting: &Setting, modes: usize, q: &[f64], start: &RefCell<Vec<f64>>, solves: &RefCell<usize>) -> Result<Option<(f64, Vec<f64>)>, FlowError> {
+    let area = setting.cylinder.area();
+    let Some(shape) = shape_at_area(area, modes, setting.center, q) else { return Ok(None) };
+    let from = start.borrow().clone();
+    let (cd, full, x) = match steady_drag(setting, &shape, &from) {
+        Ok(v) => v,
+        // Not a body in the domain (validated before any solve).
+        Err(FlowError::Shape(_)) => return Ok(None),
+        Err(e) => return Err(e),
+    };
+    *solves.borrow_mut() += 1;
+    *start.borrow_mut() = x;
+    Ok(Some((cd, reduced_gradient(&full, q, area, modes))))
 }
 
 impl CostFunction for Problem {
@@ -483,19 +493,7 @@ fn sample_from(
     let (area, modes, center) = (setting.cylinder.area(), opts.modes, setting.center);
     let last = history.last().cloned().expect("at least the start");
     let q0 = free_coefficients(&last.shape, modes);
-    let evaluate = |q: &[f64]| -> Result<Option<(f64, Vec<f64>)>, FlowError> {
-        let Some(shape) = shape_at_area(area, modes, center, q) else { return Ok(None) };
-        let from = start.borrow().clone();
-        match steady_drag(setting, &shape, &from) {
-            Ok((cd, full, x)) => {
-                *solves.borrow_mut() += 1;
-                *start.borrow_mut() = x;
-                Ok(Some((cd, reduced_gradient(&full, q, area, modes))))
-            }
-            Err(FlowError::Shape(_)) => Ok(None),
-            Err(e) => Err(e),
-        }
-    };
+    let evaluate = |q: &[f64]| drag_at(setting, modes, q, start, solves);
     let (cd0, g0) = evaluate(&q0)?.expect("an iterate is a body in the domain");
     let h = DIAMETER / opts.cells_per_d as f64;
     let sampling = SamplingOptions {
