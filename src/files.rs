@@ -2,13 +2,41 @@
 //! run: [`write_atomic`] replaces a file only with a complete new one (a
 //! kill at any moment leaves the old or the new, never half of either);
 //! [`read_text`] reads a regular file up to a size limit (a FIFO, a device
-//! or `/dev/zero` is refused before reading).
+//! or `/dev/zero` is refused before reading); [`create`] and [`write`]
+//! never write through a symbolic link; [`OutDir`] is an output folder
+//! claimed by one command (locked, never another run's results or an input
+//! overwritten unless asked).
 
 use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
 
+/// Removes a symbolic link at `path` (not what it points to); anything
+/// else is left alone. Writers call it first, so that a link planted in an
+/// output folder is replaced by the file, never written through.
+pub fn remove_link(path: &Path) -> io::Result<()> {
+    match std::fs::symlink_metadata(path) {
+        Ok(m) if m.file_type().is_symlink() => std::fs::remove_file(path),
+        _ => Ok(()),
+    }
+}
+
+/// Creates (or truncates) the regular file `path` for writing. A symbolic
+/// link there is removed first, and the file is opened with `O_NOFOLLOW`:
+/// nothing outside the folder is ever written through a link.
+pub fn create(path: &Path) -> io::Result<std::fs::File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    remove_link(path)?;
+    std::fs::OpenOptions::new().write(true).create(true).truncate(true).custom_flags(libc::O_NOFOLLOW).open(path)
+}
+
+/// Writes `bytes` to the regular file `path` as [`create`] opens it.
+pub fn write(path: &Path, bytes: impl AsRef<[u8]>) -> io::Result<()> {
+    create(path)?.write_all(bytes.as_ref())
+}
+
 /// Writes `bytes` to `path` atomically: to a temporary file beside it,
 /// flushed and synced, then renamed over `path`, and the folder synced.
+/// A symbolic link at `path` is replaced, not followed.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let name = path.file_name().ok_or_else(|| io::Error::new(io::ErrorKind::InvalidInput, "not a file path"))?;
@@ -16,7 +44,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
     tmp_name.push(".tmp");
     let tmp: PathBuf = dir.join(tmp_name);
     {
-        let mut f = std::fs::File::create(&tmp)?;
+        let mut f = create(&tmp)?;
         f.write_all(bytes)?;
         f.flush()?;
         f.sync_all()?;
@@ -108,5 +136,284 @@ pub fn shorten(text: &str, max: usize) -> String {
     match text.char_indices().nth(max) {
         Some((at, _)) => format!("{}…", &text[..at]),
         None => text.to_string(),
+    }
+}
+
+/// The marker an [`OutDir`] keeps in its folder: which run wrote there and
+/// the names it wrote.
+const MARKER: &str = ".diffsim-run.json";
+/// The lock file of an [`OutDir`].
+const LOCK: &str = ".diffsim.lock";
+
+/// Why an output folder cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum OutDirError {
+    /// The system refused.
+    #[error("cannot write {path}: {source}")]
+    Io {
+        /// The file or folder.
+        path: PathBuf,
+        /// The cause.
+        source: io::Error,
+    },
+    /// The path is unusable as a folder (a dangling link, a loop, a file).
+    #[error("--out {path}: {reason}")]
+    NotAFolder {
+        /// The path.
+        path: PathBuf,
+        /// What it is.
+        reason: String,
+    },
+    /// Another command is writing into the folder now.
+    #[error("--out {path}: another diffsim command is writing into this folder ({holder}); wait for it or choose another --out")]
+    Busy {
+        /// The folder.
+        path: PathBuf,
+        /// What the lock file says of its holder.
+        holder: String,
+    },
+    /// The folder holds another run's results (or other files).
+    #[error("--out {path} holds {what}; --overwrite replaces them, or choose another --out")]
+    Occupied {
+        /// The folder.
+        path: PathBuf,
+        /// What it holds.
+        what: String,
+    },
+    /// A file the command would write is one of its inputs.
+    #[error("--out {path}: writing {name} there would overwrite the input {input}; choose another --out")]
+    Input {
+        /// The folder.
+        path: PathBuf,
+        /// The output's name.
+        name: String,
+        /// The input.
+        input: PathBuf,
+    },
+}
+
+/// Where a command's outputs go: an [`OutDir`] it claimed, or a plain
+/// folder (a sweep's run folder another rank made), each name freed of a
+/// planted symbolic link before it is written.
+pub trait Outputs {
+    /// The path to write the output `name` at.
+    fn file(&self, name: &str) -> Result<PathBuf, OutDirError>;
+}
+
+impl Outputs for OutDir {
+    fn file(&self, name: &str) -> Result<PathBuf, OutDirError> {
+        OutDir::file(self, name)
+    }
+}
+
+impl Outputs for PathBuf {
+    fn file(&self, name: &str) -> Result<PathBuf, OutDirError> {
+        let p = self.join(name);
+        remove_link(&p).map_err(|source| OutDirError::Io { path: p.clone(), source })?;
+        Ok(p)
+    }
+}
+
+/// What a run recorded of itself in its folder.
+#[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
+struct Marker {
+    /// The command and what it ran (`run /abs/scene.toml`).
+    run: String,
+    /// Whether it finished.
+    complete: bool,
+    /// The files and folders (`run-0001/`) it wrote, relative to the folder.
+    files: Vec<String>,
+}
+
+/// An output folder claimed by one command: created if missing, locked
+/// for the command's lifetime (a second command writing there at the same
+/// time is refused), and refused when it holds another run's results or
+/// files of the user's unless `overwrite`. Runs are told apart by the
+/// string the command gives (a scene's path and a hash of its text): the
+/// same run again, by any command, writes beside its earlier results. Outputs are named
+/// through [`OutDir::file`], which refuses a name that is an input and
+/// removes a symbolic link planted there; the names are recorded in the
+/// folder's marker, so that a replaced run leaves no stale file beside the
+/// new ones.
+#[derive(Debug)]
+pub struct OutDir {
+    path: PathBuf,
+    inputs: Vec<PathBuf>,
+    marker: std::cell::RefCell<Marker>,
+    /// Held open: the lock lasts as long as the `OutDir`.
+    _lock: std::fs::File,
+}
+
+impl OutDir {
+    /// Claims `path` for the run described by `run` (the command and its
+    /// input, canonical), never writing over any of `inputs`.
+    pub fn claim(path: &Path, run: &str, inputs: &[&Path], overwrite: bool) -> Result<OutDir, OutDirError> {
+        let io_at = |p: &Path| {
+            let p = p.to_path_buf();
+            move |source| OutDirError::Io { path: p, source }
+        };
+        let not_folder = |reason: String| OutDirError::NotAFolder { path: path.to_path_buf(), reason };
+        match std::fs::symlink_metadata(path) {
+            Ok(m) if m.file_type().is_symlink() => match std::fs::metadata(path) {
+                Ok(t) if t.is_dir() => {}
+                Ok(_) => return Err(not_folder("is a symbolic link to a file, not a folder".into())),
+                Err(e) if e.raw_os_error() == Some(libc::ELOOP) => return Err(not_folder("is a symbolic link that loops back on itself".into())),
+                Err(_) => {
+                    let target = std::fs::read_link(path).map(|t| t.display().to_string()).unwrap_or_default();
+                    return Err(not_folder(format!("is a symbolic link to {target}, which does not exist")));
+                }
+            },
+            Ok(m) if !m.is_dir() => return Err(not_folder("is a file, not a folder".into())),
+            Ok(_) => {}
+            Err(_) => std::fs::create_dir_all(path).map_err(io_at(path))?,
+        }
+        let lock_path = path.join(LOCK);
+        remove_link(&lock_path).map_err(io_at(&lock_path))?;
+        let lock = {
+            use std::os::unix::fs::OpenOptionsExt;
+            std::fs::OpenOptions::new()
+                .read(true)
+                .write(true)
+                .create(true)
+                .truncate(false)
+                .custom_flags(libc::O_NOFOLLOW)
+                .open(&lock_path)
+                .map_err(io_at(&lock_path))?
+        };
+        match lock.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                let holder = std::fs::read_to_string(&lock_path).unwrap_or_default();
+                return Err(OutDirError::Busy { path: path.to_path_buf(), holder: shorten(holder.trim(), 200) });
+            }
+            Err(std::fs::TryLockError::Error(e)) => return Err(OutDirError::Io { path: lock_path, source: e }),
+        }
+        {
+            let mut l = &lock;
+            let _ = l.set_len(0);
+            let _ = writeln!(l, "{} (process {})", shorten(run, 200), std::process::id());
+        }
+        let inputs: Vec<PathBuf> = inputs.iter().filter_map(|p| std::fs::canonicalize(p).ok()).collect();
+        let marker_path = path.join(MARKER);
+        let earlier: Option<Marker> = read_text(&marker_path, 1 << 24, "run marker").ok().and_then(|t| serde_json::from_str(&t).ok());
+        // What else the folder holds (beside the marker and the lock).
+        let others: Vec<String> = std::fs::read_dir(path)
+            .map_err(io_at(path))?
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n != MARKER && n != LOCK && !n.ends_with(".tmp"))
+            .collect();
+        let foreign = |m: Option<&Marker>| -> Vec<String> {
+            let mut v: Vec<String> =
+                others.iter().filter(|n| m.is_none_or(|m| !m.files.iter().any(|f| f.trim_end_matches('/') == n.as_str()))).cloned().collect();
+            v.sort();
+            v
+        };
+        let listed = |names: &[String]| {
+            let shown: Vec<&str> = names.iter().take(4).map(String::as_str).collect();
+            format!("{}{}", shown.join(", "), if names.len() > 4 { format!(" and {} more", names.len() - 4) } else { String::new() })
+        };
+        match &earlier {
+            Some(m) if m.run != run && !overwrite => {
+                return Err(OutDirError::Occupied {
+                    path: path.to_path_buf(),
+                    what: format!("the results of another run (`{}`{})", shorten(&m.run, 120), if m.complete { "" } else { ", unfinished" }),
+                });
+            }
+            _ => {}
+        }
+        let strangers = foreign(earlier.as_ref());
+        if !strangers.is_empty() && !overwrite {
+            return Err(OutDirError::Occupied {
+                path: path.to_path_buf(),
+                what: format!("files that no diffsim run of this kind wrote ({})", listed(&strangers)),
+            });
+        }
+        // The same run again (another command on the same input) adds to
+        // its files; another run's own files go, so that none stays beside
+        // the new ones (the user's other files stay, under --overwrite).
+        let same = earlier.as_ref().is_some_and(|m| m.run == run);
+        let kept = if same { earlier.as_ref().map(|m| m.files.clone()).unwrap_or_default() } else { Vec::new() };
+        if let Some(m) = earlier.as_ref().filter(|_| !same) {
+            for f in &m.files {
+                let name = f.trim_end_matches('/');
+                if name.is_empty() || name.contains("..") || Path::new(name).is_absolute() {
+                    continue;
+                }
+                let p = path.join(name);
+                if inputs.iter().any(|i| std::fs::canonicalize(&p).is_ok_and(|c| &c == i)) {
+                    continue;
+                }
+                match std::fs::symlink_metadata(&p) {
+                    Ok(md) if md.is_dir() => std::fs::remove_dir_all(&p).map_err(io_at(&p))?,
+                    Ok(_) => std::fs::remove_file(&p).map_err(io_at(&p))?,
+                    Err(_) => {}
+                }
+            }
+        }
+        let out = OutDir {
+            path: path.to_path_buf(),
+            inputs,
+            marker: std::cell::RefCell::new(Marker { run: run.to_string(), complete: false, files: kept }),
+            _lock: lock,
+        };
+        out.save()?;
+        Ok(out)
+    }
+
+    /// The folder.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The path to write the output `name` (relative, `run-0001/smoke.npy`
+    /// allowed) at: recorded as this run's, refused when it is one of the
+    /// inputs, and freed of a symbolic link planted there.
+    pub fn file(&self, name: &str) -> Result<PathBuf, OutDirError> {
+        let p = self.path.join(name);
+        if let Ok(c) = std::fs::canonicalize(&p)
+            && let Some(input) = self.inputs.iter().find(|i| **i == c)
+        {
+            return Err(OutDirError::Input { path: self.path.clone(), name: name.to_string(), input: input.clone() });
+        }
+        remove_link(&p).map_err(|source| OutDirError::Io { path: p.clone(), source })?;
+        self.record(name)?;
+        Ok(p)
+    }
+
+    /// The subfolder `name`, created (a symbolic link there is replaced by
+    /// a folder) and recorded as this run's.
+    pub fn folder(&self, name: &str) -> Result<PathBuf, OutDirError> {
+        let p = self.path.join(name);
+        remove_link(&p).map_err(|source| OutDirError::Io { path: p.clone(), source })?;
+        std::fs::create_dir_all(&p).map_err(|source| OutDirError::Io { path: p.clone(), source })?;
+        self.record(&format!("{name}/"))?;
+        Ok(p)
+    }
+
+    /// Records `name` as this run's (written by another process, say).
+    pub fn record(&self, name: &str) -> Result<(), OutDirError> {
+        let top = match name.split_once('/') {
+            Some((dir, _)) => format!("{dir}/"),
+            None => name.to_string(),
+        };
+        let new = !self.marker.borrow().files.contains(&top);
+        if new {
+            self.marker.borrow_mut().files.push(top);
+            self.save()?;
+        }
+        Ok(())
+    }
+
+    /// Marks the run finished.
+    pub fn finish(self) -> Result<(), OutDirError> {
+        self.marker.borrow_mut().complete = true;
+        self.save()
+    }
+
+    fn save(&self) -> Result<(), OutDirError> {
+        let p = self.path.join(MARKER);
+        let text = serde_json::to_string_pretty(&*self.marker.borrow()).map_err(|e| OutDirError::Io { path: p.clone(), source: io::Error::other(e) })?;
+        write_atomic(&p, text.as_bytes()).map_err(|source| OutDirError::Io { path: p, source })
     }
 }

@@ -83,6 +83,8 @@ fn font() -> Result<(), PlotError> {
 pub fn line_plot(path: &Path, axes: &Axes<'_>, series: &[Series]) -> Result<(), PlotError> {
     font()?;
     let draw = |reason: String| PlotError::Draw { path: path.to_path_buf(), reason };
+    // The backends open the path themselves: a link planted there goes first.
+    crate::files::remove_link(path).map_err(|e| draw(e.to_string()))?;
     match path.extension().and_then(|e| e.to_str()) {
         Some("png") => {
             let root = BitMapBackend::new(path, (800, 500)).into_drawing_area();

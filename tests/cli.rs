@@ -119,7 +119,9 @@ fn scene_commands_write_their_outputs_and_refuse_bad_scenes() {
     fails_with(&["run", "tests/scenes_bad/unknown_kind.toml", "--out", o], "did you mean `advection`");
     // A 1D scene: its field as .npy and a plot; the gradient with a profile
     // of both passes.
-    let (code, _, err) = diffsim(&["run", "scenes/burgers.toml", "--out", o, "--quiet"]);
+    // (Another scene: its results replace the heat scene's only when asked.)
+    fails_with(&["run", "scenes/burgers.toml", "--out", o, "--quiet"], "holds the results of another run");
+    let (code, _, err) = diffsim(&["run", "scenes/burgers.toml", "--out", o, "--quiet", "--overwrite"]);
     assert_eq!(code, 0, "{err}");
     assert!(out.join("velocity.npy").exists() && out.join("velocity.png").exists());
     let (code, stdout, err) = diffsim(&["grad", "scenes/burgers.toml", "--out", o, "--profile"]);
@@ -768,16 +770,16 @@ fn three_d_scenes_run_draw_and_check_their_gradient() {
         assert!(out.join(f).exists(), "{f} missing");
     }
     // A 3D channel (inflow, outflow, periodic z, a sphere) passes too.
-    let (code, stdout, err) = diffsim(&["grad", "tests/scenes_moving/channel3d.toml", "--out", o, "--check"]);
+    let (code, stdout, err) = diffsim(&["grad", "tests/scenes_moving/channel3d.toml", "--out", o, "--check", "--overwrite"]);
     assert_eq!(code, 0, "{stdout}\n{err}");
     assert_eq!(stdout.matches("→ pass").count(), 3, "{stdout}");
     // A 2D scene from a moving state passes too (the faces the closed
     // sides set are no kink of the step).
-    let (code, stdout, err) = diffsim(&["grad", "tests/scenes_moving/moving2d.toml", "--out", o, "--check"]);
+    let (code, stdout, err) = diffsim(&["grad", "tests/scenes_moving/moving2d.toml", "--out", o, "--check", "--overwrite"]);
     assert_eq!(code, 0, "{stdout}\n{err}");
     assert_eq!(stdout.matches("→ pass").count(), 3, "{stdout}");
     // From rest (2D here) the rollout kinks: inconclusive, said so, no failure.
-    let (code, stdout, err) = diffsim(&["grad", "scenes/smoke_obstacle.toml", "--out", o, "--check"]);
+    let (code, stdout, err) = diffsim(&["grad", "scenes/smoke_obstacle.toml", "--out", o, "--check", "--overwrite"]);
     assert_eq!(code, 0, "{stdout}\n{err}");
     assert!(!stdout.contains("FAIL"), "{stdout}");
     assert!(stdout.contains("inconclusive (kink)") && stdout.contains("note: the rollout has a kink"), "{stdout}");

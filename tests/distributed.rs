@@ -259,7 +259,7 @@ fn a_sweep_over_three_ranks_writes_the_files_of_one_process() {
     fails("effects[1].coeficient=1,2", "did you mean `coefficient`");
     fails("time.steps", "expected KEY=V1,V2");
     fails("time.steps=2,,3", "an empty value");
-    fails("time.dt=-1", "run 0 (time.dt=-1)");
+    fails("time.dt=-1", "run 0: tests/scenes_moving/moving2d.toml with time.dt=-1: scene: `time.dt`");
     assert!(!dir.join("bad").exists(), "nothing runs when a combination is bad");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -3,6 +3,7 @@
 #![feature(autodiff)]
 
 mod accuracy;
+mod bad_inputs;
 mod boundaries;
 mod boundaries3d;
 mod checks;

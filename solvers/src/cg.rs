@@ -33,7 +33,11 @@ impl fmt::Display for NoConvergence {
             f,
             "pressure solve did not converge: relative residual {:.3e} after {} iterations (tolerance {:.1e})",
             self.relative_residual, self.iterations, self.tolerance
-        )
+        )?;
+        if self.iterations == 0 && self.relative_residual.is_nan() {
+            write!(f, ": its right-hand side holds a NaN or an infinity (the state before the solve is not finite)")?;
+        }
+        Ok(())
     }
 }
 
@@ -112,12 +116,26 @@ pub fn solve(sys: &mut impl System, work: &mut CgWork, stop: Stop, b: &[f64], p:
         Null::Constant(Some(w)) => b.iter().zip(w).map(|(b, w)| b * w).sum::<f64>() / w.iter().sum::<f64>().max(1.0),
     };
     projected_rhs(sys.null(), mean, b, r);
+    // ‖b‖² overflows past |b| ≈ 1e154 (and underflows below 1e-154), which
+    // would read as convergence at once: the system is linear, so it is
+    // solved for b scaled by a power of two (exact) and the solution scaled
+    // back. A right-hand side that is not finite is an error.
+    let scale = match rhs_scale(r) {
+        Some(s) => s,
+        None => return Err(NoConvergence { iterations: 0, relative_residual: f64::NAN, tolerance: stop.tolerance }),
+    };
+    if scale != 1.0 {
+        r.iter_mut().for_each(|v| *v *= scale);
+    }
     let bnorm = dot(r, r).sqrt();
     if bnorm == 0.0 {
         p.fill(0.0);
         return Ok(0);
     }
     if warm && p.iter().all(|v| v.is_finite()) {
+        if scale != 1.0 {
+            p.iter_mut().for_each(|v| *v *= scale);
+        }
         sys.apply(p, q);
         for (r, &q) in r.iter_mut().zip(q.iter()) {
             *r -= q;
@@ -135,12 +153,15 @@ pub fn solve(sys: &mut impl System, work: &mut CgWork, stop: Stop, b: &[f64], p:
             sys.apply(p, q);
             projected_rhs(sys.null(), mean, b, r);
             for (r, &q) in r.iter_mut().zip(q.iter()) {
-                *r -= q;
+                *r = *r * scale - q;
             }
             rr = dot(r, r);
             if rr.sqrt() <= target {
                 if let Null::Constant(w) = sys.null() {
                     remove_constant(w, p);
+                }
+                if scale != 1.0 {
+                    p.iter_mut().for_each(|v| *v /= scale);
                 }
                 return Ok(it);
             }
@@ -159,6 +180,35 @@ pub fn solve(sys: &mut impl System, work: &mut CgWork, stop: Stop, b: &[f64], p:
         direction(beta, if preconditioned { z } else { r }, d);
         it += 1;
     }
+}
+
+/// The largest `|v_i|` (0 for an empty slice), NaN when any `v_i` is NaN:
+/// unlike a fold with `f64::max`, which skips NaN, so that a NaN residual
+/// is never read as a small one.
+pub fn max_abs(v: &[f64]) -> f64 {
+    let mut big = 0.0f64;
+    for x in v {
+        let a = x.abs();
+        if a.is_nan() {
+            return f64::NAN;
+        }
+        big = big.max(a);
+    }
+    big
+}
+
+/// The power of two that brings the largest `|r_i|` into `[1, 2)` when it
+/// lies outside `[2⁻³⁰⁰, 2³⁰⁰]` (where sums of squares could overflow or
+/// underflow), else 1; `None` when `r` holds a NaN or an infinity.
+pub fn rhs_scale(r: &[f64]) -> Option<f64> {
+    let big = max_abs(r);
+    if !big.is_finite() {
+        return None;
+    }
+    if big == 0.0 || (big >= 2f64.powi(-300) && big <= 2f64.powi(300)) {
+        return Some(1.0);
+    }
+    Some(2f64.powi((-big.log2().floor() as i32).clamp(-1000, 1000)))
 }
 
 /// `r = b − mean·w`: the right-hand side with its null component (`mean`

@@ -212,6 +212,16 @@ impl ImplicitSolver {
     pub fn solve(&mut self, kappa: f64, b: &[f64], x: &mut [f64]) -> Result<usize, NoConvergence> {
         let g = self.grid;
         let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
+        // Solved for b scaled by a power of two where ‖b‖² would overflow or
+        // underflow (crate::cg::rhs_scale), the solution scaled back.
+        let scale = crate::cg::rhs_scale(b).ok_or(NoConvergence { iterations: 0, relative_residual: f64::NAN, tolerance: self.tolerance })?;
+        let scaled: Vec<f64>;
+        let b = if scale == 1.0 {
+            b
+        } else {
+            scaled = b.iter().map(|v| v * scale).collect();
+            &scaled
+        };
         let bnorm = dot(b, b).sqrt();
         x.copy_from_slice(b);
         if bnorm == 0.0 {
@@ -233,6 +243,9 @@ impl ImplicitSolver {
                 residual(x, &mut self.r, &mut self.q);
                 rr = dot(&self.r, &self.r);
                 if rr.sqrt() <= target {
+                    if scale != 1.0 {
+                        x.iter_mut().for_each(|v| *v /= scale);
+                    }
                     return Ok(it);
                 }
                 self.d.copy_from_slice(&self.r);

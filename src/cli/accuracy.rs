@@ -361,8 +361,8 @@ fn write_report(dir: &Path, title: &str, rows: &[Measurement]) -> Result<(), Cli
             .collect();
         let _ = writeln!(csv, "{},{},{:e},{:e},{},{}", r.family, vals.join(","), r.error, r.time_s, r.peak_rss_bytes, r.pareto);
     }
-    std::fs::write(dir.join("results.csv"), csv).map_err(io(dir.join("results.csv")))?;
-    std::fs::write(dir.join("table.md"), format!("# {title}\n\n{}", markdown(rows))).map_err(io(dir.join("table.md")))?;
+    crate::files::write(&dir.join("results.csv"), csv).map_err(io(dir.join("results.csv")))?;
+    crate::files::write(&dir.join("table.md"), format!("# {title}\n\n{}", markdown(rows))).map_err(io(dir.join("table.md")))?;
     let mut families: Vec<&str> = Vec::new();
     for r in rows {
         if !families.contains(&r.family.as_str()) {

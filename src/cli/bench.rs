@@ -760,7 +760,7 @@ fn memory(a: MemoryArgs) -> Result<(), CliError> {
         }
     }
     let md = a.out.join("memory.md");
-    std::fs::write(&md, &table).map_err(|source| CliError::Io { path: md.clone(), source })?;
+    crate::files::write(&md, &table).map_err(|source| CliError::Io { path: md.clone(), source })?;
     let axes = Axes { title: "P1 gradient: time per step against peak memory", x: "peak RSS (MB)", y: "gradient µs per step", log_x: true, log_y: true };
     super::plot_or_warn(&a.out.join("memory.png"), &axes, &series);
     println!("{table}");
@@ -820,7 +820,7 @@ fn p4_cost(a: P4CostArgs) -> Result<(), CliError> {
         }
     }
     let md = a.out.join("p4_cost.md");
-    std::fs::write(&md, &table).map_err(|source| CliError::Io { path: md.clone(), source })?;
+    crate::files::write(&md, &table).map_err(|source| CliError::Io { path: md.clone(), source })?;
     let axes = Axes { title: "P4 smoke3d: time against cells × steps", x: "cells × steps", y: "ms", log_x: true, log_y: true };
     super::plot_or_warn(&a.out.join("p4_cost.png"), &axes, &series);
     println!("{table}");

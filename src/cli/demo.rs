@@ -79,7 +79,7 @@ pub(super) fn write_png(path: &std::path::Path, (nx, ny): (usize, usize), s: &[f
             rgb[(py * width + px) * 3..(py * width + px) * 3 + 3].copy_from_slice(&pixel);
         }
     }
-    let file = std::io::BufWriter::new(std::fs::File::create(path)?);
+    let file = std::io::BufWriter::new(crate::files::create(path)?);
     let mut enc = png::Encoder::new(file, width as u32, height as u32);
     enc.set_color(png::ColorType::Rgb);
     enc.set_depth(png::BitDepth::Eight);

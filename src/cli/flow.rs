@@ -47,8 +47,11 @@ struct CavityRun {
 
 fn run_cavity(a: &CavityArgs) -> Result<CavityRun, CliError> {
     let (re, n, tolerance) = (a.re, a.resolution, a.tolerance);
-    if !(re.is_finite() && re > 0.0) {
-        return Err(CliError::Argument { arg: "--re", reason: format!("must be a positive number, got {re}") });
+    // Above Re ≈ 8000 the cavity's flow is no longer steady (and Ghia's
+    // tables end at 10,000); at Re → ∞ the lid would not move the fluid at
+    // all in a viscous march.
+    if !(re > 0.0 && re <= 10_000.0) {
+        return Err(CliError::Argument { arg: "--re", reason: format!("must be in (0, 10000] (where the cavity's flow is steady), got {re}") });
     }
     if !(4..=4096).contains(&n) {
         return Err(CliError::Argument { arg: "--resolution", reason: format!("must be between 4 and 4096 cells per side, got {n}") });
@@ -70,6 +73,12 @@ fn run_cavity(a: &CavityArgs) -> Result<CavityRun, CliError> {
     })?;
     spinner.finish_and_clear();
     let extrema = cavity_extrema(&cfg, &x);
+    let what = format!("cavity at Re {re}");
+    super::finite_figures(&what, &[("u_min", extrema.u_min.value), ("v_max", extrema.v_max.value), ("v_min", extrema.v_min.value)])?;
+    // The lid drives a vortex: a steady state at rest is not the cavity's.
+    if diffsim_solvers::cg::max_abs(&x) == 0.0 {
+        return Err(CliError::NotReported { what, reason: "the flow stayed at rest".into() });
+    }
     Ok(CavityRun { cfg, x, extrema, steps: report.steps, time_s: start.elapsed().as_secs_f64() })
 }
 
@@ -148,7 +157,7 @@ fn write_profiles(dir: &std::path::Path, run: &CavityRun, re: f64) -> Result<(),
     }
     let [csv_name, png_name] = profile_names(re);
     let path = dir.join(csv_name);
-    std::fs::write(&path, csv).map_err(io(&path))?;
+    crate::files::write(&path, csv).map_err(io(&path))?;
     let mut series = vec![
         Series { name: "u on x = 1/2 (against y)".into(), points: ul.at.iter().copied().zip(ul.value.iter().copied()).collect(), color: 0, markers: false },
         Series { name: "v on y = 1/2 (against x)".into(), points: vl.at.iter().copied().zip(vl.value.iter().copied()).collect(), color: 1, markers: false },
@@ -423,7 +432,7 @@ fn write_force_series(dir: &std::path::Path, series: &[[f64; 4]], per_d: usize) 
         csv.push_str(&format!("{:.6},{:.8},{:.8},{:.8}\n", s[0], s[1], s[2], s[3]));
     }
     let path = dir.join("cylinder_2d2.csv");
-    std::fs::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;
+    crate::files::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;
     let pick = |k: usize| series.iter().map(|s| (s[0], s[k])).collect::<Vec<_>>();
     let title = format!("Schäfer–Turek 2D-2, {per_d} cells per diameter");
     plot_or_warn(
@@ -496,12 +505,20 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
         return Err(CliError::Argument { arg: "--modes", reason: format!("the highest mode must be between 2 and 16, got {}", a.modes) });
     }
     let u_max = match a.re {
-        Some(re) if re.is_finite() && re > 0.0 && re <= 40.0 => 1.5 * re * 1e-3 / diffsim_solvers::flow::cylinder::DIAMETER,
-        Some(re) => return Err(CliError::Argument { arg: "--re", reason: format!("must be in (0, 40] (where the flow stays steady), got {re}") }),
+        Some(re) if (0.1..=40.0).contains(&re) => 1.5 * re * 1e-3 / diffsim_solvers::flow::cylinder::DIAMETER,
+        Some(re) => {
+            return Err(CliError::Argument {
+                arg: "--re",
+                reason: format!("must be in [0.1, 40] (where the flow stays steady and its drag coefficient is resolved), got {re}"),
+            });
+        }
         None => a.u_max,
     };
-    if !(u_max.is_finite() && u_max > 0.0 && u_max <= 0.6) {
-        return Err(CliError::Argument { arg: "--u-max", reason: format!("must be in (0, 0.6] (Re up to 40, where the flow stays steady), got {}", a.u_max) });
+    if !(0.0015..=0.6).contains(&u_max) {
+        return Err(CliError::Argument {
+            arg: "--u-max",
+            reason: format!("must be in [0.0015, 0.6] (Re 0.1 to 40, where the flow stays steady and its drag coefficient is resolved), got {}", a.u_max),
+        });
     }
     let stream = match a.free_stream {
         None => Stream::Channel,
@@ -553,6 +570,15 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
     let reduction = 100.0 * (1.0 - r.cd_end / cd_cylinder);
     let fine_reduction = fine.map(|(start, end)| 100.0 * (1.0 - end / start));
     let shrink = r.gradient_start / r.gradient_end;
+    let mut figures = vec![("c_D of the cylinder", cd_cylinder), ("c_D of the optimum", r.cd_end), ("the reduction", reduction), ("the area", r.area_end)];
+    if let (Some((s, e)), Some(f)) = (fine, fine_reduction) {
+        // One push each: an array of tuples by value aborts Enzyme's type
+        // analysis in this flagged crate (docs/pitfalls.md).
+        figures.push(("c_D of the cylinder re-simulated", s));
+        figures.push(("c_D of the optimum re-simulated", e));
+        figures.push(("the re-simulated reduction", f));
+    }
+    super::finite_figures("drag-shape", &figures)?;
     if let Some(dir) = &a.out {
         write_drag_shapes(dir, &r, per_d)?;
     }
@@ -617,7 +643,8 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
 /// `modes`.
 fn start_coefficients(path: &std::path::Path, modes: usize) -> Result<Vec<f64>, CliError> {
     let fail = |reason: String| CliError::Argument { arg: "--start-shape", reason: format!("{}: {reason}", path.display()) };
-    let text = std::fs::read_to_string(path).map_err(|e| fail(e.to_string()))?;
+    // A regular file of at most a megabyte (a --json log of runs is far smaller).
+    let text = crate::files::read_text(path, 1 << 20, "shape file").map_err(|e| fail(e.to_string()))?;
     let line = text.lines().rev().find(|l| !l.trim().is_empty()).ok_or_else(|| fail("the file is empty".into()))?;
     let json: serde_json::Value = serde_json::from_str(line).map_err(|e| fail(format!("its last line is not a JSON object: {e}")))?;
     let params: Vec<f64> = json["shape"]["params"]
@@ -648,7 +675,7 @@ fn write_drag_shapes(dir: &std::path::Path, r: &diffsim_solvers::flow::drag_shap
         csv.push_str(&format!("{k},{:.8},{:.6e}\n", h.cd, h.gradient_norm));
     }
     let path = dir.join("drag_shape_history.csv");
-    std::fs::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;
+    crate::files::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;
     let history: Vec<(f64, f64)> = r.history.iter().enumerate().map(|(k, h)| (k as f64, h.cd)).collect();
     plot_or_warn(
         &dir.join("drag_shape_history.png"),

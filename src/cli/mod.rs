@@ -42,6 +42,9 @@ pub enum CliError {
         /// The cause.
         source: std::io::Error,
     },
+    /// An output folder cannot be used (another run's, locked, an input).
+    #[error(transparent)]
+    Out(#[from] crate::files::OutDirError),
     /// An input file could not be read.
     #[error(transparent)]
     Read(#[from] crate::files::ReadError),
@@ -90,6 +93,15 @@ pub enum CliError {
     /// The processes of an mpirun cannot work together.
     #[error(transparent)]
     Distributed(#[from] crate::distributed::DistributedError),
+    /// A run ended with a figure that is not a result (NaN, infinite, or
+    /// outside what the method can give): nothing is printed as if it were.
+    #[error("{what}: {reason}; no result is reported")]
+    NotReported {
+        /// The run.
+        what: String,
+        /// The figure and what is wrong with it.
+        reason: String,
+    },
     /// The thread pool could not be built.
     #[error("cannot start {threads} threads: {source}")]
     Threads {
@@ -174,6 +186,52 @@ struct CheckArgs {
 enum DemoCommand {
     /// A smoke plume rising around an obstacle, written as PNG.
     Plume(demo::PlumeArgs),
+}
+
+/// The `diffsim` command: parses the arguments (negative numbers are
+/// values, `--re -1`, not flags), runs, and on an error prints one line and
+/// exits non-zero.
+pub fn main() {
+    use clap::{CommandFactory, FromArgMatches};
+    // A closed pipe (`diffsim … | head`) ends the command quietly, as
+    // command-line tools do; Rust ignores SIGPIPE, and the write then fails.
+    // SAFETY: setting a signal's disposition to its default at start-up,
+    // before any thread exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+    // Standard output that cannot be written (a full disk, /dev/full) is an
+    // error that says so, not a backtrace: `println!` panics there, and the
+    // hook turns that one panic into the error line and exit code 1.
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let message = info.payload().downcast_ref::<String>().map(String::as_str).or_else(|| info.payload().downcast_ref::<&str>().copied());
+        match message.and_then(|m| m.strip_prefix("failed printing to stdout: ")) {
+            Some(cause) => {
+                eprintln!("error: cannot write the output: {cause}");
+                std::process::exit(1);
+            }
+            None => default(info),
+        }
+    }));
+    fn negative(c: clap::Command) -> clap::Command {
+        c.allow_negative_numbers(true).mut_subcommands(negative)
+    }
+    let matches = negative(Cli::command()).get_matches();
+    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    if let Err(e) = run(cli) {
+        eprintln!("error: {e}");
+        std::process::exit(e.exit_code());
+    }
+}
+
+/// Refuses a run's figures when one is NaN or infinite: `what` names the
+/// run, `figures` each figure by name.
+fn finite_figures(what: &str, figures: &[(&str, f64)]) -> Result<(), CliError> {
+    match figures.iter().find(|(_, v)| !v.is_finite()) {
+        Some((name, v)) => Err(CliError::NotReported { what: what.to_string(), reason: format!("{name} came out {v}") }),
+        None => Ok(()),
+    }
 }
 
 /// Writes a line plot; a plot that cannot be drawn (no font) is a warning,
@@ -300,6 +358,10 @@ fn info(world: &crate::distributed::World) -> Result<(), CliError> {
 }
 
 /// Runs the three gradient checks on the P1 rollout `u0 ↦ u_T`.
+/// The most steps `diffsim check` takes (its finite differences run the
+/// rollout twice per cell: a million steps is already hours).
+const MAX_CHECK_STEPS: usize = 1_000_000;
+
 fn check_p1(a: CheckArgs) -> Result<(), CliError> {
     use crate::check::{CheckOptions, check_all};
     use crate::problems::burgers::{BurgersEnzyme, BurgersHand, P1};
@@ -307,9 +369,14 @@ fn check_p1(a: CheckArgs) -> Result<(), CliError> {
     if a.n < 3 {
         return Err(CliError::Argument { arg: "--n", reason: format!("need at least 3 cells, got {}", a.n) });
     }
-    if a.steps < 1 {
-        return Err(CliError::Argument { arg: "--steps", reason: "need at least 1 step".into() });
+    if !(1..=MAX_CHECK_STEPS).contains(&a.steps) {
+        return Err(CliError::Argument { arg: "--steps", reason: format!("need 1 to {MAX_CHECK_STEPS} steps, got {}", a.steps) });
     }
+    // The states the binomial checkpointing keeps (⌈log₂ T⌉ + 1) and the
+    // checks' own vectors (a few dozen of N), each N values, before any is
+    // allocated: a size whose buffers overflow is refused here.
+    let copies = 40 + u64::from(usize::BITS - a.steps.leading_zeros());
+    crate::memory::check("check", format!("{} cells, {} steps", a.n, a.steps), crate::memory::f64s(&[a.n as u64, copies]), None)?;
     let p = P1::new(a.n, a.steps);
     let mode = Checkpointing::binomial_log(a.steps);
     let opts = CheckOptions::default();

@@ -66,7 +66,17 @@ fn check_name(name: &str) -> Result<(), CliError> {
     if name.ends_with('-') || name.ends_with('_') || name.contains("--") {
         return Err(invalid("--name", format!("`{name}` ends with or doubles a separator")));
     }
-    let reserved = ["diffsim", "diffsim_solvers", "test", "std", "core", "alloc", "proc_macro", "self", "super", "crate"];
+    let reserved = ["diffsim", "diffsim_solvers", "test", "std", "core", "alloc", "proc_macro"];
+    // Rust's keywords (strict and reserved, 2024 edition): the crate's name
+    // is an identifier in its main.rs.
+    let keywords = [
+        "as", "async", "await", "break", "const", "continue", "crate", "dyn", "else", "enum", "extern", "false", "fn", "for", "gen", "if", "impl", "in", "let",
+        "loop", "match", "mod", "move", "mut", "pub", "ref", "return", "self", "static", "struct", "super", "trait", "true", "type", "unsafe", "use", "where",
+        "while", "abstract", "become", "box", "do", "final", "macro", "override", "priv", "try", "typeof", "unsized", "virtual", "yield",
+    ];
+    if keywords.contains(&snake.as_str()) {
+        return Err(invalid("--name", format!("`{name}` is a Rust keyword, which cannot name a crate; choose another")));
+    }
     if reserved.contains(&snake.as_str()) {
         return Err(invalid("--name", format!("`{name}` clashes with a crate it depends on or a Rust name; choose another")));
     }
@@ -98,7 +108,7 @@ fn write(root: &Path, rel: &str, text: &str) -> Result<(), CliError> {
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir).map_err(io)?;
     }
-    std::fs::write(&path, text).map_err(io)
+    crate::files::write(&path, text).map_err(io)
 }
 
 /// Writes the crate.
@@ -122,8 +132,22 @@ pub fn new(a: NewArgs) -> Result<(), CliError> {
     }
     let diffsim = std::fs::canonicalize(a.diffsim.as_deref().unwrap_or(Path::new(env!("CARGO_MANIFEST_DIR"))))
         .map_err(|e| invalid("--diffsim", format!("cannot find the diffsim checkout: {e}")))?;
-    if !diffsim.join("Cargo.toml").is_file() || !diffsim.join("src/lib.rs").is_file() {
-        return Err(invalid("--diffsim", format!("{} is not a diffsim checkout (no Cargo.toml and src/lib.rs)", diffsim.display())));
+    // The checkout's manifest names the package `diffsim` (and its
+    // solvers crate is beside it): any other crate would fail to build.
+    let manifest = crate::files::read_text(&diffsim.join("Cargo.toml"), 1 << 20, "Cargo.toml").ok();
+    let package = manifest.as_deref().and_then(|t| t.parse::<toml::Table>().ok()).and_then(|t| t.get("package")?.get("name")?.as_str().map(String::from));
+    if package.as_deref() != Some("diffsim") || !diffsim.join("src/lib.rs").is_file() || !diffsim.join("solvers/Cargo.toml").is_file() {
+        return Err(invalid(
+            "--diffsim",
+            format!(
+                "{} is not a diffsim checkout (its Cargo.toml {}, and it needs src/lib.rs and solvers/Cargo.toml)",
+                diffsim.display(),
+                match &package {
+                    Some(name) => format!("names the package `{}`", crate::files::shorten(name, 40)),
+                    None => "is missing or names no package".to_string(),
+                }
+            ),
+        ));
     }
     let diffsim_str = diffsim.to_str().ok_or_else(|| invalid("--diffsim", "the path is not valid UTF-8"))?.replace('\\', "/");
 

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use npyz::WriterBuilder;
 
 use super::CliError;
+use crate::files::{OutDir, Outputs};
 use crate::rollout::RolloutOperator;
 use crate::scene::{AnyScene, Domain, Field, Scene, SteadyScene};
 
@@ -17,6 +18,10 @@ pub struct RunArgs {
     /// Output directory.
     #[arg(long, default_value = "out")]
     out: PathBuf,
+    /// Write into --out even when it holds another run's results or other
+    /// files (the earlier run's files are removed, others kept).
+    #[arg(long)]
+    overwrite: bool,
     /// Also write an image every this many steps.
     #[arg(long)]
     every: Option<usize>,
@@ -85,6 +90,10 @@ pub struct GradArgs {
     /// Output directory.
     #[arg(long, default_value = "out")]
     out: PathBuf,
+    /// Write into --out even when it holds another run's results or other
+    /// files (the earlier run's files are removed, others kept).
+    #[arg(long)]
+    overwrite: bool,
     /// Also run the gradient checks on the whole rollout and print them.
     #[arg(long)]
     check: bool,
@@ -99,14 +108,29 @@ pub struct GradArgs {
     checkpoint: String,
 }
 
-pub(super) fn create_dir(out: &Path) -> Result<(), CliError> {
-    std::fs::create_dir_all(out).map_err(|source| CliError::Io { path: out.to_path_buf(), source })
+/// Claims `out` for a command on the scene file `scene`: the scene and the
+/// `.npy` files it reads are never written over, and a folder holding
+/// another run's results is refused unless `overwrite`
+/// ([`crate::files::OutDir`]). A run is the scene's path and text (`run`
+/// and `grad` of one scene share a folder; an edited scene is another
+/// run), and `extra` (a sweep's `--set`).
+pub(super) fn claim(out: &Path, scene: &Path, extra: &str, overwrite: bool) -> Result<OutDir, CliError> {
+    use std::hash::{Hash, Hasher};
+    let canonical = std::fs::canonicalize(scene).unwrap_or_else(|_| scene.to_path_buf());
+    let mut hash = std::hash::DefaultHasher::new();
+    crate::files::read_bytes(scene, crate::scene::MAX_SCENE_BYTES, "scene file")?.hash(&mut hash);
+    let mut inputs = crate::scene::input_files(scene);
+    inputs.push(scene.to_path_buf());
+    let refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
+    Ok(OutDir::claim(out, &format!("{} (text {:016x}){extra}", canonical.display(), hash.finish()), &refs, overwrite)?)
 }
 
-/// Writes `values` as a float64 `.npy` array of `shape` (row-major).
-fn write_npy(path: &Path, shape: &[u64], values: &[f64]) -> Result<(), CliError> {
-    let io = |source| CliError::Io { path: path.to_path_buf(), source };
-    let file = std::io::BufWriter::new(std::fs::File::create(path).map_err(io)?);
+/// Writes `values` as a float64 `.npy` array of `shape` (row-major) to the
+/// output `name`.
+fn write_npy(out: &dyn Outputs, name: &str, shape: &[u64], values: &[f64]) -> Result<(), CliError> {
+    let path = out.file(name)?;
+    let io = |source| CliError::Io { path: path.clone(), source };
+    let file = std::io::BufWriter::new(crate::files::create(&path).map_err(io)?);
     let mut w = npyz::WriteOptions::new().default_dtype().shape(shape).writer(file).begin_nd().map_err(io)?;
     w.extend(values.iter().copied()).map_err(io)?;
     w.finish().map_err(io)
@@ -115,12 +139,12 @@ fn write_npy(path: &Path, shape: &[u64], values: &[f64]) -> Result<(), CliError>
 /// The declared fields of a state as `.npy` files (`smoke.npy`; a 2D
 /// velocity as `velocity_u.npy` `[N, N+1]` and `velocity_v.npy` `[N+1, N]`,
 /// rows = y). Returns the file names.
-pub(super) fn write_state(scene: &Scene, out: &Path, x: &[f64]) -> Result<Vec<String>, CliError> {
+pub(super) fn write_state(scene: &Scene, out: &dyn Outputs, x: &[f64]) -> Result<Vec<String>, CliError> {
     let mut names = Vec::new();
     for &field in &scene.fields {
         for a in scene.domain.arrays(field) {
             let name = format!("{}{}.npy", field.name(), a.suffix);
-            write_npy(&out.join(&name), &a.shape, &x[a.range])?;
+            write_npy(out, &name, &a.shape, &x[a.range])?;
             names.push(name);
         }
     }
@@ -130,7 +154,7 @@ pub(super) fn write_state(scene: &Scene, out: &Path, x: &[f64]) -> Result<Vec<St
 /// An image of a state: the smoke of a box (the speed when it has no smoke),
 /// a slice and a maximum-intensity projection of it in 3D, or a plot of
 /// each field of a line. Returns the file names.
-pub(super) fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64], views: Views) -> Result<Vec<String>, CliError> {
+pub(super) fn write_images(scene: &Scene, out: &dyn Outputs, tag: &str, x: &[f64], views: Views) -> Result<Vec<String>, CliError> {
     let io = |path: PathBuf| move |source| CliError::Io { path, source };
     let mut names = Vec::new();
     match &scene.domain {
@@ -138,7 +162,7 @@ pub(super) fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64], view
             use crate::plot::{Axes, Series};
             for &field in &scene.fields {
                 let name = format!("{}{tag}.png", field.name());
-                let path = out.join(&name);
+                let path = out.file(&name)?;
                 let points = x[scene.domain.range(field)].iter().enumerate().map(|(i, v)| (i as f64 * line.dx, *v)).collect();
                 let axes = Axes { title: field.name(), x: "x", y: field.name(), log_x: false, log_y: false };
                 if super::plot_or_warn(&path, &axes, &[Series { name: field.name().to_string(), points, color: 0, markers: false }]) {
@@ -156,7 +180,7 @@ pub(super) fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64], view
                 let (_, u, v) = cfg.split(x);
                 (format!("speed{tag}.png"), relative_speed((n, ny), u, v))
             };
-            let path = out.join(&name);
+            let path = out.file(&name)?;
             super::demo::write_png(&path, (n, ny), &values, solid).map_err(io(path.clone()))?;
             names.push(name);
         }
@@ -175,14 +199,14 @@ pub(super) fn write_images(scene: &Scene, out: &Path, tag: &str, x: &[f64], view
             let k = index.unwrap_or(dims[ax] / 2);
             let plane = slice(dims, &values, ax, k);
             let name = format!("{field}_slice_{}{k}{tag}.png", names_axis[ax]);
-            let path = out.join(&name);
+            let path = out.file(&name)?;
             super::demo::write_png(&path, (plane.width, plane.height), &plane.values, &slice_marks(dims, solid, ax, k)).map_err(io(path.clone()))?;
             names.push(name);
             // The projection: obstacles shown where no smoke lies along the ray.
             let mip = max_projection(dims, &values, views.mip);
             let marks: Vec<bool> = any_projection(dims, solid, views.mip).iter().zip(&mip.values).map(|(&m, &v)| m && v < 0.02).collect();
             let name = format!("{field}_mip_{}{tag}.png", names_axis[views.mip]);
-            let path = out.join(&name);
+            let path = out.file(&name)?;
             super::demo::write_png(&path, (mip.width, mip.height), &mip.values, &marks).map_err(io(path.clone()))?;
             names.push(name);
         }
@@ -247,7 +271,7 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
         return Err(CliError::Argument { arg: "--every", reason: "must be at least 1 (a frame every this many steps)".into() });
     }
     let views = Views::parse(&a, &scene.domain)?;
-    create_dir(&a.out)?;
+    let out = claim(&a.out, &a.scene, "", a.overwrite)?;
     let start = std::time::Instant::now();
     let x = if a.profile {
         let (x, table) = profile_run(&scene)?;
@@ -261,7 +285,7 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
         let x = scene.run(|k, x| {
             if failed.is_none()
                 && a.every.is_some_and(|e| k % e == 0)
-                && let Err(e) = write_images(&scene, &a.out, &format!("_{k:05}"), x, views)
+                && let Err(e) = write_images(&scene, &out, &format!("_{k:05}"), x, views)
             {
                 failed = Some(e);
             }
@@ -274,8 +298,9 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
         x?
     };
     let elapsed = start.elapsed().as_secs_f64();
-    let mut written = write_state(&scene, &a.out, &x)?;
-    written.extend(write_images(&scene, &a.out, "", &x, views)?);
+    let mut written = write_state(&scene, &out, &x)?;
+    written.extend(write_images(&scene, &out, "", &x, views)?);
+    out.finish()?;
     if !a.quiet {
         eprintln!(
             "{}: {}, {} steps of {} in {elapsed:.2} s; effects: {}; wrote {} to {}",
@@ -393,8 +418,15 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
     };
     let (plan, chosen) = gradient_plan(&scene, &a.checkpoint)?;
     let mode = plan.mode;
-    create_dir(&a.out)?;
+    let out = claim(&a.out, &a.scene, "", a.overwrite)?;
     let g = scene.gradient(loss, mode)?;
+    // A loss or gradient that overflowed is not reported as one.
+    super::finite_figures("grad", &[("the loss", g.loss)])?;
+    for input in &g.inputs {
+        if let Some(v) = input.arrays.iter().flat_map(|(_, _, v)| v).find(|v| !v.is_finite()) {
+            return Err(CliError::NotReported { what: "grad".into(), reason: format!("the gradient with respect to {} holds {v}", input.name) });
+        }
+    }
     let how = if chosen { "chosen within" } else { "given; budget" };
     eprintln!("memory plan ({how} {}): {plan}", crate::memory::human(crate::memory::budget()));
     println!("loss {:.10e}", g.loss);
@@ -402,13 +434,14 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
         let norm = input.arrays.iter().flat_map(|(_, _, v)| v).map(|a| a * a).sum::<f64>().sqrt();
         let files: Vec<String> = input.arrays.iter().map(|(stem, _, _)| format!("{stem}.npy")).collect();
         for (stem, shape, values) in &input.arrays {
-            write_npy(&a.out.join(format!("{stem}.npy")), shape, values)?;
+            write_npy(&out, &format!("{stem}.npy"), shape, values)?;
         }
         match input.arrays.as_slice() {
             [(_, shape, v)] if shape == &[1] => println!("d loss / d {} = {:.10e} → {}", input.name, v[0], files.join(", ")),
             _ => println!("d loss / d {}: ‖·‖ = {norm:.6e} → {}", input.name, files.join(", ")),
         }
     }
+    out.finish()?;
     if a.profile {
         println!("{}", profile_run(&scene)?.1);
         println!("{}", profile_backward(&scene)?);
@@ -437,16 +470,16 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
 /// Writes a solved steady scene: `velocity_u.npy`, `velocity_v.npy`,
 /// `pressure.npy` (rows = y) and `speed.png` (bodies' cells dark red).
 /// Returns the file names.
-pub(super) fn write_steady(scene: &SteadyScene, run: &crate::scene::SteadyRun, out: &Path) -> Result<Vec<String>, CliError> {
+pub(super) fn write_steady(scene: &SteadyScene, run: &crate::scene::SteadyRun, out: &dyn Outputs) -> Result<Vec<String>, CliError> {
     let (nx, ny) = (scene.flow.nx as u64, scene.flow.ny as u64);
     let (u, v) = run.state.x.split_at(scene.flow.n_u());
-    write_npy(&out.join("velocity_u.npy"), &[ny, nx + 1], u)?;
-    write_npy(&out.join("velocity_v.npy"), &[ny + 1, nx], v)?;
-    write_npy(&out.join("pressure.npy"), &[ny, nx], &run.state.pressure)?;
+    write_npy(out, "velocity_u.npy", &[ny, nx + 1], u)?;
+    write_npy(out, "velocity_v.npy", &[ny + 1, nx], v)?;
+    write_npy(out, "pressure.npy", &[ny, nx], &run.state.pressure)?;
     let mut names: Vec<String> = vec!["velocity_u.npy".into(), "velocity_v.npy".into(), "pressure.npy".into()];
     let (nx, ny, h) = (scene.flow.nx, scene.flow.ny, scene.flow.h);
     let solid: Vec<bool> = (0..nx * ny).map(|c| scene.shapes.iter().any(|b| b.level(((c % nx) as f64 + 0.5) * h, ((c / nx) as f64 + 0.5) * h) < 0.0)).collect();
-    let path = out.join("speed.png");
+    let path = out.file("speed.png")?;
     super::demo::write_png(&path, (nx, ny), &relative_speed((nx, ny), u, v), &solid).map_err(|source| CliError::Io { path: path.clone(), source })?;
     names.push("speed.png".into());
     Ok(names)
@@ -469,11 +502,12 @@ fn describe_forces(scene: &SteadyScene, run: &crate::scene::SteadyRun) -> String
 }
 
 fn run_steady(a: &RunArgs, scene: &SteadyScene) -> Result<(), CliError> {
-    create_dir(&a.out)?;
+    let out = claim(&a.out, &a.scene, "", a.overwrite)?;
     let start = std::time::Instant::now();
     let run = scene.solve()?;
     let elapsed = start.elapsed().as_secs_f64();
-    let written = write_steady(scene, &run, &a.out)?;
+    let written = write_steady(scene, &run, &out)?;
+    out.finish()?;
     if !a.quiet {
         println!("{}", describe_forces(scene, &run));
         eprintln!(
@@ -498,18 +532,25 @@ fn grad_steady(a: &GradArgs, scene: &SteadyScene) -> Result<(), CliError> {
     if a.profile {
         eprintln!("--profile times each effect of a scene stepped in time; a steady scene has none (the solve and adjoint times follow)");
     }
-    create_dir(&a.out)?;
+    let out = claim(&a.out, &a.scene, "", a.overwrite)?;
     let start = std::time::Instant::now();
     let (run, g) = scene.gradient(loss)?;
+    super::finite_figures("grad", &[("the loss", g.loss)])?;
+    for (name, _, values) in &g.inputs {
+        if let Some(v) = values.iter().find(|v| !v.is_finite()) {
+            return Err(CliError::NotReported { what: "grad".into(), reason: format!("the gradient with respect to {name} holds {v}") });
+        }
+    }
     let elapsed = start.elapsed().as_secs_f64();
     println!("loss {:.10e} ({} of obstacles[{}])", g.loss, loss.kind(), loss.obstacle);
     for (name, params, values) in &g.inputs {
         let stem = crate::scene::grad_stem(name);
-        write_npy(&a.out.join(format!("{stem}.npy")), &[values.len() as u64], values)?;
+        write_npy(&out, &format!("{stem}.npy"), &[values.len() as u64], values)?;
         let listed: Vec<String> = params.iter().zip(values).map(|(p, v)| format!("{p} {v:.6e}")).collect();
         println!("d loss / d {name} → {stem}.npy: {}", listed.join(", "));
     }
     eprintln!("{} Newton steps and one adjoint solve in {elapsed:.2} s", run.state.steps);
+    out.finish()?;
     if a.check {
         use crate::check::{CheckOptions, check_all};
         // The force on the loss's body as a function of every body's

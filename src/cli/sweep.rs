@@ -11,8 +11,9 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::CliError;
-use super::scene::{Views, create_dir, write_images, write_state, write_steady};
+use super::scene::{Views, write_images, write_state, write_steady};
 use crate::distributed::World;
+use crate::files::OutDir;
 use crate::scene::AnyScene;
 
 /// Arguments of `diffsim sweep`.
@@ -30,6 +31,10 @@ pub struct SweepArgs {
     /// Output directory: run-NNNN/ per run, runs.csv (and runs.json).
     #[arg(long, default_value = "out/sweep")]
     out: PathBuf,
+    /// Write into --out even when it holds another run's results or other
+    /// files (the earlier run's files are removed, others kept).
+    #[arg(long)]
+    overwrite: bool,
     /// Also write the table as runs.json and print it as one JSON line.
     #[arg(long)]
     json: bool,
@@ -61,6 +66,11 @@ pub(super) fn sweep(a: SweepArgs, world: &World) -> Result<(), CliError> {
     let text = crate::files::read_text(&a.scene, crate::scene::MAX_SCENE_BYTES, "scene file")?;
     let table: toml::Table = toml::from_str(&text).map_err(|e| crate::scene::SceneError::Syntax(crate::words::toml_error(&e, &text)))?;
     let axes: Vec<(String, Vec<toml::Value>)> = a.set.iter().map(|s| parse_set(s)).collect::<Result<_, _>>()?;
+    for (k, (key, _)) in axes.iter().enumerate() {
+        if axes[..k].iter().any(|(earlier, _)| earlier == key) {
+            return Err(CliError::Argument { arg: "--set", reason: format!("`{key}` is given twice; list all its values once: {key}=V1,V2,…") });
+        }
+    }
     let count = axes.iter().try_fold(1usize, |n, (_, v)| n.checked_mul(v.len())).filter(|&n| n <= MAX_RUNS);
     let Some(count) = count else {
         return Err(CliError::Argument { arg: "--set", reason: format!("more than {MAX_RUNS} combinations") });
@@ -76,14 +86,27 @@ pub(super) fn sweep(a: SweepArgs, world: &World) -> Result<(), CliError> {
             }
             let text =
                 toml::to_string(&t).map_err(|e| CliError::Argument { arg: "--set", reason: format!("run {i}: cannot write the scene back as TOML: {e}") })?;
-            AnyScene::parse_in(&text, dir).map_err(|e| CliError::Argument { arg: "--set", reason: format!("run {i} ({}): {e}", label(&axes, &values)) })?;
+            // The scene is checked as rewritten, whose lines are not the
+            // user's: the error names the file and the values instead.
+            AnyScene::parse_in(&text, dir).map_err(|e| CliError::Argument {
+                arg: "--set",
+                reason: format!("run {i}: {} with {}: {}", a.scene.display(), label(&axes, &values), without_lines(e)),
+            })?;
             Ok(text)
         })
         .collect::<Result<_, CliError>>()?;
-    if world.is_root() {
-        create_dir(&a.out)?;
-    }
-    // Rank 0 made the folder before any rank writes into it.
+    // Rank 0 claims the folder (locked, refused when another run's) and
+    // makes every run's folder before any rank writes into one.
+    let claimed = if world.is_root() {
+        let extra: String = a.set.iter().map(|s| format!(" --set {s}")).collect();
+        let out = super::scene::claim(&a.out, &a.scene, &format!(" swept{extra}"), a.overwrite)?;
+        for i in 0..count {
+            out.folder(&format!("run-{i:04}"))?;
+        }
+        Some(out)
+    } else {
+        None
+    };
     world.barrier();
     let mut mine = Vec::new();
     for i in (world.rank()..count).step_by(world.size()) {
@@ -93,14 +116,16 @@ pub(super) fn sweep(a: SweepArgs, world: &World) -> Result<(), CliError> {
         }
         mine.push(row);
     }
-    let bytes = serde_json::to_vec(&mine).expect("plain data serialises");
-    let Some(parts) = world.gather_bytes(&bytes) else { return Ok(()) };
+    let garbled = |e: serde_json::Error| CliError::Argument { arg: "sweep", reason: format!("the ranks' tables could not be gathered: {e}") };
+    let bytes = serde_json::to_vec(&mine).map_err(garbled)?;
+    let (Some(parts), Some(out)) = (world.gather_bytes(&bytes), claimed) else { return Ok(()) };
     let mut rows: Vec<RunRow> = Vec::with_capacity(count);
     for p in parts {
-        rows.extend(serde_json::from_slice::<Vec<RunRow>>(&p).expect("the ranks send what this build writes"));
+        rows.extend(serde_json::from_slice::<Vec<RunRow>>(&p).map_err(garbled)?);
     }
     rows.sort_by_key(|r| r.run);
-    write_table(&a, &axes, &rows)?;
+    write_table(&a, &out, &axes, &rows)?;
+    out.finish()?;
     let failed = rows.iter().filter(|r| r.status != "ok").count();
     println!(
         "{count} runs ({failed} failed) over {} rank(s); wrote run-0000 … run-{:04}, runs.csv{} to {}",
@@ -117,8 +142,7 @@ pub(super) fn sweep(a: SweepArgs, world: &World) -> Result<(), CliError> {
 
 /// Runs the scene `text` into `out`; a failed simulation is a row with its
 /// error, a failed write an error.
-fn run_one(text: &str, dir: &Path, out: &Path, run: usize) -> Result<RunRow, CliError> {
-    create_dir(out)?;
+fn run_one(text: &str, dir: &Path, out: &PathBuf, run: usize) -> Result<RunRow, CliError> {
     let scene = AnyScene::parse_in(text, dir)?;
     let start = std::time::Instant::now();
     let mut figures = Vec::new();
@@ -145,7 +169,14 @@ fn run_one(text: &str, dir: &Path, out: &Path, run: usize) -> Result<RunRow, Cli
                     for &field in &scene.fields {
                         let v = &x[scene.domain.range(field)];
                         figures.push((format!("{}_mean", field.name()), v.iter().sum::<f64>() / v.len().max(1) as f64));
-                        figures.push((format!("{}_max_abs", field.name()), v.iter().fold(0.0f64, |m, x| m.max(x.abs()))));
+                        figures.push((format!("{}_max_abs", field.name()), diffsim_solvers::cg::max_abs(v)));
+                    }
+                    // A figure that overflowed (a loss past 1e308) is that
+                    // run's error, not a number of the table.
+                    if let Some((name, v)) = figures.iter().find(|(_, v)| !v.is_finite()) {
+                        let status = format!("the {name} came out {v}");
+                        figures.retain(|(_, v)| v.is_finite());
+                        return Ok(RunRow { run, time_s: time, status, figures });
                     }
                     write_state(&scene, out, &x)?;
                     write_images(&scene, out, "", &x, Views::default())?;
@@ -166,6 +197,11 @@ fn run_one(text: &str, dir: &Path, out: &Path, run: usize) -> Result<RunRow, Cli
                         figures.push((format!("obstacles{k}_cl"), scale * f[1]));
                     }
                 }
+                if let Some((name, v)) = figures.iter().find(|(_, v)| !v.is_finite()) {
+                    let status = format!("the {name} came out {v}");
+                    figures.retain(|(_, v)| v.is_finite());
+                    return Ok(RunRow { run, time_s: time, status, figures });
+                }
                 write_steady(&scene, &r, out)?;
                 return Ok(RunRow { run, time_s: time, status: "ok".into(), figures });
             }
@@ -177,7 +213,7 @@ fn run_one(text: &str, dir: &Path, out: &Path, run: usize) -> Result<RunRow, Cli
 
 /// Writes runs.csv (and runs.json): one row per run, the swept values, the
 /// status, the time and every figure any run has.
-fn write_table(a: &SweepArgs, axes: &[(String, Vec<toml::Value>)], rows: &[RunRow]) -> Result<(), CliError> {
+fn write_table(a: &SweepArgs, out: &OutDir, axes: &[(String, Vec<toml::Value>)], rows: &[RunRow]) -> Result<(), CliError> {
     let mut names: Vec<&str> = Vec::new();
     for r in rows {
         for (n, _) in &r.figures {
@@ -217,15 +253,31 @@ fn write_table(a: &SweepArgs, axes: &[(String, Vec<toml::Value>)], rows: &[RunRo
         }
         json.push(serde_json::Value::Object(obj));
     }
-    let path = a.out.join("runs.csv");
+    let path = out.file("runs.csv")?;
     crate::files::write_atomic(&path, csv.as_bytes()).map_err(|source| CliError::Io { path: path.clone(), source })?;
     if a.json {
-        let path = a.out.join("runs.json");
+        let path = out.file("runs.json")?;
         let text = serde_json::Value::Array(json);
         crate::files::write_atomic(&path, format!("{text:#}\n").as_bytes()).map_err(|source| CliError::Io { path: path.clone(), source })?;
         println!("{text}");
     }
     Ok(())
+}
+
+/// A scene error without the line numbers of the rewritten text (the
+/// key it names is the user's).
+fn without_lines(e: crate::scene::SceneError) -> String {
+    use crate::scene::SceneError;
+    match e {
+        SceneError::Key { key, reason, .. } => SceneError::Key { key, reason, line: None }.to_string(),
+        SceneError::Syntax(text) => {
+            // `line N: …` and the quoted source line `\n  N | …`.
+            let first = text.lines().next().unwrap_or("");
+            let first = first.strip_prefix("line ").and_then(|r| r.split_once(": ")).map_or(first, |(_, rest)| rest);
+            format!("scene: {first}")
+        }
+        e => e.to_string(),
+    }
 }
 
 /// The values of combination `i` (the last key varying fastest).

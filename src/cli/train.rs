@@ -314,9 +314,9 @@ pub struct SolWakeArgs {
 /// only warns when it cannot be drawn).
 pub(super) fn write_error_files(out: &Path, table: &str, csv: &str, axes: &Axes<'_>, series: &[Series]) -> Result<(), CliError> {
     let md = out.join("table.md");
-    std::fs::write(&md, table).map_err(io(&md))?;
+    crate::files::write(&md, table).map_err(io(&md))?;
     let path = out.join("error.csv");
-    std::fs::write(&path, csv).map_err(io(&path))?;
+    crate::files::write(&path, csv).map_err(io(&path))?;
     plot_or_warn(&out.join("error.png"), axes, series);
     Ok(())
 }
@@ -392,7 +392,7 @@ pub(super) fn train_cmd(a: TrainArgs, world: &World) -> Result<(), CliError> {
     let total = cfg.settings.iterations as u64;
     let (mut store, mut opt, done) = world.from_root(|| start_or_continue(&a, &cfg, &text, &layout))?;
     let full = match a.extend {
-        Some(n) => done + n as u64,
+        Some(n) => target_of(done, n)?,
         None => total,
     };
     let target = match a.until {
@@ -534,6 +534,22 @@ fn interrupted(a: &TrainArgs, at: u64, target: u64) -> CliError {
 /// Rank 0's part of starting `diffsim train`: the parameters, optimizer
 /// and iterations done, from the checkpoint (`--resume`, `--extend`) or
 /// fresh (then written as the checkpoint of iteration 0).
+/// The iteration `--extend n` trains to from `done`: at least one more,
+/// and within [`MAX_ITERATIONS`].
+fn target_of(done: u64, n: usize) -> Result<u64, CliError> {
+    let arg = "--extend";
+    if n == 0 {
+        return Err(CliError::Argument { arg, reason: "must be at least 1 (the number of iterations to train beyond the checkpoint)".into() });
+    }
+    match done.checked_add(n as u64) {
+        Some(t) if t <= MAX_ITERATIONS => Ok(t),
+        _ => Err(CliError::Argument { arg, reason: format!("{done} + {n} iterations is past the most a run may have ({MAX_ITERATIONS})") }),
+    }
+}
+
+/// The most iterations a training run may reach by `--extend`.
+const MAX_ITERATIONS: u64 = 1 << 40;
+
 fn start_or_continue(a: &TrainArgs, cfg: &TrainConfig, text: &str, layout: &ParamStore) -> Result<(ParamStore, Optimizer, u64), CliError> {
     std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
     let ckpt_path = a.out.join("checkpoint.json");
@@ -548,6 +564,10 @@ fn start_or_continue(a: &TrainArgs, cfg: &TrainConfig, text: &str, layout: &Para
         }
         let c = Checkpoint::load(&ckpt_path)?;
         c.check(&ckpt_path, text, layout, &cfg.optimizer)?;
+        // Counts are checked before anything is written (trim_log below).
+        if let Some(n) = a.extend {
+            target_of(c.iterations_done, n)?;
+        }
         if a.resume && c.iterations_done > total {
             return Err(CliError::Argument {
                 arg: "--resume",
@@ -802,9 +822,9 @@ fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
     }
     obj.insert("budget_s".into(), serde_json::json!(a.budget));
     let md = a.out.join("table.md");
-    std::fs::write(&md, &table).map_err(io(&md))?;
+    crate::files::write(&md, &table).map_err(io(&md))?;
     let path = a.out.join("loss.csv");
-    std::fs::write(&path, csv).map_err(io(&path))?;
+    crate::files::write(&path, csv).map_err(io(&path))?;
     plot_or_warn(
         &a.out.join("loss.png"),
         &Axes { title: "coupled oscillators: test loss vs training time", x: "seconds", y: "test loss", log_x: false, log_y: true },
@@ -927,14 +947,14 @@ fn run_sol_study<P: SolProblem + std::fmt::Debug>(
         ));
     }
     let md = out.join("table.md");
-    std::fs::write(&md, &table).map_err(io(&md))?;
+    crate::files::write(&md, &table).map_err(io(&md))?;
     // Errors per step.
     let csv = out.join("errors.csv");
     let mut s = format!("step,{}\n", results.iter().map(|r| r.name.as_str()).collect::<Vec<_>>().join(","));
     for t in 0..cfg.eval_steps {
         s.push_str(&format!("{},{}\n", t + 1, results.iter().map(|r| format!("{:.6e}", r.error[t])).collect::<Vec<_>>().join(",")));
     }
-    std::fs::write(&csv, s).map_err(io(&csv))?;
+    crate::files::write(&csv, s).map_err(io(&csv))?;
     let err_series: Vec<Series> = results
         .iter()
         .enumerate()

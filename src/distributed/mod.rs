@@ -315,6 +315,8 @@ impl World {
     pub fn library() -> Option<String> {
         #[cfg(feature = "mpi")]
         if let Ok(v) = mpi::environment::library_version() {
+            // The C library's buffer may end in NUL bytes.
+            let v = v.replace('\0', "");
             return Some(v.lines().next().unwrap_or("").trim().trim_end_matches(',').trim_end().to_string());
         }
         None

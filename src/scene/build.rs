@@ -241,6 +241,14 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
                 "velocity" => Field::Velocity,
                 other => return Err(SceneError::key("loss.field", unknown("field", other, &["smoke", "velocity"]))),
             };
+            // An undeclared field never changes: its loss would be a
+            // constant with a zero gradient.
+            if !fields.contains(&field) {
+                return Err(SceneError::key(
+                    "loss.field",
+                    format!("the scene declares no {0} field ([fields.{0}]): a loss on it would be a constant with a zero gradient", field.name()),
+                ));
+            }
             let target = field_init("loss.target", &domain, field, &l.target, dir)?;
             let mut at_steps = match &l.steps {
                 None => vec![steps],

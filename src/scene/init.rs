@@ -226,6 +226,14 @@ pub(super) fn field_init(key: &str, domain: &Domain, field: Field, init: &InitSp
         }
         _ => {}
     }
+    // A finite amplitude can still evaluate to NaN (a sine of wavenumber
+    // 1e308): refused here, before any step samples it.
+    if let Some(at) = values.iter().position(|v| !v.is_finite()) {
+        return Err(SceneError::key(
+            key,
+            format!("evaluates to {} at sample {at} of the {} (flat index); every value must be finite", values[at], field.name()),
+        ));
+    }
     Ok(values)
 }
 

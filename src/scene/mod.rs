@@ -370,6 +370,26 @@ pub fn grad_stem(name: &str) -> String {
     format!("grad_{}", name.replace(['.', '['], "_").replace(']', ""))
 }
 
+/// The files a scene file reads besides itself: every `npy = "…"` path
+/// in it (initial fields, targets, masks), relative to its folder. Empty
+/// when the file cannot be read (loading it reports why).
+pub fn input_files(path: &Path) -> Vec<std::path::PathBuf> {
+    fn walk(v: &toml::Value, npy: bool, dir: &Path, out: &mut Vec<std::path::PathBuf>) {
+        match v {
+            toml::Value::String(s) if npy => out.push(dir.join(s)),
+            toml::Value::Array(a) => a.iter().for_each(|x| walk(x, npy, dir, out)),
+            toml::Value::Table(t) => t.iter().for_each(|(k, x)| walk(x, k == "npy", dir, out)),
+            _ => {}
+        }
+    }
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let mut out = Vec::new();
+    if let Ok(table) = crate::files::read_text(path, MAX_SCENE_BYTES, "scene file").map(|t| t.parse::<toml::Table>()) {
+        table.iter().flat_map(|t| t.iter()).for_each(|(k, v)| walk(v, k == "npy", dir, &mut out));
+    }
+    out
+}
+
 /// A scene of either kind.
 #[derive(Debug)]
 pub enum AnyScene {

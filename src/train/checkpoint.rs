@@ -124,7 +124,18 @@ impl Checkpoint {
         if self.optimizer.kind() != optimizer {
             return Err(invalid(format!("its optimizer is {}, this configuration's is {optimizer}", self.optimizer.kind())));
         }
-        self.optimizer.validate(self.params.values.len()).map_err(|e| invalid(format!("its optimizer state: {e}")))
+        self.optimizer.validate(self.params.values.len()).map_err(|e| invalid(format!("its optimizer state: {e}")))?;
+        // One update per iteration: a count that disagrees means the file
+        // was edited or mixed from two runs, and resuming would not give
+        // the uninterrupted run.
+        match self.optimizer.steps_taken() {
+            Some(t) if t != self.iterations_done => Err(invalid(format!(
+                "its {} optimizer has taken {t} steps but its iteration count is {} (one step per iteration): the file was altered",
+                self.optimizer.kind(),
+                self.iterations_done
+            ))),
+            _ => Ok(()),
+        }
     }
 }
 

@@ -114,6 +114,15 @@ impl Optimizer {
         }
     }
 
+    /// The updates taken, where the rule counts them (Adam's bias
+    /// correction does; plain SGD keeps no count).
+    pub fn steps_taken(&self) -> Option<u64> {
+        match self {
+            Optimizer::Adam { t, .. } => Some(*t),
+            Optimizer::Sgd { .. } => None,
+        }
+    }
+
     /// The learning rate.
     pub fn lr(&self) -> f64 {
         match self {

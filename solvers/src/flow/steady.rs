@@ -400,7 +400,8 @@ impl SteadyFlow {
         let mut z = vec![0.0; self.n_unknowns()];
         z[..n].copy_from_slice(x0);
         let mut r = vec![0.0; z.len()];
-        let norm = |r: &[f64]| r.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        // NaN-propagating: a NaN residual is not a converged one.
+        let norm = crate::cg::max_abs;
         self.residual(&z, &mut r);
         let mut res = norm(&r);
         let mut trial = z.clone();

@@ -1,0 +1,231 @@
+//! The second probe's cases (issue 49) that run in seconds, kept fixed: a
+//! bad input is one clear error naming what and where, a wrong result is
+//! never reported, and no command writes outside its folder or over an
+//! input. The slow and the signal cases are `scripts/probe`'s.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use crate::cli::diffsim;
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("diffsim-bad-{name}-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// Fails with one `error:` line holding `needle`, no panic.
+#[track_caller]
+fn refused(args: &[&str], needle: &str) -> String {
+    let (code, _, err) = diffsim(args);
+    assert_ne!(code, 0, "{args:?} should fail");
+    assert!(!err.contains("panicked"), "{args:?}: {err}");
+    let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("error")).collect();
+    assert_eq!(lines.len(), 1, "{args:?}: {err}");
+    assert!(lines[0].contains(needle), "{args:?}: expected `{needle}` in {err}");
+    lines[0].to_string()
+}
+
+const SCENE: &str = "[domain]\nsize = [16, 16]\nboundary = \"closed\"\n[time]\ndt = 1.0\nsteps = 2\n\
+    [fields.smoke]\ninit = SMOKE\n[fields.velocity]\ninit = \"zero\"\n\
+    [[effects]]\nkind = \"buoyancy\"\ncoefficient = 0.1\n[[effects]]\nkind = \"advection\"\nscheme = \"semi_lagrangian\"\n\
+    [[effects]]\nkind = \"pressure\"\n";
+
+/// Smoke of `value` in a box, diffusing (implicitly: finite at any
+/// magnitude), with a loss against zero.
+fn diffusing(value: &str) -> String {
+    format!(
+        "[domain]\nsize = [16, 16]\nboundary = \"closed\"\n[time]\ndt = 1.0\nsteps = 2\n[fields.smoke]\n\
+         init = {{ box = {{ lower = [4.0, 2.0], upper = [8.0, 6.0], value = {value} }} }}\n\
+         [[effects]]\nkind = \"diffusion\"\nfields = [\"smoke\"]\nviscosity = 0.1\nscheme = \"implicit\"\n\
+         [loss]\nfield = \"smoke\"\ntarget = \"zero\"\nwith_respect_to = [\"smoke.init\"]\n"
+    )
+}
+
+fn scene(dir: &Path, smoke: &str) -> PathBuf {
+    let path = dir.join("s.toml");
+    std::fs::write(&path, SCENE.replace("SMOKE", smoke)).unwrap();
+    path
+}
+
+#[test]
+fn sizes_whose_buffers_overflow_are_refused_before_allocating() {
+    refused(&["check", "--n", "2305843009213693952"], "check");
+    refused(&["check", "--n", "18446744073709551615", "--steps", "1"], "check");
+    refused(&["check", "--n", "16", "--steps", "4611686018427387904"], "invalid argument --steps");
+}
+
+#[test]
+fn negative_numbers_are_values_of_their_option() {
+    refused(&["check", "--n", "-1"], "'--n <N>'");
+    refused(&["experiment", "cavity", "--re", "-1"], "invalid argument --re");
+    refused(&["experiment", "drag-shape", "--re", "-5"], "invalid argument --re");
+}
+
+#[test]
+fn experiments_refuse_flags_outside_their_method() {
+    refused(&["experiment", "cavity", "--re", "1e15"], "where the cavity's flow is steady");
+    refused(&["experiment", "cavity", "--re", "nan"], "invalid argument --re");
+    refused(&["experiment", "drag-shape", "--re", "1e-300"], "invalid argument --re");
+    refused(&["experiment", "drag-shape", "--u-max", "1e-300"], "invalid argument --u-max");
+}
+
+#[test]
+fn new_refuses_keywords_and_folders_that_are_not_diffsim() {
+    let dir = scratch("new");
+    refused(&["new", dir.join("a").to_str().unwrap(), "--name", "fn"], "Rust keyword");
+    refused(&["new", dir.join("b").to_str().unwrap(), "--name", "async"], "Rust keyword");
+    let fake = dir.join("fake");
+    std::fs::create_dir_all(fake.join("src")).unwrap();
+    std::fs::write(fake.join("Cargo.toml"), "[package]\nname = \"other\"\n").unwrap();
+    std::fs::write(fake.join("src/lib.rs"), "").unwrap();
+    refused(&["new", dir.join("c").to_str().unwrap(), "--diffsim", fake.to_str().unwrap()], "names the package `other`");
+    assert!(!dir.join("c").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn info_prints_no_nul_byte() {
+    let (code, out, err) = diffsim(&["info"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(!out.contains('\0'), "{out:?}");
+}
+
+#[test]
+fn output_that_cannot_be_written_is_an_error_and_a_closed_pipe_ends_quietly() {
+    let full = std::fs::OpenOptions::new().write(true).open("/dev/full").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_diffsim")).args(["check", "--n", "8", "--steps", "2"]).stdout(full).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("error: cannot write the output: No space left on device") && !err.contains("panicked"), "{err}");
+    // A reader that closes at once: the command ends (by SIGPIPE) without a word.
+    let mut child =
+        Command::new(env!("CARGO_BIN_EXE_diffsim")).args(["check", "--n", "8", "--steps", "2"]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked") && !err.contains("error"), "{err}");
+}
+
+#[test]
+fn outputs_never_go_through_a_planted_link_or_over_an_input() {
+    let dir = scratch("links");
+    let s = scene(&dir, "{ box = { lower = [4.0, 2.0], upper = [8.0, 6.0], value = 1.0 } }");
+    let outside = dir.join("precious.npy");
+    std::fs::write(&outside, "keep me").unwrap();
+    let out = dir.join("o");
+    std::fs::create_dir_all(&out).unwrap();
+    std::os::unix::fs::symlink(&outside, out.join("smoke.npy")).unwrap();
+    // A folder holding a link it did not write is another's: refused, then
+    // with --overwrite the link is replaced, not written through.
+    refused(&["run", s.to_str().unwrap(), "--out", out.to_str().unwrap(), "--quiet"], "--overwrite");
+    let (code, _, err) = diffsim(&["run", s.to_str().unwrap(), "--out", out.to_str().unwrap(), "--quiet", "--overwrite"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(std::fs::read(&outside).unwrap(), b"keep me");
+    assert!(!std::fs::symlink_metadata(out.join("smoke.npy")).unwrap().file_type().is_symlink());
+    // --out as a dangling link, and as a loop.
+    std::os::unix::fs::symlink(dir.join("nowhere"), dir.join("dangling")).unwrap();
+    refused(&["run", s.to_str().unwrap(), "--out", dir.join("dangling").to_str().unwrap()], "which does not exist");
+    std::os::unix::fs::symlink(dir.join("loop"), dir.join("loop")).unwrap();
+    refused(&["run", s.to_str().unwrap(), "--out", dir.join("loop").to_str().unwrap()], "loops back on itself");
+    // The scene's own folder: its .npy input is never written over, even
+    // with --overwrite.
+    let input = dir.join("in");
+    std::fs::create_dir_all(&input).unwrap();
+    let mut npy = Vec::new();
+    {
+        use npyz::WriterBuilder;
+        let mut w = npyz::WriteOptions::new().default_dtype().shape(&[16, 16]).writer(&mut npy).begin_nd().unwrap();
+        w.extend(vec![0.25f64; 256]).unwrap();
+        w.finish().unwrap();
+    }
+    std::fs::write(input.join("smoke.npy"), &npy).unwrap();
+    let s2 = input.join("s.toml");
+    std::fs::write(&s2, SCENE.replace("SMOKE", "{ npy = \"smoke.npy\" }")).unwrap();
+    refused(&["run", s2.to_str().unwrap(), "--out", input.to_str().unwrap(), "--overwrite"], "would overwrite the input");
+    assert_eq!(std::fs::read(input.join("smoke.npy")).unwrap(), npy);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_folder_holds_one_run_at_a_time() {
+    let dir = scratch("claims");
+    let a = scene(&dir, "\"zero\"");
+    let b = dir.join("b.toml");
+    std::fs::write(&b, SCENE.replace("SMOKE", "\"zero\"").replace("steps = 2", "steps = 3")).unwrap();
+    let out = dir.join("o");
+    let o = out.to_str().unwrap();
+    let (code, _, err) = diffsim(&["run", a.to_str().unwrap(), "--out", o, "--quiet"]);
+    assert_eq!(code, 0, "{err}");
+    // The same run again replaces its own results; another is refused.
+    let (code, _, err) = diffsim(&["run", a.to_str().unwrap(), "--out", o, "--quiet"]);
+    assert_eq!(code, 0, "{err}");
+    refused(&["run", b.to_str().unwrap(), "--out", o, "--quiet"], "holds the results of another run");
+    refused(&["sweep", b.to_str().unwrap(), "--set", "time.steps=2,3", "--out", o, "--quiet"], "holds the results of another run");
+    // While a command holds the folder's lock, a second one is refused.
+    let lock = std::fs::OpenOptions::new().read(true).write(true).open(out.join(".diffsim.lock")).unwrap();
+    lock.lock().unwrap();
+    refused(&["run", a.to_str().unwrap(), "--out", o, "--quiet"], "another diffsim command is writing into this folder");
+    lock.unlock().unwrap();
+    // --overwrite replaces the other run's files: none stays beside.
+    let (code, _, err) = diffsim(&["sweep", b.to_str().unwrap(), "--set", "time.steps=2,3", "--out", o, "--quiet", "--overwrite"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(!out.join("smoke.npy").exists() && out.join("run-0001").is_dir() && out.join("runs.csv").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn sweeps_refuse_a_key_twice_cite_the_users_file_and_table_non_finite_figures() {
+    let dir = scratch("sweep");
+    let s = scene(&dir, "\"zero\"");
+    let o = dir.join("o");
+    let (sp, op) = (s.to_str().unwrap(), o.to_str().unwrap());
+    refused(&["sweep", sp, "--set", "time.steps=2", "--set", "time.steps=3", "--out", op], "`time.steps` is given twice");
+    let err = refused(&["sweep", sp, "--set", "time.dt=1,-1", "--out", op], "with time.dt=-1");
+    assert!(err.contains(sp) && !err.contains("line "), "{err}");
+    // A loss that overflows (finite fields of 1e200) is that run's error in
+    // the table, not a crash.
+    let t = dir.join("t.toml");
+    let text = diffusing("1.0");
+    std::fs::write(&t, text).unwrap();
+    let (code, _, err) = diffsim(&["sweep", t.to_str().unwrap(), "--set", "fields.smoke.init.box.value=1.0,1e200", "--out", op, "--quiet", "--overwrite"]);
+    assert_ne!(code, 0, "{err}");
+    assert!(!err.contains("panicked") && err.contains("1 of 2 runs failed"), "{err}");
+    let csv = std::fs::read_to_string(o.join("runs.csv")).unwrap();
+    assert!(csv.contains("the loss came out inf"), "{csv}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_gradient_or_loss_that_overflows_is_not_reported() {
+    let dir = scratch("grad");
+    let t = dir.join("t.toml");
+    let text = diffusing("1e200");
+    std::fs::write(&t, text).unwrap();
+    // The rollout stops at the step whose loss term overflowed.
+    refused(&["grad", t.to_str().unwrap(), "--out", dir.join("o").to_str().unwrap()], "non-finite value (NaN or infinity) in the forward pass at step 2");
+    assert!(!dir.join("o").join("grad_smoke_init.npy").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn training_counts_and_checkpoints_are_checked_before_anything_is_written() {
+    let dir = scratch("train");
+    let o = dir.join("o");
+    let op = o.to_str().unwrap();
+    let (code, _, err) = diffsim(&["train", "tests/configs/tiny_sol.toml", "--out", op, "--quiet", "--until", "3"]);
+    assert_eq!(code, 0, "{err}");
+    let log = std::fs::read(o.join("loss.csv")).unwrap();
+    let ckpt = std::fs::read(o.join("checkpoint.json")).unwrap();
+    refused(&["train", "tests/configs/tiny_sol.toml", "--out", op, "--quiet", "--extend", "0"], "invalid argument --extend");
+    refused(&["train", "tests/configs/tiny_sol.toml", "--out", op, "--quiet", "--extend", "18446744073709551615"], "past the most a run may have");
+    assert_eq!(std::fs::read(o.join("loss.csv")).unwrap(), log);
+    assert_eq!(std::fs::read(o.join("checkpoint.json")).unwrap(), ckpt);
+    // A checkpoint whose iteration count disagrees with its optimizer's steps.
+    let mut v: serde_json::Value = serde_json::from_slice(&ckpt).unwrap();
+    v["iterations_done"] = serde_json::json!(v["iterations_done"].as_u64().unwrap() + 1);
+    std::fs::write(o.join("checkpoint.json"), v.to_string()).unwrap();
+    refused(&["train", "tests/configs/tiny_sol.toml", "--out", op, "--quiet", "--resume"], "the file was altered");
+    std::fs::remove_dir_all(&dir).ok();
+}
