@@ -192,6 +192,16 @@ pub enum OutDirError {
     },
 }
 
+/// A command that stops early (an error, or a study that returns before
+/// its end) still leaves its files recorded, so that `--overwrite` can
+/// remove them later; the marker then says the run is unfinished.
+impl Drop for OutDir {
+    fn drop(&mut self) {
+        self.record_changed();
+        let _ = self.save();
+    }
+}
+
 /// Where a command's outputs go: an [`OutDir`] it claimed, or a plain
 /// folder (a sweep's run folder another rank made), each name freed of a
 /// planted symbolic link before it is written.
@@ -212,6 +222,20 @@ impl Outputs for PathBuf {
         remove_link(&p).map_err(|source| OutDirError::Io { path: p.clone(), source })?;
         Ok(p)
     }
+}
+
+/// What [`OutDir::claim`] does with a folder that holds another run's
+/// results, or files no run wrote.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Existing {
+    /// Refuses it (the default: an error naming what it holds).
+    Refuse,
+    /// Removes the other run's recorded files (`--overwrite`); the user's
+    /// other files stay.
+    Replace,
+    /// Continues in it, removing nothing: a resumed run, whose own check
+    /// of its saved settings decides (`--resume`).
+    Continue,
 }
 
 /// What a run recorded of itself in its folder.
@@ -238,6 +262,8 @@ struct Marker {
 #[derive(Debug)]
 pub struct OutDir {
     path: PathBuf,
+    /// When it was claimed: what changed since is this run's.
+    started: std::time::SystemTime,
     inputs: Vec<PathBuf>,
     marker: std::cell::RefCell<Marker>,
     /// Held open: the lock lasts as long as the `OutDir`.
@@ -247,7 +273,8 @@ pub struct OutDir {
 impl OutDir {
     /// Claims `path` for the run described by `run` (the command and its
     /// input, canonical), never writing over any of `inputs`.
-    pub fn claim(path: &Path, run: &str, inputs: &[&Path], overwrite: bool) -> Result<OutDir, OutDirError> {
+    pub fn claim(path: &Path, run: &str, inputs: &[&Path], existing: Existing) -> Result<OutDir, OutDirError> {
+        let overwrite = existing != Existing::Refuse;
         let io_at = |p: &Path| {
             let p = p.to_path_buf();
             move |source| OutDirError::Io { path: p, source }
@@ -303,12 +330,6 @@ impl OutDir {
             .map(|e| e.file_name().to_string_lossy().into_owned())
             .filter(|n| n != MARKER && n != LOCK && !n.ends_with(".tmp"))
             .collect();
-        let foreign = |m: Option<&Marker>| -> Vec<String> {
-            let mut v: Vec<String> =
-                others.iter().filter(|n| m.is_none_or(|m| !m.files.iter().any(|f| f.trim_end_matches('/') == n.as_str()))).cloned().collect();
-            v.sort();
-            v
-        };
         let listed = |names: &[String]| {
             let shown: Vec<&str> = names.iter().take(4).map(String::as_str).collect();
             format!("{}{}", shown.join(", "), if names.len() > 4 { format!(" and {} more", names.len() - 4) } else { String::new() })
@@ -322,17 +343,19 @@ impl OutDir {
             }
             _ => {}
         }
-        let strangers = foreign(earlier.as_ref());
+        // Without a marker, whatever the folder holds is no run's (the
+        // same run again owns what it finds: a resumed study's parts).
+        let mut strangers = if earlier.is_some() { Vec::new() } else { others };
+        strangers.sort();
         if !strangers.is_empty() && !overwrite {
-            return Err(OutDirError::Occupied {
-                path: path.to_path_buf(),
-                what: format!("files that no diffsim run of this kind wrote ({})", listed(&strangers)),
-            });
+            return Err(OutDirError::Occupied { path: path.to_path_buf(), what: format!("files that no diffsim run wrote ({})", listed(&strangers)) });
         }
         // The same run again (another command on the same input) adds to
         // its files; another run's own files go, so that none stays beside
         // the new ones (the user's other files stay, under --overwrite).
-        let same = earlier.as_ref().is_some_and(|m| m.run == run);
+        // A resumed run continues what it finds (its own check of the
+        // settings decides), removing nothing.
+        let same = existing == Existing::Continue || earlier.as_ref().is_some_and(|m| m.run == run);
         let kept = if same { earlier.as_ref().map(|m| m.files.clone()).unwrap_or_default() } else { Vec::new() };
         if let Some(m) = earlier.as_ref().filter(|_| !same) {
             for f in &m.files {
@@ -353,6 +376,7 @@ impl OutDir {
         }
         let out = OutDir {
             path: path.to_path_buf(),
+            started: std::time::SystemTime::now(),
             inputs,
             marker: std::cell::RefCell::new(Marker { run: run.to_string(), complete: false, files: kept }),
             _lock: lock,
@@ -405,10 +429,29 @@ impl OutDir {
         Ok(())
     }
 
-    /// Marks the run finished.
+    /// Marks the run finished, recording as its own every entry of the
+    /// folder written since the claim (for commands that write by path
+    /// rather than through [`OutDir::file`]).
     pub fn finish(self) -> Result<(), OutDirError> {
+        self.record_changed();
         self.marker.borrow_mut().complete = true;
         self.save()
+    }
+
+    /// Records every entry of the folder written since the claim.
+    fn record_changed(&self) {
+        let Ok(entries) = std::fs::read_dir(&self.path) else { return };
+        for entry in entries.filter_map(|e| e.ok()) {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let changed = entry.metadata().and_then(|m| m.modified()).is_ok_and(|t| t >= self.started);
+            if changed && name != MARKER && name != LOCK && !name.ends_with(".tmp") {
+                let key = if entry.file_type().is_ok_and(|t| t.is_dir()) { format!("{name}/") } else { name };
+                let mut marker = self.marker.borrow_mut();
+                if !marker.files.contains(&key) {
+                    marker.files.push(key);
+                }
+            }
+        }
     }
 
     fn save(&self) -> Result<(), OutDirError> {

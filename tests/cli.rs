@@ -199,10 +199,14 @@ fn train_and_experiment_commands() {
     fails_with(&["train", c, "--out", o], "`training.lr`");
     std::fs::write(&cfg, tiny.replace("batch = 16", "bacth = 16")).unwrap();
     fails_with(&["train", c, "--out", o], "did you mean `batch`");
-    fails_with(&["experiment", "sol-burgers", "--net", "transformer", "--out", o], "invalid argument --net: expected conv-stack, unet or resnet");
+    fails_with(
+        &["experiment", "sol-burgers", "--net", "transformer", "--overwrite", "--out", o],
+        "invalid argument --net: expected conv-stack, unet or resnet",
+    );
     // The study, reduced to two updates per variant (with the U-Net): one JSON object last.
-    fails_with(&["experiment", "sol-burgers", "--train", "0", "--out", o], "invalid argument --train: need at least one training trajectory");
-    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "2", "--net", "unet", "--train", "4", "--json", "--out", o]);
+    fails_with(&["experiment", "sol-burgers", "--train", "0", "--overwrite", "--out", o], "invalid argument --train: need at least one training trajectory");
+    let (code, stdout, err) =
+        diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "2", "--net", "unet", "--train", "4", "--json", "--overwrite", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     for key in ["source", "pre", "noise", "sol4", "sol16", "train_s_per_iter"] {
@@ -214,13 +218,16 @@ fn train_and_experiment_commands() {
     assert_eq!(last["train_trajectories"], 4);
     // A subset of variants, another unroll length, activation and width.
     fails_with(
-        &["experiment", "sol-burgers", "--methods", "pre,sol0", "--out", o],
+        &["experiment", "sol-burgers", "--methods", "pre,sol0", "--overwrite", "--out", o],
         "invalid argument --methods: expected pre, noise or solK (K ≥ 1), got \"sol0\"",
     );
-    fails_with(&["experiment", "sol-burgers", "--activation", "sigmoidal", "--out", o], "invalid argument --activation: unknown variant `sigmoidal`");
-    fails_with(&["experiment", "sol-burgers", "--lr", "0", "--out", o], "invalid argument --lr: must be a positive number");
-    fails_with(&["experiment", "sol-burgers", "--noise=-1", "--out", o], "invalid argument --noise: must be a non-negative number");
-    fails_with(&["experiment", "sol-burgers", "--width", "0", "--out", o], "invalid argument --width: must be at least 1");
+    fails_with(
+        &["experiment", "sol-burgers", "--activation", "sigmoidal", "--overwrite", "--out", o],
+        "invalid argument --activation: unknown variant `sigmoidal`",
+    );
+    fails_with(&["experiment", "sol-burgers", "--lr", "0", "--overwrite", "--out", o], "invalid argument --lr: must be a positive number");
+    fails_with(&["experiment", "sol-burgers", "--noise=-1", "--overwrite", "--out", o], "invalid argument --noise: must be a non-negative number");
+    fails_with(&["experiment", "sol-burgers", "--width", "0", "--overwrite", "--out", o], "invalid argument --width: must be at least 1");
     let (code, stdout, err) = diffsim(&[
         "experiment",
         "sol-burgers",
@@ -238,6 +245,7 @@ fn train_and_experiment_commands() {
         "--train",
         "4",
         "--json",
+        "--overwrite",
         "--out",
         o,
     ]);
@@ -247,14 +255,29 @@ fn train_and_experiment_commands() {
     assert!(subset["sol16"].is_null() && subset["noise"].as_f64().is_some(), "{subset}");
     assert_eq!(subset["source"], last["source"]);
     // Another seed draws other test trajectories.
-    let (code, stdout, err) =
-        diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "1", "--methods", "pre", "--train", "4", "--seed", "7", "--json", "--out", o]);
+    let (code, stdout, err) = diffsim(&[
+        "experiment",
+        "sol-burgers",
+        "--quick",
+        "--iterations",
+        "1",
+        "--methods",
+        "pre",
+        "--train",
+        "4",
+        "--seed",
+        "7",
+        "--json",
+        "--overwrite",
+        "--out",
+        o,
+    ]);
     assert_eq!(code, 0, "{err}");
     let seeded: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     assert_ne!(seeded["source"], last["source"]);
     // The test set does not depend on the number of training trajectories
     // (fewer or more than the standard count).
-    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "1", "--train", "40", "--json", "--out", o]);
+    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--iterations", "1", "--train", "40", "--json", "--overwrite", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let more: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     assert_eq!(more["source"], last["source"]);
@@ -272,7 +295,7 @@ fn train_and_experiment_commands() {
 #[test]
 fn quick_burgers_study_puts_sol16_below_pre_and_source() {
     let out = std::env::temp_dir().join(format!("diffsim-quick-sol-{}", std::process::id()));
-    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--json", "--out", out.to_str().unwrap()]);
+    let (code, stdout, err) = diffsim(&["experiment", "sol-burgers", "--quick", "--json", "--overwrite", "--out", out.to_str().unwrap()]);
     assert_eq!(code, 0, "{err}");
     let r: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     let e = |k: &str| r[k].as_f64().unwrap_or_else(|| panic!("{k} in {r}"));
@@ -284,10 +307,11 @@ fn quick_burgers_study_puts_sol16_below_pre_and_source() {
 fn sol_wake_experiment_runs_reduced_and_reports_json() {
     let out = std::env::temp_dir().join(format!("diffsim-wake-{}", std::process::id()));
     let o = out.to_str().unwrap();
-    fails_with(&["experiment", "sol-wake", "--train", "0", "--out", o], "invalid argument --train: need at least one training trajectory");
-    fails_with(&["experiment", "sol-wake", "--steps", "0", "--out", o], "invalid argument --steps: must be at least 1");
+    fails_with(&["experiment", "sol-wake", "--train", "0", "--overwrite", "--out", o], "invalid argument --train: need at least one training trajectory");
+    fails_with(&["experiment", "sol-wake", "--steps", "0", "--overwrite", "--out", o], "invalid argument --steps: must be at least 1");
     // One update per variant, one training trajectory, 2-step test rollouts.
-    let (code, stdout, err) = diffsim(&["experiment", "sol-wake", "--quick", "--iterations", "1", "--train", "1", "--steps", "2", "--json", "--out", o]);
+    let (code, stdout, err) =
+        diffsim(&["experiment", "sol-wake", "--quick", "--iterations", "1", "--train", "1", "--steps", "2", "--json", "--overwrite", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     for key in ["source", "pre", "noise", "sol4", "sol16", "train_s_per_iter"] {
@@ -305,25 +329,39 @@ fn sol_wake_experiment_runs_reduced_and_reports_json() {
 fn sip_heat_experiment_runs_and_reports_json() {
     let out = std::env::temp_dir().join(format!("diffsim-sip-{}", std::process::id()));
     let o = out.to_str().unwrap();
-    let (code, stdout, err) = diffsim(&["experiment", "sip-heat", "--iterations", "1", "--json", "--out", o]);
+    let (code, stdout, err) = diffsim(&["experiment", "sip-heat", "--iterations", "1", "--json", "--overwrite", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     for key in ["sip", "adam", "gd", "sip_s", "adam_s", "gd_s", "sip_x_l2", "inverse", "inverse_x_l2", "budget_s"] {
         assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
     }
     assert!(out.join("error.png").exists() && out.join("table.md").exists() && out.join("error.csv").exists());
-    fails_with(&["experiment", "sip-heat", "--iterations", "0", "--out", o], "invalid argument --iterations");
+    fails_with(&["experiment", "sip-heat", "--iterations", "0", "--overwrite", "--out", o], "invalid argument --iterations");
     // The published setup, scaled down: the 4-level float32 U-Net with the
     // mean correction and the Bayesian inverse, end to end.
-    let (code, stdout, err) =
-        diffsim(&["experiment", "sip-heat", "--setup", "published", "--iterations", "2", "--batch", "2", "--test-samples", "2", "--json", "--out", o]);
+    let (code, stdout, err) = diffsim(&[
+        "experiment",
+        "sip-heat",
+        "--setup",
+        "published",
+        "--iterations",
+        "2",
+        "--batch",
+        "2",
+        "--test-samples",
+        "2",
+        "--json",
+        "--overwrite",
+        "--out",
+        o,
+    ]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     assert_eq!(last["setup"], "published");
     for key in ["sip", "adam", "gd", "sip_x_l2", "adam_x_l2"] {
         assert!(last[key].as_f64().is_some_and(|v| v.is_finite() && v > 0.0), "{key} in {last}");
     }
-    fails_with(&["experiment", "sip-heat", "--setup", "publish", "--out", o], "did you mean `published`");
+    fails_with(&["experiment", "sip-heat", "--setup", "publish", "--overwrite", "--out", o], "did you mean `published`");
     std::fs::remove_dir_all(&out).ok();
 }
 
@@ -331,7 +369,8 @@ fn sip_heat_experiment_runs_and_reports_json() {
 fn sip_smoke_experiment_runs_and_reports_json() {
     let out = std::env::temp_dir().join(format!("diffsim-sip-smoke-{}", std::process::id()));
     let o = out.to_str().unwrap();
-    let (code, stdout, err) = diffsim(&["experiment", "sip-smoke", "--quick", "--seconds", "0.5", "--inverse-iterations", "2", "--json", "--out", o]);
+    let (code, stdout, err) =
+        diffsim(&["experiment", "sip-smoke", "--quick", "--seconds", "0.5", "--inverse-iterations", "2", "--json", "--overwrite", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     for key in ["sip", "adam", "time_s", "sip_resim", "adam_resim", "sip_s_per_update", "adam_s_per_update", "inverse", "inverse_resim"] {
@@ -351,7 +390,7 @@ fn sip_smoke_experiment_runs_and_reports_json() {
     for f in ["table.md", "error.csv", "error.png", "reconstructions.png"] {
         assert!(out.join(f).exists(), "{f} missing");
     }
-    fails_with(&["experiment", "sip-smoke", "--seconds", "0", "--out", o], "invalid argument --seconds");
+    fails_with(&["experiment", "sip-smoke", "--seconds", "0", "--overwrite", "--out", o], "invalid argument --seconds");
     std::fs::remove_dir_all(&out).ok();
 }
 
@@ -359,7 +398,7 @@ fn sip_smoke_experiment_runs_and_reports_json() {
 fn cavity_experiment_reports_json_and_writes_its_profiles() {
     let out = std::env::temp_dir().join(format!("diffsim-cavity-{}", std::process::id()));
     let o = out.to_str().unwrap();
-    let (code, stdout, err) = diffsim(&["experiment", "cavity", "--re", "100", "--resolution", "16", "--json", "--out", o]);
+    let (code, stdout, err) = diffsim(&["experiment", "cavity", "--re", "100", "--resolution", "16", "--json", "--overwrite", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     for key in ["u_min", "y_at_u_min", "v_max", "x_at_v_max", "v_min", "x_at_v_min", "time_s"] {
@@ -443,8 +482,21 @@ fn cylinder_experiment_reports_both_cases_as_json() {
 fn drag_shape_experiment_lowers_the_drag_at_fixed_area() {
     let out = std::env::temp_dir().join(format!("diffsim-drag-shape-{}", std::process::id()));
     let dir = out.to_str().unwrap();
-    let (code, stdout, err) =
-        diffsim(&["experiment", "drag-shape", "--quick", "--modes", "4", "--max-iterations", "8", "--sampling-iterations", "1", "--json", "--out", dir]);
+    let (code, stdout, err) = diffsim(&[
+        "experiment",
+        "drag-shape",
+        "--quick",
+        "--modes",
+        "4",
+        "--max-iterations",
+        "8",
+        "--sampling-iterations",
+        "1",
+        "--json",
+        "--overwrite",
+        "--out",
+        dir,
+    ]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     for key in ["cd_start", "cd_end", "area_start", "area_end", "time_s", "cd_start_fine", "cd_end_fine"] {
@@ -525,7 +577,7 @@ fn drag_net_experiment_trains_through_the_solver() {
 fn hig_oscillators_experiment_runs_and_reports_json() {
     let out = std::env::temp_dir().join(format!("diffsim-hig-{}", std::process::id()));
     let o = out.to_str().unwrap();
-    let (code, stdout, err) = diffsim(&["experiment", "hig-oscillators", "--budget", "0.3", "--json", "--out", o]);
+    let (code, stdout, err) = diffsim(&["experiment", "hig-oscillators", "--budget", "0.3", "--json", "--overwrite", "--out", o]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     for key in [
@@ -544,7 +596,7 @@ fn hig_oscillators_experiment_runs_and_reports_json() {
         assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
     }
     assert!(out.join("loss.png").exists() && out.join("table.md").exists());
-    fails_with(&["experiment", "hig-oscillators", "--budget", "0", "--out", o], "invalid argument --budget");
+    fails_with(&["experiment", "hig-oscillators", "--budget", "0", "--overwrite", "--out", o], "invalid argument --budget");
     std::fs::remove_dir_all(&out).ok();
 }
 

@@ -240,7 +240,8 @@ fn a_comparison_resumes_per_optimizer_and_says_what_it_cannot_resume() {
     assert!(!o.status.success() && err.contains("other settings") && err.contains("iterations: 4"), "{err}");
     // Ctrl-C (here SIGTERM) says what is kept and what starts again.
     let child = Command::new(env!("CARGO_BIN_EXE_diffsim"))
-        .args(["experiment", "sip-heat", "--iterations", "100000", "--out", out.to_str().unwrap()])
+        // (Other settings than the folder's run: --overwrite, or it is refused.)
+        .args(["experiment", "sip-heat", "--iterations", "100000", "--overwrite", "--out", out.to_str().unwrap()])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()

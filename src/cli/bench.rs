@@ -90,6 +90,8 @@ pub(super) struct MemoryArgs {
     /// Output directory.
     #[arg(long, default_value = "out/memory")]
     out: std::path::PathBuf,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
 }
 
 #[derive(Debug, Args)]
@@ -106,6 +108,8 @@ pub(super) struct P4CostArgs {
     /// Output directory.
     #[arg(long, default_value = "out/p4-cost")]
     out: std::path::PathBuf,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
 }
 
 #[derive(Debug, Args)]
@@ -724,7 +728,8 @@ fn memory(a: MemoryArgs) -> Result<(), CliError> {
     use crate::plot::{Axes, Series};
     let budget = crate::memory::parse_bytes(&a.budget)?;
     let exe = std::env::current_exe().map_err(|source| CliError::Io { path: "diffsim".into(), source })?;
-    std::fs::create_dir_all(&a.out).map_err(|source| CliError::Io { path: a.out.clone(), source })?;
+    // Held to the end: the folder is this run's while it writes.
+    let _out = super::claim_out(&a.out, a.overwrite, &[])?;
     let modes = ["store", "periodic", "binomial", "auto"];
     let mut table =
         "| T | mode | checkpointing | gradient ms | × forward | peak RSS MB | states MB (one gradient) | model ms | model MB (three gradients) |\n|---|---|---|---|---|---|---|---|---|\n"
@@ -782,7 +787,8 @@ fn json_run(exe: &std::path::Path, mut cmd: std::process::Command) -> Result<Res
 fn p4_cost(a: P4CostArgs) -> Result<(), CliError> {
     use crate::plot::{Axes, Series};
     let exe = std::env::current_exe().map_err(|source| CliError::Io { path: "diffsim".into(), source })?;
-    std::fs::create_dir_all(&a.out).map_err(|source| CliError::Io { path: a.out.clone(), source })?;
+    // Held to the end: the folder is this run's while it writes.
+    let _out = super::claim_out(&a.out, a.overwrite, &[])?;
     let mut table = "| N | T | cells × steps | forward ms | gradient ms | × forward | µs per cell-step (gradient) | CG iterations per step, fwd (with recomputed steps) / adj | checkpointing | peak RSS MB |\n|---|---|---|---|---|---|---|---|---|---|\n".to_string();
     let mut series = vec![
         Series { name: "forward".into(), points: Vec::new(), color: 0, markers: true },

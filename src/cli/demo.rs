@@ -22,6 +22,8 @@ pub(super) struct PlumeArgs {
     /// Output directory for plume.png.
     #[arg(long, default_value = "out")]
     out: PathBuf,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
 }
 
 pub(super) fn plume(a: PlumeArgs) -> Result<(), CliError> {
@@ -52,7 +54,7 @@ pub(super) fn plume(a: PlumeArgs) -> Result<(), CliError> {
             break;
         }
     }
-    std::fs::create_dir_all(&a.out).map_err(|e| CliError::Io { path: a.out.clone(), source: e })?;
+    let _out = super::claim_out(&a.out, a.overwrite, &[])?;
     let path = a.out.join("plume.png");
     write_png(&path, (n, n), &x[..cfg.n_s()], &solid).map_err(|e| CliError::Io { path: path.clone(), source: e })?;
     let mass: f64 = x[..cfg.n_s()].iter().sum();

@@ -34,6 +34,8 @@ pub struct CavityArgs {
     /// points (PNG) to this directory.
     #[arg(long)]
     out: Option<PathBuf>,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
 }
 
 /// What one cavity run gives.
@@ -45,7 +47,8 @@ struct CavityRun {
     time_s: f64,
 }
 
-fn run_cavity(a: &CavityArgs) -> Result<CavityRun, CliError> {
+/// The cavity's flags checked against the range where its method holds.
+fn check_cavity(a: &CavityArgs) -> Result<(), CliError> {
     let (re, n, tolerance) = (a.re, a.resolution, a.tolerance);
     // Above Re ≈ 8000 the cavity's flow is no longer steady (and Ghia's
     // tables end at 10,000); at Re → ∞ the lid would not move the fluid at
@@ -59,6 +62,60 @@ fn run_cavity(a: &CavityArgs) -> Result<CavityRun, CliError> {
     if !(tolerance.is_finite() && tolerance > 0.0) {
         return Err(CliError::Argument { arg: "--tolerance", reason: format!("must be a positive number, got {tolerance}") });
     }
+    max_steps(a.max_steps)?;
+    let cells = (n as u64) * (n as u64);
+    crate::memory::check(
+        "the cavity",
+        format!("{n}² cells, {MARCH_ARRAYS} arrays of a cell"),
+        crate::memory::f64s(&[cells, MARCH_ARRAYS]),
+        Some("a smaller --resolution".into()),
+    )?;
+    Ok(())
+}
+
+/// Values per cell the explicit march holds (its fields, the pressure
+/// solve's vectors and preconditioner): peak RSS measured at 128², 256²
+/// and 512² grew by 155 bytes a cell (19 values); 24 leaves room.
+const MARCH_ARRAYS: u64 = 24;
+
+/// Bytes of the steady Newton solve on `cells` cells (its sparse LU):
+/// peak RSS of 2D-1 at 10, 20, 30 cells per diameter (9 k to 81 k cells)
+/// measured 16.2, 14.8, 16.5 KB a cell, and a free stream of 410 k cells
+/// about 28 KB: 18 KB a cell up to 81 k cells, growing as the cube root
+/// beyond (the factor's fill-in). `None` on overflow.
+fn newton_bytes(cells: u64) -> Option<u64> {
+    let per_cell = 18_000.0 * (cells as f64 / 81_180.0).cbrt().max(1.0);
+    let bytes = cells as f64 * per_cell;
+    (bytes < 1.8e19).then_some(bytes as u64)
+}
+
+/// Bytes per cell of the time-stepping channel flow (its sparse Cholesky
+/// pressure factor): 4.1 and 4.0 KB a cell measured for 2D-2 at 10 and 20
+/// cells per diameter, 2.5 KB for 2D-1's march.
+const CHANNEL_BYTES_PER_CELL: u64 = 4_500;
+
+/// The cells of Schäfer & Turek's 2.2 × 0.41 channel at `per_d` cells per
+/// diameter (0.1).
+fn channel_cells(per_d: usize) -> u64 {
+    (22 * per_d as u64) * (41 * per_d as u64 / 10)
+}
+
+/// The most time steps a march to a steady state may take.
+const MAX_MARCH_STEPS: usize = 100_000_000;
+
+/// `--max-steps` within 1..=[`MAX_MARCH_STEPS`] (a march that has not
+/// settled in 10⁸ steps will not; more is days of computing).
+fn max_steps(n: usize) -> Result<(), CliError> {
+    if (1..=MAX_MARCH_STEPS).contains(&n) {
+        Ok(())
+    } else {
+        Err(CliError::Argument { arg: "--max-steps", reason: format!("must be between 1 and {MAX_MARCH_STEPS}, got {n}") })
+    }
+}
+
+fn run_cavity(a: &CavityArgs) -> Result<CavityRun, CliError> {
+    check_cavity(a)?;
+    let (re, n, tolerance) = (a.re, a.resolution, a.tolerance);
     let cfg = Flow2d::cavity(n, re);
     let start = Instant::now();
     let mut stepper = Stepper::new(cfg, 1e-10)?;
@@ -83,6 +140,9 @@ fn run_cavity(a: &CavityArgs) -> Result<CavityRun, CliError> {
 }
 
 pub(super) fn cavity(a: CavityArgs) -> Result<(), CliError> {
+    check_cavity(&a)?;
+    // Held to the end: the folder is this run's while it writes.
+    let _out = a.out.as_deref().map(|d| super::claim_out(d, a.overwrite, &[])).transpose()?;
     let run = run_cavity(&a)?;
     let e = run.extrema;
     let reference = ghia(a.re).map(|t| t.extrema());
@@ -259,6 +319,8 @@ pub struct CylinderArgs {
     /// 2d-1 with --sweep: the error-against-time plot.
     #[arg(long)]
     out: Option<PathBuf>,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
 }
 
 pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
@@ -281,6 +343,35 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
         })
         .into();
     let scheme = convection.name();
+    if a.case == CylinderCase::Steady && !(a.tolerance.is_finite() && a.tolerance > 0.0) {
+        return Err(CliError::Argument { arg: "--tolerance", reason: format!("must be a positive number, got {}", a.tolerance) });
+    }
+    max_steps(a.max_steps)?;
+    // Memory: the finest grid the command solves, by its solver.
+    let finest = a.sweep.iter().copied().chain([per_d]).max().unwrap_or(per_d);
+    let cells = channel_cells(finest);
+    let need = if a.case == CylinderCase::Steady && (a.solver == SteadySolver::Newton || !a.sweep.is_empty()) {
+        newton_bytes(cells)
+    } else {
+        cells.checked_mul(CHANNEL_BYTES_PER_CELL)
+    };
+    crate::memory::check("the cylinder's channel", format!("{cells} cells at {finest} per diameter"), need, Some("a smaller --resolution".into()))?;
+    // Beyond 1000 time units (Re 100's period is about 3.3) a run is an
+    // input error, not a study: hours of steps with no end in sight.
+    if a.case == CylinderCase::Periodic && !(a.t_end.is_finite() && a.t_end > 2.5 && a.t_end <= 1000.0) {
+        return Err(CliError::Argument {
+            arg: "--t-end",
+            reason: format!("must exceed 2.5 (the last 2 time units are measured) and be at most 1000, got {}", a.t_end),
+        });
+    }
+    if !a.sweep.is_empty() && a.case != CylinderCase::Steady {
+        return Err(CliError::Argument { arg: "--sweep", reason: "only case 2d-1 has a sweep".into() });
+    }
+    if let Some(&bad) = a.sweep.iter().find(|&&r| !(10..=200).contains(&r) || r % 10 != 0) {
+        return Err(CliError::Argument { arg: "--sweep", reason: format!("cells per diameter must be multiples of 10 between 10 and 200, got {bad}") });
+    }
+    // Held to the end: the folder is this run's while it writes.
+    let _out = a.out.as_deref().map(|d| super::claim_out(d, a.overwrite, &[])).transpose()?;
     if !a.sweep.is_empty() {
         return cylinder_sweep(&a, convection);
     }
@@ -289,9 +380,6 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
     let within = |v: f64, (lo, hi): (f64, f64)| if (lo..=hi).contains(&v) { "inside" } else { "outside" };
     match a.case {
         CylinderCase::Steady => {
-            if !(a.tolerance.is_finite() && a.tolerance > 0.0) {
-                return Err(CliError::Argument { arg: "--tolerance", reason: format!("must be a positive number, got {}", a.tolerance) });
-            }
             let r = match a.solver {
                 SteadySolver::Newton => {
                     spinner.set_message(format!("2D-1, {per_d} cells per diameter: Newton's method"));
@@ -335,9 +423,6 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
             println!("| Δp | {:.4} | 0.1172–0.1176 | {} |", r.dp, within(r.dp, reference::DP_2D1));
         }
         CylinderCase::Periodic => {
-            if !(a.t_end.is_finite() && a.t_end > 2.5) {
-                return Err(CliError::Argument { arg: "--t-end", reason: format!("must exceed 2.5 (the last 2 time units are measured), got {}", a.t_end) });
-            }
             let r = run_2d2(per_d, convection, a.t_end, 2.0, |t, cl| {
                 spinner.set_message(format!("2D-2, {per_d} cells per diameter: t = {t:.2} of {}, c_L = {cl:+.3}", a.t_end));
                 spinner.tick();
@@ -372,12 +457,6 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
 /// Δp against the tight values).
 fn cylinder_sweep(a: &CylinderArgs, convection: diffsim_solvers::flow::Convection) -> Result<(), CliError> {
     use diffsim_solvers::flow::cylinder::{reference, run_2d1_newton};
-    if a.case != CylinderCase::Steady {
-        return Err(CliError::Argument { arg: "--sweep", reason: "only case 2d-1 has a sweep".into() });
-    }
-    if let Some(&bad) = a.sweep.iter().find(|&&r| !(10..=200).contains(&r) || r % 10 != 0) {
-        return Err(CliError::Argument { arg: "--sweep", reason: format!("cells per diameter must be multiples of 10 between 10 and 200, got {bad}") });
-    }
     let dp_ref = reference::DP_2D1_TIGHT;
     let mut rows = Vec::new();
     for &per_d in &a.sweep {
@@ -493,6 +572,8 @@ pub struct DragShapeArgs {
     /// Write the shapes over the iterations and the drag history (PNG, CSV) here.
     #[arg(long)]
     out: Option<PathBuf>,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
 }
 
 pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
@@ -541,6 +622,15 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
         Stream::Free { half_width } => format!("a free stream ({half_width} diameters to each side)"),
     };
     let setting = stream.setting(per_d, u_max)?;
+    // Memory: Newton's sparse LU on the grid, or on the verification's
+    // grid twice as fine (four times the cells).
+    let cells = (setting.cfg.nx * setting.cfg.ny) as u64 * if a.no_verify { 1 } else { 4 };
+    crate::memory::check(
+        "drag-shape",
+        format!("{cells} cells{} for Newton's solve", if a.no_verify { "" } else { " in the verification" }),
+        newton_bytes(cells),
+        Some(if a.no_verify { "a smaller --resolution".into() } else { "--no-verify, or a smaller --resolution".into() }),
+    )?;
     let q0 = match &a.start_shape {
         None => vec![0.0; 2 * (a.modes - 1)],
         Some(path) => {
@@ -549,6 +639,10 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
             q
         }
     };
+    // Held to the end: the folder is this run's while it writes; the start
+    // shape's file is never written over.
+    let inputs: Vec<&std::path::Path> = a.start_shape.as_deref().into_iter().collect();
+    let _out = a.out.as_deref().map(|d| super::claim_out(d, a.overwrite, &inputs)).transpose()?;
     // The Reynolds number without the rounding noise of u_max's round trip.
     let re_shown = (opts.reynolds() * 1e6).round() / 1e6;
     let start = Instant::now();

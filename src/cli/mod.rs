@@ -208,7 +208,7 @@ pub fn main() {
         let message = info.payload().downcast_ref::<String>().map(String::as_str).or_else(|| info.payload().downcast_ref::<&str>().copied());
         match message.and_then(|m| m.strip_prefix("failed printing to stdout: ")) {
             Some(cause) => {
-                eprintln!("error: cannot write the output: {cause}");
+                say_error(&format!("error: cannot write the output: {cause}"));
                 std::process::exit(1);
             }
             None => default(info),
@@ -220,9 +220,59 @@ pub fn main() {
     let matches = negative(Cli::command()).get_matches();
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     if let Err(e) = run(cli) {
-        eprintln!("error: {e}");
+        say_error(&format!("error: {e}"));
         std::process::exit(e.exit_code());
     }
+}
+
+/// Writes one error line to standard error in a single write: ranks of an
+/// mpirun share the terminal, and `eprintln!` writes a formatted line in
+/// pieces, which interleaved ("error on rank error on rank 0 of 21: …").
+fn say_error(line: &str) {
+    use std::io::Write;
+    let _ = std::io::stderr().write_all(format!("{line}\n").as_bytes());
+}
+
+/// `--overwrite` for commands whose `--out` is claimed by [`claim_out`].
+#[derive(Debug, Clone, Copy, clap::Args)]
+pub(crate) struct Overwrite {
+    /// Write into --out even when it holds another run's results or other
+    /// files (the earlier run's files are removed, others kept).
+    #[arg(long)]
+    overwrite: bool,
+}
+
+/// Claims the output folder `dir` for this command
+/// ([`crate::files::OutDir`]): the run is the command line without the
+/// options that do not change its results (`--out`, `--overwrite`,
+/// `--resume`, `--quiet`, `--json`), so the same experiment again writes
+/// beside its results, another is refused unless `--overwrite`, and
+/// `--resume` continues whatever the folder holds (the study's saved parts
+/// check their settings); `inputs` are never written over.
+fn claim_out(dir: &std::path::Path, overwrite: Overwrite, inputs: &[&std::path::Path]) -> Result<crate::files::OutDir, CliError> {
+    use crate::files::Existing;
+    let mut words = Vec::new();
+    let mut resume = false;
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--out" => {
+                args.next();
+            }
+            "--resume" => resume = true,
+            "--overwrite" | "--quiet" | "--json" => {}
+            _ if a.starts_with("--out=") => {}
+            _ => words.push(a),
+        }
+    }
+    // A resumed study continues its folder: its saved parts name any
+    // setting that differs.
+    let existing = match (resume, overwrite.overwrite) {
+        (true, _) => Existing::Continue,
+        (false, true) => Existing::Replace,
+        (false, false) => Existing::Refuse,
+    };
+    Ok(crate::files::OutDir::claim(dir, &format!("diffsim {}", words.join(" ")), inputs, existing)?)
 }
 
 /// Refuses a run's figures when one is NaN or infinite: `what` names the
@@ -291,7 +341,7 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         // write on rank 0) stops every rank: the others may be waiting in
         // an exchange for this one.
         Err(e) if world.size() > 1 && !e.on_every_rank() => {
-            eprintln!("error on rank {} of {}: {e}", world.rank(), world.size());
+            say_error(&format!("error on rank {} of {}: {e}", world.rank(), world.size()));
             world.abort(e.exit_code())
         }
         // The same error on every rank: rank 0 says it, then all exit
@@ -299,7 +349,7 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         // exit).
         Err(e) if world.size() > 1 => {
             if world.is_root() {
-                eprintln!("error: {e}");
+                say_error(&format!("error: {e}"));
             }
             world.barrier();
             let code = e.exit_code();

@@ -32,6 +32,8 @@ pub struct SipSmokeArgs {
     /// Output directory: table.md, error.csv, error.png, reconstructions.png.
     #[arg(long, default_value = "out/sip-smoke")]
     out: PathBuf,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
 }
 
 /// Runs the comparison and writes its table, curves and pictures.
@@ -44,7 +46,8 @@ pub(super) fn sip_smoke(a: SipSmokeArgs) -> Result<(), CliError> {
         cfg.seconds = s;
     }
     cfg.refine = a.refine;
-    std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+    // Held to the end: the folder is this run's while it writes.
+    let _out = super::claim_out(&a.out, a.overwrite, &[])?;
     let fail = |e: crate::train::pg::PgError| CliError::Argument { arg: "sip-smoke", reason: e.to_string() };
     let quiet = a.json;
     let mut shown = (None, -1);

@@ -32,13 +32,13 @@ pub struct RunArgs {
     #[arg(long)]
     quiet: bool,
     /// 3D scenes: the slice written as PNG, `AXIS` (the middle plane) or
-    /// `AXIS=INDEX` (`z=10`: the plane of cells k = 10).
-    #[arg(long, value_name = "AXIS[=INDEX]", default_value = "z")]
-    slice: String,
+    /// `AXIS=INDEX` (`z=10`: the plane of cells k = 10); default z.
+    #[arg(long, value_name = "AXIS[=INDEX]")]
+    slice: Option<String>,
     /// 3D scenes: the axis of the maximum-intensity projection written as
-    /// PNG.
-    #[arg(long, value_name = "AXIS", default_value = "z")]
-    mip: String,
+    /// PNG; default z.
+    #[arg(long, value_name = "AXIS")]
+    mip: Option<String>,
 }
 
 /// The pictures of a 3D scene: a slice (axis, cell index) and the axis of
@@ -59,20 +59,36 @@ impl Default for Views {
 impl Views {
     /// `--slice` and `--mip` checked against the domain.
     fn parse(a: &RunArgs, domain: &Domain) -> Result<Self, CliError> {
+        // Pictures of a volume: an option given for a line or a box would
+        // silently do nothing.
+        if !matches!(domain, Domain::Box3(_)) {
+            let given = if a.slice.is_some() {
+                Some("--slice")
+            } else if a.mip.is_some() {
+                Some("--mip")
+            } else {
+                None
+            };
+            if let Some(arg) = given {
+                return Err(CliError::Argument { arg, reason: format!("applies to 3D scenes only; this scene is {}D", domain.dims()) });
+            }
+        }
+        let slice = a.slice.as_deref().unwrap_or("z");
+        let mip = a.mip.as_deref().unwrap_or("z");
         let axis = |arg: &'static str, name: &str| {
             crate::volume::axis_index(name).ok_or_else(|| CliError::Argument { arg, reason: format!("expected an axis x, y or z, got \"{name}\"") })
         };
-        let (name, index) = match a.slice.split_once('=') {
+        let (name, index) = match slice.split_once('=') {
             Some((name, index)) => {
                 let index = index
                     .trim()
                     .parse::<usize>()
-                    .map_err(|_| CliError::Argument { arg: "--slice", reason: format!("expected AXIS=INDEX with a cell index, got \"{}\"", a.slice) })?;
+                    .map_err(|_| CliError::Argument { arg: "--slice", reason: format!("expected AXIS=INDEX with a cell index, got \"{slice}\"") })?;
                 (name.trim(), Some(index))
             }
-            None => (a.slice.trim(), None),
+            None => (slice.trim(), None),
         };
-        let views = Views { slice: (axis("--slice", name)?, index), mip: axis("--mip", a.mip.trim())? };
+        let views = Views { slice: (axis("--slice", name)?, index), mip: axis("--mip", mip.trim())? };
         if let (Domain::Box3(cfg), (ax, Some(k))) = (domain, views.slice)
             && k >= cfg.dims()[ax]
         {
@@ -122,7 +138,8 @@ pub(super) fn claim(out: &Path, scene: &Path, extra: &str, overwrite: bool) -> R
     let mut inputs = crate::scene::input_files(scene);
     inputs.push(scene.to_path_buf());
     let refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
-    Ok(OutDir::claim(out, &format!("{} (text {:016x}){extra}", canonical.display(), hash.finish()), &refs, overwrite)?)
+    let existing = if overwrite { crate::files::Existing::Replace } else { crate::files::Existing::Refuse };
+    Ok(OutDir::claim(out, &format!("{} (text {:016x}){extra}", canonical.display(), hash.finish()), &refs, existing)?)
 }
 
 /// Writes `values` as a float64 `.npy` array of `shape` (row-major) to the
@@ -282,6 +299,7 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
         // Frames go to disk as they come (memory stays one state); the
         // first failed write stops the writing and is reported.
         let mut failed = None;
+        let mut estimated = false;
         let x = scene.run(|k, x| {
             if failed.is_none()
                 && a.every.is_some_and(|e| k % e == 0)
@@ -290,6 +308,20 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
                 failed = Some(e);
             }
             bar.inc(1);
+            // A long run says so up front (the bar is drawn on a terminal
+            // only): its estimate from the steps done after about a second.
+            if !a.quiet && !estimated && k < scene.steps {
+                let spent = start.elapsed().as_secs_f64();
+                if spent > 1.0 {
+                    estimated = true;
+                    let total = spent / k as f64 * scene.steps as f64;
+                    if total > 60.0 {
+                        bar.suspend(|| {
+                            eprintln!("{} steps: about {} in all at {:.3} s a step (step {k} done)", scene.steps, duration(total), spent / k as f64)
+                        });
+                    }
+                }
+            }
         });
         bar.finish_and_clear();
         if let Some(e) = failed {
@@ -314,6 +346,17 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
         );
     }
     Ok(())
+}
+
+/// Seconds as `42 s`, `17 min` or `3.2 h`.
+pub(super) fn duration(s: f64) -> String {
+    if s < 120.0 {
+        format!("{s:.0} s")
+    } else if s < 7200.0 {
+        format!("{:.0} min", s / 60.0)
+    } else {
+        format!("{:.1} h", s / 3600.0)
+    }
 }
 
 fn describe(d: &Domain) -> String {
@@ -502,6 +545,21 @@ fn describe_forces(scene: &SteadyScene, run: &crate::scene::SteadyRun) -> String
 }
 
 fn run_steady(a: &RunArgs, scene: &SteadyScene) -> Result<(), CliError> {
+    // A steady scene has no steps and no volume: these would do nothing.
+    // (Tested one by one: an array of tuples can abort Enzyme's type
+    // analysis in this flagged crate, docs/pitfalls.md.)
+    let given = if a.every.is_some() {
+        Some("--every")
+    } else if a.slice.is_some() {
+        Some("--slice")
+    } else if a.mip.is_some() {
+        Some("--mip")
+    } else {
+        None
+    };
+    if let Some(arg) = given {
+        return Err(CliError::Argument { arg, reason: "does not apply to a steady scene (no steps, no volume)".into() });
+    }
     let out = claim(&a.out, &a.scene, "", a.overwrite)?;
     let start = std::time::Instant::now();
     let run = scene.solve()?;

@@ -113,6 +113,11 @@ pub(super) fn sweep(a: SweepArgs, world: &World) -> Result<(), CliError> {
         let row = run_one(&texts[i], dir, &a.out.join(format!("run-{i:04}")), i)?;
         if !a.quiet {
             eprintln!("run {i} of {count} ({}): {} in {:.2} s", label(&axes, &combination(&axes, i)), row.status, row.time_s);
+            // A long sweep says so after its first run.
+            let total = row.time_s * count.div_ceil(world.size()) as f64;
+            if mine.is_empty() && world.is_root() && count > 1 && total > 60.0 {
+                eprintln!("{count} runs over {} rank(s): about {} in all at this run's pace", world.size(), super::scene::duration(total));
+            }
         }
         mine.push(row);
     }

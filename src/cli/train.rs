@@ -121,6 +121,8 @@ pub struct SipArgs {
     /// comparison starts afresh.
     #[arg(long)]
     resume: bool,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
 }
 
 /// Arguments of `diffsim experiment hig-oscillators`.
@@ -154,6 +156,8 @@ pub struct HigArgs {
     /// afresh.
     #[arg(long)]
     resume: bool,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
 }
 
 /// Options of every solver-in-the-loop study.
@@ -200,6 +204,8 @@ pub struct StudyArgs {
     /// one at Ctrl-C).
     #[arg(long, default_value_t = 30.0)]
     checkpoint_seconds: f64,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
 }
 
 impl StudyArgs {
@@ -415,7 +421,11 @@ pub(super) fn train_cmd(a: TrainArgs, world: &World) -> Result<(), CliError> {
     let iterations = usize::try_from(target - done).map_err(|_| CliError::Argument { arg: "--extend", reason: "too many iterations".into() })?;
     let settings = crate::train::burgers::TrainSettings { first: done as usize + 1, iterations, ..cfg.settings };
     let mut log = match world.is_root() {
-        true => Some(std::io::BufWriter::new(std::fs::OpenOptions::new().append(true).open(&log_path).map_err(io(&log_path))?)),
+        true => Some(std::io::BufWriter::new(
+            std::os::unix::fs::OpenOptionsExt::custom_flags(std::fs::OpenOptions::new().append(true), libc::O_NOFOLLOW)
+                .open(&log_path)
+                .map_err(io(&log_path))?,
+        )),
         false => None,
     };
     // Ctrl-C or a termination request: checkpoint and stop after the
@@ -682,7 +692,8 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
         }
         cfg.gd_lr = lr;
     }
-    std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
+    // Held to the end: the folder is this run's while it writes.
+    let _out = super::claim_out(&a.out, a.overwrite, &[])?;
     let parts = Parts::open(&a.out.join("parts"), format!("sip-heat\n{cfg:#?}"), a.resume)?;
     exit_on_interrupt(&a.out, "each optimizer's run");
     let methods = vec![Method::Sip, Method::Adam, Method::Gd];
@@ -776,12 +787,9 @@ fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
     (lin.hig.method, lin.gn.method, nonlin.hig.method, nonlin.gn.method) = (method, method, method, method);
     (lin.updates, nonlin.updates) = (a.updates, a.updates);
     let settings = format!("hig-oscillators\n{lin:#?}\n{nonlin:#?}");
-    let parts = if world.is_root() {
-        std::fs::create_dir_all(&a.out).map_err(io(&a.out))?;
-        Parts::open(&a.out.join("parts"), settings, a.resume)?
-    } else {
-        Parts::kept_elsewhere(&a.out.join("parts"), settings)
-    };
+    // Rank 0 holds the folder to the end: it alone writes there.
+    let _out = if world.is_root() { Some(super::claim_out(&a.out, a.overwrite, &[])?) } else { None };
+    let parts = if world.is_root() { Parts::open(&a.out.join("parts"), settings, a.resume)? } else { Parts::kept_elsewhere(&a.out.join("parts"), settings) };
     exit_on_interrupt(&a.out, "each problem's runs (timed by the wall clock)");
     let fail = |e: crate::train::hig::HigError| CliError::Argument { arg: "hig-oscillators", reason: e.to_string() };
     let say = |problem: &'static str| {
@@ -886,12 +894,10 @@ fn run_sol_study<P: SolProblem + std::fmt::Debug>(
     let json = study_args.json;
     // Everything the results depend on, one setting per line.
     let settings = format!("{command}\n{cfg:#?}");
-    let parts = if world.is_root() {
-        std::fs::create_dir_all(out).map_err(io(out))?;
-        Parts::open(&out.join("parts"), settings, study_args.resume)?
-    } else {
-        Parts::kept_elsewhere(&out.join("parts"), settings)
-    };
+    // Rank 0 holds the folder to the end: it alone writes there.
+    let _out = if world.is_root() { Some(super::claim_out(out, study_args.overwrite, &[])?) } else { None };
+    let parts =
+        if world.is_root() { Parts::open(&out.join("parts"), settings, study_args.resume)? } else { Parts::kept_elsewhere(&out.join("parts"), settings) };
     let total = cfg.methods.len() * cfg.settings.iterations;
     let progress = bar(total, json || !world.is_root(), "train");
     let _ = ctrlc::set_handler(|| STOP.store(true, std::sync::atomic::Ordering::SeqCst));

@@ -104,8 +104,18 @@ impl ParamStore {
             return Err(StoreError::Mismatch(format!("{} tensors expected, the file has {}", self.entries.len(), other.entries.len())));
         }
         for (a, b) in self.entries.iter().zip(&other.entries) {
-            if a != b {
+            if a.name != b.name || a.shape != b.shape {
                 return Err(StoreError::Mismatch(format!("expected {}, the file has {}", a.describe(), b.describe())));
+            }
+            // Same name and shape at another place in the flat values (an
+            // edited file): say so, not "expected [16], found [16]".
+            if a.offset != b.offset {
+                return Err(StoreError::Mismatch(format!(
+                    "{} starts at value {} in the file, expected {} (the file was altered)",
+                    a.describe(),
+                    b.offset,
+                    a.offset
+                )));
             }
         }
         Ok(())

@@ -70,6 +70,15 @@ pub enum RolloutError {
         /// What failed.
         error: crate::op::OpError,
     },
+    /// Every state is finite but the loss is not (a term overflowed, or
+    /// the loss function returned NaN).
+    #[error(
+        "the loss is {value} though every state of the rollout is finite: a loss term overflowed or is NaN (its values are too large to square and sum in f64?)"
+    )]
+    LossNotFinite {
+        /// The loss.
+        value: f64,
+    },
     /// A non-finite value appeared in the forward or backward pass.
     #[error("non-finite value (NaN or infinity) in the {pass} pass at step {step} (operator {operator})")]
     NonFinite {
@@ -284,7 +293,7 @@ impl<'a, R: Real, O: Forward<R>> Rollout<'a, O, R> {
             return Err(RolloutError::Operator { pass: Pass::Forward, error });
         }
         if !all_finite(&x) {
-            return Err(self.non_finite_forward(x0));
+            return Err(self.non_finite_forward(x0, 0.0));
         }
         Ok(x)
     }
@@ -303,7 +312,7 @@ impl<'a, R: Real, O: Forward<R>> Rollout<'a, O, R> {
             return Err(RolloutError::Operator { pass: Pass::Forward, error });
         }
         if !all_finite(&x) || !value.is_finite() {
-            return Err(self.non_finite_forward(x0));
+            return Err(self.non_finite_forward(x0, value));
         }
         Ok(value)
     }
@@ -311,8 +320,8 @@ impl<'a, R: Real, O: Forward<R>> Rollout<'a, O, R> {
     /// Replays the rollout to find the first step whose output is not
     /// finite and the operator that produced it (only called once something
     /// already went wrong); step `T` if every state is finite (the loss is
-    /// not).
-    fn non_finite_forward(&self, x0: &[R]) -> RolloutError {
+    /// not: [`RolloutError::LossNotFinite`] with `loss`).
+    fn non_finite_forward(&self, x0: &[R], loss: f64) -> RolloutError {
         let mut x = x0.to_vec();
         let mut y = vec![R::zero(); x.len()];
         for t in 0..self.steps {
@@ -322,7 +331,7 @@ impl<'a, R: Real, O: Forward<R>> Rollout<'a, O, R> {
             }
             std::mem::swap(&mut x, &mut y);
         }
-        RolloutError::NonFinite { pass: Pass::Forward, step: self.steps, operator: Forward::<R>::name(self.op) }
+        RolloutError::LossNotFinite { value: loss }
     }
 }
 
@@ -382,9 +391,7 @@ impl<R: Real, O: Vjp<R>> Rollout<'_, O, R> {
                 if let Some(error) = Forward::<R>::take_error(self.op) {
                     return Err(RolloutError::Operator { pass: Pass::Backward, error });
                 }
-                if let e @ RolloutError::NonFinite { step, .. } = self.non_finite_forward(x0)
-                    && step < self.steps
-                {
+                if let e @ RolloutError::NonFinite { .. } = self.non_finite_forward(x0, 0.0) {
                     return Err(e);
                 }
                 // Found at a periodic check: run again checking every step
@@ -401,7 +408,7 @@ impl<R: Real, O: Vjp<R>> Rollout<'_, O, R> {
             return Err(RolloutError::Operator { pass: Pass::Backward, error });
         }
         if !g.loss.is_finite() {
-            return Err(self.non_finite_forward(x0));
+            return Err(self.non_finite_forward(x0, g.loss));
         }
         if !all_finite(&g.dx0) || !all_finite(&g.dp) {
             return Err(RolloutError::NonFinite { pass: Pass::Backward, step: 0, operator: Forward::<R>::name(self.op) });

@@ -103,7 +103,11 @@ pub(super) const LINE_ARRAYS: u64 = 16;
 
 /// The longest rollout a scene declares (`time.steps`): longer ones would
 /// run for days (split them into several runs, each from the last state).
-pub const MAX_STEPS: i64 = 1_000_000_000;
+pub const MAX_STEPS: i64 = 10_000_000;
+
+/// The most cell updates a scene may ask for (cells × steps): at about
+/// 10⁸ a second on two cores, 10¹² is three hours.
+pub const MAX_CELL_STEPS: u64 = 1_000_000_000_000;
 
 /// Refuses a grid of `sizes` whose `arrays` arrays exceed the memory budget.
 fn grid_fits(sizes: &[u64], arrays: u64) -> Result<(), SceneError> {
@@ -142,6 +146,15 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
     })?;
     if let Domain::Box3(cfg) = &mut domain {
         cfg.dt = dt;
+    }
+    let cells = domain.range(Field::Smoke).len() as u64;
+    if cells.saturating_mul(steps as u64) > MAX_CELL_STEPS {
+        return Err(SceneError::key(
+            "time.steps",
+            format!(
+                "{steps} steps of {cells} cells is more than the {MAX_CELL_STEPS:e} cell updates a scene may run (hours at the least); split the run or coarsen the grid"
+            ),
+        ));
     }
 
     // Obstacles.

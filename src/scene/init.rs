@@ -105,6 +105,10 @@ fn shape_cells_3d(key: &str, cfg: &Smoke3d, shape: &ShapeSpec, dir: &Path) -> Re
             let fail = |why: String| SceneError::key(format!("{key}.npy"), format!("{}: {why}", full.display()));
             let bytes = crate::files::read_bytes(&full, 8 * cfg.n_s() as u64 + 65_536, "`.npy` obstacle mask").map_err(|e| fail(e.to_string()))?;
             let values = npy_values(&bytes, &shape).map_err(fail)?;
+            // Not "wholly outside": the mask is inside, it marks nothing.
+            if values.iter().all(|&v| v == 0.0) {
+                return Err(fail("every value is zero: the mask marks no solid cell (solid where a value is not zero)".into()));
+            }
             return Ok(values.iter().map(|&v| v != 0.0).collect());
         }
         ShapeSpec::Disc { .. } => return Err(SceneError::key(key, "a disc is 2D; in 3D use a sphere or a cylinder")),

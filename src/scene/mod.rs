@@ -460,12 +460,31 @@ impl Scene {
             }
             if let Some(at) = y.iter().position(|v| !v.is_finite()) {
                 let field = if self.domain.range(Field::Smoke).contains(&at) { "smoke" } else { "velocity" };
-                return Err(RunError::NonFinite { step: k, field });
+                return Err(RunError::NonFinite { step: k, field, effect: self.non_finite_effect(&x) });
             }
             std::mem::swap(&mut x, &mut y);
             frame(k, &x);
         }
         Ok(x)
+    }
+}
+
+impl Scene {
+    /// The first effect whose output is not finite when the step runs from
+    /// `x`, as `effects[k] (kind)` (only called once a step went wrong: it
+    /// replays the step effect by effect).
+    fn non_finite_effect(&self, x: &[f64]) -> String {
+        let mut state = x.to_vec();
+        for (k, op) in self.step.ops().iter().enumerate() {
+            let mut out = vec![0.0; op.n_out()];
+            op.forward(&state, &self.params[self.step.param_range(k)], &mut out);
+            op.take_error();
+            if out.iter().any(|v| !v.is_finite()) {
+                return format!("effects[{k}] ({})", self.effects.get(k).map_or("?", String::as_str));
+            }
+            state = out;
+        }
+        "the step".to_string()
     }
 }
 
@@ -483,11 +502,14 @@ pub enum RunError {
         error: crate::op::OpError,
     },
     /// A value became NaN or infinite.
-    #[error("step {step}: the {field} became non-finite")]
+    #[error("step {step}: {effect}: the {field} became non-finite (its values left f64's range, or an effect divided by zero)")]
     NonFinite {
         /// The step (1-based).
         step: usize,
         /// `"smoke"` or `"velocity"`.
         field: &'static str,
+        /// The first effect whose output was not finite, as
+        /// `effects[k] (kind)`.
+        effect: String,
     },
 }
