@@ -18,15 +18,16 @@ for size in "256 256" "2048 2048" "16384 1000"; do
 done
 
 # A smoke plume rising around an obstacle (P2's solver with an obstacle and
-# an inflow), written to out/plume.png.
-target/release/diffsim demo plume --out out
+# an inflow), written to out/demo/plume.png (the demo's own folders: a
+# second run replaces its results, never another run's).
+target/release/diffsim demo plume --out out/demo
 
 # The same in 3D: a scene file (64³ cells, 200 steps, about 10 s): smoke
-# rises around a sphere; writes out/plume3d/smoke.npy and the middle slice
+# rises around a sphere; writes out/demo/plume3d/smoke.npy and the middle slice
 # and the maximum along z as PNGs.
-target/release/diffsim run scenes/plume3d.toml --out out/plume3d
+target/release/diffsim run scenes/plume3d.toml --out out/demo/plume3d
 
 # Training through the solver: a correction network trained through 16
 # unrolled steps of the coarse Burgers solver (600 updates, about 20 s);
-# writes out/train/loss.csv, loss.png, model.json, checkpoint.json.
-target/release/diffsim train configs/sol_burgers.toml --out out/train
+# writes out/demo/train/loss.csv, loss.png, model.json, checkpoint.json.
+target/release/diffsim train configs/sol_burgers.toml --out out/demo/train --overwrite

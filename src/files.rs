@@ -173,12 +173,14 @@ pub enum OutDirError {
         holder: String,
     },
     /// The folder holds another run's results (or other files).
-    #[error("--out {path} holds {what}; --overwrite replaces them, or choose another --out")]
+    #[error("--out {path} holds {what}; {remedy}, or choose another --out")]
     Occupied {
         /// The folder.
         path: PathBuf,
         /// What it holds.
         what: String,
+        /// What `--overwrite` would do.
+        remedy: &'static str,
     },
     /// A file the command would write is one of its inputs.
     #[error("--out {path}: writing {name} there would overwrite the input {input}; choose another --out")]
@@ -339,6 +341,7 @@ impl OutDir {
                 return Err(OutDirError::Occupied {
                     path: path.to_path_buf(),
                     what: format!("the results of another run (`{}`{})", shorten(&m.run, 120), if m.complete { "" } else { ", unfinished" }),
+                    remedy: "--overwrite replaces them",
                 });
             }
             _ => {}
@@ -348,7 +351,11 @@ impl OutDir {
         let mut strangers = if earlier.is_some() { Vec::new() } else { others };
         strangers.sort();
         if !strangers.is_empty() && !overwrite {
-            return Err(OutDirError::Occupied { path: path.to_path_buf(), what: format!("files that no diffsim run wrote ({})", listed(&strangers)) });
+            return Err(OutDirError::Occupied {
+                path: path.to_path_buf(),
+                what: format!("files that no diffsim run wrote ({})", listed(&strangers)),
+                remedy: "--overwrite writes beside them (over any of the same name)",
+            });
         }
         // The same run again (another command on the same input) adds to
         // its files; another run's own files go, so that none stays beside

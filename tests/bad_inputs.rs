@@ -229,3 +229,44 @@ fn training_counts_and_checkpoints_are_checked_before_anything_is_written() {
     refused(&["train", "tests/configs/tiny_sol.toml", "--out", op, "--quiet", "--resume"], "the file was altered");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn options_that_do_not_apply_and_requests_past_any_patience_are_refused() {
+    refused(&["experiment", "cylinder", "--case", "2d-1", "--t-end", "5"], "--t-end: applies to case 2d-2 only");
+    refused(&["experiment", "cylinder", "--case", "2d-1", "--tolerance", "1e300"], "--tolerance: applies to case 2d-1 with --solver march only");
+    refused(&["experiment", "cylinder", "--case", "2d-2", "--t-end", "1e300"], "invalid argument --t-end");
+    refused(&["experiment", "cavity", "--max-steps", "18446744073709551615"], "invalid argument --max-steps");
+    refused(&["experiment", "hig-oscillators", "--budget", "1e300"], "invalid argument --budget");
+    refused(&["--memory-budget", "50MB", "experiment", "cavity", "--resolution", "2048"], "more than the memory budget of 50.0 MB");
+    refused(&["--memory-budget", "50MB", "experiment", "cylinder", "--case", "2d-1"], "more than the memory budget of 50.0 MB");
+    refused(&["--memory-budget", "50MB", "experiment", "drag-shape"], "--no-verify");
+    let dir = scratch("views");
+    let s = scene(&dir, "\"zero\"");
+    refused(&["run", s.to_str().unwrap(), "--out", dir.join("o").to_str().unwrap(), "--slice", "z=1"], "--slice: applies to 3D scenes only; this scene is 2D");
+    refused(&["run", "scenes/drag_body.toml", "--out", dir.join("o2").to_str().unwrap(), "--every", "5"], "--every: does not apply to a steady scene");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn an_experiments_folder_is_its_own() {
+    let dir = scratch("experiment-out");
+    let o = dir.join("o");
+    std::fs::create_dir_all(&o).unwrap();
+    std::fs::write(o.join("notes.txt"), "mine").unwrap();
+    let op = o.to_str().unwrap();
+    let cavity = ["experiment", "cavity", "--re", "100", "--resolution", "16", "--json", "--out", op];
+    refused(&cavity, "holds files that no diffsim run wrote (notes.txt)");
+    let mut again: Vec<&str> = cavity.to_vec();
+    again.push("--overwrite");
+    let (code, _, err) = diffsim(&again);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(std::fs::read_to_string(o.join("notes.txt")).unwrap(), "mine", "--overwrite keeps the user's files");
+    // The same experiment again writes beside its results; another is refused.
+    let (code, _, err) = diffsim(&cavity);
+    assert_eq!(code, 0, "{err}");
+    refused(
+        &["experiment", "cavity", "--re", "400", "--resolution", "16", "--json", "--out", op],
+        "holds the results of another run (`diffsim experiment cavity --re 100",
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -79,8 +79,8 @@ fn accuracy_row(family: String, params: Map<String, Value>, r: (Result<f64, Accu
 
 /// Runs `diffsim pareto`.
 pub fn pareto(a: ParetoArgs) -> Result<(), CliError> {
-    if !(a.budget.is_finite() && a.budget >= 0.0) {
-        return Err(CliError::Argument { arg: "--budget", reason: format!("must be ≥ 0 seconds, got {}", a.budget) });
+    if !(a.budget >= 0.0 && a.budget <= 86_400.0) {
+        return Err(CliError::Argument { arg: "--budget", reason: format!("must be between 0 and 86400 seconds (a day), got {}", a.budget) });
     }
     let (name, title, mut rows) = match (a.problem, a.gradients) {
         (Problem::Burgers, false) => {

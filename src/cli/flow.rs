@@ -298,16 +298,18 @@ pub struct CylinderArgs {
     /// for 2d-2).
     #[arg(long, value_enum)]
     convection: Option<ConvectionArg>,
-    /// 2d-1 with --solver march: steady when max |du/dt| falls below this.
-    #[arg(long, default_value_t = 1e-6)]
-    tolerance: f64,
-    /// 2d-1 with --solver march: give up after this many pseudo-time steps.
-    #[arg(long, default_value_t = 1_000_000)]
-    max_steps: usize,
+    /// 2d-1 with --solver march: steady when max |du/dt| falls below this
+    /// (default 1e-6).
+    #[arg(long)]
+    tolerance: Option<f64>,
+    /// 2d-1 with --solver march: give up after this many pseudo-time steps
+    /// (default 1000000).
+    #[arg(long)]
+    max_steps: Option<usize>,
     /// 2d-2: simulated time (from Poiseuille flow); the last 2 time units
-    /// are measured.
-    #[arg(long, default_value_t = 10.0)]
-    t_end: f64,
+    /// are measured (default 10).
+    #[arg(long)]
+    t_end: Option<f64>,
     /// Print the result as one JSON object on the last line.
     #[arg(long)]
     json: bool,
@@ -343,10 +345,22 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
         })
         .into();
     let scheme = convection.name();
-    if a.case == CylinderCase::Steady && !(a.tolerance.is_finite() && a.tolerance > 0.0) {
-        return Err(CliError::Argument { arg: "--tolerance", reason: format!("must be a positive number, got {}", a.tolerance) });
+    // Options of one case or solver given to another would do nothing.
+    let march = a.case == CylinderCase::Steady && a.solver == SteadySolver::March;
+    if !march && a.tolerance.is_some() {
+        return Err(CliError::Argument { arg: "--tolerance", reason: "applies to case 2d-1 with --solver march only".into() });
     }
-    max_steps(a.max_steps)?;
+    if !march && a.max_steps.is_some() {
+        return Err(CliError::Argument { arg: "--max-steps", reason: "applies to case 2d-1 with --solver march only".into() });
+    }
+    if a.case != CylinderCase::Periodic && a.t_end.is_some() {
+        return Err(CliError::Argument { arg: "--t-end", reason: "applies to case 2d-2 only".into() });
+    }
+    let (tolerance, steps, t_end) = (a.tolerance.unwrap_or(1e-6), a.max_steps.unwrap_or(1_000_000), a.t_end.unwrap_or(10.0));
+    if !(tolerance.is_finite() && tolerance > 0.0) {
+        return Err(CliError::Argument { arg: "--tolerance", reason: format!("must be a positive number, got {tolerance}") });
+    }
+    max_steps(steps)?;
     // Memory: the finest grid the command solves, by its solver.
     let finest = a.sweep.iter().copied().chain([per_d]).max().unwrap_or(per_d);
     let cells = channel_cells(finest);
@@ -358,10 +372,10 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
     crate::memory::check("the cylinder's channel", format!("{cells} cells at {finest} per diameter"), need, Some("a smaller --resolution".into()))?;
     // Beyond 1000 time units (Re 100's period is about 3.3) a run is an
     // input error, not a study: hours of steps with no end in sight.
-    if a.case == CylinderCase::Periodic && !(a.t_end.is_finite() && a.t_end > 2.5 && a.t_end <= 1000.0) {
+    if !(t_end.is_finite() && t_end > 2.5 && t_end <= 1000.0) {
         return Err(CliError::Argument {
             arg: "--t-end",
-            reason: format!("must exceed 2.5 (the last 2 time units are measured) and be at most 1000, got {}", a.t_end),
+            reason: format!("must exceed 2.5 (the last 2 time units are measured) and be at most 1000, got {t_end}"),
         });
     }
     if !a.sweep.is_empty() && a.case != CylinderCase::Steady {
@@ -386,7 +400,7 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
                     spinner.tick();
                     run_2d1_newton(per_d, convection)?
                 }
-                SteadySolver::March => run_2d1(per_d, convection, a.tolerance, a.max_steps, |step, t, rate| {
+                SteadySolver::March => run_2d1(per_d, convection, tolerance, steps, |step, t, rate| {
                     if step % 200 == 0 {
                         spinner.set_message(format!("2D-1, {per_d} cells per diameter: step {step}, t = {t:.2}, max |du/dt| = {rate:.2e}"));
                         spinner.tick();
@@ -423,8 +437,8 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
             println!("| Δp | {:.4} | 0.1172–0.1176 | {} |", r.dp, within(r.dp, reference::DP_2D1));
         }
         CylinderCase::Periodic => {
-            let r = run_2d2(per_d, convection, a.t_end, 2.0, |t, cl| {
-                spinner.set_message(format!("2D-2, {per_d} cells per diameter: t = {t:.2} of {}, c_L = {cl:+.3}", a.t_end));
+            let r = run_2d2(per_d, convection, t_end, 2.0, |t, cl| {
+                spinner.set_message(format!("2D-2, {per_d} cells per diameter: t = {t:.2} of {t_end}, c_L = {cl:+.3}"));
                 spinner.tick();
             })?;
             spinner.finish_and_clear();
@@ -439,7 +453,7 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
             }
             println!(
                 "Schäfer–Turek 2D-2 (Re 100), {per_d} cells per diameter, {} cells, {scheme}-order convection: {} steps to t = {}, {time_s:.1} s",
-                r.cells, r.steps, a.t_end
+                r.cells, r.steps, t_end
             );
             println!("| quantity | diffsim | published | |\n|---|---|---|---|");
             println!("| c_D,max | {:.4} | 3.22–3.24 | {} |", r.cd_max, within(r.cd_max, reference::CD_MAX_2D2));

@@ -102,6 +102,10 @@ pub enum CliError {
         /// The figure and what is wrong with it.
         reason: String,
     },
+    /// An error every rank reached together (they agreed on it first), so
+    /// that rank 0 alone reports it.
+    #[error(transparent)]
+    EveryRank(Box<CliError>),
     /// The thread pool could not be built.
     #[error("cannot start {threads} threads: {source}")]
     Threads {
@@ -371,7 +375,10 @@ impl CliError {
     /// of several ranks, a stop all ranks agreed on), so that they can end
     /// normally; any other error stops the run at once.
     fn on_every_rank(&self) -> bool {
-        matches!(self, CliError::Interrupted { .. } | CliError::Distributed(crate::distributed::DistributedError::OneProcessOnly { .. }))
+        matches!(
+            self,
+            CliError::Interrupted { .. } | CliError::EveryRank(_) | CliError::Distributed(crate::distributed::DistributedError::OneProcessOnly { .. })
+        )
     }
 }
 

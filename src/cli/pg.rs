@@ -40,8 +40,10 @@ pub struct SipSmokeArgs {
 pub(super) fn sip_smoke(a: SipSmokeArgs) -> Result<(), CliError> {
     let mut cfg = if a.quick { SmokeConfig::quick() } else { SmokeConfig::standard() };
     if let Some(s) = a.seconds {
-        if !(s.is_finite() && s > 0.0) {
-            return Err(CliError::Argument { arg: "--seconds", reason: format!("must be a positive number of seconds, got {s}") });
+        // A day per method at most: the study compares equal budgets, and
+        // a longer one is an input error, not a study.
+        if !(s > 0.0 && s <= 86_400.0) {
+            return Err(CliError::Argument { arg: "--seconds", reason: format!("must be a positive number of seconds, at most 86400 (a day), got {s}") });
         }
         cfg.seconds = s;
     }

@@ -77,7 +77,7 @@ pub(super) fn sweep(a: SweepArgs, world: &World) -> Result<(), CliError> {
     };
     let dir = a.scene.parent().unwrap_or(Path::new("."));
     // Every combination is built (and so checked) before any runs.
-    let texts: Vec<String> = (0..count)
+    let texts: Result<Vec<String>, CliError> = (0..count)
         .map(|i| {
             let values = combination(&axes, i);
             let mut t = table.clone();
@@ -94,7 +94,15 @@ pub(super) fn sweep(a: SweepArgs, world: &World) -> Result<(), CliError> {
             })?;
             Ok(text)
         })
-        .collect::<Result<_, CliError>>()?;
+        .collect::<Result<_, CliError>>();
+    // Every rank builds every combination: they agree whether any failed,
+    // so that one error line says it (not one per rank, each aborting).
+    let failed = world.all_gather(&[f64::from(u8::from(texts.is_err()))]);
+    if failed.iter().any(|&f| f != 0.0) && world.size() > 1 {
+        let why = texts.err().unwrap_or_else(|| CliError::Argument { arg: "--set", reason: "another rank could not build the sweep's scenes".into() });
+        return Err(CliError::EveryRank(Box::new(why)));
+    }
+    let texts = texts?;
     // Rank 0 claims the folder (locked, refused when another run's) and
     // makes every run's folder before any rank writes into one.
     let claimed = if world.is_root() {

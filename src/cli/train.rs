@@ -764,8 +764,10 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
 
 fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
     use crate::train::oscillators::{Curve, OscConfig, OscMethod, compare};
-    if !(a.budget.is_finite() && a.budget > 0.0) {
-        return Err(CliError::Argument { arg: "--budget", reason: format!("must be a positive number of seconds, got {}", a.budget) });
+    // A day per method at most: a longer wall-clock budget is an input
+    // error, not a study.
+    if !(a.budget > 0.0 && a.budget <= 86_400.0) {
+        return Err(CliError::Argument { arg: "--budget", reason: format!("must be a positive number of seconds, at most 86400 (a day), got {}", a.budget) });
     }
     use crate::train::hig::PowerMethod;
     let method = match a.decomposition.as_str() {

@@ -521,7 +521,7 @@ impl Builder<'_> {
                 self.params.push(finite(&at("coefficient"), b.coefficient)?);
             }
             (EffectSpec::Inflow(i), Domain::Box(cfg)) => {
-                let (r, values) = inflow(k, &i, &[cfg.nx, cfg.ny])?;
+                let (r, values) = inflow(k, &i, &[cfg.nx, cfg.ny], self.dt)?;
                 self.effects.push("inflow".into());
                 self.ops.push(Box::new(Inflow { cfg, region: [r[0], r[1], r[2], r[3]] }));
                 self.params.extend(values);
@@ -590,7 +590,7 @@ impl Builder<'_> {
                 self.params.push(finite(&at("coefficient"), b.coefficient)?);
             }
             EffectSpec::Inflow(i) => {
-                let (r, values) = inflow(k, &i, &cfg.dims())?;
+                let (r, values) = inflow(k, &i, &cfg.dims(), self.dt)?;
                 self.effects.push("inflow".into());
                 self.ops.push(Box::new(Inflow3 { cfg, region: [r[0], r[1], r[2], r[3], r[4], r[5]] }));
                 self.params.extend(values);
@@ -604,8 +604,10 @@ impl Builder<'_> {
 /// The `k`-th effect, an inflow in a box of `n` cells per axis: its
 /// region as half-open cell ranges per axis `[lo₀, hi₀, lo₁, hi₁, …]`
 /// (cells whose centre lies inside, clipped to the box) and its parameters
-/// `[smoke, velocity…]` (no velocity: at rest).
-fn inflow(k: usize, i: &super::spec::InflowSpec, n: &[usize]) -> Result<(Vec<usize>, Vec<f64>), SceneError> {
+/// `[smoke, velocity…]` (no velocity: at rest). A velocity that crosses
+/// the whole box in one step of `dt` is refused: every value would be
+/// traced back from outside the box, and the flow it feeds would vanish.
+fn inflow(k: usize, i: &super::spec::InflowSpec, n: &[usize], dt: f64) -> Result<(Vec<usize>, Vec<f64>), SceneError> {
     let at = |key: &str| format!("effects[{k}].{key}");
     let dims = n.len();
     let coords = ["x", "y", "z"][..dims].join(", ");
@@ -633,6 +635,18 @@ fn inflow(k: usize, i: &super::spec::InflowSpec, n: &[usize]) -> Result<(Vec<usi
             }
         }
         m => return Err(SceneError::key(at("velocity"), format!("expected {dims} values, one per axis, got {m}"))),
+    }
+    // (hypot: the squares of a huge speed would overflow.)
+    let speed = values[1..].iter().fold(0.0f64, |a, v| a.hypot(*v));
+    let widest = n.iter().copied().max().unwrap_or(0) as f64;
+    if !(speed * dt <= widest) {
+        return Err(SceneError::key(
+            at("velocity"),
+            format!(
+                "moves {:.3e} cells a step (speed × time.dt), more than the box's {widest}: every value would be traced from outside it; lower the speed or the time step",
+                speed * dt
+            ),
+        ));
     }
     Ok((region, values))
 }
