@@ -194,6 +194,49 @@ pub enum OutDirError {
     },
 }
 
+/// Makes the folder `path` if missing; a path that is a file, a dangling
+/// symbolic link or a loop of links is refused by name.
+fn make_folder(path: &Path) -> Result<(), OutDirError> {
+    let not_folder = |reason: String| OutDirError::NotAFolder { path: path.to_path_buf(), reason };
+    match std::fs::symlink_metadata(path) {
+        Ok(m) if m.file_type().is_symlink() => match std::fs::metadata(path) {
+            Ok(t) if t.is_dir() => Ok(()),
+            Ok(_) => Err(not_folder("is a symbolic link to a file, not a folder".into())),
+            Err(e) if e.raw_os_error() == Some(libc::ELOOP) => Err(not_folder("is a symbolic link that loops back on itself".into())),
+            Err(_) => {
+                let target = std::fs::read_link(path).map(|t| t.display().to_string()).unwrap_or_default();
+                Err(not_folder(format!("is a symbolic link to {target}, which does not exist")))
+            }
+        },
+        Ok(m) if !m.is_dir() => Err(not_folder("is a file, not a folder".into())),
+        Ok(_) => Ok(()),
+        Err(_) => std::fs::create_dir_all(path).map_err(|source| OutDirError::Io { path: path.to_path_buf(), source }),
+    }
+}
+
+/// The folder's lock, held (an exclusive `flock`, released when the file
+/// closes, even at a kill), with `run` and this process written in it for
+/// the message of a command that finds it taken.
+fn take_lock(path: &Path, run: &str) -> Result<std::fs::File, OutDirError> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let lock_path = path.join(LOCK);
+    let io = |source| OutDirError::Io { path: lock_path.clone(), source };
+    remove_link(&lock_path).map_err(io)?;
+    let lock = std::fs::OpenOptions::new().read(true).write(true).create(true).truncate(false).custom_flags(libc::O_NOFOLLOW).open(&lock_path).map_err(io)?;
+    match lock.try_lock() {
+        Ok(()) => {}
+        Err(std::fs::TryLockError::WouldBlock) => {
+            let holder = std::fs::read_to_string(&lock_path).unwrap_or_default();
+            return Err(OutDirError::Busy { path: path.to_path_buf(), holder: shorten(holder.trim(), 200) });
+        }
+        Err(std::fs::TryLockError::Error(e)) => return Err(io(e)),
+    }
+    let mut l = &lock;
+    let _ = l.set_len(0);
+    let _ = writeln!(l, "{} (process {})", shorten(run, 200), std::process::id());
+    Ok(lock)
+}
+
 /// A command that stops early (an error, or a study that returns before
 /// its end) still leaves its files recorded, so that `--overwrite` can
 /// remove them later; the marker then says the run is unfinished.
@@ -253,14 +296,15 @@ struct Marker {
 
 /// An output folder claimed by one command: created if missing, locked
 /// for the command's lifetime (a second command writing there at the same
-/// time is refused), and refused when it holds another run's results or
-/// files of the user's unless `overwrite`. Runs are told apart by the
-/// string the command gives (a scene's path and a hash of its text): the
-/// same run again, by any command, writes beside its earlier results. Outputs are named
-/// through [`OutDir::file`], which refuses a name that is an input and
-/// removes a symbolic link planted there; the names are recorded in the
-/// folder's marker, so that a replaced run leaves no stale file beside the
-/// new ones.
+/// time is refused), and holding another run's results or files of the
+/// user's as [`Existing`] says. Runs are told apart by the string the
+/// command gives (a scene's path and a hash of its text, an experiment's
+/// flags): the same run again, by any command, writes beside its earlier
+/// results. Outputs named through [`OutDir::file`] are refused when one is
+/// an input, and a symbolic link planted at the name is removed; the names
+/// are recorded in the folder's marker (those written by path, when the
+/// `OutDir` is finished or dropped), so that a replaced run leaves no
+/// stale file beside the new ones.
 #[derive(Debug)]
 pub struct OutDir {
     path: PathBuf,
@@ -273,55 +317,16 @@ pub struct OutDir {
 }
 
 impl OutDir {
-    /// Claims `path` for the run described by `run` (the command and its
-    /// input, canonical), never writing over any of `inputs`.
+    /// Claims `path` for the run described by `run`, never writing over
+    /// any of `inputs`; what it finds there is handled as `existing` says.
     pub fn claim(path: &Path, run: &str, inputs: &[&Path], existing: Existing) -> Result<OutDir, OutDirError> {
         let overwrite = existing != Existing::Refuse;
         let io_at = |p: &Path| {
             let p = p.to_path_buf();
             move |source| OutDirError::Io { path: p, source }
         };
-        let not_folder = |reason: String| OutDirError::NotAFolder { path: path.to_path_buf(), reason };
-        match std::fs::symlink_metadata(path) {
-            Ok(m) if m.file_type().is_symlink() => match std::fs::metadata(path) {
-                Ok(t) if t.is_dir() => {}
-                Ok(_) => return Err(not_folder("is a symbolic link to a file, not a folder".into())),
-                Err(e) if e.raw_os_error() == Some(libc::ELOOP) => return Err(not_folder("is a symbolic link that loops back on itself".into())),
-                Err(_) => {
-                    let target = std::fs::read_link(path).map(|t| t.display().to_string()).unwrap_or_default();
-                    return Err(not_folder(format!("is a symbolic link to {target}, which does not exist")));
-                }
-            },
-            Ok(m) if !m.is_dir() => return Err(not_folder("is a file, not a folder".into())),
-            Ok(_) => {}
-            Err(_) => std::fs::create_dir_all(path).map_err(io_at(path))?,
-        }
-        let lock_path = path.join(LOCK);
-        remove_link(&lock_path).map_err(io_at(&lock_path))?;
-        let lock = {
-            use std::os::unix::fs::OpenOptionsExt;
-            std::fs::OpenOptions::new()
-                .read(true)
-                .write(true)
-                .create(true)
-                .truncate(false)
-                .custom_flags(libc::O_NOFOLLOW)
-                .open(&lock_path)
-                .map_err(io_at(&lock_path))?
-        };
-        match lock.try_lock() {
-            Ok(()) => {}
-            Err(std::fs::TryLockError::WouldBlock) => {
-                let holder = std::fs::read_to_string(&lock_path).unwrap_or_default();
-                return Err(OutDirError::Busy { path: path.to_path_buf(), holder: shorten(holder.trim(), 200) });
-            }
-            Err(std::fs::TryLockError::Error(e)) => return Err(OutDirError::Io { path: lock_path, source: e }),
-        }
-        {
-            let mut l = &lock;
-            let _ = l.set_len(0);
-            let _ = writeln!(l, "{} (process {})", shorten(run, 200), std::process::id());
-        }
+        make_folder(path)?;
+        let lock = take_lock(path, run)?;
         let inputs: Vec<PathBuf> = inputs.iter().filter_map(|p| std::fs::canonicalize(p).ok()).collect();
         let marker_path = path.join(MARKER);
         let earlier: Option<Marker> = read_text(&marker_path, 1 << 24, "run marker").ok().and_then(|t| serde_json::from_str(&t).ok());

@@ -844,6 +844,11 @@ pub(super) fn drag_net(a: DragNetArgs) -> Result<(), CliError> {
     if !(a.lr.is_finite() && a.lr > 0.0) {
         return Err(CliError::Argument { arg: "--lr", reason: format!("must be a positive number, got {}", a.lr) });
     }
+    // No training is no study: the held-out comparison would report an
+    // untrained network.
+    if a.iterations == 0 {
+        return Err(CliError::Argument { arg: "--iterations", reason: "must be at least 1 (the network's training updates)".into() });
+    }
     let opts = ShapeNetOptions {
         cells_per_d: if a.quick { 10 } else { 20 },
         modes: 4,

@@ -41,6 +41,19 @@ pub struct RunArgs {
     mip: Option<String>,
 }
 
+impl RunArgs {
+    /// The first of `--slice` and `--mip` given (pictures of a volume).
+    fn view_option(&self) -> Option<&'static str> {
+        if self.slice.is_some() {
+            Some("--slice")
+        } else if self.mip.is_some() {
+            Some("--mip")
+        } else {
+            None
+        }
+    }
+}
+
 /// The pictures of a 3D scene: a slice (axis, cell index) and the axis of
 /// a maximum-intensity projection.
 #[derive(Clone, Copy, Debug)]
@@ -61,17 +74,10 @@ impl Views {
     fn parse(a: &RunArgs, domain: &Domain) -> Result<Self, CliError> {
         // Pictures of a volume: an option given for a line or a box would
         // silently do nothing.
-        if !matches!(domain, Domain::Box3(_)) {
-            let given = if a.slice.is_some() {
-                Some("--slice")
-            } else if a.mip.is_some() {
-                Some("--mip")
-            } else {
-                None
-            };
-            if let Some(arg) = given {
-                return Err(CliError::Argument { arg, reason: format!("applies to 3D scenes only; this scene is {}D", domain.dims()) });
-            }
+        if !matches!(domain, Domain::Box3(_))
+            && let Some(arg) = a.view_option()
+        {
+            return Err(CliError::Argument { arg, reason: format!("applies to 3D scenes only; this scene is {}D", domain.dims()) });
         }
         let slice = a.slice.as_deref().unwrap_or("z");
         let mip = a.mip.as_deref().unwrap_or("z");
@@ -546,18 +552,7 @@ fn describe_forces(scene: &SteadyScene, run: &crate::scene::SteadyRun) -> String
 
 fn run_steady(a: &RunArgs, scene: &SteadyScene) -> Result<(), CliError> {
     // A steady scene has no steps and no volume: these would do nothing.
-    // (Tested one by one: an array of tuples can abort Enzyme's type
-    // analysis in this flagged crate, docs/pitfalls.md.)
-    let given = if a.every.is_some() {
-        Some("--every")
-    } else if a.slice.is_some() {
-        Some("--slice")
-    } else if a.mip.is_some() {
-        Some("--mip")
-    } else {
-        None
-    };
-    if let Some(arg) = given {
+    if let Some(arg) = a.every.map(|_| "--every").or(a.view_option()) {
         return Err(CliError::Argument { arg, reason: "does not apply to a steady scene (no steps, no volume)".into() });
     }
     let out = claim(&a.out, &a.scene, "", a.overwrite)?;
