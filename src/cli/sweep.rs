@@ -155,7 +155,10 @@ pub(super) fn sweep(a: SweepArgs, world: &World) -> Result<(), CliError> {
 
 /// Runs the scene `text` into `out`; a failed simulation is a row with its
 /// error, a failed write an error.
-fn run_one(text: &str, dir: &Path, out: &PathBuf, run: usize) -> Result<RunRow, CliError> {
+fn run_one(text: &str, dir: &Path, out: &Path, run: usize) -> Result<RunRow, CliError> {
+    // (A folder another rank may have made: written through link-safe
+    // paths, not claimed.)
+    let out = &out.to_path_buf();
     let scene = AnyScene::parse_in(text, dir)?;
     let start = std::time::Instant::now();
     let mut figures = Vec::new();
@@ -184,11 +187,7 @@ fn run_one(text: &str, dir: &Path, out: &PathBuf, run: usize) -> Result<RunRow, 
                         figures.push((format!("{}_mean", field.name()), v.iter().sum::<f64>() / v.len().max(1) as f64));
                         figures.push((format!("{}_max_abs", field.name()), diffsim_solvers::cg::max_abs(v)));
                     }
-                    // A figure that overflowed (a loss past 1e308) is that
-                    // run's error, not a number of the table.
-                    if let Some((name, v)) = figures.iter().find(|(_, v)| !v.is_finite()) {
-                        let status = format!("the {name} came out {v}");
-                        figures.retain(|(_, v)| v.is_finite());
+                    if let Some(status) = non_finite_figure(&mut figures) {
                         return Ok(RunRow { run, time_s: time, status, figures });
                     }
                     write_state(&scene, out, &x)?;
@@ -210,9 +209,7 @@ fn run_one(text: &str, dir: &Path, out: &PathBuf, run: usize) -> Result<RunRow, 
                         figures.push((format!("obstacles{k}_cl"), scale * f[1]));
                     }
                 }
-                if let Some((name, v)) = figures.iter().find(|(_, v)| !v.is_finite()) {
-                    let status = format!("the {name} came out {v}");
-                    figures.retain(|(_, v)| v.is_finite());
+                if let Some(status) = non_finite_figure(&mut figures) {
                     return Ok(RunRow { run, time_s: time, status, figures });
                 }
                 write_steady(&scene, &r, out)?;
@@ -222,6 +219,16 @@ fn run_one(text: &str, dir: &Path, out: &PathBuf, run: usize) -> Result<RunRow, 
         },
     };
     Ok(RunRow { run, time_s: start.elapsed().as_secs_f64(), status, figures })
+}
+
+/// A figure that overflowed (a loss past 1e308) is its run's error, not a
+/// number of the table: the status saying which, with the non-finite
+/// figures removed; `None` when every figure is finite.
+fn non_finite_figure(figures: &mut Vec<(String, f64)>) -> Option<String> {
+    let (name, v) = figures.iter().find(|(_, v)| !v.is_finite())?;
+    let status = format!("the {name} came out {v}");
+    figures.retain(|(_, v)| v.is_finite());
+    Some(status)
 }
 
 /// Writes runs.csv (and runs.json): one row per run, the swept values, the

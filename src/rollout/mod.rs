@@ -73,7 +73,7 @@ pub enum RolloutError {
     /// Every state is finite but the loss is not (a term overflowed, or
     /// the loss function returned NaN).
     #[error(
-        "the loss is {value} though every state of the rollout is finite: a loss term overflowed or is NaN (its values are too large to square and sum in f64?)"
+        "the loss is not finite ({value}) though every state of the rollout is: a loss term overflowed or is NaN (values too large to square and sum in f64?)"
     )]
     LossNotFinite {
         /// The loss.

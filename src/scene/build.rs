@@ -639,7 +639,7 @@ fn inflow(k: usize, i: &super::spec::InflowSpec, n: &[usize], dt: f64) -> Result
     // (hypot: the squares of a huge speed would overflow.)
     let speed = values[1..].iter().fold(0.0f64, |a, v| a.hypot(*v));
     let widest = n.iter().copied().max().unwrap_or(0) as f64;
-    if !(speed * dt <= widest) {
+    if speed * dt > widest {
         return Err(SceneError::key(
             at("velocity"),
             format!(
