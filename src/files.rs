@@ -263,10 +263,21 @@ impl Outputs for OutDir {
 
 impl Outputs for PathBuf {
     fn file(&self, name: &str) -> Result<PathBuf, OutDirError> {
-        let p = self.join(name);
-        remove_link(&p).map_err(|source| OutDirError::Io { path: p.clone(), source })?;
-        Ok(p)
+        unlinked(self, name)
     }
+}
+
+/// `dir/name`, with a symbolic link planted there removed.
+fn unlinked(dir: &Path, name: &str) -> Result<PathBuf, OutDirError> {
+    let p = dir.join(name);
+    remove_link(&p).map_err(|source| OutDirError::Io { path: p.clone(), source })?;
+    Ok(p)
+}
+
+/// Whether `name` is an [`OutDir`]'s own bookkeeping (its marker, its
+/// lock, a temporary file of an atomic write), not an output.
+fn bookkeeping(name: &str) -> bool {
+    name == MARKER || name == LOCK || name.ends_with(".tmp")
 }
 
 /// What [`OutDir::claim`] does with a folder that holds another run's
@@ -290,8 +301,9 @@ struct Marker {
     run: String,
     /// Whether it finished.
     complete: bool,
-    /// The files and folders (`run-0001/`) it wrote, relative to the folder.
-    files: Vec<String>,
+    /// The files and folders (`run-0001/`) it wrote, relative to the folder
+    /// (a set: a sweep records tens of thousands of folders).
+    files: std::collections::BTreeSet<String>,
 }
 
 /// An output folder claimed by one command: created if missing, locked
@@ -335,7 +347,7 @@ impl OutDir {
             .map_err(io_at(path))?
             .filter_map(|e| e.ok())
             .map(|e| e.file_name().to_string_lossy().into_owned())
-            .filter(|n| n != MARKER && n != LOCK && !n.ends_with(".tmp"))
+            .filter(|n| !bookkeeping(n))
             .collect();
         let listed = |names: &[String]| {
             let shown: Vec<&str> = names.iter().take(4).map(String::as_str).collect();
@@ -368,7 +380,7 @@ impl OutDir {
         // A resumed run continues what it finds (its own check of the
         // settings decides), removing nothing.
         let same = existing == Existing::Continue || earlier.as_ref().is_some_and(|m| m.run == run);
-        let kept = if same { earlier.as_ref().map(|m| m.files.clone()).unwrap_or_default() } else { Vec::new() };
+        let kept = if same { earlier.as_ref().map(|m| m.files.clone()).unwrap_or_default() } else { Default::default() };
         if let Some(m) = earlier.as_ref().filter(|_| !same) {
             for f in &m.files {
                 let name = f.trim_end_matches('/');
@@ -397,48 +409,42 @@ impl OutDir {
         Ok(out)
     }
 
-    /// The folder.
-    pub fn path(&self) -> &Path {
-        &self.path
-    }
-
     /// The path to write the output `name` (relative, `run-0001/smoke.npy`
     /// allowed) at: recorded as this run's, refused when it is one of the
     /// inputs, and freed of a symbolic link planted there.
     pub fn file(&self, name: &str) -> Result<PathBuf, OutDirError> {
-        let p = self.path.join(name);
-        if let Ok(c) = std::fs::canonicalize(&p)
+        if let Ok(c) = std::fs::canonicalize(self.path.join(name))
             && let Some(input) = self.inputs.iter().find(|i| **i == c)
         {
             return Err(OutDirError::Input { path: self.path.clone(), name: name.to_string(), input: input.clone() });
         }
-        remove_link(&p).map_err(|source| OutDirError::Io { path: p.clone(), source })?;
-        self.record(name)?;
+        let p = unlinked(&self.path, name)?;
+        if self.note(name) {
+            self.save()?;
+        }
         Ok(p)
     }
 
-    /// The subfolder `name`, created (a symbolic link there is replaced by
-    /// a folder) and recorded as this run's.
-    pub fn folder(&self, name: &str) -> Result<PathBuf, OutDirError> {
-        let p = self.path.join(name);
-        remove_link(&p).map_err(|source| OutDirError::Io { path: p.clone(), source })?;
-        std::fs::create_dir_all(&p).map_err(|source| OutDirError::Io { path: p.clone(), source })?;
-        self.record(&format!("{name}/"))?;
-        Ok(p)
+    /// The subfolders `names`, created (a symbolic link at a name is
+    /// replaced by a folder) and recorded as this run's, the marker saved
+    /// once for all of them.
+    pub fn folders(&self, names: impl IntoIterator<Item = String>) -> Result<(), OutDirError> {
+        for name in names {
+            let p = unlinked(&self.path, &name)?;
+            std::fs::create_dir_all(&p).map_err(|source| OutDirError::Io { path: p.clone(), source })?;
+            self.note(&format!("{name}/"));
+        }
+        self.save()
     }
 
-    /// Records `name` as this run's (written by another process, say).
-    pub fn record(&self, name: &str) -> Result<(), OutDirError> {
+    /// Records `name` (its first component: `run-0001/x.npy` is
+    /// `run-0001/`) as this run's; whether it is new.
+    fn note(&self, name: &str) -> bool {
         let top = match name.split_once('/') {
             Some((dir, _)) => format!("{dir}/"),
             None => name.to_string(),
         };
-        let new = !self.marker.borrow().files.contains(&top);
-        if new {
-            self.marker.borrow_mut().files.push(top);
-            self.save()?;
-        }
-        Ok(())
+        self.marker.borrow_mut().files.insert(top)
     }
 
     /// Marks the run finished, recording as its own every entry of the
@@ -456,12 +462,8 @@ impl OutDir {
         for entry in entries.filter_map(|e| e.ok()) {
             let name = entry.file_name().to_string_lossy().into_owned();
             let changed = entry.metadata().and_then(|m| m.modified()).is_ok_and(|t| t >= self.started);
-            if changed && name != MARKER && name != LOCK && !name.ends_with(".tmp") {
-                let key = if entry.file_type().is_ok_and(|t| t.is_dir()) { format!("{name}/") } else { name };
-                let mut marker = self.marker.borrow_mut();
-                if !marker.files.contains(&key) {
-                    marker.files.push(key);
-                }
+            if changed && !bookkeeping(&name) {
+                self.note(&if entry.file_type().is_ok_and(|t| t.is_dir()) { format!("{name}/") } else { name });
             }
         }
     }

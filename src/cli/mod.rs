@@ -246,6 +246,20 @@ pub(crate) struct Overwrite {
     overwrite: bool,
 }
 
+impl Overwrite {
+    /// What a claim does with a folder holding another run's results:
+    /// continue it for a `--resume`, replace them for `--overwrite`, else
+    /// refuse.
+    fn existing(self, resume: bool) -> crate::files::Existing {
+        use crate::files::Existing;
+        match (resume, self.overwrite) {
+            (true, _) => Existing::Continue,
+            (false, true) => Existing::Replace,
+            (false, false) => Existing::Refuse,
+        }
+    }
+}
+
 /// Claims the output folder `dir` for this command
 /// ([`crate::files::OutDir`]): the run is the command line without the
 /// options that do not change its results (`--out`, `--overwrite`,
@@ -254,7 +268,6 @@ pub(crate) struct Overwrite {
 /// `--resume` continues whatever the folder holds (the study's saved parts
 /// check their settings); `inputs` are never written over.
 fn claim_out(dir: &std::path::Path, overwrite: Overwrite, inputs: &[&std::path::Path]) -> Result<crate::files::OutDir, CliError> {
-    use crate::files::Existing;
     let mut words = Vec::new();
     let mut resume = false;
     let mut args = std::env::args().skip(1);
@@ -271,12 +284,7 @@ fn claim_out(dir: &std::path::Path, overwrite: Overwrite, inputs: &[&std::path::
     }
     // A resumed study continues its folder: its saved parts name any
     // setting that differs.
-    let existing = match (resume, overwrite.overwrite) {
-        (true, _) => Existing::Continue,
-        (false, true) => Existing::Replace,
-        (false, false) => Existing::Refuse,
-    };
-    Ok(crate::files::OutDir::claim(dir, &format!("diffsim {}", words.join(" ")), inputs, existing)?)
+    Ok(crate::files::OutDir::claim(dir, &format!("diffsim {}", words.join(" ")), inputs, overwrite.existing(resume))?)
 }
 
 /// Refuses a run's figures when one is NaN or infinite: `what` names the

@@ -18,10 +18,8 @@ pub struct RunArgs {
     /// Output directory.
     #[arg(long, default_value = "out")]
     out: PathBuf,
-    /// Write into --out even when it holds another run's results or other
-    /// files (the earlier run's files are removed, others kept).
-    #[arg(long)]
-    overwrite: bool,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
     /// Also write an image every this many steps.
     #[arg(long)]
     every: Option<usize>,
@@ -112,10 +110,8 @@ pub struct GradArgs {
     /// Output directory.
     #[arg(long, default_value = "out")]
     out: PathBuf,
-    /// Write into --out even when it holds another run's results or other
-    /// files (the earlier run's files are removed, others kept).
-    #[arg(long)]
-    overwrite: bool,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
     /// Also run the gradient checks on the whole rollout and print them.
     #[arg(long)]
     check: bool,
@@ -132,11 +128,11 @@ pub struct GradArgs {
 
 /// Claims `out` for a command on the scene file `scene`: the scene and the
 /// `.npy` files it reads are never written over, and a folder holding
-/// another run's results is refused unless `overwrite`
+/// another run's results is refused unless `--overwrite`
 /// ([`crate::files::OutDir`]). A run is the scene's path and text (`run`
 /// and `grad` of one scene share a folder; an edited scene is another
 /// run), and `extra` (a sweep's `--set`).
-pub(super) fn claim(out: &Path, scene: &Path, extra: &str, overwrite: bool) -> Result<OutDir, CliError> {
+pub(super) fn claim(out: &Path, scene: &Path, extra: &str, overwrite: super::Overwrite) -> Result<OutDir, CliError> {
     use std::hash::{Hash, Hasher};
     let canonical = std::fs::canonicalize(scene).unwrap_or_else(|_| scene.to_path_buf());
     let mut hash = std::hash::DefaultHasher::new();
@@ -144,8 +140,7 @@ pub(super) fn claim(out: &Path, scene: &Path, extra: &str, overwrite: bool) -> R
     let mut inputs = crate::scene::input_files(scene);
     inputs.push(scene.to_path_buf());
     let refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
-    let existing = if overwrite { crate::files::Existing::Replace } else { crate::files::Existing::Refuse };
-    Ok(OutDir::claim(out, &format!("{} (text {:016x}){extra}", canonical.display(), hash.finish()), &refs, existing)?)
+    Ok(OutDir::claim(out, &format!("{} (text {:016x}){extra}", canonical.display(), hash.finish()), &refs, overwrite.existing(false))?)
 }
 
 /// Writes `values` as a float64 `.npy` array of `shape` (row-major) to the
@@ -354,6 +349,18 @@ pub(super) fn run(a: RunArgs) -> Result<(), CliError> {
     Ok(())
 }
 
+/// Refuses a loss or a gradient that overflowed (`inputs`: each input's
+/// name and values): nothing is reported as a result.
+fn finite_gradient<'a, V: Iterator<Item = &'a f64>>(loss: f64, inputs: impl Iterator<Item = (&'a str, V)>) -> Result<(), CliError> {
+    super::finite_figures("grad", &[("the loss", loss)])?;
+    for (name, mut values) in inputs {
+        if let Some(v) = values.find(|v| !v.is_finite()) {
+            return Err(CliError::NotReported { what: "grad".into(), reason: format!("the gradient with respect to {name} holds {v}") });
+        }
+    }
+    Ok(())
+}
+
 /// Seconds as `42 s`, `17 min` or `3.2 h`.
 pub(super) fn duration(s: f64) -> String {
     if s < 120.0 {
@@ -469,13 +476,7 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
     let mode = plan.mode;
     let out = claim(&a.out, &a.scene, "", a.overwrite)?;
     let g = scene.gradient(loss, mode)?;
-    // A loss or gradient that overflowed is not reported as one.
-    super::finite_figures("grad", &[("the loss", g.loss)])?;
-    for input in &g.inputs {
-        if let Some(v) = input.arrays.iter().flat_map(|(_, _, v)| v).find(|v| !v.is_finite()) {
-            return Err(CliError::NotReported { what: "grad".into(), reason: format!("the gradient with respect to {} holds {v}", input.name) });
-        }
-    }
+    finite_gradient(g.loss, g.inputs.iter().map(|i| (i.name.as_str(), i.arrays.iter().flat_map(|(_, _, v)| v))))?;
     let how = if chosen { "chosen within" } else { "given; budget" };
     eprintln!("memory plan ({how} {}): {plan}", crate::memory::human(crate::memory::budget()));
     println!("loss {:.10e}", g.loss);
@@ -588,12 +589,7 @@ fn grad_steady(a: &GradArgs, scene: &SteadyScene) -> Result<(), CliError> {
     let out = claim(&a.out, &a.scene, "", a.overwrite)?;
     let start = std::time::Instant::now();
     let (run, g) = scene.gradient(loss)?;
-    super::finite_figures("grad", &[("the loss", g.loss)])?;
-    for (name, _, values) in &g.inputs {
-        if let Some(v) = values.iter().find(|v| !v.is_finite()) {
-            return Err(CliError::NotReported { what: "grad".into(), reason: format!("the gradient with respect to {name} holds {v}") });
-        }
-    }
+    finite_gradient(g.loss, g.inputs.iter().map(|(name, _, values)| (name.as_str(), values.iter())))?;
     let elapsed = start.elapsed().as_secs_f64();
     println!("loss {:.10e} ({} of obstacles[{}])", g.loss, loss.kind(), loss.obstacle);
     for (name, params, values) in &g.inputs {

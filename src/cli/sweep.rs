@@ -31,10 +31,8 @@ pub struct SweepArgs {
     /// Output directory: run-NNNN/ per run, runs.csv (and runs.json).
     #[arg(long, default_value = "out/sweep")]
     out: PathBuf,
-    /// Write into --out even when it holds another run's results or other
-    /// files (the earlier run's files are removed, others kept).
-    #[arg(long)]
-    overwrite: bool,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
     /// Also write the table as runs.json and print it as one JSON line.
     #[arg(long)]
     json: bool,
@@ -108,9 +106,7 @@ pub(super) fn sweep(a: SweepArgs, world: &World) -> Result<(), CliError> {
     let claimed = if world.is_root() {
         let extra: String = a.set.iter().map(|s| format!(" --set {s}")).collect();
         let out = super::scene::claim(&a.out, &a.scene, &format!(" swept{extra}"), a.overwrite)?;
-        for i in 0..count {
-            out.folder(&format!("run-{i:04}"))?;
-        }
+        out.folders((0..count).map(|i| format!("run-{i:04}")))?;
         Some(out)
     } else {
         None
