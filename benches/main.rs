@@ -25,7 +25,7 @@ fn p1_size(c: &mut Criterion, n: usize, steps: usize) {
 }
 
 fn p1(c: &mut Criterion) {
-    // The sizes S, M, L of benchmarks.md. (Reading them from the solvers'
+    // The sizes S, M, L of docs/benchmarks.md. (Reading them from the solvers'
     // `P1_SIZES` table here aborted rustc's Enzyme type trees; docs/pitfalls.md.)
     for (n, steps) in [(256, 256), (2048, 2048), (16384, 1000)] {
         p1_size(c, n, steps);

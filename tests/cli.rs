@@ -620,6 +620,10 @@ fn pareto_and_stability_commands_report_json() {
     for f in ["results.csv", "table.md", "error_time.png", "error_time.svg"] {
         assert!(out.join("burgers").join(f).exists(), "{f}");
     }
+    // Another sweep's settings into the same folder are refused before
+    // anything runs; --overwrite replaces it.
+    fails_with(&["pareto", "burgers", "--quick", "--budget", "0.001", "--out", o], "--overwrite");
+    assert!(out.join("burgers").join("results.csv").exists());
     // Gradient sweep: the adjoints agree to round-off, the best finite
     // difference to its truncation/round-off balance.
     let (code, stdout, err) = diffsim(&["pareto", "taylor-green", "--gradients", "--quick", "--budget", "0", "--json", "--out", o]);

@@ -1,4 +1,4 @@
-//! P1 burgers1d: the reference table of benchmarks.md, by both gradients.
+//! P1 burgers1d: the reference table of docs/benchmarks.md, by both gradients.
 
 use diffsim::problems::burgers::P1;
 use diffsim::rollout::{Checkpointing, Gradient};

@@ -1,4 +1,4 @@
-//! P2 smoke2d: the reference table of benchmarks.md (loss and ‖∇L‖ to 1e-6
+//! P2 smoke2d: the reference table of docs/benchmarks.md (loss and ‖∇L‖ to 1e-6
 //! relative, entries to 1e-6·‖∇L‖), with both preconditioners.
 
 use diffsim::problems::smoke::P2;

@@ -1,4 +1,4 @@
-//! P4 smoke3d: the reference table of benchmarks.md (loss and ‖∇L‖ to 1e-6
+//! P4 smoke3d: the reference table of docs/benchmarks.md (loss and ‖∇L‖ to 1e-6
 //! relative, entries to 1e-6·‖∇L‖) with Enzyme's and the hand-written
 //! adjoint; the 3D operators under the three gradient checks; the shared
 //! multigrid preconditioner in 3D.

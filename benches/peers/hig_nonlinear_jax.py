@@ -1,5 +1,5 @@
 """Peer for the HIG comparison on the *nonlinear* coupled oscillators, in JAX
-on CPU, written the way ../shared/peers/hig_oscillators_jax.py writes the
+on CPU, written the way benches/peers/hig_oscillators_jax.py writes the
 linear one (same structure, same timing), with the published nonlinear setup
 of Schnell, Holl & Thuerey (ICLR 2022, tum-pbs/half-inverse-gradients,
 Nonlinear_oscillators/):

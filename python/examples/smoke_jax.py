@@ -2,12 +2,12 @@
 
 A control θ (a smoke source on every cell, a stand-in for a network's
 output) acts between the steps of P2's solver (64², buoyant smoke, pressure
-projection; ../shared/benchmarks.md): ``x ← step(x); s ← s + θ``, and the
+projection; docs/benchmarks.md): ``x ← step(x); s ← s + θ``, and the
 loss after T steps is P2's. The gradient with respect to θ runs through
 every step. ``--solver diffsim`` takes the step from diffsim
 (``diffsim.jax.smoke_step``: XLA FFI calls, Enzyme's step adjoint, the
 implicit adjoint of the pressure solve); ``--solver jax`` the same step in
-JAX (the peer's code, ../shared/peers/smoke2d_jax.py, CG by
+JAX (the peer's code, benches/peers/smoke2d_jax.py, CG by
 ``jax.scipy.sparse.linalg.cg``).
 
     python examples/smoke_jax.py [--n 64] [--steps 20] [--iterations 5] [--json]

@@ -1,13 +1,13 @@
 """Solver in the loop with the network in JAX and the solver in diffsim.
 
-P3's setup (../shared/benchmarks.md): a 1D conv network (1 → 32 → 32 → 1
+P3's setup (docs/benchmarks.md): a 1D conv network (1 → 32 → 32 → 1
 channels, kernel 5, periodic, tanh) corrects each step of the coarse
 Burgers solver (32 cells, dt 0.05, ν 0.01), trained through 16 unrolled
 steps on batches of 32 with Adam. The step is diffsim's
 (``diffsim.jax.burgers_step``: forward and VJP by diffsim, a batch in one
 call); everything else is JAX, under one ``jax.jit``. With ``--solver jax``
 the same program runs with the step written in JAX (the peer
-``../shared/peers/sol1d_jax.py``), for the side-by-side time.
+``benches/peers/sol1d_jax.py``), for the side-by-side time.
 
     python examples/sol_jax.py [--iterations 200] [--solver diffsim|jax] [--json]
 """

@@ -1,5 +1,5 @@
 """Shared pieces of the Python tests: P1 written entirely in JAX (the
-scheme of ../shared/peers/burgers1d_jax.py), to compare diffsim against."""
+scheme of benches/peers/burgers1d_jax.py), to compare diffsim against."""
 
 import jax
 

@@ -241,7 +241,7 @@ pub fn p1_loss(cfg: &Burgers1d, u: &[f64], target: &[f64], grad: &mut [f64]) -> 
     0.5 * cfg.dx * sum
 }
 
-/// Reference values of one P1 size (float64, from `benchmarks.md`).
+/// Reference values of one P1 size (float64, from `docs/benchmarks.md`).
 #[derive(Clone, Copy, Debug)]
 pub struct P1Reference {
     /// Size name (S, M, L).

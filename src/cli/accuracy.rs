@@ -48,6 +48,8 @@ pub struct ParetoArgs {
     /// error_time.png, error_time.svg.
     #[arg(long, default_value = "out/pareto")]
     out: PathBuf,
+    #[command(flatten)]
+    overwrite: super::Overwrite,
     /// Print one JSON array of the configurations as the last line.
     #[arg(long)]
     json: bool,
@@ -82,7 +84,23 @@ pub fn pareto(a: ParetoArgs) -> Result<(), CliError> {
     if !(a.budget >= 0.0 && a.budget <= 86_400.0) {
         return Err(CliError::Argument { arg: "--budget", reason: format!("must be between 0 and 86400 seconds (a day), got {}", a.budget) });
     }
-    let (name, title, mut rows) = match (a.problem, a.gradients) {
+    let name = match (a.problem, a.gradients) {
+        (Problem::Burgers, false) => "burgers",
+        (Problem::TaylorGreen, false) => "taylor-green",
+        (Problem::Cylinder, false) => "cylinder",
+        (Problem::Cylinder, true) => {
+            return Err(CliError::Argument {
+                arg: "--gradients",
+                reason: "the cylinder has no gradient sweep (its shape gradient is checked by `diffsim grad scenes/drag_body.toml --check`)".into(),
+            });
+        }
+        (Problem::Burgers, true) => "burgers-gradients",
+        (Problem::TaylorGreen, true) => "taylor-green-gradients",
+    };
+    // Each problem has its own subfolder, claimed before the sweep runs.
+    let dir = a.out.join(name);
+    let _out = super::claim_out(&dir, a.overwrite, &[])?;
+    let (title, mut rows) = match (a.problem, a.gradients) {
         (Problem::Burgers, false) => {
             let rows = burgers_sweep(a.quick)
                 .iter()
@@ -91,7 +109,7 @@ pub fn pareto(a: ParetoArgs) -> Result<(), CliError> {
                     accuracy_row(family, params, timed_error(a.budget, || r.run(), |u| r.error_of(u)))
                 })
                 .collect();
-            ("burgers", "Burgers (ν = 0.05, t = 1): error vs time", rows)
+            ("Burgers (ν = 0.05, t = 1): error vs time", rows)
         }
         (Problem::TaylorGreen, false) => {
             let rows = taylor_green_sweep(a.quick)
@@ -101,15 +119,10 @@ pub fn pareto(a: ParetoArgs) -> Result<(), CliError> {
                     accuracy_row(family, params, timed_error(a.budget, || r.run(), |u| r.error_of(u)))
                 })
                 .collect();
-            ("taylor-green", "Taylor–Green vortex (ν = 0.01, t = 1): error vs time", rows)
+            ("Taylor–Green vortex (ν = 0.01, t = 1): error vs time", rows)
         }
-        (Problem::Cylinder, false) => ("cylinder", "Schäfer–Turek 2D-1 (Re 20): c_D error vs time", cylinder_rows(a.budget, a.quick)),
-        (Problem::Cylinder, true) => {
-            return Err(CliError::Argument {
-                arg: "--gradients",
-                reason: "the cylinder has no gradient sweep (its shape gradient is checked by `diffsim grad scenes/drag_body.toml --check`)".into(),
-            });
-        }
+        // (--gradients for the cylinder was refused above.)
+        (Problem::Cylinder, _) => ("Schäfer–Turek 2D-1 (Re 20): c_D error vs time", cylinder_rows(a.budget, a.quick)),
         (Problem::Burgers, true) => {
             let p = if a.quick { P1::new(64, 64) } else { P1::new(256, 256) };
             let rows = gradient_rows(
@@ -123,17 +136,16 @@ pub fn pareto(a: ParetoArgs) -> Result<(), CliError> {
                 },
                 &p.u0,
             )?;
-            ("burgers-gradients", "P1 Burgers gradient: error vs time", rows)
+            ("P1 Burgers gradient: error vs time", rows)
         }
         (Problem::TaylorGreen, true) => {
             let (n, steps) = if a.quick { (8, 4) } else { (16, 8) };
             let tg = TaylorGreenGradient::new(n, steps);
             let rows = gradient_rows(a.budget, steps, |enzyme, mode| tg.gradient(enzyme, mode), |x0| tg.value(x0), &tg.x0)?;
-            ("taylor-green-gradients", "Taylor–Green gradient (∂L/∂x₀): error vs time", rows)
+            ("Taylor–Green gradient (∂L/∂x₀): error vs time", rows)
         }
     };
     mark_front(&mut rows);
-    let dir = a.out.join(name);
     write_report(&dir, title, &rows)?;
     if a.json {
         println!("{}", Value::Array(rows.iter().map(Measurement::to_json).collect()));

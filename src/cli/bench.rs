@@ -451,7 +451,7 @@ trait SmokeBench: crate::op::Vjp + Sized {
     fn log(&self) -> &crate::fluids::SolveLog;
     /// The flat index of the probed gradient entry.
     fn probe(n: usize) -> usize;
-    /// Reference loss and ‖∇L‖ of this size, if benchmarks.md has them.
+    /// Reference loss and ‖∇L‖ of this size, if docs/benchmarks.md has them.
     fn reference(n: usize, steps: usize) -> Option<(f64, f64)>;
 }
 

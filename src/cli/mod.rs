@@ -131,7 +131,7 @@ pub struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Benchmark problems of ../shared/benchmarks.md.
+    /// Benchmark problems of docs/benchmarks.md.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
     /// Demonstrations.

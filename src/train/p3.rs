@@ -1,4 +1,4 @@
-//! Benchmark P3 `sol1d` (`../shared/benchmarks.md`): one training
+//! Benchmark P3 `sol1d` (`docs/benchmarks.md`): one training
 //! iteration through a 16-step unrolled coarse Burgers solver with a 1D
 //! conv network correcting each step, batch 32, Adam.
 //!

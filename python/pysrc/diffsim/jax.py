@@ -202,7 +202,7 @@ def _of_x(op: _diffsim.Operator, squeeze: bool, via: str = "ffi") -> Callable[[j
 
 
 def p1_loss(n: int, steps: int) -> Callable[[jax.Array], jax.Array]:
-    """P1 (``../shared/benchmarks.md``): ``u0 -> L`` for ``u0`` of ``n``
+    """P1 (``docs/benchmarks.md``): ``u0 -> L`` for ``u0`` of ``n``
     cells, ``steps`` steps of viscous Burgers, ``L = ½·dx·Σ (u_T − u*)²``;
     forward and gradient by diffsim. ``u0`` may have batch axes."""
     return _of_x(_diffsim.p1_loss(n, steps), squeeze=True)

@@ -5,7 +5,7 @@
 //! preconditioned conjugate gradients. Benchmark P2 `smoke2d` is the closed
 //! box with semi-Lagrangian advection.
 //!
-//! Conventions (those of P2 in `benchmarks.md`, which has `Nx = Ny = N`):
+//! Conventions (those of P2 in `docs/benchmarks.md`, which has `Nx = Ny = N`):
 //! `Nx × Ny` unit cells, x to the right, y up, arrays indexed `[j][i]` (y, x)
 //! and flattened row by row.
 //! - smoke `s[j][i]` at the cell centre `(i+½, j+½)`: `Nx·Ny` values, index `j·Nx + i`;

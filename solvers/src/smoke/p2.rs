@@ -1,6 +1,6 @@
 //! Benchmark P2 `smoke2d`: initial state, target and reference values (the loss is
 //! `diffsim::problems::half_squared_error`, shared with P4)
-//! (`benchmarks.md`).
+//! (`docs/benchmarks.md`).
 
 use super::*;
 
@@ -31,7 +31,7 @@ fn disc(n: usize, cy: f64) -> Vec<f64> {
     s
 }
 
-/// Reference values of one P2 size (JAX, float64; `benchmarks.md`).
+/// Reference values of one P2 size (JAX, float64; `docs/benchmarks.md`).
 #[derive(Clone, Copy, Debug)]
 pub struct P2Reference {
     /// Cells per side.

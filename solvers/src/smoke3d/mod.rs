@@ -2,7 +2,7 @@
 //! cell-centred scalar and of a staggered velocity by trilinear sampling,
 //! buoyancy, walls, and the pressure projection solved by conjugate
 //! gradients with a multigrid preconditioner. Benchmark P4 `smoke3d` is
-//! P2 in three dimensions (`benchmarks.md`).
+//! P2 in three dimensions (`docs/benchmarks.md`).
 //!
 //! Conventions (those of P4): `nx × ny × nz` unit cells, x to the right, y
 //! up, z towards the viewer; arrays indexed `[k][j][i]` (z, y, x) and

@@ -1,6 +1,6 @@
 //! Benchmark P4 `smoke3d`: initial state, target and reference values (the loss is
 //! `diffsim::problems::half_squared_error`, shared with P2)
-//! (`benchmarks.md`).
+//! (`docs/benchmarks.md`).
 
 use super::*;
 
@@ -39,7 +39,7 @@ pub fn p4_mid(n: usize) -> usize {
     (n / 2 * n + n / 2) * n + n / 2
 }
 
-/// Reference values of one P4 size (JAX, float64; `benchmarks.md`).
+/// Reference values of one P4 size (JAX, float64; `docs/benchmarks.md`).
 #[derive(Clone, Copy, Debug)]
 pub struct P4Reference {
     /// Cells per side.
