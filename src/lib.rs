@@ -107,7 +107,6 @@
 
 pub mod accuracy;
 pub mod check;
-pub mod cli;
 pub mod distributed;
 pub mod files;
 pub mod fluids;
@@ -116,7 +115,6 @@ pub mod fuzz;
 pub mod memory;
 pub mod nn;
 pub mod op;
-pub mod plot;
 pub mod problems;
 pub mod rollout;
 pub mod scene;

@@ -95,13 +95,13 @@ fn info_prints_no_nul_byte() {
 #[test]
 fn output_that_cannot_be_written_is_an_error_and_a_closed_pipe_ends_quietly() {
     let full = std::fs::OpenOptions::new().write(true).open("/dev/full").unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_diffsim")).args(["check", "--n", "8", "--steps", "2"]).stdout(full).output().unwrap();
+    let out = Command::new(crate::diffsim_bin()).args(["check", "--n", "8", "--steps", "2"]).stdout(full).output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{err}");
     assert!(err.contains("error: cannot write the output: No space left on device") && !err.contains("panicked"), "{err}");
     // A reader that closes at once: the command ends (by SIGPIPE) without a word.
     let mut child =
-        Command::new(env!("CARGO_BIN_EXE_diffsim")).args(["check", "--n", "8", "--steps", "2"]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+        Command::new(crate::diffsim_bin()).args(["check", "--n", "8", "--steps", "2"]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
     drop(child.stdout.take());
     let out = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);

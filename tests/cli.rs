@@ -5,7 +5,7 @@ use std::process::Command;
 
 /// Runs `diffsim` and returns (exit code, stdout, stderr).
 pub(crate) fn diffsim(args: &[&str]) -> (i32, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_diffsim")).args(args).output().unwrap();
+    let out = Command::new(crate::diffsim_bin()).args(args).output().unwrap();
     (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
 }
 

@@ -24,10 +24,8 @@ fn output(c: &mut Command) -> (i32, String, String) {
 
 /// `mpirun -np K diffsim ARGS`.
 fn mpirun(k: usize, args: &[&str]) -> (i32, String, String) {
-    output(launcher().args(["-np", &k.to_string(), BIN]).args(args))
+    output(launcher().args(["-np", &k.to_string(), crate::diffsim_bin()]).args(args))
 }
-
-const BIN: &str = env!("CARGO_BIN_EXE_diffsim");
 
 #[test]
 fn info_runs_as_several_mpi_ranks_and_one_process_commands_refuse_them() {
@@ -272,24 +270,23 @@ fn a_rank_that_fails_stops_the_whole_run_with_its_rank_and_cause() {
     let o = out.to_str().unwrap();
     // Bad input that rank 1 alone sees: its configuration is missing.
     let missing = dir.join("missing.toml");
-    let (code, _, err) = output(launcher().args(["-np", "1", BIN, "train", &good, "--out", o, "--quiet", ":", "-np", "1", BIN, "train"]).args([
-        missing.to_str().unwrap(),
-        "--out",
-        o,
-        "--quiet",
-    ]));
+    let (code, _, err) = output(
+        launcher().args(["-np", "1", crate::diffsim_bin(), "train", &good, "--out", o, "--quiet", ":", "-np", "1", crate::diffsim_bin(), "train"]).args([
+            missing.to_str().unwrap(),
+            "--out",
+            o,
+            "--quiet",
+        ]),
+    );
     assert_ne!(code, 0);
     assert!(err.contains("error on rank 1 of 2") && err.contains("missing.toml"), "{err}");
     // Another configuration on rank 1: found before any training.
     let other = tiny_config(&dir, "other.toml", |t| t.replace("lr = 1e-3", "lr = 2e-3"));
-    let (code, _, err) = output(launcher().args(["-np", "1", BIN, "train", &good, "--out", o, "--quiet", "--overwrite", ":", "-np", "1", BIN]).args([
-        "train",
-        &other,
-        "--out",
-        o,
-        "--quiet",
-        "--overwrite",
-    ]));
+    let (code, _, err) = output(
+        launcher()
+            .args(["-np", "1", crate::diffsim_bin(), "train", &good, "--out", o, "--quiet", "--overwrite", ":", "-np", "1", crate::diffsim_bin()])
+            .args(["train", &other, "--out", o, "--quiet", "--overwrite"]),
+    );
     assert_ne!(code, 0);
     assert!(err.contains("rank 1's configurations differ from rank 0's"), "{err}");
     // A rank killed by a signal in the middle of a run: every rank stops
@@ -297,7 +294,7 @@ fn a_rank_that_fails_stops_the_whole_run_with_its_rank_and_cause() {
     // checkpoint rank 0 wrote is whole.
     let long = tiny_config(&dir, "long.toml", |t| t.replace("iterations = 4", "iterations = 100000"));
     let mut job = launcher()
-        .args(["-np", "2", BIN, "train", &long, "--out", o, "--quiet", "--overwrite", "--checkpoint-every", "5"])
+        .args(["-np", "2", crate::diffsim_bin(), "train", &long, "--out", o, "--quiet", "--overwrite", "--checkpoint-every", "5"])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()

@@ -15,6 +15,7 @@ mod fluids;
 mod fluids3d;
 mod fuzz_replay;
 mod inputs;
+mod layout;
 mod nn;
 mod nonsmooth;
 mod p1;
@@ -29,3 +30,17 @@ mod scenes;
 mod shapes;
 mod user_op;
 mod wake;
+
+/// The `diffsim` program the command-line tests run: `target/release/diffsim`. It belongs to another package (`bin/`), so
+/// `cargo test` does not build it: `scripts/test.sh` (or
+/// `scripts/cargo-enzyme build --release`) builds it first.
+pub fn diffsim_bin() -> &'static str {
+    static BIN: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    BIN.get_or_init(|| {
+        // Cargo gives integration tests TARGET/tmp; the program is at
+        // TARGET/release/diffsim (the suite runs in release only).
+        let bin = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).parent().expect("the target folder").join("release").join("diffsim");
+        assert!(bin.is_file(), "{} is missing: build it first (scripts/cargo-enzyme build --release)", bin.display());
+        bin.to_str().expect("a UTF-8 path").to_string()
+    })
+}

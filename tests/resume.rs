@@ -18,7 +18,7 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 fn train(out: &Path, extra: &[&str]) -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_diffsim"));
+    let mut c = Command::new(crate::diffsim_bin());
     c.args(["train", CONFIG, "--out", out.to_str().unwrap(), "--quiet", "--checkpoint-every", "7"]).args(extra);
     c
 }
@@ -102,7 +102,7 @@ fn sigterm_checkpoints_and_says_how_to_resume_and_bad_checkpoints_are_refused() 
     // Another configuration: the key that differs, both values.
     let other = out.join("other.toml");
     std::fs::write(&other, std::fs::read_to_string(CONFIG).unwrap().replace("lr = 1e-3", "lr = 2e-3")).unwrap();
-    let o = Command::new(env!("CARGO_BIN_EXE_diffsim")).args(["train", other.to_str().unwrap(), "--out", out.to_str().unwrap(), "--resume"]).output().unwrap();
+    let o = Command::new(crate::diffsim_bin()).args(["train", other.to_str().unwrap(), "--out", out.to_str().unwrap(), "--resume"]).output().unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("`training.lr` is 0.001 there and 0.002 in this one"), "{err}");
     // Truncated.
@@ -135,7 +135,7 @@ fn sigterm_checkpoints_and_says_how_to_resume_and_bad_checkpoints_are_refused() 
     // A FIFO as the configuration is refused before reading (it hung).
     let fifo = empty.with_extension("fifo");
     assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
-    let o = Command::new(env!("CARGO_BIN_EXE_diffsim")).args(["train", fifo.to_str().unwrap(), "--out", empty.to_str().unwrap()]).output().unwrap();
+    let o = Command::new(crate::diffsim_bin()).args(["train", fifo.to_str().unwrap(), "--out", empty.to_str().unwrap()]).output().unwrap();
     assert!(String::from_utf8_lossy(&o.stderr).contains("not a regular file (a FIFO)"));
     std::fs::remove_file(&fifo).ok();
     std::fs::remove_dir_all(&out).ok();
@@ -144,7 +144,7 @@ fn sigterm_checkpoints_and_says_how_to_resume_and_bad_checkpoints_are_refused() 
 
 /// `diffsim experiment sol-burgers` on a small setting, with `extra`.
 fn study(out: &Path, extra: &[&str]) -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_diffsim"));
+    let mut c = Command::new(crate::diffsim_bin());
     c.args(["experiment", "sol-burgers", "--quick", "--iterations", "1500", "--methods", "pre,sol4", "--checkpoint-seconds", "0.1", "--json"])
         .args(["--out", out.to_str().unwrap()])
         .args(extra);
@@ -211,7 +211,7 @@ fn an_interrupted_study_resumed_gives_the_uninterrupted_results() {
 
 /// `diffsim experiment sip-heat` with `iterations` updates per optimizer.
 fn sip(out: &Path, iterations: &str, extra: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_diffsim"))
+    Command::new(crate::diffsim_bin())
         .args(["experiment", "sip-heat", "--iterations", iterations, "--json", "--out", out.to_str().unwrap()])
         .args(extra)
         .output()
@@ -239,7 +239,7 @@ fn a_comparison_resumes_per_optimizer_and_says_what_it_cannot_resume() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("other settings") && err.contains("iterations: 4"), "{err}");
     // Ctrl-C (here SIGTERM) says what is kept and what starts again.
-    let child = Command::new(env!("CARGO_BIN_EXE_diffsim"))
+    let child = Command::new(crate::diffsim_bin())
         // (Other settings than the folder's run: --overwrite, or it is refused.)
         .args(["experiment", "sip-heat", "--iterations", "100000", "--overwrite", "--out", out.to_str().unwrap()])
         .stdout(Stdio::null())

@@ -7,9 +7,9 @@ use clap::Args;
 use diffsim_solvers::smoke::Smoke2d;
 
 use super::CliError;
-use crate::fluids::Inflow;
-use crate::op::{Forward, OperatorExt};
-use crate::problems::smoke::SmokeStep;
+use diffsim::fluids::Inflow;
+use diffsim::op::{Forward, OperatorExt};
+use diffsim::problems::smoke::SmokeStep;
 
 #[derive(Debug, Args)]
 pub(super) struct PlumeArgs {
@@ -47,7 +47,7 @@ pub(super) fn plume(a: PlumeArgs) -> Result<(), CliError> {
         x = source.eval(&x, &[1.0, 0.0, 0.5]);
         step.forward(&x, &[], &mut y);
         if let Some(e) = step.take_error() {
-            return Err(CliError::Rollout(crate::rollout::RolloutError::Operator { pass: crate::rollout::Pass::Forward, error: e }));
+            return Err(CliError::Rollout(diffsim::rollout::RolloutError::Operator { pass: diffsim::rollout::Pass::Forward, error: e }));
         }
         std::mem::swap(&mut x, &mut y);
         if t + 1 == a.steps {
@@ -81,7 +81,7 @@ pub(super) fn write_png(path: &std::path::Path, (nx, ny): (usize, usize), s: &[f
             rgb[(py * width + px) * 3..(py * width + px) * 3 + 3].copy_from_slice(&pixel);
         }
     }
-    let file = std::io::BufWriter::new(crate::files::create(path)?);
+    let file = std::io::BufWriter::new(diffsim::files::create(path)?);
     let mut enc = png::Encoder::new(file, width as u32, height as u32);
     enc.set_color(png::ColorType::Rgb);
     enc.set_depth(png::BitDepth::Eight);

@@ -64,10 +64,10 @@ fn check_cavity(a: &CavityArgs) -> Result<(), CliError> {
     }
     max_steps(a.max_steps)?;
     let cells = (n as u64) * (n as u64);
-    crate::memory::check(
+    diffsim::memory::check(
         "the cavity",
         format!("{n}² cells, {MARCH_ARRAYS} arrays of a cell"),
-        crate::memory::f64s(&[cells, MARCH_ARRAYS]),
+        diffsim::memory::f64s(&[cells, MARCH_ARRAYS]),
         Some("a smaller --resolution".into()),
     )?;
     Ok(())
@@ -217,7 +217,7 @@ fn write_profiles(dir: &std::path::Path, run: &CavityRun, re: f64) -> Result<(),
     }
     let [csv_name, png_name] = profile_names(re);
     let path = dir.join(csv_name);
-    crate::files::write(&path, csv).map_err(io(&path))?;
+    diffsim::files::write(&path, csv).map_err(io(&path))?;
     let mut series = vec![
         Series { name: "u on x = 1/2 (against y)".into(), points: ul.at.iter().copied().zip(ul.value.iter().copied()).collect(), color: 0, markers: false },
         Series { name: "v on y = 1/2 (against x)".into(), points: vl.at.iter().copied().zip(vl.value.iter().copied()).collect(), color: 1, markers: false },
@@ -369,7 +369,7 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
     } else {
         cells.checked_mul(CHANNEL_BYTES_PER_CELL)
     };
-    crate::memory::check("the cylinder's channel", format!("{cells} cells at {finest} per diameter"), need, Some("a smaller --resolution".into()))?;
+    diffsim::memory::check("the cylinder's channel", format!("{cells} cells at {finest} per diameter"), need, Some("a smaller --resolution".into()))?;
     // Beyond 1000 time units (Re 100's period is about 3.3) a run is an
     // input error, not a study: hours of steps with no end in sight.
     if !(t_end.is_finite() && t_end > 2.5 && t_end <= 1000.0) {
@@ -525,7 +525,7 @@ fn write_force_series(dir: &std::path::Path, series: &[[f64; 4]], per_d: usize) 
         csv.push_str(&format!("{:.6},{:.8},{:.8},{:.8}\n", s[0], s[1], s[2], s[3]));
     }
     let path = dir.join("cylinder_2d2.csv");
-    crate::files::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;
+    diffsim::files::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;
     let pick = |k: usize| series.iter().map(|s| (s[0], s[k])).collect::<Vec<_>>();
     let title = format!("Schäfer–Turek 2D-2, {per_d} cells per diameter");
     plot_or_warn(
@@ -639,7 +639,7 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
     // Memory: Newton's sparse LU on the grid, or on the verification's
     // grid twice as fine (four times the cells).
     let cells = (setting.cfg.nx * setting.cfg.ny) as u64 * if a.no_verify { 1 } else { 4 };
-    crate::memory::check(
+    diffsim::memory::check(
         "drag-shape",
         format!("{cells} cells{} for Newton's solve", if a.no_verify { "" } else { " in the verification" }),
         newton_bytes(cells),
@@ -680,11 +680,7 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
     let shrink = r.gradient_start / r.gradient_end;
     let mut figures = vec![("c_D of the cylinder", cd_cylinder), ("c_D of the optimum", r.cd_end), ("the reduction", reduction), ("the area", r.area_end)];
     if let (Some((s, e)), Some(f)) = (fine, fine_reduction) {
-        // One push each: an array of tuples by value aborts Enzyme's type
-        // analysis in this flagged crate (docs/pitfalls.md).
-        figures.push(("c_D of the cylinder re-simulated", s));
-        figures.push(("c_D of the optimum re-simulated", e));
-        figures.push(("the re-simulated reduction", f));
+        figures.extend([("c_D of the cylinder re-simulated", s), ("c_D of the optimum re-simulated", e), ("the re-simulated reduction", f)]);
     }
     super::finite_figures("drag-shape", &figures)?;
     if let Some(dir) = &a.out {
@@ -752,7 +748,7 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
 fn start_coefficients(path: &std::path::Path, modes: usize) -> Result<Vec<f64>, CliError> {
     let fail = |reason: String| CliError::Argument { arg: "--start-shape", reason: format!("{}: {reason}", path.display()) };
     // A regular file of at most a megabyte (a --json log of runs is far smaller).
-    let text = crate::files::read_text(path, 1 << 20, "shape file").map_err(|e| fail(e.to_string()))?;
+    let text = diffsim::files::read_text(path, 1 << 20, "shape file").map_err(|e| fail(e.to_string()))?;
     let line = text.lines().rev().find(|l| !l.trim().is_empty()).ok_or_else(|| fail("the file is empty".into()))?;
     let json: serde_json::Value = serde_json::from_str(line).map_err(|e| fail(format!("its last line is not a JSON object: {e}")))?;
     let params: Vec<f64> = json["shape"]["params"]
@@ -783,7 +779,7 @@ fn write_drag_shapes(dir: &std::path::Path, r: &diffsim_solvers::flow::drag_shap
         csv.push_str(&format!("{k},{:.8},{:.6e}\n", h.cd, h.gradient_norm));
     }
     let path = dir.join("drag_shape_history.csv");
-    crate::files::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;
+    diffsim::files::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;
     let history: Vec<(f64, f64)> = r.history.iter().enumerate().map(|(k, h)| (k as f64, h.cd)).collect();
     plot_or_warn(
         &dir.join("drag_shape_history.png"),
@@ -840,7 +836,7 @@ pub struct DragNetArgs {
 }
 
 pub(super) fn drag_net(a: DragNetArgs) -> Result<(), CliError> {
-    use crate::train::shape_net::{ShapeNetOptions, train};
+    use diffsim::train::shape_net::{ShapeNetOptions, train};
     if !(a.lr.is_finite() && a.lr > 0.0) {
         return Err(CliError::Argument { arg: "--lr", reason: format!("must be a positive number, got {}", a.lr) });
     }

@@ -4,11 +4,11 @@ use clap::{Args, Subcommand};
 use serde_json::json;
 
 use super::{CliError, interleaved_times, median_time, peak_rss_bytes};
-use crate::problems::SmokeBenchmark;
-use crate::problems::burgers::P1;
-use crate::problems::smoke::{P2, SmokeStep};
-use crate::problems::smoke3d::{P4, SmokeStep3};
-use crate::rollout::Workspace;
+use diffsim::problems::SmokeBenchmark;
+use diffsim::problems::burgers::P1;
+use diffsim::problems::smoke::{P2, SmokeStep};
+use diffsim::problems::smoke3d::{P4, SmokeStep3};
+use diffsim::rollout::Workspace;
 use diffsim_solvers::smoke::{P2_SIZES, Preconditioner};
 use diffsim_solvers::smoke3d::P4_SIZES;
 
@@ -198,7 +198,7 @@ pub(super) struct P1Args {
     json: bool,
 }
 
-pub(super) fn run(cmd: BenchCommand, world: &crate::distributed::World) -> Result<(), CliError> {
+pub(super) fn run(cmd: BenchCommand, world: &diffsim::distributed::World) -> Result<(), CliError> {
     match cmd {
         BenchCommand::Exchange(a) => exchange(a, world),
         BenchCommand::Scaling(a) => super::scaling::scaling(a, world),
@@ -216,7 +216,7 @@ pub(super) fn run(cmd: BenchCommand, world: &crate::distributed::World) -> Resul
 /// rank for n from 1 to 2²⁰, measured on rank 0 (every rank takes part;
 /// the exchange itself keeps them in step), with the bytes each rank
 /// receives and the bandwidth that makes; the latency is the time at n = 1.
-fn exchange(a: ExchangeArgs, world: &crate::distributed::World) -> Result<(), CliError> {
+fn exchange(a: ExchangeArgs, world: &diffsim::distributed::World) -> Result<(), CliError> {
     if a.repetitions == 0 {
         return Err(CliError::Argument { arg: "--repetitions", reason: "need at least 1".into() });
     }
@@ -257,20 +257,12 @@ fn exchange(a: ExchangeArgs, world: &crate::distributed::World) -> Result<(), Cl
     Ok(())
 }
 
-/// The JSON key of P3's `k`-th time share.
-fn share_name(k: usize) -> &'static str {
-    match k {
-        0 => "solver_fwd",
-        1 => "solver_bwd",
-        2 => "net_fwd",
-        3 => "net_bwd",
-        _ => "optimizer",
-    }
-}
+/// The JSON keys of P3's time shares, in order.
+const SHARE_NAMES: [&str; 5] = ["solver_fwd", "solver_bwd", "net_fwd", "net_bwd", "optimizer"];
 
 fn p3(a: P3Args) -> Result<(), CliError> {
-    use crate::train::TimeShares;
-    use crate::train::p3::{BATCH, Dtype, P3, UNROLL};
+    use diffsim::train::TimeShares;
+    use diffsim::train::p3::{BATCH, Dtype, P3, UNROLL};
     let dtype: Dtype = a.dtype.parse().map_err(|reason| CliError::Argument { arg: "--dtype", reason })?;
     if a.iterations < 1 {
         return Err(CliError::Argument { arg: "--iterations", reason: "need at least 1".into() });
@@ -294,10 +286,8 @@ fn p3(a: P3Args) -> Result<(), CliError> {
         let total: f64 = runs.iter().map(|r| r.1.total).sum();
         let sum = |f: fn(&TimeShares) -> f64| runs.iter().map(|r| f(&r.1)).sum::<f64>();
         let par = total * threads.min(BATCH) as f64;
-        // (Names by index, not a table of (&str, f64) pairs: such by-value
-        // arrays crash Enzyme's type analysis in this crate; docs/pitfalls.md.)
-        let shares: Vec<f64> =
-            vec![sum(|b| b.solver_fwd) / par, sum(|b| b.solver_bwd) / par, sum(|b| b.net_fwd) / par, sum(|b| b.net_bwd) / par, sum(|b| b.optimizer) / total];
+        let shares =
+            [sum(|b| b.solver_fwd) / par, sum(|b| b.solver_bwd) / par, sum(|b| b.net_fwd) / par, sum(|b| b.net_bwd) / par, sum(|b| b.optimizer) / total];
         if a.json {
             let mut m = serde_json::Map::new();
             m.insert("problem".into(), json!("p3"));
@@ -307,8 +297,8 @@ fn p3(a: P3Args) -> Result<(), CliError> {
             m.insert("params".into(), json!(p.params()));
             m.insert("batch".into(), json!(BATCH));
             m.insert("unroll".into(), json!(UNROLL));
-            for (k, v) in shares.iter().enumerate() {
-                m.insert(share_name(k).into(), json!(v));
+            for (name, v) in SHARE_NAMES.iter().zip(shares) {
+                m.insert((*name).into(), json!(v));
             }
             m.insert("loss".into(), json!(loss));
             println!("{}", serde_json::Value::Object(m));
@@ -320,8 +310,8 @@ fn p3(a: P3Args) -> Result<(), CliError> {
                 a.iterations,
                 p.params()
             );
-            for (k, v) in shares.iter().enumerate() {
-                println!("  {:<11} {:5.1} %", share_name(k), 100.0 * v);
+            for (name, v) in SHARE_NAMES.iter().zip(shares) {
+                println!("  {name:<11} {:5.1} %", 100.0 * v);
             }
             println!("  rest        {:5.1} % (chaining, loss, reduction, idle threads)", 100.0 * (1.0 - shares.iter().sum::<f64>()));
         }
@@ -338,8 +328,8 @@ fn p1(a: P1Args) -> Result<(), CliError> {
     }
     let threads = threads(a.threads)?;
     // The problem's own arrays (u₀, the target, the gradient, the adjoint buffers).
-    let other = crate::memory::f64s(&[a.n as u64, 8]);
-    crate::memory::check("P1", format!("{} cells", a.n), other, None)?;
+    let other = diffsim::memory::f64s(&[a.n as u64, 8]);
+    diffsim::memory::check("P1", format!("{} cells", a.n), other, None)?;
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|source| CliError::Threads { threads, source })?;
     pool.install(|| -> Result<(), CliError> {
         let p = P1::new(a.n, a.steps);
@@ -352,7 +342,7 @@ fn p1(a: P1Args) -> Result<(), CliError> {
         // The bench holds three gradients' states at once (Enzyme, Enzyme on
         // the whole step, hand-written; each keeps its workspace between
         // rounds).
-        let job = crate::rollout::plan::Job { steps: a.steps, state_bytes: 8 * a.n as u64, copies: 3, forward_s: step_s };
+        let job = diffsim::rollout::plan::Job { steps: a.steps, state_bytes: 8 * a.n as u64, copies: 3, forward_s: step_s };
         let (plan, chosen) = super::checkpointing(&a.checkpoint, &job, other.unwrap_or(0), "P1's gradient")?;
         let mode = plan.mode;
         // The four computations in interleaved rounds: the ratios are
@@ -381,7 +371,7 @@ fn p1(a: P1Args) -> Result<(), CliError> {
         let out = json!({
             "problem": "p1", "n": a.n, "steps": a.steps, "threads": threads,
             "checkpoint": mode.to_string(), "checkpoint_chosen": chosen,
-            "memory_budget_bytes": crate::memory::budget(), "estimate_bytes": plan.bytes, "estimate_grad_s": plan.seconds,
+            "memory_budget_bytes": diffsim::memory::budget(), "estimate_bytes": plan.bytes, "estimate_grad_s": plan.seconds,
             "forward_s": forward_s, "grad_s": grad_s, "hand_grad_s": hand_grad_s,
             "grad_over_forward": grad_over_forward, "hand_over_forward": hand_over_forward,
             "enzyme_over_hand": grad_over_forward / hand_over_forward,
@@ -396,7 +386,7 @@ fn p1(a: P1Args) -> Result<(), CliError> {
             let cell_steps = (a.n * a.steps) as f64;
             println!("P1 burgers1d  N = {}  T = {}  threads = {}  checkpointing = {}", a.n, a.steps, threads, mode);
             let how = if chosen { "chosen within" } else { "given; budget" };
-            println!("  memory plan ({how} {}): {plan}", crate::memory::human(crate::memory::budget()));
+            println!("  memory plan ({how} {}): {plan}", diffsim::memory::human(diffsim::memory::budget()));
             println!("  forward          {:10.3} ms   {:6.2} Gcell-steps/s", forward_s * 1e3, cell_steps / forward_s / 1e9);
             println!("  Enzyme gradient  {:10.3} ms   {:6.2}× forward", grad_s * 1e3, grad_over_forward);
             println!("  Enzyme (whole step) {:7.3} ms   {:6.2}× forward", whole_s * 1e3, whole_over_forward);
@@ -435,7 +425,7 @@ fn p4(a: P4Args) -> Result<(), CliError> {
 
 /// What the smoke benchmarks (P2 in 2D, P4 in 3D) need beyond
 /// [`SmokeBenchmark`]: implemented by each one's step operator.
-trait SmokeBench: crate::op::Vjp + Sized {
+trait SmokeBench: diffsim::op::Vjp + Sized {
     /// `"p2"`, `"p4"`.
     const NAME: &'static str;
     /// The heading, e.g. `"P2 smoke2d"`.
@@ -448,7 +438,7 @@ trait SmokeBench: crate::op::Vjp + Sized {
     const PRECONDITIONERS: &'static [(&'static str, Preconditioner)];
     fn build(n: usize, steps: usize, precond: Preconditioner) -> SmokeBenchmark<Self>;
     fn hand(p: SmokeBenchmark<Self>) -> SmokeBenchmark<Self>;
-    fn log(&self) -> &crate::fluids::SolveLog;
+    fn log(&self) -> &diffsim::fluids::SolveLog;
     /// The flat index of the probed gradient entry.
     fn probe(n: usize) -> usize;
     /// Reference loss and ‖∇L‖ of this size, if docs/benchmarks.md has them.
@@ -468,7 +458,7 @@ impl SmokeBench for SmokeStep {
     fn hand(p: P2) -> P2 {
         p.with_hand_adjoint()
     }
-    fn log(&self) -> &crate::fluids::SolveLog {
+    fn log(&self) -> &diffsim::fluids::SolveLog {
         &self.project.log
     }
     fn probe(n: usize) -> usize {
@@ -492,7 +482,7 @@ impl SmokeBench for SmokeStep3 {
     fn hand(p: P4) -> P4 {
         p.with_hand_adjoint()
     }
-    fn log(&self) -> &crate::fluids::SolveLog {
+    fn log(&self) -> &diffsim::fluids::SolveLog {
         &self.project.log
     }
     fn probe(n: usize) -> usize {
@@ -524,8 +514,8 @@ fn smoke_bench<P: SmokeBench>(n: usize, steps: usize, a: SmokeRun) -> Result<(),
     let title = P::TITLE;
     // Two problems (Enzyme, hand) with their solvers: the grids, the
     // multigrid hierarchy, CG's vectors and the adjoint buffers.
-    let other = (n as u64).checked_pow(P::DIM).and_then(|cells| crate::memory::f64s(&[cells, SMOKE_ARRAYS]));
-    crate::memory::check(title, format!("two problems of {}^{} cells", n, P::DIM), other, None)?;
+    let other = (n as u64).checked_pow(P::DIM).and_then(|cells| diffsim::memory::f64s(&[cells, SMOKE_ARRAYS]));
+    diffsim::memory::check(title, format!("two problems of {}^{} cells", n, P::DIM), other, None)?;
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|source| CliError::Threads { threads, source })?;
     pool.install(|| -> Result<(), CliError> {
         let p = P::build(n, steps, precond);
@@ -533,7 +523,7 @@ fn smoke_bench<P: SmokeBench>(n: usize, steps: usize, a: SmokeRun) -> Result<(),
         let (forward_s, loss) = median_time(budget, 3, 21, || p.value());
         loss?;
         // One gradient's states at a time (Enzyme's, then the hand adjoint's).
-        let job = crate::rollout::plan::Job { steps, state_bytes: 8 * p.x0.len() as u64, copies: 1, forward_s: forward_s / steps as f64 };
+        let job = diffsim::rollout::plan::Job { steps, state_bytes: 8 * p.x0.len() as u64, copies: 1, forward_s: forward_s / steps as f64 };
         let (plan, chosen) = super::checkpointing(&a.checkpoint, &job, other.unwrap_or(0), &format!("{title}'s gradient"))?;
         let mode = plan.mode;
         let mut ws = Workspace::new();
@@ -557,7 +547,7 @@ fn smoke_bench<P: SmokeBench>(n: usize, steps: usize, a: SmokeRun) -> Result<(),
         let mut out = json!({
             "problem": P::NAME, "n": n, "steps": steps, "threads": threads,
             "checkpoint": mode.to_string(), "checkpoint_chosen": chosen, "preconditioner": precond.to_string(),
-            "memory_budget_bytes": crate::memory::budget(), "estimate_bytes": plan.bytes,
+            "memory_budget_bytes": diffsim::memory::budget(), "estimate_bytes": plan.bytes,
             "forward_s": forward_s, "grad_s": grad_s, "grad_over_forward": grad_s / forward_s,
             "hand_grad_s": hand_grad_s, "enzyme_over_hand": grad_s / hand_grad_s,
             "enzyme_hand_max_diff": g.dx0.iter().zip(&h.dx0).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max),
@@ -571,7 +561,7 @@ fn smoke_bench<P: SmokeBench>(n: usize, steps: usize, a: SmokeRun) -> Result<(),
         } else {
             println!("{title}  N = {}  T = {}  threads = {}  preconditioner = {}  checkpointing = {}", n, steps, threads, precond, mode);
             let how = if chosen { "chosen within" } else { "given; budget" };
-            println!("  memory plan ({how} {}): {plan}", crate::memory::human(crate::memory::budget()));
+            println!("  memory plan ({how} {}): {plan}", diffsim::memory::human(diffsim::memory::budget()));
             println!("  forward          {:10.3} ms", forward_s * 1e3);
             println!("  gradient         {:10.3} ms   {:6.2}× forward", grad_s * 1e3, grad_s / forward_s);
             println!("  hand gradient    {:10.3} ms   {:6.2}× forward   Enzyme/hand {:.2}", hand_grad_s * 1e3, hand_grad_s / forward_s, grad_s / hand_grad_s);
@@ -609,29 +599,25 @@ pub(super) fn threads(requested: Option<usize>) -> Result<usize, CliError> {
     Ok(threads)
 }
 
-/// The `k`-th decomposition `bench hig` compares, with its JSON name (by
-/// index, not a by-value array of pairs: those crash Enzyme's type
-/// analysis in this crate; docs/pitfalls.md).
-fn decomposition(k: usize) -> (&'static str, crate::train::hig::PowerMethod) {
-    use crate::train::hig::PowerMethod;
-    match k {
-        0 => ("svd_f64", PowerMethod::SVD_F64),
-        1 => ("gram_f64", PowerMethod::GRAM_F64),
-        2 => ("svd_f32", PowerMethod::SVD_F32),
-        _ => ("auto", PowerMethod::AUTO),
-    }
-}
+/// The decompositions `bench hig` compares, with their JSON names; the
+/// first (the f64 SVD) is the reference.
+const DECOMPOSITIONS: [(&str, diffsim::train::hig::PowerMethod); 4] = [
+    ("svd_f64", diffsim::train::hig::PowerMethod::SVD_F64),
+    ("gram_f64", diffsim::train::hig::PowerMethod::GRAM_F64),
+    ("svd_f32", diffsim::train::hig::PowerMethod::SVD_F32),
+    ("auto", diffsim::train::hig::PowerMethod::AUTO),
+];
 
 /// `diffsim bench hig`.
 fn hig(a: HigBenchArgs) -> Result<(), CliError> {
-    use crate::train::Optimizer;
-    use crate::train::hig::{ControlSample, PowerMethod, batch_jacobian, hig_step, loss_and_gradient};
-    use crate::train::oscillators::{OscConfig, datasets};
+    use diffsim::train::Optimizer;
+    use diffsim::train::hig::{ControlSample, PowerMethod, batch_jacobian, hig_step, loss_and_gradient};
+    use diffsim::train::oscillators::{OscConfig, datasets};
     use diffsim_solvers::linalg::pseudo_inverse_power_apply_with as apply;
     if a.iterations < 1 {
         return Err(CliError::Argument { arg: "--iterations", reason: "need at least 1".into() });
     }
-    let fail = |e: crate::train::hig::HigError| CliError::Argument { arg: "bench hig", reason: e.to_string() };
+    let fail = |e: diffsim::train::hig::HigError| CliError::Argument { arg: "bench hig", reason: e.to_string() };
     let rel = |x: &[f64], r: &[f64]| {
         let d: f64 = x.iter().zip(r).map(|(p, q)| (p - q) * (p - q)).sum::<f64>().sqrt();
         d / r.iter().map(|q| q * q).sum::<f64>().sqrt().max(f64::MIN_POSITIVE)
@@ -658,8 +644,8 @@ fn hig(a: HigBenchArgs) -> Result<(), CliError> {
             })
             .collect();
         let jn = batch_jacobian(&cfg.problem, &net, &theta, &near, h.memory_budget).map_err(fail)?;
-        let solve = |jb: &crate::train::hig::BatchJacobian, m: PowerMethod| {
-            apply(jb.rows, jb.cols, &jb.jac, &jb.grad, h.power, h.truncation, m).map_err(|_| fail(crate::train::hig::HigError::Svd))
+        let solve = |jb: &diffsim::train::hig::BatchJacobian, m: PowerMethod| {
+            apply(jb.rows, jb.cols, &jb.jac, &jb.grad, h.power, h.truncation, m).map_err(|_| fail(diffsim::train::hig::HigError::Svd))
         };
         let mut row = serde_json::Map::new();
         row.insert("rows".into(), json!(j.rows));
@@ -670,8 +656,7 @@ fn hig(a: HigBenchArgs) -> Result<(), CliError> {
         // Each decomposition's update on both batches, once (the first,
         // the f64 SVD, is the reference).
         let mut updates: Vec<(Vec<f64>, Vec<f64>)> = Vec::with_capacity(4);
-        for k in 0..4 {
-            let (name, m) = decomposition(k);
+        for (name, m) in DECOMPOSITIONS {
             let (seconds, x) = median_time(0.0, n, n, || solve(&j, m));
             let (x, xn) = (x?, solve(&jn, m)?);
             let (reference, near_reference) = updates.first().map_or((&x, &xn), |(r, rn)| (r, rn));
@@ -711,8 +696,7 @@ fn hig(a: HigBenchArgs) -> Result<(), CliError> {
                 row["rows"], row["cols"], row["truncation"], row["auto_route"], row["auto_route_near_singular"]
             );
             println!("  Jacobian      {:8.2} ms", row["jacobian_s"].as_f64().unwrap_or(f64::NAN) * 1e3);
-            for k in 0..4 {
-                let name = decomposition(k).0;
+            for (name, _) in DECOMPOSITIONS {
                 let f = |k: &str| row[format!("{name}{k}")].as_f64().unwrap_or(f64::NAN);
                 println!("  {name:<12}  {:8.2} ms, error {:.1e} (near-singular batch {:.1e})", f("_s") * 1e3, f("_error"), f("_near_singular_error"));
             }
@@ -726,7 +710,7 @@ fn hig(a: HigBenchArgs) -> Result<(), CliError> {
 /// `diffsim bench memory`: one `bench p1 --json` process per T and mode.
 fn memory(a: MemoryArgs) -> Result<(), CliError> {
     use crate::plot::{Axes, Series};
-    let budget = crate::memory::parse_bytes(&a.budget)?;
+    let budget = diffsim::memory::parse_bytes(&a.budget)?;
     let exe = std::env::current_exe().map_err(|source| CliError::Io { path: "diffsim".into(), source })?;
     // Held to the end: the folder is this run's while it writes.
     let _out = super::claim_out(&a.out, a.overwrite, &[])?;
@@ -746,7 +730,7 @@ fn memory(a: MemoryArgs) -> Result<(), CliError> {
                 Ok(j) => j,
                 Err(why) => {
                     eprintln!("T = {t}, {mode}: {why}");
-                    table += &format!("| {t} | {mode} | — | {} | | | | | |\n", crate::files::shorten(&why, 90));
+                    table += &format!("| {t} | {mode} | — | {} | | | | | |\n", diffsim::files::shorten(&why, 90));
                     continue;
                 }
             };
@@ -765,7 +749,7 @@ fn memory(a: MemoryArgs) -> Result<(), CliError> {
         }
     }
     let md = a.out.join("memory.md");
-    crate::files::write(&md, &table).map_err(|source| CliError::Io { path: md.clone(), source })?;
+    diffsim::files::write(&md, &table).map_err(|source| CliError::Io { path: md.clone(), source })?;
     let axes = Axes { title: "P1 gradient: time per step against peak memory", x: "peak RSS (MB)", y: "gradient µs per step", log_x: true, log_y: true };
     super::plot_or_warn(&a.out.join("memory.png"), &axes, &series);
     println!("{table}");
@@ -802,7 +786,7 @@ fn p4_cost(a: P4CostArgs) -> Result<(), CliError> {
                 Ok(j) => j,
                 Err(why) => {
                     eprintln!("N = {n}, T = {t}: {why}");
-                    table += &format!("| {n} | {t} | | {} | | | | | | |\n", crate::files::shorten(&why, 90));
+                    table += &format!("| {n} | {t} | | {} | | | | | | |\n", diffsim::files::shorten(&why, 90));
                     continue;
                 }
             };
@@ -826,7 +810,7 @@ fn p4_cost(a: P4CostArgs) -> Result<(), CliError> {
         }
     }
     let md = a.out.join("p4_cost.md");
-    crate::files::write(&md, &table).map_err(|source| CliError::Io { path: md.clone(), source })?;
+    diffsim::files::write(&md, &table).map_err(|source| CliError::Io { path: md.clone(), source })?;
     let axes = Axes { title: "P4 smoke3d: time against cells × steps", x: "cells × steps", y: "ms", log_x: true, log_y: true };
     super::plot_or_warn(&a.out.join("p4_cost.png"), &axes, &series);
     println!("{table}");

@@ -59,14 +59,8 @@ pub enum PlotError {
 fn font() -> Result<(), PlotError> {
     static LOADED: OnceLock<bool> = OnceLock::new();
     let ok = *LOADED.get_or_init(|| {
-        // (Paths tried one by one: a table of `&str` can crash Enzyme's type
-        // analysis in this crate; docs/pitfalls.md.)
-        let found = std::env::var("DIFFSIM_FONT")
-            .ok()
-            .and_then(|p| std::fs::read(p).ok())
-            .or_else(|| std::fs::read("/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf").ok())
-            .or_else(|| std::fs::read("/usr/share/fonts/dejavu/DejaVuSans.ttf").ok())
-            .or_else(|| std::fs::read("/usr/share/fonts/TTF/DejaVuSans.ttf").ok());
+        let paths = ["/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf", "/usr/share/fonts/dejavu/DejaVuSans.ttf", "/usr/share/fonts/TTF/DejaVuSans.ttf"];
+        let found = std::env::var("DIFFSIM_FONT").ok().and_then(|p| std::fs::read(p).ok()).or_else(|| paths.iter().find_map(|p| std::fs::read(p).ok()));
         match found {
             Some(bytes) => {
                 let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
@@ -84,7 +78,7 @@ pub fn line_plot(path: &Path, axes: &Axes<'_>, series: &[Series]) -> Result<(), 
     font()?;
     let draw = |reason: String| PlotError::Draw { path: path.to_path_buf(), reason };
     // The backends open the path themselves: a link planted there goes first.
-    crate::files::remove_link(path).map_err(|e| draw(e.to_string()))?;
+    diffsim::files::remove_link(path).map_err(|e| draw(e.to_string()))?;
     match path.extension().and_then(|e| e.to_str()) {
         Some("png") => {
             let root = BitMapBackend::new(path, (800, 500)).into_drawing_area();

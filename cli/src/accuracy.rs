@@ -10,12 +10,12 @@ use diffsim_solvers::smoke::Preconditioner;
 use serde_json::{Map, Value, json};
 
 use super::{CliError, median_time, peak_rss_bytes, plot_or_warn, reset_peak_rss};
-use crate::accuracy::AccuracyError;
-use crate::accuracy::pareto::{Measurement, burgers_params, burgers_sweep, mark_front, taylor_green_params, taylor_green_sweep};
 use crate::plot::{Axes, Series};
-use crate::problems::burgers::P1;
-use crate::problems::smoke::SmokeStep;
-use crate::rollout::{Checkpointing, Gradient, Rollout, RolloutError};
+use diffsim::accuracy::AccuracyError;
+use diffsim::accuracy::pareto::{Measurement, burgers_params, burgers_sweep, mark_front, taylor_green_params, taylor_green_sweep};
+use diffsim::problems::burgers::P1;
+use diffsim::problems::smoke::SmokeStep;
+use diffsim::rollout::{Checkpointing, Gradient, Rollout, RolloutError};
 
 /// The problems `diffsim pareto` sweeps.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -165,9 +165,9 @@ fn cylinder_rows(budget: f64, quick: bool) -> Vec<Measurement> {
     use diffsim_solvers::flow::cylinder::{reference, run_2d1, run_2d1_newton};
     let (newton, march): (&[usize], &[usize]) = if quick { (&[10, 20], &[10]) } else { (&[10, 20, 30, 40], &[10, 20]) };
     let mut rows = Vec::new();
-    // (One call per solver: a by-value array of (name, list) pairs crashes
-    // Enzyme's type analysis in this crate; docs/pitfalls.md.)
-    let mut sweep = |solver: &str, list: &[usize]| {
+    // The march first: the peak-memory reset cannot return what the
+    // allocator keeps from a larger run before.
+    for (solver, list) in [("march", march), ("newton", newton)] {
         for &per_d in list {
             let (result, time_s, peak) = measure(budget, || {
                 if solver == "newton" { run_2d1_newton(per_d, Convection::Second) } else { run_2d1(per_d, Convection::Second, 1e-6, 1_000_000, |_, _, _| {}) }
@@ -179,11 +179,7 @@ fn cylinder_rows(budget: f64, quick: bool) -> Vec<Measurement> {
             let error = result.map(|r| (r.cd / reference::CD_2D1_TIGHT - 1.0).abs()).map_err(AccuracyError::Flow);
             rows.push(accuracy_row(format!("{solver} (cut cells)"), params, (error, time_s, peak)));
         }
-    };
-    // The march first: the peak-memory reset cannot return what the
-    // allocator keeps from a larger run before.
-    sweep("march", march);
-    sweep("newton", newton);
+    }
     rows
 }
 
@@ -202,7 +198,7 @@ fn gradient_rows(
     let modes = [Checkpointing::Store, Checkpointing::periodic_sqrt(steps), Checkpointing::binomial_log(steps)];
     let reference = grad(false, Checkpointing::Store)?.dx0;
     let enzyme_stored = grad(true, Checkpointing::Store)?.dx0;
-    let rel = |g: &[f64], r: &[f64]| crate::accuracy::relative_l2(g, r);
+    let rel = |g: &[f64], r: &[f64]| diffsim::accuracy::relative_l2(g, r);
     let mut rows = Vec::new();
     for enzyme in [true, false] {
         for mode in modes {
@@ -265,11 +261,11 @@ struct TaylorGreenGradient {
 
 impl TaylorGreenGradient {
     fn new(n: usize, steps: usize) -> Self {
-        let cfg = crate::accuracy::flow::periodic_box(n);
-        let h = crate::accuracy::flow::LENGTH / n as f64;
+        let cfg = diffsim::accuracy::flow::periodic_box(n);
+        let h = diffsim::accuracy::flow::LENGTH / n as f64;
         // Half a cell per unit step at most.
-        let tg = TaylorGreen { length: crate::accuracy::flow::LENGTH, amplitude: 0.5 * h, nu: 0.0 };
-        let blob = diffsim_solvers::exact::Translation { length: crate::accuracy::flow::LENGTH, velocity: (0.0, 0.0) }.cells(n, 0.0);
+        let tg = TaylorGreen { length: diffsim::accuracy::flow::LENGTH, amplitude: 0.5 * h, nu: 0.0 };
+        let blob = diffsim_solvers::exact::Translation { length: diffsim::accuracy::flow::LENGTH, velocity: (0.0, 0.0) }.cells(n, 0.0);
         let pack = |t: f64, s: &[f64]| {
             let (u, v) = tg.mac(n, t);
             let mut x = s.to_vec();
@@ -373,8 +369,8 @@ fn write_report(dir: &Path, title: &str, rows: &[Measurement]) -> Result<(), Cli
             .collect();
         let _ = writeln!(csv, "{},{},{:e},{:e},{},{}", r.family, vals.join(","), r.error, r.time_s, r.peak_rss_bytes, r.pareto);
     }
-    crate::files::write(&dir.join("results.csv"), csv).map_err(io(dir.join("results.csv")))?;
-    crate::files::write(&dir.join("table.md"), format!("# {title}\n\n{}", markdown(rows))).map_err(io(dir.join("table.md")))?;
+    diffsim::files::write(&dir.join("results.csv"), csv).map_err(io(dir.join("results.csv")))?;
+    diffsim::files::write(&dir.join("table.md"), format!("# {title}\n\n{}", markdown(rows))).map_err(io(dir.join("table.md")))?;
     let mut families: Vec<&str> = Vec::new();
     for r in rows {
         if !families.contains(&r.family.as_str()) {
@@ -413,7 +409,7 @@ pub struct StabilityArgs {
 
 /// Runs `diffsim stability`.
 pub fn stability(a: StabilityArgs) -> Result<(), CliError> {
-    let cases = crate::accuracy::stability::run_all();
+    let cases = diffsim::accuracy::stability::run_all();
     for c in &cases {
         println!("{:<32} {:<6} {}", c.case, if c.passed { "passed" } else { "FAILED" }, c.summary);
     }

@@ -6,9 +6,9 @@ use std::path::{Path, PathBuf};
 use npyz::WriterBuilder;
 
 use super::CliError;
-use crate::files::{OutDir, Outputs};
-use crate::rollout::RolloutOperator;
-use crate::scene::{AnyScene, Domain, Field, Scene, SteadyScene};
+use diffsim::files::{OutDir, Outputs};
+use diffsim::rollout::RolloutOperator;
+use diffsim::scene::{AnyScene, Domain, Field, Scene, SteadyScene};
 
 /// Arguments of `diffsim run`.
 #[derive(Debug, clap::Args)]
@@ -80,7 +80,7 @@ impl Views {
         let slice = a.slice.as_deref().unwrap_or("z");
         let mip = a.mip.as_deref().unwrap_or("z");
         let axis = |arg: &'static str, name: &str| {
-            crate::volume::axis_index(name).ok_or_else(|| CliError::Argument { arg, reason: format!("expected an axis x, y or z, got \"{name}\"") })
+            diffsim::volume::axis_index(name).ok_or_else(|| CliError::Argument { arg, reason: format!("expected an axis x, y or z, got \"{name}\"") })
         };
         let (name, index) = match slice.split_once('=') {
             Some((name, index)) => {
@@ -129,15 +129,15 @@ pub struct GradArgs {
 /// Claims `out` for a command on the scene file `scene`: the scene and the
 /// `.npy` files it reads are never written over, and a folder holding
 /// another run's results is refused unless `--overwrite`
-/// ([`crate::files::OutDir`]). A run is the scene's path and text (`run`
+/// ([`diffsim::files::OutDir`]). A run is the scene's path and text (`run`
 /// and `grad` of one scene share a folder; an edited scene is another
 /// run), and `extra` (a sweep's `--set`).
 pub(super) fn claim(out: &Path, scene: &Path, extra: &str, overwrite: super::Overwrite) -> Result<OutDir, CliError> {
     use std::hash::{Hash, Hasher};
     let canonical = std::fs::canonicalize(scene).unwrap_or_else(|_| scene.to_path_buf());
     let mut hash = std::hash::DefaultHasher::new();
-    crate::files::read_bytes(scene, crate::scene::MAX_SCENE_BYTES, "scene file")?.hash(&mut hash);
-    let mut inputs = crate::scene::input_files(scene);
+    diffsim::files::read_bytes(scene, diffsim::scene::MAX_SCENE_BYTES, "scene file")?.hash(&mut hash);
+    let mut inputs = diffsim::scene::input_files(scene);
     inputs.push(scene.to_path_buf());
     let refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
     Ok(OutDir::claim(out, &format!("{} (text {:016x}){extra}", canonical.display(), hash.finish()), &refs, overwrite.existing(false))?)
@@ -148,7 +148,7 @@ pub(super) fn claim(out: &Path, scene: &Path, extra: &str, overwrite: super::Ove
 fn write_npy(out: &dyn Outputs, name: &str, shape: &[u64], values: &[f64]) -> Result<(), CliError> {
     let path = out.file(name)?;
     let io = |source| CliError::Io { path: path.clone(), source };
-    let file = std::io::BufWriter::new(crate::files::create(&path).map_err(io)?);
+    let file = std::io::BufWriter::new(diffsim::files::create(&path).map_err(io)?);
     let mut w = npyz::WriteOptions::new().default_dtype().shape(shape).writer(file).begin_nd().map_err(io)?;
     w.extend(values.iter().copied()).map_err(io)?;
     w.finish().map_err(io)
@@ -203,7 +203,7 @@ pub(super) fn write_images(scene: &Scene, out: &dyn Outputs, tag: &str, x: &[f64
             names.push(name);
         }
         Domain::Box3(cfg) => {
-            use crate::volume::{any_projection, max_projection, slice, slice_marks};
+            use diffsim::volume::{any_projection, max_projection, slice, slice_marks};
             let dims = cfg.dims();
             let none = vec![false; cfg.n_s()];
             let solid = scene.solid.as_deref().unwrap_or(&none);
@@ -212,7 +212,7 @@ pub(super) fn write_images(scene: &Scene, out: &dyn Outputs, tag: &str, x: &[f64
             } else {
                 ("speed", relative_speed_3d(cfg, x))
             };
-            let names_axis = crate::volume::AXES;
+            let names_axis = diffsim::volume::AXES;
             let (ax, index) = views.slice;
             let k = index.unwrap_or(dims[ax] / 2);
             let plane = slice(dims, &values, ax, k);
@@ -446,13 +446,13 @@ fn profile_backward(scene: &Scene) -> Result<String, CliError> {
 /// The checkpointing of a scene's gradient (see [`super::checkpointing`]):
 /// the states are the scene's; besides them the grid's work arrays and, for
 /// a control per step, its values and gradient at every step.
-fn gradient_plan(scene: &Scene, arg: &str) -> Result<(crate::rollout::plan::Plan, bool), CliError> {
-    use crate::op::Forward;
+fn gradient_plan(scene: &Scene, arg: &str) -> Result<(diffsim::rollout::plan::Plan, bool), CliError> {
+    use diffsim::op::Forward;
     let n = scene.x0.len() as u64;
-    let per_step = if scene.per_step() { crate::memory::f64s(&[scene.params.len() as u64, scene.steps as u64, 2]) } else { Some(0) };
-    let other = crate::memory::f64s(&[n, 8]).zip(per_step).and_then(|(a, b)| a.checked_add(b));
+    let per_step = if scene.per_step() { diffsim::memory::f64s(&[scene.params.len() as u64, scene.steps as u64, 2]) } else { Some(0) };
+    let other = diffsim::memory::f64s(&[n, 8]).zip(per_step).and_then(|(a, b)| a.checked_add(b));
     let detail = format!("{} values per state over {} steps", n, scene.steps);
-    crate::memory::check("the scene's gradient", detail, other, None)?;
+    diffsim::memory::check("the scene's gradient", detail, other, None)?;
     // One step from x₀ times a step for the cost model.
     let step_s = {
         let mut y = vec![0.0; scene.x0.len()];
@@ -460,7 +460,7 @@ fn gradient_plan(scene: &Scene, arg: &str) -> Result<(crate::rollout::plan::Plan
         scene.step.forward(&scene.x0, &scene.params, &mut y);
         t.elapsed().as_secs_f64()
     };
-    let job = crate::rollout::plan::Job { steps: scene.steps, state_bytes: 8 * n, copies: 1, forward_s: step_s };
+    let job = diffsim::rollout::plan::Job { steps: scene.steps, state_bytes: 8 * n, copies: 1, forward_s: step_s };
     super::checkpointing(arg, &job, other.unwrap_or(0), "the scene's gradient")
 }
 
@@ -470,7 +470,7 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
         AnyScene::Steady(scene) => return grad_steady(&a, &scene),
     };
     let Some(loss) = &scene.loss else {
-        return Err(crate::scene::SceneError::key("loss", "`diffsim grad` needs a [loss] table").into());
+        return Err(diffsim::scene::SceneError::key("loss", "`diffsim grad` needs a [loss] table").into());
     };
     let (plan, chosen) = gradient_plan(&scene, &a.checkpoint)?;
     let mode = plan.mode;
@@ -478,7 +478,7 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
     let g = scene.gradient(loss, mode)?;
     finite_gradient(g.loss, g.inputs.iter().map(|i| (i.name.as_str(), i.arrays.iter().flat_map(|(_, _, v)| v))))?;
     let how = if chosen { "chosen within" } else { "given; budget" };
-    eprintln!("memory plan ({how} {}): {plan}", crate::memory::human(crate::memory::budget()));
+    eprintln!("memory plan ({how} {}): {plan}", diffsim::memory::human(diffsim::memory::budget()));
     println!("loss {:.10e}", g.loss);
     for input in &g.inputs {
         let norm = input.arrays.iter().flat_map(|(_, _, v)| v).map(|a| a * a).sum::<f64>().sqrt();
@@ -497,7 +497,7 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
         println!("{}", profile_backward(&scene)?);
     }
     if a.check {
-        use crate::check::{CheckOptions, check_all};
+        use diffsim::check::{CheckOptions, check_all};
         // The rollout x₀ ↦ x_T under the chosen checkpointing.
         let p = scene.rollout_params();
         let op = RolloutOperator { rollout: scene.rollout(&p)?, mode };
@@ -520,7 +520,7 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
 /// Writes a solved steady scene: `velocity_u.npy`, `velocity_v.npy`,
 /// `pressure.npy` (rows = y) and `speed.png` (bodies' cells dark red).
 /// Returns the file names.
-pub(super) fn write_steady(scene: &SteadyScene, run: &crate::scene::SteadyRun, out: &dyn Outputs) -> Result<Vec<String>, CliError> {
+pub(super) fn write_steady(scene: &SteadyScene, run: &diffsim::scene::SteadyRun, out: &dyn Outputs) -> Result<Vec<String>, CliError> {
     let (nx, ny) = (scene.flow.nx as u64, scene.flow.ny as u64);
     let (u, v) = run.state.x.split_at(scene.flow.n_u());
     write_npy(out, "velocity_u.npy", &[ny, nx + 1], u)?;
@@ -537,7 +537,7 @@ pub(super) fn write_steady(scene: &SteadyScene, run: &crate::scene::SteadyRun, o
 
 /// The force on each body (and its coefficient when the loss gives a
 /// reference), one line each.
-fn describe_forces(scene: &SteadyScene, run: &crate::scene::SteadyRun) -> String {
+fn describe_forces(scene: &SteadyScene, run: &diffsim::scene::SteadyRun) -> String {
     let scale = scene.loss.as_ref().map(|l| l.scale).filter(|&s| s != 1.0);
     let lines: Vec<String> = run
         .forces
@@ -581,7 +581,7 @@ fn run_steady(a: &RunArgs, scene: &SteadyScene) -> Result<(), CliError> {
 
 fn grad_steady(a: &GradArgs, scene: &SteadyScene) -> Result<(), CliError> {
     let Some(loss) = &scene.loss else {
-        return Err(crate::scene::SceneError::key("loss", "`diffsim grad` needs a [loss] table").into());
+        return Err(diffsim::scene::SceneError::key("loss", "`diffsim grad` needs a [loss] table").into());
     };
     if a.profile {
         eprintln!("--profile times each effect of a scene stepped in time; a steady scene has none (the solve and adjoint times follow)");
@@ -593,7 +593,7 @@ fn grad_steady(a: &GradArgs, scene: &SteadyScene) -> Result<(), CliError> {
     let elapsed = start.elapsed().as_secs_f64();
     println!("loss {:.10e} ({} of obstacles[{}])", g.loss, loss.kind(), loss.obstacle);
     for (name, params, values) in &g.inputs {
-        let stem = crate::scene::grad_stem(name);
+        let stem = diffsim::scene::grad_stem(name);
         write_npy(&out, &format!("{stem}.npy"), &[values.len() as u64], values)?;
         let listed: Vec<String> = params.iter().zip(values).map(|(p, v)| format!("{p} {v:.6e}")).collect();
         println!("d loss / d {name} → {stem}.npy: {}", listed.join(", "));
@@ -601,7 +601,7 @@ fn grad_steady(a: &GradArgs, scene: &SteadyScene) -> Result<(), CliError> {
     eprintln!("{} Newton steps and one adjoint solve in {elapsed:.2} s", run.state.steps);
     out.finish()?;
     if a.check {
-        use crate::check::{CheckOptions, check_all};
+        use diffsim::check::{CheckOptions, check_all};
         // The force on the loss's body as a function of every body's
         // parameters: adjoint (VJP) against whole re-solves and the tangent
         // equations (JVP). Newton's residual floor limits the differences'

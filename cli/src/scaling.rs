@@ -1,18 +1,18 @@
 //! `diffsim bench scaling`: data-parallel training iterations over the
 //! ranks of an `mpirun` (or one process), timed, with what the exchange
 //! costs, and the model that carries the measurement past this machine
-//! ([`crate::distributed::ScalingModel`]).
+//! ([`diffsim::distributed::ScalingModel`]).
 
 use clap::Args;
 use serde_json::json;
 
 use super::CliError;
-use crate::distributed::{ScalingModel, World};
-use crate::nn::Activation;
-use crate::op::Vjp;
-use crate::rollout::Checkpointing;
-use crate::train::sol::SolProblem;
-use crate::train::{Coupled, Coupling, Optimizer, Sample, batch_gradient_over};
+use diffsim::distributed::{ScalingModel, World};
+use diffsim::nn::Activation;
+use diffsim::op::Vjp;
+use diffsim::rollout::Checkpointing;
+use diffsim::train::sol::SolProblem;
+use diffsim::train::{Coupled, Coupling, Optimizer, Sample, batch_gradient_over};
 
 #[derive(Debug, Args)]
 pub(super) struct ScalingArgs {
@@ -58,16 +58,16 @@ pub(super) fn scaling(a: ScalingArgs, world: &World) -> Result<(), CliError> {
     rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().map_err(|source| CliError::Threads { threads, source })?;
     match a.workload.as_str() {
         "p3" => {
-            use crate::train::p3::{P3, UNROLL};
-            let p = P3::new(0, crate::train::p3::Dtype::F64);
+            use diffsim::train::p3::{P3, UNROLL};
+            let p = P3::new(0, diffsim::train::p3::Dtype::F64);
             let op = Coupled::new(&p.step, &[], &p.net, Coupling::Add).expect("the network fits the solver");
             measure(&a, world, threads, Workload { op, theta: p.theta.clone(), batch: p.batch.clone(), unroll: UNROLL })
         }
         "wake" => {
             use rand::SeedableRng;
-            let setup = crate::train::wake::WakeSetup::standard();
+            let setup = diffsim::train::wake::WakeSetup::standard();
             let net = setup.network(Activation::Relu);
-            let theta = crate::train::sol::initial_params(&net, 1);
+            let theta = diffsim::train::sol::initial_params(&net, 1);
             let mut rng = rand::rngs::StdRng::seed_from_u64(1);
             let unroll = 4;
             // Start states from the study's distribution; the targets only
@@ -82,7 +82,7 @@ pub(super) fn scaling(a: ScalingArgs, world: &World) -> Result<(), CliError> {
             let op = Coupled::new(&source, &[], &net, Coupling::Add).expect("the network fits the solver");
             measure(&a, world, threads, Workload { op, theta, batch, unroll })
         }
-        other => Err(CliError::Argument { arg: "--workload", reason: crate::words::unknown("workload", other, &["p3", "wake"]) }),
+        other => Err(CliError::Argument { arg: "--workload", reason: diffsim::words::unknown("workload", other, &["p3", "wake"]) }),
     }
 }
 

@@ -7,6 +7,7 @@ mod flow;
 mod measure;
 mod new;
 mod pg;
+pub mod plot;
 mod scaling;
 mod scene;
 mod sweep;
@@ -30,10 +31,10 @@ pub enum CliError {
     },
     /// A rollout failed.
     #[error(transparent)]
-    Rollout(#[from] crate::rollout::RolloutError),
+    Rollout(#[from] diffsim::rollout::RolloutError),
     /// Training failed (a rollout, or ranks that no longer agree).
     #[error("training: {0}")]
-    Train(#[from] crate::train::sol::TrainError),
+    Train(#[from] diffsim::train::sol::TrainError),
     /// A file could not be written.
     #[error("cannot write {path}: {source}")]
     Io {
@@ -44,16 +45,16 @@ pub enum CliError {
     },
     /// An output folder cannot be used (another run's, locked, an input).
     #[error(transparent)]
-    Out(#[from] crate::files::OutDirError),
+    Out(#[from] diffsim::files::OutDirError),
     /// An input file could not be read.
     #[error(transparent)]
-    Read(#[from] crate::files::ReadError),
+    Read(#[from] diffsim::files::ReadError),
     /// A run does not fit the memory budget.
     #[error(transparent)]
-    Memory(#[from] crate::memory::MemoryError),
+    Memory(#[from] diffsim::memory::MemoryError),
     /// A training checkpoint cannot be written or used.
     #[error(transparent)]
-    Checkpoint(#[from] crate::train::checkpoint::CheckpointError),
+    Checkpoint(#[from] diffsim::train::checkpoint::CheckpointError),
     /// Training stopped at a signal after writing a checkpoint.
     #[error("interrupted after iteration {done} of {target}{detail}; the checkpoint is written. Resume with: {resume}")]
     Interrupted {
@@ -68,19 +69,19 @@ pub enum CliError {
     },
     /// A scene file is malformed.
     #[error(transparent)]
-    Scene(#[from] crate::scene::SceneError),
+    Scene(#[from] diffsim::scene::SceneError),
     /// A viscous flow could not be simulated.
     #[error(transparent)]
     Flow(#[from] diffsim_solvers::flow::FlowError),
     /// Training the shape network failed.
     #[error(transparent)]
-    ShapeNet(#[from] crate::train::shape_net::ShapeNetError),
+    ShapeNet(#[from] diffsim::train::shape_net::ShapeNetError),
     /// A scene run failed.
     #[error(transparent)]
-    Run(#[from] crate::scene::RunError),
+    Run(#[from] diffsim::scene::RunError),
     /// A run against an exact solution failed.
     #[error(transparent)]
-    Accuracy(#[from] crate::accuracy::AccuracyError),
+    Accuracy(#[from] diffsim::accuracy::AccuracyError),
     /// A stability case did not pass (the report is printed above).
     #[error("{0} stability case(s) did not pass (see the report above)")]
     StabilityFailed(usize),
@@ -89,10 +90,10 @@ pub enum CliError {
     ChecksFailed,
     /// A training configuration is malformed.
     #[error(transparent)]
-    Config(#[from] crate::train::config::ConfigError),
+    Config(#[from] diffsim::train::config::ConfigError),
     /// The processes of an mpirun cannot work together.
     #[error(transparent)]
-    Distributed(#[from] crate::distributed::DistributedError),
+    Distributed(#[from] diffsim::distributed::DistributedError),
     /// A run ended with a figure that is not a result (NaN, infinite, or
     /// outside what the method can give): nothing is printed as if it were.
     #[error("{what}: {reason}; no result is reported")]
@@ -250,8 +251,8 @@ impl Overwrite {
     /// What a claim does with a folder holding another run's results:
     /// continue it for a `--resume`, replace them for `--overwrite`, else
     /// refuse.
-    fn existing(self, resume: bool) -> crate::files::Existing {
-        use crate::files::Existing;
+    fn existing(self, resume: bool) -> diffsim::files::Existing {
+        use diffsim::files::Existing;
         match (resume, self.overwrite) {
             (true, _) => Existing::Continue,
             (false, true) => Existing::Replace,
@@ -261,13 +262,13 @@ impl Overwrite {
 }
 
 /// Claims the output folder `dir` for this command
-/// ([`crate::files::OutDir`]): the run is the command line without the
+/// ([`diffsim::files::OutDir`]): the run is the command line without the
 /// options that do not change its results (`--out`, `--overwrite`,
 /// `--resume`, `--quiet`, `--json`), so the same experiment again writes
 /// beside its results, another is refused unless `--overwrite`, and
 /// `--resume` continues whatever the folder holds (the study's saved parts
 /// check their settings); `inputs` are never written over.
-fn claim_out(dir: &std::path::Path, overwrite: Overwrite, inputs: &[&std::path::Path]) -> Result<crate::files::OutDir, CliError> {
+fn claim_out(dir: &std::path::Path, overwrite: Overwrite, inputs: &[&std::path::Path]) -> Result<diffsim::files::OutDir, CliError> {
     let mut words = Vec::new();
     let mut resume = false;
     let mut args = std::env::args().skip(1);
@@ -284,7 +285,7 @@ fn claim_out(dir: &std::path::Path, overwrite: Overwrite, inputs: &[&std::path::
     }
     // A resumed study continues its folder: its saved parts name any
     // setting that differs.
-    Ok(crate::files::OutDir::claim(dir, &format!("diffsim {}", words.join(" ")), inputs, overwrite.existing(resume))?)
+    Ok(diffsim::files::OutDir::claim(dir, &format!("diffsim {}", words.join(" ")), inputs, overwrite.existing(resume))?)
 }
 
 /// Refuses a run's figures when one is NaN or infinite: `what` names the
@@ -312,26 +313,26 @@ fn plot_or_warn(path: &std::path::Path, axes: &crate::plot::Axes<'_>, series: &[
 /// The checkpointing of a gradient for `job`, with `other` bytes held
 /// besides: as given by `--checkpoint` (refused when its states exceed the
 /// memory budget), or for `auto` the fastest mode within the budget by the
-/// cost model ([`crate::rollout::plan`]). Returns the plan and whether it
+/// cost model ([`diffsim::rollout::plan`]). Returns the plan and whether it
 /// was chosen.
-fn checkpointing(arg: &str, job: &crate::rollout::plan::Job, other: u64, what: &str) -> Result<(crate::rollout::plan::Plan, bool), CliError> {
-    use crate::rollout::{Checkpointing, plan};
+fn checkpointing(arg: &str, job: &diffsim::rollout::plan::Job, other: u64, what: &str) -> Result<(diffsim::rollout::plan::Plan, bool), CliError> {
+    use diffsim::rollout::{Checkpointing, plan};
     if arg == "auto" {
-        return Ok((plan::choose(job, other, crate::memory::budget(), what)?, true));
+        return Ok((plan::choose(job, other, diffsim::memory::budget(), what)?, true));
     }
     let mode: Checkpointing = arg.parse().map_err(|reason| CliError::Argument { arg: "--checkpoint", reason })?;
     let p = plan::estimate(mode.resolve(job.steps), job);
     let hint = Some("--checkpoint auto to choose a mode that fits".into());
-    crate::memory::check(what, plan::describe(&p, job, other), Some(p.bytes.saturating_add(other)), hint)?;
+    diffsim::memory::check(what, plan::describe(&p, job, other), Some(p.bytes.saturating_add(other)), hint)?;
     Ok((p, false))
 }
 
 /// Runs the command line.
 pub fn run(cli: Cli) -> Result<(), CliError> {
     if let Some(b) = &cli.memory_budget {
-        crate::memory::set_budget(crate::memory::parse_bytes(b)?);
+        diffsim::memory::set_budget(diffsim::memory::parse_bytes(b)?);
     }
-    let world = crate::distributed::World::from_launch()?;
+    let world = diffsim::distributed::World::from_launch()?;
     // The commands that run over several ranks so far; the others refuse them.
     let name = match &cli.command {
         Command::Info | Command::Bench(bench::BenchCommand::Exchange(_) | bench::BenchCommand::Scaling(_)) => "",
@@ -385,12 +386,12 @@ impl CliError {
     fn on_every_rank(&self) -> bool {
         matches!(
             self,
-            CliError::Interrupted { .. } | CliError::EveryRank(_) | CliError::Distributed(crate::distributed::DistributedError::OneProcessOnly { .. })
+            CliError::Interrupted { .. } | CliError::EveryRank(_) | CliError::Distributed(diffsim::distributed::DistributedError::OneProcessOnly { .. })
         )
     }
 }
 
-fn dispatch(command: Command, world: &crate::distributed::World) -> Result<(), CliError> {
+fn dispatch(command: Command, world: &diffsim::distributed::World) -> Result<(), CliError> {
     match command {
         Command::Info => info(world),
         Command::Bench(b) => bench::run(b, world),
@@ -409,13 +410,13 @@ fn dispatch(command: Command, world: &crate::distributed::World) -> Result<(), C
 
 /// `diffsim info`: the build, and the ranks with an exchange between them
 /// (each rank's number and threads gathered on every rank; rank 0 prints).
-fn info(world: &crate::distributed::World) -> Result<(), CliError> {
+fn info(world: &diffsim::distributed::World) -> Result<(), CliError> {
     let threads = rayon::current_num_threads();
     let all = world.all_gather(&[world.rank() as f64, threads as f64]);
     let ranks_ok = all.chunks(2).enumerate().all(|(r, c)| c[0] == r as f64);
     if world.is_root() {
         println!("diffsim {}", env!("CARGO_PKG_VERSION"));
-        println!("MPI: {}", crate::distributed::World::library().unwrap_or_else(|| "not in this build (built without the `mpi` feature)".into()));
+        println!("MPI: {}", diffsim::distributed::World::library().unwrap_or_else(|| "not in this build (built without the `mpi` feature)".into()));
         let per_rank: Vec<String> = all.chunks(2).map(|c| format!("{}", c[1])).collect();
         println!("ranks: {} (threads per rank: {}); exchange between the ranks: {}", world.size(), per_rank.join(", "), if ranks_ok { "ok" } else { "WRONG" });
     }
@@ -428,9 +429,9 @@ fn info(world: &crate::distributed::World) -> Result<(), CliError> {
 const MAX_CHECK_STEPS: usize = 1_000_000;
 
 fn check_p1(a: CheckArgs) -> Result<(), CliError> {
-    use crate::check::{CheckOptions, check_all};
-    use crate::problems::burgers::{BurgersEnzyme, BurgersHand, P1};
-    use crate::rollout::{Checkpointing, Rollout, RolloutOperator};
+    use diffsim::check::{CheckOptions, check_all};
+    use diffsim::problems::burgers::{BurgersEnzyme, BurgersHand, P1};
+    use diffsim::rollout::{Checkpointing, Rollout, RolloutOperator};
     if a.n < 3 {
         return Err(CliError::Argument { arg: "--n", reason: format!("need at least 3 cells, got {}", a.n) });
     }
@@ -441,7 +442,7 @@ fn check_p1(a: CheckArgs) -> Result<(), CliError> {
     // checks' own vectors (a few dozen of N), each N values, before any is
     // allocated: a size whose buffers overflow is refused here.
     let copies = 40 + u64::from(usize::BITS - a.steps.leading_zeros());
-    crate::memory::check("check", format!("{} cells, {} steps", a.n, a.steps), crate::memory::f64s(&[a.n as u64, copies]), None)?;
+    diffsim::memory::check("check", format!("{} cells, {} steps", a.n, a.steps), diffsim::memory::f64s(&[a.n as u64, copies]), None)?;
     let p = P1::new(a.n, a.steps);
     let mode = Checkpointing::binomial_log(a.steps);
     let opts = CheckOptions::default();

@@ -12,9 +12,9 @@ use serde::{Deserialize, Serialize};
 
 use super::CliError;
 use super::scene::{Views, write_images, write_state, write_steady};
-use crate::distributed::World;
-use crate::files::OutDir;
-use crate::scene::AnyScene;
+use diffsim::distributed::World;
+use diffsim::files::OutDir;
+use diffsim::scene::AnyScene;
 
 /// Arguments of `diffsim sweep`.
 #[derive(Debug, clap::Args)]
@@ -61,8 +61,8 @@ struct RunRow {
 
 /// `diffsim sweep`.
 pub(super) fn sweep(a: SweepArgs, world: &World) -> Result<(), CliError> {
-    let text = crate::files::read_text(&a.scene, crate::scene::MAX_SCENE_BYTES, "scene file")?;
-    let table: toml::Table = toml::from_str(&text).map_err(|e| crate::scene::SceneError::Syntax(crate::words::toml_error(&e, &text)))?;
+    let text = diffsim::files::read_text(&a.scene, diffsim::scene::MAX_SCENE_BYTES, "scene file")?;
+    let table: toml::Table = toml::from_str(&text).map_err(|e| diffsim::scene::SceneError::Syntax(diffsim::words::toml_error(&e, &text)))?;
     let axes: Vec<(String, Vec<toml::Value>)> = a.set.iter().map(|s| parse_set(s)).collect::<Result<_, _>>()?;
     for (k, (key, _)) in axes.iter().enumerate() {
         if axes[..k].iter().any(|(earlier, _)| earlier == key) {
@@ -161,7 +161,7 @@ fn run_one(text: &str, dir: &Path, out: &Path, run: usize) -> Result<RunRow, Cli
     let status = match scene {
         AnyScene::Stepped(scene) => {
             // The scene's own loss terms, added up as the run passes them.
-            use crate::rollout::Loss;
+            use diffsim::rollout::Loss;
             let terms = scene.loss.as_ref().map(|l| scene.loss_terms(l));
             let mut scratch = vec![0.0; scene.x0.len()];
             let mut loss = 0.0;
@@ -270,11 +270,11 @@ fn write_table(a: &SweepArgs, out: &OutDir, axes: &[(String, Vec<toml::Value>)],
         json.push(serde_json::Value::Object(obj));
     }
     let path = out.file("runs.csv")?;
-    crate::files::write_atomic(&path, csv.as_bytes()).map_err(|source| CliError::Io { path: path.clone(), source })?;
+    diffsim::files::write_atomic(&path, csv.as_bytes()).map_err(|source| CliError::Io { path: path.clone(), source })?;
     if a.json {
         let path = out.file("runs.json")?;
         let text = serde_json::Value::Array(json);
-        crate::files::write_atomic(&path, format!("{text:#}\n").as_bytes()).map_err(|source| CliError::Io { path: path.clone(), source })?;
+        diffsim::files::write_atomic(&path, format!("{text:#}\n").as_bytes()).map_err(|source| CliError::Io { path: path.clone(), source })?;
         println!("{text}");
     }
     Ok(())
@@ -282,8 +282,8 @@ fn write_table(a: &SweepArgs, out: &OutDir, axes: &[(String, Vec<toml::Value>)],
 
 /// A scene error without the line numbers of the rewritten text (the
 /// key it names is the user's).
-fn without_lines(e: crate::scene::SceneError) -> String {
-    use crate::scene::SceneError;
+fn without_lines(e: diffsim::scene::SceneError) -> String {
+    use diffsim::scene::SceneError;
     match e {
         SceneError::Key { key, reason, .. } => SceneError::Key { key, reason, line: None }.to_string(),
         SceneError::Syntax(text) => {

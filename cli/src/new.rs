@@ -108,7 +108,7 @@ fn write(root: &Path, rel: &str, text: &str) -> Result<(), CliError> {
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir).map_err(io)?;
     }
-    crate::files::write(&path, text).map_err(io)
+    diffsim::files::write(&path, text).map_err(io)
 }
 
 /// Writes the crate.
@@ -130,11 +130,12 @@ pub fn new(a: NewArgs) -> Result<(), CliError> {
             return Err(invalid("PATH", format!("{} exists and is not an empty folder", a.path.display())));
         }
     }
-    let diffsim = std::fs::canonicalize(a.diffsim.as_deref().unwrap_or(Path::new(env!("CARGO_MANIFEST_DIR"))))
+    // (This crate lives in cli/ of the checkout.)
+    let diffsim = std::fs::canonicalize(a.diffsim.as_deref().unwrap_or(Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))))
         .map_err(|e| invalid("--diffsim", format!("cannot find the diffsim checkout: {e}")))?;
     // The checkout's manifest names the package `diffsim` (and its
     // solvers crate is beside it): any other crate would fail to build.
-    let manifest = crate::files::read_text(&diffsim.join("Cargo.toml"), 1 << 20, "Cargo.toml").ok();
+    let manifest = diffsim::files::read_text(&diffsim.join("Cargo.toml"), 1 << 20, "Cargo.toml").ok();
     let package = manifest.as_deref().and_then(|t| t.parse::<toml::Table>().ok()).and_then(|t| t.get("package")?.get("name")?.as_str().map(String::from));
     if package.as_deref() != Some("diffsim") || !diffsim.join("src/lib.rs").is_file() || !diffsim.join("solvers/Cargo.toml").is_file() {
         return Err(invalid(
@@ -143,7 +144,7 @@ pub fn new(a: NewArgs) -> Result<(), CliError> {
                 "{} is not a diffsim checkout (its Cargo.toml {}, and it needs src/lib.rs and solvers/Cargo.toml)",
                 diffsim.display(),
                 match &package {
-                    Some(name) => format!("names the package `{}`", crate::files::shorten(name, 40)),
+                    Some(name) => format!("names the package `{}`", diffsim::files::shorten(name, 40)),
                     None => "is missing or names no package".to_string(),
                 }
             ),

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use super::CliError;
 use super::train::{io, write_error_files};
 use crate::plot::{Axes, Series};
-use crate::train::smoke::{SHOWN, SmokeComparison, SmokeConfig, SmokeMethod, compare, inverse_alone, inverse_misses};
+use diffsim::train::smoke::{SHOWN, SmokeComparison, SmokeConfig, SmokeMethod, compare, inverse_alone, inverse_misses};
 
 /// Arguments of `diffsim experiment sip-smoke`.
 #[derive(Debug, clap::Args)]
@@ -50,7 +50,7 @@ pub(super) fn sip_smoke(a: SipSmokeArgs) -> Result<(), CliError> {
     cfg.refine = a.refine;
     // Held to the end: the folder is this run's while it writes.
     let _out = super::claim_out(&a.out, a.overwrite, &[])?;
-    let fail = |e: crate::train::pg::PgError| CliError::Argument { arg: "sip-smoke", reason: e.to_string() };
+    let fail = |e: diffsim::train::pg::PgError| CliError::Argument { arg: "sip-smoke", reason: e.to_string() };
     let quiet = a.json;
     let mut shown = (None, -1);
     let result = compare(&cfg, &[SmokeMethod::Sip, SmokeMethod::Adam], |m, t| {
@@ -97,7 +97,7 @@ pub(super) fn sip_smoke(a: SipSmokeArgs) -> Result<(), CliError> {
     write_reconstructions(&pictures, cfg.n, &result).map_err(io(&pictures))?;
     if a.json {
         let (sip, adam) = (&result.runs[0].curve, &result.runs[1].curve);
-        let last = |c: &crate::train::oscillators::Curve| c.second_points.last().map_or(f64::NAN, |p| p.1);
+        let last = |c: &diffsim::train::oscillators::Curve| c.second_points.last().map_or(f64::NAN, |p| p.1);
         let obj = serde_json::json!({
             "sip": sip.final_loss(), "adam": adam.final_loss(), "time_s": cfg.seconds,
             "sip_resim": last(sip), "adam_resim": last(adam),

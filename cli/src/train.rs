@@ -9,14 +9,14 @@ use serde::Deserialize;
 use serde::de::IntoDeserializer;
 
 use super::{CliError, plot_or_warn};
-use crate::distributed::World;
-use crate::nn::{Activation, ParamStore};
 use crate::plot::{Axes, Series};
-use crate::train::Optimizer;
-use crate::train::burgers::{LogRow, Method, StudyConfig, TrainData, evaluate, initial_params, mean, study, train};
-use crate::train::checkpoint::{Checkpoint, FORMAT, Parts, config_difference};
-use crate::train::config::TrainConfig;
-use crate::train::sol::SolProblem;
+use diffsim::distributed::World;
+use diffsim::nn::{Activation, ParamStore};
+use diffsim::train::Optimizer;
+use diffsim::train::burgers::{LogRow, Method, StudyConfig, TrainData, evaluate, initial_params, mean, study, train};
+use diffsim::train::checkpoint::{Checkpoint, FORMAT, Parts, config_difference};
+use diffsim::train::config::TrainConfig;
+use diffsim::train::sol::SolProblem;
 
 /// Arguments of `diffsim train`.
 #[derive(Debug, clap::Args)]
@@ -320,9 +320,9 @@ pub struct SolWakeArgs {
 /// only warns when it cannot be drawn).
 pub(super) fn write_error_files(out: &Path, table: &str, csv: &str, axes: &Axes<'_>, series: &[Series]) -> Result<(), CliError> {
     let md = out.join("table.md");
-    crate::files::write(&md, table).map_err(io(&md))?;
+    diffsim::files::write(&md, table).map_err(io(&md))?;
     let path = out.join("error.csv");
-    crate::files::write(&path, csv).map_err(io(&path))?;
+    diffsim::files::write(&path, csv).map_err(io(&path))?;
     plot_or_warn(&out.join("error.png"), axes, series);
     Ok(())
 }
@@ -370,10 +370,10 @@ fn existing_run(out: &Path, config: &str) -> Option<String> {
 /// (a killed run may have logged past its last checkpoint).
 fn trim_log(path: &Path, done: u64) -> Result<(), CliError> {
     let header = "iteration,loss,grad_norm,seconds";
-    let text = if path.exists() { crate::files::read_text(path, 1 << 30, "loss log")? } else { String::new() };
+    let text = if path.exists() { diffsim::files::read_text(path, 1 << 30, "loss log")? } else { String::new() };
     let mut kept = vec![header];
     kept.extend(text.lines().skip(1).filter(|l| l.split(',').next().and_then(|i| i.parse::<u64>().ok()).is_some_and(|i| i <= done)));
-    crate::files::write_atomic(path, format!("{}\n", kept.join("\n")).as_bytes()).map_err(io(path))
+    diffsim::files::write_atomic(path, format!("{}\n", kept.join("\n")).as_bytes()).map_err(io(path))
 }
 
 /// `diffsim train CONFIG`, in one process or data-parallel over the ranks
@@ -382,7 +382,7 @@ fn trim_log(path: &Path, done: u64) -> Result<(), CliError> {
 /// checkpoint and sends it to the others, and alone writes the outputs.
 /// The parameters are the same, bit for bit, for any number of ranks.
 pub(super) fn train_cmd(a: TrainArgs, world: &World) -> Result<(), CliError> {
-    let text = crate::files::read_text(&a.config, MAX_CONFIG_BYTES, "training configuration")?;
+    let text = diffsim::files::read_text(&a.config, MAX_CONFIG_BYTES, "training configuration")?;
     let cfg = TrainConfig::parse(&text)?;
     if a.checkpoint_every == 0 || !(a.checkpoint_seconds.is_finite() && a.checkpoint_seconds > 0.0) {
         return Err(CliError::Argument { arg: "--checkpoint-every/--checkpoint-seconds", reason: "must be positive".into() });
@@ -419,7 +419,7 @@ pub(super) fn train_cmd(a: TrainArgs, world: &World) -> Result<(), CliError> {
         Some(nu) => TrainData::Random { nu, horizon: cfg.data.steps },
     };
     let iterations = usize::try_from(target - done).map_err(|_| CliError::Argument { arg: "--extend", reason: "too many iterations".into() })?;
-    let settings = crate::train::burgers::TrainSettings { first: done as usize + 1, iterations, ..cfg.settings };
+    let settings = diffsim::train::burgers::TrainSettings { first: done as usize + 1, iterations, ..cfg.settings };
     let mut log = match world.is_root() {
         true => Some(std::io::BufWriter::new(
             std::os::unix::fs::OpenOptionsExt::custom_flags(std::fs::OpenOptions::new().append(true), libc::O_NOFOLLOW)
@@ -492,7 +492,7 @@ pub(super) fn train_cmd(a: TrainArgs, world: &World) -> Result<(), CliError> {
         return Ok(());
     }
     // The whole loss history (this run and earlier ones) for the plot.
-    let history = crate::files::read_text(&log_path, 1 << 30, "loss log")?;
+    let history = diffsim::files::read_text(&log_path, 1 << 30, "loss log")?;
     let points: Vec<(f64, f64)> = history
         .lines()
         .skip(1)
@@ -662,11 +662,11 @@ fn exit_on_interrupt(out: &Path, parts: &'static str) {
 }
 
 fn sip_heat(a: SipArgs) -> Result<(), CliError> {
-    use crate::train::heat::{HeatConfig, Method, compare};
+    use diffsim::train::heat::{HeatConfig, Method, compare};
     let mut cfg = match a.setup.as_str() {
         "small" => HeatConfig::standard(),
         "published" => HeatConfig::published(50),
-        other => return Err(CliError::Argument { arg: "--setup", reason: crate::words::unknown("setup", other, &["small", "published"]) }),
+        other => return Err(CliError::Argument { arg: "--setup", reason: diffsim::words::unknown("setup", other, &["small", "published"]) }),
     };
     if let Some(it) = a.iterations {
         if it == 0 {
@@ -715,7 +715,7 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
     let mut table = String::from("| optimizer | updates | training s | start error | final error | start x-L2 | final x-L2 |\n|---|---|---|---|---|---|---|\n");
     let mut csv = String::from("optimizer,seconds,error,x_l2\n");
     let mut series = Vec::new();
-    let l2 = |c: &crate::train::oscillators::Curve, last: bool| {
+    let l2 = |c: &diffsim::train::oscillators::Curve, last: bool| {
         let p = if last { c.second_points.last() } else { c.second_points.first() };
         p.map_or(f64::NAN, |p| p.1)
     };
@@ -736,7 +736,7 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
         }
         series.push(Series { name: c.name.clone(), points: c.points.clone(), color: k, markers: false });
     }
-    let (inverse_l1, inverse_l2) = crate::train::heat::inverse_errors(&cfg);
+    let (inverse_l1, inverse_l2) = diffsim::train::heat::inverse_errors(&cfg);
     table.push_str(&format!("| the inverse alone, x = P⁻¹(y*) | – | – | – | {inverse_l1:.1} | – | {inverse_l2:.1} |\n"));
     write_error_files(
         &a.out,
@@ -763,13 +763,13 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
 }
 
 fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
-    use crate::train::oscillators::{Curve, OscConfig, OscMethod, compare};
+    use diffsim::train::oscillators::{Curve, OscConfig, OscMethod, compare};
     // A day per method at most: a longer wall-clock budget is an input
     // error, not a study.
     if !(a.budget > 0.0 && a.budget <= 86_400.0) {
         return Err(CliError::Argument { arg: "--budget", reason: format!("must be a positive number of seconds, at most 86400 (a day), got {}", a.budget) });
     }
-    use crate::train::hig::PowerMethod;
+    use diffsim::train::hig::PowerMethod;
     let method = match a.decomposition.as_str() {
         "auto" => None,
         "svd" => Some(PowerMethod::SVD_F64),
@@ -778,7 +778,7 @@ fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
         other => {
             return Err(CliError::Argument {
                 arg: "--decomposition",
-                reason: crate::words::unknown("decomposition", other, &["auto", "svd", "gram", "svd-f32"]),
+                reason: diffsim::words::unknown("decomposition", other, &["auto", "svd", "gram", "svd-f32"]),
             });
         }
     };
@@ -793,7 +793,7 @@ fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
     let _out = if world.is_root() { Some(super::claim_out(&a.out, a.overwrite, &[])?) } else { None };
     let parts = if world.is_root() { Parts::open(&a.out.join("parts"), settings, a.resume)? } else { Parts::kept_elsewhere(&a.out.join("parts"), settings) };
     exit_on_interrupt(&a.out, "each problem's runs (timed by the wall clock)");
-    let fail = |e: crate::train::hig::HigError| CliError::Argument { arg: "hig-oscillators", reason: e.to_string() };
+    let fail = |e: diffsim::train::hig::HigError| CliError::Argument { arg: "hig-oscillators", reason: e.to_string() };
     let say = |problem: &'static str| {
         let quiet = a.json || !world.is_root();
         move |m: OscMethod, t: f64| {
@@ -832,9 +832,9 @@ fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
     }
     obj.insert("budget_s".into(), serde_json::json!(a.budget));
     let md = a.out.join("table.md");
-    crate::files::write(&md, &table).map_err(io(&md))?;
+    diffsim::files::write(&md, &table).map_err(io(&md))?;
     let path = a.out.join("loss.csv");
-    crate::files::write(&path, csv).map_err(io(&path))?;
+    diffsim::files::write(&path, csv).map_err(io(&path))?;
     plot_or_warn(
         &a.out.join("loss.png"),
         &Axes { title: "coupled oscillators: test loss vs training time", x: "seconds", y: "test loss", log_x: false, log_y: true },
@@ -854,15 +854,16 @@ fn sol_burgers(a: SolArgs, world: &World) -> Result<(), CliError> {
     if a.width == 0 {
         return Err(CliError::Argument { arg: "--width", reason: "must be at least 1".into() });
     }
-    let act = a.study.activation(crate::train::burgers::STUDY_ACTIVATION)?;
-    cfg.net = crate::train::burgers::correction_net(&a.net, cfg.setup.coarse.n, a.width, act).map_err(|reason| CliError::Argument { arg: "--net", reason })?;
+    let act = a.study.activation(diffsim::train::burgers::STUDY_ACTIVATION)?;
+    cfg.net =
+        diffsim::train::burgers::correction_net(&a.net, cfg.setup.coarse.n, a.width, act).map_err(|reason| CliError::Argument { arg: "--net", reason })?;
     a.study.apply(&mut cfg)?;
     run_sol_study(&cfg, "sol-burgers", "Burgers", &a.study, &a.out, world)
 }
 
 fn sol_wake(a: SolWakeArgs, world: &World) -> Result<(), CliError> {
     let mut cfg = StudyConfig::wake(a.study.quick);
-    cfg.net = cfg.setup.network(a.study.activation(crate::train::wake::STUDY_ACTIVATION)?);
+    cfg.net = cfg.setup.network(a.study.activation(diffsim::train::wake::STUDY_ACTIVATION)?);
     a.study.apply(&mut cfg)?;
     if let Some(t) = a.steps {
         if t == 0 {
@@ -892,7 +893,7 @@ fn run_sol_study<P: SolProblem + std::fmt::Debug>(
     out: &Path,
     world: &World,
 ) -> Result<(), CliError> {
-    use crate::train::sol::{Resumable, StudyError};
+    use diffsim::train::sol::{Resumable, StudyError};
     let json = study_args.json;
     // Everything the results depend on, one setting per line.
     let settings = format!("{command}\n{cfg:#?}");
@@ -955,14 +956,14 @@ fn run_sol_study<P: SolProblem + std::fmt::Debug>(
         ));
     }
     let md = out.join("table.md");
-    crate::files::write(&md, &table).map_err(io(&md))?;
+    diffsim::files::write(&md, &table).map_err(io(&md))?;
     // Errors per step.
     let csv = out.join("errors.csv");
     let mut s = format!("step,{}\n", results.iter().map(|r| r.name.as_str()).collect::<Vec<_>>().join(","));
     for t in 0..cfg.eval_steps {
         s.push_str(&format!("{},{}\n", t + 1, results.iter().map(|r| format!("{:.6e}", r.error[t])).collect::<Vec<_>>().join(",")));
     }
-    crate::files::write(&csv, s).map_err(io(&csv))?;
+    diffsim::files::write(&csv, s).map_err(io(&csv))?;
     let err_series: Vec<Series> = results
         .iter()
         .enumerate()

@@ -1,5 +1,0 @@
-//! The `diffsim` command: see `diffsim --help`.
-
-fn main() {
-    diffsim::cli::main()
-}
