@@ -98,7 +98,7 @@ fn p4(c: &mut Criterion) {
 fn p3(c: &mut Criterion) {
     let mut g = c.benchmark_group("p3_sol1d");
     g.sample_size(20);
-    use diffsim::train::p3::{Dtype, P3};
+    use diffsim_studies::p3::{Dtype, P3};
     for dtype in [Dtype::F64, Dtype::F32, Dtype::Mixed] {
         let mut p = P3::new(0, dtype);
         g.bench_function(format!("iteration_{}", dtype.name()), |b| b.iter(|| std::hint::black_box(p.iteration().unwrap())));

@@ -63,22 +63,23 @@
 //! the rollout chains both VJPs, [`train::batch_gradient`] averages a
 //! mini-batch in parallel (solvers with work buffers once per thread:
 //! [`op::PerThread`]) and [`train::Optimizer`] (Adam, SGD) updates the
-//! weights. [`train::sol`] is the solver-in-the-loop study, on Burgers
-//! ([`train::burgers`]) and on 2D flow past a disc ([`train::wake`]). Beyond
+//! weights. The solver-in-the-loop study (`diffsim_studies::sol`, on
+//! Burgers and on 2D flow past a disc) is built from these parts. Beyond
 //! plain gradients: half-inverse gradients ([`train::hig`]) and
 //! scale-invariant physics updates ([`train::pg`]), which use an
 //! operator's [`op::LocalInverse`] (exact, regularised, a reverse-time
 //! simulation as for the smoke step, or a Gauss-Newton step with
 //! [`op::GaussNewton`]; sharpened by [`op::Refined`], its promise measured
-//! by [`check::local_inverse`]) to give the network its target
-//! ([`train::heat`], [`train::smoke`]).
+//! by [`check::local_inverse`]) to give the network its target (the
+//! studies `diffsim_studies::heat` and `diffsim_studies::smoke`).
 //!
 //! **Precision.** Operators, rollouts and training run in `f64` by default
 //! and in `f32` where an operator implements `Forward<f32>` (networks, the
 //! Burgers step; see [`op::Real`]); [`op::Float32`] runs an `f32` network
-//! inside an `f64` rollout (mixed precision). [`train::p3`] times all three.
+//! inside an `f64` rollout (mixed precision); benchmark P3
+//! (`diffsim_studies::p3`) times all three.
 //!
-//! **6. Know what accuracy costs** ([`accuracy`]): the schemes against exact
+//! **6. Know what accuracy costs** (`diffsim_studies::accuracy`): the schemes against exact
 //! solutions (Cole–Hopf Burgers, Taylor–Green, heat modes, translation),
 //! observed orders of convergence, error versus time and memory with the
 //! Pareto front (`diffsim pareto`), and the hard cases that must stay
@@ -93,7 +94,13 @@
 //! a gradient's checkpointing is chosen to fit it ([`rollout::plan`]);
 //! parser messages reach users in plain words ([`words`]); every reader of
 //! user input is fuzzed, and the inputs the fuzzer kept are replayed by the
-//! suite ([`fuzz`]).
+//! suite (`diffsim_cli::fuzz`).
+//!
+//! **The workspace.** This crate is the library; the studies built on it
+//! (solver-in-the-loop, SIP, HIG, accuracy) are `diffsim-studies`, the
+//! command line `diffsim-cli`, the program `diffsim-bin`
+//! (docs/architecture.md). A crate of one's own depends on this one (and
+//! `diffsim-solvers`) alone.
 //!
 //! **Your own crate.** `diffsim new PATH` writes one that builds and passes
 //! out of the box (a solver, its checks, a rollout, the checks through it, a
@@ -105,13 +112,11 @@
 #![feature(autodiff)]
 #![deny(missing_docs)]
 
-pub mod accuracy;
 pub mod check;
 pub mod distributed;
 pub mod files;
 pub mod fluids;
 pub mod fluids3d;
-pub mod fuzz;
 pub mod memory;
 pub mod nn;
 pub mod op;

@@ -1,16 +1,16 @@
 //! Exact references, observed orders of convergence and the Pareto front
-//! (`diffsim::accuracy`).
+//! (`diffsim_studies::accuracy`).
 
 use std::f64::consts::PI;
 
-use diffsim::accuracy::burgers::{BurgersRun, BurgersScheme};
-use diffsim::accuracy::flow::{HeatRun, ScalarScheme, TaylorGreenRun, TranslationRun};
-use diffsim::accuracy::pareto::{Measurement, mark_front};
-use diffsim::accuracy::{AccuracyError, Diffusion, observed_orders};
 use diffsim::op::OpError;
 use diffsim_solvers::burgers::Advection1d;
 use diffsim_solvers::exact::{ColeHopf, TaylorGreen};
 use diffsim_solvers::smoke::Scheme;
+use diffsim_studies::accuracy::burgers::{BurgersRun, BurgersScheme};
+use diffsim_studies::accuracy::flow::{HeatRun, ScalarScheme, TaylorGreenRun, TranslationRun};
+use diffsim_studies::accuracy::pareto::{Measurement, mark_front};
+use diffsim_studies::accuracy::{AccuracyError, Diffusion, observed_orders};
 
 /// Modified Bessel function `I_k(a)·e^{−a}` by the trapezoidal rule on
 /// `(1/π)∫₀^π e^{a(cos θ − 1)} cos(kθ) dθ` (periodic integrand: spectrally
@@ -178,7 +178,7 @@ fn pareto_front_is_the_set_of_undominated_points() {
 
 #[test]
 fn every_stability_case_passes() {
-    let cases = diffsim::accuracy::stability::run_all();
+    let cases = diffsim_studies::accuracy::stability::run_all();
     for c in &cases {
         println!("{}: {} {}", c.case, c.passed, c.summary);
     }

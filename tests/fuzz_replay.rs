@@ -1,7 +1,7 @@
 //! Replays every input the fuzzer kept (`fuzz/corpus/TARGET`: the minimised
 //! corpus; `fuzz/found/TARGET`: the inputs that crashed, hung or panicked
 //! before their fix) through the fuzz targets' own functions in
-//! [`diffsim::fuzz`], and the hand-written seeds (`fuzz/seeds/TARGET`, the
+//! [`diffsim_cli::fuzz`], and the hand-written seeds (`fuzz/seeds/TARGET`, the
 //! scenes and configurations of the repository, good and bad). A fixed crash stays
 //! fixed; docs/fuzzing.md says how to run the fuzzer itself.
 
@@ -37,25 +37,25 @@ fn replay(target: &str, run: fn(&[u8]), seeds: &[&str]) -> usize {
 
 #[test]
 fn scene_inputs() {
-    let n = replay("scene", diffsim::fuzz::scene, &["scenes", "tests/scenes_bad"]);
+    let n = replay("scene", diffsim_cli::fuzz::scene, &["scenes", "tests/scenes_bad"]);
     assert!(n >= 40, "only {n} scene inputs");
 }
 
 #[test]
 fn config_inputs() {
-    let n = replay("config", diffsim::fuzz::config, &["configs", "tests/configs_bad"]);
+    let n = replay("config", diffsim_cli::fuzz::config, &["configs", "tests/configs_bad"]);
     assert!(n >= 9, "only {n} configuration inputs");
 }
 
 #[test]
 fn npy_inputs() {
-    let n = replay("npy", diffsim::fuzz::npy, &[]);
+    let n = replay("npy", diffsim_cli::fuzz::npy, &[]);
     assert!(n >= 1, "no .npy inputs");
 }
 
 #[test]
 fn params_inputs() {
-    let n = replay("params", diffsim::fuzz::params, &[]);
+    let n = replay("params", diffsim_cli::fuzz::params, &[]);
     assert!(n >= 1, "no parameter-store inputs");
 }
 
@@ -64,12 +64,12 @@ fn params_inputs() {
 #[test]
 fn targets_accept_and_refuse() {
     // A valid scene runs (and a garbage one is refused) without a panic.
-    diffsim::fuzz::scene(std::fs::read("scenes/heat.toml").unwrap().as_slice());
-    diffsim::fuzz::scene(b"size = [");
+    diffsim_cli::fuzz::scene(std::fs::read("scenes/heat.toml").unwrap().as_slice());
+    diffsim_cli::fuzz::scene(b"size = [");
     // A `.npy` of the wrong shape is refused; the right one is read.
     let mut npy = vec![0x80 | 3]; // a line of 4 values
     npy.extend(npy_file(&[4], &[1.0, 2.0, 3.0, 4.0]));
-    diffsim::fuzz::npy(&npy);
+    diffsim_cli::fuzz::npy(&npy);
     assert_eq!(diffsim::scene::npy_values(&npy[1..], &[4]).unwrap(), vec![1.0, 2.0, 3.0, 4.0]);
     assert!(diffsim::scene::npy_values(&npy[1..], &[2, 2]).unwrap_err().contains("shape [4], expected [2, 2]"));
 }

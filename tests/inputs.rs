@@ -11,7 +11,7 @@ use diffsim::problems::burgers::P1;
 use diffsim::rollout::plan::{Job, choose, estimate};
 use diffsim::rollout::{Checkpointing, Rollout};
 use diffsim::scene::{AnyScene, SceneError};
-use diffsim::train::config::TrainConfig;
+use diffsim_studies::config::TrainConfig;
 
 fn corpus(dir: &str) -> Vec<(std::path::PathBuf, String, String)> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join(dir);

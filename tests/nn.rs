@@ -9,8 +9,8 @@ use diffsim::distributed::World;
 use diffsim::nn::enzyme::{Conv1dEnzyme, DenseEnzyme};
 use diffsim::nn::{Activation, Conv1d, Conv2d, Init, Layer, Net, NetError, Padding, ParamStore, presets};
 use diffsim::op::{Operator, OperatorExt};
-use diffsim::train::burgers::{Method, Setup, TrainData, TrainSettings, evaluate, train};
 use diffsim::train::{Coupled, Coupling, Optimizer, Sample, batch_gradient, clip_by_norm};
+use diffsim_studies::burgers::{Method, Setup, TrainData, TrainSettings, evaluate, train};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -238,7 +238,7 @@ fn coupled_solver_and_network_pass_the_gradient_checks() {
 
 #[test]
 fn batch_gradients_do_not_depend_on_the_thread_count_and_match_finite_differences() {
-    use diffsim::train::sol::SolProblem;
+    use diffsim_studies::sol::SolProblem;
     let setup = Setup::new(16, 2, 2, 0.02, 3);
     let solver = setup.source();
     let net = presets::conv_stack_1d(16, &[1, 4, 1], 3, Padding::Periodic, Activation::Tanh).unwrap();
@@ -403,7 +403,7 @@ fn gram_route_matches_the_svd_where_it_claims_to() {
 fn oscillators_and_hig_steps() {
     use diffsim::problems::oscillators::Oscillators;
     use diffsim::train::hig::{ControlSample, Hig, HigError, hig_step, loss_and_gradient};
-    use diffsim::train::oscillators::dataset_loss;
+    use diffsim_studies::oscillators::dataset_loss;
     // The physics through the three checks, linear and nonlinear.
     let x = vec![0.3, 0.7, 0.1, 0.5];
     let lin = Oscillators { steps: 6, ..Oscillators::linear() };
@@ -606,7 +606,7 @@ fn float32_operators_agree_with_float64() {
     Jvp::<f32>::jvp(&net, &to32(&x), &to32(&theta), &to32(&w), &vec![0.0f32; theta.len()], &mut y32, &mut ty32);
     assert!(rel(&to64(&y32), &y64) < 1e-5, "Net f32 forward");
     // The Enzyme-generated f32 Burgers step against the hand-written f64 adjoint.
-    let cfg = diffsim::train::p3::solver();
+    let cfg = diffsim_studies::p3::solver();
     let u = round(&state(32, 6));
     let g = round(&state(32, 7));
     let (du64, _) = BurgersHand(cfg).vjp_new(&u, &[], &g);
@@ -643,7 +643,7 @@ fn fast_tanh_matches_the_library_tanh() {
 
 #[test]
 fn p3_iteration_does_not_depend_on_the_thread_count() {
-    use diffsim::train::p3::{Dtype, P3};
+    use diffsim_studies::p3::{Dtype, P3};
     let run = |threads: usize, dtype: Dtype| {
         rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(|| {
             // (Seed 0, the benchmark's. P3's random states can exceed the

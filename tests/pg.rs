@@ -7,8 +7,8 @@ use diffsim::nn::{Activation, Init, Padding, presets};
 use diffsim::op::{GaussNewton, LocalInverse, OperatorExt};
 use diffsim::problems::heat::Heat;
 use diffsim::problems::oscillators::Oscillators;
-use diffsim::train::heat::samples;
 use diffsim::train::pg::{InverseSample, physics_loss_and_gradient, sip_gradient, state_error};
+use diffsim_studies::heat::samples;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -227,7 +227,7 @@ fn moving_smoke(n: usize, warm: usize) -> (diffsim::problems::smoke::SmokeStep, 
     let cfg = Smoke2d::p2(n);
     let step = SmokeStep::new(cfg, 1e-12, 2000, Preconditioner::Mic0);
     let mut x = vec![0.0; cfg.n_state()];
-    let s0 = diffsim::train::smoke::blobs(&mut StdRng::seed_from_u64(3), n);
+    let s0 = diffsim_studies::smoke::blobs(&mut StdRng::seed_from_u64(3), n);
     x[..cfg.n_s()].copy_from_slice(&s0);
     for _ in 0..warm {
         let mut y = vec![0.0; x.len()];
@@ -283,8 +283,8 @@ fn smoke_rise_passes_the_checks_and_its_inverse_recovers_initial_smoke() {
     use diffsim::check::local_inverse_error;
     use diffsim::op::PerThread;
     use diffsim::problems::smoke::{SmokeRise, SmokeStep};
-    use diffsim::train::smoke::{SmokeConfig, inverse_alone};
     use diffsim_solvers::smoke::{Preconditioner, Smoke2d};
+    use diffsim_studies::smoke::{SmokeConfig, inverse_alone};
     // The gradient checks through 4 steps (tight solves: the finite
     // differences see the exact map).
     let rise = SmokeRise { step: SmokeStep::new(Smoke2d::p2(8), 1e-13, 2000, Preconditioner::Mic0), steps: 4 };
@@ -295,7 +295,7 @@ fn smoke_rise_passes_the_checks_and_its_inverse_recovers_initial_smoke() {
     // see without motion, its step lands far closer to the observation.
     let cfg = SmokeConfig { n: 16, steps: 10, ..SmokeConfig::quick() };
     let rise = SmokeRise::new(cfg.n, cfg.steps);
-    let truth = diffsim::train::smoke::blobs(&mut StdRng::seed_from_u64(8), cfg.n);
+    let truth = diffsim_studies::smoke::blobs(&mut StdRng::seed_from_u64(8), cfg.n);
     let observed = rise.eval(&truth, &[]);
     let guess = observed.clone();
     let dy: Vec<f64> = observed.iter().zip(rise.eval(&guess, &[])).map(|(a, b)| a - b).collect();

@@ -8,11 +8,11 @@
 use diffsim::nn::{Activation, presets};
 use diffsim::op::{OperatorExt, PerThread};
 use diffsim::rollout::{AtSteps, Checkpointing, Rollout};
-use diffsim::train::sol::SolProblem;
-use diffsim::train::wake::{WakeSetup, WakeStep};
 use diffsim::train::{Coupled, Coupling, Sample, batch_gradient};
 use diffsim_solvers::boundary::{Boundary, Profile, Side};
 use diffsim_solvers::smoke::{Scheme, Smoke2d, divergence, obstacle_disc};
+use diffsim_studies::sol::SolProblem;
+use diffsim_studies::wake::{WakeSetup, WakeStep};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -79,7 +79,7 @@ fn mac_gathers_and_the_correction_network_pass_all_checks() {
     let stack = presets::mac_conv_stack(nx, ny, &[2, 3, 2], 3, Activation::Tanh, None).unwrap();
     // A fresh correction network starts from the source solver: it outputs
     // zero although its last layer is a parameter-free gather.
-    let zero = diffsim::train::sol::initial_params(&stack, 1);
+    let zero = diffsim_studies::sol::initial_params(&stack, 1);
     assert!(zero.iter().any(|&w| w != 0.0));
     assert!(stack.eval(&x, &zero).iter().all(|&c| c == 0.0));
     let theta = crate::checks::state(diffsim::op::Operator::n_params(&stack), 5);

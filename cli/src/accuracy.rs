@@ -11,11 +11,11 @@ use serde_json::{Map, Value, json};
 
 use super::{CliError, median_time, peak_rss_bytes, plot_or_warn, reset_peak_rss};
 use crate::plot::{Axes, Series};
-use diffsim::accuracy::AccuracyError;
-use diffsim::accuracy::pareto::{Measurement, burgers_params, burgers_sweep, mark_front, taylor_green_params, taylor_green_sweep};
 use diffsim::problems::burgers::P1;
 use diffsim::problems::smoke::SmokeStep;
 use diffsim::rollout::{Checkpointing, Gradient, Rollout, RolloutError};
+use diffsim_studies::accuracy::AccuracyError;
+use diffsim_studies::accuracy::pareto::{Measurement, burgers_params, burgers_sweep, mark_front, taylor_green_params, taylor_green_sweep};
 
 /// The problems `diffsim pareto` sweeps.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -198,7 +198,7 @@ fn gradient_rows(
     let modes = [Checkpointing::Store, Checkpointing::periodic_sqrt(steps), Checkpointing::binomial_log(steps)];
     let reference = grad(false, Checkpointing::Store)?.dx0;
     let enzyme_stored = grad(true, Checkpointing::Store)?.dx0;
-    let rel = |g: &[f64], r: &[f64]| diffsim::accuracy::relative_l2(g, r);
+    let rel = |g: &[f64], r: &[f64]| diffsim_studies::accuracy::relative_l2(g, r);
     let mut rows = Vec::new();
     for enzyme in [true, false] {
         for mode in modes {
@@ -261,11 +261,11 @@ struct TaylorGreenGradient {
 
 impl TaylorGreenGradient {
     fn new(n: usize, steps: usize) -> Self {
-        let cfg = diffsim::accuracy::flow::periodic_box(n);
-        let h = diffsim::accuracy::flow::LENGTH / n as f64;
+        let cfg = diffsim_studies::accuracy::flow::periodic_box(n);
+        let h = diffsim_studies::accuracy::flow::LENGTH / n as f64;
         // Half a cell per unit step at most.
-        let tg = TaylorGreen { length: diffsim::accuracy::flow::LENGTH, amplitude: 0.5 * h, nu: 0.0 };
-        let blob = diffsim_solvers::exact::Translation { length: diffsim::accuracy::flow::LENGTH, velocity: (0.0, 0.0) }.cells(n, 0.0);
+        let tg = TaylorGreen { length: diffsim_studies::accuracy::flow::LENGTH, amplitude: 0.5 * h, nu: 0.0 };
+        let blob = diffsim_solvers::exact::Translation { length: diffsim_studies::accuracy::flow::LENGTH, velocity: (0.0, 0.0) }.cells(n, 0.0);
         let pack = |t: f64, s: &[f64]| {
             let (u, v) = tg.mac(n, t);
             let mut x = s.to_vec();
@@ -409,7 +409,7 @@ pub struct StabilityArgs {
 
 /// Runs `diffsim stability`.
 pub fn stability(a: StabilityArgs) -> Result<(), CliError> {
-    let cases = diffsim::accuracy::stability::run_all();
+    let cases = diffsim_studies::accuracy::stability::run_all();
     for c in &cases {
         println!("{:<32} {:<6} {}", c.case, if c.passed { "passed" } else { "FAILED" }, c.summary);
     }

@@ -262,7 +262,7 @@ const SHARE_NAMES: [&str; 5] = ["solver_fwd", "solver_bwd", "net_fwd", "net_bwd"
 
 fn p3(a: P3Args) -> Result<(), CliError> {
     use diffsim::train::TimeShares;
-    use diffsim::train::p3::{BATCH, Dtype, P3, UNROLL};
+    use diffsim_studies::p3::{BATCH, Dtype, P3, UNROLL};
     let dtype: Dtype = a.dtype.parse().map_err(|reason| CliError::Argument { arg: "--dtype", reason })?;
     if a.iterations < 1 {
         return Err(CliError::Argument { arg: "--iterations", reason: "need at least 1".into() });
@@ -612,8 +612,8 @@ const DECOMPOSITIONS: [(&str, diffsim::train::hig::PowerMethod); 4] = [
 fn hig(a: HigBenchArgs) -> Result<(), CliError> {
     use diffsim::train::Optimizer;
     use diffsim::train::hig::{ControlSample, PowerMethod, batch_jacobian, hig_step, loss_and_gradient};
-    use diffsim::train::oscillators::{OscConfig, datasets};
     use diffsim_solvers::linalg::pseudo_inverse_power_apply_with as apply;
+    use diffsim_studies::oscillators::{OscConfig, datasets};
     if a.iterations < 1 {
         return Err(CliError::Argument { arg: "--iterations", reason: "need at least 1".into() });
     }

@@ -836,7 +836,7 @@ pub struct DragNetArgs {
 }
 
 pub(super) fn drag_net(a: DragNetArgs) -> Result<(), CliError> {
-    use diffsim::train::shape_net::{ShapeNetOptions, train};
+    use diffsim_studies::shape_net::{ShapeNetOptions, train};
     if !(a.lr.is_finite() && a.lr > 0.0) {
         return Err(CliError::Argument { arg: "--lr", reason: format!("must be a positive number, got {}", a.lr) });
     }

@@ -4,6 +4,7 @@ mod accuracy;
 mod bench;
 mod demo;
 mod flow;
+pub mod fuzz;
 mod measure;
 mod new;
 mod pg;
@@ -34,7 +35,7 @@ pub enum CliError {
     Rollout(#[from] diffsim::rollout::RolloutError),
     /// Training failed (a rollout, or ranks that no longer agree).
     #[error("training: {0}")]
-    Train(#[from] diffsim::train::sol::TrainError),
+    Train(#[from] diffsim_studies::sol::TrainError),
     /// A file could not be written.
     #[error("cannot write {path}: {source}")]
     Io {
@@ -75,13 +76,13 @@ pub enum CliError {
     Flow(#[from] diffsim_solvers::flow::FlowError),
     /// Training the shape network failed.
     #[error(transparent)]
-    ShapeNet(#[from] diffsim::train::shape_net::ShapeNetError),
+    ShapeNet(#[from] diffsim_studies::shape_net::ShapeNetError),
     /// A scene run failed.
     #[error(transparent)]
     Run(#[from] diffsim::scene::RunError),
     /// A run against an exact solution failed.
     #[error(transparent)]
-    Accuracy(#[from] diffsim::accuracy::AccuracyError),
+    Accuracy(#[from] diffsim_studies::accuracy::AccuracyError),
     /// A stability case did not pass (the report is printed above).
     #[error("{0} stability case(s) did not pass (see the report above)")]
     StabilityFailed(usize),
@@ -90,7 +91,7 @@ pub enum CliError {
     ChecksFailed,
     /// A training configuration is malformed.
     #[error(transparent)]
-    Config(#[from] diffsim::train::config::ConfigError),
+    Config(#[from] diffsim_studies::config::ConfigError),
     /// The processes of an mpirun cannot work together.
     #[error(transparent)]
     Distributed(#[from] diffsim::distributed::DistributedError),

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use super::CliError;
 use super::train::{io, write_error_files};
 use crate::plot::{Axes, Series};
-use diffsim::train::smoke::{SHOWN, SmokeComparison, SmokeConfig, SmokeMethod, compare, inverse_alone, inverse_misses};
+use diffsim_studies::smoke::{SHOWN, SmokeComparison, SmokeConfig, SmokeMethod, compare, inverse_alone, inverse_misses};
 
 /// Arguments of `diffsim experiment sip-smoke`.
 #[derive(Debug, clap::Args)]
@@ -97,7 +97,7 @@ pub(super) fn sip_smoke(a: SipSmokeArgs) -> Result<(), CliError> {
     write_reconstructions(&pictures, cfg.n, &result).map_err(io(&pictures))?;
     if a.json {
         let (sip, adam) = (&result.runs[0].curve, &result.runs[1].curve);
-        let last = |c: &diffsim::train::oscillators::Curve| c.second_points.last().map_or(f64::NAN, |p| p.1);
+        let last = |c: &diffsim_studies::oscillators::Curve| c.second_points.last().map_or(f64::NAN, |p| p.1);
         let obj = serde_json::json!({
             "sip": sip.final_loss(), "adam": adam.final_loss(), "time_s": cfg.seconds,
             "sip_resim": last(sip), "adam_resim": last(adam),

@@ -11,8 +11,8 @@ use diffsim::distributed::{ScalingModel, World};
 use diffsim::nn::Activation;
 use diffsim::op::Vjp;
 use diffsim::rollout::Checkpointing;
-use diffsim::train::sol::SolProblem;
 use diffsim::train::{Coupled, Coupling, Optimizer, Sample, batch_gradient_over};
+use diffsim_studies::sol::SolProblem;
 
 #[derive(Debug, Args)]
 pub(super) struct ScalingArgs {
@@ -58,16 +58,16 @@ pub(super) fn scaling(a: ScalingArgs, world: &World) -> Result<(), CliError> {
     rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().map_err(|source| CliError::Threads { threads, source })?;
     match a.workload.as_str() {
         "p3" => {
-            use diffsim::train::p3::{P3, UNROLL};
-            let p = P3::new(0, diffsim::train::p3::Dtype::F64);
+            use diffsim_studies::p3::{P3, UNROLL};
+            let p = P3::new(0, diffsim_studies::p3::Dtype::F64);
             let op = Coupled::new(&p.step, &[], &p.net, Coupling::Add).expect("the network fits the solver");
             measure(&a, world, threads, Workload { op, theta: p.theta.clone(), batch: p.batch.clone(), unroll: UNROLL })
         }
         "wake" => {
             use rand::SeedableRng;
-            let setup = diffsim::train::wake::WakeSetup::standard();
+            let setup = diffsim_studies::wake::WakeSetup::standard();
             let net = setup.network(Activation::Relu);
-            let theta = diffsim::train::sol::initial_params(&net, 1);
+            let theta = diffsim_studies::sol::initial_params(&net, 1);
             let mut rng = rand::rngs::StdRng::seed_from_u64(1);
             let unroll = 4;
             // Start states from the study's distribution; the targets only

@@ -13,10 +13,10 @@ use crate::plot::{Axes, Series};
 use diffsim::distributed::World;
 use diffsim::nn::{Activation, ParamStore};
 use diffsim::train::Optimizer;
-use diffsim::train::burgers::{LogRow, Method, StudyConfig, TrainData, evaluate, initial_params, mean, study, train};
 use diffsim::train::checkpoint::{Checkpoint, FORMAT, Parts, config_difference};
-use diffsim::train::config::TrainConfig;
-use diffsim::train::sol::SolProblem;
+use diffsim_studies::burgers::{LogRow, Method, StudyConfig, TrainData, evaluate, initial_params, mean, study, train};
+use diffsim_studies::config::TrainConfig;
+use diffsim_studies::sol::SolProblem;
 
 /// Arguments of `diffsim train`.
 #[derive(Debug, clap::Args)]
@@ -419,7 +419,7 @@ pub(super) fn train_cmd(a: TrainArgs, world: &World) -> Result<(), CliError> {
         Some(nu) => TrainData::Random { nu, horizon: cfg.data.steps },
     };
     let iterations = usize::try_from(target - done).map_err(|_| CliError::Argument { arg: "--extend", reason: "too many iterations".into() })?;
-    let settings = diffsim::train::burgers::TrainSettings { first: done as usize + 1, iterations, ..cfg.settings };
+    let settings = diffsim_studies::burgers::TrainSettings { first: done as usize + 1, iterations, ..cfg.settings };
     let mut log = match world.is_root() {
         true => Some(std::io::BufWriter::new(
             std::os::unix::fs::OpenOptionsExt::custom_flags(std::fs::OpenOptions::new().append(true), libc::O_NOFOLLOW)
@@ -662,7 +662,7 @@ fn exit_on_interrupt(out: &Path, parts: &'static str) {
 }
 
 fn sip_heat(a: SipArgs) -> Result<(), CliError> {
-    use diffsim::train::heat::{HeatConfig, Method, compare};
+    use diffsim_studies::heat::{HeatConfig, Method, compare};
     let mut cfg = match a.setup.as_str() {
         "small" => HeatConfig::standard(),
         "published" => HeatConfig::published(50),
@@ -715,7 +715,7 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
     let mut table = String::from("| optimizer | updates | training s | start error | final error | start x-L2 | final x-L2 |\n|---|---|---|---|---|---|---|\n");
     let mut csv = String::from("optimizer,seconds,error,x_l2\n");
     let mut series = Vec::new();
-    let l2 = |c: &diffsim::train::oscillators::Curve, last: bool| {
+    let l2 = |c: &diffsim_studies::oscillators::Curve, last: bool| {
         let p = if last { c.second_points.last() } else { c.second_points.first() };
         p.map_or(f64::NAN, |p| p.1)
     };
@@ -736,7 +736,7 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
         }
         series.push(Series { name: c.name.clone(), points: c.points.clone(), color: k, markers: false });
     }
-    let (inverse_l1, inverse_l2) = diffsim::train::heat::inverse_errors(&cfg);
+    let (inverse_l1, inverse_l2) = diffsim_studies::heat::inverse_errors(&cfg);
     table.push_str(&format!("| the inverse alone, x = P⁻¹(y*) | – | – | – | {inverse_l1:.1} | – | {inverse_l2:.1} |\n"));
     write_error_files(
         &a.out,
@@ -763,7 +763,7 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
 }
 
 fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
-    use diffsim::train::oscillators::{Curve, OscConfig, OscMethod, compare};
+    use diffsim_studies::oscillators::{Curve, OscConfig, OscMethod, compare};
     // A day per method at most: a longer wall-clock budget is an input
     // error, not a study.
     if !(a.budget > 0.0 && a.budget <= 86_400.0) {
@@ -854,16 +854,16 @@ fn sol_burgers(a: SolArgs, world: &World) -> Result<(), CliError> {
     if a.width == 0 {
         return Err(CliError::Argument { arg: "--width", reason: "must be at least 1".into() });
     }
-    let act = a.study.activation(diffsim::train::burgers::STUDY_ACTIVATION)?;
+    let act = a.study.activation(diffsim_studies::burgers::STUDY_ACTIVATION)?;
     cfg.net =
-        diffsim::train::burgers::correction_net(&a.net, cfg.setup.coarse.n, a.width, act).map_err(|reason| CliError::Argument { arg: "--net", reason })?;
+        diffsim_studies::burgers::correction_net(&a.net, cfg.setup.coarse.n, a.width, act).map_err(|reason| CliError::Argument { arg: "--net", reason })?;
     a.study.apply(&mut cfg)?;
     run_sol_study(&cfg, "sol-burgers", "Burgers", &a.study, &a.out, world)
 }
 
 fn sol_wake(a: SolWakeArgs, world: &World) -> Result<(), CliError> {
     let mut cfg = StudyConfig::wake(a.study.quick);
-    cfg.net = cfg.setup.network(a.study.activation(diffsim::train::wake::STUDY_ACTIVATION)?);
+    cfg.net = cfg.setup.network(a.study.activation(diffsim_studies::wake::STUDY_ACTIVATION)?);
     a.study.apply(&mut cfg)?;
     if let Some(t) = a.steps {
         if t == 0 {
@@ -893,7 +893,7 @@ fn run_sol_study<P: SolProblem + std::fmt::Debug>(
     out: &Path,
     world: &World,
 ) -> Result<(), CliError> {
-    use diffsim::train::sol::{Resumable, StudyError};
+    use diffsim_studies::sol::{Resumable, StudyError};
     let json = study_args.json;
     // Everything the results depend on, one setting per line.
     let settings = format!("{command}\n{cfg:#?}");

@@ -1,4 +1,4 @@
-//! Fuzz target: see `diffsim::fuzz::config`.
+//! Fuzz target: see `diffsim_cli::fuzz::config`.
 #![no_main]
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| diffsim::fuzz::config(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| diffsim_cli::fuzz::config(data));

@@ -1,4 +1,4 @@
-//! Fuzz target: see `diffsim::fuzz::npy`.
+//! Fuzz target: see `diffsim_cli::fuzz::npy`.
 #![no_main]
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| diffsim::fuzz::npy(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| diffsim_cli::fuzz::npy(data));

@@ -1,4 +1,4 @@
-//! Fuzz target: see `diffsim::fuzz::params`.
+//! Fuzz target: see `diffsim_cli::fuzz::params`.
 #![no_main]
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| diffsim::fuzz::params(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| diffsim_cli::fuzz::params(data));

@@ -20,6 +20,6 @@ pub mod presets;
 mod store;
 
 pub use diffsim_solvers::nn::{Activation, Conv1d, Conv2d, Padding};
-pub(crate) use layer::normal;
+pub use layer::normal;
 pub use layer::{Init, Layer, Net, NetError};
 pub use store::{ParamEntry, ParamStore, StoreError};

@@ -4,22 +4,15 @@
 //! of solver and network, and [`batch_gradient`] averages over a
 //! mini-batch in parallel (rayon over samples, reduced in sample order, so
 //! the result does not depend on the thread count). [`optim`] updates the
-//! parameters; [`sol`] is the solver-in-the-loop study, on Burgers
-//! ([`burgers`]) and on 2D flow past a disc ([`wake`]).
+//! parameters, [`hig`] and [`pg`] give the half-inverse and physical
+//! (SIP) updates, [`checkpoint`] saves and resumes a run. The studies that
+//! train through these parts (solver-in-the-loop, SIP, HIG, P3) are the
+//! `diffsim-studies` crate.
 
-pub mod burgers;
 pub mod checkpoint;
-pub mod config;
-pub mod heat;
 pub mod hig;
 pub mod optim;
-pub mod oscillators;
-pub mod p3;
 pub mod pg;
-pub mod shape_net;
-pub mod smoke;
-pub mod sol;
-pub mod wake;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;

@@ -50,7 +50,7 @@ pub enum PgError {
 }
 
 /// The physics' recorded failure, if any, after a batch.
-pub(crate) fn physics_ok<P: crate::op::Forward + ?Sized>(physics: &P) -> Result<(), PgError> {
+pub fn physics_ok<P: crate::op::Forward + ?Sized>(physics: &P) -> Result<(), PgError> {
     physics.take_error().map_or(Ok(()), |e| Err(PgError::Physics(e)))
 }
 

@@ -6,12 +6,12 @@
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use super::Optimizer;
-use super::hig::{ControlSample, Hig, HigError, hig_step_over, loss_and_gradient_over};
-use crate::distributed::World;
-use crate::nn::{Activation, Init, Net, presets};
-use crate::op::Forward;
-use crate::problems::oscillators::Oscillators;
+use diffsim::distributed::World;
+use diffsim::nn::{Activation, Init, Net, presets};
+use diffsim::op::Forward;
+use diffsim::problems::oscillators::Oscillators;
+use diffsim::train::Optimizer;
+use diffsim::train::hig::{ControlSample, Hig, HigError, hig_step_over, loss_and_gradient_over};
 
 /// The optimizers compared.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]

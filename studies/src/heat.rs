@@ -15,12 +15,12 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
-use super::Optimizer;
-use super::oscillators::Curve;
-use super::pg::{InverseSample, PgError, physics_loss_and_gradient, sip_gradient};
-use crate::nn::{Activation, Net, Padding, presets};
-use crate::op::{Float32, Forward, MeanMatched, OperatorExt, Vjp};
-use crate::problems::heat::Heat;
+use crate::oscillators::Curve;
+use diffsim::nn::{Activation, Net, Padding, presets};
+use diffsim::op::{Float32, Forward, MeanMatched, OperatorExt, Vjp};
+use diffsim::problems::heat::Heat;
+use diffsim::train::Optimizer;
+use diffsim::train::pg::{InverseSample, PgError, physics_loss_and_gradient, sip_gradient};
 
 /// The comparison's settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -48,7 +48,7 @@ pub struct HeatConfig {
     /// The published network instead of the small one: a 4-level U-Net
     /// of `width` filters (ReLU, zero padding, He initialisation) in
     /// float32, its prediction shifted to the observation's mean
-    /// ([`crate::op::MeanMatched`]).
+    /// ([`diffsim::op::MeanMatched`]).
     pub published_network: bool,
 }
 
@@ -61,7 +61,7 @@ impl HeatConfig {
     /// the batch *sum*, i.e. 2.56e-4 on diffsim's batch mean.
     pub fn published(iterations: usize) -> Self {
         Self {
-            physics: Heat::published().with_bayesian_inverse(crate::problems::heat::BayesianInverse::PUBLISHED),
+            physics: Heat::published().with_bayesian_inverse(diffsim::problems::heat::BayesianInverse::PUBLISHED),
             batch: 128,
             iterations,
             width: 16,
@@ -175,11 +175,11 @@ impl Method {
 pub fn compare(cfg: &HeatConfig, methods: &[Method], progress: impl FnMut(Method, usize)) -> Result<Vec<Curve>, PgError> {
     let net = network(cfg);
     if cfg.published_network {
-        let theta0 = net.init(&mut StdRng::seed_from_u64(cfg.seed), crate::nn::Init::He);
+        let theta0 = net.init(&mut StdRng::seed_from_u64(cfg.seed), diffsim::nn::Init::He);
         train_each(cfg, &MeanMatched(Float32(net)), &theta0, methods, progress)
     } else {
         // The last layer starts at zero: every method starts from x = 0.
-        let theta0 = super::burgers::initial_params(&net, cfg.seed);
+        let theta0 = crate::burgers::initial_params(&net, cfg.seed);
         train_each(cfg, &net, &theta0, methods, progress)
     }
 }
@@ -253,7 +253,7 @@ fn mean_errors(data: &[InverseSample], recover: impl Fn(&InverseSample) -> Vec<f
 /// inverse alone recovers, the level a network trained through it
 /// approaches. The same held-out samples as [`compare`]'s curves.
 pub fn inverse_errors(cfg: &HeatConfig) -> (f64, f64) {
-    use crate::op::LocalInverse;
+    use diffsim::op::LocalInverse;
     let zero = vec![0.0; cfg.physics.grid.nx * cfg.physics.grid.ny];
     mean_errors(&test_set(cfg), |s| {
         let mut x = vec![0.0; zero.len()];

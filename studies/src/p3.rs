@@ -17,11 +17,11 @@ use rand::{Rng, SeedableRng};
 use diffsim_solvers::burgers::Burgers1d;
 use diffsim_solvers::nn::Padding;
 
-use super::{Coupled, Coupling, Optimizer, Sample, TimeShares, batch_gradient};
-use crate::nn::{Activation, Init, Net, presets};
-use crate::op::{Float32, Jvp, Real, Vjp};
-use crate::problems::burgers::BurgersEnzyme;
-use crate::rollout::{Checkpointing, RolloutError};
+use diffsim::nn::{Activation, Init, Net, presets};
+use diffsim::op::{Float32, Jvp, Real, Vjp};
+use diffsim::problems::burgers::BurgersEnzyme;
+use diffsim::rollout::{Checkpointing, RolloutError};
+use diffsim::train::{Coupled, Coupling, Optimizer, Sample, TimeShares, batch_gradient};
 
 /// Cells of the coarse grid.
 pub const N: usize = 32;

@@ -25,12 +25,12 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
-use super::Optimizer;
-use super::oscillators::Curve;
-use super::pg::{InverseSample, PgError, physics_loss_and_gradient, physics_ok, sip_gradient};
-use crate::nn::{Activation, Net, Padding, presets};
-use crate::op::{Float32, Forward, LocalInverse, OperatorExt, PerThread, Refined, Vjp};
-use crate::problems::smoke::SmokeRise;
+use crate::oscillators::Curve;
+use diffsim::nn::{Activation, Net, Padding, presets};
+use diffsim::op::{Float32, Forward, LocalInverse, OperatorExt, PerThread, Refined, Vjp};
+use diffsim::problems::smoke::SmokeRise;
+use diffsim::train::Optimizer;
+use diffsim::train::pg::{InverseSample, PgError, physics_loss_and_gradient, physics_ok, sip_gradient};
 
 /// The comparison's settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -182,7 +182,7 @@ pub const SHOWN: usize = 4;
 pub fn compare(cfg: &SmokeConfig, methods: &[SmokeMethod], mut progress: impl FnMut(SmokeMethod, f64)) -> Result<SmokeComparison, PgError> {
     let physics = physics(cfg);
     let net = Float32(network(cfg));
-    let theta0 = super::burgers::initial_params(&net.0, cfg.seed);
+    let theta0 = crate::burgers::initial_params(&net.0, cfg.seed);
     let test = test_set(cfg, &physics)?;
     let every = cfg.seconds / 30.0;
     let mut runs = Vec::new();
@@ -288,7 +288,7 @@ pub struct InverseMiss {
     /// `dy = scale · J·(x*_b − x*_a)`: toward another held-out state.
     pub scale: f64,
     /// Mean relative miss `‖P(x + dx) − P(x) − dy‖ / ‖dy‖` of the
-    /// reverse-time inverse ([`crate::check::local_inverse_error`]).
+    /// reverse-time inverse ([`diffsim::check::local_inverse_error`]).
     pub reverse_time: f64,
     /// The same with the configured correction sweeps ([`Refined`]).
     pub refined: f64,
@@ -299,7 +299,7 @@ pub struct InverseMiss {
 /// [`InverseMiss`] at `scales`, averaged over the first [`SHOWN`] held-out
 /// states (each asked to move toward the next one's).
 pub fn inverse_misses(cfg: &SmokeConfig, scales: &[f64]) -> Result<Vec<InverseMiss>, PgError> {
-    use crate::op::Jvp;
+    use diffsim::op::Jvp;
     let physics = physics(cfg);
     let test = test_set(cfg, &physics)?;
     let k = test.len().min(SHOWN);
@@ -319,9 +319,9 @@ pub fn inverse_misses(cfg: &SmokeConfig, scales: &[f64]) -> Result<Vec<InverseMi
                 .map(|&s| {
                     let dy: Vec<f64> = dir.iter().map(|d| s * d).collect();
                     [
-                        crate::check::local_inverse_error(&physics, x, &[], &dy),
-                        crate::check::local_inverse_error(&refined, x, &[], &dy),
-                        crate::check::step_miss(&physics, x, &[], &dy, &dy),
+                        diffsim::check::local_inverse_error(&physics, x, &[], &dy),
+                        diffsim::check::local_inverse_error(&refined, x, &[], &dy),
+                        diffsim::check::step_miss(&physics, x, &[], &dy, &dy),
                     ]
                 })
                 .collect()

@@ -1,4 +1,4 @@
-//! The 2D schemes of [`crate::fluids`] on the periodic box `[0, 2π)²`
+//! The 2D schemes of [`diffsim::fluids`] on the periodic box `[0, 2π)²`
 //! against exact solutions: the Taylor–Green vortex (advection of the
 //! velocity, viscosity, pressure projection), translation of a smooth
 //! profile by a constant velocity (advection of a scalar) and a Fourier
@@ -15,8 +15,8 @@ use diffsim_solvers::exact::{HeatMode, TaylorGreen, Translation};
 use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d};
 
 use super::{AccuracyError, Diffusion, all_finite, positive, relative_l2, steps_to};
-use crate::fluids::{Advect, AdvectUpwind, Diffuse, Project};
-use crate::op::{Forward, OpError};
+use diffsim::fluids::{Advect, AdvectUpwind, Diffuse, Project};
+use diffsim::op::{Forward, OpError};
 
 /// Side of the periodic box.
 pub const LENGTH: f64 = 2.0 * PI;

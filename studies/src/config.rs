@@ -4,8 +4,8 @@
 
 use serde::Deserialize;
 
-use super::burgers::{Method, Setup, TrainSettings};
-use crate::nn::{Activation, Net, Padding, presets};
+use crate::burgers::{Method, Setup, TrainSettings};
+use diffsim::nn::{Activation, Net, Padding, presets};
 
 /// A training configuration as written.
 #[derive(Debug, Deserialize)]
@@ -73,7 +73,7 @@ impl<'de> Deserialize<'de> for Viscosity {
                 }
             }
         }
-        Err(D::Error::custom(format!("expected a number or a range [lo, hi], got {}", crate::files::shorten(&value.to_string(), crate::words::ECHO))))
+        Err(D::Error::custom(format!("expected a number or a range [lo, hi], got {}", diffsim::files::shorten(&value.to_string(), diffsim::words::ECHO))))
     }
 }
 
@@ -178,7 +178,7 @@ pub enum ConfigError {
     Syntax(String),
     /// The run would not fit the memory budget.
     #[error("training config: {0}")]
-    Memory(#[from] crate::memory::MemoryError),
+    Memory(#[from] diffsim::memory::MemoryError),
     /// A value the run cannot use.
     #[error("training config: `{key}`: {reason}")]
     Key {
@@ -226,15 +226,15 @@ fn rate(key: &'static str, v: f64) -> Result<f64, ConfigError> {
 impl TrainConfig {
     /// Number of network parameters.
     pub fn net_params(&self) -> usize {
-        crate::op::Operator::n_params(&self.net)
+        diffsim::op::Operator::n_params(&self.net)
     }
 
     /// Parses and checks a configuration.
     pub fn parse(text: &str) -> Result<Self, ConfigError> {
-        let f: TrainFile = toml::from_str(text).map_err(|e| ConfigError::Syntax(crate::words::toml_error(&e, text)))?;
+        let f: TrainFile = toml::from_str(text).map_err(|e| ConfigError::Syntax(diffsim::words::toml_error(&e, text)))?;
         let p = &f.problem;
         if p.kind != "burgers" {
-            return Err(ConfigError::Key { key: "problem.kind", reason: crate::words::unknown("problem", &p.kind, &["burgers"]) });
+            return Err(ConfigError::Key { key: "problem.kind", reason: diffsim::words::unknown("problem", &p.kind, &["burgers"]) });
         }
         let cells = positive("problem.cells", p.cells)?;
         if cells < 3 {
@@ -254,10 +254,10 @@ impl TrainConfig {
         let (d, fine) = (&f.data, p.refinement as u64);
         let trajectories =
             (d.train as u64).checked_mul(d.steps as u64 + 1).zip((d.test as u64).checked_mul(d.test_steps as u64 + 1)).and_then(|(a, b)| a.checked_add(b));
-        let data = trajectories.and_then(|t| crate::memory::f64s(&[t, cells as u64]));
-        let solver = crate::memory::f64s(&[cells as u64, fine, 16]);
+        let data = trajectories.and_then(|t| diffsim::memory::f64s(&[t, cells as u64]));
+        let solver = diffsim::memory::f64s(&[cells as u64, fine, 16]);
         let detail = format!("{} training and {} test trajectories of {cells} cells, a fine grid of {cells}×{fine} cells", d.train, d.test);
-        crate::memory::check("the training data", detail, data.zip(solver).and_then(|(a, b)| a.checked_add(b)), None)?;
+        diffsim::memory::check("the training data", detail, data.zip(solver).and_then(|(a, b)| a.checked_add(b)), None)?;
         let setup = Setup::new(
             cells,
             positive("problem.refinement", p.refinement)?,
@@ -308,7 +308,7 @@ impl TrainConfig {
                 }
                 presets::unet_1d(cells, 1, 1, width(n)?, k, Padding::Periodic, n.activation)
             }
-            other => return Err(ConfigError::Key { key: "network.preset", reason: crate::words::unknown("preset", other, &["conv", "resnet", "unet"]) }),
+            other => return Err(ConfigError::Key { key: "network.preset", reason: diffsim::words::unknown("preset", other, &["conv", "resnet", "unet"]) }),
         }
         .map_err(|e| ConfigError::Key { key: "network", reason: e.to_string() })?;
         let t = &f.training;
@@ -321,7 +321,7 @@ impl TrainConfig {
                 Method::Noise(t.noise)
             }
             "sol" => Method::Sol(positive("training.unroll", t.unroll)?),
-            other => return Err(ConfigError::Key { key: "training.method", reason: crate::words::unknown("method", other, &["pre", "noise", "sol"]) }),
+            other => return Err(ConfigError::Key { key: "training.method", reason: diffsim::words::unknown("method", other, &["pre", "noise", "sol"]) }),
         };
         if f.data.steps <= method.unroll() && range.is_none() {
             return Err(ConfigError::Key {
@@ -330,7 +330,7 @@ impl TrainConfig {
             });
         }
         if t.optimizer != "adam" && t.optimizer != "sgd" {
-            return Err(ConfigError::Key { key: "training.optimizer", reason: crate::words::unknown("optimizer", &t.optimizer, &["adam", "sgd"]) });
+            return Err(ConfigError::Key { key: "training.optimizer", reason: diffsim::words::unknown("optimizer", &t.optimizer, &["adam", "sgd"]) });
         }
         let settings = TrainSettings {
             method,

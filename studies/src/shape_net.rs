@@ -21,9 +21,9 @@ use diffsim_solvers::flow::ShapeError;
 use diffsim_solvers::flow::cylinder::DIAMETER;
 use diffsim_solvers::flow::drag_shape::{DragShapeOptions, Stream, drag_coefficient, optimise, reduced_gradient, shape_at_area, steady_drag};
 
-use crate::nn::{Activation, Init, Layer, Net};
-use crate::op::{Forward, Vjp};
-use crate::train::optim::Optimizer;
+use diffsim::nn::{Activation, Init, Layer, Net};
+use diffsim::op::{Forward, Vjp};
+use diffsim::train::optim::Optimizer;
 
 /// What to train.
 #[derive(Clone, Debug, PartialEq)]

@@ -4,7 +4,7 @@
 //!   scheme or an operator split (upwind / semi-Lagrangian / MacCormack
 //!   advection, then explicit or implicit diffusion), against the Cole–Hopf
 //!   solution ([`diffsim_solvers::exact::ColeHopf`]).
-//! - [`flow`]: the 2D schemes of [`crate::fluids`] on a periodic box: the
+//! - [`flow`]: the 2D schemes of [`diffsim::fluids`] on a periodic box: the
 //!   Taylor–Green vortex (advection, viscosity, pressure projection),
 //!   translation of a smooth profile by a constant velocity, and a Fourier
 //!   mode of the heat equation.
@@ -26,7 +26,7 @@ pub mod stability;
 
 use thiserror::Error;
 
-use crate::op::OpError;
+use diffsim::op::OpError;
 
 /// Diffusion in time: explicit (forward Euler, stable up to its limit) or
 /// implicit (backward Euler, solved by conjugate gradients to a relative
@@ -86,7 +86,7 @@ pub enum AccuracyError {
     Flow(#[from] diffsim_solvers::flow::FlowError),
 }
 
-pub(crate) use crate::rollout::all_finite;
+pub(crate) use diffsim::rollout::all_finite;
 
 /// `‖a − b‖₂ / ‖b‖₂`.
 pub fn relative_l2(a: &[f64], b: &[f64]) -> f64 {

@@ -16,9 +16,9 @@
 //!   sine modes), run `warmup` coarse steps on the fine grid before the
 //!   trajectory starts.
 //! - The network sees and corrects the two velocity components as image
-//!   channels ([`crate::nn::presets::mac_conv_stack`]).
+//!   channels ([`diffsim::nn::presets::mac_conv_stack`]).
 //!
-//! The study itself is [`super::sol`]'s, the same as on Burgers.
+//! The study itself is [`crate::sol`]'s, the same as on Burgers.
 
 use std::cell::RefCell;
 use std::f64::consts::PI;
@@ -30,10 +30,10 @@ use rayon::prelude::*;
 use diffsim_solvers::boundary::{Boundary, Profile, Side, for_each_face};
 use diffsim_solvers::smoke::{Scheme, Smoke2d, obstacle_disc};
 
-use super::sol::{Method, SolProblem, StudyConfig, TrainSettings, Trajectory};
-use crate::fluids::{Advect, Diffuse, DiffuseExplicit, Project};
-use crate::nn::{Activation, Net, presets};
-use crate::op::{Forward, Jvp, OpError, Operator, PerThread, Vjp, validate_forward, validate_jvp, validate_vjp};
+use crate::sol::{Method, SolProblem, StudyConfig, TrainSettings, Trajectory};
+use diffsim::fluids::{Advect, Diffuse, DiffuseExplicit, Project};
+use diffsim::nn::{Activation, Net, presets};
+use diffsim::op::{Forward, Jvp, OpError, Operator, PerThread, Vjp, validate_forward, validate_jvp, validate_vjp};
 
 /// One step of the channel flow: advection of the velocity, explicit
 /// viscosity `κ = ν·dt`, projection with the obstacle. Derivatives chain

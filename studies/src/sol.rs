@@ -10,19 +10,19 @@
 //! - Evaluation: rollouts from held-out reference initial states, relative
 //!   L2 error against the reference per step.
 //!
-//! [`super::burgers`] (1D Burgers) and [`super::wake`] (2D flow past a
+//! [`crate::burgers`] (1D Burgers) and [`crate::wake`] (2D flow past a
 //! disc) are the two problems.
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-pub use super::TimeShares;
-use super::checkpoint::{CheckpointError, PartProgress, Parts};
-use super::{Coupled, Coupling, Optimizer, Sample, batch_gradient_over, clip_by_norm};
-use crate::distributed::{DistributedError, World};
-use crate::nn::Net;
-use crate::op::{Forward, Jvp, Operator, Vjp};
-use crate::rollout::{Checkpointing, RolloutError};
+use diffsim::distributed::{DistributedError, World};
+use diffsim::nn::Net;
+use diffsim::op::{Forward, Jvp, Operator, Vjp};
+use diffsim::rollout::{Checkpointing, RolloutError};
+pub use diffsim::train::TimeShares;
+use diffsim::train::checkpoint::{CheckpointError, PartProgress, Parts};
+use diffsim::train::{Coupled, Coupling, Optimizer, Sample, batch_gradient_over, clip_by_norm};
 
 /// A reference trajectory: coarse states `0..=steps`.
 pub type Trajectory = Vec<Vec<f64>>;
@@ -205,7 +205,7 @@ pub fn train<P: SolProblem>(
             };
             let t0 = rng.random_range(0..len - k);
             let noise: Vec<f64> = match s.method {
-                Method::Noise(sigma) => (0..state_len).map(|_| sigma * crate::nn::normal(&mut rng)).collect(),
+                Method::Noise(sigma) => (0..state_len).map(|_| sigma * diffsim::nn::normal(&mut rng)).collect(),
                 _ => Vec::new(),
             };
             if let Some(traj) = traj.filter(|_| mine.contains(&b)) {
@@ -484,7 +484,7 @@ pub fn study<P: SolProblem>(
 /// layer *with parameters* zero (layers after it, such as a gather, have
 /// none), so that training starts from the source solver.
 pub fn initial_params(net: &Net, seed: u64) -> Vec<f64> {
-    let mut theta = net.init(&mut StdRng::seed_from_u64(seed), crate::nn::Init::Glorot);
+    let mut theta = net.init(&mut StdRng::seed_from_u64(seed), diffsim::nn::Init::Glorot);
     let last = net.layers().iter().rev().map(|l| l.n_params()).find(|&k| k > 0).unwrap_or(0);
     let n = theta.len();
     theta[n - last..].fill(0.0);

@@ -1,12 +1,12 @@
 //! Solver-in-the-loop on Burgers (Um et al., NeurIPS 2020): a network
 //! corrects a coarse solver toward a downsampled fine reference (the study
-//! itself, generic over the problem, is [`super::sol`]).
+//! itself, generic over the problem, is [`crate::sol`]).
 //!
 //! - Reference: P1's scheme on `N_f = 256` cells with P1's time step
 //!   `dt_f`; every `4` fine steps it is downsampled to `N = 32` cells by
 //!   averaging each 8 fine cells.
 //! - Source: the same scheme on the coarse grid with `dt = 4·dt_f`.
-//! - Corrected: `u_{t+1} = v + N(v; θ)`, `v = source(u_t)` ([`super::Coupling::Add`]).
+//! - Corrected: `u_{t+1} = v + N(v; θ)`, `v = source(u_t)` ([`diffsim::train::Coupling::Add`]).
 //! - Training variants (same network, same number of updates): PRE (one
 //!   step, supervised on reference pairs), NOISE (PRE with Gaussian input
 //!   noise), SOL-k (unrolled `k` corrected steps from a reference state,
@@ -21,13 +21,13 @@ use rand::rngs::StdRng;
 
 use diffsim_solvers::burgers::Burgers1d;
 
-use super::sol::SolProblem;
-pub use super::sol::{
+use crate::sol::SolProblem;
+pub use crate::sol::{
     EvalError, LogRow, Method, StudyConfig, StudyError, TimeShares, TrainData, TrainSettings, Trajectory, VariantResult, evaluate, initial_params, mean, study,
     train,
 };
-use crate::nn::{Activation, Net};
-use crate::problems::burgers::BurgersEnzyme;
+use diffsim::nn::{Activation, Net};
+use diffsim::problems::burgers::BurgersEnzyme;
 
 /// The grids and time steps of the study.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -156,10 +156,10 @@ impl StudyConfig<Setup> {
 /// blocks, kernel 5); periodic padding throughout, activation `act`. A zero
 /// width is refused by [`Net::new`].
 ///
-/// [`presets::unet_1d`]: crate::nn::presets::unet_1d
-/// [`presets::resnet_1d`]: crate::nn::presets::resnet_1d
+/// [`presets::unet_1d`]: diffsim::nn::presets::unet_1d
+/// [`presets::resnet_1d`]: diffsim::nn::presets::resnet_1d
 pub fn correction_net(name: &str, n: usize, width: usize, act: Activation) -> Result<Net, String> {
-    use crate::nn::{Padding::Periodic, presets};
+    use diffsim::nn::{Padding::Periodic, presets};
     let net = match name {
         "conv-stack" => presets::conv_stack_1d(n, &[1, width, width, 1], 5, Periodic, act),
         "unet" => presets::unet_1d(n, 1, 1, width, 5, Periodic, act),

@@ -9,16 +9,16 @@
 //! small, run and differentiated). A reader may refuse the input with an
 //! error; it must never panic, hang or allocate past the memory budget, and
 //! its message must be short enough to read. The checks run with a budget of
-//! [`BUDGET`] bytes on the calling thread ([`crate::memory::with_budget`]).
+//! [`BUDGET`] bytes on the calling thread ([`diffsim::memory::with_budget`]).
 
 use std::path::Path;
 
-use crate::memory::with_budget;
-use crate::nn::ParamStore;
-use crate::rollout::Checkpointing;
-use crate::scene::{AnyScene, npy_values};
-use crate::train::checkpoint::Checkpoint;
-use crate::train::config::TrainConfig;
+use diffsim::memory::with_budget;
+use diffsim::nn::ParamStore;
+use diffsim::rollout::Checkpointing;
+use diffsim::scene::{AnyScene, npy_values};
+use diffsim::train::checkpoint::Checkpoint;
+use diffsim_studies::config::TrainConfig;
 
 /// The memory budget of a fuzzed input: 256 MiB (libFuzzer's own limit is
 /// 2 GiB; an input that fits the budget never comes near it).
@@ -35,17 +35,17 @@ const RUN_WORK: usize = 200_000;
 /// The folder a fuzzed scene's `.npy` paths are relative to
 /// (`fuzz/npy` of this checkout: small arrays the corpus names).
 pub fn npy_dir() -> &'static Path {
-    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/fuzz/npy"))
+    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../fuzz/npy"))
 }
 
 /// The configuration a fuzzed checkpoint is checked against (a network of
 /// 15 parameters: a whole checkpoint is a short input).
-const CONFIG: &str = include_str!("../fuzz/train_tiny.toml");
+const CONFIG: &str = include_str!("../../fuzz/train_tiny.toml");
 
 fn message(what: &str, e: &dyn std::fmt::Display) {
     let m = e.to_string();
     assert!(!m.is_empty(), "{what}: an empty error message");
-    assert!(m.chars().count() <= MAX_MESSAGE, "{what}: an error message of {} characters: {}…", m.chars().count(), crate::files::shorten(&m, 200));
+    assert!(m.chars().count() <= MAX_MESSAGE, "{what}: an error message of {} characters: {}…", m.chars().count(), diffsim::files::shorten(&m, 200));
 }
 
 /// A scene file: parsed and built; a small stepped scene is run, and

@@ -8,7 +8,7 @@ use diffsim_solvers::diffusion::{self, Grid, ImplicitSolver};
 use diffsim_solvers::exact::ColeHopf;
 
 use super::{AccuracyError, Diffusion, all_finite, positive, relative_l2, steps_to};
-use crate::op::OpError;
+use diffsim::op::OpError;
 
 /// The scheme of a run.
 #[derive(Clone, Copy, Debug, PartialEq)]

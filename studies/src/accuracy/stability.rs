@@ -17,14 +17,14 @@ use diffsim_solvers::smoke::Smoke2d;
 use super::AccuracyError;
 use super::Diffusion;
 use super::flow::{HeatRun, LENGTH, periodic_box};
-use crate::fluids::{Diffuse, Project};
-use crate::nn::{Activation, Init, presets};
-use crate::op::{Forward, OpError, Operator, Vjp};
-use crate::problems::burgers::{BurgersEnzyme, BurgersHand, P1};
-use crate::problems::oscillators::Oscillators;
-use crate::rollout::{Checkpointing, Pass, Rollout, RolloutError, all_finite};
-use crate::train::clip_by_norm;
-use crate::train::hig::{ControlSample, Hig, HigError, hig_step};
+use diffsim::fluids::{Diffuse, Project};
+use diffsim::nn::{Activation, Init, presets};
+use diffsim::op::{Forward, OpError, Operator, Vjp};
+use diffsim::problems::burgers::{BurgersEnzyme, BurgersHand, P1};
+use diffsim::problems::oscillators::Oscillators;
+use diffsim::rollout::{Checkpointing, Pass, Rollout, RolloutError, all_finite};
+use diffsim::train::clip_by_norm;
+use diffsim::train::hig::{ControlSample, Hig, HigError, hig_step};
 
 /// The outcome of one case.
 #[derive(Clone, Debug)]
@@ -377,7 +377,7 @@ pub fn nan_forward_detected() -> Case {
 pub fn nan_backward_detected() -> Case {
     let p = P1::new(64, 10);
     let hand = BurgersHand(p.cfg);
-    let loss = crate::rollout::AtSteps {
+    let loss = diffsim::rollout::AtSteps {
         steps: vec![5, 10],
         f: |t: usize, x: &[f64], g: &mut [f64]| {
             for (g, &a) in g.iter_mut().zip(x) {
