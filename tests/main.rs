@@ -26,6 +26,7 @@ mod properties;
 mod resume;
 mod rollout;
 mod rollout_wrt;
+mod rules;
 mod scenes;
 mod shapes;
 mod user_op;

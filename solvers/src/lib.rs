@@ -27,6 +27,7 @@ pub mod linalg;
 pub mod multigrid;
 pub mod nn;
 pub mod nonsmooth;
+pub mod optim;
 pub mod par;
 pub mod real;
 pub mod simd;

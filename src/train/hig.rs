@@ -221,7 +221,7 @@ fn finish(rows: usize, cols: usize, jac: Vec<f64>, grad: Vec<f64>, batch_len: us
 }
 
 /// The update `J^{−power}·∂L/∂y` of a batch Jacobian.
-fn update_of(j: &BatchJacobian, h: &Hig) -> Result<Vec<f64>, HigError> {
+pub(crate) fn update_of(j: &BatchJacobian, h: &Hig) -> Result<Vec<f64>, HigError> {
     let update = diffsim_solvers::linalg::pseudo_inverse_power_apply_with(j.rows, j.cols, &j.jac, &j.grad, h.power, h.truncation, h.method())
         .map_err(|_| HigError::Svd)?;
     if update.iter().any(|v| !v.is_finite()) {

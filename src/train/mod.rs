@@ -13,6 +13,7 @@ pub mod checkpoint;
 pub mod hig;
 pub mod optim;
 pub mod pg;
+pub mod rule;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
@@ -23,7 +24,8 @@ use crate::distributed::World;
 use crate::op::{Forward, Jvp, OpError, Operator, Real, Vjp, validate_forward, validate_jvp, validate_vjp};
 use crate::rollout::{AtSteps, Checkpointing, Rollout, RolloutError};
 
-pub use optim::{Optimizer, clip_by_norm};
+pub use optim::{Adam, AdamParams, Optimizer, Sgd, SgdParams, clip_by_norm};
+pub use rule::{ControlBatch, FnObjective, InverseBatch, Lbfgs, LbfgsParams, Objective, RolloutBatch, Sip, TrainError, UpdateRule};
 
 /// How the network acts on each step.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
