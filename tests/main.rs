@@ -29,6 +29,7 @@ mod rollout_wrt;
 mod rules;
 mod scenes;
 mod shapes;
+mod trainer;
 mod user_op;
 mod wake;
 

@@ -14,6 +14,7 @@ pub mod hig;
 pub mod optim;
 pub mod pg;
 pub mod rule;
+pub mod trainer;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
@@ -26,6 +27,7 @@ use crate::rollout::{AtSteps, Checkpointing, Rollout, RolloutError};
 
 pub use optim::{Adam, AdamParams, Optimizer, Sgd, SgdParams, clip_by_norm};
 pub use rule::{ControlBatch, FnObjective, InverseBatch, Lbfgs, LbfgsParams, Objective, RolloutBatch, Sip, TrainError, UpdateRule};
+pub use trainer::{Schedule, Trainer, TrainerParams};
 
 /// How the network acts on each step.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

@@ -16,13 +16,14 @@
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use diffsim::distributed::{DistributedError, World};
+use diffsim::distributed::World;
 use diffsim::nn::Net;
 use diffsim::op::{Forward, Jvp, Operator, Vjp};
-use diffsim::rollout::{Checkpointing, RolloutError};
+use diffsim::rollout::Checkpointing;
 pub use diffsim::train::TimeShares;
+pub use diffsim::train::TrainError;
 use diffsim::train::checkpoint::{CheckpointError, PartProgress, Parts};
-use diffsim::train::{Coupled, Coupling, Optimizer, Sample, batch_gradient_over, clip_by_norm};
+use diffsim::train::{Coupled, Coupling, Objective, Optimizer, Sample, Schedule, Trainer, TrainerParams, batch_gradient_over};
 
 /// A reference trajectory: coarse states `0..=steps`.
 pub type Trajectory = Vec<Vec<f64>>;
@@ -123,8 +124,12 @@ impl TrainSettings {
 
     /// The learning rate of iteration `it` (1-based).
     pub fn lr_at(&self, it: usize) -> f64 {
-        let f = (it.saturating_sub(1) as f64 / self.decay_over.max(1) as f64).min(1.0);
-        self.lr_end + 0.5 * (self.lr - self.lr_end) * (1.0 + (std::f64::consts::PI * f).cos())
+        self.schedule().at(it).unwrap_or(self.lr)
+    }
+
+    /// The schedule: cosine from `lr` to `lr_end` over `decay_over`.
+    pub fn schedule(&self) -> Schedule {
+        Schedule::Cosine { start: self.lr, end: self.lr_end, over: self.decay_over }
     }
 }
 
@@ -146,10 +151,11 @@ pub struct LogRow {
 /// last).
 pub const SAME_STATE_EVERY: usize = 20;
 
-/// Trains `theta` in place on batches from `data`; calls
-/// `progress(row, theta, optimizer)` after every iteration, which may stop
-/// the run early by returning `ControlFlow::Break` (for checkpoints and
-/// interrupts). Returns where the time went.
+/// Trains `theta` in place on batches from `data` with the library's
+/// [`Trainer`] (iterations from `s.first`, the cosine schedule, clipping);
+/// calls `progress(row, theta, optimizer)` after every iteration, which may
+/// stop the run early by returning `ControlFlow::Break` (for checkpoints
+/// and interrupts). Returns where the time went.
 ///
 /// Over the ranks of `world` (data-parallel training), every rank holds
 /// the same `theta` and `opt` on entry, draws the same batches and unrolls
@@ -170,28 +176,31 @@ pub fn train<P: SolProblem>(
 ) -> Result<TimeShares, TrainError> {
     let k = s.method.unroll();
     let steps: Vec<usize> = (1..=k).collect();
-    let mut shares = TimeShares::default();
+    let shares = std::cell::RefCell::new(TimeShares::default());
     // One source solver for fixed data (it may own work buffers), one per
     // batch for data drawn with a new viscosity.
     let fixed_source = setup.source();
-    let start = std::time::Instant::now();
     let mine = world.share(s.batch);
     let state_len = fixed_source.n_in();
-    let last = s.first + s.iterations - 1;
-    for it in s.first..=last {
+    let trainer = Trainer::new(
+        TrainerParams { first: s.first, iterations: s.iterations, schedule: s.schedule(), clip: s.clip, same_state_every: SAME_STATE_EVERY },
+        world,
+    );
+    let batch_at = |it: usize| -> Result<SolBatch<'_, P>, TrainError> {
         // The batch of iteration `it` depends only on the seed and `it`;
         // every rank draws all of it (the generator's stream), keeping and
         // simulating only its share.
         let mut rng = StdRng::seed_from_u64(s.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ it as u64);
-        let random_setup: P;
+        let mut source = Source::Fixed(&fixed_source);
         let generated: Vec<Trajectory>;
-        let (batch_setup, trajectories): (&P, &[Trajectory]) = match data {
-            TrainData::Fixed(d) => (setup, d),
+        let trajectories: &[Trajectory] = match data {
+            TrainData::Fixed(d) => d,
             TrainData::Random { nu, horizon } => {
                 let nu = if nu.1 > nu.0 { rng.random_range(nu.0..nu.1) } else { nu.0 };
-                random_setup = setup.with_viscosity(nu);
+                let random_setup = setup.with_viscosity(nu);
                 generated = random_setup.dataset_share(s.batch, horizon + k, &mut rng, mine.clone());
-                (&random_setup, &generated)
+                source = Source::Own(random_setup.source());
+                &generated
             }
         };
         let mut batch: Vec<Sample> = Vec::with_capacity(mine.len());
@@ -216,32 +225,52 @@ pub fn train<P: SolProblem>(
                 batch.push(Sample { x0, targets: traj[t0 + 1..=t0 + k].to_vec() });
             }
         }
-        let batch_source;
-        let source = match data {
-            TrainData::Fixed(_) => &fixed_source,
-            TrainData::Random { .. } => {
-                batch_source = batch_setup.source();
-                &batch_source
-            }
-        };
-        let coupled = Coupled::new(source, &[], net, Coupling::Add).expect("the study's network fits the solver");
         let mode = if k <= 64 { Checkpointing::Store } else { Checkpointing::periodic_sqrt(k) };
-        let (loss, mut grad) = batch_gradient_over(world, &coupled, theta, k, &steps, &batch, s.batch, mode)?;
-        shares.add_timers(&coupled.timers);
-        let grad_norm = clip_by_norm(&mut grad, s.clip);
-        let t = std::time::Instant::now();
-        opt.set_lr(s.lr_at(it));
-        opt.step(theta, &grad);
-        shares.optimizer += t.elapsed().as_secs_f64();
-        if it % SAME_STATE_EVERY == 0 || it == last {
-            world.check_same("parameters and optimizer state", || format!("iteration {it}"), &[theta, &opt.state()])?;
-        }
-        if progress(LogRow { iteration: it, loss, grad_norm, seconds: start.elapsed().as_secs_f64() }, theta, opt).is_break() {
-            break;
-        }
-    }
-    shares.total = start.elapsed().as_secs_f64();
+        Ok(SolBatch { source, net, batch, unroll: k, steps: &steps, mode, world, batch_len: s.batch, shares: &shares })
+    };
+    let info = trainer.run(opt, theta, batch_at, |row, theta, opt| {
+        progress(LogRow { iteration: row.iteration, loss: row.loss, grad_norm: row.grad_norm.unwrap_or(f64::NAN), seconds: row.seconds }, theta, opt)
+    })?;
+    let mut shares = shares.into_inner();
+    shares.total = info.seconds;
     Ok(shares)
+}
+
+/// The source solver of a batch: the study's own, or one made for the
+/// batch's drawn viscosity.
+enum Source<'a, S> {
+    Fixed(&'a S),
+    Own(S),
+}
+
+/// One iteration's objective: the corrected solver unrolled from each of
+/// this rank's samples, the batch shared over the ranks.
+struct SolBatch<'a, P: SolProblem> {
+    source: Source<'a, P::Solver>,
+    net: &'a Net,
+    batch: Vec<Sample>,
+    unroll: usize,
+    steps: &'a [usize],
+    mode: Checkpointing,
+    world: &'a World,
+    batch_len: usize,
+    shares: &'a std::cell::RefCell<TimeShares>,
+}
+
+impl<P: SolProblem> Objective for SolBatch<'_, P> {
+    fn n_params(&self) -> usize {
+        self.net.n_params()
+    }
+    fn loss_and_gradient(&mut self, theta: &[f64]) -> Result<(f64, Vec<f64>), TrainError> {
+        let source = match &self.source {
+            Source::Fixed(s) => *s,
+            Source::Own(s) => s,
+        };
+        let coupled = Coupled::new(source, &[], self.net, Coupling::Add).expect("the study's network fits the solver");
+        let r = batch_gradient_over(self.world, &coupled, theta, self.unroll, self.steps, &self.batch, self.batch_len, self.mode);
+        self.shares.borrow_mut().add_timers(&coupled.timers);
+        Ok(r?)
+    }
 }
 
 /// Relative L2 error per step (`1..=steps`), averaged over the
@@ -270,17 +299,6 @@ pub fn evaluate<P: SolProblem>(setup: &P, net: &Net, theta: Option<&[f64]>, data
         }
     }
     Ok(err)
-}
-
-/// A training run that failed.
-#[derive(Debug, thiserror::Error)]
-pub enum TrainError {
-    /// A rollout failed (a non-finite loss or gradient, with where).
-    #[error(transparent)]
-    Rollout(#[from] RolloutError),
-    /// The ranks of a distributed run no longer agree.
-    #[error(transparent)]
-    Distributed(#[from] DistributedError),
 }
 
 /// A rollout that blew up during evaluation.
