@@ -12,7 +12,8 @@ use std::time::Instant;
 use diffsim::check::{CheckOptions, FullReport, check_all, dot_product_between};
 use diffsim::op::{Forward, OperatorExt};
 use diffsim::rollout::{AtSteps, Checkpointing, Rollout, RolloutLoss, Wrt};
-use diffsim::train::Optimizer;
+use diffsim::distributed::World;
+use diffsim::train::{Adam, AdamParams, FnObjective, Schedule, TrainError, Trainer, TrainerParams};
 use starter_solver::{Fkpp, FkppHand, FkppHeun, FkppStencil};
 
 /// What the program returns on failure: any error, printed by `main`.
@@ -201,24 +202,36 @@ fn checks_through_the_rollout() -> Result<()> {
 // ANCHOR_END: through
 
 // ANCHOR: fit
-/// Recovers the parameters from the observations: Adam on `L(p)` with the
-/// gradient through the rollout, the learning rate decaying from 0.02 by
-/// 0.3 % per iteration.
+/// Recovers the parameters from the observations with the library's
+/// trainer: the objective is `L(p)` with its gradient through the rollout,
+/// the rule Adam, the learning rate decaying from 0.02 by 0.3 % per
+/// iteration. Any other rule takes Adam's place unchanged (L-BFGS:
+/// `Lbfgs::new(LbfgsParams::default())?`).
 fn fit_with_adam() -> Result<()> {
     println!("4. fit [ν, r] with Adam");
     let pb = problem();
     let loss = misfit(&pb.observations);
     let mut p = pb.guess.to_vec();
-    let mut adam = Optimizer::adam(0.02);
     let first = Rollout::new(&pb.op, &p, STEPS)?.loss(&pb.u0, &loss)?;
-    for it in 0..=400 {
-        let g = Rollout::new(&pb.op, &p, STEPS)?.value_and_grad(&pb.u0, &loss, Checkpointing::Store)?;
-        if it % 100 == 0 {
-            println!("  iteration {it:4}: L = {:.3e}, p = [{:.5}, {:.5}]", g.loss, p[0], p[1]);
+    let objective = |_iteration: usize| -> std::result::Result<_, TrainError> {
+        Ok(FnObjective {
+            n: 2,
+            f: |p: &[f64]| {
+                let g = Rollout::new(&pb.op, p, STEPS)?.value_and_grad(&pb.u0, &loss, Checkpointing::Store)?;
+                Ok((g.loss, g.dp))
+            },
+        })
+    };
+    let mut adam = Adam::new(AdamParams { lr: 0.02, ..AdamParams::default() });
+    let schedule = Schedule::Exponential { start: 0.02, factor: 0.997 };
+    let world = World::single();
+    let trainer = Trainer::new(TrainerParams { iterations: 401, schedule, ..TrainerParams::default() }, &world);
+    trainer.run(&mut adam, &mut p, objective, |row, _, _| {
+        if row.iteration % 100 == 1 {
+            println!("  iteration {:4}: L = {:.3e}", row.iteration, row.loss);
         }
-        adam.set_lr(0.02 * 0.997f64.powi(it));
-        adam.step(&mut p, &g.dp);
-    }
+        std::ops::ControlFlow::Continue(())
+    })?;
     let last = Rollout::new(&pb.op, &p, STEPS)?.loss(&pb.u0, &loss)?;
     let error = p.iter().zip(&pb.truth).map(|(a, b)| ((a - b) / b).abs()).fold(0.0, f64::max);
     println!("  loss {first:.3e} → {last:.3e}; p = [{:.5}, {:.5}], truth {:?}, largest relative error {error:.1e}", p[0], p[1], pb.truth);
