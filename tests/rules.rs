@@ -199,7 +199,7 @@ fn hig_and_gauss_newton_as_rules_take_the_studies_steps_bit_for_bit() {
         .collect();
     let same_steps = |mut rule: Hig| {
         let (mut by_rule, mut by_function) = (theta0.clone(), theta0.clone());
-        let mut objective = ControlBatch { physics: &physics, net: &net, batch: &data };
+        let mut objective = ControlBatch::new(&physics, &net, &data);
         for _ in 0..3 {
             let a = rule.step(&mut objective, &mut by_rule).unwrap();
             let b = hig_step(&physics, &net, &mut by_function, &data, &rule).unwrap();

@@ -793,7 +793,7 @@ fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
     let _out = if world.is_root() { Some(super::claim_out(&a.out, a.overwrite, &[])?) } else { None };
     let parts = if world.is_root() { Parts::open(&a.out.join("parts"), settings, a.resume)? } else { Parts::kept_elsewhere(&a.out.join("parts"), settings) };
     exit_on_interrupt(&a.out, "each problem's runs (timed by the wall clock)");
-    let fail = |e: diffsim::train::hig::HigError| CliError::Argument { arg: "hig-oscillators", reason: e.to_string() };
+    let fail = |e: diffsim::train::TrainError| CliError::Argument { arg: "hig-oscillators", reason: e.to_string() };
     let say = |problem: &'static str| {
         let quiet = a.json || !world.is_root();
         move |m: OscMethod, t: f64| {

@@ -77,11 +77,14 @@ impl std::fmt::Debug for Lbfgs {
     }
 }
 
+/// A point, the loss there and its gradient.
+type Evaluation = (Vec<f64>, f64, Vec<f64>);
+
 /// The objective as argmin sees it: loss and gradient evaluated together
 /// and cached for the last point (argmin asks for them separately).
 struct Fun<'a, 'b> {
     f: RefCell<&'a mut Objective<'b>>,
-    last: RefCell<Option<(Vec<f64>, f64, Vec<f64>)>>,
+    last: RefCell<Option<Evaluation>>,
     evaluations: Cell<usize>,
     max_evaluations: usize,
     /// The first failure, kept whole (argmin's error would reword it).
@@ -103,7 +106,7 @@ impl Fun<'_, '_> {
             return Err(fail(format!("the line search found no acceptable step in {} evaluations", self.max_evaluations)));
         }
         self.evaluations.set(self.evaluations.get() + 1);
-        let (l, g) = (self.f.borrow_mut())(x).map_err(&fail)?;
+        let (l, g) = (self.f.borrow_mut())(x).map_err(fail)?;
         if g.len() != x.len() {
             return Err(fail(format!("the gradient has {} values for {} parameters", g.len(), x.len())));
         }
@@ -216,7 +219,8 @@ impl Lbfgs {
             return Err(m);
         }
         let loss_after = next.get_cost();
-        if !(loss_after <= loss_before) {
+        // (Also when the loss after is NaN.)
+        if loss_after.partial_cmp(&loss_before) != Some(std::cmp::Ordering::Less) && loss_after != loss_before {
             // The search ended above its start: along the direction the
             // gradient gives, the loss does not fall (a wrong gradient, or
             // a kink); moving would undo progress.
@@ -283,7 +287,7 @@ mod tests {
         assert_eq!(y, [-1.2, 1.0], "the point is left where it was");
         // A loss that is NaN away from the start is an error, named.
         let mut nan = |x: &[f64]| if x[0] == -1.2 { rosenbrock(x) } else { Ok((f64::NAN, vec![0.0, 0.0])) };
-        let e = Lbfgs::new(LbfgsParams::default()).unwrap().step(&mut nan, &mut vec![-1.2, 1.0]).unwrap_err();
+        let e = Lbfgs::new(LbfgsParams::default()).unwrap().step(&mut nan, &mut [-1.2, 1.0]).unwrap_err();
         assert!(e.contains("not finite"), "{e}");
         assert!(Lbfgs::new(LbfgsParams { memory: 0, ..Default::default() }).is_err());
         assert!(Lbfgs::new(LbfgsParams { tolerance_grad: f64::NAN, ..Default::default() }).is_err());

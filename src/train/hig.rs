@@ -252,12 +252,30 @@ pub fn hig_step_over<P: Vjp + Sync, N: Vjp + Sync>(
     batch_len: usize,
     h: &Hig,
 ) -> Result<f64, HigError> {
+    let (loss, update) = update_over(world, physics, net, theta, mine, batch_len, h)?;
+    for (t, d) in theta.iter_mut().zip(&update) {
+        *t -= h.lr * d;
+    }
+    Ok(loss)
+}
+
+/// The batch loss and the update `J^{−power}·∂L/∂y` of [`hig_step_over`]
+/// (before the step size), the same on every rank.
+pub(crate) fn update_over<P: Vjp + Sync, N: Vjp + Sync>(
+    world: &World,
+    physics: &P,
+    net: &N,
+    theta: &[f64],
+    mine: &[ControlSample],
+    batch_len: usize,
+    h: &Hig,
+) -> Result<(f64, Vec<f64>), HigError> {
     let n_out = physics.n_out();
     let (rows, cols) = within_budget(n_out, batch_len, theta.len(), h.memory_budget)?;
     let (jac, grad) = jacobian_rows(physics, net, theta, mine, batch_len);
     // The loss and the update of the whole batch's Jacobian.
     let decompose = |jac, grad| finish(rows, cols, jac, grad, batch_len).and_then(|j| Ok((j.loss, update_of(&j, h)?)));
-    let step = if world.size() == 1 {
+    if world.size() == 1 {
         decompose(jac, grad)
     } else {
         // Each rank's rows, then its gradient entries; on rank 0 the
@@ -289,10 +307,5 @@ pub fn hig_step_over<P: Vjp + Sync, N: Vjp + Sync>(
         } else {
             Err(HigError::NonFinite)
         }
-    };
-    let (loss, update) = step?;
-    for (t, d) in theta.iter_mut().zip(&update) {
-        *t -= h.lr * d;
     }
-    Ok(loss)
 }

@@ -24,6 +24,7 @@ use super::hig::{BatchJacobian, ControlSample, Hig, HigError};
 use super::optim::{Adam, AdamParams, Optimizer, Sgd};
 use super::pg::{InverseSample, PgError, SipGradient};
 use super::{Sample, batch_gradient};
+use crate::distributed::World;
 use crate::op::{LocalInverse, Vjp};
 use crate::rollout::{Checkpointing, RolloutError};
 
@@ -88,6 +89,16 @@ pub trait Objective {
     fn jacobian(&mut self, theta: &[f64], memory_budget: usize) -> Result<BatchJacobian, TrainError> {
         let _ = (theta, memory_budget);
         Err(TrainError::Unsupported { rule: "HIG / Gauss–Newton", needs: "the outputs' Jacobian (Objective::jacobian)" })
+    }
+
+    /// The loss and the update `J^{−power}·∂L/∂y` of `hig` (before its step
+    /// size). The default decomposes [`Objective::jacobian`] here; an
+    /// objective over several ranks gathers the Jacobian, decomposes it
+    /// once and shares the update ([`ControlBatch::over`]).
+    fn pseudo_inverse_update(&mut self, theta: &[f64], hig: &Hig) -> Result<(f64, Vec<f64>), TrainError> {
+        let j = self.jacobian(theta, hig.memory_budget)?;
+        let update = super::hig::update_of(&j, hig)?;
+        Ok((j.loss, update))
     }
 
     /// The physics loss and the gradient of the proxy loss towards the
@@ -261,12 +272,11 @@ impl UpdateRule for Hig {
         if self.power == 1.0 { "Gauss–Newton" } else { "HIG" }
     }
     fn step(&mut self, objective: &mut dyn Objective, theta: &mut [f64]) -> Result<f64, TrainError> {
-        let j = objective.jacobian(theta, self.memory_budget)?;
-        let update = super::hig::update_of(&j, self)?;
+        let (loss, update) = objective.pseudo_inverse_update(theta, self)?;
         for (t, d) in theta.iter_mut().zip(&update) {
             *t -= self.lr * d;
         }
-        Ok(j.loss)
+        Ok(loss)
     }
     fn learning_rate(&self) -> Option<f64> {
         Some(self.lr)
@@ -318,13 +328,28 @@ impl UpdateRule for Sip {
 
 /// A network `N(·; θ)` whose output drives the physics `P`, on a batch of
 /// [`ControlSample`]s (HIG's setting): loss `(1/B)·Σ‖P(x₀, N(y*)) − y*‖²`.
+/// Over the ranks of an mpirun ([`ControlBatch::over`]) each rank holds its
+/// share of the batch; gradients are reduced and HIG's Jacobian decomposed
+/// once, on rank 0, for all.
 pub struct ControlBatch<'a, P, N> {
-    /// The physics.
-    pub physics: &'a P,
-    /// The network.
-    pub net: &'a N,
-    /// The batch.
-    pub batch: &'a [ControlSample],
+    physics: &'a P,
+    net: &'a N,
+    batch: &'a [ControlSample],
+    world: Option<(&'a World, usize)>,
+}
+
+impl<'a, P, N> ControlBatch<'a, P, N> {
+    /// The whole batch in this process.
+    pub fn new(physics: &'a P, net: &'a N, batch: &'a [ControlSample]) -> Self {
+        ControlBatch { physics, net, batch, world: None }
+    }
+
+    /// This rank's share `batch` of a batch of `batch_len` samples shared
+    /// among the ranks of `world` ([`World::share`]).
+    pub fn over(mut self, world: &'a World, batch_len: usize) -> Self {
+        self.world = Some((world, batch_len));
+        self
+    }
 }
 
 impl<P: Vjp + Sync, N: Vjp + Sync> Objective for ControlBatch<'_, P, N> {
@@ -332,10 +357,21 @@ impl<P: Vjp + Sync, N: Vjp + Sync> Objective for ControlBatch<'_, P, N> {
         self.net.n_params()
     }
     fn loss_and_gradient(&mut self, theta: &[f64]) -> Result<(f64, Vec<f64>), TrainError> {
-        Ok(super::hig::loss_and_gradient(self.physics, self.net, theta, self.batch))
+        Ok(match self.world {
+            None => super::hig::loss_and_gradient(self.physics, self.net, theta, self.batch),
+            Some((world, len)) => super::hig::loss_and_gradient_over(world, self.physics, self.net, theta, self.batch, len),
+        })
     }
     fn jacobian(&mut self, theta: &[f64], memory_budget: usize) -> Result<BatchJacobian, TrainError> {
+        if self.world.is_some_and(|(w, _)| w.size() > 1) {
+            return Err(TrainError::Unsupported { rule: "a Jacobian over several ranks", needs: "one process (HIG's step decomposes it on rank 0)" });
+        }
         Ok(super::hig::batch_jacobian(self.physics, self.net, theta, self.batch, memory_budget)?)
+    }
+    fn pseudo_inverse_update(&mut self, theta: &[f64], hig: &Hig) -> Result<(f64, Vec<f64>), TrainError> {
+        let single = World::single();
+        let (world, len) = self.world.unwrap_or((&single, self.batch.len()));
+        Ok(super::hig::update_over(world, self.physics, self.net, theta, self.batch, len, hig)?)
     }
 }
 

@@ -17,7 +17,7 @@ use std::ops::ControlFlow;
 use std::time::Instant;
 
 use super::clip_by_norm;
-use super::hig::BatchJacobian;
+use super::hig::{BatchJacobian, Hig};
 use super::pg::SipGradient;
 use super::rule::{Objective, TrainError, UpdateRule};
 use crate::distributed::World;
@@ -99,6 +99,9 @@ pub struct Row {
     pub lr: Option<f64>,
     /// Seconds since the run started.
     pub seconds: f64,
+    /// Seconds of this iteration's objective and update (the observer's
+    /// own time, an evaluation say, excluded).
+    pub step_seconds: f64,
 }
 
 /// What a run did.
@@ -141,6 +144,9 @@ impl Objective for Clipped<'_> {
     fn jacobian(&mut self, theta: &[f64], memory_budget: usize) -> Result<BatchJacobian, TrainError> {
         self.inner.jacobian(theta, memory_budget)
     }
+    fn pseudo_inverse_update(&mut self, theta: &[f64], hig: &Hig) -> Result<(f64, Vec<f64>), TrainError> {
+        self.inner.pseudo_inverse_update(theta, hig)
+    }
     fn proxy_gradient(&mut self, theta: &[f64], eta: f64) -> Result<SipGradient, TrainError> {
         let mut s = self.inner.proxy_gradient(theta, eta)?;
         self.norm.set(Some(clip_by_norm(&mut s.grad, self.max)));
@@ -179,6 +185,7 @@ impl<'w> Trainer<'w> {
         let mut info = Info { last: p.first.saturating_sub(1), ..Info::default() };
         let last = p.first + p.iterations.saturating_sub(1);
         for it in p.first..p.first + p.iterations {
+            let step_start = Instant::now();
             let mut objective = objective_at(it)?;
             if let Some(lr) = p.schedule.at(it) {
                 rule.set_learning_rate(lr);
@@ -186,13 +193,14 @@ impl<'w> Trainer<'w> {
             let lr = rule.learning_rate();
             let mut clipped = Clipped { inner: &mut objective, max: p.clip, norm: Cell::new(None) };
             let loss = rule.step(&mut clipped, theta)?;
+            let step_seconds = step_start.elapsed().as_secs_f64();
             info.last = it;
             if it % p.same_state_every.max(1) == 0 || it == last {
                 self.world
                     .check_same("parameters and optimizer state", || format!("iteration {it}"), &[theta, &rule.state_values()])
                     .map_err(|e| TrainError::Distributed(e.to_string()))?;
             }
-            let row = Row { iteration: it, loss, grad_norm: clipped.norm.get(), lr, seconds: start.elapsed().as_secs_f64() };
+            let row = Row { iteration: it, loss, grad_norm: clipped.norm.get(), lr, seconds: start.elapsed().as_secs_f64(), step_seconds };
             if observe(&row, theta, rule).is_break() {
                 info.stopped = it < last;
                 break;

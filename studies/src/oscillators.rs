@@ -10,8 +10,10 @@ use diffsim::distributed::World;
 use diffsim::nn::{Activation, Init, Net, presets};
 use diffsim::op::Forward;
 use diffsim::problems::oscillators::Oscillators;
-use diffsim::train::Optimizer;
-use diffsim::train::hig::{ControlSample, Hig, HigError, hig_step_over, loss_and_gradient_over};
+use std::ops::ControlFlow;
+
+use diffsim::train::hig::{ControlSample, Hig, HigError};
+use diffsim::train::{ControlBatch, Optimizer, TrainError, Trainer, TrainerParams, UpdateRule};
 
 /// The optimizers compared.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -191,10 +193,12 @@ pub fn dataset_loss(physics: &Oscillators, net: &Net, theta: &[f64], data: &[Con
 /// not an error). `progress(method, seconds)` is called after each
 /// evaluation.
 ///
-/// Over the ranks of `world` each batch is shared ([`hig_step_over`],
-/// [`loss_and_gradient_over`]) and rank 0's clock decides for all when a
-/// time budget is spent.
-pub fn compare(cfg: &OscConfig, methods: &[OscMethod], world: &World, mut progress: impl FnMut(OscMethod, f64)) -> Result<Vec<Curve>, HigError> {
+/// Each method is an [`UpdateRule`] trained by the library's [`Trainer`]
+/// on a [`ControlBatch`] per iteration (the training set's batches in
+/// order, an epoch after another). Over the ranks of `world` each batch is
+/// shared, HIG's Jacobian is decomposed once on rank 0, and rank 0's clock
+/// decides for all when a time budget is spent.
+pub fn compare(cfg: &OscConfig, methods: &[OscMethod], world: &World, mut progress: impl FnMut(OscMethod, f64)) -> Result<Vec<Curve>, TrainError> {
     let (data, test) = datasets(cfg);
     let net = cfg.network();
     let theta0 = cfg.initial_params(&net);
@@ -203,60 +207,53 @@ pub fn compare(cfg: &OscConfig, methods: &[OscMethod], world: &World, mut progre
     let mut curves = Vec::new();
     for &method in methods {
         let mut theta = theta0.clone();
-        let mut adam = Optimizer::adam(cfg.adam_lr);
-        let batch = match method {
-            OscMethod::Hig => cfg.hig_batch,
-            OscMethod::Adam => cfg.adam_batch,
-            OscMethod::GaussNewton => cfg.gn_batch,
+        let (mut rule, batch): (Box<dyn UpdateRule>, usize) = match method {
+            OscMethod::Hig => (Box::new(cfg.hig), cfg.hig_batch),
+            OscMethod::Adam => (Box::new(Optimizer::adam(cfg.adam_lr)), cfg.adam_batch),
+            OscMethod::GaussNewton => (Box::new(cfg.gn), cfg.gn_batch),
         };
         let mine = world.share(batch);
+        let per_epoch = (data.len() / batch).max(1);
         let mut points = vec![(0.0, dataset_loss(&cfg.problem, &net, &theta, &test))];
-        let (mut trained, mut next, mut updates, mut at) = (0.0, every, 0, 0);
+        let (mut trained, mut next, mut updates) = (0.0, every, 0);
         let mut diverged_after = None;
-        while cfg.updates.map_or(trained < cfg.budget_s, |n| updates < n) {
-            if at + batch > data.len() {
-                at = 0;
-            }
-            let b = &data[at..at + batch][mine.clone()];
-            at += batch;
-            let t = std::time::Instant::now();
-            let step = match method {
-                OscMethod::Hig => hig_step_over(world, &cfg.problem, &net, &mut theta, b, batch, &cfg.hig).map(drop),
-                OscMethod::GaussNewton => hig_step_over(world, &cfg.problem, &net, &mut theta, b, batch, &cfg.gn).map(drop),
-                OscMethod::Adam => {
-                    let (l, g) = loss_and_gradient_over(world, &cfg.problem, &net, &theta, b, batch);
-                    if l.is_finite() && g.iter().all(|v| v.is_finite()) {
-                        adam.step(&mut theta, &g);
-                        Ok(())
-                    } else {
-                        Err(HigError::NonFinite)
-                    }
-                }
-            };
+        // A time budget runs until it is spent: the trainer's count is
+        // only a bound.
+        let iterations = match cfg.updates {
+            Some(n) => n,
+            None if cfg.budget_s > 0.0 => usize::MAX / 4,
+            None => 0,
+        };
+        let trainer = Trainer::new(TrainerParams { iterations, ..TrainerParams::default() }, world);
+        let batch_at = |it: usize| {
+            let at = ((it - 1) % per_epoch) * batch;
+            Ok(ControlBatch::new(&cfg.problem, &net, &data[at..at + batch][mine.clone()]).over(world, batch))
+        };
+        let run = trainer.run(rule.as_mut(), &mut theta, batch_at, |row, theta, _| {
             // Rank 0's clock decides for every rank.
-            trained = world.broadcast(vec![trained + t.elapsed().as_secs_f64()])[0];
-            match step {
-                Ok(()) => updates += 1,
-                Err(HigError::NonFinite) => {
-                    diverged_after = Some(updates);
-                    break;
-                }
-                Err(e) => return Err(e),
-            }
+            trained = world.broadcast(vec![trained + row.step_seconds])[0];
+            updates = row.iteration;
             let evaluate = match (cfg.updates, every_update) {
                 (Some(n), Some(e)) => updates % e == 0 || updates == n,
                 _ => trained >= next || trained >= cfg.budget_s,
             };
             if evaluate {
-                let l = dataset_loss(&cfg.problem, &net, &theta, &test);
+                let l = dataset_loss(&cfg.problem, &net, theta, &test);
                 if !l.is_finite() {
                     diverged_after = Some(updates);
-                    break;
+                    return ControlFlow::Break(());
                 }
                 points.push((trained, l));
                 progress(method, trained);
                 next += every;
             }
+            if cfg.updates.is_none() && trained >= cfg.budget_s { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
+        });
+        match run {
+            Ok(_) => {}
+            // A step that is no longer finite ends the curve there.
+            Err(TrainError::Hig(HigError::NonFinite) | TrainError::NonFinite { .. }) => diverged_after = Some(updates),
+            Err(e) => return Err(e),
         }
         curves.push(Curve { name: method.name().to_string(), points, updates, seconds: trained, diverged_after, second_points: Vec::new() });
     }
