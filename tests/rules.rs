@@ -225,7 +225,7 @@ fn sip_as_a_rule_is_adam_on_the_proxy_gradient() {
     let mut rule = Sip::new(0.5, AdamParams { lr: 1e-3, ..AdamParams::default() });
     let mut adam = Adam::new(AdamParams { lr: 1e-3, ..AdamParams::default() });
     let (mut by_rule, mut by_hand) = (theta0.clone(), theta0.clone());
-    let mut objective = InverseBatch { physics: &heat, net: &net, batch: &batch };
+    let mut objective = InverseBatch::new(&heat, &net, &batch[..]);
     for _ in 0..3 {
         let loss = rule.step(&mut objective, &mut by_rule).unwrap();
         let s = sip_gradient(&heat, &net, &by_hand, &batch, 0.5).unwrap();

@@ -60,7 +60,7 @@ pub(super) fn sip_smoke(a: SipSmokeArgs) -> Result<(), CliError> {
             eprint!("\r{}: {t:.0} of {:.0} s   ", m.name(), cfg.seconds);
         }
     })
-    .map_err(fail)?;
+    .map_err(|e| CliError::Argument { arg: "sip-smoke", reason: e.to_string() })?;
     if !quiet {
         eprintln!();
     }

@@ -153,45 +153,34 @@ fn finite(loss: f64, g: &[f64]) -> Result<(), TrainError> {
     }
 }
 
-impl UpdateRule for Sgd {
-    fn state_values(&self) -> Vec<f64> {
-        self.state()
-    }
-    fn name(&self) -> &'static str {
-        "SGD"
-    }
-    fn step(&mut self, objective: &mut dyn Objective, theta: &mut [f64]) -> Result<f64, TrainError> {
-        let (loss, g) = gradient(objective, theta)?;
-        self.update(theta, &g);
-        Ok(loss)
-    }
-    fn learning_rate(&self) -> Option<f64> {
-        Some(self.params.lr)
-    }
-    fn set_learning_rate(&mut self, lr: f64) {
-        self.params.lr = lr;
-    }
+/// The rule of a gradient optimizer with `update(θ, g)`, `state()` and
+/// `params.lr` (SGD, Adam).
+macro_rules! gradient_rule {
+    ($t:ty, $name:literal) => {
+        impl UpdateRule for $t {
+            fn name(&self) -> &'static str {
+                $name
+            }
+            fn step(&mut self, objective: &mut dyn Objective, theta: &mut [f64]) -> Result<f64, TrainError> {
+                let (loss, g) = gradient(objective, theta)?;
+                self.update(theta, &g);
+                Ok(loss)
+            }
+            fn learning_rate(&self) -> Option<f64> {
+                Some(self.params.lr)
+            }
+            fn set_learning_rate(&mut self, lr: f64) {
+                self.params.lr = lr;
+            }
+            fn state_values(&self) -> Vec<f64> {
+                self.state()
+            }
+        }
+    };
 }
 
-impl UpdateRule for Adam {
-    fn state_values(&self) -> Vec<f64> {
-        self.state()
-    }
-    fn name(&self) -> &'static str {
-        "Adam"
-    }
-    fn step(&mut self, objective: &mut dyn Objective, theta: &mut [f64]) -> Result<f64, TrainError> {
-        let (loss, g) = gradient(objective, theta)?;
-        self.update(theta, &g);
-        Ok(loss)
-    }
-    fn learning_rate(&self) -> Option<f64> {
-        Some(self.params.lr)
-    }
-    fn set_learning_rate(&mut self, lr: f64) {
-        self.params.lr = lr;
-    }
-}
+gradient_rule!(Sgd, "SGD");
+gradient_rule!(Adam, "Adam");
 
 impl UpdateRule for Optimizer {
     fn name(&self) -> &'static str {
@@ -376,14 +365,19 @@ impl<P: Vjp + Sync, N: Vjp + Sync> Objective for ControlBatch<'_, P, N> {
 }
 
 /// A network that inverts the physics, on a batch of [`InverseSample`]s
-/// (SIP's setting): loss `(1/B)·Σ ½‖P(N(y*)) − y*‖²`.
+/// (SIP's setting): loss `(1/B)·Σ ½‖P(N(y*)) − y*‖²`. The batch is
+/// borrowed or owned (drawn afresh for the iteration).
 pub struct InverseBatch<'a, P, N> {
-    /// The physics.
-    pub physics: &'a P,
-    /// The network.
-    pub net: &'a N,
-    /// The batch.
-    pub batch: &'a [InverseSample],
+    physics: &'a P,
+    net: &'a N,
+    batch: std::borrow::Cow<'a, [InverseSample]>,
+}
+
+impl<'a, P, N> InverseBatch<'a, P, N> {
+    /// The objective of `net` through `physics` on `batch`.
+    pub fn new(physics: &'a P, net: &'a N, batch: impl Into<std::borrow::Cow<'a, [InverseSample]>>) -> Self {
+        InverseBatch { physics, net, batch: batch.into() }
+    }
 }
 
 impl<P: LocalInverse + Vjp + Sync, N: Vjp + Sync> Objective for InverseBatch<'_, P, N> {
@@ -391,10 +385,10 @@ impl<P: LocalInverse + Vjp + Sync, N: Vjp + Sync> Objective for InverseBatch<'_,
         self.net.n_params()
     }
     fn loss_and_gradient(&mut self, theta: &[f64]) -> Result<(f64, Vec<f64>), TrainError> {
-        Ok(super::pg::physics_loss_and_gradient(self.physics, self.net, theta, self.batch)?)
+        Ok(super::pg::physics_loss_and_gradient(self.physics, self.net, theta, &self.batch)?)
     }
     fn proxy_gradient(&mut self, theta: &[f64], eta: f64) -> Result<SipGradient, TrainError> {
-        Ok(super::pg::sip_gradient(self.physics, self.net, theta, self.batch, eta)?)
+        Ok(super::pg::sip_gradient(self.physics, self.net, theta, &self.batch, eta)?)
     }
 }
 

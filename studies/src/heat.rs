@@ -19,8 +19,12 @@ use crate::oscillators::Curve;
 use diffsim::nn::{Activation, Net, Padding, presets};
 use diffsim::op::{Float32, Forward, MeanMatched, OperatorExt, Vjp};
 use diffsim::problems::heat::Heat;
-use diffsim::train::Optimizer;
-use diffsim::train::pg::{InverseSample, PgError, physics_loss_and_gradient, sip_gradient};
+use std::cell::{Cell, RefCell};
+use std::ops::ControlFlow;
+
+use diffsim::distributed::World;
+use diffsim::train::pg::{InverseSample, PgError};
+use diffsim::train::{AdamParams, InverseBatch, Optimizer, Sip, TrainError, Trainer, TrainerParams, UpdateRule};
 
 /// The comparison's settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -172,7 +176,7 @@ impl Method {
 /// Trains one network per method (same start, same batches) and records
 /// the held-out state error about 30 times, against training seconds.
 /// `progress(method, update)` is called after each update.
-pub fn compare(cfg: &HeatConfig, methods: &[Method], progress: impl FnMut(Method, usize)) -> Result<Vec<Curve>, PgError> {
+pub fn compare(cfg: &HeatConfig, methods: &[Method], progress: impl FnMut(Method, usize)) -> Result<Vec<Curve>, TrainError> {
     let net = network(cfg);
     if cfg.published_network {
         let theta0 = net.init(&mut StdRng::seed_from_u64(cfg.seed), diffsim::nn::Init::He);
@@ -190,39 +194,49 @@ fn train_each<N: Vjp + Sync>(
     theta0: &[f64],
     methods: &[Method],
     mut progress: impl FnMut(Method, usize),
-) -> Result<Vec<Curve>, PgError> {
+) -> Result<Vec<Curve>, TrainError> {
     let test = test_set(cfg);
     let every = (cfg.iterations / 30).max(1);
     let mut curves = Vec::new();
     for &method in methods {
         let mut theta = theta0.to_vec();
-        let mut data_rng = StdRng::seed_from_u64(cfg.seed + 1);
-        let mut opt = match method {
-            Method::Sip => Optimizer::adam(cfg.sip_lr),
-            Method::Adam => Optimizer::adam(cfg.adam_lr),
-            Method::Gd => Optimizer::sgd(cfg.gd_lr),
+        let data_rng = RefCell::new(StdRng::seed_from_u64(cfg.seed + 1));
+        let mut rule: Box<dyn UpdateRule> = match method {
+            Method::Sip => Box::new(Sip::new(cfg.eta, AdamParams { lr: cfg.sip_lr, ..AdamParams::default() })),
+            Method::Adam => Box::new(Optimizer::adam(cfg.adam_lr)),
+            Method::Gd => Box::new(Optimizer::sgd(cfg.gd_lr)),
         };
         let (e1, e2) = state_errors(net, &theta, &test);
         let (mut points, mut second_points) = (vec![(0.0, e1)], vec![(0.0, e2)]);
         let mut trained = 0.0;
-        for it in 1..=cfg.iterations {
-            let batch = samples(&cfg.physics, &mut data_rng, cfg.batch);
+        // Drawing a batch simulates the physics: timed apart, and not
+        // counted as training.
+        let drawing = Cell::new(0.0);
+        let batch_at = |_: usize| {
             let t = std::time::Instant::now();
-            let grad = match method {
-                Method::Sip => sip_gradient(&cfg.physics, net, &theta, &batch, cfg.eta)?.grad,
-                Method::Adam | Method::Gd => physics_loss_and_gradient(&cfg.physics, net, &theta, &batch)?.1,
-            };
-            opt.step(&mut theta, &grad);
-            trained += t.elapsed().as_secs_f64();
-            progress(method, it);
-            if it % every == 0 || it == cfg.iterations {
-                let (e1, e2) = state_errors(net, &theta, &test);
+            let batch = samples(&cfg.physics, &mut data_rng.borrow_mut(), cfg.batch);
+            drawing.set(t.elapsed().as_secs_f64());
+            Ok(InverseBatch::new(&cfg.physics, net, batch))
+        };
+        let mut failed = None;
+        let world = World::single();
+        let trainer = Trainer::new(TrainerParams { iterations: cfg.iterations, ..TrainerParams::default() }, &world);
+        trainer.run(rule.as_mut(), &mut theta, batch_at, |row, theta, _| {
+            trained += row.step_seconds - drawing.get();
+            progress(method, row.iteration);
+            if row.iteration % every == 0 || row.iteration == cfg.iterations {
+                let (e1, e2) = state_errors(net, theta, &test);
                 if !(e1.is_finite() && e2.is_finite()) {
-                    return Err(PgError::NonFinite { what: "state error", sample: 0 });
+                    failed = Some(PgError::NonFinite { what: "state error", sample: 0 });
+                    return ControlFlow::Break(());
                 }
                 points.push((trained, e1));
                 second_points.push((trained, e2));
             }
+            ControlFlow::Continue(())
+        })?;
+        if let Some(e) = failed {
+            return Err(e.into());
         }
         curves.push(Curve { name: method.name().to_string(), points, updates: cfg.iterations, seconds: trained, diverged_after: None, second_points });
     }

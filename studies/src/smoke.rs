@@ -29,8 +29,13 @@ use crate::oscillators::Curve;
 use diffsim::nn::{Activation, Net, Padding, presets};
 use diffsim::op::{Float32, Forward, LocalInverse, OperatorExt, PerThread, Refined, Vjp};
 use diffsim::problems::smoke::SmokeRise;
-use diffsim::train::Optimizer;
-use diffsim::train::pg::{InverseSample, PgError, physics_loss_and_gradient, physics_ok, sip_gradient};
+use std::cell::{Cell, RefCell};
+use std::ops::ControlFlow;
+
+use diffsim::distributed::World;
+use diffsim::train::pg::{InverseSample, PgError, physics_ok};
+use diffsim::train::trainer::Row;
+use diffsim::train::{AdamParams, InverseBatch, Optimizer, Sip, TrainError, Trainer, TrainerParams};
 
 /// The comparison's settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -179,8 +184,9 @@ pub const SHOWN: usize = 4;
 /// (same start, same batch sequence) and records the held-out errors about
 /// 30 times. `progress(method, trained seconds)` is called after each
 /// update.
-pub fn compare(cfg: &SmokeConfig, methods: &[SmokeMethod], mut progress: impl FnMut(SmokeMethod, f64)) -> Result<SmokeComparison, PgError> {
+pub fn compare(cfg: &SmokeConfig, methods: &[SmokeMethod], mut progress: impl FnMut(SmokeMethod, f64)) -> Result<SmokeComparison, TrainError> {
     let physics = physics(cfg);
+    let refined = Refined { op: &physics, sweeps: cfg.refine };
     let net = Float32(network(cfg));
     let theta0 = crate::burgers::initial_params(&net.0, cfg.seed);
     let test = test_set(cfg, &physics)?;
@@ -188,31 +194,57 @@ pub fn compare(cfg: &SmokeConfig, methods: &[SmokeMethod], mut progress: impl Fn
     let mut runs = Vec::new();
     for &method in methods {
         let mut theta = theta0.clone();
-        let mut data_rng = StdRng::seed_from_u64(cfg.seed + 1);
-        let mut opt = Optimizer::adam(match method {
-            SmokeMethod::Sip => cfg.sip_lr,
-            SmokeMethod::Adam => cfg.adam_lr,
-        });
+        let data_rng = RefCell::new(StdRng::seed_from_u64(cfg.seed + 1));
         let (e1, e2) = errors(&physics, &net, &theta, &test)?;
         let (mut points, mut second_points) = (vec![(0.0, e1)], vec![(0.0, e2)]);
         let (mut trained, mut updates, mut next) = (0.0, 0, every);
-        while trained < cfg.seconds {
-            let batch = samples(&physics, cfg.n, &mut data_rng, cfg.batch)?;
+        // Drawing a batch simulates the physics: timed apart, and not
+        // counted as training.
+        let drawing = Cell::new(0.0);
+        let draw = || -> Result<Vec<InverseSample>, TrainError> {
             let t = std::time::Instant::now();
-            let grad = match method {
-                SmokeMethod::Sip => sip_gradient(&Refined { op: &physics, sweeps: cfg.refine }, &net, &theta, &batch, cfg.eta)?.grad,
-                SmokeMethod::Adam => physics_loss_and_gradient(&physics, &net, &theta, &batch)?.1,
-            };
-            opt.step(&mut theta, &grad);
-            trained += t.elapsed().as_secs_f64();
-            updates += 1;
+            let batch = samples(&physics, cfg.n, &mut data_rng.borrow_mut(), cfg.batch)?;
+            drawing.set(t.elapsed().as_secs_f64());
+            Ok(batch)
+        };
+        let mut failed = None;
+        let mut observe = |row: &Row, theta: &[f64]| {
+            trained += row.step_seconds - drawing.get();
+            updates = row.iteration;
             progress(method, trained);
             if trained >= next || trained >= cfg.seconds {
-                let (e1, e2) = errors(&physics, &net, &theta, &test)?;
-                points.push((trained, e1));
-                second_points.push((trained, e2));
+                match errors(&physics, &net, theta, &test) {
+                    Ok((e1, e2)) => {
+                        points.push((trained, e1));
+                        second_points.push((trained, e2));
+                    }
+                    Err(e) => {
+                        failed = Some(e);
+                        return ControlFlow::Break(());
+                    }
+                }
                 next = trained + every;
             }
+            if trained >= cfg.seconds { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
+        };
+        // Until the budget is spent: the count is only a bound.
+        let iterations = if cfg.seconds > 0.0 { usize::MAX / 4 } else { 0 };
+        let world = World::single();
+        let trainer = Trainer::new(TrainerParams { iterations, ..TrainerParams::default() }, &world);
+        // SIP takes its targets from the refined inverse; Adam sees the
+        // plain physics loss.
+        match method {
+            SmokeMethod::Sip => {
+                let mut rule = Sip::new(cfg.eta, AdamParams { lr: cfg.sip_lr, ..AdamParams::default() });
+                trainer.run(&mut rule, &mut theta, |_| Ok(InverseBatch::new(&refined, &net, draw()?)), |row, th, _| observe(row, th))?;
+            }
+            SmokeMethod::Adam => {
+                let mut rule = Optimizer::adam(cfg.adam_lr);
+                trainer.run(&mut rule, &mut theta, |_| Ok(InverseBatch::new(&physics, &net, draw()?)), |row, th, _| observe(row, th))?;
+            }
+        }
+        if let Some(e) = failed {
+            return Err(e.into());
         }
         let shown = test.iter().take(SHOWN).map(|s| net.eval(&s.observed, &theta)).collect();
         let curve = Curve { name: method.name().to_string(), points, updates, seconds: trained, diverged_after: None, second_points };
