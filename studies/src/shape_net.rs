@@ -23,7 +23,11 @@ use diffsim_solvers::flow::drag_shape::{DragShapeOptions, Stream, drag_coefficie
 
 use diffsim::nn::{Activation, Init, Layer, Net};
 use diffsim::op::{Forward, Vjp};
-use diffsim::train::optim::Optimizer;
+use std::cell::RefCell;
+use std::ops::ControlFlow;
+
+use diffsim::distributed::World;
+use diffsim::train::{FnObjective, Optimizer, TrainError, Trainer, TrainerParams};
 
 /// What to train.
 #[derive(Clone, Debug, PartialEq)]
@@ -92,6 +96,9 @@ pub enum ShapeNetError {
         /// What is wrong with it.
         source: ShapeError,
     },
+    /// Training stopped (a loss or gradient that is not finite).
+    #[error("training: {0}")]
+    Train(String),
 }
 
 /// Peak inflow of the channel for Reynolds number `re` (ν = 10⁻³, `Re =
@@ -164,31 +171,59 @@ pub fn train(opts: &ShapeNetOptions, mut progress: impl FnMut(usize, f64)) -> Re
         let (cd_cylinder, _, x) = steady_drag(&setting, &setting.cylinder, &setting.start).map_err(flow_err(re))?;
         samples.push((re, setting, cd_cylinder, x));
     }
+    // The objective: the mean over the training Re of c_D / c_D(cylinder)
+    // at the network's shape, its gradient by the steady adjoint and the
+    // network's VJP; each steady solve starts from the last state.
+    let samples = RefCell::new(samples);
+    let failure = RefCell::new(None);
+    let n_params = theta.len();
+    let objective = |_: usize| {
+        Ok(FnObjective {
+            n: n_params,
+            f: |theta: &[f64]| {
+                let mut grad = vec![0.0; theta.len()];
+                let mut loss = 0.0;
+                for (re, setting, cd_cylinder, x) in samples.borrow_mut().iter_mut() {
+                    let q = propose(&net, theta, *re, &bound);
+                    let shape = shape_at_area(area, opts.modes, setting.center, &q).expect("the output bounds keep ½Σq² below the area's r₀²");
+                    // (Validated by the steady solve before any derivative runs.)
+                    let (cd, full, state) = match steady_drag(setting, &shape, x) {
+                        Ok(v) => v,
+                        Err(e) => {
+                            let e = flow_err(*re)(e);
+                            let message = e.to_string();
+                            *failure.borrow_mut() = Some(e);
+                            return Err(TrainError::Objective(message));
+                        }
+                    };
+                    *x = state;
+                    let n = opts.train_re.len() as f64;
+                    loss += cd / *cd_cylinder / n;
+                    // dL/dq (its cosine part), then through the scaled tanh
+                    // output into the weights.
+                    let mut seed: Vec<f64> =
+                        reduced_gradient(&full, &q, area, opts.modes).iter().zip(&bound).map(|(g, b)| g * b / (*cd_cylinder * n)).collect();
+                    let mut dx = [0.0];
+                    net.vjp(&input(*re), theta, &mut seed, &mut dx, &mut grad);
+                }
+                Ok((loss, grad))
+            },
+        })
+    };
     let mut adam = Optimizer::adam(opts.lr);
     let mut losses = Vec::with_capacity(opts.iterations);
     let start = Instant::now();
-    let mut grad = vec![0.0; theta.len()];
-    for it in 0..opts.iterations {
-        grad.fill(0.0);
-        let mut loss = 0.0;
-        for (re, setting, cd_cylinder, x) in samples.iter_mut() {
-            let q = propose(&net, &theta, *re, &bound);
-            let shape = shape_at_area(area, opts.modes, setting.center, &q).expect("the output bounds keep ½Σq² below the area's r₀²");
-            // (Validated by the steady solve before any derivative runs.)
-            let (cd, full, state) = steady_drag(setting, &shape, x).map_err(flow_err(*re))?;
-            *x = state;
-            let n = opts.train_re.len() as f64;
-            loss += cd / *cd_cylinder / n;
-            // dL/dq (its cosine part), then through the scaled tanh output
-            // into the weights.
-            let mut seed: Vec<f64> = reduced_gradient(&full, &q, area, opts.modes).iter().zip(&bound).map(|(g, b)| g * b / (*cd_cylinder * n)).collect();
-            let mut dx = [0.0];
-            net.vjp(&input(*re), &theta, &mut seed, &mut dx, &mut grad);
-        }
-        losses.push(loss);
-        progress(it, loss);
-        adam.step(&mut theta, &grad);
+    let world = World::single();
+    let trainer = Trainer::new(TrainerParams { iterations: opts.iterations, ..TrainerParams::default() }, &world);
+    let run = trainer.run(&mut adam, &mut theta, objective, |row, _, _| {
+        losses.push(row.loss);
+        progress(row.iteration - 1, row.loss);
+        ControlFlow::Continue(())
+    });
+    if let Some(e) = failure.into_inner() {
+        return Err(e);
     }
+    run.map_err(|e| ShapeNetError::Train(e.to_string()))?;
     let train_s = start.elapsed().as_secs_f64();
     let mut held_out = Vec::new();
     for &re in &opts.test_re {
