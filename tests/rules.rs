@@ -123,6 +123,17 @@ fn conduction(op: &Conduction, x: &[f64], p: &[f64], y: &mut [f64]) {
 diffsim::differentiable!(Conduction => conduction);
 
 #[test]
+fn the_conduction_step_passes_the_three_checks() {
+    // Enzyme's VJP and JVP of the step (state and conductivities) against
+    // finite differences, the Taylor remainder and each other.
+    let op = Conduction { n: 9, c: 0.2 };
+    let x: Vec<f64> = (0..9).map(|i| (0.9 * i as f64).sin()).collect();
+    let theta: Vec<f64> = (0..9).map(|i| 0.3 * (0.4 * i as f64).cos()).collect();
+    let report = diffsim::check::check_all(&op, &x, &theta, &diffsim::check::CheckOptions::default());
+    assert!(report.passed(), "{report}");
+}
+
+#[test]
 fn lbfgs_recovers_a_conductivity_field_through_a_rollout_where_adam_does_not() {
     // The user's setting in 1D: recover θ (κ = e^θ per cell) from
     // the states of 20 explicit steps. Observations from the true field,

@@ -184,7 +184,10 @@ impl Lbfgs {
             failure: RefCell::new(None),
         };
         let mut problem = Problem::new(fun);
-        let why = |e: Error, problem: &Problem<Fun>| problem.problem.as_ref().and_then(|p| p.failure.borrow().clone()).unwrap_or_else(|| e.to_string());
+        // The failure our objective recorded is clearer than argmin's
+        // rewording of it.
+        let recorded = |problem: &Problem<Fun>| problem.problem.as_ref().and_then(|p| p.failure.borrow().clone());
+        let why = |e: Error, problem: &Problem<Fun>| recorded(problem).unwrap_or_else(|| e.to_string());
         if self.solver.is_none() {
             let mut solver = LBFGS::new(Search::new(), self.params.memory)
                 .with_tolerance_grad(self.params.tolerance_grad)
@@ -212,15 +215,13 @@ impl Lbfgs {
         };
         let evaluations = problem.problem.as_ref().map_or(0, |p| p.evaluations.get());
         if next.terminated() {
-            // argmin ends the run when the line search fails; the failure
-            // our objective recorded is the clearer message.
-            let m = problem.problem.as_ref().and_then(|p| p.failure.borrow().clone()).unwrap_or_else(|| format!("{:?}", next.get_termination_reason()));
+            // argmin ends the run when the line search fails.
+            let m = recorded(&problem).unwrap_or_else(|| format!("{:?}", next.get_termination_reason()));
             self.reset();
             return Err(m);
         }
         let loss_after = next.get_cost();
-        // (Also when the loss after is NaN.)
-        if loss_after.partial_cmp(&loss_before) != Some(std::cmp::Ordering::Less) && loss_after != loss_before {
+        if loss_after > loss_before || loss_after.is_nan() {
             // The search ended above its start: along the direction the
             // gradient gives, the loss does not fall (a wrong gradient, or
             // a kink); moving would undo progress.

@@ -122,11 +122,6 @@ impl TrainSettings {
         Self { method: Method::Pre, batch, iterations, lr: 1e-3, lr_end: 1e-5, decay_over: iterations, clip: 10.0, seed: 1, first: 1 }
     }
 
-    /// The learning rate of iteration `it` (1-based).
-    pub fn lr_at(&self, it: usize) -> f64 {
-        self.schedule().at(it).unwrap_or(self.lr)
-    }
-
     /// The schedule: cosine from `lr` to `lr_end` over `decay_over`.
     pub fn schedule(&self) -> Schedule {
         Schedule::Cosine { start: self.lr, end: self.lr_end, over: self.decay_over }
