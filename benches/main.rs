@@ -106,7 +106,7 @@ fn p3(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, p1, p1_step, p2, p3, p4, solver_parts, scene_effects, nn_layers);
+criterion_group!(benches, p1, p1_step, p2, p3, p4, solver_parts, scene_effects, nn_layers, hig_adam);
 criterion_main!(benches);
 
 /// One multigrid V-cycle and one plain CG matrix product at 64² and 128²,
@@ -194,5 +194,51 @@ fn nn_layers(c: &mut Criterion) {
     g.bench_function("conv2d_16x16_k3_32x32_forward_plain", |bch| bch.iter(|| kernel::conv2d_simple(&s, &w, &b, &x, std::hint::black_box(&mut y))));
     g.bench_function("conv2d_16x16_k3_32x32_vjp", |bch| bch.iter(|| kernel::conv2d_adjoint(&s, &w, &x, &y, &mut gx, &mut gw, &mut gb)));
     g.bench_function("conv2d_16x16_k3_32x32_vjp_plain", |bch| bch.iter(|| kernel::conv2d_adjoint_simple(&s, &w, &x, &y, &mut gx, &mut gw, &mut gb)));
+    g.finish();
+}
+
+/// The gradient of an Adam update on the nonlinear HIG problem (batch 512,
+/// the MLP 4→20→20→20→96 with ReLU, 96 RK4 steps), whole and in its
+/// parts: the network's batched forward and VJP, and the physics' forward
+/// and Enzyme VJP for every sample on one thread.
+fn hig_adam(c: &mut Criterion) {
+    use diffsim::nn::{Activation, Init, presets};
+    use diffsim::op::{Forward, Operator};
+    use diffsim::problems::oscillators::Oscillators;
+    use diffsim::train::hig::{ControlSample, loss_and_gradient};
+    use rand::SeedableRng;
+    let mut g = c.benchmark_group("hig_adam");
+    let physics = Oscillators::nonlinear();
+    let net = presets::mlp(&[4, 20, 20, 20, 96], Activation::Relu).unwrap();
+    let theta = net.init(&mut rand::rngs::StdRng::seed_from_u64(1), Init::Glorot);
+    let batch: Vec<ControlSample> = (0..512)
+        .map(|k| {
+            let x: Vec<f64> = (0..4).map(|i| (0.5 + 0.4 * ((k * 4 + i) as f64 * 0.37).sin()).abs()).collect();
+            ControlSample { x0: x.clone(), target: x }
+        })
+        .collect();
+    let inputs: Vec<f64> = batch.iter().flat_map(|s| s.target.iter().copied()).collect();
+    let mut us = vec![0.0; 512 * 96];
+    g.bench_function("gradient_512", |b| b.iter(|| loss_and_gradient(&physics, &net, &theta, std::hint::black_box(&batch))));
+    g.bench_function("net_forward_batch_512", |b| b.iter(|| net.forward_batch(&inputs, &theta, std::hint::black_box(&mut us))));
+    let (mut dus, mut dxs, mut dtheta) = (vec![0.01; us.len()], vec![0.0; inputs.len()], vec![0.0; theta.len()]);
+    g.bench_function("net_vjp_batch_512", |b| {
+        b.iter(|| {
+            dus.fill(0.01);
+            net.vjp_batch(&inputs, &theta, &mut dus, &mut dxs, &mut dtheta)
+        })
+    });
+    net.forward_batch(&inputs, &theta, &mut us);
+    let (mut y, mut seed, mut dx, mut du) = (vec![0.0; 4], vec![0.0; 4], vec![0.0; 4], vec![0.0; 96]);
+    g.bench_function("physics_forward_vjp_512_one_thread", |b| {
+        b.iter(|| {
+            for (s, u) in batch.iter().zip(us.chunks_exact(96)) {
+                physics.forward(&s.x0, u, &mut y);
+                seed.copy_from_slice(&y);
+                physics.vjp(&s.x0, u, &mut seed, &mut dx, &mut du);
+            }
+        })
+    });
+    let _ = physics.n_in();
     g.finish();
 }

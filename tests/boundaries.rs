@@ -82,11 +82,11 @@ fn every_operator_passes_all_checks_under_every_boundary() {
 
 #[test]
 fn the_hand_adjoint_matches_enzyme_under_every_boundary() {
-    use diffsim::check::{CheckOptions, dot_product_between};
+    use diffsim::check::{CheckParams, dot_product_between};
     for b in boundaries() {
         let cfg = rect(4, 7, b);
         let x = smoke_state(&cfg, 3);
-        let r = dot_product_between(&SmokeAdvect(cfg), &SmokeAdvectHand(cfg), &x, &[], &CheckOptions { tol: 1e-12, ..Default::default() });
+        let r = dot_product_between(&SmokeAdvect(cfg), &SmokeAdvectHand(cfg), &x, &[], &CheckParams { tol: 1e-12, ..Default::default() });
         assert!(r.verdict.passed(), "{b:?}: {r}");
     }
 }

@@ -4,7 +4,7 @@
 //! behaviour each kind promises, and the three gradient checks of every 3D
 //! operator under every kind, with and without an obstacle.
 
-use diffsim::check::{CheckOptions, Verdict, check_all};
+use diffsim::check::{CheckParams, Verdict, check_all};
 use diffsim::fluids::{Diffuse, DiffuseExplicit, DiffuseImplicit};
 use diffsim::fluids3d::{Advect3, AdvectUpwind3, Buoyancy3, Force3};
 use diffsim::op::{Forward, OperatorExt};
@@ -190,7 +190,7 @@ fn a_uniform_through_flow_is_left_as_it_is_and_periodic_advection_shifts_exactly
 
 #[test]
 fn every_3d_operator_passes_all_checks_under_every_boundary() {
-    let opts = CheckOptions::default();
+    let opts = CheckParams::default();
     let no_fail = |r: &diffsim::check::FullReport, what: &str| {
         for v in [&r.fd.verdict, &r.taylor.verdict, &r.dot.verdict] {
             assert!(!matches!(v, Verdict::Fail(_)), "{what}:\n{r}");

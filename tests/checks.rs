@@ -1,7 +1,7 @@
 //! Every operator through the three gradient checks; kinks are reported,
 //! and a wrong adjoint is caught by all three.
 
-use diffsim::check::{CheckOptions, Verdict, check_all, dot_product_between, finite_differences, taylor};
+use diffsim::check::{CheckParams, Verdict, check_all, dot_product_between, finite_differences, taylor};
 use diffsim::op::{FiniteDiff, Forward, Jvp, Operator, Vjp};
 use diffsim::problems::burgers::{BurgersEnzyme, BurgersEnzymeWholeStep, BurgersHand};
 use diffsim::rollout::{Checkpointing, Rollout, RolloutOperator};
@@ -22,7 +22,7 @@ pub(crate) fn state(n: usize, seed: u64) -> Vec<f64> {
 }
 
 pub(crate) fn assert_passes<O: Vjp + Jvp>(name: &str, op: &O, x: &[f64], p: &[f64]) {
-    let report = check_all(op, x, p, &CheckOptions::default());
+    let report = check_all(op, x, p, &CheckParams::default());
     assert!(report.passed(), "{name}:\n{report}");
 }
 
@@ -36,11 +36,11 @@ fn burgers_step_enzyme_and_hand_pass_all_checks() {
         assert_passes(&format!("BurgersHand n={n}"), &BurgersHand(cfg), &x, &[]);
         assert_passes(&format!("BurgersEnzymeWholeStep n={n}"), &BurgersEnzymeWholeStep(cfg), &x, &[]);
         // Cross-implementation: each JVP against the other VJPs.
-        let o = CheckOptions { tol: 1e-12, ..Default::default() };
+        let o = CheckParams { tol: 1e-12, ..Default::default() };
         assert!(dot_product_between(&BurgersEnzyme(cfg), &BurgersHand(cfg), &x, &[], &o).verdict.passed());
         assert!(dot_product_between(&BurgersHand(cfg), &BurgersEnzyme(cfg), &x, &[], &o).verdict.passed());
         assert!(dot_product_between(&BurgersHand(cfg), &BurgersEnzymeWholeStep(cfg), &x, &[], &o).verdict.passed());
-        let fd = dot_product_between(&FiniteDiff::new(BurgersHand(cfg)), &BurgersEnzyme(cfg), &x, &[], &CheckOptions { tol: 1e-7, ..Default::default() });
+        let fd = dot_product_between(&FiniteDiff::new(BurgersHand(cfg)), &BurgersEnzyme(cfg), &x, &[], &CheckParams { tol: 1e-7, ..Default::default() });
         assert!(fd.verdict.passed(), "{fd}");
     }
 }
@@ -66,18 +66,18 @@ fn kinks_are_reported_not_failed() {
     let mut x = state(8, 3);
     // On the switch (closer than the smallest step): inconclusive.
     x[2] = 1e-13;
-    let fd = finite_differences(&BurgersEnzyme(cfg), &x, &[], &CheckOptions::default());
+    let fd = finite_differences(&BurgersEnzyme(cfg), &x, &[], &CheckParams::default());
     assert!(matches!(fd.verdict, Verdict::Kink(_)), "{fd}");
     assert_eq!(fd.unusable, vec!["x[2]".to_string()]);
-    let t = taylor(&BurgersEnzyme(cfg), &x, &[], &CheckOptions::default());
+    let t = taylor(&BurgersEnzyme(cfg), &x, &[], &CheckParams::default());
     assert!(matches!(t.verdict, Verdict::Kink(_)), "{t}");
     // Near the switch: the large steps cross it and are skipped, the small
     // ones stay on the smooth piece and pass.
     x[2] = 2e-4;
-    let fd = finite_differences(&BurgersEnzyme(cfg), &x, &[], &CheckOptions::default());
+    let fd = finite_differences(&BurgersEnzyme(cfg), &x, &[], &CheckParams::default());
     assert!(fd.verdict.passed(), "{fd}");
     assert!(fd.sweep[0].crossing_kink >= 1, "{fd}");
-    let t = taylor(&BurgersEnzyme(cfg), &x, &[], &CheckOptions::default());
+    let t = taylor(&BurgersEnzyme(cfg), &x, &[], &CheckParams::default());
     assert!(t.verdict.passed(), "{t}");
     assert!(t.radius < 1e-3, "{t}");
 }
@@ -123,7 +123,7 @@ fn a_wrong_adjoint_fails_every_check() {
     // Large time step: the Jacobian is far from symmetric.
     let cfg = Burgers1d { n: 10, dx: 0.3, dt: 0.1, nu: 0.01 };
     let x = state(10, 5);
-    let report = check_all(&WrongAdjoint(cfg), &x, &[], &CheckOptions::default());
+    let report = check_all(&WrongAdjoint(cfg), &x, &[], &CheckParams::default());
     assert!(matches!(report.fd.verdict, Verdict::Fail(_)), "{report}");
     assert!(matches!(report.taylor.verdict, Verdict::Fail(_)), "{report}");
     assert!(matches!(report.dot.verdict, Verdict::Fail(_)), "{report}");
@@ -157,7 +157,7 @@ impl Vjp for KeepsSeed {
 fn the_vjp_contract_is_checked() {
     let cfg = Burgers1d::p1(9);
     let x = state(9, 8);
-    let r = dot_product_between(&BurgersHand(cfg), &KeepsSeed(cfg), &x, &[], &CheckOptions::default());
+    let r = dot_product_between(&BurgersHand(cfg), &KeepsSeed(cfg), &x, &[], &CheckParams::default());
     assert!(matches!(r.verdict, Verdict::Fail(_)), "{r}");
     assert_eq!(r.contract, vec!["the seed dy was not consumed (zeroed)".to_string()]);
 }
@@ -228,13 +228,13 @@ fn smoke_advection_hand_adjoint_matches_enzyme() {
     for n in [5, 8] {
         let cfg = Smoke2d::p2(n);
         let x = smoke_state(&cfg, 40 + n as u64);
-        let o = CheckOptions { tol: 1e-12, ..Default::default() };
+        let o = CheckParams { tol: 1e-12, ..Default::default() };
         // Enzyme's JVP against the hand VJP: an independent pair.
         let r = dot_product_between(&SmokeAdvect(cfg), &SmokeAdvectHand(cfg), &x, &[], &o);
         assert!(r.verdict.passed(), "n = {n}: {r}");
-        let fd = finite_differences(&SmokeAdvectHand(cfg), &x, &[], &CheckOptions::default());
+        let fd = finite_differences(&SmokeAdvectHand(cfg), &x, &[], &CheckParams::default());
         assert!(fd.verdict.passed(), "n = {n}: {fd}");
-        let t = taylor(&SmokeAdvectHand(cfg), &x, &[], &CheckOptions::default());
+        let t = taylor(&SmokeAdvectHand(cfg), &x, &[], &CheckParams::default());
         assert!(t.verdict.passed(), "n = {n}: {t}");
     }
 }

@@ -4,13 +4,13 @@
 
 use diffsim_solvers::boundary::{Boundary, Profile, Side};
 use diffsim_solvers::flow::cylinder::{poiseuille, schafer_turek};
-use diffsim_solvers::flow::{Convection, Flow2d, FlowError, Integrator, SteadyOptions, Stepper, WallSpeed, cavity_extrema, ghia, march_to_steady};
+use diffsim_solvers::flow::{Convection, Flow2d, FlowError, Integrator, SteadyParams, Stepper, WallSpeed, cavity_extrema, ghia, march_to_steady};
 use diffsim_solvers::smoke::divergence;
 
 fn steady(cfg: Flow2d, tolerance: f64) -> (Vec<f64>, Stepper) {
     let mut stepper = Stepper::new(cfg, 1e-10).unwrap();
     let mut x = cfg.rest();
-    let opts = SteadyOptions { tolerance, max_steps: 400_000, reference_speed: 1.0 };
+    let opts = SteadyParams { tolerance, max_steps: 400_000, reference_speed: 1.0 };
     march_to_steady(&mut stepper, &mut x, &opts, |_, _, _| {}).unwrap();
     (x, stepper)
 }
@@ -101,7 +101,7 @@ fn bad_flows_are_refused_and_an_unfinished_march_says_so() {
     let cfg = Flow2d::cavity(8, 100.0);
     let mut stepper = Stepper::new(cfg, 1e-8).unwrap();
     let mut x = cfg.rest();
-    let err = march_to_steady(&mut stepper, &mut x, &SteadyOptions { tolerance: 1e-12, max_steps: 5, reference_speed: 1.0 }, |_, _, _| {}).unwrap_err();
+    let err = march_to_steady(&mut stepper, &mut x, &SteadyParams { tolerance: 1e-12, max_steps: 5, reference_speed: 1.0 }, |_, _, _| {}).unwrap_err();
     assert!(matches!(err, FlowError::NotSteady { steps: 5, .. }), "{err}");
     assert!(err.to_string().contains("no steady state after 5 steps"), "{err}");
     // A hundred times the stable step blows up, and the step says so.
@@ -146,7 +146,7 @@ fn the_direct_pressure_solve_matches_mic0_under_every_boundary() {
 /// with the smaller error.
 #[test]
 fn the_advection_converges_with_either_interpolation() {
-    use diffsim_solvers::flow::{Pads, momentum};
+    use diffsim_solvers::flow::momentum::{Pads, momentum};
     let k = 2.0 * std::f64::consts::PI;
     let error = |n: usize, convection: Convection| {
         let cfg = Flow2d { nx: n, ny: n, h: 1.0 / n as f64, nu: 0.0, boundary: Boundary::CLOSED, wall_speed: WallSpeed::default(), convection };
@@ -196,7 +196,8 @@ fn the_advection_converges_with_either_interpolation() {
 /// curvature), at the front and rear points of the benchmark's cylinder.
 #[test]
 fn a_field_on_the_boundary_is_read_exactly_for_quadratics() {
-    use diffsim_solvers::flow::{Cut, Shape, fluid_value_at};
+    use diffsim_solvers::flow::body::fluid_value_at;
+    use diffsim_solvers::flow::{Cut, Shape};
     let (cfg, _) = schafer_turek(20, 0.3);
     let cut = Cut::new(&cfg, &[Shape::Circle { center: [0.2, 0.2], radius: 0.05 }]);
     let field = |x: f64, y: f64| 0.13 - 30.0 * (x - 0.15).powi(2) - 12.0 * (y - 0.2).powi(2) + 4.0 * (x - 0.15) * (y - 0.2) + 0.7 * x;
@@ -293,7 +294,7 @@ fn forces_on_a_cylinder_match_schafer_turek_on_a_coarse_grid() {
     let mut stepper = Stepper::with_bodies(cfg, 1e-10, std::slice::from_ref(&circle)).unwrap();
     let mut x = poiseuille(&cfg, u_max);
     let n_u = cfg.n_u();
-    march_to_steady(&mut stepper, &mut x, &SteadyOptions { tolerance: 1e-7, max_steps: 100_000, reference_speed: 0.45 }, |_, _, _| {}).unwrap();
+    march_to_steady(&mut stepper, &mut x, &SteadyParams { tolerance: 1e-7, max_steps: 100_000, reference_speed: 0.45 }, |_, _, _| {}).unwrap();
     let f = stepper.force_in_box(&x, None, [10, 30, 10, 30]);
     let ubar = 2.0 * u_max / 3.0;
     let cd = 2.0 * f[0] / (ubar * ubar * 0.1);
@@ -439,7 +440,7 @@ fn the_flow_around_a_cylinder_mirrors_with_the_channel() {
 #[test]
 fn a_free_stream_is_symmetric_and_widens_towards_the_unbounded_drag() {
     use diffsim_solvers::flow::SteadyFlow;
-    use diffsim_solvers::flow::drag_shape::{DragShapeOptions, Stream, optimise};
+    use diffsim_solvers::flow::drag_shape::{DragShapeParams, Stream, optimise};
     let u_max = 1.5 * 40.0 * 1e-3 / 0.1;
     let cd = |half_width: f64| {
         let s = Stream::Free { half_width }.setting(10, u_max).unwrap();
@@ -454,7 +455,7 @@ fn a_free_stream_is_symmetric_and_widens_towards_the_unbounded_drag() {
     assert!(wide < narrow && wide > 1.522, "c_D {narrow} at half-width 4, {wide} at 8");
     assert!(wide < 1.2 * 1.522, "c_D {wide} at half-width 8: more than 20 % above the unbounded 1.522");
     assert_eq!(Stream::Free { half_width: 1.5 }.setting(10, u_max), Err(FlowError::Grid));
-    let opts = DragShapeOptions {
+    let opts = DragShapeParams {
         stream: Stream::Free { half_width: 3.0 },
         cells_per_d: 10,
         modes: 3,

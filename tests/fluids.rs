@@ -2,7 +2,7 @@
 //! implicit diffusion far beyond the explicit limit, refusal of an unstable
 //! explicit step, conservation of the upwind scheme.
 
-use diffsim::check::{CheckOptions, check_all};
+use diffsim::check::{CheckParams, check_all};
 use diffsim::fluids::{AdvectUpwind, DiffuseExplicit, DiffuseImplicit};
 use diffsim::op::{OpError, OperatorExt};
 use diffsim::rollout::{Pass, Rollout, RolloutError};
@@ -16,9 +16,9 @@ fn field(n: usize, seed: u64) -> Vec<f64> {
 fn diffusion_operators_pass_all_checks() {
     for n in [4, 7] {
         let x = field(n * n, n as u64);
-        let r = check_all(&DiffuseExplicit::new(n), &x, &[0.15], &CheckOptions::default());
+        let r = check_all(&DiffuseExplicit::new(n), &x, &[0.15], &CheckParams::default());
         assert!(r.passed(), "explicit n = {n}:\n{r}");
-        let r = check_all(&DiffuseImplicit::new(n, 1e-13, 500), &x, &[0.7], &CheckOptions::default());
+        let r = check_all(&DiffuseImplicit::new(n, 1e-13, 500), &x, &[0.7], &CheckParams::default());
         assert!(r.passed(), "implicit n = {n}:\n{r}");
     }
 }
@@ -34,7 +34,7 @@ fn upwind_advection_passes_all_checks_and_conserves_mass() {
             .enumerate()
             .map(|(k, v)| if k < cfg.n_s() { 1.0 + v } else { v.signum() * (0.1 + 0.3 * v.abs()) })
             .collect();
-        let r = check_all(&op, &x, &[], &CheckOptions::default());
+        let r = check_all(&op, &x, &[], &CheckParams::default());
         assert!(r.passed(), "upwind n = {n}:\n{r}");
         let y = op.eval(&x, &[]);
         let mass = |v: &[f64]| v[..cfg.n_s()].iter().sum::<f64>();
@@ -79,11 +79,11 @@ fn maccormack_passes_the_checks_and_its_limiter_creates_no_extrema() {
         let cfg = Smoke2d::p2(n);
         let x: Vec<f64> = field(cfg.n_state(), 11 + n as u64).iter().enumerate().map(|(k, v)| if k < cfg.n_s() { 1.0 + v } else { 0.3 * v }).collect();
         let mc = |limiter| Advect::new(cfg, Scheme::MacCormack { limiter });
-        let r = check_all(&mc(false), &x, &[], &CheckOptions::default());
+        let r = check_all(&mc(false), &x, &[], &CheckParams::default());
         assert!(r.passed(), "MacCormack n = {n}:\n{r}");
         // With the limiter the map is piecewise smooth: the checks may report
         // a kink, but never a failure.
-        let r = check_all(&mc(true), &x, &[], &CheckOptions::default());
+        let r = check_all(&mc(true), &x, &[], &CheckParams::default());
         for v in [&r.fd.verdict, &r.taylor.verdict, &r.dot.verdict] {
             assert!(!matches!(v, Verdict::Fail(_)), "limited MacCormack n = {n}:\n{r}");
         }
@@ -138,10 +138,10 @@ fn force_and_inflow_pass_all_checks() {
         let cfg = Smoke2d::p2(n);
         let x = field(cfg.n_state(), 21 + n as u64);
         let f = field(cfg.n_vel(), 5);
-        let r = check_all(&Force { cfg, dt: 0.5 }, &x, &f, &CheckOptions::default());
+        let r = check_all(&Force { cfg, dt: 0.5 }, &x, &f, &CheckParams::default());
         assert!(r.passed(), "force n = {n}:\n{r}");
         let op = Inflow { cfg, region: [1, 3, 0, 2] };
-        let r = check_all(&op, &x, &[1.0, 0.2, 0.7], &CheckOptions::default());
+        let r = check_all(&op, &x, &[1.0, 0.2, 0.7], &CheckParams::default());
         assert!(r.passed(), "inflow n = {n}:\n{r}");
         // The inflow values are what the region holds afterwards.
         let y = op.eval(&x, &[1.0, 0.2, 0.7]);

@@ -3,7 +3,7 @@
 //! cells only, under the three gradient checks and against the hand
 //! adjoint through a whole rollout.
 
-use diffsim::check::{CheckOptions, check_all};
+use diffsim::check::{CheckParams, check_all};
 use diffsim::op::{Forward, OperatorExt};
 use diffsim::problems::smoke3d::{P4, Project3, SmokeStep3};
 use diffsim::rollout::{Checkpointing, Workspace};
@@ -107,11 +107,11 @@ fn projection_and_step_with_obstacles_pass_all_checks() {
         assert!(solid.iter().any(|&s| s), "n = {n}: the shapes cover no cell");
         let x = state(&cfg, 20 + n as u64);
         for precond in [Preconditioner::Multigrid, Preconditioner::None] {
-            let r = check_all(&Project3::with_obstacles(cfg, 1e-13, 500, precond, &solid), &x, &[], &CheckOptions::default());
+            let r = check_all(&Project3::with_obstacles(cfg, 1e-13, 500, precond, &solid), &x, &[], &CheckParams::default());
             assert!(r.passed(), "projection n = {n} {precond}:\n{r}");
         }
         let step = SmokeStep3::new(cfg, 1e-13, 500, Preconditioner::Multigrid).with_obstacles(&solid);
-        let r = check_all(&step, &x, &[], &CheckOptions::default());
+        let r = check_all(&step, &x, &[], &CheckParams::default());
         assert!(r.passed(), "step n = {n}:\n{r}");
     }
 }
@@ -156,11 +156,11 @@ fn buoyancy_and_inflow_pass_all_checks() {
     let cfg = Smoke3d::new(6, 7, 5, 0.5);
     let x = state(&cfg, 31);
     for axis in 0..3 {
-        let r = check_all(&Buoyancy3 { cfg, dt: 0.5, axis }, &x, &[0.3], &CheckOptions::default());
+        let r = check_all(&Buoyancy3 { cfg, dt: 0.5, axis }, &x, &[0.3], &CheckParams::default());
         assert!(r.passed(), "buoyancy along axis {axis}:\n{r}");
     }
     let inflow = Inflow3 { cfg, region: [0, 2, 1, 3, 2, 5] };
-    let r = check_all(&inflow, &x, &[0.8, 0.1, 0.4, -0.2], &CheckOptions::default());
+    let r = check_all(&inflow, &x, &[0.8, 0.1, 0.4, -0.2], &CheckParams::default());
     assert!(r.passed(), "inflow:\n{r}");
     // The region's cells and faces are set, the rest passes through.
     let y = inflow.eval(&x, &[0.8, 0.1, 0.4, -0.2]);
@@ -314,13 +314,13 @@ fn diffusion_and_force_in_3d_pass_all_checks() {
     let cfg = Smoke3d::new(6, 5, 4, 0.5);
     let x = state(&cfg, 41);
     let explicit = Diffuse::in_box_3d(cfg, true, true, DiffuseExplicit::on);
-    let r = check_all(&explicit, &x, &[0.1], &CheckOptions::default());
+    let r = check_all(&explicit, &x, &[0.1], &CheckParams::default());
     assert!(r.passed(), "explicit diffusion:\n{r}");
     let implicit = Diffuse::in_box_3d(cfg, true, true, |g| DiffuseImplicit::on(g, 1e-13, 500));
-    let r = check_all(&implicit, &x, &[0.7], &CheckOptions::default());
+    let r = check_all(&implicit, &x, &[0.7], &CheckParams::default());
     assert!(r.passed(), "implicit diffusion:\n{r}");
     let f = field(cfg.n_vel(), 8);
-    let r = check_all(&Force3 { cfg, dt: 0.5 }, &x, &f, &CheckOptions::default());
+    let r = check_all(&Force3 { cfg, dt: 0.5 }, &x, &f, &CheckParams::default());
     assert!(r.passed(), "force:\n{r}");
 }
 
@@ -361,11 +361,11 @@ fn maccormack_and_upwind_in_3d_pass_the_checks() {
     let cfg = Smoke3d::new(6, 6, 5, 0.8);
     let x = state(&cfg, 51);
     let mc = |limiter, smoke, velocity| Advect3 { cfg, scheme: Scheme::MacCormack { limiter }, smoke, velocity };
-    let r = check_all(&mc(false, true, true), &x, &[], &CheckOptions::default());
+    let r = check_all(&mc(false, true, true), &x, &[], &CheckParams::default());
     assert!(r.passed(), "MacCormack:\n{r}");
     // With the limiter the map is piecewise smooth: the checks may report a
     // kink, but never a failure.
-    let r = check_all(&mc(true, true, true), &x, &[], &CheckOptions::default());
+    let r = check_all(&mc(true, true, true), &x, &[], &CheckParams::default());
     for v in [&r.fd.verdict, &r.taylor.verdict, &r.dot.verdict] {
         assert!(!matches!(v, Verdict::Fail(_)), "limited MacCormack:\n{r}");
     }
@@ -374,12 +374,12 @@ fn maccormack_and_upwind_in_3d_pass_the_checks() {
     assert!(y[..cfg.n_s()].iter().all(|&v| v >= lo - 1e-12 && v <= hi + 1e-12), "the limiter let a new extremum through");
     // One field alone, semi-Lagrangian: the velocity passes through.
     let sl = Advect3 { cfg, scheme: Scheme::SemiLagrangian, smoke: true, velocity: false };
-    let r = check_all(&sl, &x, &[], &CheckOptions::default());
+    let r = check_all(&sl, &x, &[], &CheckParams::default());
     assert!(r.passed(), "semi-Lagrangian smoke:\n{r}");
     assert_eq!(&sl.eval(&x, &[])[cfg.n_s()..], &x[cfg.n_s()..]);
     // Upwind: checked, and the smoke conserved in the closed box.
     let up = AdvectUpwind3 { cfg };
-    let r = check_all(&up, &x, &[], &CheckOptions::default());
+    let r = check_all(&up, &x, &[], &CheckParams::default());
     assert!(r.passed(), "upwind:\n{r}");
     let mass = |v: &[f64]| v[..cfg.n_s()].iter().sum::<f64>();
     assert!((mass(&up.eval(&x, &[])) - mass(&x)).abs() < 1e-12 * mass(&x));
@@ -432,7 +432,7 @@ fn projection_of_any_box_with_mic0_passes_the_checks() {
     let x = state(&cfg, 61);
     // Multigrid in a box whose sides all differ is the aggregation V-cycle.
     for precond in [Preconditioner::Mic0, Preconditioner::Multigrid, Preconditioner::None] {
-        let r = check_all(&Project3::with_obstacles(cfg, 1e-13, 500, precond, &solid), &x, &[], &CheckOptions::default());
+        let r = check_all(&Project3::with_obstacles(cfg, 1e-13, 500, precond, &solid), &x, &[], &CheckParams::default());
         assert!(r.passed(), "projection {precond}:\n{r}");
     }
     // Divergence-free after projection, walls closed first.
@@ -486,7 +486,7 @@ fn multigrid_takes_any_box_with_two_equal_sides() {
         let op = Project3::with_obstacles(cfg, 1e-13, 500, Preconditioner::Multigrid, &solid);
         assert_eq!(op.preconditioner(), Preconditioner::Multigrid);
         let x = state(&cfg, 81);
-        let r = check_all(&op, &x, &[], &CheckOptions::default());
+        let r = check_all(&op, &x, &[], &CheckParams::default());
         assert!(r.passed(), "{dims:?}:\n{r}");
     }
     let (n, nz) = (8, 24);

@@ -16,6 +16,7 @@ mod fluids3d;
 mod fuzz_replay;
 mod inputs;
 mod layout;
+mod memory;
 mod nn;
 mod nonsmooth;
 mod p1;
@@ -29,9 +30,11 @@ mod rollout_wrt;
 mod rules;
 mod scenes;
 mod shapes;
+mod studies;
 mod trainer;
 mod user_op;
 mod wake;
+mod words;
 
 /// The `diffsim` program the command-line tests run: `target/release/diffsim`. It belongs to another package (`bin/`), so
 /// `cargo test` does not build it: `scripts/test.sh` (or

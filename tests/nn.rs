@@ -4,13 +4,15 @@
 //! optimizer state round-trip through files, batches are independent of the
 //! thread count, and a resumed training run repeats an uninterrupted one.
 
-use diffsim::check::{CheckOptions, dot_product_between};
+use diffsim::check::{CheckParams, dot_product_between};
 use diffsim::distributed::World;
 use diffsim::nn::enzyme::{Conv1dEnzyme, DenseEnzyme};
 use diffsim::nn::{Activation, Conv1d, Conv2d, Init, Layer, Net, NetError, Padding, ParamStore, presets};
 use diffsim::op::{Operator, OperatorExt};
-use diffsim::train::{Coupled, Coupling, Optimizer, Sample, batch_gradient, clip_by_norm};
-use diffsim_studies::burgers::{Method, Setup, TrainData, TrainSettings, evaluate, train};
+use diffsim::train::trainer::Row;
+use diffsim::train::{Coupled, Coupling, Optimizer, Sample, batch_gradient, clip_by_norm, on_row};
+use diffsim_studies::burgers::{Method, Setup, TrainData, TrainParams, evaluate, train};
+use diffsim_studies::sol::Watch;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -125,7 +127,7 @@ fn kernels_match_direct_formulas() {
 
 #[test]
 fn enzyme_and_hand_layer_derivatives_agree() {
-    let o = CheckOptions { tol: 1e-12, ..Default::default() };
+    let o = CheckParams { tol: 1e-12, ..Default::default() };
     let dense = Net::new(vec![Layer::Dense { n_in: 9, n_out: 5 }]).unwrap();
     let p = params(&dense, 1);
     let x = state(9, 2);
@@ -271,27 +273,24 @@ fn resumed_training_repeats_an_uninterrupted_run() {
     let setup = Setup::new(16, 2, 2, 0.02, 3);
     let net = presets::conv_stack_1d(16, &[1, 4, 1], 3, Padding::Periodic, Activation::Tanh).unwrap();
     let data = setup.dataset(4, 12, &mut StdRng::seed_from_u64(2));
-    let s = TrainSettings { method: Method::Sol(3), batch: 3, iterations: 6, lr: 1e-3, lr_end: 1e-4, decay_over: 6, clip: 1.0, seed: 9, first: 1 };
+    let s = TrainParams { method: Method::Sol(3), batch: 3, iterations: 6, lr: 1e-3, lr_end: 1e-4, decay_over: 6, clip: 1.0, seed: 9, first: 1 };
     let theta0 = params(&net, 6);
     let (mut a, mut opt_a) = (theta0.clone(), Optimizer::adam(1e-3));
     let mut losses = Vec::new();
-    train(&setup, &net, &mut a, &mut opt_a, TrainData::Fixed(&data), &s, &World::single(), |r, _, _| {
+    let log = on_row(|r: &Row, _: &[f64], _: &Optimizer| {
         losses.push(r.loss);
         std::ops::ControlFlow::Continue(())
-    })
-    .unwrap();
+    });
+    train(&setup, &net, &mut a, &mut opt_a, TrainData::Fixed(&data), &s, &World::single(), Watch::default(), log).unwrap();
     // The same in two halves, with the state through JSON in between.
     let (mut b, mut opt_b) = (theta0.clone(), Optimizer::adam(1e-3));
-    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, ..s }, &World::single(), |_, _, _| {
-        std::ops::ControlFlow::Continue(())
-    })
-    .unwrap();
+    let quiet = || on_row(|_: &Row, _: &[f64], _: &Optimizer| std::ops::ControlFlow::Continue(()));
+    let half = TrainParams { iterations: 3, ..s };
+    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &half, &World::single(), Watch::default(), quiet()).unwrap();
     let saved = serde_json::to_string(&(&b, &opt_b)).unwrap();
     let (mut b, mut opt_b): (Vec<f64>, Optimizer) = serde_json::from_str(&saved).unwrap();
-    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &TrainSettings { iterations: 3, first: 4, ..s }, &World::single(), |_, _, _| {
-        std::ops::ControlFlow::Continue(())
-    })
-    .unwrap();
+    let rest = TrainParams { iterations: 3, first: 4, ..s };
+    train(&setup, &net, &mut b, &mut opt_b, TrainData::Fixed(&data), &rest, &World::single(), Watch::default(), quiet()).unwrap();
     assert_eq!(a, b);
     assert_eq!(opt_a, opt_b);
     assert!(losses.iter().all(|l| l.is_finite()));
@@ -669,5 +668,67 @@ fn p3_iteration_does_not_depend_on_the_thread_count() {
     // The three precisions compute the same thing to single precision.
     for &(l1, l2) in &first[1..] {
         assert!((l1 - first[0].0).abs() < 1e-5 * first[0].0 && (l2 - first[0].1).abs() < 1e-5 * first[0].1, "{first:?}");
+    }
+}
+
+/// A network's batched forward and VJP against its per-sample ones: every
+/// sample's output and input gradient bit for bit, the parameters'
+/// gradient equal to the per-sample gradients added in sample order (bit
+/// for bit for dense and activation layers, whose weight gradients the
+/// batched pass sums in that order; to rounding where a convolution sums
+/// within a sample first), in f64 and f32.
+fn batched_net_matches_per_sample<R: diffsim::op::Real>(name: &str, net: &Net, batch: usize, exact: bool) {
+    use diffsim::op::{Forward, Vjp};
+    let p: Vec<R> = params(net, 5).iter().map(|&v| R::of(v + 0.01)).collect();
+    let xs: Vec<R> = state(batch * net.n_in(), 6).iter().map(|&v| R::of(v)).collect();
+    let seeds: Vec<R> = state(batch * net.n_out(), 7).iter().map(|&v| R::of(v)).collect();
+    let (n_in, n_out) = (net.n_in(), net.n_out());
+    let mut ys = vec![R::zero(); batch * n_out];
+    net.forward_batch(&xs, &p, &mut ys);
+    let (mut dxs, mut dp) = (vec![R::zero(); xs.len()], vec![R::zero(); p.len()]);
+    let mut dys = seeds.clone();
+    net.vjp_batch(&xs, &p, &mut dys, &mut dxs, &mut dp);
+    assert!(dys.iter().all(|v| *v == R::zero()), "{name}: the seed is consumed");
+    let mut sum = vec![R::zero(); p.len()];
+    for s in 0..batch {
+        let x = &xs[s * n_in..(s + 1) * n_in];
+        let mut y = vec![R::zero(); n_out];
+        net.forward(x, &p, &mut y);
+        assert_eq!(&ys[s * n_out..(s + 1) * n_out], &y[..], "{name}: sample {s}'s output");
+        let (mut dx, mut dps) = (vec![R::zero(); n_in], vec![R::zero(); p.len()]);
+        net.vjp(x, &p, &mut seeds[s * n_out..(s + 1) * n_out].to_vec(), &mut dx, &mut dps);
+        assert_eq!(&dxs[s * n_in..(s + 1) * n_in], &dx[..], "{name}: sample {s}'s input gradient");
+        for (a, b) in sum.iter_mut().zip(&dps) {
+            *a += *b;
+        }
+    }
+    let scale = sum.iter().fold(0.0f64, |m, v| m.max(v.as_f64().abs()));
+    for (i, (a, b)) in dp.iter().zip(&sum).enumerate() {
+        if exact {
+            assert_eq!(a, b, "{name}: parameter {i}'s gradient");
+        } else {
+            let tol = if std::mem::size_of::<R>() == 4 { 1e-5 } else { 1e-12 };
+            assert!((a.as_f64() - b.as_f64()).abs() <= tol * scale, "{name}: parameter {i}: {a:?} vs {b:?}");
+        }
+    }
+}
+
+#[test]
+fn batched_networks_match_their_per_sample_passes() {
+    let mlp = presets::mlp(&[4, 20, 20, 20, 24], Activation::Tanh).unwrap();
+    let relu = presets::mlp(&[3, 9, 5], Activation::Relu).unwrap();
+    for batch in [1, 7, 8, 33] {
+        batched_net_matches_per_sample::<f64>("mlp tanh", &mlp, batch, true);
+        batched_net_matches_per_sample::<f32>("mlp tanh f32", &mlp, batch, true);
+        batched_net_matches_per_sample::<f64>("mlp relu", &relu, batch, true);
+    }
+    let conv = presets::conv_stack_1d(8, &[1, 4, 4, 1], 5, Padding::Periodic, Activation::Tanh).unwrap();
+    let res = presets::resnet_1d(8, 1, 1, 4, 2, 3, Padding::Zero, Activation::Relu).unwrap();
+    let unet = presets::unet_2d(8, 8, 1, 1, 2, 3, Padding::Zero, Activation::Tanh).unwrap();
+    for batch in [1, 5] {
+        batched_net_matches_per_sample::<f64>("conv stack", &conv, batch, false);
+        batched_net_matches_per_sample::<f64>("resnet", &res, batch, false);
+        batched_net_matches_per_sample::<f64>("unet 2d", &unet, batch, false);
+        batched_net_matches_per_sample::<f32>("unet 2d f32", &unet, batch, false);
     }
 }

@@ -2,7 +2,7 @@
 //! point of a polytope, checked by its optimality conditions, and gradient
 //! sampling on functions with kinks whose minimisers are known.
 
-use diffsim_solvers::nonsmooth::{SamplingOptions, gradient_sampling, min_norm_point};
+use diffsim_solvers::nonsmooth::{SamplingParams, gradient_sampling, min_norm_point};
 
 fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
@@ -82,7 +82,7 @@ fn gradient_sampling_reaches_a_minimiser_on_kinks_where_the_gradient_never_vanis
     let x0 = vec![0.0; 5];
     let (f0, g0) = f(&x0);
     let g0_norm = dot(&g0, &g0).sqrt();
-    let opts = SamplingOptions { radius: 0.1, min_radius: 1e-4, samples: 6, max_iterations: 300, tolerance: g0_norm / 100.0, seed: 7 };
+    let opts = SamplingParams { radius: 0.1, min_radius: 1e-4, samples: 6, max_iterations: 300, tolerance: g0_norm / 100.0, seed: 7 };
     let mut evaluations = 0;
     let out = gradient_sampling(
         |x: &[f64]| -> Result<Option<(f64, Vec<f64>)>, ()> {
@@ -123,7 +123,7 @@ fn gradient_sampling_keeps_to_the_domain_and_passes_errors_on() {
     let domain = |x: &[f64]| -> Result<Option<(f64, Vec<f64>)>, String> { Ok((x[0] >= 0.25).then(|| f(x))) };
     let x0 = vec![1.0, 0.5];
     let (f0, g0) = f(&x0);
-    let opts = SamplingOptions { radius: 0.05, min_radius: 1e-4, samples: 3, max_iterations: 300, tolerance: 1e-3, seed: 3 };
+    let opts = SamplingParams { radius: 0.05, min_radius: 1e-4, samples: 3, max_iterations: 300, tolerance: 1e-3, seed: 3 };
     let out = gradient_sampling(domain, &x0, f0, &g0, &opts).unwrap();
     assert!(out.accepted.iter().all(|(x, _, _)| x[0] >= 0.25));
     assert!((out.x[0] - 0.3).abs() < 1e-3 && (out.x[1] + 0.4).abs() < 1e-3, "{:?}", out.x);

@@ -151,7 +151,7 @@ fn the_2d_step_is_identical_for_any_thread_count() {
 
 #[test]
 fn the_step_by_row_ranges_is_the_step_and_its_parallel_adjoint_is_the_hand_one() {
-    use diffsim::check::{CheckOptions, check_all};
+    use diffsim::check::{CheckParams, check_all};
     use diffsim::op::{OperatorExt, Vjp};
     use diffsim::problems::smoke::{SmokeAdvect, SmokeAdvectRows};
     use diffsim_solvers::smoke::{Smoke2d, advect_buoyancy, advect_buoyancy_adjoint, row_lens, row_starts};
@@ -188,7 +188,7 @@ fn the_step_by_row_ranges_is_the_step_and_its_parallel_adjoint_is_the_hand_one()
         })
         .collect();
     for js in [0..5, 12..20] {
-        let r = check_all(&SmokeAdvectRows::new(cfg, js.clone()), &away, &[], &CheckOptions::default());
+        let r = check_all(&SmokeAdvectRows::new(cfg, js.clone()), &away, &[], &CheckParams::default());
         assert!(r.passed(), "rows {js:?}:\n{r}");
     }
     // The VJP over two ranges in parallel equals the hand-written adjoint.

@@ -3,7 +3,7 @@
 //! adjoint; the 3D operators under the three gradient checks; the shared
 //! multigrid preconditioner in 3D.
 
-use diffsim::check::{CheckOptions, check_all};
+use diffsim::check::{CheckParams, check_all};
 use diffsim::problems::smoke3d::{P4, Project3, SmokeAdvect3, SmokeAdvect3Hand, SmokeAdvect3Slabs, SmokeStep3, slab_ranges};
 use diffsim::rollout::{Checkpointing, Workspace};
 use diffsim_solvers::smoke::Preconditioner;
@@ -78,7 +78,7 @@ fn explicit_part_passes_all_checks() {
     for n in [6, 7] {
         let cfg = Smoke3d::p4(n);
         let x = state(&cfg, n as u64);
-        let r = check_all(&SmokeAdvect3(cfg), &x, &[], &CheckOptions::default());
+        let r = check_all(&SmokeAdvect3(cfg), &x, &[], &CheckParams::default());
         assert!(r.passed(), "Enzyme n = {n}:\n{r}");
     }
     // The slab ranges whose adjoints the parallel VJP sums: a middle range
@@ -86,7 +86,7 @@ fn explicit_part_passes_all_checks() {
     let cfg = Smoke3d::p4(8);
     let x = state(&cfg, 3);
     for ks in [3..5, 5..8] {
-        let r = check_all(&SmokeAdvect3Slabs::new(cfg, ks.clone()), &x, &[], &CheckOptions::default());
+        let r = check_all(&SmokeAdvect3Slabs::new(cfg, ks.clone()), &x, &[], &CheckParams::default());
         assert!(r.passed(), "slabs {ks:?}:\n{r}");
     }
 }
@@ -125,11 +125,11 @@ fn hand_adjoint_passes_the_checks_against_enzyme() {
             assert_eq!(slab_ranges(n).len(), 2);
         }
         // Enzyme's JVP against the hand VJP: an independent pair.
-        let r = dot_product_between(&SmokeAdvect3(cfg), &SmokeAdvect3Hand(cfg), &x, &[], &CheckOptions { tol: 1e-12, ..Default::default() });
+        let r = dot_product_between(&SmokeAdvect3(cfg), &SmokeAdvect3Hand(cfg), &x, &[], &CheckParams { tol: 1e-12, ..Default::default() });
         assert!(r.verdict.passed(), "n = {n}: {r}");
-        let fd = finite_differences(&SmokeAdvect3Hand(cfg), &x, &[], &CheckOptions::default());
+        let fd = finite_differences(&SmokeAdvect3Hand(cfg), &x, &[], &CheckParams::default());
         assert!(fd.verdict.passed(), "n = {n}: {fd}");
-        let t = taylor(&SmokeAdvect3Hand(cfg), &x, &[], &CheckOptions::default());
+        let t = taylor(&SmokeAdvect3Hand(cfg), &x, &[], &CheckParams::default());
         assert!(t.verdict.passed(), "n = {n}: {t}");
         // And the two VJPs themselves, entry by entry.
         let seed = field(cfg.n_state(), 4);
@@ -148,10 +148,10 @@ fn projection_and_full_step_pass_all_checks() {
         let cfg = Smoke3d::p4(n);
         let x = state(&cfg, 10 + n as u64);
         for precond in [Preconditioner::Multigrid, Preconditioner::None] {
-            let r = check_all(&Project3::new(cfg, 1e-13, 500, precond), &x, &[], &CheckOptions::default());
+            let r = check_all(&Project3::new(cfg, 1e-13, 500, precond), &x, &[], &CheckParams::default());
             assert!(r.passed(), "projection n = {n} {precond}:\n{r}");
         }
-        let r = check_all(&SmokeStep3::new(cfg, 1e-13, 500, Preconditioner::Multigrid), &x, &[], &CheckOptions::default());
+        let r = check_all(&SmokeStep3::new(cfg, 1e-13, 500, Preconditioner::Multigrid), &x, &[], &CheckParams::default());
         assert!(r.passed(), "step n = {n}:\n{r}");
     }
 }

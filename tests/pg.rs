@@ -284,7 +284,7 @@ fn smoke_rise_passes_the_checks_and_its_inverse_recovers_initial_smoke() {
     use diffsim::op::PerThread;
     use diffsim::problems::smoke::{SmokeRise, SmokeStep};
     use diffsim_solvers::smoke::{Preconditioner, Smoke2d};
-    use diffsim_studies::smoke::{SmokeConfig, inverse_alone};
+    use diffsim_studies::smoke::{SmokeParams, inverse_alone};
     // The gradient checks through 4 steps (tight solves: the finite
     // differences see the exact map).
     let rise = SmokeRise { step: SmokeStep::new(Smoke2d::p2(8), 1e-13, 2000, Preconditioner::Mic0), steps: 4 };
@@ -293,7 +293,7 @@ fn smoke_rise_passes_the_checks_and_its_inverse_recovers_initial_smoke() {
 
     // The whole rollout's reverse-time inverse: from the smoke one would
     // see without motion, its step lands far closer to the observation.
-    let cfg = SmokeConfig { n: 16, steps: 10, ..SmokeConfig::quick() };
+    let cfg = SmokeParams { n: 16, steps: 10, ..SmokeParams::quick() };
     let rise = SmokeRise::new(cfg.n, cfg.steps);
     let truth = diffsim_studies::smoke::blobs(&mut StdRng::seed_from_u64(8), cfg.n);
     let observed = rise.eval(&truth, &[]);

@@ -12,7 +12,7 @@
 //! time; `PROPTEST_CASES=1000 PROPTEST_RNG_SEED=N` explores others (a
 //! failure prints the case, shrunk to a small one).
 
-use diffsim::check::{CheckOptions, Verdict, check_all};
+use diffsim::check::{CheckParams, Verdict, check_all};
 use diffsim::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, Force, Project};
 use diffsim::op::{Jvp, OperatorExt, Vjp};
 use diffsim::problems::smoke::SmokeStep;
@@ -93,7 +93,7 @@ fn case(walls_only: bool) -> impl Strategy<Value = Case> {
 /// leaves no usable step: the checks' verdict is "inconclusive") cannot be
 /// judged, and the case is drawn again.
 fn checked<O: Vjp + Jvp>(name: &str, op: &O, x: &[f64], p: &[f64]) -> Result<(), TestCaseError> {
-    let report = check_all(op, x, p, &CheckOptions::default());
+    let report = check_all(op, x, p, &CheckParams::default());
     let kink = |v: &Verdict| matches!(v, Verdict::Kink(_));
     prop_assume!(!(kink(&report.fd.verdict) || kink(&report.taylor.verdict)), "a point on a kink");
     prop_assert!(report.passed(), "{name}:\n{report}");

@@ -3,7 +3,7 @@
 //! parameters (a damped wave equation written here, not a shipped solver),
 //! with loss terms at several steps; a wrong parameter adjoint is caught.
 
-use diffsim::check::{CheckOptions, Verdict, check_all, taylor};
+use diffsim::check::{CheckParams, Verdict, check_all, taylor};
 use diffsim::op::{Forward, Jvp, Operator, OperatorExt, Vjp};
 use diffsim::rollout::{AtSteps, Checkpointing, Rollout, RolloutLoss, Wrt};
 
@@ -66,7 +66,7 @@ fn misfit(steps: Vec<usize>) -> AtSteps<impl Fn(usize, &[f64], &mut [f64]) -> f6
 }
 
 fn passes<O: Vjp + Jvp>(what: &str, op: &O, x: &[f64], p: &[f64]) {
-    let report = check_all(op, x, p, &CheckOptions::default());
+    let report = check_all(op, x, p, &CheckParams::default());
     assert!(report.passed(), "{what}:\n{report}");
 }
 
@@ -183,7 +183,7 @@ fn a_wrong_parameter_adjoint_is_caught_through_the_rollout_and_only_there() {
     for wrt in [Wrt::P, Wrt::Both] {
         let as_op = RolloutLoss::new(rollout, &x0, &loss, Checkpointing::Store, wrt).unwrap();
         let (x, pp) = as_op.point();
-        let r = check_all(&as_op, x, pp, &CheckOptions::default());
+        let r = check_all(&as_op, x, pp, &CheckParams::default());
         assert!(matches!(r.fd.verdict, Verdict::Fail(_)), "{wrt:?}: finite differences missed it:\n{r}");
         assert!(matches!(r.taylor.verdict, Verdict::Fail(_)), "{wrt:?}: Taylor missed it:\n{r}");
         assert!(matches!(r.dot.verdict, Verdict::Fail(_)), "{wrt:?}: the dot product missed it:\n{r}");
@@ -205,7 +205,7 @@ fn wrong_lengths_name_the_callers_line() {
     let (op, x0) = wave();
     let short_seed = std::panic::catch_unwind(|| op.vjp_new(&x0, &[1.0, 0.1], &[1.0; 3]));
     let vjp_site = WHERE.lock().unwrap().take();
-    let short_x = std::panic::catch_unwind(|| check_all(&op, &x0[..5], &[1.0, 0.1], &CheckOptions::default()));
+    let short_x = std::panic::catch_unwind(|| check_all(&op, &x0[..5], &[1.0, 0.1], &CheckParams::default()));
     let check_site = WHERE.lock().unwrap().take();
     std::panic::set_hook(previous);
     assert!(short_seed.is_err() && short_x.is_err());
@@ -237,7 +237,7 @@ diffsim::differentiable!(Linear => linear);
 
 #[test]
 fn taylor_says_when_the_remainder_is_at_round_off() {
-    let r = taylor(&Linear, &[0.3, -0.7], &[1.1], &CheckOptions::default());
+    let r = taylor(&Linear, &[0.3, -0.7], &[1.1], &CheckParams::default());
     assert!(r.verdict.passed(), "{r}");
     let note = r.note.as_deref().unwrap_or("");
     assert!(note.contains("round-off") && note.contains("linear"), "{r}");

@@ -129,7 +129,7 @@ fn the_conduction_step_passes_the_three_checks() {
     let op = Conduction { n: 9, c: 0.2 };
     let x: Vec<f64> = (0..9).map(|i| (0.9 * i as f64).sin()).collect();
     let theta: Vec<f64> = (0..9).map(|i| 0.3 * (0.4 * i as f64).cos()).collect();
-    let report = diffsim::check::check_all(&op, &x, &theta, &diffsim::check::CheckOptions::default());
+    let report = diffsim::check::check_all(&op, &x, &theta, &diffsim::check::CheckParams::default());
     assert!(report.passed(), "{report}");
 }
 

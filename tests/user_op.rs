@@ -2,7 +2,7 @@
 //! README and docs/own-solver.md show it: the three checks, parameters included, and validation
 //! before the generated code.
 
-use diffsim::check::{CheckOptions, check_all};
+use diffsim::check::{CheckParams, check_all};
 use diffsim::op::{Operator, OperatorExt};
 
 /// A reaction–diffusion step with parameters `p = [ν, k]` on a periodic
@@ -38,7 +38,7 @@ fn user_operator_with_parameters_passes_all_checks() {
     for n in [4, 13] {
         let op = ReactionDiffusion { n };
         let x: Vec<f64> = (0..n).map(|i| (0.7 * i as f64).sin()).collect();
-        let report = check_all(&op, &x, &[0.2, 0.5], &CheckOptions::default());
+        let report = check_all(&op, &x, &[0.2, 0.5], &CheckParams::default());
         assert!(report.passed(), "n = {n}:\n{report}");
     }
 }
@@ -100,7 +100,7 @@ diffsim::differentiable!(ReadsBackOutput => reads_back_output);
 fn an_operator_that_reads_back_its_output_gets_the_right_gradient() {
     let op = ReadsBackOutput { n: 6 };
     let x: Vec<f64> = (0..6).map(|i| (1.3 * i as f64).cos()).collect();
-    let report = check_all(&op, &x, &[0.2], &CheckOptions::default());
+    let report = check_all(&op, &x, &[0.2], &CheckParams::default());
     assert!(report.passed(), "{report}");
 }
 
@@ -156,7 +156,7 @@ fn a_function_with_lent_scratch_equals_its_steps_chained() {
         assert!(gx.iter().zip(&dx).all(|(&a, &b)| close(a, b)), "{gx:?} vs {dx:?}");
         assert!(close(gp[0], dp1[0] + dp2[0]) && close(gp[1], dp1[1] + dp2[1]), "{gp:?}");
     }
-    let report = check_all(&op, &x, &p, &CheckOptions::default());
+    let report = check_all(&op, &x, &p, &CheckParams::default());
     assert!(report.passed(), "{report}");
 }
 
@@ -209,7 +209,7 @@ fn a_kinked_function_with_lent_scratch_matches_its_closed_form() {
     assert!(dx.iter().zip(&want).all(|(a, b)| (a - b).abs() <= 1e-15), "{dx:?} vs {want:?}");
     // The kinks 1e-3 away are within reach of the larger steps: the checks
     // keep their steps inside the smooth radius and still pass.
-    let report = check_all(&op, &x, &[], &CheckOptions::default());
+    let report = check_all(&op, &x, &[], &CheckParams::default());
     assert!(report.passed(), "{report}");
 }
 
@@ -272,9 +272,9 @@ fn stencil_map_and_cell_forms_pass_all_checks_and_agree_with_the_whole_step() {
         let map = ReactionDiffusionMap { n };
         let cell = ReactionDiffusionCell { n, nu: p[0], k: p[1] };
         let whole = ReactionDiffusion { n };
-        let report = check_all(&map, &x, &p, &CheckOptions::default());
+        let report = check_all(&map, &x, &p, &CheckParams::default());
         assert!(report.passed(), "map form, n = {n}:\n{report}");
-        let report = check_all(&cell, &x, &[], &CheckOptions::default());
+        let report = check_all(&cell, &x, &[], &CheckParams::default());
         assert!(report.passed(), "cell form, n = {n}:\n{report}");
         // Same values and same adjoints as the whole-step operator.
         let (mut y1, mut y2) = (vec![0.0; n], vec![0.0; n]);
@@ -286,7 +286,7 @@ fn stencil_map_and_cell_forms_pass_all_checks_and_agree_with_the_whole_step() {
         Vjp::vjp(&cell, &x, &[], &mut w.clone(), &mut d1, &mut []);
         Vjp::vjp(&whole, &x, &p, &mut w.clone(), &mut d2, &mut dp);
         assert!(d1.iter().zip(&d2).all(|(a, b)| (a - b).abs() < 1e-14), "cell adjoint differs from the whole step's");
-        let o = CheckOptions { tol: 1e-12, ..Default::default() };
+        let o = CheckParams { tol: 1e-12, ..Default::default() };
         assert!(dot_product_between(&map, &whole, &x, &p, &o).verdict.passed());
     }
 }

@@ -613,7 +613,7 @@ fn hig(a: HigBenchArgs) -> Result<(), CliError> {
     use diffsim::train::Optimizer;
     use diffsim::train::hig::{ControlSample, PowerMethod, batch_jacobian, hig_step, loss_and_gradient};
     use diffsim_solvers::linalg::pseudo_inverse_power_apply_with as apply;
-    use diffsim_studies::oscillators::{OscConfig, datasets};
+    use diffsim_studies::oscillators::{OscParams, datasets};
     if a.iterations < 1 {
         return Err(CliError::Argument { arg: "--iterations", reason: "need at least 1".into() });
     }
@@ -624,7 +624,7 @@ fn hig(a: HigBenchArgs) -> Result<(), CliError> {
     };
     let mut out = serde_json::Map::new();
     for problem in 0..2 {
-        let (label, cfg) = if problem == 0 { ("linear", OscConfig::linear(1.0)) } else { ("nonlinear", OscConfig::nonlinear(1.0)) };
+        let (label, cfg) = if problem == 0 { ("linear", OscParams::linear(1.0)) } else { ("nonlinear", OscParams::nonlinear(1.0)) };
         let (data, _) = datasets(&cfg);
         let net = cfg.network();
         let theta = cfg.initial_params(&net);

@@ -6,7 +6,8 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use diffsim_solvers::flow::{CavityExtrema, Flow2d, SteadyOptions, Stepper, cavity_extrema, centrelines, ghia, march_to_steady};
+use diffsim_solvers::flow::cavity::CavityExtrema;
+use diffsim_solvers::flow::{Flow2d, SteadyParams, Stepper, cavity_extrema, centrelines, ghia, march_to_steady};
 
 use super::{CliError, plot_or_warn};
 use crate::plot::{Axes, Series};
@@ -121,7 +122,7 @@ fn run_cavity(a: &CavityArgs) -> Result<CavityRun, CliError> {
     let mut stepper = Stepper::new(cfg, 1e-10)?;
     let mut x = cfg.rest();
     let spinner = if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new_spinner() };
-    let opts = SteadyOptions { tolerance, max_steps: a.max_steps, reference_speed: 1.0 };
+    let opts = SteadyParams { tolerance, max_steps: a.max_steps, reference_speed: 1.0 };
     let report = march_to_steady(&mut stepper, &mut x, &opts, |step, t, rate| {
         if step % 500 == 0 {
             spinner.set_message(format!("cavity Re {re}, {n}²: step {step}, t = {t:.1}, max |du/dt| = {rate:.2e}"));
@@ -591,7 +592,7 @@ pub struct DragShapeArgs {
 }
 
 pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
-    use diffsim_solvers::flow::drag_shape::{DragShapeOptions, Stream, drag_coefficient, optimise_from, start_shape};
+    use diffsim_solvers::flow::drag_shape::{DragShapeParams, Stream, drag_coefficient, optimise_from, start_shape};
     let per_d = a.resolution.unwrap_or(if a.quick { 10 } else { 20 });
     if !(10..=100).contains(&per_d) || per_d % 10 != 0 {
         return Err(CliError::Argument { arg: "--resolution", reason: format!("cells per diameter must be a multiple of 10 between 10 and 100, got {per_d}") });
@@ -622,7 +623,7 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
             return Err(CliError::Argument { arg: "--free-stream", reason: format!("the box's half-width must be between 2 and 40 diameters, got {w}") });
         }
     };
-    let opts = DragShapeOptions {
+    let opts = DragShapeParams {
         stream,
         cells_per_d: per_d,
         modes: a.modes,
@@ -836,7 +837,7 @@ pub struct DragNetArgs {
 }
 
 pub(super) fn drag_net(a: DragNetArgs) -> Result<(), CliError> {
-    use diffsim_studies::shape_net::{ShapeNetOptions, train};
+    use diffsim_studies::shape_net::{ShapeNetParams, train};
     if !(a.lr.is_finite() && a.lr > 0.0) {
         return Err(CliError::Argument { arg: "--lr", reason: format!("must be a positive number, got {}", a.lr) });
     }
@@ -845,7 +846,7 @@ pub(super) fn drag_net(a: DragNetArgs) -> Result<(), CliError> {
     if a.iterations == 0 {
         return Err(CliError::Argument { arg: "--iterations", reason: "must be at least 1 (the network's training updates)".into() });
     }
-    let opts = ShapeNetOptions {
+    let opts = ShapeNetParams {
         cells_per_d: if a.quick { 10 } else { 20 },
         modes: 4,
         train_re: vec![10.0, 20.0, 30.0, 40.0],

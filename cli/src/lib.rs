@@ -430,7 +430,7 @@ fn info(world: &diffsim::distributed::World) -> Result<(), CliError> {
 const MAX_CHECK_STEPS: usize = 1_000_000;
 
 fn check_p1(a: CheckArgs) -> Result<(), CliError> {
-    use diffsim::check::{CheckOptions, check_all};
+    use diffsim::check::{CheckParams, check_all};
     use diffsim::problems::burgers::{BurgersEnzyme, BurgersHand, P1};
     use diffsim::rollout::{Checkpointing, Rollout, RolloutOperator};
     if a.n < 3 {
@@ -446,7 +446,7 @@ fn check_p1(a: CheckArgs) -> Result<(), CliError> {
     diffsim::memory::check("check", format!("{} cells, {} steps", a.n, a.steps), diffsim::memory::f64s(&[a.n as u64, copies]), None)?;
     let p = P1::new(a.n, a.steps);
     let mode = Checkpointing::binomial_log(a.steps);
-    let opts = CheckOptions::default();
+    let opts = CheckParams::default();
     let enzyme = BurgersEnzyme(p.cfg);
     let r = check_all(&RolloutOperator { rollout: Rollout::new(&enzyme, &[], a.steps)?, mode }, &p.u0, &[], &opts);
     println!("P1 rollout N = {} T = {} ({mode}), Enzyme step VJPs:\n{r}\n", a.n, a.steps);

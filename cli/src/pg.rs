@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use super::CliError;
 use super::train::{io, write_error_files};
 use crate::plot::{Axes, Series};
-use diffsim_studies::smoke::{SHOWN, SmokeComparison, SmokeConfig, SmokeMethod, compare, inverse_alone, inverse_misses};
+use diffsim_studies::smoke::{SHOWN, SmokeComparison, SmokeMethod, SmokeParams, compare, inverse_alone, inverse_misses};
 
 /// Arguments of `diffsim experiment sip-smoke`.
 #[derive(Debug, clap::Args)]
@@ -38,7 +38,7 @@ pub struct SipSmokeArgs {
 
 /// Runs the comparison and writes its table, curves and pictures.
 pub(super) fn sip_smoke(a: SipSmokeArgs) -> Result<(), CliError> {
-    let mut cfg = if a.quick { SmokeConfig::quick() } else { SmokeConfig::standard() };
+    let mut cfg = if a.quick { SmokeParams::quick() } else { SmokeParams::standard() };
     if let Some(s) = a.seconds {
         // A day per method at most: the study compares equal budgets, and
         // a longer one is an input error, not a study.

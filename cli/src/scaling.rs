@@ -11,7 +11,7 @@ use diffsim::distributed::{ScalingModel, World};
 use diffsim::nn::Activation;
 use diffsim::op::Vjp;
 use diffsim::rollout::Checkpointing;
-use diffsim::train::{Coupled, Coupling, Optimizer, Sample, batch_gradient_over};
+use diffsim::train::{Coupled, Coupling, Optimizer, RolloutBatch, Sample, Trainer, TrainerParams, batch_gradient_over};
 use diffsim_studies::sol::SolProblem;
 
 #[derive(Debug, Args)]
@@ -100,16 +100,20 @@ fn measure<S: Vjp + Sync>(a: &ScalingArgs, world: &World, threads: usize, w: Wor
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
     };
+    // The library's trainer runs the iterations (the first a warm-up);
+    // after each, the ranks wait for each other, so every timed iteration
+    // starts together.
     let mut iteration = Vec::new();
-    for k in 0..=a.iterations {
-        world.barrier();
-        let t = std::time::Instant::now();
-        let (_, grad) = batch_gradient_over(world, &w.op, &theta, w.unroll, &steps, mine, batch_len, Checkpointing::Store)?;
-        adam.step(&mut theta, &grad);
-        if k > 0 {
-            iteration.push(t.elapsed().as_secs_f64());
+    let trainer = Trainer::new(TrainerParams { iterations: a.iterations + 1, ..TrainerParams::default() }, world);
+    let batch_at = |_| Ok(RolloutBatch::new(&w.op, w.unroll, &steps, mine, Checkpointing::Store).over(world, batch_len));
+    world.barrier();
+    trainer.run(&mut adam, &mut theta, batch_at, |row, _, _| {
+        if row.iteration > 1 {
+            iteration.push(row.step_seconds);
         }
-    }
+        world.barrier();
+        std::ops::ControlFlow::Continue(())
+    })?;
     // This rank's share alone (no exchange), then the slowest rank's.
     let mut share = Vec::new();
     for _ in 0..a.iterations.min(5) {

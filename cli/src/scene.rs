@@ -497,11 +497,11 @@ pub(super) fn grad(a: GradArgs) -> Result<(), CliError> {
         println!("{}", profile_backward(&scene)?);
     }
     if a.check {
-        use diffsim::check::{CheckOptions, check_all};
+        use diffsim::check::{CheckParams, check_all};
         // The rollout x₀ ↦ x_T under the chosen checkpointing.
         let p = scene.rollout_params();
         let op = RolloutOperator { rollout: scene.rollout(&p)?, mode };
-        let report = check_all(&op, &scene.x0, &[], &CheckOptions::default());
+        let report = check_all(&op, &scene.x0, &[], &CheckParams::default());
         println!("{report}");
         if report.failed() {
             return Err(CliError::ChecksFailed);
@@ -601,13 +601,13 @@ fn grad_steady(a: &GradArgs, scene: &SteadyScene) -> Result<(), CliError> {
     eprintln!("{} Newton steps and one adjoint solve in {elapsed:.2} s", run.state.steps);
     out.finish()?;
     if a.check {
-        use diffsim::check::{CheckOptions, check_all};
+        use diffsim::check::{CheckParams, check_all};
         // The force on the loss's body as a function of every body's
         // parameters: adjoint (VJP) against whole re-solves and the tangent
         // equations (JVP). Newton's residual floor limits the differences'
         // accuracy, hence the looser tolerance.
         let op = scene.force_operator(loss.obstacle)?;
-        let report = check_all(&op, &scene.params(), &[], &CheckOptions { tol: 1e-5, max_indices: 8, ..Default::default() });
+        let report = check_all(&op, &scene.params(), &[], &CheckParams { tol: 1e-5, max_indices: 8, ..Default::default() });
         println!("{report}");
         if !report.passed() {
             return Err(CliError::ChecksFailed);

@@ -2,7 +2,6 @@
 //! `diffsim experiment sol-burgers` and `sol-wake` (the PRE / NOISE / SOL
 //! studies).
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
@@ -14,9 +13,12 @@ use diffsim::distributed::World;
 use diffsim::nn::{Activation, ParamStore};
 use diffsim::train::Optimizer;
 use diffsim::train::checkpoint::{Checkpoint, FORMAT, Parts, config_difference};
-use diffsim_studies::burgers::{LogRow, Method, StudyConfig, TrainData, evaluate, initial_params, mean, study, train};
+use diffsim::train::trainer::Row;
+use diffsim::train::{CheckpointPolicy, CsvLog};
+use diffsim_studies::burgers::{Method, StudyParams, TrainData, evaluate, initial_params, mean, study, train};
 use diffsim_studies::config::TrainConfig;
 use diffsim_studies::sol::SolProblem;
+use diffsim_studies::sol::Watch;
 
 /// Arguments of `diffsim train`.
 #[derive(Debug, clap::Args)]
@@ -218,7 +220,7 @@ impl StudyArgs {
 
     /// Sets the overridden values, refusing zeros, non-positive learning
     /// rates, negative noise and unknown variants.
-    fn apply<P>(&self, cfg: &mut StudyConfig<P>) -> Result<(), CliError> {
+    fn apply<P>(&self, cfg: &mut StudyParams<P>) -> Result<(), CliError> {
         if !(self.checkpoint_seconds.is_finite() && self.checkpoint_seconds > 0.0) {
             return Err(CliError::Argument { arg: "--checkpoint-seconds", reason: format!("must be a positive number, got {}", self.checkpoint_seconds) });
         }
@@ -366,16 +368,6 @@ fn existing_run(out: &Path, config: &str) -> Option<String> {
     Some(format!("{} holds {what} ({}); --overwrite replaces them, or choose another --out", out.display(), files.join(", ")))
 }
 
-/// Keeps the header and the rows of iterations `1..=done` of a loss log
-/// (a killed run may have logged past its last checkpoint).
-fn trim_log(path: &Path, done: u64) -> Result<(), CliError> {
-    let header = "iteration,loss,grad_norm,seconds";
-    let text = if path.exists() { diffsim::files::read_text(path, 1 << 30, "loss log")? } else { String::new() };
-    let mut kept = vec![header];
-    kept.extend(text.lines().skip(1).filter(|l| l.split(',').next().and_then(|i| i.parse::<u64>().ok()).is_some_and(|i| i <= done)));
-    diffsim::files::write_atomic(path, format!("{}\n", kept.join("\n")).as_bytes()).map_err(io(path))
-}
-
 /// `diffsim train CONFIG`, in one process or data-parallel over the ranks
 /// of `world` (`mpirun -np K diffsim train CONFIG`): every rank reads the
 /// configuration and builds the data; rank 0 reads or starts the
@@ -419,70 +411,41 @@ pub(super) fn train_cmd(a: TrainArgs, world: &World) -> Result<(), CliError> {
         Some(nu) => TrainData::Random { nu, horizon: cfg.data.steps },
     };
     let iterations = usize::try_from(target - done).map_err(|_| CliError::Argument { arg: "--extend", reason: "too many iterations".into() })?;
-    let settings = diffsim_studies::burgers::TrainSettings { first: done as usize + 1, iterations, ..cfg.settings };
-    let mut log = match world.is_root() {
-        true => Some(std::io::BufWriter::new(
-            std::os::unix::fs::OpenOptionsExt::custom_flags(std::fs::OpenOptions::new().append(true), libc::O_NOFOLLOW)
-                .open(&log_path)
-                .map_err(io(&log_path))?,
-        )),
-        false => None,
-    };
+    let settings = diffsim_studies::burgers::TrainParams { first: done as usize + 1, iterations, ..cfg.settings };
+    // Rank 0 logs and checkpoints; every rank stops at the same iteration.
+    let mut log = if world.is_root() { CsvLog::resume(&log_path, done as usize).map_err(io(&log_path))? } else { CsvLog::none() };
     // Ctrl-C or a termination request: checkpoint and stop after the
     // current iteration (a second handler cannot be set; ignore).
     let _ = ctrlc::set_handler(|| STOP.store(true, std::sync::atomic::Ordering::SeqCst));
     let progress = bar(settings.iterations, a.quiet || !world.is_root(), &settings.method.name());
-    let mut rows: Vec<LogRow> = Vec::new();
-    let mut failure: Option<CliError> = None;
-    let mut stopped_at = None;
-    let (mut last_it, mut last_time) = (done, std::time::Instant::now());
-    let time = train(&cfg.setup, &cfg.net, &mut store.values, &mut opt, data, &settings, world, |r, theta, opt| {
-        rows.push(r);
-        let it = r.iteration as u64;
-        // A stop every rank takes at the same iteration.
-        let stop = world.any(STOP.load(std::sync::atomic::Ordering::SeqCst));
-        if let Some(log) = &mut log {
-            if let Err(e) = writeln!(log, "{},{:.9e},{:.6e},{:.4}", r.iteration, r.loss, r.grad_norm, r.seconds) {
-                failure.get_or_insert(io(&log_path)(e));
-            }
-            progress.set_message(format!("loss {:.3e}", r.loss));
-            progress.inc(1);
-            if stop || it - last_it >= a.checkpoint_every as u64 || last_time.elapsed().as_secs_f64() >= a.checkpoint_seconds {
-                // The log first: it never lags the checkpoint.
-                if let Err(e) = log.flush() {
-                    failure.get_or_insert(io(&log_path)(e));
-                }
-                let params = ParamStore { entries: layout.entries.clone(), values: theta.to_vec() };
-                let c = Checkpoint { format: FORMAT, config: text.clone(), iterations_done: it, params, optimizer: opt.clone() };
-                if let Err(e) = c.save(&ckpt_path) {
-                    failure.get_or_insert(e.into());
-                }
-                (last_it, last_time) = (it, std::time::Instant::now());
-            }
-        }
-        if stop || failure.is_some() {
-            stopped_at = Some(it);
-            return std::ops::ControlFlow::Break(());
-        }
+    let mut last_loss = f64::NAN;
+    let rows = diffsim::train::on_row(|r: &Row, _: &[f64], _: &Optimizer| {
+        last_loss = r.loss;
+        progress.set_message(format!("loss {:.3e}", r.loss));
+        progress.inc(1);
         std::ops::ControlFlow::Continue(())
-    })?;
+    });
+    let save = diffsim::train::save_with(|it: usize, theta: &[f64], opt: &Optimizer| {
+        if !world.is_root() {
+            return Ok(());
+        }
+        let params = ParamStore { entries: layout.entries.clone(), values: theta.to_vec() };
+        let c = Checkpoint { format: FORMAT, config: text.clone(), iterations_done: it as u64, params, optimizer: opt.clone() };
+        c.save(&ckpt_path).map_err(|e| diffsim::train::TrainError::Observer(e.to_string()))
+    });
+    let watch = Watch { checkpoint: CheckpointPolicy { every: a.checkpoint_every, seconds: a.checkpoint_seconds }, stop: Some(&STOP) };
+    // The log is flushed before each checkpoint: it never lags it.
+    let trained = train(&cfg.setup, &cfg.net, &mut store.values, &mut opt, data, &settings, world, watch, ((&mut log, rows), save));
     progress.finish_and_clear();
-    if let Some(e) = failure {
-        return Err(e);
+    let (time, info) = trained?;
+    if info.stopped {
+        return Err(interrupted(&a, info.last as u64, target));
     }
-    let Some(mut log) = log else {
+    if !world.is_root() {
         // Rank 0 writes the outputs; the other ranks are done.
-        return match stopped_at {
-            Some(at) => Err(interrupted(&a, at, target)),
-            None => Ok(()),
-        };
-    };
-    log.flush().map_err(io(&log_path))?;
-    if let Some(at) = stopped_at {
-        return Err(interrupted(&a, at, target));
+        return Ok(());
     }
-    let checkpoint = Checkpoint { format: FORMAT, config: text.clone(), iterations_done: target, params: store.clone(), optimizer: opt };
-    checkpoint.save(&ckpt_path)?;
+    log.flush().map_err(io(&log_path))?;
     if target < full {
         println!(
             "stopped after iteration {target} of {total} as asked (--until); continue with: diffsim train {} --out {} --resume",
@@ -519,7 +482,7 @@ pub(super) fn train_cmd(a: TrainArgs, world: &World) -> Result<(), CliError> {
         done,
         time.total,
         1e3 * time.total / settings.iterations.max(1) as f64,
-        rows.last().map_or(f64::NAN, |r| r.loss)
+        last_loss
     );
     println!(
         "test rollouts ({} steps): relative L2 error, mean over steps: source {:.4}, corrected {:.4}",
@@ -574,7 +537,7 @@ fn start_or_continue(a: &TrainArgs, cfg: &TrainConfig, text: &str, layout: &Para
         }
         let c = Checkpoint::load(&ckpt_path)?;
         c.check(&ckpt_path, text, layout, &cfg.optimizer)?;
-        // Counts are checked before anything is written (trim_log below).
+        // Counts are checked before anything is written (the log's trim below).
         if let Some(n) = a.extend {
             target_of(c.iterations_done, n)?;
         }
@@ -584,7 +547,7 @@ fn start_or_continue(a: &TrainArgs, cfg: &TrainConfig, text: &str, layout: &Para
                 reason: format!("the checkpoint has {} iterations, more than the configured {total} (use --extend to train further)", c.iterations_done),
             });
         }
-        trim_log(&log_path, c.iterations_done)?;
+        CsvLog::resume(&log_path, c.iterations_done as usize).map_err(io(&log_path))?;
         return Ok((c.params, c.optimizer, c.iterations_done));
     }
     if !a.overwrite
@@ -598,7 +561,7 @@ fn start_or_continue(a: &TrainArgs, cfg: &TrainConfig, text: &str, layout: &Para
     // Iteration 0 is a checkpoint too: from the first moment the folder
     // names its configuration and can be resumed.
     Checkpoint { format: FORMAT, config: text.to_string(), iterations_done: 0, params: store.clone(), optimizer: opt.clone() }.save(&ckpt_path)?;
-    trim_log(&log_path, 0)?;
+    CsvLog::resume(&log_path, 0).map_err(io(&log_path))?;
     Ok((store, opt, 0))
 }
 
@@ -614,30 +577,6 @@ pub(super) fn experiment(c: ExperimentCommand, world: &World) -> Result<(), CliE
         ExperimentCommand::DragShape(a) => super::flow::drag_shape(a),
         ExperimentCommand::DragNet(a) => super::flow::drag_net(a),
     }
-}
-
-/// Part `name` of a study: read back from `parts` when an earlier run
-/// finished it (with `--resume`), else run and saved.
-fn part<T: serde::Serialize + serde::de::DeserializeOwned>(parts: &Parts, name: &str, run: impl FnOnce() -> Result<T, CliError>) -> Result<T, CliError> {
-    part_over(&World::single(), parts, name, run)
-}
-
-/// [`part`] over the ranks of `world`: rank 0 reads a finished part and
-/// sends it to the others; all run it otherwise; rank 0 saves it.
-fn part_over<T: serde::Serialize + serde::de::DeserializeOwned>(
-    world: &World,
-    parts: &Parts,
-    name: &str,
-    run: impl FnOnce() -> Result<T, CliError>,
-) -> Result<T, CliError> {
-    if let Some(done) = world.from_root(|| parts.finished(name))? {
-        return Ok(done);
-    }
-    let value = run()?;
-    if world.is_root() {
-        parts.finish(name, &value)?;
-    }
-    Ok(value)
 }
 
 /// This command line with `--resume` (once, at the end).
@@ -662,10 +601,11 @@ fn exit_on_interrupt(out: &Path, parts: &'static str) {
 }
 
 fn sip_heat(a: SipArgs) -> Result<(), CliError> {
-    use diffsim_studies::heat::{HeatConfig, Method, compare};
+    use diffsim_studies::StudyError;
+    use diffsim_studies::heat::{HeatParams, Method, run};
     let mut cfg = match a.setup.as_str() {
-        "small" => HeatConfig::standard(),
-        "published" => HeatConfig::published(50),
+        "small" => HeatParams::standard(),
+        "published" => HeatParams::published(50),
         other => return Err(CliError::Argument { arg: "--setup", reason: diffsim::words::unknown("setup", other, &["small", "published"]) }),
     };
     if let Some(it) = a.iterations {
@@ -696,65 +636,34 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
     let _out = super::claim_out(&a.out, a.overwrite, &[])?;
     let parts = Parts::open(&a.out.join("parts"), format!("sip-heat\n{cfg:#?}"), a.resume)?;
     exit_on_interrupt(&a.out, "each optimizer's run");
-    let methods = vec![Method::Sip, Method::Adam, Method::Gd];
-    let progress = bar(methods.len() * cfg.iterations, a.json, "train");
+    let progress = bar(Method::ALL.len() * cfg.iterations, a.json, "train");
     let start = std::time::Instant::now();
-    // One part per optimizer: each starts from the same network and batches.
-    let mut curves = Vec::new();
-    for m in methods {
-        curves.push(part(&parts, m.name(), || {
-            let mut c = compare(&cfg, &[m], |m, _| {
-                progress.set_message(m.name());
-                progress.inc(1);
-            })
-            .map_err(|e| CliError::Argument { arg: "sip-heat", reason: e.to_string() })?;
-            Ok(c.remove(0))
-        })?);
-    }
+    let report = run(&cfg, Some(&parts), |m, _| {
+        progress.set_message(m.name());
+        progress.inc(1);
+    })
+    .map_err(|e| match e {
+        StudyError::Part(e) => e.into(),
+        e => CliError::Argument { arg: "sip-heat", reason: e.to_string() },
+    })?;
     progress.finish_and_clear();
-    let mut table = String::from("| optimizer | updates | training s | start error | final error | start x-L2 | final x-L2 |\n|---|---|---|---|---|---|---|\n");
-    let mut csv = String::from("optimizer,seconds,error,x_l2\n");
-    let mut series = Vec::new();
-    let l2 = |c: &diffsim_studies::oscillators::Curve, last: bool| {
-        let p = if last { c.second_points.last() } else { c.second_points.first() };
-        p.map_or(f64::NAN, |p| p.1)
-    };
-    for (k, c) in curves.iter().enumerate() {
-        let seconds = c.points.last().map_or(0.0, |p| p.0);
-        table.push_str(&format!(
-            "| {} | {} | {seconds:.1} | {:.1} | {:.1} | {:.1} | {:.1} |\n",
-            c.name,
-            c.updates,
-            c.points[0].1,
-            c.final_loss(),
-            l2(c, false),
-            l2(c, true)
-        ));
-        for (i, (t, e)) in c.points.iter().enumerate() {
-            let x2 = c.second_points.get(i).map_or(f64::NAN, |p| p.1);
-            csv.push_str(&format!("{},{t:.4},{e:.6e},{x2:.6e}\n", c.name));
-        }
-        series.push(Series { name: c.name.clone(), points: c.points.clone(), color: k, markers: false });
-    }
-    let (inverse_l1, inverse_l2) = diffsim_studies::heat::inverse_errors(&cfg);
-    table.push_str(&format!("| the inverse alone, x = P⁻¹(y*) | – | – | – | {inverse_l1:.1} | – | {inverse_l2:.1} |\n"));
+    let table = report.table();
+    let series: Vec<Series> =
+        report.curves.iter().enumerate().map(|(k, c)| Series { name: c.name.clone(), points: c.points.clone(), color: k, markers: false }).collect();
     write_error_files(
         &a.out,
         &table,
-        &csv,
+        &report.csv(),
         &Axes { title: "inverse heat: state error vs training time", x: "seconds", y: "mean L1 error of x", log_x: false, log_y: true },
         &series,
     )?;
     let budget_s = start.elapsed().as_secs_f64();
     if a.json {
-        let obj = serde_json::json!({
-            "sip": curves[0].final_loss(), "adam": curves[1].final_loss(), "gd": curves[2].final_loss(),
-            "sip_s": curves[0].seconds, "adam_s": curves[1].seconds, "gd_s": curves[2].seconds,
-            "sip_x_l2": l2(&curves[0], true), "adam_x_l2": l2(&curves[1], true), "gd_x_l2": l2(&curves[2], true),
-            "inverse": inverse_l1, "inverse_x_l2": inverse_l2,
-            "setup": a.setup, "iterations": cfg.iterations, "budget_s": budget_s,
-        });
-        println!("{obj}");
+        let mut obj = report.json();
+        obj.insert("setup".into(), a.setup.clone().into());
+        obj.insert("iterations".into(), cfg.iterations.into());
+        obj.insert("budget_s".into(), budget_s.into());
+        println!("{}", serde_json::Value::Object(obj));
     } else {
         print!("{table}");
         println!("wrote table.md, error.csv, error.png to {} ({budget_s:.0} s)", a.out.display());
@@ -763,7 +672,8 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
 }
 
 fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
-    use diffsim_studies::oscillators::{Curve, OscConfig, OscMethod, compare};
+    use diffsim_studies::StudyError;
+    use diffsim_studies::oscillators::{OscMethod, OscParams, run};
     // A day per method at most: a longer wall-clock budget is an input
     // error, not a study.
     if !(a.budget > 0.0 && a.budget <= 86_400.0) {
@@ -785,7 +695,7 @@ fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
     if a.updates == Some(0) {
         return Err(CliError::Argument { arg: "--updates", reason: "must be at least 1".into() });
     }
-    let (mut lin, mut nonlin) = (OscConfig::linear(a.budget), OscConfig::nonlinear(a.budget));
+    let (mut lin, mut nonlin) = (OscParams::linear(a.budget), OscParams::nonlinear(a.budget));
     (lin.hig.method, lin.gn.method, nonlin.hig.method, nonlin.gn.method) = (method, method, method, method);
     (lin.updates, nonlin.updates) = (a.updates, a.updates);
     let settings = format!("hig-oscillators\n{lin:#?}\n{nonlin:#?}");
@@ -793,55 +703,40 @@ fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
     let _out = if world.is_root() { Some(super::claim_out(&a.out, a.overwrite, &[])?) } else { None };
     let parts = if world.is_root() { Parts::open(&a.out.join("parts"), settings, a.resume)? } else { Parts::kept_elsewhere(&a.out.join("parts"), settings) };
     exit_on_interrupt(&a.out, "each problem's runs (timed by the wall clock)");
-    let fail = |e: diffsim::train::TrainError| CliError::Argument { arg: "hig-oscillators", reason: e.to_string() };
-    let say = |problem: &'static str| {
-        let quiet = a.json || !world.is_root();
-        move |m: OscMethod, t: f64| {
-            if !quiet {
-                eprint!("\r{problem}: {} {t:.0} s   ", m.name());
-            }
+    let quiet = a.json || !world.is_root();
+    let say = |problem: &'static str, m: OscMethod, t: f64| {
+        if !quiet {
+            eprint!("\r{problem}: {} {t:.0} s   ", m.name());
         }
     };
-    let linear: Vec<Curve> = part_over(world, &parts, "linear", || compare(&lin, &OscMethod::ALL, world, say("linear")).map_err(fail))?;
-    let nonlinear: Vec<Curve> = part_over(world, &parts, "nonlinear", || compare(&nonlin, &OscMethod::ALL, world, say("nonlinear")).map_err(fail))?;
+    let report = run(&lin, &nonlin, world, Some(&parts), say).map_err(|e| match e {
+        StudyError::Part(e) => e.into(),
+        e => CliError::Argument { arg: "hig-oscillators", reason: e.to_string() },
+    })?;
     if !world.is_root() {
         return Ok(());
     }
     if !a.json {
         eprintln!();
     }
-    let mut table = format!("| problem | optimizer | updates in {:.0} s | s per update | final test loss |\n|---|---|---|---|---|\n", a.budget);
-    let mut series = Vec::new();
-    let mut csv = String::from("problem,optimizer,seconds,test_loss\n");
-    let mut obj = serde_json::Map::new();
-    for problem in 0..2 {
-        let curves = if problem == 0 { &linear } else { &nonlinear };
-        let (label, suffix) = if problem == 0 { ("linear", "") } else { ("nonlinear", "_nonlinear") };
-        for (k, c) in curves.iter().enumerate() {
-            let diverged = c.diverged_after.map_or(String::new(), |u| format!(" (diverged after {u} updates)"));
-            table.push_str(&format!("| {label} | {} | {} | {:.4} | {:.3e}{diverged} |\n", c.name, c.updates, c.seconds_per_update(), c.final_loss()));
-            for (t, l) in &c.points {
-                csv.push_str(&format!("{label},{},{t:.4},{l:.6e}\n", c.name));
-            }
-            series.push(Series { name: format!("{} ({label})", c.name), points: c.points.clone(), color: 3 * problem + k, markers: false });
-            obj.insert(format!("{}{suffix}", c.name), serde_json::json!(c.final_loss()));
-            obj.insert(format!("{}{suffix}_s_per_update", c.name), serde_json::json!(c.seconds_per_update()));
-            obj.insert(format!("{}{suffix}_updates", c.name), serde_json::json!(c.updates));
-            obj.insert(format!("{}{suffix}_diverged", c.name), serde_json::json!(c.diverged_after.is_some()));
-        }
-    }
-    obj.insert("budget_s".into(), serde_json::json!(a.budget));
+    let table = report.table();
     let md = a.out.join("table.md");
     diffsim::files::write(&md, &table).map_err(io(&md))?;
     let path = a.out.join("loss.csv");
-    diffsim::files::write(&path, csv).map_err(io(&path))?;
+    diffsim::files::write(&path, report.csv()).map_err(io(&path))?;
+    let mut series = Vec::new();
+    for (problem, (label, curves)) in [("linear", &report.linear), ("nonlinear", &report.nonlinear)].into_iter().enumerate() {
+        for (k, c) in curves.iter().enumerate() {
+            series.push(Series { name: format!("{} ({label})", c.name), points: c.points.clone(), color: 3 * problem + k, markers: false });
+        }
+    }
     plot_or_warn(
         &a.out.join("loss.png"),
         &Axes { title: "coupled oscillators: test loss vs training time", x: "seconds", y: "test loss", log_x: false, log_y: true },
         &series,
     );
     if a.json {
-        println!("{}", serde_json::Value::Object(obj));
+        println!("{}", serde_json::Value::Object(report.json()));
     } else {
         print!("{table}");
         println!("wrote table.md, loss.csv, loss.png to {}", a.out.display());
@@ -850,7 +745,7 @@ fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
 }
 
 fn sol_burgers(a: SolArgs, world: &World) -> Result<(), CliError> {
-    let mut cfg = StudyConfig::standard(a.study.quick);
+    let mut cfg = StudyParams::standard(a.study.quick);
     if a.width == 0 {
         return Err(CliError::Argument { arg: "--width", reason: "must be at least 1".into() });
     }
@@ -862,7 +757,7 @@ fn sol_burgers(a: SolArgs, world: &World) -> Result<(), CliError> {
 }
 
 fn sol_wake(a: SolWakeArgs, world: &World) -> Result<(), CliError> {
-    let mut cfg = StudyConfig::wake(a.study.quick);
+    let mut cfg = StudyParams::wake(a.study.quick);
     cfg.net = cfg.setup.network(a.study.activation(diffsim_studies::wake::STUDY_ACTIVATION)?);
     a.study.apply(&mut cfg)?;
     if let Some(t) = a.steps {
@@ -886,7 +781,7 @@ fn sol_wake(a: SolWakeArgs, world: &World) -> Result<(), CliError> {
 /// command that resumes. Over several ranks the variants train
 /// data-parallel and rank 0 writes every file.
 fn run_sol_study<P: SolProblem + std::fmt::Debug>(
-    cfg: &StudyConfig<P>,
+    cfg: &StudyParams<P>,
     command: &'static str,
     title: &str,
     study_args: &StudyArgs,
@@ -904,8 +799,7 @@ fn run_sol_study<P: SolProblem + std::fmt::Debug>(
     let total = cfg.methods.len() * cfg.settings.iterations;
     let progress = bar(total, json || !world.is_root(), "train");
     let _ = ctrlc::set_handler(|| STOP.store(true, std::sync::atomic::Ordering::SeqCst));
-    let stop = || STOP.load(std::sync::atomic::Ordering::SeqCst);
-    let resumable = Resumable { parts: &parts, every_s: study_args.checkpoint_seconds, stop: &stop };
+    let resumable = Resumable { parts: &parts, every_s: study_args.checkpoint_seconds, stop: &STOP };
     let results = study(cfg, Some(resumable), world, |name, r| {
         progress.set_message(format!("{name} loss {:.3e}", r.loss));
         progress.inc(1);

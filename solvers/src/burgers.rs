@@ -328,3 +328,53 @@ pub fn advect_line(scheme: Advection1d, c: f64, u: &[f64], out: &mut [f64], scra
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn state(n: usize) -> Vec<f64> {
+        (0..n).map(|i| (0.7 * i as f64).sin() + 0.3 * (1.9 * i as f64).cos()).collect()
+    }
+
+    /// The step is the upwind cell formula at every cell, the ends wrapped.
+    #[test]
+    fn the_step_is_the_cell_formula_with_periodic_ends() {
+        let cfg = Burgers1d::p1(16);
+        let u = state(16);
+        let mut out = vec![0.0; 16];
+        step(&cfg, &u, &mut out);
+        let (a, b) = cfg.coefficients();
+        for i in 0..16 {
+            let (l, r) = (u[(i + 15) % 16], u[(i + 1) % 16]);
+            let c = u[i];
+            let up = if c > 0.0 { c - l } else { r - c };
+            assert_eq!(out[i], c + a * ((r - c) - (c - l)) - b * c * up, "cell {i}");
+        }
+    }
+
+    /// The tangent matches central differences of the step (away from
+    /// upwind switches), and the adjoint is its transpose: `⟨g, J·t⟩ =
+    /// ⟨Jᵀ·g, t⟩`.
+    #[test]
+    fn tangent_and_adjoint_are_the_steps_derivative_and_its_transpose() {
+        let cfg = Burgers1d::p1(24);
+        let u = state(24);
+        let t: Vec<f64> = (0..24).map(|i| (0.31 * i as f64).cos()).collect();
+        let g: Vec<f64> = (0..24).map(|i| (0.53 * i as f64 + 0.2).sin()).collect();
+        let mut jt = vec![0.0; 24];
+        step_tangent(&cfg, &u, &t, &mut jt);
+        let h = 1e-7 * smooth_radius(&u, &t).min(1.0);
+        let (mut plus, mut minus) = (vec![0.0; 24], vec![0.0; 24]);
+        let shifted = |s: f64| u.iter().zip(&t).map(|(a, b)| a + s * b).collect::<Vec<f64>>();
+        step(&cfg, &shifted(h), &mut plus);
+        step(&cfg, &shifted(-h), &mut minus);
+        for i in 0..24 {
+            let fd = (plus[i] - minus[i]) / (2.0 * h);
+            assert!((fd - jt[i]).abs() < 1e-6 * (1.0 + jt[i].abs()), "cell {i}: {fd} vs {}", jt[i]);
+        }
+        let gjt: f64 = g.iter().zip(&jt).map(|(a, b)| a * b).sum();
+        let jtg_t: f64 = (0..24).map(|j| step_adjoint_cell(&cfg, &u, &g, j) * t[j]).sum();
+        assert!((gjt - jtg_t).abs() < 1e-13 * gjt.abs().max(1.0), "{gjt} vs {jtg_t}");
+    }
+}

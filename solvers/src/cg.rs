@@ -342,3 +342,51 @@ pub fn dot_piece(a: &[f64], b: &[f64]) -> f64 {
     }
     acc.iter().sum::<f64>() + tail
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `tridiag(−1, 2 + s, −1)`: symmetric positive definite.
+    struct Tridiagonal(f64);
+
+    impl System for Tridiagonal {
+        fn apply(&mut self, p: &[f64], out: &mut [f64]) {
+            let n = p.len();
+            for i in 0..n {
+                let l = if i > 0 { p[i - 1] } else { 0.0 };
+                let r = if i + 1 < n { p[i + 1] } else { 0.0 };
+                out[i] = (2.0 + self.0) * p[i] - l - r;
+            }
+        }
+        fn precondition(&mut self, _r: &[f64], _z: &mut [f64]) -> bool {
+            false
+        }
+        fn null(&self) -> Null<'_> {
+            Null::None
+        }
+    }
+
+    /// CG recovers a known solution to its tolerance, warm starts from a
+    /// solution in no iterations, and too few iterations are an error with
+    /// the residual reached.
+    #[test]
+    fn cg_solves_a_definite_system_and_reports_what_it_could_not() {
+        let n = 50;
+        let truth: Vec<f64> = (0..n).map(|i| (0.2 * i as f64).sin()).collect();
+        let mut sys = Tridiagonal(0.01);
+        let mut b = vec![0.0; n];
+        sys.apply(&truth, &mut b);
+        let mut work = CgWork::new(n);
+        let mut p = vec![0.0; n];
+        let stop = Stop { tolerance: 1e-12, max_iterations: 500 };
+        let its = solve(&mut sys, &mut work, stop, &b, &mut p, false).unwrap();
+        assert!(its > 0 && its <= n + 5, "{its} iterations");
+        let err = p.iter().zip(&truth).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+        assert!(err < 1e-8, "{err}");
+        assert_eq!(solve(&mut sys, &mut work, stop, &b, &mut p, true).unwrap(), 0);
+        let short = Stop { tolerance: 1e-12, max_iterations: 3 };
+        let e = solve(&mut sys, &mut work, short, &b, &mut vec![0.0; n], false).unwrap_err();
+        assert!(e.relative_residual > 1e-12 && e.relative_residual.is_finite(), "{e}");
+    }
+}

@@ -119,7 +119,7 @@ fn affine_min_norm(points: &[Vec<f64>], set: &[usize]) -> Vec<f64> {
 
 /// Settings of [`gradient_sampling`].
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SamplingOptions {
+pub struct SamplingParams {
     /// The sampling ball's first radius `ε` (in the parameters' units).
     pub radius: f64,
     /// The smallest radius: stationarity is claimed only at or below it,
@@ -135,6 +135,10 @@ pub struct SamplingOptions {
     /// Seed of the sampling's random numbers (runs are reproducible).
     pub seed: u64,
 }
+
+/// The former name of [`SamplingParams`].
+#[deprecated(note = "renamed SamplingParams")]
+pub type SamplingOptions = SamplingParams;
 
 /// What [`gradient_sampling`] reached.
 #[derive(Clone, Debug, PartialEq)]
@@ -178,7 +182,7 @@ pub fn gradient_sampling<E>(
     x0: &[f64],
     value0: f64,
     grad0: &[f64],
-    opts: &SamplingOptions,
+    opts: &SamplingParams,
 ) -> Result<SamplingOutcome, E> {
     let norm = |v: &[f64]| v.iter().map(|a| a * a).sum::<f64>().sqrt();
     let mut rng = SplitMix(opts.seed);

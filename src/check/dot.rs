@@ -3,7 +3,7 @@
 
 use std::fmt;
 
-use super::{CheckOptions, Verdict, dot, random_vector, rng};
+use super::{CheckParams, Verdict, dot, random_vector, rng};
 use crate::op::{Jvp, OperatorExt, Vjp};
 
 /// Result of [`dot_product`].
@@ -35,16 +35,16 @@ impl fmt::Display for DotReport {
 /// Dot-product test of an operator's own JVP against its own VJP, with the
 /// tolerance `1e-10` (both sides are exact derivatives up to rounding).
 #[track_caller]
-pub fn dot_product<O: Vjp + Jvp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOptions) -> DotReport {
+pub fn dot_product<O: Vjp + Jvp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> DotReport {
     crate::op::check_lengths(op, "dot_product", x, p, None);
-    dot_product_between(op, op, x, p, &CheckOptions { tol: 1e-10, ..opts.clone() })
+    dot_product_between(op, op, x, p, &CheckParams { tol: 1e-10, ..opts.clone() })
 }
 
 /// Dot-product test between the JVP of `a` and the VJP of `b` (two
 /// implementations of the same operator), with tolerance `opts.tol`; also
 /// checks `b`'s VJP contract.
 #[track_caller]
-pub fn dot_product_between<A: Jvp, B: Vjp>(a: &A, b: &B, x: &[f64], p: &[f64], opts: &CheckOptions) -> DotReport {
+pub fn dot_product_between<A: Jvp, B: Vjp>(a: &A, b: &B, x: &[f64], p: &[f64], opts: &CheckParams) -> DotReport {
     crate::op::check_lengths(a, "dot_product_between", x, p, None);
     let mut rng = rng(opts, 3);
     let vx = random_vector(&mut rng, a.n_in());

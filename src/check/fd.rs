@@ -2,7 +2,7 @@
 
 use std::fmt;
 
-use super::{CheckOptions, Verdict, axpy, functional, max_abs, random_vector, rng};
+use super::{CheckParams, Verdict, axpy, functional, max_abs, random_vector, rng};
 use crate::op::{OperatorExt, Vjp};
 
 /// One step of the sweep.
@@ -87,7 +87,7 @@ fn name(i: usize, n: usize) -> String {
 /// [`smooth_radius`](crate::op::Forward::smooth_radius) along that index:
 /// the verdict fails when `max_i min_h |fd_i − g_i| > tol·‖g‖∞`.
 #[track_caller]
-pub fn finite_differences<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOptions) -> FdReport {
+pub fn finite_differences<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> FdReport {
     crate::op::check_lengths(op, "finite_differences", x, p, None);
     let (n, m) = (op.n_in(), op.n_params());
     let mut rng = rng(opts, 1);

@@ -68,7 +68,7 @@ impl fmt::Display for Verdict {
 
 /// Options shared by the checks.
 #[derive(Clone, Debug)]
-pub struct CheckOptions {
+pub struct CheckParams {
     /// Seed of the random directions and weights.
     pub seed: u64,
     /// Tolerance: relative error for finite differences (against `‖g‖∞`)
@@ -80,7 +80,11 @@ pub struct CheckOptions {
     pub max_indices: usize,
 }
 
-impl Default for CheckOptions {
+/// The former name of [`CheckParams`].
+#[deprecated(note = "renamed CheckParams")]
+pub type CheckOptions = CheckParams;
+
+impl Default for CheckParams {
     fn default() -> Self {
         Self { seed: 0x5eed, tol: 1e-6, max_indices: 64 }
     }
@@ -121,7 +125,7 @@ impl fmt::Display for FullReport {
 /// # Panics
 /// If `x` or `p` does not have the operator's length (at the caller's line).
 #[track_caller]
-pub fn check_all<O: crate::op::Vjp + crate::op::Jvp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOptions) -> FullReport {
+pub fn check_all<O: crate::op::Vjp + crate::op::Jvp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> FullReport {
     crate::op::check_lengths(op, "check_all", x, p, None);
     FullReport { fd: finite_differences(op, x, p, opts), taylor: taylor(op, x, p, opts), dot: dot_product(op, x, p, opts) }
 }
@@ -131,7 +135,7 @@ pub fn random_vector(rng: &mut StdRng, n: usize) -> Vec<f64> {
     (0..n).map(|_| rng.random_range(-1.0..1.0)).collect()
 }
 
-fn rng(opts: &CheckOptions, salt: u64) -> StdRng {
+fn rng(opts: &CheckParams, salt: u64) -> StdRng {
     StdRng::seed_from_u64(opts.seed ^ salt.wrapping_mul(0x9e37_79b9_7f4a_7c15))
 }
 

@@ -2,7 +2,7 @@
 
 use std::fmt;
 
-use super::{CheckOptions, Verdict, axpy, dot, functional, max_abs, random_vector, rng};
+use super::{CheckParams, Verdict, axpy, dot, functional, max_abs, random_vector, rng};
 use crate::op::{OperatorExt, Vjp};
 
 /// Result of [`taylor`].
@@ -59,7 +59,7 @@ impl fmt::Display for TaylorReport {
 /// small for any usable step, or one that leaves fewer than three
 /// remainders above rounding, gives [`Verdict::Kink`].
 #[track_caller]
-pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckOptions) -> TaylorReport {
+pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> TaylorReport {
     crate::op::check_lengths(op, "taylor", x, p, None);
     let mut rng = rng(opts, 2);
     let w = random_vector(&mut rng, op.n_out());

@@ -283,6 +283,54 @@ impl Layer {
         }
     }
 
+    /// [`Layer::forward`] on `xs`, samples one after another; each row as
+    /// `forward` computes it.
+    fn forward_batch<R: Real>(&self, xs: &[R], p: &[R], ys: &mut [R]) {
+        match self {
+            Layer::Dense { n_in, n_out } => {
+                let (w, b) = p.split_at(n_in * n_out);
+                kernel::dense_batch(*n_in, w, b, xs, ys);
+            }
+            Layer::Residual(net) => {
+                net.forward_batch_into(xs, p, ys);
+                for (y, x) in ys.iter_mut().zip(xs) {
+                    *y += *x;
+                }
+            }
+            _ => {
+                for (x, y) in xs.chunks_exact(self.n_in()).zip(ys.chunks_exact_mut(self.n_out())) {
+                    self.forward(x, p, y);
+                }
+            }
+        }
+    }
+
+    /// [`Layer::backprop`] over a batch: `gxs` per sample, `gp` summed over
+    /// the samples in their order (the dense layer's in one blocked pass,
+    /// [`kernel::dense_batch_adjoint`]).
+    fn backprop_batch<R: Real>(&self, xs: &[R], ys: Option<&[R]>, p: &[R], gys: &[R], gxs: &mut [R], gp: &mut [R]) {
+        let (n_in, n_out) = (self.n_in(), self.n_out());
+        match self {
+            Layer::Dense { n_in, n_out } => {
+                let (w, _) = p.split_at(n_in * n_out);
+                let (gw, gb) = gp.split_at_mut(n_in * n_out);
+                kernel::dense_batch_adjoint(*n_in, w, xs, gys, gxs, gw, gb);
+            }
+            Layer::Residual(net) => {
+                for (gx, g) in gxs.iter_mut().zip(gys) {
+                    *gx += *g;
+                }
+                net.backprop_batch(xs, p, gys, gxs, gp);
+            }
+            _ => {
+                for (s, (x, gx)) in xs.chunks_exact(n_in).zip(gxs.chunks_exact_mut(n_in)).enumerate() {
+                    let y = ys.map(|ys| &ys[s * n_out..(s + 1) * n_out]);
+                    self.backprop(x, y, p, &gys[s * n_out..(s + 1) * n_out], gx, gp);
+                }
+            }
+        }
+    }
+
     /// `y = layer(x)`, `ty = J_x·tx + J_p·tp` (overwrites both).
     fn tangent<R: Real>(&self, x: &[R], p: &[R], tx: &[R], tp: &[R], y: &mut [R], ty: &mut [R]) {
         match self {
@@ -515,6 +563,42 @@ impl Net {
         }
     }
 
+    /// The inputs of layers `1..L` for a batch (samples one after another).
+    fn hidden_batch<R: Real>(&self, xs: &[R], p: &[R]) -> Vec<Vec<R>> {
+        let batch = xs.len() / self.n_in();
+        let last = self.layers.len() - 1;
+        let mut outs: Vec<Vec<R>> = Vec::with_capacity(last);
+        for (k, l) in self.layers[..last].iter().enumerate() {
+            let mut y = vec![R::zero(); batch * l.n_out()];
+            l.forward_batch(outs.last().map_or(xs, |v| v), &p[self.range(k)], &mut y);
+            outs.push(y);
+        }
+        outs
+    }
+
+    fn forward_batch_into<R: Real>(&self, xs: &[R], p: &[R], ys: &mut [R]) {
+        let hidden = self.hidden_batch(xs, p);
+        let last = self.layers.len() - 1;
+        self.layers[last].forward_batch(hidden.last().map_or(xs, |v| v), &p[self.range(last)], ys);
+    }
+
+    fn backprop_batch<R: Real>(&self, xs: &[R], p: &[R], gys: &[R], gxs: &mut [R], gp: &mut [R]) {
+        let batch = xs.len() / self.n_in();
+        let outs = self.hidden_batch(xs, p);
+        let mut g = gys.to_vec();
+        for k in (0..self.layers.len()).rev() {
+            let input: &[R] = if k == 0 { xs } else { &outs[k - 1] };
+            let output = outs.get(k).map(|v| v.as_slice());
+            if k == 0 {
+                self.layers[0].backprop_batch(input, output, &p[self.range(0)], &g, gxs, &mut gp[self.range(0)]);
+            } else {
+                let mut gin = vec![R::zero(); batch * self.layers[k].n_in()];
+                self.layers[k].backprop_batch(input, output, &p[self.range(k)], &g, &mut gin, &mut gp[self.range(k)]);
+                g = gin;
+            }
+        }
+    }
+
     fn tangent<R: Real>(&self, x: &[R], p: &[R], tx: &[R], tp: &[R], y: &mut [R], ty: &mut [R]) {
         let (mut cur, mut tcur) = (x.to_vec(), tx.to_vec());
         let last = self.layers.len() - 1;
@@ -563,6 +647,14 @@ impl<R: Real> Forward<R> for Net {
         self.forward_into(x, p, y);
     }
 
+    /// One pass per layer over the whole batch (dense layers as one
+    /// blocked product); each sample's output as [`Forward::forward`]'s.
+    fn forward_batch(&self, xs: &[R], p: &[R], ys: &mut [R]) {
+        validate_batch(self, xs, p, ys.len(), xs.len());
+        crate::op::count::record("Net", crate::op::count::Method::Forward);
+        self.forward_batch_into(xs, p, ys);
+    }
+
     /// Kinks of relu-like activations, to first order along the tangent.
     fn smooth_radius(&self, x: &[R], p: &[R], dx: &[R], dp: &[R]) -> f64 {
         // Half the first-order distance: the pre-activations are not exactly linear along the tangent.
@@ -577,6 +669,31 @@ impl<R: Real> Vjp<R> for Net {
         self.backprop(x, p, dy, dx, dp);
         dy.fill(R::zero());
     }
+
+    /// The batch's backward pass layer by layer; the dense layers' weight
+    /// gradients summed over the samples in one blocked pass, in sample
+    /// order (equal, bit for bit, to adding per-sample gradients in order).
+    fn vjp_batch(&self, xs: &[R], p: &[R], dys: &mut [R], dxs: &mut [R], dp: &mut [R]) {
+        validate_batch(self, xs, p, dys.len(), dxs.len());
+        assert_eq!(dp.len(), self.n_params(), "Net: vjp_batch's dp has {} values, not {}", dp.len(), self.n_params());
+        crate::op::count::record("Net", crate::op::count::Method::Vjp);
+        self.backprop_batch(xs, p, dys, dxs, dp);
+        dys.fill(R::zero());
+    }
+}
+
+/// Checks a batch call's sizes: whole samples in `xs`, `n_out` values per
+/// sample in `ys`, `n_in` per sample in `dxs`, `n_params` parameters.
+fn validate_batch<R: Real>(net: &Net, xs: &[R], p: &[R], ys: usize, dxs: usize) {
+    let (n_in, n_out) = (net.n_in(), net.n_out());
+    let batch = xs.len() / n_in;
+    assert!(
+        xs.len().is_multiple_of(n_in) && ys == batch * n_out && dxs == xs.len() && p.len() == net.n_params(),
+        "Net: a batch of {} inputs ({n_in} per sample) with {ys} outputs ({n_out} per sample), {dxs} input values and {} parameters ({} expected)",
+        xs.len(),
+        p.len(),
+        net.n_params()
+    );
 }
 
 impl<R: Real> Jvp<R> for Net {

@@ -128,46 +128,74 @@ pub trait Forward<R: Real = f64>: Operator {
     fn locate_non_finite(&self, _x: &[R], _p: &[R]) -> OpName {
         self.name()
     }
+
+    /// `f` on a batch of inputs with the same parameters: `xs` holds
+    /// `n_in` values per sample, one sample after another, and `ys` gets
+    /// `n_out` per sample (overwritten). Each sample's output is the one
+    /// [`Forward::forward`] gives it, whatever the batch around it. The
+    /// default calls `forward` per sample; operators that gain from seeing
+    /// the batch at once (a network: one pass over its weights for all
+    /// samples) override it.
+    ///
+    /// # Panics
+    /// If `xs` and `ys` do not hold the same number of whole samples.
+    fn forward_batch(&self, xs: &[R], p: &[R], ys: &mut [R]) {
+        let (n_in, n_out) = (self.n_in(), self.n_out());
+        assert_eq!(xs.len() * n_out, ys.len() * n_in, "{}: forward_batch of {} inputs into {} outputs", self.name(), xs.len(), ys.len());
+        for (x, y) in xs.chunks_exact(n_in.max(1)).zip(ys.chunks_exact_mut(n_out.max(1))) {
+            self.forward(x, p, y);
+        }
+    }
 }
 
-/// An operator's name for error messages, kept in a fixed buffer so that
-/// errors carrying it stay pointer-free (docs/pitfalls.md, type trees). Longer names are cut at 63 bytes.
+/// Text in a fixed buffer of `N` bytes (at most 255), cut on a character
+/// boundary: errors carrying it stay pointer-free (docs/pitfalls.md, type
+/// trees). [`OpName`] and [`OpMessage`] are its two sizes.
 #[derive(Clone, Copy, PartialEq, Eq)]
-pub struct OpName {
-    bytes: [u8; 63],
+pub struct FixedText<const N: usize> {
+    bytes: [u8; N],
     len: u8,
 }
+
+/// An operator's name for error messages (cut at 63 bytes).
+pub type OpName = FixedText<63>;
+
+/// What is wrong with an operator's input, for [`OpError::Input`] (cut at
+/// 63 bytes: errors stay small enough to return by value).
+pub type OpMessage = FixedText<63>;
 
 impl OpName {
     /// The name of `T` without module paths.
     pub fn of<T: ?Sized>() -> Self {
         Self::new(&short_type_name(std::any::type_name::<T>()))
     }
+}
 
-    /// A name from text (cut at 63 bytes, on a character boundary).
+impl<const N: usize> FixedText<N> {
+    /// Text cut at `N` bytes (and at 255), on a character boundary.
     pub fn new(text: &str) -> Self {
-        let mut end = text.len().min(63);
+        let mut end = text.len().min(N).min(255);
         while !text.is_char_boundary(end) {
             end -= 1;
         }
-        let mut bytes = [0u8; 63];
+        let mut bytes = [0u8; N];
         bytes[..end].copy_from_slice(&text.as_bytes()[..end]);
         Self { bytes, len: end as u8 }
     }
 
-    /// The name.
+    /// The text.
     pub fn as_str(&self) -> &str {
         std::str::from_utf8(&self.bytes[..self.len as usize]).unwrap_or("?")
     }
 }
 
-impl std::fmt::Display for OpName {
+impl<const N: usize> std::fmt::Display for FixedText<N> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.as_str())
     }
 }
 
-impl std::fmt::Debug for OpName {
+impl<const N: usize> std::fmt::Debug for FixedText<N> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "{:?}", self.as_str())
     }
@@ -215,10 +243,10 @@ pub enum OpError {
         /// The largest stable value.
         limit: f64,
     },
-    /// The parameters describe a body that cannot be put into the flow
-    /// (a shape operator's input).
+    /// The input cannot be computed with (a shape that does not fit in the
+    /// flow, say), in the operator's words.
     #[error("{0}")]
-    Shape(diffsim_solvers::flow::ShapeError),
+    Input(OpMessage),
 }
 
 /// Reverse mode: the vector–Jacobian product.
@@ -252,6 +280,34 @@ pub trait Vjp<R: Real = f64>: Forward<R> {
     fn vjp_overwrite(&self, x: &[R], p: &[R], dy: &mut [R], dx: &mut [R], dp: &mut [R]) {
         dx.fill(R::zero());
         self.vjp(x, p, dy, dx, dp);
+    }
+
+    /// [`Vjp::vjp`] over a batch laid out as in [`Forward::forward_batch`]:
+    ///
+    /// ```text
+    /// dxs_s += J_x(xs_s)ᵀ·dys_s  for every sample s      dp += Σ_s J_p(xs_s)ᵀ·dys_s
+    /// ```
+    ///
+    /// the parameters' gradient summed over the batch (in sample order in
+    /// the default and in [`crate::nn::Net`]'s, so the sum is the same for
+    /// any split of the work), no per-sample parameter gradient formed.
+    /// `dys` is consumed. The default calls `vjp` per sample.
+    ///
+    /// # Panics
+    /// If the slices do not hold the same number of whole samples.
+    fn vjp_batch(&self, xs: &[R], p: &[R], dys: &mut [R], dxs: &mut [R], dp: &mut [R]) {
+        let (n_in, n_out) = (self.n_in(), self.n_out());
+        assert!(
+            xs.len() * n_out == dys.len() * n_in && xs.len() == dxs.len(),
+            "{}: vjp_batch of {} inputs, {} seeds, {} input gradients",
+            self.name(),
+            xs.len(),
+            dys.len(),
+            dxs.len()
+        );
+        for ((x, dy), dx) in xs.chunks_exact(n_in.max(1)).zip(dys.chunks_exact_mut(n_out.max(1))).zip(dxs.chunks_exact_mut(n_in.max(1))) {
+            self.vjp(x, p, dy, dx, dp);
+        }
     }
 }
 

@@ -14,9 +14,9 @@
 
 use std::cell::RefCell;
 
-use diffsim_solvers::flow::{Cut, Flow2d, FlowError, NewtonOptions, Shape, SteadyFlow};
+use diffsim_solvers::flow::{Cut, Flow2d, FlowError, NewtonParams, Shape, SteadyFlow};
 
-use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+use crate::op::{Forward, Jvp, OpError, OpMessage, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
 /// The level set `φ(x, y) = |p − c| − r(θ)` of a Fourier body at
 /// `n_points` points: input `x` the points `[x₀, y₀, x₁, y₁, …]`, parameters
@@ -147,7 +147,7 @@ impl Jvp for CutOperator {
 /// over a box of cells around that body): input `x` every shape's
 /// [`Shape::params`], concatenated in order. Each call solves the
 /// steady equations by Newton's method from `start`; a malformed shape
-/// ([`OpError::Shape`]) or a failed solve leaves NaN in the output and an
+/// ([`OpError::Input`]) or a failed solve leaves NaN in the output and an
 /// error for [`Forward::take_error`].
 #[derive(Debug)]
 pub struct SteadyForce {
@@ -155,22 +155,22 @@ pub struct SteadyForce {
     templates: Vec<Shape>,
     start: Vec<f64>,
     cells: [usize; 4],
-    newton: NewtonOptions,
+    newton: NewtonParams,
     error: RefCell<Option<OpError>>,
 }
 
 impl SteadyForce {
     /// The force on what lies in the box of cells `cells = [i0, i1, j0, j1]`
     /// in `cfg`'s flow around shapes like `templates`, every solve starting
-    /// from the velocity `start` with the default [`NewtonOptions`]. An
+    /// from the velocity `start` with the default [`NewtonParams`]. An
     /// error when `cfg` cannot be simulated.
     pub fn new(cfg: Flow2d, templates: Vec<Shape>, start: Vec<f64>, cells: [usize; 4]) -> Result<Self, FlowError> {
         cfg.validate()?;
-        Ok(Self { cfg, templates, start, cells, newton: NewtonOptions::default(), error: RefCell::new(None) })
+        Ok(Self { cfg, templates, start, cells, newton: NewtonParams::default(), error: RefCell::new(None) })
     }
 
     /// The same operator, Newton's method stopped by `newton`.
-    pub fn with_newton(self, newton: NewtonOptions) -> Self {
+    pub fn with_newton(self, newton: NewtonParams) -> Self {
         Self { newton, ..self }
     }
 
@@ -196,7 +196,7 @@ impl SteadyForce {
         };
         let flow = match SteadyFlow::new(self.cfg, &self.shapes(x)) {
             Ok(f) => f,
-            Err(FlowError::Shape(e)) => return fail(OpError::Shape(e)),
+            Err(FlowError::Shape(e)) => return fail(OpError::Input(OpMessage::new(&e.to_string()))),
             Err(e) => unreachable!("the configuration was validated by SteadyForce::new: {e}"),
         };
         match flow.solve(&self.start, &self.newton) {

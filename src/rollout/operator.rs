@@ -10,7 +10,7 @@
 //!   initial one (the parameters held fixed).
 //!
 //! ```ignore
-//! use diffsim::check::{CheckOptions, check_all};
+//! use diffsim::check::{CheckParams, check_all};
 //! use diffsim::rollout::{AtSteps, Checkpointing, Rollout, RolloutLoss, Wrt};
 //!
 //! let loss = AtSteps { steps: vec![10, 20], f: |_t: usize, x: &[f64], g: &mut [f64]| {
@@ -20,7 +20,7 @@
 //! let rollout = Rollout::new(&op, &p, 20)?;
 //! let as_op = RolloutLoss::new(rollout, &x0, &loss, Checkpointing::periodic_sqrt(20), Wrt::Both)?;
 //! let (x, p) = as_op.point();
-//! let report = check_all(&as_op, x, p, &CheckOptions::default()); // ∂L/∂x0 and ∂L/∂p
+//! let report = check_all(&as_op, x, p, &CheckParams::default()); // ∂L/∂x0 and ∂L/∂p
 //! ```
 
 use super::checkpoint::{self, Checkpointing, Workspace};

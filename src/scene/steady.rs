@@ -9,7 +9,7 @@
 //! an outflow side has zero pressure outside.
 
 use diffsim_solvers::boundary::Side;
-use diffsim_solvers::flow::{Convection, Flow2d, FlowError, NewtonOptions, Shape, SteadyFlow, SteadyState, WallSpeed};
+use diffsim_solvers::flow::{Convection, Flow2d, FlowError, NewtonParams, Shape, SteadyFlow, SteadyState, WallSpeed};
 
 use super::SceneError;
 use super::build::{at, domain_boundary, placed};
@@ -29,7 +29,7 @@ pub struct SteadyScene {
     /// The bodies, in `[[obstacles]]` order.
     pub shapes: Vec<Shape>,
     /// When Newton's method stops.
-    pub newton: NewtonOptions,
+    pub newton: NewtonParams,
     /// Newton's starting velocity: at rest with the sides' values, except
     /// that a left inflow's profile fills every x-face of its row.
     pub start: Vec<f64>,
@@ -196,7 +196,7 @@ pub(super) fn build(file: SceneFile, text: &str) -> Result<SteadyScene, SceneErr
                 format!("{max_steps} Newton steps; at most {MAX_NEWTON_STEPS} (Newton converges in tens of steps or not at all)"),
             ));
         }
-        Ok((nu, NewtonOptions { tolerance, max_steps }))
+        Ok((nu, NewtonParams { tolerance, max_steps }))
     })?;
     let flow = at(text, &file.domain, |d| {
         let [nx, ny] = match d.size[..] {

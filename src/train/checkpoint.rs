@@ -3,7 +3,7 @@
 //! the number of iterations done and the configuration's text; the random
 //! state and the position in the data need no saving, because the batch of
 //! iteration `i` is drawn from a generator seeded by the configuration's
-//! seed and `i` alone ([`super::sol::TrainSettings::first`]).
+//! seed and `i` alone ([`super::sol::TrainParams::first`]).
 //!
 //! Checkpoints are written atomically ([`crate::files::write_atomic`]) and
 //! checked on reading: a truncated or corrupt file, another format, another

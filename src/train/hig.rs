@@ -100,9 +100,13 @@ pub fn loss_and_gradient<P: Vjp + Sync, N: Vjp + Sync>(physics: &P, net: &N, the
 }
 
 /// [`loss_and_gradient`] of a batch of `batch_len` samples shared among
-/// the ranks of `world`: this rank differentiates `mine` (its
-/// [`World::share`]), every rank receives every sample's part and reduces
-/// them in sample order.
+/// the ranks of `world`: this rank evaluates the network on `mine` (its
+/// [`World::share`]) in one batched pass, runs the physics and its VJP per
+/// sample (in parallel), and every rank receives every sample's loss,
+/// network input and control adjoint; then every rank takes the network's
+/// VJP over the whole batch at once ([`Vjp::vjp_batch`]: the parameters'
+/// gradient summed in sample order, no per-sample gradient formed). The
+/// result is one process's, bit for bit, for any number of ranks.
 pub fn loss_and_gradient_over<P: Vjp + Sync, N: Vjp + Sync>(
     world: &World,
     physics: &P,
@@ -112,19 +116,37 @@ pub fn loss_and_gradient_over<P: Vjp + Sync, N: Vjp + Sync>(
     batch_len: usize,
 ) -> (f64, Vec<f64>) {
     let b = batch_len as f64;
-    let parts: Vec<(f64, Vec<f64>)> = mine
-        .par_iter()
-        .map(|s| {
-            let u = net_eval(net, &s.target, theta);
-            let mut y = vec![0.0; physics.n_out()];
-            physics.forward(&s.x0, &u, &mut y);
-            let mut seed: Vec<f64> = y.iter().zip(&s.target).map(|(a, t)| 2.0 * (a - t) / b).collect();
-            let loss: f64 = y.iter().zip(&s.target).map(|(a, t)| (a - t) * (a - t)).sum::<f64>() / b;
-            (loss, chain_vjp(physics, net, theta, s, &u, &mut seed))
-        })
-        .collect();
-    let rows: Vec<f64> = parts.into_iter().flat_map(|(l, d)| std::iter::once(l).chain(d)).collect();
-    super::sum_in_sample_order(world, &rows, theta.len())
+    let (n_in, n_u, n_y) = (net.n_in(), net.n_out(), physics.n_out());
+    let mut inputs = Vec::with_capacity(mine.len() * n_in);
+    for s in mine {
+        inputs.extend_from_slice(&s.target);
+    }
+    let mut us = vec![0.0; mine.len() * n_u];
+    net.forward_batch(&inputs, theta, &mut us);
+    // One row per sample: [loss, network input, ∂L/∂u].
+    let width = 1 + n_in + n_u;
+    let mut rows = vec![0.0; mine.len() * width];
+    rows.par_chunks_mut(width).zip(mine.par_iter()).zip(us.par_chunks(n_u)).for_each(|((row, s), u)| {
+        let mut y = vec![0.0; n_y];
+        physics.forward(&s.x0, u, &mut y);
+        let mut seed: Vec<f64> = y.iter().zip(&s.target).map(|(a, t)| 2.0 * (a - t) / b).collect();
+        row[0] = y.iter().zip(&s.target).map(|(a, t)| (a - t) * (a - t)).sum::<f64>() / b;
+        row[1..1 + n_in].copy_from_slice(&s.target);
+        let mut dx = vec![0.0; physics.n_in()];
+        physics.vjp(&s.x0, u, &mut seed, &mut dx, &mut row[1 + n_in..]);
+    });
+    let all = if world.size() > 1 { world.all_gather(&rows) } else { rows };
+    let batch = all.len() / width;
+    let (mut loss, mut xs, mut dus) = (0.0, Vec::with_capacity(batch * n_in), Vec::with_capacity(batch * n_u));
+    for row in all.chunks_exact(width) {
+        loss += row[0];
+        xs.extend_from_slice(&row[1..1 + n_in]);
+        dus.extend_from_slice(&row[1 + n_in..]);
+    }
+    let mut dtheta = vec![0.0; theta.len()];
+    let mut dxs = vec![0.0; xs.len()];
+    net.vjp_batch(&xs, theta, &mut dus, &mut dxs, &mut dtheta);
+    (loss, dtheta)
 }
 
 fn net_eval<N: Vjp>(net: &N, input: &[f64], theta: &[f64]) -> Vec<f64> {

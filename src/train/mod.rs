@@ -11,6 +11,7 @@
 
 pub mod checkpoint;
 pub mod hig;
+pub mod observe;
 pub mod optim;
 pub mod pg;
 pub mod rule;
@@ -25,6 +26,7 @@ use crate::distributed::World;
 use crate::op::{Forward, Jvp, OpError, Operator, Real, Vjp, validate_forward, validate_jvp, validate_vjp};
 use crate::rollout::{AtSteps, Checkpointing, Rollout, RolloutError};
 
+pub use observe::{CheckpointPolicy, CsvLog, Observer, on_row, save_with};
 pub use optim::{Adam, AdamParams, Optimizer, Sgd, SgdParams, clip_by_norm};
 pub use rule::{ControlBatch, FnObjective, InverseBatch, Lbfgs, LbfgsParams, Objective, RolloutBatch, Sip, TrainError, UpdateRule};
 pub use trainer::{Schedule, Trainer, TrainerParams};

@@ -68,6 +68,10 @@ pub enum TrainError {
     /// The ranks of a distributed run no longer agree.
     #[error("{0}")]
     Distributed(String),
+    /// An observer could not do its part (a log or a checkpoint that
+    /// cannot be written), in its words.
+    #[error("{0}")]
+    Observer(String),
 }
 
 impl From<RolloutError> for TrainError {
@@ -394,18 +398,32 @@ impl<P: LocalInverse + Vjp + Sync, N: Vjp + Sync> Objective for InverseBatch<'_,
 
 /// Unrolled rollouts of `op` (a solver step with a network inside, e.g.
 /// [`super::Coupled`]) from each sample's start, the loss at `loss_steps`
-/// (solver-in-the-loop's setting; [`batch_gradient`]).
+/// (solver-in-the-loop's setting; [`batch_gradient`]). Over the ranks of
+/// an mpirun ([`RolloutBatch::over`]) each rank unrolls its share and the
+/// sums run in sample order ([`super::batch_gradient_over`]).
 pub struct RolloutBatch<'a, O> {
-    /// The step, with the network's weights as its parameters.
-    pub op: &'a O,
-    /// Steps unrolled.
-    pub unroll: usize,
-    /// The steps with a loss term.
-    pub loss_steps: &'a [usize],
-    /// The batch.
-    pub batch: &'a [Sample],
-    /// How the rollouts keep their states.
-    pub mode: Checkpointing,
+    op: &'a O,
+    unroll: usize,
+    loss_steps: &'a [usize],
+    batch: &'a [Sample],
+    mode: Checkpointing,
+    world: Option<(&'a World, usize)>,
+}
+
+impl<'a, O> RolloutBatch<'a, O> {
+    /// `op` (the network's weights its parameters) unrolled `unroll` steps
+    /// from every sample of `batch`, the loss at `loss_steps`, the states
+    /// kept as `mode` says; the whole batch in this process.
+    pub fn new(op: &'a O, unroll: usize, loss_steps: &'a [usize], batch: &'a [Sample], mode: Checkpointing) -> Self {
+        RolloutBatch { op, unroll, loss_steps, batch, mode, world: None }
+    }
+
+    /// This rank's share `batch` of a batch of `batch_len` samples shared
+    /// among the ranks of `world` ([`World::share`]).
+    pub fn over(mut self, world: &'a World, batch_len: usize) -> Self {
+        self.world = Some((world, batch_len));
+        self
+    }
 }
 
 impl<O: Vjp + Sync> Objective for RolloutBatch<'_, O> {
@@ -413,7 +431,11 @@ impl<O: Vjp + Sync> Objective for RolloutBatch<'_, O> {
         self.op.n_params()
     }
     fn loss_and_gradient(&mut self, theta: &[f64]) -> Result<(f64, Vec<f64>), TrainError> {
-        Ok(batch_gradient(self.op, theta, self.unroll, self.loss_steps, self.batch, self.mode)?)
+        let r = match self.world {
+            None => batch_gradient(self.op, theta, self.unroll, self.loss_steps, self.batch, self.mode),
+            Some((world, len)) => super::batch_gradient_over(world, self.op, theta, self.unroll, self.loss_steps, self.batch, len, self.mode),
+        };
+        Ok(r?)
     }
 }
 

@@ -14,10 +14,12 @@
 
 use std::cell::Cell;
 use std::ops::ControlFlow;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::clip_by_norm;
 use super::hig::{BatchJacobian, Hig};
+use super::observe::{CheckpointPolicy, Observer, OnRow};
 use super::pg::SipGradient;
 use super::rule::{Objective, TrainError, UpdateRule};
 use crate::distributed::World;
@@ -63,7 +65,8 @@ impl Schedule {
 }
 
 /// Settings of [`Trainer`]; `Default`: from iteration 1, 100 iterations, a
-/// constant rate, no clipping, ranks compared every 20 iterations.
+/// constant rate, no clipping, ranks compared every 20 iterations,
+/// checkpoints only when the run stops or ends.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TrainerParams {
     /// The number of the first iteration (1, or one past a checkpoint's).
@@ -77,11 +80,21 @@ pub struct TrainerParams {
     /// The ranks compare their parameters and the rule's state this often
     /// (and after the last iteration); a difference is an error.
     pub same_state_every: usize,
+    /// When the observer's [`Observer::checkpoint`] is called besides a
+    /// stop and the last iteration.
+    pub checkpoint: CheckpointPolicy,
 }
 
 impl Default for TrainerParams {
     fn default() -> Self {
-        TrainerParams { first: 1, iterations: 100, schedule: Schedule::Constant, clip: f64::INFINITY, same_state_every: 20 }
+        TrainerParams {
+            first: 1,
+            iterations: 100,
+            schedule: Schedule::Constant,
+            clip: f64::INFINITY,
+            same_state_every: 20,
+            checkpoint: CheckpointPolicy::default(),
+        }
     }
 }
 
@@ -115,13 +128,17 @@ pub struct Info {
     pub seconds: f64,
 }
 
-/// The trainer: [`TrainerParams`] and the ranks it runs over.
+/// The trainer: [`TrainerParams`], the ranks it runs over, and a flag
+/// that asks it to stop.
 #[derive(Debug)]
 pub struct Trainer<'w> {
     /// Settings.
     pub params: TrainerParams,
     /// The processes sharing each batch (one, unless under mpirun).
     pub world: &'w World,
+    /// Read after every iteration: once set (on any rank), the run saves a
+    /// checkpoint and stops ([`Trainer::stop_on`]).
+    pub stop: Option<&'w AtomicBool>,
 }
 
 /// An objective whose gradients are clipped, their norm before clipping
@@ -157,24 +174,54 @@ impl Objective for Clipped<'_> {
 impl<'w> Trainer<'w> {
     /// A trainer with `params` over `world`.
     pub fn new(params: TrainerParams, world: &'w World) -> Self {
-        Trainer { params, world }
+        Trainer { params, world, stop: None }
     }
 
-    /// Runs iterations `first ..= first + iterations − 1`: builds the
-    /// iteration's objective, sets the scheduled rate, takes the rule's
-    /// step on `theta` (clipped gradients), compares the ranks, and calls
-    /// `observe(row, theta, rule)`, which may stop the run.
+    /// The same trainer, stopping (after a checkpoint) once `flag` is set:
+    /// a Ctrl-C handler sets it, a test or a time budget may too.
+    pub fn stop_on(self, flag: &'w AtomicBool) -> Self {
+        Trainer { stop: Some(flag), ..self }
+    }
+
+    /// [`Trainer::run_observed`] with a closure observing the rows:
+    /// `observe(row, theta, rule)` after every iteration, which may stop
+    /// the run.
     ///
     /// # Errors
-    /// The objective's or the rule's error (a non-finite loss or gradient,
-    /// a failed rollout, a rule the objective cannot serve), or ranks that
-    /// no longer agree; `theta` keeps the last completed update.
+    /// As [`Trainer::run_observed`].
     pub fn run<R, O>(
         &self,
         rule: &mut R,
         theta: &mut [f64],
+        objective_at: impl FnMut(usize) -> Result<O, TrainError>,
+        observe: impl FnMut(&Row, &[f64], &R) -> ControlFlow<()>,
+    ) -> Result<Info, TrainError>
+    where
+        R: UpdateRule + ?Sized,
+        O: Objective,
+    {
+        self.run_observed(rule, theta, objective_at, OnRow(observe))
+    }
+
+    /// Runs iterations `first ..= first + iterations − 1`: builds the
+    /// iteration's objective, sets the scheduled rate, takes the rule's
+    /// step on `theta` (clipped gradients), compares the ranks, and shows
+    /// the row to `observer`. The observer's checkpoint is called when the
+    /// [`CheckpointPolicy`] is due, after the last iteration, and when the
+    /// run stops (the observer asked, or the stop flag was set on any rank:
+    /// every rank stops after the same iteration).
+    ///
+    /// # Errors
+    /// The objective's or the rule's error (a non-finite loss or gradient,
+    /// a failed rollout, a rule the objective cannot serve), the observer's
+    /// (a log or checkpoint that cannot be written), or ranks that no
+    /// longer agree; `theta` keeps the last completed update.
+    pub fn run_observed<R, O>(
+        &self,
+        rule: &mut R,
+        theta: &mut [f64],
         mut objective_at: impl FnMut(usize) -> Result<O, TrainError>,
-        mut observe: impl FnMut(&Row, &[f64], &R) -> ControlFlow<()>,
+        mut observer: impl Observer<R>,
     ) -> Result<Info, TrainError>
     where
         R: UpdateRule + ?Sized,
@@ -184,6 +231,7 @@ impl<'w> Trainer<'w> {
         let start = Instant::now();
         let mut info = Info { last: p.first.saturating_sub(1), ..Info::default() };
         let last = p.first + p.iterations.saturating_sub(1);
+        let (mut saved, mut saved_at) = (info.last, Instant::now());
         for it in p.first..p.first + p.iterations {
             let step_start = Instant::now();
             let mut objective = objective_at(it)?;
@@ -201,7 +249,13 @@ impl<'w> Trainer<'w> {
                     .map_err(|e| TrainError::Distributed(e.to_string()))?;
             }
             let row = Row { iteration: it, loss, grad_norm: clipped.norm.get(), lr, seconds: start.elapsed().as_secs_f64(), step_seconds };
-            if observe(&row, theta, rule).is_break() {
+            let asked = observer.row(&row, theta, rule)?.is_break() || self.stop.is_some_and(|f| f.load(Ordering::SeqCst));
+            let stop = self.world.any(asked);
+            if stop || it == last || p.checkpoint.due(it, saved, saved_at) {
+                observer.checkpoint(it, theta, rule)?;
+                (saved, saved_at) = (it, Instant::now());
+            }
+            if stop {
                 info.stopped = it < last;
                 break;
             }

@@ -23,7 +23,7 @@ use diffsim_solvers::burgers::Burgers1d;
 
 use crate::sol::SolProblem;
 pub use crate::sol::{
-    EvalError, LogRow, Method, StudyConfig, StudyError, TimeShares, TrainData, TrainSettings, Trajectory, VariantResult, evaluate, initial_params, mean, study,
+    EvalError, LogRow, Method, StudyError, StudyParams, TimeShares, TrainData, TrainParams, Trajectory, VariantResult, evaluate, initial_params, mean, study,
     train,
 };
 use diffsim::nn::{Activation, Net};
@@ -127,7 +127,7 @@ impl SolProblem for Setup {
 /// The activation of the study's network.
 pub const STUDY_ACTIVATION: Activation = Activation::Relu;
 
-impl StudyConfig<Setup> {
+impl StudyParams<Setup> {
     /// The study as specified: 64 training and 16 test trajectories,
     /// 128-step evaluation, PRE / NOISE / SOL-4 / SOL-16, 6000 updates of
     /// batch 16 with Adam, learning rate 1e-3 decaying to 1e-5 (cosine).
@@ -144,7 +144,7 @@ impl StudyConfig<Setup> {
             train_steps: 128 + 16,
             eval_steps: 128,
             methods: Method::standard(),
-            settings: TrainSettings::adam(16, iterations),
+            settings: TrainParams::adam(16, iterations),
             net,
         }
     }

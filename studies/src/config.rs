@@ -4,7 +4,7 @@
 
 use serde::Deserialize;
 
-use crate::burgers::{Method, Setup, TrainSettings};
+use crate::burgers::{Method, Setup, TrainParams};
 use diffsim::nn::{Activation, Net, Padding, presets};
 
 /// A training configuration as written.
@@ -201,7 +201,7 @@ pub struct TrainConfig {
     /// The network.
     pub net: Net,
     /// Optimisation settings.
-    pub settings: TrainSettings,
+    pub settings: TrainParams,
     /// `"adam"` or `"sgd"`.
     pub optimizer: String,
 }
@@ -332,7 +332,7 @@ impl TrainConfig {
         if t.optimizer != "adam" && t.optimizer != "sgd" {
             return Err(ConfigError::Key { key: "training.optimizer", reason: diffsim::words::unknown("optimizer", &t.optimizer, &["adam", "sgd"]) });
         }
-        let settings = TrainSettings {
+        let settings = TrainParams {
             method,
             batch: positive("training.batch", t.batch)?,
             iterations: positive("training.iterations", t.iterations)?,

@@ -22,13 +22,15 @@ use diffsim::problems::heat::Heat;
 use std::cell::{Cell, RefCell};
 use std::ops::ControlFlow;
 
+use crate::StudyError;
 use diffsim::distributed::World;
+use diffsim::train::checkpoint::Parts;
 use diffsim::train::pg::{InverseSample, PgError};
 use diffsim::train::{AdamParams, InverseBatch, Optimizer, Sip, TrainError, Trainer, TrainerParams, UpdateRule};
 
 /// The comparison's settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct HeatConfig {
+pub struct HeatParams {
     /// The physics (grid, `ν·t`, inverse damping).
     pub physics: Heat,
     /// Samples per batch.
@@ -56,7 +58,7 @@ pub struct HeatConfig {
     pub published_network: bool,
 }
 
-impl HeatConfig {
+impl HeatParams {
     /// The published setup (tum-pbs/SIP `heat/train_heat.py` and the book's
     /// notebook): the Bayesian inverse (signal prior 0.5, noise
     /// 1e-6·|y − y*|), the published network with 16 filters, batch 128,
@@ -141,7 +143,7 @@ pub fn samples(physics: &Heat, rng: &mut impl Rng, count: usize) -> Vec<InverseS
 /// `published_network` PhiFlow's `u_net(1, 1)` shape (4 levels of `width`
 /// filters, ReLU, zero padding; the caller adds float32 and the mean
 /// correction).
-pub fn network(cfg: &HeatConfig) -> Net {
+pub fn network(cfg: &HeatParams) -> Net {
     let (nx, ny) = (cfg.physics.grid.nx, cfg.physics.grid.ny);
     if cfg.published_network {
         presets::unet_2d_levels(nx, ny, 1, 1, cfg.width, 4, 3, Padding::Zero, Activation::Relu)
@@ -173,10 +175,102 @@ impl Method {
     }
 }
 
+/// What the study found ([`run`]).
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct HeatReport {
+    /// One curve per optimizer, in [`Method::ALL`]'s order: the held-out
+    /// mean L1 state error against training seconds, the x-L2 error as the
+    /// second measure.
+    pub curves: Vec<Curve>,
+    /// The local inverse alone, `x = P⁻¹(y*)`: its mean L1 error.
+    pub inverse_l1: f64,
+    /// … and its x-L2 error.
+    pub inverse_l2: f64,
+}
+
+impl Method {
+    /// The study's optimizers, in the report's order.
+    pub const ALL: [Method; 3] = [Method::Sip, Method::Adam, Method::Gd];
+}
+
+/// The study: SIP, Adam and gradient descent, each from the same network
+/// on the same batches ([`compare`]), and the inverse alone. With `parts`
+/// each optimizer's finished curve is saved there and read back when an
+/// interrupted run is resumed. `progress(method, update)` after each
+/// update.
+///
+/// # Errors
+/// A loss, gradient or state error that is not finite, or a part that
+/// cannot be read or saved.
+pub fn run(cfg: &HeatParams, parts: Option<&Parts>, mut progress: impl FnMut(Method, usize)) -> Result<HeatReport, StudyError> {
+    let mut curves = Vec::new();
+    for m in Method::ALL {
+        curves.push(crate::part(&World::single(), parts, m.name(), || -> Result<Curve, StudyError> { Ok(compare(cfg, &[m], &mut progress)?.remove(0)) })?);
+    }
+    let (inverse_l1, inverse_l2) = inverse_errors(cfg);
+    Ok(HeatReport { curves, inverse_l1, inverse_l2 })
+}
+
+impl HeatReport {
+    /// The first or last x-L2 error of a curve.
+    fn x_l2(c: &Curve, last: bool) -> f64 {
+        let p = if last { c.second_points.last() } else { c.second_points.first() };
+        p.map_or(f64::NAN, |p| p.1)
+    }
+
+    /// The Markdown table: updates, training seconds, start and final
+    /// errors per optimizer, and the inverse alone.
+    pub fn table(&self) -> String {
+        let mut table =
+            String::from("| optimizer | updates | training s | start error | final error | start x-L2 | final x-L2 |\n|---|---|---|---|---|---|---|\n");
+        for c in &self.curves {
+            let seconds = c.points.last().map_or(0.0, |p| p.0);
+            table.push_str(&format!(
+                "| {} | {} | {seconds:.1} | {:.1} | {:.1} | {:.1} | {:.1} |\n",
+                c.name,
+                c.updates,
+                c.points.first().map_or(f64::NAN, |p| p.1),
+                c.final_loss(),
+                Self::x_l2(c, false),
+                Self::x_l2(c, true)
+            ));
+        }
+        table.push_str(&format!("| the inverse alone, x = P⁻¹(y*) | – | – | – | {:.1} | – | {:.1} |\n", self.inverse_l1, self.inverse_l2));
+        table
+    }
+
+    /// `optimizer,seconds,error,x_l2`, one row per recorded point.
+    pub fn csv(&self) -> String {
+        let mut csv = String::from("optimizer,seconds,error,x_l2\n");
+        for c in &self.curves {
+            for (i, (t, e)) in c.points.iter().enumerate() {
+                let x2 = c.second_points.get(i).map_or(f64::NAN, |p| p.1);
+                csv.push_str(&format!("{},{t:.4},{e:.6e},{x2:.6e}\n", c.name));
+            }
+        }
+        csv
+    }
+
+    /// The one-line result: each optimizer's final error (`sip`, `adam`,
+    /// `gd`), training seconds (`…_s`) and final x-L2 (`…_x_l2`), and the
+    /// inverse's (`inverse`, `inverse_x_l2`).
+    pub fn json(&self) -> serde_json::Map<String, serde_json::Value> {
+        let mut obj = serde_json::Map::new();
+        for c in &self.curves {
+            obj.insert(c.name.clone(), c.final_loss().into());
+            obj.insert(format!("{}_s", c.name), c.seconds.into());
+            obj.insert(format!("{}_x_l2", c.name), Self::x_l2(c, true).into());
+        }
+        obj.insert("inverse".into(), self.inverse_l1.into());
+        obj.insert("inverse_x_l2".into(), self.inverse_l2.into());
+        obj
+    }
+}
+
 /// Trains one network per method (same start, same batches) and records
 /// the held-out state error about 30 times, against training seconds.
 /// `progress(method, update)` is called after each update.
-pub fn compare(cfg: &HeatConfig, methods: &[Method], progress: impl FnMut(Method, usize)) -> Result<Vec<Curve>, TrainError> {
+pub fn compare(cfg: &HeatParams, methods: &[Method], progress: impl FnMut(Method, usize)) -> Result<Vec<Curve>, TrainError> {
     let net = network(cfg);
     if cfg.published_network {
         let theta0 = net.init(&mut StdRng::seed_from_u64(cfg.seed), diffsim::nn::Init::He);
@@ -189,7 +283,7 @@ pub fn compare(cfg: &HeatConfig, methods: &[Method], progress: impl FnMut(Method
 }
 
 fn train_each<N: Vjp + Sync>(
-    cfg: &HeatConfig,
+    cfg: &HeatParams,
     net: &N,
     theta0: &[f64],
     methods: &[Method],
@@ -244,7 +338,7 @@ fn train_each<N: Vjp + Sync>(
 }
 
 /// The held-out samples every curve and [`inverse_errors`] are measured on.
-fn test_set(cfg: &HeatConfig) -> Vec<InverseSample> {
+fn test_set(cfg: &HeatParams) -> Vec<InverseSample> {
     samples(&cfg.physics, &mut StdRng::seed_from_u64(cfg.seed + 1000), cfg.test_samples)
 }
 
@@ -266,7 +360,7 @@ fn mean_errors(data: &[InverseSample], recover: impl Fn(&InverseSample) -> Vec<f
 /// to each observation directly (`x = P⁻¹(y*)`, from `x = 0`): what the
 /// inverse alone recovers, the level a network trained through it
 /// approaches. The same held-out samples as [`compare`]'s curves.
-pub fn inverse_errors(cfg: &HeatConfig) -> (f64, f64) {
+pub fn inverse_errors(cfg: &HeatParams) -> (f64, f64) {
     use diffsim::op::LocalInverse;
     let zero = vec![0.0; cfg.physics.grid.nx * cfg.physics.grid.ny];
     mean_errors(&test_set(cfg), |s| {

@@ -31,3 +31,53 @@ pub mod shape_net;
 pub mod smoke;
 pub mod sol;
 pub mod wake;
+
+use diffsim::distributed::World;
+use diffsim::train::checkpoint::{CheckpointError, Parts};
+
+/// A study that failed.
+#[derive(Debug, thiserror::Error)]
+pub enum StudyError {
+    /// Training failed (a non-finite loss or gradient, with where).
+    #[error("training: {0}")]
+    Train(#[from] diffsim::train::TrainError),
+    /// A saved part cannot be written or used.
+    #[error(transparent)]
+    Part(#[from] CheckpointError),
+    /// Stopped by a signal; the variant in progress is checkpointed.
+    #[error("interrupted in variant {variant} after iteration {done} of {of}; the finished variants and its progress are saved")]
+    Interrupted {
+        /// The variant in progress.
+        variant: String,
+        /// Its iterations done.
+        done: usize,
+        /// Its iterations in all.
+        of: usize,
+    },
+    /// An evaluation rollout blew up.
+    #[error("evaluation: {0}")]
+    Eval(#[from] sol::EvalError),
+}
+
+/// A study's part (one optimizer's run, one problem): read back from
+/// `parts` when an earlier, interrupted run finished it, else run and
+/// saved there. Over the ranks of `world` rank 0 reads and sends what it
+/// read, every rank runs, rank 0 saves. Without `parts`, just `run`.
+///
+/// # Errors
+/// `run`'s, or a part that cannot be read or saved.
+pub fn part<T, E>(world: &World, parts: Option<&Parts>, name: &str, run: impl FnOnce() -> Result<T, E>) -> Result<T, E>
+where
+    T: serde::Serialize + serde::de::DeserializeOwned,
+    E: From<CheckpointError>,
+{
+    let Some(parts) = parts else { return run() };
+    if let Some(done) = world.from_root(|| parts.finished(name))? {
+        return Ok(done);
+    }
+    let value = run()?;
+    if world.is_root() {
+        parts.finish(name, &value)?;
+    }
+    Ok(value)
+}

@@ -42,7 +42,7 @@ impl OscMethod {
 
 /// One comparison's settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct OscConfig {
+pub struct OscParams {
     /// The physics.
     pub problem: Oscillators,
     /// The hidden layers' activation.
@@ -73,7 +73,7 @@ pub struct OscConfig {
     pub seed: u64,
 }
 
-impl OscConfig {
+impl OscParams {
     /// The linear problem as in the book and the JAX peer: tanh, HIG batch
     /// 32, η = 1, truncation 1e-10; Adam batch 256, lr 1e-3; Gauss-Newton as
     /// HIG.
@@ -160,7 +160,7 @@ impl Curve {
 
 /// The published data: `samples + test_samples` states from U[0, 1)⁴,
 /// split into training and test sets; each target is its start state.
-pub fn datasets(cfg: &OscConfig) -> (Vec<ControlSample>, Vec<ControlSample>) {
+pub fn datasets(cfg: &OscParams) -> (Vec<ControlSample>, Vec<ControlSample>) {
     let mut rng = StdRng::seed_from_u64(cfg.seed);
     let mut all: Vec<ControlSample> = (0..cfg.samples + cfg.test_samples)
         .map(|_| {
@@ -187,7 +187,7 @@ pub fn dataset_loss(physics: &Oscillators, net: &Net, theta: &[f64], data: &[Con
 
 /// Trains the same initial network with each of `methods`, each for
 /// `budget_s` seconds of training (evaluation excluded) or
-/// [`OscConfig::updates`] updates, recording the test-set loss about 40
+/// [`OscParams::updates`] updates, recording the test-set loss about 40
 /// times along the way. A run whose step or loss stops being finite ends
 /// there, with [`Curve::diverged_after`] set (a result of the comparison,
 /// not an error). `progress(method, seconds)` is called after each
@@ -198,7 +198,7 @@ pub fn dataset_loss(physics: &Oscillators, net: &Net, theta: &[f64], data: &[Con
 /// order, an epoch after another). Over the ranks of `world` each batch is
 /// shared, HIG's Jacobian is decomposed once on rank 0, and rank 0's clock
 /// decides for all when a time budget is spent.
-pub fn compare(cfg: &OscConfig, methods: &[OscMethod], world: &World, mut progress: impl FnMut(OscMethod, f64)) -> Result<Vec<Curve>, TrainError> {
+pub fn compare(cfg: &OscParams, methods: &[OscMethod], world: &World, mut progress: impl FnMut(OscMethod, f64)) -> Result<Vec<Curve>, TrainError> {
     let (data, test) = datasets(cfg);
     let net = cfg.network();
     let theta0 = cfg.initial_params(&net);
@@ -258,4 +258,91 @@ pub fn compare(cfg: &OscConfig, methods: &[OscMethod], world: &World, mut progre
         curves.push(Curve { name: method.name().to_string(), points, updates, seconds: trained, diverged_after, second_points: Vec::new() });
     }
     Ok(curves)
+}
+
+/// What the study found ([`run`]): each problem's curves, in
+/// [`OscMethod::ALL`]'s order.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct OscReport {
+    /// The training budget per optimizer, seconds.
+    pub budget_s: f64,
+    /// The linear problem's curves.
+    pub linear: Vec<Curve>,
+    /// The nonlinear problem's curves.
+    pub nonlinear: Vec<Curve>,
+}
+
+/// The study: every optimizer on the linear and on the nonlinear problem
+/// ([`compare`]), each problem one part of `parts` (saved when finished,
+/// read back when an interrupted run is resumed; a problem interrupted
+/// midway runs again, its budget being wall-clock time). Over the ranks
+/// of `world` the batches are shared. `progress(problem, method, seconds)`
+/// after each evaluation.
+///
+/// # Errors
+/// A training error other than a divergence (which ends a curve), or a
+/// part that cannot be read or saved.
+pub fn run(
+    linear: &OscParams,
+    nonlinear: &OscParams,
+    world: &World,
+    parts: Option<&diffsim::train::checkpoint::Parts>,
+    mut progress: impl FnMut(&'static str, OscMethod, f64),
+) -> Result<OscReport, crate::StudyError> {
+    let mut one = |name: &'static str, cfg: &OscParams| {
+        crate::part(world, parts, name, || -> Result<Vec<Curve>, crate::StudyError> { Ok(compare(cfg, &OscMethod::ALL, world, |m, t| progress(name, m, t))?) })
+    };
+    let linear_curves = one("linear", linear)?;
+    let nonlinear_curves = one("nonlinear", nonlinear)?;
+    Ok(OscReport { budget_s: linear.budget_s, linear: linear_curves, nonlinear: nonlinear_curves })
+}
+
+impl OscReport {
+    /// The two problems with their labels and JSON key suffixes.
+    fn problems(&self) -> [(&'static str, &'static str, &[Curve]); 2] {
+        [("linear", "", &self.linear), ("nonlinear", "_nonlinear", &self.nonlinear)]
+    }
+
+    /// The Markdown table: updates in the budget, seconds per update and
+    /// the final test loss per problem and optimizer.
+    pub fn table(&self) -> String {
+        let mut table = format!("| problem | optimizer | updates in {:.0} s | s per update | final test loss |\n|---|---|---|---|---|\n", self.budget_s);
+        for (label, _, curves) in self.problems() {
+            for c in curves {
+                let diverged = c.diverged_after.map_or(String::new(), |u| format!(" (diverged after {u} updates)"));
+                table.push_str(&format!("| {label} | {} | {} | {:.4} | {:.3e}{diverged} |\n", c.name, c.updates, c.seconds_per_update(), c.final_loss()));
+            }
+        }
+        table
+    }
+
+    /// `problem,optimizer,seconds,test_loss`, one row per recorded point.
+    pub fn csv(&self) -> String {
+        let mut csv = String::from("problem,optimizer,seconds,test_loss\n");
+        for (label, _, curves) in self.problems() {
+            for c in curves {
+                for (t, l) in &c.points {
+                    csv.push_str(&format!("{label},{},{t:.4},{l:.6e}\n", c.name));
+                }
+            }
+        }
+        csv
+    }
+
+    /// The one-line result: per optimizer (suffixed `_nonlinear` on the
+    /// nonlinear problem) its final test loss, seconds per update, updates
+    /// and whether it diverged; and `budget_s`.
+    pub fn json(&self) -> serde_json::Map<String, serde_json::Value> {
+        let mut obj = serde_json::Map::new();
+        for (_, suffix, curves) in self.problems() {
+            for c in curves {
+                obj.insert(format!("{}{suffix}", c.name), c.final_loss().into());
+                obj.insert(format!("{}{suffix}_s_per_update", c.name), c.seconds_per_update().into());
+                obj.insert(format!("{}{suffix}_updates", c.name), c.updates.into());
+                obj.insert(format!("{}{suffix}_diverged", c.name), c.diverged_after.is_some().into());
+            }
+        }
+        obj.insert("budget_s".into(), self.budget_s.into());
+        obj
+    }
 }

@@ -19,7 +19,7 @@ use rand::rngs::StdRng;
 use diffsim_solvers::flow::FlowError;
 use diffsim_solvers::flow::ShapeError;
 use diffsim_solvers::flow::cylinder::DIAMETER;
-use diffsim_solvers::flow::drag_shape::{DragShapeOptions, Stream, drag_coefficient, optimise, reduced_gradient, shape_at_area, steady_drag};
+use diffsim_solvers::flow::drag_shape::{DragShapeParams, Stream, drag_coefficient, optimise, reduced_gradient, shape_at_area, steady_drag};
 
 use diffsim::nn::{Activation, Init, Layer, Net};
 use diffsim::op::{Forward, Vjp};
@@ -31,7 +31,7 @@ use diffsim::train::{FnObjective, Optimizer, TrainError, Trainer, TrainerParams}
 
 /// What to train.
 #[derive(Clone, Debug, PartialEq)]
-pub struct ShapeNetOptions {
+pub struct ShapeNetParams {
     /// Grid cells per diameter.
     pub cells_per_d: usize,
     /// Highest Fourier mode `K` (coefficients 2..=K, cosine and sine).
@@ -152,7 +152,7 @@ fn propose(net: &Net, theta: &[f64], re: f64, bound: &[f64]) -> Vec<f64> {
 
 /// Trains the network and compares it with one-by-one optimisations on the
 /// held-out Reynolds numbers.
-pub fn train(opts: &ShapeNetOptions, mut progress: impl FnMut(usize, f64)) -> Result<ShapeNetReport, ShapeNetError> {
+pub fn train(opts: &ShapeNetParams, mut progress: impl FnMut(usize, f64)) -> Result<ShapeNetReport, ShapeNetError> {
     let net = network(opts.modes);
     let bound = bounds(opts.modes);
     let mut theta = net.init(&mut StdRng::seed_from_u64(opts.seed), Init::Glorot);
@@ -236,7 +236,7 @@ pub fn train(opts: &ShapeNetOptions, mut progress: impl FnMut(usize, f64)) -> Re
         let cd_network = drag_coefficient(&setting, &shape).map_err(flow_err(re))?;
         let time_network_s = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let one = optimise(&DragShapeOptions {
+        let one = optimise(&DragShapeParams {
             stream: Stream::Channel,
             cells_per_d: per_d,
             modes: opts.modes,

@@ -39,7 +39,7 @@ use diffsim::train::{AdamParams, InverseBatch, Optimizer, Sip, TrainError, Train
 
 /// The comparison's settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SmokeConfig {
+pub struct SmokeParams {
     /// Cells per side.
     pub n: usize,
     /// Solver steps `T` from the initial to the observed smoke.
@@ -67,7 +67,7 @@ pub struct SmokeConfig {
     pub seed: u64,
 }
 
-impl SmokeConfig {
+impl SmokeParams {
     /// 32 × 32 cells, 16 steps, batch 16, a 3-level U-Net of 8 filters,
     /// Adam and SIP at lr 1e-3 (η = 1), 120 s each, 16 held-out samples.
     pub fn standard() -> Self {
@@ -111,7 +111,7 @@ pub fn blobs(rng: &mut impl Rng, n: usize) -> Vec<f64> {
 pub type Physics = PerThread<SmokeRise>;
 
 /// The physics of `cfg`.
-pub fn physics(cfg: &SmokeConfig) -> Physics {
+pub fn physics(cfg: &SmokeParams) -> Physics {
     PerThread::new(|| SmokeRise::new(cfg.n, cfg.steps))
 }
 
@@ -133,7 +133,7 @@ pub fn samples(physics: &Physics, n: usize, rng: &mut impl Rng, count: usize) ->
 
 /// The network: a U-Net of `levels` levels and `width` filters (ReLU,
 /// zero padding), one channel in and out.
-pub fn network(cfg: &SmokeConfig) -> Net {
+pub fn network(cfg: &SmokeParams) -> Net {
     presets::unet_2d_levels(cfg.n, cfg.n, 1, 1, cfg.width, cfg.levels, 3, Padding::Zero, Activation::Relu)
         .expect("the preset is well formed when n is divisible by 2^(levels-1)")
 }
@@ -184,7 +184,7 @@ pub const SHOWN: usize = 4;
 /// (same start, same batch sequence) and records the held-out errors about
 /// 30 times. `progress(method, trained seconds)` is called after each
 /// update.
-pub fn compare(cfg: &SmokeConfig, methods: &[SmokeMethod], mut progress: impl FnMut(SmokeMethod, f64)) -> Result<SmokeComparison, TrainError> {
+pub fn compare(cfg: &SmokeParams, methods: &[SmokeMethod], mut progress: impl FnMut(SmokeMethod, f64)) -> Result<SmokeComparison, TrainError> {
     let physics = physics(cfg);
     let refined = Refined { op: &physics, sweeps: cfg.refine };
     let net = Float32(network(cfg));
@@ -254,7 +254,7 @@ pub fn compare(cfg: &SmokeConfig, methods: &[SmokeMethod], mut progress: impl Fn
 }
 
 /// The held-out samples every curve and [`inverse_alone`] are measured on.
-fn test_set(cfg: &SmokeConfig, physics: &Physics) -> Result<Vec<InverseSample>, PgError> {
+fn test_set(cfg: &SmokeParams, physics: &Physics) -> Result<Vec<InverseSample>, PgError> {
     samples(physics, cfg.n, &mut StdRng::seed_from_u64(cfg.seed + 1000), cfg.test_samples)
 }
 
@@ -294,7 +294,7 @@ fn errors<N: Vjp + Sync>(physics: &Physics, net: &N, theta: &[f64], data: &[Inve
 /// network: `x_{k+1} = x_k + P⁻¹(y* − P(x_k); x_k)` from `x_0 = 0` (so
 /// `x_1 = y*`: nothing moves without smoke). The errors (as [`compare`]'s)
 /// after `0..=iterations` iterations.
-pub fn inverse_alone(cfg: &SmokeConfig, iterations: usize) -> Result<Vec<(f64, f64)>, PgError> {
+pub fn inverse_alone(cfg: &SmokeParams, iterations: usize) -> Result<Vec<(f64, f64)>, PgError> {
     let physics = physics(cfg);
     let test = test_set(cfg, &physics)?;
     let mut xs: Vec<Vec<f64>> = vec![vec![0.0; cfg.n * cfg.n]; test.len()];
@@ -330,7 +330,7 @@ pub struct InverseMiss {
 
 /// [`InverseMiss`] at `scales`, averaged over the first [`SHOWN`] held-out
 /// states (each asked to move toward the next one's).
-pub fn inverse_misses(cfg: &SmokeConfig, scales: &[f64]) -> Result<Vec<InverseMiss>, PgError> {
+pub fn inverse_misses(cfg: &SmokeParams, scales: &[f64]) -> Result<Vec<InverseMiss>, PgError> {
     use diffsim::op::Jvp;
     let physics = physics(cfg);
     let test = test_set(cfg, &physics)?;

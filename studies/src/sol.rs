@@ -16,6 +16,7 @@
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
+pub use crate::StudyError;
 use diffsim::distributed::World;
 use diffsim::nn::Net;
 use diffsim::op::{Forward, Jvp, Operator, Vjp};
@@ -23,6 +24,8 @@ use diffsim::rollout::Checkpointing;
 pub use diffsim::train::TimeShares;
 pub use diffsim::train::TrainError;
 use diffsim::train::checkpoint::{CheckpointError, PartProgress, Parts};
+use diffsim::train::observe::{CheckpointPolicy, Observer};
+use diffsim::train::trainer::{Info, Row};
 use diffsim::train::{Coupled, Coupling, Objective, Optimizer, Sample, Schedule, Trainer, TrainerParams, batch_gradient_over};
 
 /// A reference trajectory: coarse states `0..=steps`.
@@ -89,7 +92,7 @@ impl Method {
 
 /// Training settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct TrainSettings {
+pub struct TrainParams {
     /// The variant.
     pub method: Method,
     /// Samples per mini-batch.
@@ -114,7 +117,7 @@ pub struct TrainSettings {
     pub first: usize,
 }
 
-impl TrainSettings {
+impl TrainParams {
     /// The studies' schedule: Adam from learning rate 1e-3, cosine decay to
     /// 1e-5 over all `iterations`, clipping at norm 10, seed 1, starting at
     /// iteration 1 (`method` to be set per variant).
@@ -146,18 +149,36 @@ pub struct LogRow {
 /// last).
 pub const SAME_STATE_EVERY: usize = 20;
 
+/// How a run is watched from outside: when its observer saves a
+/// checkpoint, and the flag that stops it (Ctrl-C). `Default`: saves only
+/// when the run stops or ends, no flag.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Watch<'a> {
+    /// When the observer's checkpoint is called ([`Trainer`]).
+    pub checkpoint: CheckpointPolicy,
+    /// Once set on any rank, the run saves and stops after the iteration.
+    pub stop: Option<&'a std::sync::atomic::AtomicBool>,
+}
+
+impl From<&Row> for LogRow {
+    fn from(r: &Row) -> LogRow {
+        LogRow { iteration: r.iteration, loss: r.loss, grad_norm: r.grad_norm.unwrap_or(f64::NAN), seconds: r.seconds }
+    }
+}
+
 /// Trains `theta` in place on batches from `data` with the library's
-/// [`Trainer`] (iterations from `s.first`, the cosine schedule, clipping);
-/// calls `progress(row, theta, optimizer)` after every iteration, which may
-/// stop the run early by returning `ControlFlow::Break` (for checkpoints
-/// and interrupts). Returns where the time went.
+/// [`Trainer`] (iterations from `s.first`, the cosine schedule, clipping,
+/// checkpoints and stops as `watch` says); `observer` sees every row and
+/// saves the checkpoints ([`diffsim::train::CsvLog`] and a save function,
+/// say). Returns where the time went and what the run did ([`Info`]:
+/// whether it stopped early).
 ///
 /// Over the ranks of `world` (data-parallel training), every rank holds
 /// the same `theta` and `opt` on entry, draws the same batches and unrolls
 /// its share of each ([`batch_gradient_over`]); the updates, and so the
 /// parameters, are those of one process bit for bit, and the ranks check
-/// that they agree every [`SAME_STATE_EVERY`] iterations. `progress` runs
-/// on every rank.
+/// that they agree every [`SAME_STATE_EVERY`] iterations. The observer
+/// runs on every rank.
 #[allow(clippy::too_many_arguments)]
 pub fn train<P: SolProblem>(
     setup: &P,
@@ -165,10 +186,11 @@ pub fn train<P: SolProblem>(
     theta: &mut [f64],
     opt: &mut Optimizer,
     data: TrainData<'_>,
-    s: &TrainSettings,
+    s: &TrainParams,
     world: &World,
-    mut progress: impl FnMut(LogRow, &[f64], &Optimizer) -> std::ops::ControlFlow<()>,
-) -> Result<TimeShares, TrainError> {
+    watch: Watch<'_>,
+    observer: impl Observer<Optimizer>,
+) -> Result<(TimeShares, Info), TrainError> {
     let k = s.method.unroll();
     let steps: Vec<usize> = (1..=k).collect();
     let shares = std::cell::RefCell::new(TimeShares::default());
@@ -177,10 +199,20 @@ pub fn train<P: SolProblem>(
     let fixed_source = setup.source();
     let mine = world.share(s.batch);
     let state_len = fixed_source.n_in();
-    let trainer = Trainer::new(
-        TrainerParams { first: s.first, iterations: s.iterations, schedule: s.schedule(), clip: s.clip, same_state_every: SAME_STATE_EVERY },
+    let mut trainer = Trainer::new(
+        TrainerParams {
+            first: s.first,
+            iterations: s.iterations,
+            schedule: s.schedule(),
+            clip: s.clip,
+            same_state_every: SAME_STATE_EVERY,
+            checkpoint: watch.checkpoint,
+        },
         world,
     );
+    if let Some(flag) = watch.stop {
+        trainer = trainer.stop_on(flag);
+    }
     let batch_at = |it: usize| -> Result<SolBatch<'_, P>, TrainError> {
         // The batch of iteration `it` depends only on the seed and `it`;
         // every rank draws all of it (the generator's stream), keeping and
@@ -223,12 +255,10 @@ pub fn train<P: SolProblem>(
         let mode = if k <= 64 { Checkpointing::Store } else { Checkpointing::periodic_sqrt(k) };
         Ok(SolBatch { source, net, batch, unroll: k, steps: &steps, mode, world, batch_len: s.batch, shares: &shares })
     };
-    let info = trainer.run(opt, theta, batch_at, |row, theta, opt| {
-        progress(LogRow { iteration: row.iteration, loss: row.loss, grad_norm: row.grad_norm.unwrap_or(f64::NAN), seconds: row.seconds }, theta, opt)
-    })?;
+    let info = trainer.run_observed(opt, theta, batch_at, observer)?;
     let mut shares = shares.into_inner();
     shares.total = info.seconds;
-    Ok(shares)
+    Ok((shares, info))
 }
 
 /// The source solver of a batch: the study's own, or one made for the
@@ -325,7 +355,7 @@ pub enum TrainData<'a> {
 
 /// The settings of the whole study ([`study`]).
 #[derive(Clone, Debug)]
-pub struct StudyConfig<P> {
+pub struct StudyParams<P> {
     /// The problem: grids, time steps, data.
     pub setup: P,
     /// Training trajectories.
@@ -344,7 +374,7 @@ pub struct StudyConfig<P> {
     /// The variants trained (the source solver is always evaluated).
     pub methods: Vec<Method>,
     /// Batch, iterations, learning rate, clipping, seed (`method` is set per variant).
-    pub settings: TrainSettings,
+    pub settings: TrainParams,
     /// The correction network.
     pub net: Net,
 }
@@ -386,9 +416,9 @@ pub struct Resumable<'a> {
     pub parts: &'a Parts,
     /// Seconds between two progress checkpoints of a variant.
     pub every_s: f64,
-    /// True once the run should stop (Ctrl-C): the variant in progress is
+    /// Set once the run should stop (Ctrl-C): the variant in progress is
     /// checkpointed and the study returns [`StudyError::Interrupted`].
-    pub stop: &'a (dyn Fn() -> bool + Sync),
+    pub stop: &'a std::sync::atomic::AtomicBool,
 }
 
 /// Runs the study: builds the data sets, evaluates the source solver,
@@ -403,7 +433,7 @@ pub struct Resumable<'a> {
 /// ([`train`]); rank 0 alone reads and writes the parts and sends what it
 /// read to the others; a stop is taken when any rank is asked to stop.
 pub fn study<P: SolProblem>(
-    cfg: &StudyConfig<P>,
+    cfg: &StudyParams<P>,
     resume: Option<Resumable<'_>>,
     world: &World,
     mut progress: impl FnMut(&str, LogRow),
@@ -455,29 +485,38 @@ pub fn study<P: SolProblem>(
             }
         }
         let first = loss.len() + 1;
-        let s = TrainSettings { method, first, iterations: total + 1 - first, ..cfg.settings };
-        let mut last_save = std::time::Instant::now();
+        let s = TrainParams { method, first, iterations: total + 1 - first, ..cfg.settings };
+        let watch = match &resume {
+            Some(r) => Watch { checkpoint: CheckpointPolicy { every: usize::MAX, seconds: r.every_s }, stop: Some(r.stop) },
+            None => Watch::default(),
+        };
         let mut failure: Option<CheckpointError> = None;
-        let mut stopped = false;
-        let time = train(&cfg.setup, &cfg.net, &mut theta, &mut opt, TrainData::Fixed(&train_set), &s, world, |row, theta, opt| {
-            loss.push(row.loss);
-            progress(&name, row);
-            let Some(r) = &resume else { return std::ops::ControlFlow::Continue(()) };
-            stopped = world.any((r.stop)());
-            if world.is_root() && (stopped || last_save.elapsed().as_secs_f64() >= r.every_s) {
-                let p = PartProgress { iterations_done: row.iteration, theta: theta.to_vec(), optimizer: opt.clone(), loss: loss.clone() };
-                if let Err(e) = r.parts.save_progress(&name, &p) {
-                    failure = Some(e);
-                }
-                last_save = std::time::Instant::now();
+        let loss_cell = std::cell::RefCell::new(&mut loss);
+        let rows = diffsim::train::on_row(|row: &Row, _: &[f64], _: &Optimizer| {
+            loss_cell.borrow_mut().push(row.loss);
+            progress(&name, LogRow::from(row));
+            std::ops::ControlFlow::Continue(())
+        });
+        let save = diffsim::train::save_with(|it: usize, theta: &[f64], opt: &Optimizer| {
+            let (Some(r), true) = (&resume, world.is_root()) else { return Ok(()) };
+            // The last iteration's state is the finished part, saved below.
+            if it == total {
+                return Ok(());
             }
-            if stopped || failure.is_some() { std::ops::ControlFlow::Break(()) } else { std::ops::ControlFlow::Continue(()) }
-        })?;
+            let p = PartProgress { iterations_done: it, theta: theta.to_vec(), optimizer: opt.clone(), loss: loss_cell.borrow().to_vec() };
+            r.parts.save_progress(&name, &p).map_err(|e| {
+                let text = e.to_string();
+                failure = Some(e);
+                TrainError::Observer(text)
+            })
+        });
+        let trained = train(&cfg.setup, &cfg.net, &mut theta, &mut opt, TrainData::Fixed(&train_set), &s, world, watch, (rows, save));
         if let Some(e) = failure {
             return Err(e.into());
         }
-        if stopped && loss.len() < total {
-            return Err(StudyError::Interrupted { variant: name, done: loss.len(), of: total });
+        let (time, info) = trained?;
+        if info.stopped {
+            return Err(StudyError::Interrupted { variant: name, done: info.last, of: total });
         }
         let error = evaluate(&cfg.setup, &cfg.net, Some(&theta), &test_set, cfg.eval_steps)?;
         let train_mean_error = mean(&evaluate(&cfg.setup, &cfg.net, Some(&theta), &train_set, cfg.eval_steps)?);
@@ -507,28 +546,4 @@ pub fn initial_params(net: &Net, seed: u64) -> Vec<f64> {
 /// The mean of `v`.
 pub fn mean(v: &[f64]) -> f64 {
     v.iter().sum::<f64>() / v.len().max(1) as f64
-}
-
-/// A study that failed.
-#[derive(Debug, thiserror::Error)]
-pub enum StudyError {
-    /// Training failed (a non-finite loss or gradient, with where).
-    #[error("training: {0}")]
-    Train(#[from] TrainError),
-    /// A saved part cannot be written or used.
-    #[error(transparent)]
-    Part(#[from] CheckpointError),
-    /// Stopped by a signal; the variant in progress is checkpointed.
-    #[error("interrupted in variant {variant} after iteration {done} of {of}; the finished variants and its progress are saved")]
-    Interrupted {
-        /// The variant in progress.
-        variant: String,
-        /// Its iterations done.
-        done: usize,
-        /// Its iterations in all.
-        of: usize,
-    },
-    /// An evaluation rollout blew up.
-    #[error("evaluation: {0}")]
-    Eval(#[from] EvalError),
 }

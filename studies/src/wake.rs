@@ -30,7 +30,7 @@ use rayon::prelude::*;
 use diffsim_solvers::boundary::{Boundary, Profile, Side, for_each_face};
 use diffsim_solvers::smoke::{Scheme, Smoke2d, obstacle_disc};
 
-use crate::sol::{Method, SolProblem, StudyConfig, TrainSettings, Trajectory};
+use crate::sol::{Method, SolProblem, StudyParams, TrainParams, Trajectory};
 use diffsim::fluids::{Advect, Diffuse, DiffuseExplicit, Project};
 use diffsim::nn::{Activation, Net, presets};
 use diffsim::op::{Forward, Jvp, OpError, Operator, PerThread, Vjp, validate_forward, validate_jvp, validate_vjp};
@@ -332,7 +332,7 @@ impl SolProblem for WakeSetup {
 /// The activation of the study's network.
 pub const STUDY_ACTIVATION: Activation = Activation::Relu;
 
-impl StudyConfig<WakeSetup> {
+impl StudyParams<WakeSetup> {
     /// The 2D study: 16 training and 8 test trajectories, 64-step
     /// evaluation, PRE / NOISE / SOL-4 / SOL-16, 1000 updates of batch 8
     /// with Adam, learning rate 1e-3 decaying to 1e-5. `quick`: 300
@@ -349,7 +349,7 @@ impl StudyConfig<WakeSetup> {
             train_steps: eval_steps + 16,
             eval_steps,
             methods: Method::standard(),
-            settings: TrainSettings::adam(8, iterations),
+            settings: TrainParams::adam(8, iterations),
             net: setup.network(STUDY_ACTIVATION),
         }
     }

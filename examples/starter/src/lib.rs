@@ -9,7 +9,7 @@
 use std::error::Error;
 use std::time::Instant;
 
-use diffsim::check::{CheckOptions, FullReport, check_all, dot_product_between};
+use diffsim::check::{CheckParams, FullReport, check_all, dot_product_between};
 use diffsim::op::{Forward, OperatorExt};
 use diffsim::rollout::{AtSteps, Checkpointing, Rollout, RolloutLoss, Wrt};
 use diffsim::distributed::World;
@@ -103,7 +103,7 @@ fn passed(what: &str, report: FullReport) -> Result<()> {
 fn one_step_checks() -> Result<()> {
     println!("1. one step");
     let Problem { op, u0, truth: p, .. } = problem();
-    let opts = CheckOptions::default();
+    let opts = CheckParams::default();
     passed("Euler step (differentiable!)", check_all(&op, &u0, &p, &opts))?;
     passed("Euler step (stencil3!)", check_all(&FkppStencil(op), &u0, &p, &opts))?;
     passed("Heun step (lent scratch)", check_all(&FkppHeun(op), &u0, &p, &opts))?;
@@ -111,7 +111,7 @@ fn one_step_checks() -> Result<()> {
 
     // The hand adjoint and Enzyme's are two implementations of one VJP:
     // the JVP of one against the VJP of the other, to rounding.
-    let tight = CheckOptions { tol: 1e-12, ..opts };
+    let tight = CheckParams { tol: 1e-12, ..opts };
     let between = dot_product_between(&FkppHand(op), &op, &u0, &p, &tight);
     if !between.verdict.passed() {
         return Err(format!("hand and Enzyme adjoints differ: {between}").into());
@@ -197,7 +197,7 @@ fn checks_through_the_rollout() -> Result<()> {
     let rollout = Rollout::new(&pb.op, &pb.guess, STEPS)?;
     let as_op = RolloutLoss::new(rollout, &pb.u0, &loss, Checkpointing::periodic_sqrt(STEPS), Wrt::Both)?;
     let (x, p) = as_op.point();
-    passed("∂L/∂u0 and ∂L/∂p through 60 steps", check_all(&as_op, x, p, &CheckOptions::default()))
+    passed("∂L/∂u0 and ∂L/∂p through 60 steps", check_all(&as_op, x, p, &CheckParams::default()))
 }
 // ANCHOR_END: through
 

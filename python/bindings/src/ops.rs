@@ -9,7 +9,7 @@ use numpy::PyArray1;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use diffsim::check::{CheckOptions, check_all};
+use diffsim::check::{CheckParams, check_all};
 use diffsim::op::{Jvp, Vjp};
 use diffsim::problems::burgers::{BurgersEnzyme, P1};
 use diffsim::rollout::{Checkpointing, Loss, Rollout, RolloutLoss, Wrt};
@@ -51,7 +51,7 @@ impl<O: Vjp + Jvp + Send + Sync> PyOp for StepOp<O> {
         self.0.take_error().map_or(Ok(()), |e| Err(simulation(e)))
     }
     fn check(&self, x: &[f64], p: &[f64]) -> Result<(&'static str, String), Failure> {
-        let r = check_all(&self.0, x, p, &CheckOptions::default());
+        let r = check_all(&self.0, x, p, &CheckParams::default());
         Ok((verdict(&r), r.to_string()))
     }
 }
@@ -121,7 +121,7 @@ pub(crate) fn rollout_loss_jvp<O: Jvp, L: Loss>(
 pub(crate) fn rollout_loss_check<O: Vjp + Jvp, L: Loss>(rollout: Rollout<'_, O>, loss: &L, x: &[f64]) -> Result<(&'static str, String), Failure> {
     let mode = Checkpointing::periodic_sqrt(rollout.steps);
     let op = RolloutLoss::new(rollout, x, loss, mode, Wrt::X0).map_err(simulation)?;
-    let r = check_all(&op, x, &[], &CheckOptions::default());
+    let r = check_all(&op, x, &[], &CheckParams::default());
     Ok((verdict(&r), r.to_string()))
 }
 

@@ -83,14 +83,14 @@ impl std::fmt::Display for ShapeError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             ShapeError::NotFinite => f.write_str("shape: a parameter is not finite"),
-            ShapeError::Radius { angle, radius } => write!(f, "shape: the radius is {radius:.4} (not positive) at angle {angle:.3} rad"),
+            ShapeError::Radius { angle, radius } => write!(f, "shape: the radius is {radius:.4} (not positive) at {angle:.3} rad"),
             ShapeError::TooFewVertices(n) => write!(f, "shape: a polygon needs at least 3 vertices, got {n}"),
-            ShapeError::SelfIntersecting { first, second } => write!(f, "shape: the polygon intersects itself (edges {first} and {second} cross)"),
+            ShapeError::SelfIntersecting { first, second } => write!(f, "shape: the polygon crosses itself (edges {first} and {second})"),
             ShapeError::LeavesDomain { point } => {
-                write!(f, "shape: the body reaches ({:.4}, {:.4}), within one cell of the domain's sides or outside", point[0], point[1])
+                write!(f, "shape: reaches ({:.3}, {:.3}), within a cell of the sides", point[0], point[1])
             }
             ShapeError::Parameters { expected, given } => write!(f, "shape: {given} parameters given, the shape has {expected}"),
-            ShapeError::NoRadiusForArea { area } => write!(f, "shape: the Fourier modes leave no positive r0 for the area {area:.4e}"),
+            ShapeError::NoRadiusForArea { area } => write!(f, "shape: no r0 > 0 gives the area {area:.4e}"),
         }
     }
 }
@@ -819,4 +819,27 @@ pub fn fluid_value_at(cfg: &Flow2d, cut: Option<&Cut>, field: &[f64], x: f64, y:
         sol[k] = v / m[k][k];
     }
     Some(sol[0])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ShapeError;
+
+    /// Every message fits an operator's error (`OpMessage`, 63 bytes), so
+    /// none is cut when a shape operator reports it.
+    #[test]
+    fn shape_messages_fit_63_bytes() {
+        let all = [
+            ShapeError::NotFinite,
+            ShapeError::Radius { angle: std::f64::consts::TAU, radius: -123.456 },
+            ShapeError::TooFewVertices(2),
+            ShapeError::SelfIntersecting { first: 99_999, second: 100_000 },
+            ShapeError::LeavesDomain { point: [-123.456, -234.567] },
+            ShapeError::Parameters { expected: 99_999, given: 100_000 },
+            ShapeError::NoRadiusForArea { area: -1.0e-300 },
+        ];
+        for e in all {
+            assert!(e.to_string().len() <= 63, "{e} ({} bytes)", e.to_string().len());
+        }
+    }
 }

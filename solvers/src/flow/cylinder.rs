@@ -5,7 +5,7 @@
 //! steady; case 2D-2 (peak 1.5, Re 100) sheds vortices periodically.
 
 use super::{
-    Convection, Flow2d, FlowError, Integrator, NewtonOptions, Shape, SteadyFlow, SteadyOptions, SteadyState, Stepper, WallSpeed, fluid_value_at, ladder,
+    Convection, Flow2d, FlowError, Integrator, NewtonParams, Shape, SteadyFlow, SteadyParams, SteadyState, Stepper, WallSpeed, body::fluid_value_at, ladder,
     march_to_steady, max_speed,
 };
 use crate::boundary::{Boundary, Profile, Side};
@@ -110,7 +110,7 @@ pub fn run_2d1(
     let cfg = Flow2d { convection, ..cfg };
     let mut stepper = Stepper::with_bodies(cfg, 1e-10, std::slice::from_ref(&shape))?;
     let mut x = poiseuille(&cfg, u_max);
-    let report = march_to_steady(&mut stepper, &mut x, &SteadyOptions { tolerance, max_steps, reference_speed: 1.5 * u_max }, observe)?;
+    let report = march_to_steady(&mut stepper, &mut x, &SteadyParams { tolerance, max_steps, reference_speed: 1.5 * u_max }, observe)?;
     let [cd, cl] = coefficients(stepper.force_in_box(&x, None, force_box(&cfg)), u_max);
     let p = stepper.pressure();
     let at = |x: f64| fluid_value_at(&cfg, stepper.cut(), &p, x, 0.2).unwrap_or(f64::NAN);
@@ -134,7 +134,7 @@ pub fn run_2d1_newton(cells_per_d: usize, convection: Convection) -> Result<Stea
 /// Poiseuille flow of peak `u_max`.
 fn steady_from_poiseuille(cfg: Flow2d, shape: &Shape, u_max: f64) -> Result<(SteadyFlow, SteadyState), FlowError> {
     let flow = SteadyFlow::new(cfg, std::slice::from_ref(shape))?;
-    let state = flow.solve(&poiseuille(&cfg, u_max), &NewtonOptions::default())?;
+    let state = flow.solve(&poiseuille(&cfg, u_max), &NewtonParams::default())?;
     Ok((flow, state))
 }
 

@@ -20,9 +20,9 @@ use argmin::solver::linesearch::condition::ArmijoCondition;
 use argmin::solver::quasinewton::LBFGS;
 
 use super::cylinder::{DIAMETER, coefficients, force_box, poiseuille, schafer_turek};
-use super::{Convection, Flow2d, FlowError, NewtonOptions, Shape, ShapeError, SteadyFlow, WallSpeed};
+use super::{Convection, Flow2d, FlowError, NewtonParams, Shape, ShapeError, SteadyFlow, WallSpeed};
 use crate::boundary::{Boundary, Profile, Side};
-use crate::nonsmooth::{SamplingOptions, gradient_sampling};
+use crate::nonsmooth::{SamplingParams, gradient_sampling};
 
 /// The flow a body sits in.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -104,7 +104,7 @@ impl Stream {
 
 /// What to optimise.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct DragShapeOptions {
+pub struct DragShapeParams {
     /// The flow around the body.
     pub stream: Stream,
     /// Grid cells per cylinder diameter (a multiple of 10).
@@ -124,7 +124,11 @@ pub struct DragShapeOptions {
     pub sampling_iterations: usize,
 }
 
-impl DragShapeOptions {
+/// The former name of [`DragShapeParams`].
+#[deprecated(note = "renamed DragShapeParams")]
+pub type DragShapeOptions = DragShapeParams;
+
+impl DragShapeParams {
     /// The Reynolds number `Ū·D/ν`, `Ū = 2·u_max/3`.
     pub fn reynolds(&self) -> f64 {
         2.0 * self.u_max / 3.0 * DIAMETER / 1e-3
@@ -198,7 +202,7 @@ pub struct SamplingSummary {
 /// The steady flow around `shape` in `setting`, by Newton from `start`.
 fn solve_in(setting: &Setting, shape: &Shape, start: &[f64]) -> Result<(SteadyFlow, super::SteadyState), FlowError> {
     let flow = SteadyFlow::new(setting.cfg, std::slice::from_ref(shape))?;
-    let state = flow.solve(start, &NewtonOptions::default())?;
+    let state = flow.solve(start, &NewtonParams::default())?;
     Ok((flow, state))
 }
 
@@ -366,7 +370,7 @@ impl Gradient for Problem {
 /// Minimises the drag at fixed area from the cylinder of the stream.
 /// Errors: a steady solve that fails (the first one, or one the optimiser
 /// asks for).
-pub fn optimise(opts: &DragShapeOptions) -> Result<DragShapeResult, FlowError> {
+pub fn optimise(opts: &DragShapeParams) -> Result<DragShapeResult, FlowError> {
     optimise_from(opts, &vec![0.0; 2 * opts.modes.saturating_sub(1)])
 }
 
@@ -388,7 +392,7 @@ pub fn start_shape(setting: &Setting, modes: usize, q: &[f64]) -> Result<Shape, 
 /// instead of the cylinder: to continue an optimum of a coarser grid or
 /// another stream. Errors: that body's ([`FlowError::Shape`]); then as
 /// [`optimise`].
-pub fn optimise_from(opts: &DragShapeOptions, q0: &[f64]) -> Result<DragShapeResult, FlowError> {
+pub fn optimise_from(opts: &DragShapeParams, q0: &[f64]) -> Result<DragShapeResult, FlowError> {
     let setting = opts.stream.setting(opts.cells_per_d, opts.u_max)?;
     if opts.modes < 2 {
         return Err(FlowError::Grid);
@@ -484,7 +488,7 @@ fn free_coefficients(shape: &Shape, modes: usize) -> Vec<f64> {
 /// hull's smallest gradient has shrunk `gradient_reduction` times from the
 /// start's gradient.
 fn sample_from(
-    opts: &DragShapeOptions,
+    opts: &DragShapeParams,
     setting: &Setting,
     start: &Rc<RefCell<Vec<f64>>>,
     solves: &Rc<RefCell<usize>>,
@@ -496,7 +500,7 @@ fn sample_from(
     let evaluate = |q: &[f64]| drag_at(setting, modes, q, start, solves);
     let (cd0, g0) = evaluate(&q0)?.expect("an iterate is a body in the domain");
     let h = DIAMETER / opts.cells_per_d as f64;
-    let sampling = SamplingOptions {
+    let sampling = SamplingParams {
         radius: 0.5 * h,
         min_radius: h / 32.0,
         samples: q0.len() + 1,

@@ -22,19 +22,20 @@
 
 use crate::boundary::{Boundary, BoundaryError, Side};
 use crate::smoke::{NoConvergence, PressureSolver, ProjectScratch, Smoke2d, enforce_boundary, project_velocity};
+use momentum::{Pads, momentum};
 use std::fmt;
 
-mod body;
-mod cavity;
+pub mod body;
+pub mod cavity;
 pub mod cylinder;
 pub mod drag_shape;
-mod momentum;
-mod steady;
+pub mod momentum;
+pub mod steady;
 
-pub use body::*;
-pub use cavity::*;
-pub use momentum::*;
-pub use steady::*;
+// The types every user of the flow meets, here; the rest in their modules.
+pub use body::{Cut, CutSensitivity, Shape, ShapeError};
+pub use cavity::{GHIA, GhiaTable, cavity_extrema, centrelines, ghia};
+pub use steady::{NewtonParams, SteadyFlow, SteadyState};
 
 /// Tangential speed of each wall (used on `Closed` sides only): along `+y`
 /// for the left and right sides, along `+x` for the bottom and top.
@@ -514,7 +515,7 @@ impl Stepper {
 
 /// When [`march_to_steady`] stops.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SteadyOptions {
+pub struct SteadyParams {
     /// Stop when `max |Δu|/dt` falls below this.
     pub tolerance: f64,
     /// Give up after this many steps.
@@ -523,6 +524,10 @@ pub struct SteadyOptions {
     /// step follows the larger of this and the flow's largest speed).
     pub reference_speed: f64,
 }
+
+/// The former name of [`SteadyParams`].
+#[deprecated(note = "renamed SteadyParams")]
+pub type SteadyOptions = SteadyParams;
 
 /// How a march to a steady state ended.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -547,12 +552,7 @@ pub struct SteadyReport {
 /// factorisation).
 /// `observe(step, time, rate)` is called after every step. Running out of
 /// steps is [`FlowError::NotSteady`] (`x` holds the last state).
-pub fn march_to_steady(
-    stepper: &mut Stepper,
-    x: &mut [f64],
-    opts: &SteadyOptions,
-    mut observe: impl FnMut(usize, f64, f64),
-) -> Result<SteadyReport, FlowError> {
+pub fn march_to_steady(stepper: &mut Stepper, x: &mut [f64], opts: &SteadyParams, mut observe: impl FnMut(usize, f64, f64)) -> Result<SteadyReport, FlowError> {
     let cfg = *stepper.config();
     let integrator = Integrator::cheaper(&cfg, opts.reference_speed);
     let (mut time, mut rate, mut iterations) = (0.0, f64::INFINITY, 0);

@@ -23,7 +23,8 @@
 //! transposed Jacobian, `λ = J⁻ᵀ·∂L/∂z`, then `dL/ds = −λᵀ·∂R/∂s` with
 //! `∂R/∂s` from the cut's sensitivities ([`super::CutSensitivity`]).
 
-use super::{Convection, Cut, CutSensitivity, Flow2d, FlowError, Pads, Shape, advanced_faces, momentum};
+use super::momentum::{Pads, advanced_faces, momentum};
+use super::{Convection, Cut, CutSensitivity, Flow2d, FlowError, Shape};
 use crate::boundary::Side;
 use crate::linalg::SparseLu;
 use crate::smoke::enforce_boundary;
@@ -44,14 +45,18 @@ enum Row {
 
 /// When [`SteadyFlow::solve`] stops.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct NewtonOptions {
+pub struct NewtonParams {
     /// Stop when the largest residual falls below this.
     pub tolerance: f64,
     /// Give up after this many Newton steps.
     pub max_steps: usize,
 }
 
-impl Default for NewtonOptions {
+/// The former name of [`NewtonParams`].
+#[deprecated(note = "renamed NewtonParams")]
+pub type NewtonOptions = NewtonParams;
+
+impl Default for NewtonParams {
     fn default() -> Self {
         Self { tolerance: 1e-10, max_steps: 40 }
     }
@@ -394,7 +399,7 @@ impl SteadyFlow {
     /// set here; the pressure starts at 0), with a backtracking line search
     /// on the largest residual. Not converging within the steps is
     /// [`FlowError::NotSteady`] (its `rate` is the residual).
-    pub fn solve(&self, x0: &[f64], opts: &NewtonOptions) -> Result<SteadyState, FlowError> {
+    pub fn solve(&self, x0: &[f64], opts: &NewtonParams) -> Result<SteadyState, FlowError> {
         let n = self.cfg.n_vel();
         assert_eq!(x0.len(), n, "steady flow: initial velocity length");
         let mut z = vec![0.0; self.n_unknowns()];
