@@ -252,3 +252,16 @@ fn smoke_step_with_an_obstacle_passes_all_checks() {
         assert_passes(&format!("SmokeStep with obstacle n={n}"), &step, &x, &[]);
     }
 }
+
+#[test]
+fn central_gradient_of_a_scalar_function_matches_its_derivative() {
+    // f(x) = Σ sin(x_i)·x_{i+1} + x_i³: a smooth function with a known gradient.
+    let f = |x: &[f64]| (0..x.len()).map(|i| x[i].sin() * x[(i + 1) % x.len()] + x[i].powi(3)).sum::<f64>();
+    let x: Vec<f64> = (0..7).map(|i| 0.3 * i as f64 - 1.0).collect();
+    let n = x.len();
+    let exact: Vec<f64> = (0..n).map(|i| x[i].cos() * x[(i + 1) % n] + x[(i + n - 1) % n].sin() + 3.0 * x[i] * x[i]).collect();
+    let g = diffsim::check::central_gradient(f, &x, 1e-5);
+    for (a, b) in g.iter().zip(&exact) {
+        assert!((a - b).abs() < 1e-8 * (1.0 + b.abs()), "{a} vs {b}");
+    }
+}

@@ -90,3 +90,75 @@ fn hig_report_puts_hig_ahead_of_adam_per_update_on_the_linear_problem() {
     let points: usize = report.linear.iter().chain(&report.nonlinear).map(|c| c.points.len()).sum();
     assert_eq!(report.csv().lines().count(), 1 + points);
 }
+
+#[test]
+fn the_quick_burgers_study_puts_sol16_below_pre_and_the_source() {
+    use diffsim::distributed::World;
+    use diffsim_studies::burgers::{StudyParams, study};
+    use diffsim_studies::sol::SolReport;
+    let cfg = StudyParams::standard(true);
+    let mut rows = 0;
+    let report = SolReport::new(&cfg, study(&cfg, None, &World::single(), |_, _| rows += 1).unwrap());
+    assert_eq!(rows, cfg.methods.len() * cfg.settings.iterations);
+    let e = |name: &str| report.variant(name).unwrap_or_else(|| panic!("{name}")).mean_error;
+    // Um et al. 2020: the unrolled training corrects the coarse solver most.
+    assert!(e("sol16") < e("pre") && e("sol16") < e("source") / 3.0, "sol16 {}, pre {}, source {}", e("sol16"), e("pre"), e("source"));
+    let table = report.table();
+    assert_eq!(table.lines().count(), 2 + report.variants.len(), "{table}");
+    assert_eq!(report.csv().lines().count(), 1 + cfg.eval_steps);
+    let json = report.json();
+    assert_eq!(json["sol16"].as_f64(), Some(e("sol16")));
+    assert_eq!(json["iterations"].as_u64(), Some(cfg.settings.iterations as u64));
+    assert!(json["train_set"]["source"].as_f64().is_some());
+}
+
+#[test]
+fn sip_smoke_report_measures_the_inverses_promise() {
+    use diffsim_studies::smoke::{SHOWN, SmokeParams, run};
+    let cfg = SmokeParams { seconds: 0.5, ..SmokeParams::quick() };
+    let report = run(&cfg, 2, |_, _| {}).unwrap();
+    assert_eq!(report.runs.iter().map(|r| r.curve.name.as_str()).collect::<Vec<_>>(), ["sip", "adam"]);
+    for r in &report.runs {
+        assert!(r.curve.updates >= 1 && r.curve.final_loss() > 0.0 && r.curve.final_loss().is_finite(), "{}", r.curve.name);
+        assert_eq!(r.shown.len(), report.truth.len());
+    }
+    assert!(report.truth.len() == SHOWN.min(report.truth.len()) && report.observed.len() == report.truth.len());
+    // The inverse's promise is measured at three scales; for small changes
+    // it beats "nothing moved" (for a change as large as replacing one
+    // state by another it need not: docs/sip.md).
+    assert_eq!(report.misses.iter().map(|m| m.scale).collect::<Vec<_>>(), [1.0, 0.1, 0.01]);
+    assert!(report.misses.iter().all(|m| m.reverse_time > 0.0 && m.reverse_time.is_finite()));
+    let small = report.misses[2];
+    assert!(small.reverse_time < small.unmoved, "{small:?}");
+    assert!(report.inverse.0 > 0.0 && report.inverse.1.is_finite());
+    let table = report.table();
+    assert_eq!(table.lines().count(), 2 + 2 + 1 + 3 + 2 + 3, "{table}");
+    let json = report.json();
+    for key in ["sip", "adam", "time_s", "sip_resim", "adam_resim", "sip_s_per_update", "adam_s_per_update", "inverse", "inverse_resim"] {
+        assert!(json[key].as_f64().is_some_and(|v| v.is_finite() && v > 0.0), "{key}");
+    }
+    let points: usize = report.runs.iter().map(|r| r.curve.points.len()).sum();
+    assert_eq!(report.csv().lines().count(), 1 + points);
+}
+
+#[test]
+fn the_cavity_report_compares_with_ghia() {
+    use diffsim_studies::cavity::{CavityParams, run};
+    let p = CavityParams { resolution: 16, ..CavityParams::default() };
+    let report = run(&p, |_, _, _| {}).unwrap();
+    // 16² is coarse: within 10 % of Ghia et al. (u_min −0.2109 at Re 100).
+    assert!((report.extrema.u_min.value + 0.2109).abs() < 0.021, "{:?}", report.extrema);
+    let g = report.ghia.expect("Ghia tabulates Re 100");
+    assert_eq!(g.v_max.value, 0.17527);
+    assert!(report.steps > 10 && report.time_s > 0.0);
+    let json = report.json();
+    assert_eq!(json["cells"].as_u64(), Some(256));
+    let rel = (report.extrema.u_min.value - g.u_min.value) / g.u_min.value;
+    assert_eq!(json["relative_error"]["u_min"].as_f64(), Some(rel));
+    assert_eq!(report.table().lines().count(), 2 + 3);
+    let [u, v] = report.profiles();
+    assert_eq!(report.profiles_csv().lines().count(), 1 + u.len() + v.len());
+    // Without Ghia's table the report says so.
+    let no_table = run(&CavityParams { re: 50.0, resolution: 8, ..CavityParams::default() }, |_, _, _| {}).unwrap();
+    assert!(no_table.ghia.is_none() && no_table.table().contains("tabulate Re 100, 400 and 1000 only"));
+}

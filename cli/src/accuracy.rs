@@ -217,7 +217,7 @@ fn gradient_rows(
         }
     }
     for eps in [1e-2, 1e-4, 1e-6, 1e-8, 1e-10] {
-        let (g, time_s, peak) = measure(budget, || central_differences(&value, x0, eps));
+        let (g, time_s, peak) = measure(budget, || diffsim::check::central_gradient(&value, x0, eps));
         let mut params = Map::new();
         params.insert("method".into(), json!("finite differences"));
         params.insert("checkpointing".into(), Value::Null);
@@ -227,24 +227,6 @@ fn gradient_rows(
         rows.push(Measurement { family: "finite differences".into(), params, error: rel(&g, &reference), time_s, peak_rss_bytes: peak, pareto: false });
     }
     Ok(rows)
-}
-
-/// `∂f/∂x_i ≈ (f(x + ε·e_i) − f(x − ε·e_i)) / 2ε` for every `i`, with the
-/// step scaled by `max(1, |x_i|)`.
-fn central_differences(f: impl Fn(&[f64]) -> f64, x: &[f64], eps: f64) -> Vec<f64> {
-    let mut x = x.to_vec();
-    (0..x.len())
-        .map(|i| {
-            let xi = x[i];
-            let h = eps * xi.abs().max(1.0);
-            x[i] = xi + h;
-            let up = f(&x);
-            x[i] = xi - h;
-            let down = f(&x);
-            x[i] = xi;
-            (up - down) / (2.0 * h)
-        })
-        .collect()
 }
 
 /// The P2-style smoke step (semi-Lagrangian advection, pressure solve to

@@ -6,8 +6,8 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use diffsim_solvers::flow::cavity::CavityExtrema;
-use diffsim_solvers::flow::{Flow2d, SteadyParams, Stepper, cavity_extrema, centrelines, ghia, march_to_steady};
+use diffsim_solvers::flow::ghia;
+use diffsim_studies::cavity::{CavityParams, CavityReport};
 
 use super::{CliError, plot_or_warn};
 use crate::plot::{Axes, Series};
@@ -37,15 +37,6 @@ pub struct CavityArgs {
     out: Option<PathBuf>,
     #[command(flatten)]
     overwrite: super::Overwrite,
-}
-
-/// What one cavity run gives.
-struct CavityRun {
-    cfg: Flow2d,
-    x: Vec<f64>,
-    extrema: CavityExtrema,
-    steps: usize,
-    time_s: f64,
 }
 
 /// The cavity's flags checked against the range where its method holds.
@@ -114,83 +105,34 @@ fn max_steps(n: usize) -> Result<(), CliError> {
     }
 }
 
-fn run_cavity(a: &CavityArgs) -> Result<CavityRun, CliError> {
+fn run_cavity(a: &CavityArgs) -> Result<CavityReport, CliError> {
     check_cavity(a)?;
-    let (re, n, tolerance) = (a.re, a.resolution, a.tolerance);
-    let cfg = Flow2d::cavity(n, re);
-    let start = Instant::now();
-    let mut stepper = Stepper::new(cfg, 1e-10)?;
-    let mut x = cfg.rest();
+    let (re, n) = (a.re, a.resolution);
     let spinner = if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new_spinner() };
-    let opts = SteadyParams { tolerance, max_steps: a.max_steps, reference_speed: 1.0 };
-    let report = march_to_steady(&mut stepper, &mut x, &opts, |step, t, rate| {
-        if step % 500 == 0 {
-            spinner.set_message(format!("cavity Re {re}, {n}²: step {step}, t = {t:.1}, max |du/dt| = {rate:.2e}"));
-            spinner.tick();
-        }
-    })?;
+    let p = CavityParams { re, resolution: n, tolerance: a.tolerance, max_steps: a.max_steps };
+    let report = diffsim_studies::cavity::run(&p, |step, t, rate| {
+        spinner.set_message(format!("cavity Re {re}, {n}²: step {step}, t = {t:.1}, max |du/dt| = {rate:.2e}"));
+        spinner.tick();
+    })
+    .map_err(super::train::study_error("cavity"))?;
     spinner.finish_and_clear();
-    let extrema = cavity_extrema(&cfg, &x);
-    let what = format!("cavity at Re {re}");
-    super::finite_figures(&what, &[("u_min", extrema.u_min.value), ("v_max", extrema.v_max.value), ("v_min", extrema.v_min.value)])?;
-    // The lid drives a vortex: a steady state at rest is not the cavity's.
-    if diffsim_solvers::cg::max_abs(&x) == 0.0 {
-        return Err(CliError::NotReported { what, reason: "the flow stayed at rest".into() });
-    }
-    Ok(CavityRun { cfg, x, extrema, steps: report.steps, time_s: start.elapsed().as_secs_f64() })
+    Ok(report)
 }
 
 pub(super) fn cavity(a: CavityArgs) -> Result<(), CliError> {
     check_cavity(&a)?;
     // Held to the end: the folder is this run's while it writes.
     let _out = a.out.as_deref().map(|d| super::claim_out(d, a.overwrite, &[])).transpose()?;
-    let run = run_cavity(&a)?;
-    let e = run.extrema;
-    let reference = ghia(a.re).map(|t| t.extrema());
-    let rel = |ours: f64, theirs: f64| (ours - theirs) / theirs;
+    let report = run_cavity(&a)?;
     if let Some(dir) = &a.out {
-        write_profiles(dir, &run, a.re)?;
+        write_profiles(dir, &report)?;
     }
-    let cells = run.cfg.nx * run.cfg.ny;
     if a.json {
-        let mut obj = serde_json::json!({
-            "re": a.re, "resolution": a.resolution,
-            "u_min": e.u_min.value, "y_at_u_min": e.u_min.at,
-            "v_max": e.v_max.value, "x_at_v_max": e.v_max.at,
-            "v_min": e.v_min.value, "x_at_v_min": e.v_min.at,
-            "cells": cells, "steps": run.steps, "time_s": run.time_s,
-        });
-        if let Some(g) = reference {
-            obj["ghia"] = serde_json::json!({
-                "u_min": g.u_min.value, "y_at_u_min": g.u_min.at,
-                "v_max": g.v_max.value, "x_at_v_max": g.v_max.at,
-                "v_min": g.v_min.value, "x_at_v_min": g.v_min.at,
-            });
-            obj["relative_error"] = serde_json::json!({
-                "u_min": rel(e.u_min.value, g.u_min.value),
-                "v_max": rel(e.v_max.value, g.v_max.value),
-                "v_min": rel(e.v_min.value, g.v_min.value),
-            });
-        }
-        println!("{obj}");
+        println!("{}", report.json());
         return Ok(());
     }
-    println!("lid-driven cavity, Re {}, {}² cells: steady after {} steps, {:.1} s", a.re, a.resolution, run.steps, run.time_s);
-    println!("| extremum | diffsim (at) | Ghia et al. 1982 (at) | difference in magnitude |\n|---|---|---|---|");
-    let rows = [
-        ("u_min (x = ½)", e.u_min, reference.map(|g| g.u_min)),
-        ("v_max (y = ½)", e.v_max, reference.map(|g| g.v_max)),
-        ("v_min (y = ½)", e.v_min, reference.map(|g| g.v_min)),
-    ];
-    for (name, ours, theirs) in rows.iter() {
-        match theirs {
-            Some(g) => println!("| {name} | {:.5} ({:.4}) | {:.5} ({:.4}) | {:+.2} % |", ours.value, ours.at, g.value, g.at, 100.0 * rel(ours.value, g.value)),
-            None => println!("| {name} | {:.5} ({:.4}) | – | – |", ours.value, ours.at),
-        }
-    }
-    if reference.is_none() {
-        println!("(Ghia et al. tabulate Re 100, 400 and 1000 only)");
-    }
+    println!("lid-driven cavity, Re {}, {}² cells: steady after {} steps, {:.1} s", a.re, a.resolution, report.steps, report.time_s);
+    print!("{}", report.table());
     if let Some(dir) = &a.out {
         println!("wrote {} to {}", profile_names(a.re).join(", "), dir.display());
     }
@@ -202,26 +144,20 @@ fn profile_names(re: f64) -> [String; 2] {
 }
 
 /// The two centreline profiles as CSV and as one plot over Ghia's points.
-fn write_profiles(dir: &std::path::Path, run: &CavityRun, re: f64) -> Result<(), CliError> {
+fn write_profiles(dir: &std::path::Path, run: &CavityReport) -> Result<(), CliError> {
     let io = |path: &std::path::Path| {
         let path = path.to_path_buf();
         move |source| CliError::Io { path, source }
     };
+    let re = run.params.re;
     std::fs::create_dir_all(dir).map_err(io(dir))?;
-    let (ul, vl) = centrelines(&run.cfg, &run.x);
-    let mut csv = String::from("line,position,velocity\n");
-    for (&at, &val) in ul.at.iter().zip(&ul.value) {
-        csv.push_str(&format!("u(x=0.5),{at:.6},{val:.8}\n"));
-    }
-    for (&at, &val) in vl.at.iter().zip(&vl.value) {
-        csv.push_str(&format!("v(y=0.5),{at:.6},{val:.8}\n"));
-    }
     let [csv_name, png_name] = profile_names(re);
     let path = dir.join(csv_name);
-    diffsim::files::write(&path, csv).map_err(io(&path))?;
+    diffsim::files::write(&path, run.profiles_csv()).map_err(io(&path))?;
+    let [u, v] = run.profiles();
     let mut series = vec![
-        Series { name: "u on x = 1/2 (against y)".into(), points: ul.at.iter().copied().zip(ul.value.iter().copied()).collect(), color: 0, markers: false },
-        Series { name: "v on y = 1/2 (against x)".into(), points: vl.at.iter().copied().zip(vl.value.iter().copied()).collect(), color: 1, markers: false },
+        Series { name: "u on x = 1/2 (against y)".into(), points: u, color: 0, markers: false },
+        Series { name: "v on y = 1/2 (against x)".into(), points: v, color: 1, markers: false },
     ];
     if let Some(g) = ghia(re) {
         series.push(Series {
@@ -864,13 +800,11 @@ pub(super) fn drag_net(a: DragNetArgs) -> Result<(), CliError> {
     spinner.finish_and_clear();
     let time_s = start.elapsed().as_secs_f64();
     if a.json {
-        let held: Vec<serde_json::Value> = r
-            .held_out
-            .iter()
-            .map(|h| serde_json::json!({"re": h.re, "cd_cylinder": h.cd_cylinder, "cd_network": h.cd_network, "cd_optimised": h.cd_optimised, "time_network_s": h.time_network_s, "time_optimised_s": h.time_optimised_s}))
-            .collect();
-        let obj = serde_json::json!({"resolution": opts.cells_per_d, "train_re": opts.train_re, "loss_start": r.losses.first(), "loss_end": r.losses.last(), "train_s": r.train_s, "held_out": held, "time_s": time_s});
-        println!("{obj}");
+        let mut obj = r.json();
+        obj.insert("resolution".into(), opts.cells_per_d.into());
+        obj.insert("train_re".into(), serde_json::json!(opts.train_re));
+        obj.insert("time_s".into(), time_s.into());
+        println!("{}", serde_json::Value::Object(obj));
         return Ok(());
     }
     println!(
@@ -882,9 +816,6 @@ pub(super) fn drag_net(a: DragNetArgs) -> Result<(), CliError> {
         r.losses.len(),
         r.train_s
     );
-    println!("| held-out Re | cylinder c_D | network c_D (time) | optimised one by one c_D (time) |\n|---|---|---|---|");
-    for h in &r.held_out {
-        println!("| {} | {:.4} | {:.4} ({:.1} s) | {:.4} ({:.1} s) |", h.re, h.cd_cylinder, h.cd_network, h.time_network_s, h.cd_optimised, h.time_optimised_s);
-    }
+    print!("{}", r.table());
     Ok(())
 }

@@ -579,6 +579,19 @@ pub(super) fn experiment(c: ExperimentCommand, world: &World) -> Result<(), CliE
     }
 }
 
+/// A study's error as the command line reports it: a part that cannot be
+/// saved as itself, a training error in its own words.
+pub(super) fn study_error(arg: &'static str) -> impl FnOnce(diffsim_studies::StudyError) -> CliError {
+    use diffsim_studies::StudyError;
+    move |e| match e {
+        StudyError::Part(e) => e.into(),
+        StudyError::Train(e) => CliError::Argument { arg, reason: e.to_string() },
+        StudyError::Flow(e) => e.into(),
+        StudyError::NotReported { what, reason } => CliError::NotReported { what, reason },
+        e => CliError::Argument { arg, reason: e.to_string() },
+    }
+}
+
 /// This command line with `--resume` (once, at the end).
 fn resume_command() -> String {
     let args: Vec<String> = std::env::args().skip(1).filter(|a| a != "--resume").collect();
@@ -601,7 +614,6 @@ fn exit_on_interrupt(out: &Path, parts: &'static str) {
 }
 
 fn sip_heat(a: SipArgs) -> Result<(), CliError> {
-    use diffsim_studies::StudyError;
     use diffsim_studies::heat::{HeatParams, Method, run};
     let mut cfg = match a.setup.as_str() {
         "small" => HeatParams::standard(),
@@ -642,10 +654,7 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
         progress.set_message(m.name());
         progress.inc(1);
     })
-    .map_err(|e| match e {
-        StudyError::Part(e) => e.into(),
-        e => CliError::Argument { arg: "sip-heat", reason: e.to_string() },
-    })?;
+    .map_err(study_error("sip-heat"))?;
     progress.finish_and_clear();
     let table = report.table();
     let series: Vec<Series> =
@@ -672,7 +681,6 @@ fn sip_heat(a: SipArgs) -> Result<(), CliError> {
 }
 
 fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
-    use diffsim_studies::StudyError;
     use diffsim_studies::oscillators::{OscMethod, OscParams, run};
     // A day per method at most: a longer wall-clock budget is an input
     // error, not a study.
@@ -709,10 +717,7 @@ fn hig_oscillators(a: HigArgs, world: &World) -> Result<(), CliError> {
             eprint!("\r{problem}: {} {t:.0} s   ", m.name());
         }
     };
-    let report = run(&lin, &nonlin, world, Some(&parts), say).map_err(|e| match e {
-        StudyError::Part(e) => e.into(),
-        e => CliError::Argument { arg: "hig-oscillators", reason: e.to_string() },
-    })?;
+    let report = run(&lin, &nonlin, world, Some(&parts), say).map_err(study_error("hig-oscillators"))?;
     if !world.is_root() {
         return Ok(());
     }
@@ -817,47 +822,14 @@ fn run_sol_study<P: SolProblem + std::fmt::Debug>(
         return Ok(());
     }
 
-    // Table.
-    let source = results[0].mean_error;
-    let mut table = format!(
-        "| variant | mean rel. L2 error ({n} steps) | vs source | error at step {n} | same on training trajectories | s / iteration | solver | network | chaining + optimizer |\n|---|---|---|---|---|---|---|---|---|\n",
-        n = cfg.eval_steps
-    );
-    for r in &results {
-        let t = &r.time;
-        let parts = t.solver_fwd + t.solver_bwd + t.net_fwd + t.net_bwd;
-        // Solver and network times are summed over threads; shares are of that sum plus the rest of the wall time.
-        let (share_s, share_n, share_c) = if t.total > 0.0 {
-            let threads = rayon::current_num_threads() as f64;
-            let rest = (t.total * threads - parts).max(0.0);
-            let all = parts + rest;
-            ((t.solver_fwd + t.solver_bwd) / all, (t.net_fwd + t.net_bwd) / all, rest / all)
-        } else {
-            (0.0, 0.0, 0.0)
-        };
-        let cell = |v: f64| if r.name == "source" { "–".to_string() } else { format!("{:.0}%", 100.0 * v) };
-        table.push_str(&format!(
-            "| {} | {:.4} | {:.2} | {:.4} | {:.4} | {} | {} | {} | {} |\n",
-            r.name,
-            r.mean_error,
-            r.mean_error / source,
-            r.error.last().copied().unwrap_or(f64::NAN),
-            r.train_mean_error,
-            if r.name == "source" { "–".to_string() } else { format!("{:.4}", r.s_per_iter) },
-            cell(share_s),
-            cell(share_n),
-            cell(share_c),
-        ));
-    }
+    let report = diffsim_studies::sol::SolReport::new(cfg, results);
+    let results = &report.variants;
+    let table = report.table();
     let md = out.join("table.md");
     diffsim::files::write(&md, &table).map_err(io(&md))?;
     // Errors per step.
     let csv = out.join("errors.csv");
-    let mut s = format!("step,{}\n", results.iter().map(|r| r.name.as_str()).collect::<Vec<_>>().join(","));
-    for t in 0..cfg.eval_steps {
-        s.push_str(&format!("{},{}\n", t + 1, results.iter().map(|r| format!("{:.6e}", r.error[t])).collect::<Vec<_>>().join(",")));
-    }
-    diffsim::files::write(&csv, s).map_err(io(&csv))?;
+    diffsim::files::write(&csv, report.csv()).map_err(io(&csv))?;
     let err_series: Vec<Series> = results
         .iter()
         .enumerate()
@@ -889,20 +861,8 @@ fn run_sol_study<P: SolProblem + std::fmt::Debug>(
         print!("{table}");
         println!("wrote table.md, errors.csv, error.png, loss.png to {}", out.display());
     }
-    let sol16 = results.iter().find(|r| r.name == "sol16").map_or(f64::NAN, |r| r.s_per_iter);
     if json {
-        // The standard variants' keys are always there (null when not run);
-        // every variant that ran, `--methods sol8` too, under its name.
-        let mut obj = serde_json::json!({
-            "source": null, "pre": null, "noise": null, "sol4": null, "sol16": null,
-            "train_s_per_iter": sol16, "iterations": cfg.settings.iterations, "threads": rayon::current_num_threads(),
-            "train_trajectories": cfg.train,
-            "train_set": results.iter().map(|r| (r.name.clone(), serde_json::Value::from(r.train_mean_error))).collect::<serde_json::Map<_, _>>(),
-        });
-        for r in &results {
-            obj[r.name.as_str()] = serde_json::Value::from(r.mean_error);
-        }
-        println!("{obj}");
+        println!("{}", serde_json::Value::Object(report.json()));
     }
     Ok(())
 }

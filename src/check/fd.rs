@@ -5,6 +5,28 @@ use std::fmt;
 use super::{CheckParams, Verdict, axpy, functional, max_abs, random_vector, rng};
 use crate::op::{OperatorExt, Vjp};
 
+/// The whole gradient of a scalar function by central differences:
+/// `∂f/∂x_i ≈ (f(x + h_i·e_i) − f(x − h_i·e_i)) / 2h_i` with `h_i =
+/// rel_step · max(1, |x_i|)`, two evaluations per index. For a gradient
+/// to compare against where no operator is at hand (a rollout's loss as a
+/// function of its initial state, say); operators are checked by
+/// [`finite_differences`], which also sweeps the step and avoids kinks.
+pub fn central_gradient(f: impl Fn(&[f64]) -> f64, x: &[f64], rel_step: f64) -> Vec<f64> {
+    let mut x = x.to_vec();
+    (0..x.len())
+        .map(|i| {
+            let xi = x[i];
+            let h = rel_step * xi.abs().max(1.0);
+            x[i] = xi + h;
+            let up = f(&x);
+            x[i] = xi - h;
+            let down = f(&x);
+            x[i] = xi;
+            (up - down) / (2.0 * h)
+        })
+        .collect()
+}
+
 /// One step of the sweep.
 #[derive(Clone, Debug)]
 pub struct FdStep {

@@ -33,7 +33,7 @@ use rand::{Rng, SeedableRng};
 use crate::op::Forward;
 
 pub use dot::{DotReport, dot_product, dot_product_between};
-pub use fd::{FdReport, FdStep, finite_differences, sweep_steps};
+pub use fd::{FdReport, FdStep, central_gradient, finite_differences, sweep_steps};
 pub use inverse::{InverseReport, InverseStep, local_inverse, local_inverse_error, step_miss};
 pub use taylor::{TaylorReport, taylor};
 

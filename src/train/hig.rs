@@ -123,29 +123,45 @@ pub fn loss_and_gradient_over<P: Vjp + Sync, N: Vjp + Sync>(
     }
     let mut us = vec![0.0; mine.len() * n_u];
     net.forward_batch(&inputs, theta, &mut us);
-    // One row per sample: [loss, network input, ∂L/∂u].
-    let width = 1 + n_in + n_u;
-    let mut rows = vec![0.0; mine.len() * width];
-    rows.par_chunks_mut(width).zip(mine.par_iter()).zip(us.par_chunks(n_u)).for_each(|((row, s), u)| {
-        let mut y = vec![0.0; n_y];
-        physics.forward(&s.x0, u, &mut y);
-        let mut seed: Vec<f64> = y.iter().zip(&s.target).map(|(a, t)| 2.0 * (a - t) / b).collect();
-        row[0] = y.iter().zip(&s.target).map(|(a, t)| (a - t) * (a - t)).sum::<f64>() / b;
-        row[1..1 + n_in].copy_from_slice(&s.target);
-        let mut dx = vec![0.0; physics.n_in()];
-        physics.vjp(&s.x0, u, &mut seed, &mut dx, &mut row[1 + n_in..]);
-    });
-    let all = if world.size() > 1 { world.all_gather(&rows) } else { rows };
-    let batch = all.len() / width;
-    let (mut loss, mut xs, mut dus) = (0.0, Vec::with_capacity(batch * n_in), Vec::with_capacity(batch * n_u));
-    for row in all.chunks_exact(width) {
-        loss += row[0];
-        xs.extend_from_slice(&row[1..1 + n_in]);
-        dus.extend_from_slice(&row[1 + n_in..]);
+    // Per sample, in parallel: the physics, the loss and `∂L/∂u` (each
+    // thread keeps its buffers across its samples).
+    let mut losses = vec![0.0; mine.len()];
+    let mut dus = vec![0.0; mine.len() * n_u];
+    let buffers = || (vec![0.0; n_y], vec![0.0; n_y], vec![0.0; physics.n_in()]);
+    losses.par_iter_mut().zip(dus.par_chunks_mut(n_u)).zip(mine.par_iter()).zip(us.par_chunks(n_u)).for_each_init(
+        buffers,
+        |(y, seed, dx), (((loss, du), s), u)| {
+            physics.forward(&s.x0, u, y);
+            *loss = y.iter().zip(&s.target).map(|(a, t)| (a - t) * (a - t)).sum::<f64>() / b;
+            for ((g, a), t) in seed.iter_mut().zip(y.iter()).zip(&s.target) {
+                *g = 2.0 * (a - t) / b;
+            }
+            dx.fill(0.0);
+            physics.vjp(&s.x0, u, seed, dx, du);
+        },
+    );
+    if world.size() > 1 {
+        // Every rank receives every sample's [loss, network input, ∂L/∂u].
+        let width = 1 + n_in + n_u;
+        let mut rows = Vec::with_capacity(mine.len() * width);
+        for (k, loss) in losses.iter().enumerate() {
+            rows.push(*loss);
+            rows.extend_from_slice(&inputs[k * n_in..(k + 1) * n_in]);
+            rows.extend_from_slice(&dus[k * n_u..(k + 1) * n_u]);
+        }
+        let all = world.all_gather(&rows);
+        (losses.clear(), inputs.clear(), dus.clear());
+        for row in all.chunks_exact(width) {
+            losses.push(row[0]);
+            inputs.extend_from_slice(&row[1..1 + n_in]);
+            dus.extend_from_slice(&row[1 + n_in..]);
+        }
     }
+    // The loss summed in sample order, as one process sums it.
+    let loss = losses.iter().fold(0.0, |acc, l| acc + l);
     let mut dtheta = vec![0.0; theta.len()];
-    let mut dxs = vec![0.0; xs.len()];
-    net.vjp_batch(&xs, theta, &mut dus, &mut dxs, &mut dtheta);
+    let mut dxs = vec![0.0; inputs.len()];
+    net.vjp_batch(&inputs, theta, &mut dus, &mut dxs, &mut dtheta);
     (loss, dtheta)
 }
 

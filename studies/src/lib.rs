@@ -14,6 +14,7 @@
 //!   on coupled oscillators (Schnell et al. 2022).
 //! - [`heat`] and [`smoke`]: scale-invariant physics (SIP) updates against
 //!   Adam (Holl et al. 2022).
+//! - [`cavity`]: the lid-driven cavity against Ghia, Ghia & Shin (1982).
 //! - [`shape_net`]: a network from the Reynolds number to the minimum-drag
 //!   shape, trained through the steady solver.
 //! - [`p3`]: benchmark P3, one training iteration (docs/benchmarks.md).
@@ -23,6 +24,7 @@
 
 pub mod accuracy;
 pub mod burgers;
+pub mod cavity;
 pub mod config;
 pub mod heat;
 pub mod oscillators;
@@ -54,6 +56,18 @@ pub enum StudyError {
         /// Its iterations in all.
         of: usize,
     },
+    /// A viscous flow could not be simulated or did not settle.
+    #[error(transparent)]
+    Flow(#[from] diffsim_solvers::flow::FlowError),
+    /// A figure of the result is wrong (not finite, or a flow at rest):
+    /// the result is not reported.
+    #[error("{what}: {reason}; no result is reported")]
+    NotReported {
+        /// The run.
+        what: String,
+        /// The figure and what is wrong with it.
+        reason: String,
+    },
     /// An evaluation rollout blew up.
     #[error("evaluation: {0}")]
     Eval(#[from] sol::EvalError),
@@ -80,4 +94,16 @@ where
         parts.finish(name, &value)?;
     }
     Ok(value)
+}
+
+/// `Ok` when every figure is finite, else [`StudyError::NotReported`]
+/// naming the first that is not.
+///
+/// # Errors
+/// The first figure that is NaN or infinite.
+pub fn finite_figures(what: &str, figures: &[(&str, f64)]) -> Result<(), StudyError> {
+    match figures.iter().find(|(_, v)| !v.is_finite()) {
+        Some((name, v)) => Err(StudyError::NotReported { what: what.to_string(), reason: format!("{name} came out {v}") }),
+        None => Ok(()),
+    }
 }

@@ -49,7 +49,7 @@ pub struct ShapeNetParams {
 }
 
 /// One held-out Reynolds number.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct HeldOut {
     /// Reynolds number.
     pub re: f64,
@@ -66,7 +66,7 @@ pub struct HeldOut {
 }
 
 /// How the training went.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ShapeNetReport {
     /// Mean `c_D/c_D,cylinder` over the training Reynolds numbers, per update
     /// (before it).
@@ -249,4 +249,36 @@ pub fn train(opts: &ShapeNetParams, mut progress: impl FnMut(usize, f64)) -> Res
         held_out.push(HeldOut { re, cd_cylinder, cd_network, cd_optimised: one.cd_end, time_network_s, time_optimised_s: t.elapsed().as_secs_f64() });
     }
     Ok(ShapeNetReport { losses, train_s, held_out })
+}
+
+impl ShapeNetReport {
+    /// The one-line result: the training's first and last loss and
+    /// seconds, and per held-out Reynolds number the three drag
+    /// coefficients and the two times (`diffsim experiment drag-net
+    /// --json` adds the settings and the wall time).
+    pub fn json(&self) -> serde_json::Map<String, serde_json::Value> {
+        let mut obj = serde_json::Map::new();
+        obj.insert("loss_start".into(), self.losses.first().copied().into());
+        obj.insert("loss_end".into(), self.losses.last().copied().into());
+        obj.insert("train_s".into(), self.train_s.into());
+        let held: Vec<serde_json::Value> = self
+            .held_out
+            .iter()
+            .map(|h| serde_json::json!({"re": h.re, "cd_cylinder": h.cd_cylinder, "cd_network": h.cd_network, "cd_optimised": h.cd_optimised, "time_network_s": h.time_network_s, "time_optimised_s": h.time_optimised_s}))
+            .collect();
+        obj.insert("held_out".into(), held.into());
+        obj
+    }
+
+    /// The Markdown table of the held-out comparison.
+    pub fn table(&self) -> String {
+        let mut t = String::from("| held-out Re | cylinder c_D | network c_D (time) | optimised one by one c_D (time) |\n|---|---|---|---|\n");
+        for h in &self.held_out {
+            t.push_str(&format!(
+                "| {} | {:.4} | {:.4} ({:.1} s) | {:.4} ({:.1} s) |\n",
+                h.re, h.cd_cylinder, h.cd_network, h.time_network_s, h.cd_optimised, h.time_optimised_s
+            ));
+        }
+        t
+    }
 }

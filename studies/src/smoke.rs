@@ -159,7 +159,7 @@ impl SmokeMethod {
 
 /// One method's run: its curves and its reconstructions of the first
 /// held-out samples.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct SmokeRun {
     /// `points`: `(training seconds, MAE of the initial smoke)`;
     /// `second_points`: the MAE of the re-simulated final smoke.
@@ -315,7 +315,7 @@ pub fn inverse_alone(cfg: &SmokeParams, iterations: usize) -> Result<Vec<(f64, f
 
 /// How well the reverse-time inverse keeps its promise on held-out
 /// states, for one scale of the change asked for.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct InverseMiss {
     /// `dy = scale · J·(x*_b − x*_a)`: toward another held-out state.
     pub scale: f64,
@@ -368,4 +368,123 @@ pub fn inverse_misses(cfg: &SmokeParams, scales: &[f64]) -> Result<Vec<InverseMi
             InverseMiss { scale, reverse_time: mean(0), refined: mean(1), unmoved: mean(2) }
         })
         .collect())
+}
+
+/// What the study found ([`run`]).
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct SmokeReport {
+    /// The settings' grid cells per side.
+    pub n: usize,
+    /// Simulation steps from the initial to the observed smoke.
+    pub steps: usize,
+    /// Correction sweeps of the inverse.
+    pub refine: usize,
+    /// Training seconds per method.
+    pub seconds: f64,
+    /// SIP's run, then Adam's.
+    pub runs: Vec<SmokeRun>,
+    /// The first [`SHOWN`] held-out samples' initial smoke …
+    pub truth: Vec<Vec<f64>>,
+    /// … and their observed final smoke (the pictures' first columns).
+    pub observed: Vec<Vec<f64>>,
+    /// Iterations of the inverse alone.
+    pub inverse_iterations: usize,
+    /// The inverse alone after them: the initial and the re-simulated
+    /// final smoke's errors.
+    pub inverse: (f64, f64),
+    /// How well the inverse keeps its promise at three scales.
+    pub misses: Vec<InverseMiss>,
+}
+
+/// The study: SIP and Adam for `cfg.seconds` each ([`compare`]), the
+/// inverse alone for `inverse_iterations` iterations ([`inverse_alone`]),
+/// and the inverse's misses at scales 1, 0.1 and 0.01
+/// ([`inverse_misses`]). `progress(method, trained seconds)` after each
+/// update.
+///
+/// # Errors
+/// A non-finite loss, gradient or state.
+pub fn run(cfg: &SmokeParams, inverse_iterations: usize, progress: impl FnMut(SmokeMethod, f64)) -> Result<SmokeReport, crate::StudyError> {
+    let pg = |e: PgError| crate::StudyError::Train(e.into());
+    let result = compare(cfg, &[SmokeMethod::Sip, SmokeMethod::Adam], progress)?;
+    let inverse = *inverse_alone(cfg, inverse_iterations).map_err(pg)?.last().expect("inverse_alone reports iteration 0");
+    let misses = inverse_misses(cfg, &[1.0, 0.1, 0.01]).map_err(pg)?;
+    let shown = result.test.len().min(SHOWN);
+    Ok(SmokeReport {
+        n: cfg.n,
+        steps: cfg.steps,
+        refine: cfg.refine,
+        seconds: cfg.seconds,
+        truth: result.test[..shown].iter().map(|s| s.truth.clone()).collect(),
+        observed: result.test[..shown].iter().map(|s| s.observed.clone()).collect(),
+        runs: result.runs,
+        inverse_iterations,
+        inverse,
+        misses,
+    })
+}
+
+impl SmokeReport {
+    /// The Markdown table: updates, seconds per update and the two errors
+    /// per method and for the inverse alone, then the inverse's misses.
+    pub fn table(&self) -> String {
+        let mut table =
+            format!("| method | updates in {:.0} s | s per update | initial smoke MAE | re-simulated final smoke MAE |\n|---|---|---|---|---|\n", self.seconds);
+        for run in &self.runs {
+            let c = &run.curve;
+            let resim = c.second_points.last().map_or(f64::NAN, |p| p.1);
+            table.push_str(&format!("| {} | {} | {:.3} | {:.4} | {resim:.4} |\n", c.name, c.updates, c.seconds_per_update(), c.final_loss()));
+        }
+        let (inv_x, inv_y) = self.inverse;
+        table.push_str(&format!("| the inverse alone, {} iterations per sample | – | – | {inv_x:.4} | {inv_y:.4} |\n", self.inverse_iterations));
+        table.push_str(&format!(
+            "\nThe reverse-time inverse's promise, P(x + dx) ≈ P(x) + dy at held-out states (relative miss; dx = dy for comparison):\n\n| scale of dy | reverse time | with {} correction sweeps | dx = dy |\n|---|---|---|---|\n",
+            self.refine
+        ));
+        for m in &self.misses {
+            table.push_str(&format!("| {} | {:.3} | {:.3} | {:.3} |\n", m.scale, m.reverse_time, m.refined, m.unmoved));
+        }
+        table
+    }
+
+    /// `method,seconds,initial_mae,final_mae`, one row per recorded point.
+    pub fn csv(&self) -> String {
+        let mut csv = String::from("method,seconds,initial_mae,final_mae\n");
+        for run in &self.runs {
+            let c = &run.curve;
+            for (i, (t, e)) in c.points.iter().enumerate() {
+                let r = c.second_points.get(i).map_or(f64::NAN, |p| p.1);
+                csv.push_str(&format!("{},{t:.4},{e:.6e},{r:.6e}\n", c.name));
+            }
+        }
+        csv
+    }
+
+    /// The one-line result: per method its final errors, updates and
+    /// seconds per update; the inverse alone's; the misses; the settings.
+    pub fn json(&self) -> serde_json::Map<String, serde_json::Value> {
+        let last = |c: &Curve| c.second_points.last().map_or(f64::NAN, |p| p.1);
+        let mut obj = serde_json::Map::new();
+        for run in &self.runs {
+            let c = &run.curve;
+            obj.insert(c.name.clone(), c.final_loss().into());
+            obj.insert(format!("{}_resim", c.name), last(c).into());
+            obj.insert(format!("{}_updates", c.name), c.updates.into());
+            obj.insert(format!("{}_s_per_update", c.name), c.seconds_per_update().into());
+        }
+        obj.insert("time_s".into(), self.seconds.into());
+        obj.insert("inverse".into(), self.inverse.0.into());
+        obj.insert("inverse_resim".into(), self.inverse.1.into());
+        obj.insert("inverse_iterations".into(), self.inverse_iterations.into());
+        let misses: Vec<serde_json::Value> = self
+            .misses
+            .iter()
+            .map(|m| serde_json::json!({"scale": m.scale, "reverse_time": m.reverse_time, "refined": m.refined, "unmoved": m.unmoved}))
+            .collect();
+        obj.insert("inverse_miss".into(), misses.into());
+        obj.insert("n".into(), self.n.into());
+        obj.insert("steps".into(), self.steps.into());
+        obj.insert("refine".into(), self.refine.into());
+        obj
+    }
 }

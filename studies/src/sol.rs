@@ -410,6 +410,111 @@ pub struct VariantResult {
     pub s_per_iter: f64,
 }
 
+/// What a solver-in-the-loop study found ([`study`]): every variant, the
+/// source solver first, with what the table, the CSV and the one-line
+/// result show.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct SolReport {
+    /// The variants in the order they ran (`source` first).
+    pub variants: Vec<VariantResult>,
+    /// Steps of the test rollouts.
+    pub eval_steps: usize,
+    /// Training iterations per variant.
+    pub iterations: usize,
+    /// Training trajectories.
+    pub train_trajectories: usize,
+    /// Threads the variants trained on (the time shares are of them).
+    pub threads: usize,
+}
+
+impl SolReport {
+    /// The report of `variants` trained as `cfg` says.
+    pub fn new<P>(cfg: &StudyParams<P>, variants: Vec<VariantResult>) -> Self {
+        SolReport {
+            variants,
+            eval_steps: cfg.eval_steps,
+            iterations: cfg.settings.iterations,
+            train_trajectories: cfg.train,
+            threads: rayon::current_num_threads(),
+        }
+    }
+
+    /// The variant called `name`.
+    pub fn variant(&self, name: &str) -> Option<&VariantResult> {
+        self.variants.iter().find(|v| v.name == name)
+    }
+
+    /// The Markdown table: each variant's mean error and its ratio to the
+    /// source's, the error at the last step, the same on the training
+    /// trajectories, seconds per iteration and where the time went.
+    pub fn table(&self) -> String {
+        let source = self.variants.first().map_or(f64::NAN, |v| v.mean_error);
+        let mut table = format!(
+            "| variant | mean rel. L2 error ({n} steps) | vs source | error at step {n} | same on training trajectories | s / iteration | solver | network | chaining + optimizer |\n|---|---|---|---|---|---|---|---|---|\n",
+            n = self.eval_steps
+        );
+        for r in &self.variants {
+            let t = &r.time;
+            let parts = t.solver_fwd + t.solver_bwd + t.net_fwd + t.net_bwd;
+            // Solver and network times are summed over threads; shares are of that sum plus the rest of the wall time.
+            let (share_s, share_n, share_c) = if t.total > 0.0 {
+                let rest = (t.total * self.threads as f64 - parts).max(0.0);
+                let all = parts + rest;
+                ((t.solver_fwd + t.solver_bwd) / all, (t.net_fwd + t.net_bwd) / all, rest / all)
+            } else {
+                (0.0, 0.0, 0.0)
+            };
+            let cell = |v: f64| if r.name == "source" { "–".to_string() } else { format!("{:.0}%", 100.0 * v) };
+            table.push_str(&format!(
+                "| {} | {:.4} | {:.2} | {:.4} | {:.4} | {} | {} | {} | {} |\n",
+                r.name,
+                r.mean_error,
+                r.mean_error / source,
+                r.error.last().copied().unwrap_or(f64::NAN),
+                r.train_mean_error,
+                if r.name == "source" { "–".to_string() } else { format!("{:.4}", r.s_per_iter) },
+                cell(share_s),
+                cell(share_n),
+                cell(share_c),
+            ));
+        }
+        table
+    }
+
+    /// `step,<variant>,…`: the test error per step of every variant.
+    pub fn csv(&self) -> String {
+        let mut s = format!("step,{}\n", self.variants.iter().map(|r| r.name.as_str()).collect::<Vec<_>>().join(","));
+        for t in 0..self.eval_steps {
+            s.push_str(&format!("{},{}\n", t + 1, self.variants.iter().map(|r| format!("{:.6e}", r.error[t])).collect::<Vec<_>>().join(",")));
+        }
+        s
+    }
+
+    /// The one-line result: the standard variants' mean errors (null when
+    /// not run) and every variant that ran under its name,
+    /// `train_s_per_iter` (SOL-16's), `iterations`, `threads`,
+    /// `train_trajectories`, and `train_set` (each variant's error on the
+    /// training trajectories).
+    pub fn json(&self) -> serde_json::Map<String, serde_json::Value> {
+        let mut obj = serde_json::Map::new();
+        for k in ["source", "pre", "noise", "sol4", "sol16"] {
+            obj.insert(k.into(), serde_json::Value::Null);
+        }
+        obj.insert("train_s_per_iter".into(), self.variant("sol16").map_or(f64::NAN, |r| r.s_per_iter).into());
+        obj.insert("iterations".into(), self.iterations.into());
+        obj.insert("threads".into(), self.threads.into());
+        obj.insert("train_trajectories".into(), self.train_trajectories.into());
+        obj.insert(
+            "train_set".into(),
+            self.variants.iter().map(|r| (r.name.clone(), serde_json::Value::from(r.train_mean_error))).collect::<serde_json::Map<_, _>>().into(),
+        );
+        for r in &self.variants {
+            obj.insert(r.name.clone(), r.mean_error.into());
+        }
+        obj
+    }
+}
+
 /// How a study saves its parts and learns of an interrupt ([`study`]).
 pub struct Resumable<'a> {
     /// Where finished variants and the one in progress are saved.
