@@ -292,10 +292,7 @@ fn claim_out(dir: &std::path::Path, overwrite: Overwrite, inputs: &[&std::path::
 /// Refuses a run's figures when one is NaN or infinite: `what` names the
 /// run, `figures` each figure by name.
 fn finite_figures(what: &str, figures: &[(&str, f64)]) -> Result<(), CliError> {
-    match figures.iter().find(|(_, v)| !v.is_finite()) {
-        Some((name, v)) => Err(CliError::NotReported { what: what.to_string(), reason: format!("{name} came out {v}") }),
-        None => Ok(()),
-    }
+    diffsim_studies::finite_figures(what, figures).map_err(train::study_error("figures"))
 }
 
 /// Writes a line plot; a plot that cannot be drawn (no font) is a warning,

@@ -412,8 +412,9 @@ pub(super) fn train_cmd(a: TrainArgs, world: &World) -> Result<(), CliError> {
     };
     let iterations = usize::try_from(target - done).map_err(|_| CliError::Argument { arg: "--extend", reason: "too many iterations".into() })?;
     let settings = diffsim_studies::burgers::TrainParams { first: done as usize + 1, iterations, ..cfg.settings };
-    // Rank 0 logs and checkpoints; every rank stops at the same iteration.
-    let mut log = if world.is_root() { CsvLog::resume(&log_path, done as usize).map_err(io(&log_path))? } else { CsvLog::none() };
+    // Rank 0 logs (the log trimmed to the checkpoint by start_or_continue)
+    // and checkpoints; every rank stops at the same iteration.
+    let mut log = if world.is_root() { CsvLog::append(&log_path).map_err(io(&log_path))? } else { CsvLog::none() };
     // Ctrl-C or a termination request: checkpoint and stop after the
     // current iteration (a second handler cannot be set; ignore).
     let _ = ctrlc::set_handler(|| STOP.store(true, std::sync::atomic::Ordering::SeqCst));
@@ -547,7 +548,7 @@ fn start_or_continue(a: &TrainArgs, cfg: &TrainConfig, text: &str, layout: &Para
                 reason: format!("the checkpoint has {} iterations, more than the configured {total} (use --extend to train further)", c.iterations_done),
             });
         }
-        CsvLog::resume(&log_path, c.iterations_done as usize).map_err(io(&log_path))?;
+        CsvLog::trim(&log_path, c.iterations_done as usize).map_err(io(&log_path))?;
         return Ok((c.params, c.optimizer, c.iterations_done));
     }
     if !a.overwrite
@@ -561,7 +562,7 @@ fn start_or_continue(a: &TrainArgs, cfg: &TrainConfig, text: &str, layout: &Para
     // Iteration 0 is a checkpoint too: from the first moment the folder
     // names its configuration and can be resumed.
     Checkpoint { format: FORMAT, config: text.to_string(), iterations_done: 0, params: store.clone(), optimizer: opt.clone() }.save(&ckpt_path)?;
-    CsvLog::resume(&log_path, 0).map_err(io(&log_path))?;
+    CsvLog::trim(&log_path, 0).map_err(io(&log_path))?;
     Ok((store, opt, 0))
 }
 

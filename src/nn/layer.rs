@@ -292,7 +292,7 @@ impl Layer {
                 kernel::dense_batch(*n_in, w, b, xs, ys);
             }
             Layer::Residual(net) => {
-                net.forward_batch_into(xs, p, ys);
+                net.forward_into(xs, p, ys);
                 for (y, x) in ys.iter_mut().zip(xs) {
                     *y += *x;
                 }
@@ -320,7 +320,7 @@ impl Layer {
                 for (gx, g) in gxs.iter_mut().zip(gys) {
                     *gx += *g;
                 }
-                net.backprop_batch(xs, p, gys, gxs, gp);
+                net.backprop(xs, p, gys, gxs, gp);
             }
             _ => {
                 for (s, (x, gx)) in xs.chunks_exact(n_in).zip(gxs.chunks_exact_mut(n_in)).enumerate() {
@@ -529,42 +529,10 @@ impl Net {
         }
     }
 
-    /// The inputs of layers `1..L` (the outputs of all but the last layer).
-    fn hidden<R: Real>(&self, x: &[R], p: &[R]) -> Vec<Vec<R>> {
-        let last = self.layers.len() - 1;
-        let mut outs: Vec<Vec<R>> = Vec::with_capacity(last);
-        for (k, l) in self.layers[..last].iter().enumerate() {
-            let mut y = vec![R::zero(); l.n_out()];
-            l.forward(outs.last().map_or(x, |v| v), &p[self.range(k)], &mut y);
-            outs.push(y);
-        }
-        outs
-    }
-
-    fn forward_into<R: Real>(&self, x: &[R], p: &[R], y: &mut [R]) {
-        let hidden = self.hidden(x, p);
-        let last = self.layers.len() - 1;
-        self.layers[last].forward(hidden.last().map_or(x, |v| v), &p[self.range(last)], y);
-    }
-
-    fn backprop<R: Real>(&self, x: &[R], p: &[R], gy: &[R], gx: &mut [R], gp: &mut [R]) {
-        let outs = self.hidden(x, p);
-        let mut g = gy.to_vec();
-        for k in (0..self.layers.len()).rev() {
-            let input: &[R] = if k == 0 { x } else { &outs[k - 1] };
-            let output = outs.get(k).map(|v| v.as_slice());
-            if k == 0 {
-                self.layers[0].backprop(input, output, &p[self.range(0)], &g, gx, &mut gp[self.range(0)]);
-            } else {
-                let mut gin = vec![R::zero(); self.layers[k].n_in()];
-                self.layers[k].backprop(input, output, &p[self.range(k)], &g, &mut gin, &mut gp[self.range(k)]);
-                g = gin;
-            }
-        }
-    }
-
-    /// The inputs of layers `1..L` for a batch (samples one after another).
-    fn hidden_batch<R: Real>(&self, xs: &[R], p: &[R]) -> Vec<Vec<R>> {
+    /// The inputs of layers `1..L` (the outputs of all but the last layer)
+    /// for a batch of samples, one after another (one sample is a batch of
+    /// one).
+    fn hidden<R: Real>(&self, xs: &[R], p: &[R]) -> Vec<Vec<R>> {
         let batch = xs.len() / self.n_in();
         let last = self.layers.len() - 1;
         let mut outs: Vec<Vec<R>> = Vec::with_capacity(last);
@@ -576,15 +544,15 @@ impl Net {
         outs
     }
 
-    fn forward_batch_into<R: Real>(&self, xs: &[R], p: &[R], ys: &mut [R]) {
-        let hidden = self.hidden_batch(xs, p);
+    fn forward_into<R: Real>(&self, xs: &[R], p: &[R], ys: &mut [R]) {
+        let hidden = self.hidden(xs, p);
         let last = self.layers.len() - 1;
         self.layers[last].forward_batch(hidden.last().map_or(xs, |v| v), &p[self.range(last)], ys);
     }
 
-    fn backprop_batch<R: Real>(&self, xs: &[R], p: &[R], gys: &[R], gxs: &mut [R], gp: &mut [R]) {
+    fn backprop<R: Real>(&self, xs: &[R], p: &[R], gys: &[R], gxs: &mut [R], gp: &mut [R]) {
         let batch = xs.len() / self.n_in();
-        let outs = self.hidden_batch(xs, p);
+        let outs = self.hidden(xs, p);
         let mut g = gys.to_vec();
         for k in (0..self.layers.len()).rev() {
             let input: &[R] = if k == 0 { xs } else { &outs[k - 1] };
@@ -652,7 +620,7 @@ impl<R: Real> Forward<R> for Net {
     fn forward_batch(&self, xs: &[R], p: &[R], ys: &mut [R]) {
         validate_batch(self, xs, p, ys.len(), xs.len());
         crate::op::count::record("Net", crate::op::count::Method::Forward);
-        self.forward_batch_into(xs, p, ys);
+        self.forward_into(xs, p, ys);
     }
 
     /// Kinks of relu-like activations, to first order along the tangent.
@@ -677,7 +645,7 @@ impl<R: Real> Vjp<R> for Net {
         validate_batch(self, xs, p, dys.len(), dxs.len());
         assert_eq!(dp.len(), self.n_params(), "Net: vjp_batch's dp has {} values, not {}", dp.len(), self.n_params());
         crate::op::count::record("Net", crate::op::count::Method::Vjp);
-        self.backprop_batch(xs, p, dys, dxs, dp);
+        self.backprop(xs, p, dys, dxs, dp);
         dys.fill(R::zero());
     }
 }

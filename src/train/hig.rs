@@ -150,7 +150,9 @@ pub fn loss_and_gradient_over<P: Vjp + Sync, N: Vjp + Sync>(
             rows.extend_from_slice(&dus[k * n_u..(k + 1) * n_u]);
         }
         let all = world.all_gather(&rows);
-        (losses.clear(), inputs.clear(), dus.clear());
+        losses.clear();
+        inputs.clear();
+        dus.clear();
         for row in all.chunks_exact(width) {
             losses.push(row[0]);
             inputs.extend_from_slice(&row[1..1 + n_in]);

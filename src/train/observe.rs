@@ -137,17 +137,33 @@ impl CsvLog {
     pub const HEADER: &'static str = "iteration,loss,grad_norm,seconds";
 
     /// The log at `path` for a run at iteration `done` (0: a fresh run):
-    /// the header and the rows of iterations `1..=done` are kept (written
-    /// atomically), later rows will be appended. A symbolic link at `path`
-    /// is refused.
+    /// [`CsvLog::trim`], then [`CsvLog::append`].
     ///
     /// # Errors
     /// When the file cannot be read or written.
     pub fn resume(path: &Path, done: usize) -> std::io::Result<Self> {
+        Self::trim(path, done)?;
+        Self::append(path)
+    }
+
+    /// Keeps the header and the rows of iterations `1..=done` of the log at
+    /// `path` (written atomically; a missing log becomes the header alone).
+    ///
+    /// # Errors
+    /// When the file cannot be read or written.
+    pub fn trim(path: &Path, done: usize) -> std::io::Result<()> {
         let text = if path.exists() { crate::files::read_text(path, 1 << 30, "loss log").map_err(std::io::Error::other)? } else { String::new() };
         let mut kept = vec![Self::HEADER];
         kept.extend(text.lines().skip(1).filter(|l| l.split(',').next().and_then(|i| i.parse::<usize>().ok()).is_some_and(|i| i <= done)));
-        crate::files::write_atomic(path, format!("{}\n", kept.join("\n")).as_bytes())?;
+        crate::files::write_atomic(path, format!("{}\n", kept.join("\n")).as_bytes())
+    }
+
+    /// The log at `path` as it is (trimmed by [`CsvLog::trim`]), rows
+    /// appended. A symbolic link at `path` is refused.
+    ///
+    /// # Errors
+    /// When the file cannot be opened for appending.
+    pub fn append(path: &Path) -> std::io::Result<Self> {
         let file = std::os::unix::fs::OpenOptionsExt::custom_flags(std::fs::OpenOptions::new().append(true), libc::O_NOFOLLOW).open(path)?;
         Ok(CsvLog { path: path.to_path_buf(), out: Some(std::io::BufWriter::new(file)) })
     }
