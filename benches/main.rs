@@ -239,5 +239,14 @@ fn hig_adam(c: &mut Criterion) {
             }
         })
     });
+    // The same through the lane form, eight samples per call.
+    let x0s: Vec<f64> = batch.iter().flat_map(|s| s.x0.iter().copied()).collect();
+    let (mut ys, mut dxs, mut dus_each) = (vec![0.0; 512 * 4], vec![0.0; 512 * 4], vec![0.0; us.len()]);
+    g.bench_function("physics_lanes_forward_vjp_512_one_thread", |b| {
+        b.iter(|| {
+            physics.forward_each(&x0s, &us, &mut ys);
+            physics.vjp_each(&x0s, &us, &mut ys, &mut dxs, &mut dus_each);
+        })
+    });
     g.finish();
 }

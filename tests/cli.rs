@@ -369,70 +369,37 @@ fn cavity_experiment_reports_json_and_writes_its_profiles() {
     std::fs::remove_dir_all(&out).ok();
 }
 
+/// The command line's part of the cylinder study (the figures are tested
+/// through the report in `studies.rs`): the JSON line, the sweep's and the
+/// flags' errors.
 #[test]
-fn cylinder_experiment_reports_both_cases_as_json() {
+fn cylinder_experiment_prints_its_report_and_refuses_bad_flags() {
     let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-1", "--resolution", "10", "--json"]);
     assert_eq!(code, 0, "{err}");
     let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     for key in ["cd", "cl", "dp", "time_s"] {
         assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
     }
-    assert_eq!(last["cells"].as_u64(), Some(220 * 41), "{last}");
-    assert!((last["cd"].as_f64().unwrap() - 5.5795).abs() < 0.03 * 5.5795, "{last}");
-    // Pseudo-time marching reaches the same discrete steady state as Newton.
-    let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-1", "--resolution", "10", "--solver", "march", "--json"]);
+    assert_eq!((last["case"].as_str(), last["solver"].as_str(), last["cells"].as_u64()), (Some("2d-1"), Some("newton"), Some(220 * 41)), "{last}");
+    let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-1", "--resolution", "10"]);
     assert_eq!(code, 0, "{err}");
-    let march: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-    assert_eq!(march["solver"], "march", "{march}");
-    assert!((march["cd"].as_f64().unwrap() - last["cd"].as_f64().unwrap()).abs() < 1e-4, "{march} against {last}");
-    // The same with the fourth-order interpolation: Newton's Jacobian (a
-    // wider colouring) converges in a few steps to the march's state.
-    let run = |solver: &str| {
-        let (code, stdout, err) =
-            diffsim(&["experiment", "cylinder", "--case", "2d-1", "--resolution", "10", "--convection", "fourth", "--solver", solver, "--json"]);
-        assert_eq!(code, 0, "{err}");
-        serde_json::from_str::<serde_json::Value>(stdout.lines().last().unwrap()).unwrap()
-    };
-    let (newton, march) = (run("newton"), run("march"));
-    assert_eq!(newton["convection"], "fourth", "{newton}");
-    assert!(newton["steps"].as_u64().unwrap() <= 8, "{newton}");
-    assert!((march["cd"].as_f64().unwrap() - newton["cd"].as_f64().unwrap()).abs() < 1e-4, "{march} against {newton}");
-    assert!((newton["cd"].as_f64().unwrap() - last["cd"].as_f64().unwrap()).abs() > 1e-3, "the scheme changes the flow: {newton}");
-    let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-2", "--resolution", "10", "--t-end", "8", "--json"]);
-    assert_eq!(code, 0, "{err}");
-    let last: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-    for key in ["cd_max", "cl_max", "cl_min", "cl_mean", "st", "dp", "time_s"] {
-        assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
-    }
-    let f = |k: &str| last[k].as_f64().unwrap();
-    assert!(f("cl_min") < f("cl_mean") && f("cl_mean") < f("cl_max"), "{last}");
-    // Δp converges from below (2.20 at 10 cells per D against 2.46–2.50).
-    assert!((f("dp") - 2.48).abs() < 0.12 * 2.48, "{last}");
-    // 10 cells per diameter with the default fourth-order interpolation:
-    // the period within 5 %, the lift peak within 5 %, the drag peak
-    // within 7 % (it converges from above).
-    assert_eq!(last["convection"], "fourth", "{last}");
-    assert!((last["st"].as_f64().unwrap() - 0.3).abs() < 0.015, "{last}");
-    assert!((last["cl_max"].as_f64().unwrap() - 1.0).abs() < 0.05, "{last}");
-    assert!((last["cd_max"].as_f64().unwrap() - 3.23).abs() < 0.22, "{last}");
-    // The error-against-time sweep: the drag's error falls with the resolution.
-    let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-1", "--sweep", "10,20", "--json"]);
+    assert!(stdout.contains("Schäfer–Turek 2D-1 (Re 20), 10 cells per diameter") && stdout.contains("| c_D |"), "{stdout}");
+    let (code, stdout, err) = diffsim(&["experiment", "cylinder", "--case", "2d-1", "--sweep", "10", "--json"]);
     assert_eq!(code, 0, "{err}");
     let sweep: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-    let rows = sweep["sweep"].as_array().unwrap();
-    assert_eq!(rows.len(), 2, "{sweep}");
-    assert!(rows[1]["cd_error"].as_f64().unwrap() < 0.5 * rows[0]["cd_error"].as_f64().unwrap(), "{sweep}");
+    assert_eq!(sweep["sweep"].as_array().map(Vec::len), Some(1), "{sweep}");
     fails_with(&["experiment", "cylinder", "--case", "2d-2", "--sweep", "10"], "invalid argument --sweep");
     fails_with(&["experiment", "cylinder", "--case", "2d-1", "--sweep", "15"], "invalid argument --sweep");
     fails_with(&["experiment", "cylinder", "--case", "2d-1", "--resolution", "15"], "invalid argument --resolution");
     fails_with(&["experiment", "cylinder", "--case", "2d-2", "--t-end", "1"], "invalid argument --t-end");
 }
 
-/// The shape optimisation, reduced (modes up to 4, 8 iterations, 10 cells
-/// per diameter): the drag falls, the area holds, the reduction survives a
-/// grid twice as fine, and the plots are written.
+/// The command line's part of the shape optimisation (the study itself is
+/// tested through its report in `studies.rs`): the JSON line, the plots and
+/// the history written, the flags' errors, and continuing from the shape a
+/// file holds.
 #[test]
-fn drag_shape_experiment_lowers_the_drag_at_fixed_area() {
+fn drag_shape_experiment_writes_its_report_and_continues_from_a_file() {
     let out = std::env::temp_dir().join(format!("diffsim-drag-shape-{}", std::process::id()));
     let dir = out.to_str().unwrap();
     let (code, stdout, err) = diffsim(&[
@@ -442,9 +409,9 @@ fn drag_shape_experiment_lowers_the_drag_at_fixed_area() {
         "--modes",
         "4",
         "--max-iterations",
-        "8",
+        "2",
         "--sampling-iterations",
-        "1",
+        "0",
         "--json",
         "--overwrite",
         "--out",
@@ -455,20 +422,9 @@ fn drag_shape_experiment_lowers_the_drag_at_fixed_area() {
     for key in ["cd_start", "cd_end", "area_start", "area_end", "time_s", "cd_start_fine", "cd_end_fine"] {
         assert!(last[key].as_f64().is_some_and(f64::is_finite), "{key} in {last}");
     }
-    assert!(last["iterations"].as_u64().is_some_and(|n| (1..=8).contains(&n)), "{last}");
+    assert!(last["iterations"].as_u64().is_some_and(|n| (1..=2).contains(&n)), "{last}");
     let f = |k: &str| last[k].as_f64().unwrap();
-    assert!(f("cd_end") < 0.9 * f("cd_start"), "{last}");
-    assert!((f("area_end") / f("area_start") - 1.0).abs() < 1e-12, "{last}");
-    assert!((f("reduction_pct") - f("reduction_fine_pct")).abs() < 2.0, "{last}");
-    // Gradient sampling follows when 8 L-BFGS steps leave the gradient
-    // above a hundredth of the start's, else it does not run.
-    let sampling = &last["sampling"];
-    if f("gradient_shrink") < 100.0 {
-        assert_eq!(sampling["iterations"].as_u64(), Some(1), "{last}");
-        assert!(sampling["min_norm"].as_f64().is_some_and(|g| g > 0.0) && sampling["radius"].as_f64().is_some_and(|r| r > 0.0), "{last}");
-    } else {
-        assert!(sampling.is_null(), "{last}");
-    }
+    assert!(f("cd_end") < f("cd_start"), "{last}");
     for file in ["drag_shapes.png", "drag_shape_history.png", "drag_shape_history.csv"] {
         assert!(out.join(file).exists(), "{file} not written");
     }
@@ -577,26 +533,9 @@ fn pareto_and_stability_commands_report_json() {
     // anything runs; --overwrite replaces it.
     fails_with(&["pareto", "burgers", "--quick", "--budget", "0.001", "--out", o], "--overwrite");
     assert!(out.join("burgers").join("results.csv").exists());
-    // Gradient sweep: the adjoints agree to round-off, the best finite
-    // difference to its truncation/round-off balance.
-    let (code, stdout, err) = diffsim(&["pareto", "taylor-green", "--gradients", "--quick", "--budget", "0", "--json", "--out", o]);
-    assert_eq!(code, 0, "{err}");
-    let rows: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-    let rows = rows.as_array().unwrap();
-    let adjoint = rows.iter().filter(|r| r["method"] != "finite differences");
-    assert!(adjoint.clone().count() == 6 && adjoint.clone().all(|r| r["error"].as_f64().unwrap() < 1e-8), "{rows:?}");
-    let best_fd = rows.iter().filter(|r| r["method"] == "finite differences").map(|r| r["error"].as_f64().unwrap()).fold(f64::INFINITY, f64::min);
-    assert!(best_fd < 1e-4, "best finite difference error {best_fd}");
+    // The gradient and cylinder sweeps' figures are tested through their
+    // reports (studies.rs); here, what the command refuses.
     fails_with(&["pareto", "heat"], "invalid value 'heat'");
-    // The cylinder: c_D's error falls with resolution, and both solvers
-    // reach the same discrete state.
-    let (code, stdout, err) = diffsim(&["pareto", "cylinder", "--quick", "--budget", "0", "--json", "--out", o]);
-    assert_eq!(code, 0, "{err}");
-    let rows: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
-    let error =
-        |solver: &str, n: u64| rows.as_array().unwrap().iter().find(|r| r["solver"] == solver && r["cells_per_d"] == n).unwrap()["error"].as_f64().unwrap();
-    assert!(error("newton", 20) < error("newton", 10) && error("newton", 20) < 0.005, "{rows}");
-    assert!((error("march", 10) - error("newton", 10)).abs() < 1e-4, "{rows}");
     fails_with(&["pareto", "cylinder", "--gradients"], "no gradient sweep");
     // Stability report.
     let (code, stdout, err) = diffsim(&["stability", "--json"]);

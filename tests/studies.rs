@@ -162,3 +162,118 @@ fn the_cavity_report_compares_with_ghia() {
     let no_table = run(&CavityParams { re: 50.0, resolution: 8, ..CavityParams::default() }, |_, _, _| {}).unwrap();
     assert!(no_table.ghia.is_none() && no_table.table().contains("tabulate Re 100, 400 and 1000 only"));
 }
+
+#[test]
+fn the_cylinder_reports_compare_with_schafer_turek() {
+    use diffsim_solvers::flow::Convection;
+    use diffsim_studies::cylinder::{CylinderCase, CylinderParams, CylinderResult, SteadySolver, run, sweep};
+    let steady = |solver, convection| {
+        let p = CylinderParams { resolution: 10, solver, convection, ..CylinderParams::steady() };
+        let report = run(&p, |_| {}).unwrap();
+        let CylinderResult::Steady(r) = report.result else { panic!("2D-1 reports a steady result") };
+        (report, r)
+    };
+    let (newton_report, newton) = steady(SteadySolver::Newton, Convection::Second);
+    assert_eq!(newton.cells, 220 * 41);
+    assert!((newton.cd - 5.5795).abs() < 0.03 * 5.5795, "{newton:?}");
+    let json = newton_report.json();
+    assert_eq!((json["case"].as_str(), json["solver"].as_str(), json["convection"].as_str()), (Some("2d-1"), Some("newton"), Some("second")));
+    assert_eq!(json["cd"].as_f64(), Some(newton.cd));
+    assert!(newton_report.table().contains("| c_D |") && newton_report.series_csv().is_none());
+    // Pseudo-time marching reaches the same discrete steady state as Newton.
+    let (_, march) = steady(SteadySolver::March, Convection::Second);
+    assert!((march.cd - newton.cd).abs() < 1e-4, "{march:?} against {newton:?}");
+    // The same with the fourth-order interpolation: Newton's Jacobian (a
+    // wider colouring) converges in a few steps to the march's state.
+    let (_, newton4) = steady(SteadySolver::Newton, Convection::Fourth);
+    let (_, march4) = steady(SteadySolver::March, Convection::Fourth);
+    assert!(newton4.steps <= 8, "{newton4:?}");
+    assert!((march4.cd - newton4.cd).abs() < 1e-4, "{march4:?} against {newton4:?}");
+    assert!((newton4.cd - newton.cd).abs() > 1e-3, "the scheme changes the flow: {newton4:?}");
+    // 2D-2 at 10 cells per diameter with the default fourth-order
+    // interpolation: the period within 5 %, the lift peak within 5 %, the
+    // drag peak within 7 % (it converges from above), Δp from below (2.20
+    // against 2.46–2.50).
+    let p = CylinderParams { resolution: 10, t_end: 8.0, ..CylinderParams::periodic() };
+    assert_eq!(p.case, CylinderCase::Periodic);
+    let report = run(&p, |_| {}).unwrap();
+    let CylinderResult::Periodic(r) = &report.result else { panic!("2D-2 reports a periodic result") };
+    assert!(r.cl_min < r.cl_mean && r.cl_mean < r.cl_max, "{r:?}");
+    assert!((r.dp - 2.48).abs() < 0.12 * 2.48, "{r:?}");
+    assert!((r.st - 0.3).abs() < 0.015 && (r.cl_max - 1.0).abs() < 0.05 && (r.cd_max - 3.23).abs() < 0.22, "{r:?}");
+    assert_eq!(report.json()["convection"].as_str(), Some("fourth"));
+    assert_eq!(report.series_csv().unwrap().lines().count(), 1 + r.series.len());
+    // The error-against-time sweep: the drag's error falls with the resolution.
+    let s = sweep(&[10, 20], Convection::Second).unwrap();
+    assert_eq!(s.rows.len(), 2);
+    assert!(s.rows[1].cd_error() < 0.5 * s.rows[0].cd_error(), "{:?}", s.rows);
+    assert_eq!(s.rows[0].result, newton, "the sweep's first row is the Newton run at 10");
+    assert_eq!(s.json()["sweep"][1]["cd_error"].as_f64(), Some(s.rows[1].cd_error()));
+    assert_eq!(s.table().lines().count(), 3 + 2);
+}
+
+/// The shape optimisation, reduced (modes up to 4, 8 iterations, 10 cells
+/// per diameter): the drag falls, the area holds, the reduction survives a
+/// grid twice as fine; continued from its final shape, the start is that
+/// shape and the reduction still counts from the cylinder.
+#[test]
+fn the_drag_shape_report_lowers_the_drag_at_fixed_area() {
+    use diffsim_solvers::flow::drag_shape::DragShapeParams;
+    use diffsim_studies::drag_shape::{DragStudyParams, run};
+    let optimise = DragShapeParams { cells_per_d: 10, modes: 4, max_iterations: 8, sampling_iterations: 1, ..DragShapeParams::default() };
+    let report = run(&DragStudyParams { optimise, start: None, verify: true }).unwrap();
+    let r = &report.result;
+    assert!((1..=8).contains(&r.iterations), "{} iterations", r.iterations);
+    assert!(r.cd_end < 0.9 * r.cd_start && report.cd_cylinder == r.cd_start, "{} from {}", r.cd_end, r.cd_start);
+    assert!((r.area_end / r.area_start - 1.0).abs() < 1e-12);
+    let fine = report.fine_reduction().expect("verified");
+    assert!((report.reduction() - fine).abs() < 2.0, "{} against {fine} on the finer grid", report.reduction());
+    // Gradient sampling follows when 8 L-BFGS steps leave the gradient
+    // above a hundredth of the start's, else it does not run.
+    match r.sampling {
+        Some(s) => assert!(report.shrink() < 100.0 && s.iterations == 1 && s.min_norm > 0.0 && s.radius > 0.0, "{s:?}"),
+        None => assert!(report.shrink() >= 100.0),
+    }
+    let json = report.json();
+    assert_eq!(json["reduction_pct"].as_f64(), Some(report.reduction()));
+    assert_eq!(json["cd_end_fine"].as_f64(), report.fine.map(|f| f.1));
+    assert!(report.table(None).contains("| c_D (20 per D, re-simulated) |"));
+    // Continue from the final shape: its free coefficients a₂…a₄, b₂…b₄.
+    let q = r.shape.params();
+    let k = (q.len() - 3) / 2;
+    let start: Vec<f64> = q[4..3 + k].iter().chain(&q[4 + k..]).copied().collect();
+    let optimise = DragShapeParams { max_iterations: 0, sampling_iterations: 0, ..optimise };
+    let again = run(&DragStudyParams { optimise, start: Some(start), verify: false }).unwrap();
+    assert!((again.result.cd_start - r.cd_end).abs() < 1e-8 * r.cd_end, "{} after {}", again.result.cd_start, r.cd_end);
+    assert!((again.cd_cylinder - r.cd_start).abs() < 1e-8 * r.cd_start);
+    assert!((again.reduction() - report.reduction()).abs() < 1e-6);
+    assert!(again.fine.is_none() && again.table(Some("end.json")).contains("(started from end.json:"));
+}
+
+/// `diffsim pareto`'s gradient and cylinder sweeps through their reports:
+/// the adjoints agree to round-off and the best finite difference to its
+/// truncation/round-off balance; c_D's error falls with the resolution and
+/// both steady solvers reach the same discrete state.
+#[test]
+fn the_pareto_reports_measure_gradients_and_the_cylinder() {
+    use diffsim_studies::accuracy::pareto::{ParetoParams, ParetoProblem, run};
+    let report = run(&ParetoParams { problem: ParetoProblem::TaylorGreenGradients, quick: true, budget: 0.0 }).unwrap();
+    assert!(report.warnings.is_empty(), "{:?}", report.warnings);
+    let method = |r: &diffsim_studies::accuracy::pareto::Measurement| r.params["method"].as_str().unwrap_or("").to_string();
+    let adjoint: Vec<_> = report.rows.iter().filter(|r| method(r) != "finite differences").collect();
+    assert!(adjoint.len() == 6 && adjoint.iter().all(|r| r.error < 1e-8), "{:?}", report.rows);
+    let best_fd = report.rows.iter().filter(|r| method(r) == "finite differences").map(|r| r.error).fold(f64::INFINITY, f64::min);
+    assert!(best_fd < 1e-4, "best finite difference error {best_fd}");
+    assert!(report.rows.iter().any(|r| r.pareto));
+    assert_eq!(report.csv().lines().count(), 1 + report.rows.len());
+    assert_eq!(report.markdown().lines().count(), 2 + report.rows.len());
+    assert_eq!(report.json().as_array().map(Vec::len), Some(report.rows.len()));
+    let report = run(&ParetoParams { problem: ParetoProblem::Cylinder, quick: true, budget: 0.0 }).unwrap();
+    let error =
+        |solver: &str, n: u64| report.rows.iter().find(|r| r.params["solver"] == solver && r.params["cells_per_d"] == n).map(|r| r.error).expect("the row");
+    assert!(error("newton", 20) < error("newton", 10) && error("newton", 20) < 0.005, "{:?}", report.rows);
+    assert!((error("march", 10) - error("newton", 10)).abs() < 1e-4, "{:?}", report.rows);
+    let (families, front) = report.series();
+    assert_eq!(families.len(), 2);
+    assert!(!front.is_empty() && front.windows(2).all(|w| w[0].0 <= w[1].0));
+}

@@ -290,3 +290,100 @@ fn stencil_map_and_cell_forms_pass_all_checks_and_agree_with_the_whole_step() {
         assert!(dot_product_between(&map, &whole, &x, &p, &o).verdict.passed());
     }
 }
+
+/// A damped pendulum integrated by 50 explicit Euler steps, its damping
+/// and length per sample (`p = [damping, g/ℓ]`): an ensemble member with
+/// its own parameters, declared with its lane form.
+pub struct Pendulum {
+    pub dt: f64,
+}
+
+impl Operator for Pendulum {
+    fn n_in(&self) -> usize {
+        2
+    }
+    fn n_out(&self) -> usize {
+        2
+    }
+    fn n_params(&self) -> usize {
+        2
+    }
+}
+
+#[inline(always)]
+fn pendulum_sample(op: &Pendulum, theta: f64, omega: f64, damping: f64, g: f64) -> (f64, f64) {
+    let (mut t, mut w) = (theta, omega);
+    for _ in 0..50 {
+        let a = -g * t.sin() - damping * w;
+        t += op.dt * w;
+        w += op.dt * a;
+    }
+    (t, w)
+}
+
+fn pendulum(op: &Pendulum, x: &[f64], p: &[f64], y: &mut [f64]) {
+    let (t, w) = pendulum_sample(op, x[0], x[1], p[0], p[1]);
+    y[0] = t;
+    y[1] = w;
+}
+
+/// [`pendulum`] on `LANES` samples side by side (value `c` of lane `l` at
+/// `c·LANES + l`).
+fn pendulum_lanes(op: &Pendulum, x: &[f64], p: &[f64], y: &mut [f64]) {
+    use diffsim::op::LANES;
+    for l in 0..LANES {
+        let (t, w) = pendulum_sample(op, x[l], x[LANES + l], p[l], p[LANES + l]);
+        y[l] = t;
+        y[LANES + l] = w;
+    }
+}
+
+diffsim::differentiable!(Pendulum => pendulum, lanes = pendulum_lanes);
+
+/// `forward_each` equals `forward` per sample bit for bit, and `vjp_each`
+/// (adding into its outputs, consuming its seeds) equals `vjp` per sample,
+/// for batches of whole and partial lane groups.
+fn lanes_agree_with_samples<O: diffsim::op::Vjp>(op: &O, count: usize, what: &str) {
+    let (n_in, n_p, n_out) = (op.n_in(), op.n_params(), op.n_out());
+    let wave = |n: usize, a: f64, b: f64| -> Vec<f64> { (0..n).map(|i| a + b * (0.37 * i as f64 + a).sin()).collect() };
+    let (xs, ps, seeds) = (wave(count * n_in, 0.3, 0.4), wave(count * n_p, 0.5, 0.3), wave(count * n_out, 0.1, 1.0));
+    let mut ys = vec![0.0; count * n_out];
+    op.forward_each(&xs, &ps, &mut ys);
+    let (mut dys, mut dxs, mut dps) = (seeds.clone(), vec![1.0; count * n_in], vec![-1.0; count * n_p]);
+    op.vjp_each(&xs, &ps, &mut dys, &mut dxs, &mut dps);
+    assert!(dys.iter().all(|&v| v == 0.0), "{what}: vjp_each leaves its seeds consumed");
+    for s in 0..count {
+        let (x, p) = (&xs[s * n_in..(s + 1) * n_in], &ps[s * n_p..(s + 1) * n_p]);
+        let mut y = vec![0.0; n_out];
+        op.forward(x, p, &mut y);
+        assert_eq!(y, ys[s * n_out..(s + 1) * n_out], "{what}: forward_each, sample {s} of {count}");
+        let (mut dx, mut dp) = (vec![1.0; n_in], vec![-1.0; n_p]);
+        op.vjp(x, p, &mut seeds[s * n_out..(s + 1) * n_out].to_vec(), &mut dx, &mut dp);
+        let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(u, v)| (u - v).abs() <= 1e-13 * (1.0 + v.abs()));
+        assert!(close(&dxs[s * n_in..(s + 1) * n_in], &dx), "{what}: vjp_each's dx, sample {s} of {count}");
+        assert!(close(&dps[s * n_p..(s + 1) * n_p], &dp), "{what}: vjp_each's dp, sample {s} of {count}");
+    }
+}
+
+#[test]
+fn lane_forms_match_their_per_sample_operator() {
+    use diffsim::problems::oscillators::Oscillators;
+    let pendulum = Pendulum { dt: 0.05 };
+    let report = check_all(&pendulum, &[0.4, -0.2], &[0.3, 2.0], &CheckParams::default());
+    assert!(report.passed(), "the pendulum:\n{report}");
+    // One sample, one whole group, a partial group after a whole one, three groups.
+    for count in [1, 8, 13, 24] {
+        lanes_agree_with_samples(&pendulum, count, "pendulum");
+        lanes_agree_with_samples(&Oscillators::nonlinear(), count, "nonlinear oscillators");
+        lanes_agree_with_samples(&Oscillators { steps: 5, ..Oscillators::linear() }, count, "linear oscillators");
+    }
+}
+
+#[test]
+#[should_panic(expected = "vjp_each: slice 1 holds 5 values, 2 samples of 2 expected")]
+fn lane_batches_of_partial_samples_panic_before_the_generated_code() {
+    use diffsim::op::Vjp;
+    let op = Pendulum { dt: 0.05 };
+    let (mut dys, mut dxs, mut dps) = (vec![0.0; 4], vec![0.0; 4], vec![0.0; 5]);
+    op.vjp_each(&[0.0; 4], &[0.0; 5], &mut dys, &mut dxs, &mut dps);
+}

@@ -263,7 +263,6 @@ pub struct CylinderArgs {
 }
 
 pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
-    use diffsim_solvers::flow::cylinder::{reference, run_2d1, run_2d1_newton, run_2d2};
     let per_d = a.resolution.unwrap_or(match a.case {
         CylinderCase::Steady => 40,
         CylinderCase::Periodic => 30,
@@ -281,7 +280,6 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
             CylinderCase::Periodic => ConvectionArg::Fourth,
         })
         .into();
-    let scheme = convection.name();
     // Options of one case or solver given to another would do nothing.
     let march = a.case == CylinderCase::Steady && a.solver == SteadySolver::March;
     if !march && a.tolerance.is_some() {
@@ -326,80 +324,36 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
     if !a.sweep.is_empty() {
         return cylinder_sweep(&a, convection);
     }
-    let start = Instant::now();
+    use diffsim_studies::cylinder::{self, CylinderParams};
+    let p = CylinderParams {
+        case: match a.case {
+            CylinderCase::Steady => cylinder::CylinderCase::Steady,
+            CylinderCase::Periodic => cylinder::CylinderCase::Periodic,
+        },
+        resolution: per_d,
+        solver: match a.solver {
+            SteadySolver::Newton => cylinder::SteadySolver::Newton,
+            SteadySolver::March => cylinder::SteadySolver::March,
+        },
+        convection,
+        tolerance,
+        max_steps: steps,
+        t_end,
+    };
     let spinner = if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new_spinner() };
-    let within = |v: f64, (lo, hi): (f64, f64)| if (lo..=hi).contains(&v) { "inside" } else { "outside" };
-    match a.case {
-        CylinderCase::Steady => {
-            let r = match a.solver {
-                SteadySolver::Newton => {
-                    spinner.set_message(format!("2D-1, {per_d} cells per diameter: Newton's method"));
-                    spinner.tick();
-                    run_2d1_newton(per_d, convection)?
-                }
-                SteadySolver::March => run_2d1(per_d, convection, tolerance, steps, |step, t, rate| {
-                    if step % 200 == 0 {
-                        spinner.set_message(format!("2D-1, {per_d} cells per diameter: step {step}, t = {t:.2}, max |du/dt| = {rate:.2e}"));
-                        spinner.tick();
-                    }
-                })?,
-            };
-            spinner.finish_and_clear();
-            let time_s = start.elapsed().as_secs_f64();
-            if a.json {
-                let solver = match a.solver {
-                    SteadySolver::Newton => "newton",
-                    SteadySolver::March => "march",
-                };
-                let obj = serde_json::json!({"case": "2d-1", "solver": solver, "convection": scheme, "resolution": per_d, "cd": r.cd, "cl": r.cl, "dp": r.dp, "cells": r.cells, "steps": r.steps, "time_s": time_s});
-                println!("{obj}");
-                return Ok(());
-            }
-            let how = match a.solver {
-                SteadySolver::Newton => "Newton steps",
-                SteadySolver::March => "pseudo-time steps",
-            };
-            println!(
-                "Schäfer–Turek 2D-1 (Re 20), {per_d} cells per diameter, {} cells, {scheme}-order convection: steady after {} {how}, {time_s:.1} s",
-                r.cells, r.steps
-            );
-            println!("| quantity | diffsim | published | |\n|---|---|---|---|");
-            println!(
-                "| c_D | {:.4} | 5.57–5.59 (5.5795) | {} ({:+.2} % from 5.5795) |",
-                r.cd,
-                within(r.cd, reference::CD_2D1),
-                100.0 * (r.cd / reference::CD_2D1_TIGHT - 1.0)
-            );
-            println!("| c_L | {:.4} | 0.0104–0.0110 | {} |", r.cl, within(r.cl, reference::CL_2D1));
-            println!("| Δp | {:.4} | 0.1172–0.1176 | {} |", r.dp, within(r.dp, reference::DP_2D1));
-        }
-        CylinderCase::Periodic => {
-            let r = run_2d2(per_d, convection, t_end, 2.0, |t, cl| {
-                spinner.set_message(format!("2D-2, {per_d} cells per diameter: t = {t:.2} of {t_end}, c_L = {cl:+.3}"));
-                spinner.tick();
-            })?;
-            spinner.finish_and_clear();
-            let time_s = start.elapsed().as_secs_f64();
-            if let Some(dir) = &a.out {
-                write_force_series(dir, &r.series, per_d)?;
-            }
-            if a.json {
-                let obj = serde_json::json!({"case": "2d-2", "convection": scheme, "resolution": per_d, "cd_max": r.cd_max, "cl_max": r.cl_max, "cl_min": r.cl_min, "cl_mean": r.cl_mean, "st": r.st, "dp": r.dp, "cells": r.cells, "steps": r.steps, "time_s": time_s});
-                println!("{obj}");
-                return Ok(());
-            }
-            println!(
-                "Schäfer–Turek 2D-2 (Re 100), {per_d} cells per diameter, {} cells, {scheme}-order convection: {} steps to t = {}, {time_s:.1} s",
-                r.cells, r.steps, t_end
-            );
-            println!("| quantity | diffsim | published | |\n|---|---|---|---|");
-            println!("| c_D,max | {:.4} | 3.22–3.24 | {} |", r.cd_max, within(r.cd_max, reference::CD_MAX_2D2));
-            println!("| c_L,max | {:.4} | 0.99–1.01 | {} |", r.cl_max, within(r.cl_max, reference::CL_MAX_2D2));
-            println!("| St | {:.4} | 0.295–0.305 | {} |", r.st, within(r.st, reference::ST_2D2));
-            println!("| Δp(t₀ + 1/2f) | {:.4} | 2.46–2.50 | {} |", r.dp, within(r.dp, reference::DP_2D2));
-            println!("| c_L,min | {:.4} | (not published) | |", r.cl_min);
-            println!("| mean c_L | {:+.4} | (not published) | |", r.cl_mean);
-        }
+    let report = cylinder::run(&p, |line| {
+        spinner.set_message(line.to_string());
+        spinner.tick();
+    })
+    .map_err(super::train::study_error("cylinder"))?;
+    spinner.finish_and_clear();
+    if let (Some(dir), Some(csv), cylinder::CylinderResult::Periodic(r)) = (&a.out, report.series_csv(), &report.result) {
+        write_force_series(dir, &csv, &r.series, per_d)?;
+    }
+    if a.json {
+        println!("{}", report.json());
+    } else {
+        print!("{}", report.table());
     }
     Ok(())
 }
@@ -407,47 +361,21 @@ pub(super) fn cylinder(a: CylinderArgs) -> Result<(), CliError> {
 /// 2D-1 by Newton at several resolutions: error against wall time (c_D and
 /// Δp against the tight values).
 fn cylinder_sweep(a: &CylinderArgs, convection: diffsim_solvers::flow::Convection) -> Result<(), CliError> {
-    use diffsim_solvers::flow::cylinder::{reference, run_2d1_newton};
-    let dp_ref = reference::DP_2D1_TIGHT;
-    let mut rows = Vec::new();
-    for &per_d in &a.sweep {
-        let t = Instant::now();
-        let r = run_2d1_newton(per_d, convection)?;
-        rows.push((per_d, r, t.elapsed().as_secs_f64()));
-    }
-    let cd_err = |cd: f64| (cd / reference::CD_2D1_TIGHT - 1.0).abs();
-    let dp_err = |dp: f64| (dp / dp_ref - 1.0).abs();
+    let report = diffsim_studies::cylinder::sweep(&a.sweep, convection).map_err(super::train::study_error("cylinder"))?;
     if a.json {
-        let list: Vec<serde_json::Value> = rows
-            .iter()
-            .map(|(per_d, r, t)| serde_json::json!({"resolution": per_d, "cells": r.cells, "cd": r.cd, "cl": r.cl, "dp": r.dp, "cd_error": cd_err(r.cd), "dp_error": dp_err(r.dp), "time_s": t}))
-            .collect();
-        println!("{}", serde_json::json!({"case": "2d-1", "solver": "newton", "sweep": list}));
+        println!("{}", report.json());
     } else {
-        println!(
-            "Schäfer–Turek 2D-1 by Newton's method: error against wall time\n| cells per D | cells | c_D | c_D error | c_L | Δp | Δp error | time |\n|---|---|---|---|---|---|---|---|"
-        );
-        for (per_d, r, t) in &rows {
-            println!(
-                "| {per_d} | {} | {:.5} | {:.3} % | {:.5} | {:.5} | {:.2} % | {t:.1} s |",
-                r.cells,
-                r.cd,
-                100.0 * cd_err(r.cd),
-                r.cl,
-                r.dp,
-                100.0 * dp_err(r.dp)
-            );
-        }
+        print!("{}", report.table());
     }
     if let Some(dir) = &a.out {
         std::fs::create_dir_all(dir).map_err(|source| CliError::Io { path: dir.to_path_buf(), source })?;
-        let points = |f: &dyn Fn(&diffsim_solvers::flow::cylinder::Steady2d1) -> f64| rows.iter().map(|(_, r, t)| (*t, f(r).max(1e-12))).collect::<Vec<_>>();
+        let points = |f: &dyn Fn(&diffsim_studies::cylinder::SweepRow) -> f64| report.rows.iter().map(|r| (r.time_s, f(r).max(1e-12))).collect::<Vec<_>>();
         plot_or_warn(
             &dir.join("cylinder_2d1_error_time.png"),
             &Axes { title: "Schäfer–Turek 2D-1 by Newton: error against wall time", x: "wall time (s)", y: "relative error", log_x: true, log_y: true },
             &[
-                Series { name: "c_D (against 5.57954)".into(), points: points(&|r| cd_err(r.cd)), color: 0, markers: true },
-                Series { name: "Δp (against 0.11752)".into(), points: points(&|r| dp_err(r.dp)), color: 1, markers: true },
+                Series { name: "c_D (against 5.57954)".into(), points: points(&|r| r.cd_error()), color: 0, markers: true },
+                Series { name: "Δp (against 0.11752)".into(), points: points(&|r| r.dp_error()), color: 1, markers: true },
             ],
         );
     }
@@ -455,12 +383,8 @@ fn cylinder_sweep(a: &CylinderArgs, convection: diffsim_solvers::flow::Convectio
 }
 
 /// c_D and c_L over time as CSV and a plot.
-fn write_force_series(dir: &std::path::Path, series: &[[f64; 4]], per_d: usize) -> Result<(), CliError> {
+fn write_force_series(dir: &std::path::Path, csv: &str, series: &[[f64; 4]], per_d: usize) -> Result<(), CliError> {
     std::fs::create_dir_all(dir).map_err(|source| CliError::Io { path: dir.to_path_buf(), source })?;
-    let mut csv = String::from("t,cd,cl,dp\n");
-    for s in series {
-        csv.push_str(&format!("{:.6},{:.8},{:.8},{:.8}\n", s[0], s[1], s[2], s[3]));
-    }
     let path = dir.join("cylinder_2d2.csv");
     diffsim::files::write(&path, csv).map_err(|source| CliError::Io { path: path.clone(), source })?;
     let pick = |k: usize| series.iter().map(|s| (s[0], s[k])).collect::<Vec<_>>();
@@ -528,7 +452,8 @@ pub struct DragShapeArgs {
 }
 
 pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
-    use diffsim_solvers::flow::drag_shape::{DragShapeParams, Stream, drag_coefficient, optimise_from, start_shape};
+    use diffsim_solvers::flow::drag_shape::{DragShapeParams, Stream, start_shape};
+    use diffsim_studies::drag_shape::DragStudyParams;
     let per_d = a.resolution.unwrap_or(if a.quick { 10 } else { 20 });
     if !(10..=100).contains(&per_d) || per_d % 10 != 0 {
         return Err(CliError::Argument { arg: "--resolution", reason: format!("cells per diameter must be a multiple of 10 between 10 and 100, got {per_d}") });
@@ -568,10 +493,6 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
         gradient_reduction: 100.0,
         sampling_iterations: a.sampling_iterations,
     };
-    let place = match stream {
-        Stream::Channel => "the channel".to_string(),
-        Stream::Free { half_width } => format!("a free stream ({half_width} diameters to each side)"),
-    };
     let setting = stream.setting(per_d, u_max)?;
     // Memory: Newton's sparse LU on the grid, or on the verification's
     // grid twice as fine (four times the cells).
@@ -582,99 +503,36 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
         newton_bytes(cells),
         Some(if a.no_verify { "a smaller --resolution".into() } else { "--no-verify, or a smaller --resolution".into() }),
     )?;
-    let q0 = match &a.start_shape {
-        None => vec![0.0; 2 * (a.modes - 1)],
+    let start = match &a.start_shape {
+        None => None,
         Some(path) => {
             let q = start_coefficients(path, a.modes)?;
             start_shape(&setting, a.modes, &q).map_err(|e| CliError::Argument { arg: "--start-shape", reason: format!("{}: {e}", path.display()) })?;
-            q
+            Some(q)
         }
     };
     // Held to the end: the folder is this run's while it writes; the start
     // shape's file is never written over.
     let inputs: Vec<&std::path::Path> = a.start_shape.as_deref().into_iter().collect();
     let _out = a.out.as_deref().map(|d| super::claim_out(d, a.overwrite, &inputs)).transpose()?;
-    // The Reynolds number without the rounding noise of u_max's round trip.
-    let re_shown = (opts.reynolds() * 1e6).round() / 1e6;
-    let start = Instant::now();
+    let p = DragStudyParams { optimise: opts, start, verify: !a.no_verify };
     if !a.json {
+        let place = match stream {
+            Stream::Channel => "the channel".to_string(),
+            Stream::Free { half_width } => format!("a free stream ({half_width} diameters to each side)"),
+        };
+        let re_shown = (opts.reynolds() * 1e6).round() / 1e6;
         eprintln!("minimising the drag in {place} at Re {re_shown}, {per_d} cells per diameter, modes 2..={} …", a.modes);
     }
-    let r = optimise_from(&opts, &q0)?;
-    // The reduction is against the cylinder, whatever the start.
-    let cd_cylinder = if a.start_shape.is_some() { drag_coefficient(&setting, &setting.cylinder)? } else { r.cd_start };
-    let optimise_s = start.elapsed().as_secs_f64();
-    // Verification: both shapes again on a grid twice as fine.
-    let fine = if a.no_verify {
-        None
-    } else {
-        let fine = stream.setting(2 * per_d, u_max)?;
-        Some((drag_coefficient(&fine, &fine.cylinder)?, drag_coefficient(&fine, &r.shape)?))
-    };
-    let time_s = start.elapsed().as_secs_f64();
-    let reduction = 100.0 * (1.0 - r.cd_end / cd_cylinder);
-    let fine_reduction = fine.map(|(start, end)| 100.0 * (1.0 - end / start));
-    let shrink = r.gradient_start / r.gradient_end;
-    let mut figures = vec![("c_D of the cylinder", cd_cylinder), ("c_D of the optimum", r.cd_end), ("the reduction", reduction), ("the area", r.area_end)];
-    if let (Some((s, e)), Some(f)) = (fine, fine_reduction) {
-        figures.extend([("c_D of the cylinder re-simulated", s), ("c_D of the optimum re-simulated", e), ("the re-simulated reduction", f)]);
-    }
-    super::finite_figures("drag-shape", &figures)?;
+    let report = diffsim_studies::drag_shape::run(&p).map_err(super::train::study_error("drag-shape"))?;
     if let Some(dir) = &a.out {
-        write_drag_shapes(dir, &r, per_d)?;
+        write_drag_shapes(dir, &report.result, per_d)?;
     }
     if a.json {
-        let obj = serde_json::json!({
-            "re": opts.reynolds(), "resolution": per_d, "modes": a.modes,
-            "stream": match stream { Stream::Channel => "channel", Stream::Free { .. } => "free" },
-            "half_width": match stream { Stream::Channel => None, Stream::Free { half_width } => Some(half_width) },
-            "cd_start": r.cd_start, "cd_end": r.cd_end, "cd_cylinder": cd_cylinder, "area_start": r.area_start, "area_end": r.area_end,
-            "iterations": r.iterations, "solves": r.solves, "time_s": time_s, "optimise_s": optimise_s,
-            "gradient_start": r.gradient_start, "gradient_end": r.gradient_end, "gradient_shrink": shrink,
-            "fine_resolution": fine.map(|_| 2 * per_d), "cd_start_fine": fine.map(|f| f.0), "cd_end_fine": fine.map(|f| f.1),
-            "reduction_pct": reduction, "reduction_fine_pct": fine_reduction,
-            "shape": {"r0": match &r.shape { diffsim_solvers::flow::Shape::Fourier { r0, .. } => *r0, _ => f64::NAN }, "params": r.shape.params()},
-            "stopped": r.stopped,
-            "sampling": r.sampling.map(|s| serde_json::json!({
-                "iterations": s.iterations, "steps": s.steps, "min_norm": s.min_norm, "radius": s.radius, "converged": s.converged,
-                "shrink": r.gradient_start / s.min_norm,
-            })),
-        });
-        println!("{obj}");
-        return Ok(());
-    }
-    println!(
-        "Minimum drag at fixed area in {place}, Re {re_shown}, {per_d} cells per diameter, Fourier modes 2..={}: {} L-BFGS iterations, {} steady solves, {optimise_s:.1} s",
-        a.modes, r.iterations, r.solves
-    );
-    if let Some(why) = &r.stopped {
-        println!("(L-BFGS stopped early: {why})");
-    }
-    if let Some(path) = &a.start_shape {
-        println!("(started from {}: c_D {:.4}; the gradient below shrinks from that start's)", path.display(), r.cd_start);
-    }
-    println!("| | cylinder | optimised | reduction |\n|---|---|---|---|");
-    println!("| c_D ({per_d} per D) | {cd_cylinder:.4} | {:.4} | {reduction:.2} % |", r.cd_end);
-    if let (Some((fine_start, fine_end)), Some(fine_reduction)) = (fine, fine_reduction) {
-        println!("| c_D ({} per D, re-simulated) | {fine_start:.4} | {fine_end:.4} | {fine_reduction:.2} % |", 2 * per_d);
-    }
-    println!("| area | {:.6e} | {:.6e} | {:+.2e} % |", r.area_start, r.area_end, 100.0 * (r.area_end / r.area_start - 1.0));
-    println!("| projected gradient | {:.3e} | {:.3e} | shrunk {shrink:.0}× |", r.gradient_start, r.gradient_end);
-    match r.sampling {
-        Some(s) => {
-            let sampled = r.gradient_start / s.min_norm;
-            println!("| smallest gradient sampled within {:.2e} of the final shape | | {:.3e} | shrunk {sampled:.0}× |", s.radius, s.min_norm);
-            println!(
-                "(L-BFGS stopped short of 100× at a kink of the discrete drag, where the gradient jumps; {} iterations of gradient sampling followed, {} steps taken{})",
-                s.iterations,
-                s.steps,
-                if s.converged { ": the final shape is stationary to 100× among its neighbours' gradients" } else { ": not stationary to 100× even so" }
-            );
-        }
-        None if shrink < 100.0 => println!(
-            "The projected gradient shrank less than 100×: the line search stalled at a kink of the discrete drag (a grid node crossing the boundary); the optimum is not verified to that standard."
-        ),
-        None => {}
+        println!("{}", report.json());
+    } else {
+        let from = a.start_shape.as_ref().map(|path| path.display().to_string());
+        print!("{}", report.table(from.as_deref()));
     }
     Ok(())
 }

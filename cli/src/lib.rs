@@ -5,7 +5,6 @@ mod bench;
 mod demo;
 mod flow;
 pub mod fuzz;
-mod measure;
 mod new;
 mod pg;
 pub mod plot;
@@ -17,7 +16,7 @@ mod train;
 use clap::{Parser, Subcommand};
 use thiserror::Error;
 
-pub use measure::{interleaved_times, median_time, peak_rss_bytes, reset_peak_rss};
+pub use diffsim_studies::measure::{interleaved_times, median_time, peak_rss_bytes, reset_peak_rss};
 
 /// Errors reported by the command line: printed as one message, exit code 1.
 #[derive(Debug, Error)]

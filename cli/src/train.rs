@@ -588,6 +588,7 @@ pub(super) fn study_error(arg: &'static str) -> impl FnOnce(diffsim_studies::Stu
         StudyError::Part(e) => e.into(),
         StudyError::Train(e) => CliError::Argument { arg, reason: e.to_string() },
         StudyError::Flow(e) => e.into(),
+        StudyError::Rollout(e) => e.into(),
         StudyError::NotReported { what, reason } => CliError::NotReported { what, reason },
         e => CliError::Argument { arg, reason: e.to_string() },
     }

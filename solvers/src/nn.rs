@@ -51,8 +51,17 @@ pub fn dense_adjoint<R: Real>(n_in: usize, w: &[R], x: &[R], gy: &[R], gx: &mut 
 pub fn dense_batch<R: Real>(n_in: usize, w: &[R], b: &[R], xs: &[R], ys: &mut [R]) {
     let n_out = b.len();
     assert_eq!(xs.len() / n_in.max(1), ys.len() / n_out.max(1), "dense_batch: rows of xs and ys differ");
-    for (x, y) in xs.chunks_exact(n_in).zip(ys.chunks_exact_mut(n_out)) {
-        dense(n_in, w, b, x, y);
+    R::dense_batch_kernel(n_in, w, b, xs, ys);
+}
+
+/// [`dense_batch`]'s loop, compiled once per vector width ([`Real`]'s hook).
+#[inline(always)]
+fn dense_batch_body<R: Real>(n_in: usize, w: &[R], b: &[R], xs: &[R], ys: &mut [R]) {
+    let n_out = b.len();
+    for (x, y) in xs.chunks_exact(n_in.max(1)).zip(ys.chunks_exact_mut(n_out.max(1))) {
+        for (o, (yo, bo)) in y.iter_mut().zip(b).enumerate() {
+            *yo = *bo + dot(&w[o * n_in..(o + 1) * n_in], x);
+        }
     }
 }
 
@@ -70,6 +79,15 @@ pub fn dense_batch_adjoint<R: Real>(n_in: usize, w: &[R], xs: &[R], gys: &[R], g
     let n_out = gb.len();
     let batch = gys.len() / n_out.max(1);
     assert!(xs.len() == batch * n_in && gxs.len() == batch * n_in && gw.len() == n_out * n_in, "dense_batch_adjoint: sizes do not match");
+    R::dense_batch_adjoint_kernel(n_in, w, xs, gys, gxs, gw, gb);
+}
+
+/// [`dense_batch_adjoint`]'s loops, compiled once per vector width
+/// ([`Real`]'s hook).
+#[inline(always)]
+fn dense_batch_adjoint_body<R: Real>(n_in: usize, w: &[R], xs: &[R], gys: &[R], gxs: &mut [R], gw: &mut [R], gb: &mut [R]) {
+    let n_out = gb.len();
+    let batch = gys.len() / n_out.max(1);
     let mut first = 0;
     while first < batch {
         let end = (first + DENSE_BLOCK).min(batch);
@@ -318,7 +336,7 @@ fn pad<R: Real>(s: &Conv1d, c: usize, x: &[R]) -> Vec<R> {
 /// The kernels [`Real`] dispatches to, compiled here once per type (with
 /// run-time choice of the vector instructions).
 macro_rules! kernels_for {
-    ($t:ty, $correlate:ident, $weight_gradient:ident, $tanh:ident) => {
+    ($t:ty, $correlate:ident, $weight_gradient:ident, $tanh:ident, $dense:ident, $dense_adjoint:ident) => {
         crate::simd_dispatch! {
             #[allow(clippy::too_many_arguments)]
             pub(crate) fn $correlate(n: usize, k: usize, nq: usize, nr: usize, w: &[$t], taps: Taps, bias: Option<&[$t]>, inp: &[$t], out: &mut [$t], add: bool) => correlate_body::<$t>
@@ -329,10 +347,17 @@ macro_rules! kernels_for {
         crate::simd_dispatch! {
             pub(crate) fn $tanh(x: &[$t], y: &mut [$t]) => tanh_slice_body::<$t>
         }
+        crate::simd_dispatch! {
+            pub(crate) fn $dense(n_in: usize, w: &[$t], b: &[$t], xs: &[$t], ys: &mut [$t]) => dense_batch_body::<$t>
+        }
+        crate::simd_dispatch! {
+            #[allow(clippy::too_many_arguments)]
+            pub(crate) fn $dense_adjoint(n_in: usize, w: &[$t], xs: &[$t], gys: &[$t], gxs: &mut [$t], gw: &mut [$t], gb: &mut [$t]) => dense_batch_adjoint_body::<$t>
+        }
     };
 }
-kernels_for!(f64, correlate_f64, weight_gradient_f64, tanh_slice_f64);
-kernels_for!(f32, correlate_f32, weight_gradient_f32, tanh_slice_f32);
+kernels_for!(f64, correlate_f64, weight_gradient_f64, tanh_slice_f64, dense_batch_f64, dense_batch_adjoint_f64);
+kernels_for!(f32, correlate_f32, weight_gradient_f32, tanh_slice_f32, dense_batch_f32, dense_batch_adjoint_f32);
 
 /// `out[q][i] (= or +=) bias[q] + Σ_r Σ_t W(q, r, t)·inp[r][i + t]` for
 /// `q < nq`, `r < nr`, `t < k`, `i < n`, with input rows `taps.inp` and

@@ -56,6 +56,13 @@ pub trait Real:
     /// Whether every value of `v` is finite ([`all_finite`]).
     #[doc(hidden)]
     fn all_finite_slice(v: &[Self]) -> bool;
+    /// The loop of [`crate::nn::dense_batch`].
+    #[doc(hidden)]
+    fn dense_batch_kernel(n_in: usize, w: &[Self], b: &[Self], xs: &[Self], ys: &mut [Self]);
+    /// The loops of [`crate::nn::dense_batch_adjoint`].
+    #[doc(hidden)]
+    #[allow(clippy::too_many_arguments)]
+    fn dense_batch_adjoint_kernel(n_in: usize, w: &[Self], xs: &[Self], gys: &[Self], gxs: &mut [Self], gw: &mut [Self], gb: &mut [Self]);
 }
 
 /// Whether every value of `v` is finite (no NaN, no infinity), in one
@@ -100,7 +107,15 @@ crate::simd_dispatch! {
 /// The kernel hooks of [`Real`], forwarded to the instances compiled in
 /// [`crate::nn`].
 macro_rules! hooks {
-    ($tanh:ident, $correlate:ident, $weight_gradient:ident, $finite:ident) => {
+    ($tanh:ident, $correlate:ident, $weight_gradient:ident, $finite:ident, $dense:ident, $dense_adjoint:ident) => {
+        #[inline]
+        fn dense_batch_kernel(n_in: usize, w: &[Self], b: &[Self], xs: &[Self], ys: &mut [Self]) {
+            nn::$dense(n_in, w, b, xs, ys)
+        }
+        #[inline]
+        fn dense_batch_adjoint_kernel(n_in: usize, w: &[Self], xs: &[Self], gys: &[Self], gxs: &mut [Self], gw: &mut [Self], gb: &mut [Self]) {
+            nn::$dense_adjoint(n_in, w, xs, gys, gxs, gw, gb)
+        }
         #[inline]
         fn all_finite_slice(v: &[Self]) -> bool {
             $finite(v)
@@ -124,7 +139,7 @@ impl Real for f64 {
     type V = f64x8;
     const LANES: usize = 8;
     const NAME: &'static str = "f64";
-    hooks!(tanh_slice_f64, correlate_f64, weight_gradient_f64, all_finite_f64);
+    hooks!(tanh_slice_f64, correlate_f64, weight_gradient_f64, all_finite_f64, dense_batch_f64, dense_batch_adjoint_f64);
     #[inline(always)]
     fn of(x: f64) -> Self {
         x
@@ -159,7 +174,7 @@ impl Real for f32 {
     type V = f32x16;
     const LANES: usize = 16;
     const NAME: &'static str = "f32";
-    hooks!(tanh_slice_f32, correlate_f32, weight_gradient_f32, all_finite_f32);
+    hooks!(tanh_slice_f32, correlate_f32, weight_gradient_f32, all_finite_f32, dense_batch_f32, dense_batch_adjoint_f32);
     #[inline(always)]
     fn of(x: f64) -> Self {
         x as f32

@@ -34,6 +34,17 @@ use super::Operator;
 /// function works too, but Enzyme then differentiates the allocator calls
 /// (it warns `freeing without malloc` for `vec![0.0; n]`).
 ///
+/// An ensemble of small systems, each sample with its own parameters (a
+/// control per sample), gains from running [`LANES`](crate::op::LANES)
+/// samples side by side: `differentiable!(Op => f, lanes = g)` with the lane
+/// form `fn g(&Op, x, p, y)` on `LANES` samples at once, value `c` of lane
+/// `l` at `c·LANES + l` (usually `f`'s body inside `for l in 0..LANES`).
+/// Enzyme differentiates `g` too, and [`Forward::forward_each`](crate::op::Forward::forward_each)
+/// and [`Vjp::vjp_each`](crate::op::Vjp::vjp_each) run it compiled for the
+/// CPU's widest vector instructions ([`crate::op::lanes`]). `g` must give
+/// each lane what `f` gives its sample (tested by
+/// `user_op::lane_forms_match_their_per_sample_operator`).
+///
 /// The crate that invokes this macro needs `#![feature(autodiff)]`, the
 /// `-Zautodiff=Enable` flag and a fat-LTO release build (docs/own-solver.md).
 ///
@@ -60,16 +71,53 @@ use super::Operator;
 #[macro_export]
 macro_rules! differentiable {
     ($ty:ty => $f:path) => {
-        $crate::differentiable!(@impl $ty => $f, $crate::op::always_smooth, plain, $crate::op::no_scratch);
+        $crate::differentiable!(@impl $ty => $f, $crate::op::always_smooth, plain, $crate::op::no_scratch, none);
+    };
+    ($ty:ty => $f:path, lanes = $g:path) => {
+        $crate::differentiable!(@impl $ty => $f, $crate::op::always_smooth, plain, $crate::op::no_scratch, ($g));
     };
     ($ty:ty => $f:path, smooth_radius = $radius:path) => {
-        $crate::differentiable!(@impl $ty => $f, $radius, plain, $crate::op::no_scratch);
+        $crate::differentiable!(@impl $ty => $f, $radius, plain, $crate::op::no_scratch, none);
     };
     ($ty:ty => $f:path, scratch = $len:path) => {
-        $crate::differentiable!(@impl $ty => $f, $crate::op::always_smooth, scratch, $len);
+        $crate::differentiable!(@impl $ty => $f, $crate::op::always_smooth, scratch, $len, none);
     };
     ($ty:ty => $f:path, smooth_radius = $radius:path, scratch = $len:path) => {
-        $crate::differentiable!(@impl $ty => $f, $radius, scratch, $len);
+        $crate::differentiable!(@impl $ty => $f, $radius, scratch, $len, none);
+    };
+    // The lane form's generated adjoint and batch methods, when there is one.
+    (@lanes_reverse $ty:ty, none) => {};
+    (@lanes_reverse $ty:ty, ($g:path)) => {
+        #[::std::autodiff::autodiff_reverse(diffsim_generated_lanes_vjp, Const, Duplicated, Duplicated, Duplicated)]
+        fn diffsim_lanes_reverse_wrapper(op: &$ty, x: &[f64], p: &[f64], y: &mut [f64]) {
+            $g(op, x, p, y)
+        }
+    };
+    (@lanes_forward $ty:ty, none) => {};
+    (@lanes_forward $ty:ty, ($g:path)) => {
+        #[track_caller]
+        fn forward_each(&self, xs: &[f64], ps: &[f64], ys: &mut [f64]) {
+            use $crate::op::Operator as _;
+            let sizes = [self.n_in(), self.n_params(), self.n_out()];
+            let count = $crate::op::batch_count($crate::op::Forward::name(self), "forward_each", &[(xs.len(), sizes[0]), (ps.len(), sizes[1]), (ys.len(), sizes[2])]);
+            $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Forward);
+            $crate::op::lanes::forward_each(sizes, count, xs, ps, ys, |x, p, y| $g(self, x, p, y));
+        }
+    };
+    (@lanes_vjp $ty:ty, none) => {};
+    (@lanes_vjp $ty:ty, ($g:path)) => {
+        #[inline(never)]
+        #[track_caller]
+        fn vjp_each(&self, xs: &[f64], ps: &[f64], dys: &mut [f64], dxs: &mut [f64], dps: &mut [f64]) {
+            use $crate::op::Operator as _;
+            let sizes = [self.n_in(), self.n_params(), self.n_out()];
+            let slices = [(xs.len(), sizes[0]), (ps.len(), sizes[1]), (dys.len(), sizes[2]), (dxs.len(), sizes[0]), (dps.len(), sizes[1])];
+            let count = $crate::op::batch_count($crate::op::Forward::name(self), "vjp_each", &slices);
+            $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
+            $crate::op::lanes::vjp_each(sizes, count, xs, ps, dys, dxs, dps, |x, dx, p, dp, y, dy| {
+                diffsim_generated_lanes_vjp(self, x, dx, p, dp, y, dy)
+            });
+        }
     };
     // The user's function, with or without its scratch argument.
     (@call plain $f:path, $op:ident, $x:ident, $p:ident, $y:ident, $s:ident) => {{
@@ -79,9 +127,11 @@ macro_rules! differentiable {
     (@call scratch $f:path, $op:ident, $x:ident, $p:ident, $y:ident, $s:ident) => {
         $f($op, $x, $p, $y, $s)
     };
-    (@impl $ty:ty => $f:path, $radius:path, $mode:ident, $len:path) => {
+    (@impl $ty:ty => $f:path, $radius:path, $mode:ident, $len:path, $lanes:tt) => {
         #[allow(clippy::too_many_arguments)]
         const _: () = {
+            $crate::differentiable!(@lanes_reverse $ty, $lanes);
+
             // Both wrappers take the scratch (empty for a plain function), so
             // that one generated signature serves both forms.
             #[::std::autodiff::autodiff_reverse(diffsim_generated_vjp, Const, Duplicated, Duplicated, Duplicated, Duplicated)]
@@ -105,6 +155,8 @@ macro_rules! differentiable {
                 fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
                     $radius(self, x, p, dx, dp)
                 }
+
+                $crate::differentiable!(@lanes_forward $ty, $lanes);
             }
 
             impl $crate::op::Vjp for $ty {
@@ -125,6 +177,8 @@ macro_rules! differentiable {
                         diffsim_generated_vjp(self, x, dx, p, dp, y, dy, s, ds);
                     });
                 }
+
+                $crate::differentiable!(@lanes_vjp $ty, $lanes);
             }
 
             impl $crate::op::Jvp for $ty {

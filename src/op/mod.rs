@@ -42,11 +42,41 @@ macro_rules! sizes_of_inner {
     };
 }
 
+/// Calls `$body(args)` compiled for the widest of AVX-512F, AVX2 and
+/// baseline x86-64 the CPU supports (generic version of
+/// `diffsim_solvers::simd_dispatch!`; the closures passed in are inlined into
+/// each variant, generated derivatives included).
+macro_rules! dispatch_generic {
+    ($body:ident, [$($g:ident: $bound:path),*], $($arg:ident: $ty:ty),*) => {{
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx512f")]
+            fn wide<$($g: $bound),*>($($arg: $ty),*) {
+                $body($($arg),*)
+            }
+            #[target_feature(enable = "avx2")]
+            fn medium<$($g: $bound),*>($($arg: $ty),*) {
+                $body($($arg),*)
+            }
+            if std::is_x86_feature_detected!("avx512f") {
+                // SAFETY: the CPU supports AVX-512F, checked just above.
+                return unsafe { wide($($arg),*) };
+            }
+            if std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2, checked just above.
+                return unsafe { medium($($arg),*) };
+            }
+        }
+        $body($($arg),*)
+    }};
+}
+
 mod chain;
 pub mod count;
 mod enzyme;
 mod fd;
 mod inverse;
+pub mod lanes;
 mod mean;
 mod part;
 mod per_thread;
@@ -56,6 +86,7 @@ pub mod stencil;
 pub use chain::{Chain, Effect};
 pub use fd::FiniteDiff;
 pub use inverse::{GaussNewton, LocalInverse, Refined};
+pub use lanes::LANES;
 pub use mean::MeanMatched;
 pub use part::{AddParams, Part};
 pub use per_thread::PerThread;
@@ -146,6 +177,39 @@ pub trait Forward<R: Real = f64>: Operator {
             self.forward(x, p, y);
         }
     }
+
+    /// `f` on a batch whose samples each have their own parameters: sample
+    /// `s` reads `xs[s·n_in..]` and `ps[s·n_params..]` and writes
+    /// `ys[s·n_out..]` (overwritten), the output [`Forward::forward`] gives
+    /// it. An ensemble of small systems (a control per sample, as in the
+    /// HIG problems) is the use: the default calls `forward` per sample;
+    /// an operator declared with `differentiable!(Op => f, lanes = g)`
+    /// runs [`LANES`] samples side by side in vector registers.
+    ///
+    /// # Panics
+    /// If the slices do not hold the same number of whole samples.
+    fn forward_each(&self, xs: &[R], ps: &[R], ys: &mut [R]) {
+        let (n_in, n_p, n_out) = (self.n_in(), self.n_params(), self.n_out());
+        let count = batch_count(self.name(), "forward_each", &[(xs.len(), n_in), (ps.len(), n_p), (ys.len(), n_out)]);
+        for s in 0..count {
+            self.forward(&xs[s * n_in..(s + 1) * n_in], &ps[s * n_p..(s + 1) * n_p], &mut ys[s * n_out..(s + 1) * n_out]);
+        }
+    }
+}
+
+/// The number of samples in a batch's slices, each `(len, per_sample)`;
+/// panics naming the operator when they disagree or a slice holds a
+/// partial sample.
+#[doc(hidden)]
+#[track_caller]
+pub fn batch_count(name: OpName, method: &str, slices: &[(usize, usize)]) -> usize {
+    let count = slices.iter().find(|(_, n)| *n > 0).map_or(0, |(len, n)| len / n);
+    for (k, &(len, n)) in slices.iter().enumerate() {
+        if len != count * n {
+            panic!("{name}: {method}: slice {k} holds {len} values, {count} samples of {n} expected");
+        }
+    }
+    count
 }
 
 /// Text in a fixed buffer of `N` bytes (at most 255), cut on a character
@@ -307,6 +371,29 @@ pub trait Vjp<R: Real = f64>: Forward<R> {
         );
         for ((x, dy), dx) in xs.chunks_exact(n_in.max(1)).zip(dys.chunks_exact_mut(n_out.max(1))).zip(dxs.chunks_exact_mut(n_in.max(1))) {
             self.vjp(x, p, dy, dx, dp);
+        }
+    }
+
+    /// [`Vjp::vjp`] over a batch laid out as in [`Forward::forward_each`],
+    /// every sample with its own parameters:
+    ///
+    /// ```text
+    /// dxs_s += J_x(xs_s, ps_s)ᵀ·dys_s      dps_s += J_p(xs_s, ps_s)ᵀ·dys_s
+    /// ```
+    ///
+    /// `dys` is consumed. The default calls `vjp` per sample; an operator
+    /// declared with `lanes = g` differentiates its lane form `g` once and
+    /// runs [`LANES`] samples per call of the generated adjoint.
+    ///
+    /// # Panics
+    /// If the slices do not hold the same number of whole samples.
+    fn vjp_each(&self, xs: &[R], ps: &[R], dys: &mut [R], dxs: &mut [R], dps: &mut [R]) {
+        let (n_in, n_p, n_out) = (self.n_in(), self.n_params(), self.n_out());
+        let sizes = [(xs.len(), n_in), (ps.len(), n_p), (dys.len(), n_out), (dxs.len(), n_in), (dps.len(), n_p)];
+        let count = batch_count(self.name(), "vjp_each", &sizes);
+        for s in 0..count {
+            let (x, p) = (&xs[s * n_in..(s + 1) * n_in], &ps[s * n_p..(s + 1) * n_p]);
+            self.vjp(x, p, &mut dys[s * n_out..(s + 1) * n_out], &mut dxs[s * n_in..(s + 1) * n_in], &mut dps[s * n_p..(s + 1) * n_p]);
         }
     }
 }

@@ -251,35 +251,6 @@ pub fn enter_cell<O: super::Operator + ?Sized>(op: &O, name: &'static str, metho
     }
 }
 
-/// Calls `$body(args)` compiled for the widest of AVX-512F, AVX2 and
-/// baseline x86-64 the CPU supports (generic version of
-/// `diffsim_solvers::simd_dispatch!`; the closures passed in are inlined into
-/// each variant, generated derivatives included).
-macro_rules! dispatch_generic {
-    ($body:ident, [$($g:ident: $bound:path),*], $($arg:ident: $ty:ty),*) => {{
-        #[cfg(target_arch = "x86_64")]
-        {
-            #[target_feature(enable = "avx512f")]
-            fn wide<$($g: $bound),*>($($arg: $ty),*) {
-                $body($($arg),*)
-            }
-            #[target_feature(enable = "avx2")]
-            fn medium<$($g: $bound),*>($($arg: $ty),*) {
-                $body($($arg),*)
-            }
-            if std::is_x86_feature_detected!("avx512f") {
-                // SAFETY: the CPU supports AVX-512F, checked just above.
-                return unsafe { wide($($arg),*) };
-            }
-            if std::is_x86_feature_detected!("avx2") {
-                // SAFETY: the CPU supports AVX2, checked just above.
-                return unsafe { medium($($arg),*) };
-            }
-        }
-        $body($($arg),*)
-    }};
-}
-
 /// The map of a forward step.
 #[doc(hidden)]
 pub trait MapForward<R>: FnMut(&[R], &[R], &[R], &mut [R]) {}

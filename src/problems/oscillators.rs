@@ -20,7 +20,7 @@
 
 use nalgebra::Vector4;
 
-use crate::op::Operator;
+use crate::op::{LANES, Operator};
 
 /// The oscillator rollout as one operator: `(x₀, u) ↦ s_T`.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -88,4 +88,27 @@ pub fn oscillate(op: &Oscillators, x: &[f64], p: &[f64], y: &mut [f64]) {
     y[..4].copy_from_slice(s.as_slice());
 }
 
-crate::differentiable!(Oscillators => oscillate);
+/// [`oscillate`] on [`LANES`] samples side by side (value `c` of sample `l`
+/// at `c·LANES + l`, control `k` at `k·LANES + l`): the same RK4 step per
+/// lane, so each lane gets its sample's [`oscillate`] bit for bit; batches
+/// of samples run through it ([`Forward::forward_each`](crate::op::Forward::forward_each),
+/// [`Vjp::vjp_each`](crate::op::Vjp::vjp_each)).
+// Slices, not `as_chunks`' arrays, inside the differentiated function.
+#[allow(clippy::chunks_exact_to_as_chunks)]
+pub fn oscillate_lanes(op: &Oscillators, x: &[f64], p: &[f64], y: &mut [f64]) {
+    // The state lives in `y`: Enzyme cannot type the zero fill or the
+    // copies of a local array of lanes (`Cannot deduce type of memset /
+    // copy`).
+    y[..4 * LANES].copy_from_slice(&x[..4 * LANES]);
+    for u in p[..op.steps * LANES].chunks_exact(LANES) {
+        for (l, &u) in u.iter().enumerate() {
+            let s = Vector4::new(y[l], y[LANES + l], y[2 * LANES + l], y[3 * LANES + l]);
+            let next = rk4(op, &s, u);
+            for c in 0..4 {
+                y[c * LANES + l] = next[c];
+            }
+        }
+    }
+}
+
+crate::differentiable!(Oscillators => oscillate, lanes = oscillate_lanes);

@@ -93,6 +93,11 @@ pub struct ControlSample {
     pub target: Vec<f64>,
 }
 
+/// Samples per parallel task of the physics in [`loss_and_gradient_over`]:
+/// four groups of [`crate::op::LANES`], few enough that 128 samples keep
+/// two cores busy.
+const PHYSICS_CHUNK: usize = 32;
+
 /// `(L, ∂L/∂θ)` over a batch by one VJP per sample (for gradient-based
 /// optimizers such as Adam), reduced in sample order.
 pub fn loss_and_gradient<P: Vjp + Sync, N: Vjp + Sync>(physics: &P, net: &N, theta: &[f64], batch: &[ControlSample]) -> (f64, Vec<f64>) {
@@ -123,21 +128,30 @@ pub fn loss_and_gradient_over<P: Vjp + Sync, N: Vjp + Sync>(
     }
     let mut us = vec![0.0; mine.len() * n_u];
     net.forward_batch(&inputs, theta, &mut us);
-    // Per sample, in parallel: the physics, the loss and `∂L/∂u` (each
-    // thread keeps its buffers across its samples).
+    // In parallel over chunks of samples: the physics of the chunk at once
+    // (`forward_each`, `vjp_each`: an operator with a lane form runs
+    // several samples side by side), each sample's loss and `∂L/∂u`.
+    let n_x = physics.n_in();
+    let mut x0s = Vec::with_capacity(mine.len() * n_x);
+    for s in mine {
+        x0s.extend_from_slice(&s.x0);
+    }
     let mut losses = vec![0.0; mine.len()];
     let mut dus = vec![0.0; mine.len() * n_u];
-    let buffers = || (vec![0.0; n_y], vec![0.0; n_y], vec![0.0; physics.n_in()]);
-    losses.par_iter_mut().zip(dus.par_chunks_mut(n_u)).zip(mine.par_iter()).zip(us.par_chunks(n_u)).for_each_init(
-        buffers,
-        |(y, seed, dx), (((loss, du), s), u)| {
-            physics.forward(&s.x0, u, y);
-            *loss = y.iter().zip(&s.target).map(|(a, t)| (a - t) * (a - t)).sum::<f64>() / b;
-            for ((g, a), t) in seed.iter_mut().zip(y.iter()).zip(&s.target) {
-                *g = 2.0 * (a - t) / b;
+    let chunks = losses.par_chunks_mut(PHYSICS_CHUNK).zip(dus.par_chunks_mut(PHYSICS_CHUNK * n_u));
+    chunks.zip(mine.par_chunks(PHYSICS_CHUNK)).zip(x0s.par_chunks(PHYSICS_CHUNK * n_x)).zip(us.par_chunks(PHYSICS_CHUNK * n_u)).for_each(
+        |((((loss, du), samples), x0), u)| {
+            let mut y = vec![0.0; samples.len() * n_y];
+            physics.forward_each(x0, u, &mut y);
+            // `y` becomes the seed `∂L/∂y` in place.
+            for ((l, s), y) in loss.iter_mut().zip(samples).zip(y.chunks_exact_mut(n_y.max(1))) {
+                *l = y.iter().zip(&s.target).map(|(a, t)| (a - t) * (a - t)).sum::<f64>() / b;
+                for (a, t) in y.iter_mut().zip(&s.target) {
+                    *a = 2.0 * (*a - t) / b;
+                }
             }
-            dx.fill(0.0);
-            physics.vjp(&s.x0, u, seed, dx, du);
+            let mut dx = vec![0.0; x0.len()];
+            physics.vjp_each(x0, u, &mut y, &mut dx, du);
         },
     );
     if world.size() > 1 {

@@ -15,6 +15,9 @@
 //! - [`heat`] and [`smoke`]: scale-invariant physics (SIP) updates against
 //!   Adam (Holl et al. 2022).
 //! - [`cavity`]: the lid-driven cavity against Ghia, Ghia & Shin (1982).
+//! - [`cylinder`]: the flow around a cylinder against Schäfer & Turek (1996).
+//! - [`drag_shape`]: the minimum-drag body at fixed area, by L-BFGS through
+//!   the steady solver's adjoint.
 //! - [`shape_net`]: a network from the Reynolds number to the minimum-drag
 //!   shape, trained through the steady solver.
 //! - [`p3`]: benchmark P3, one training iteration (docs/benchmarks.md).
@@ -26,7 +29,10 @@ pub mod accuracy;
 pub mod burgers;
 pub mod cavity;
 pub mod config;
+pub mod cylinder;
+pub mod drag_shape;
 pub mod heat;
+pub mod measure;
 pub mod oscillators;
 pub mod p3;
 pub mod shape_net;
@@ -68,6 +74,9 @@ pub enum StudyError {
         /// The figure and what is wrong with it.
         reason: String,
     },
+    /// A rollout or its gradient failed.
+    #[error(transparent)]
+    Rollout(#[from] diffsim::rollout::RolloutError),
     /// An evaluation rollout blew up.
     #[error("evaluation: {0}")]
     Eval(#[from] sol::EvalError),

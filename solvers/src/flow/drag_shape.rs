@@ -128,6 +128,24 @@ pub struct DragShapeParams {
 #[deprecated(note = "renamed DragShapeParams")]
 pub type DragShapeOptions = DragShapeParams;
 
+impl Default for DragShapeParams {
+    /// The channel of case 2D-1 (Re 20) at 20 cells per diameter, modes
+    /// 2..=8, at most 60 L-BFGS iterations until the projected gradient
+    /// shrank 100×, then at most 20 of gradient sampling (`diffsim
+    /// experiment drag-shape`'s defaults).
+    fn default() -> Self {
+        DragShapeParams {
+            stream: Stream::Channel,
+            cells_per_d: 20,
+            modes: 8,
+            u_max: 0.3,
+            max_iterations: 60,
+            gradient_reduction: 100.0,
+            sampling_iterations: 20,
+        }
+    }
+}
+
 impl DragShapeParams {
     /// The Reynolds number `Ū·D/ν`, `Ū = 2·u_max/3`.
     pub fn reynolds(&self) -> f64 {

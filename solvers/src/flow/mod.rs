@@ -72,7 +72,8 @@ pub struct Flow2d {
 
 /// The interpolation of the advection term `∇·(u⊗u)` on the MAC grid (its
 /// flux differences are second order either way).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Convection {
     /// Two-point averages of the transported and transporting velocities:
     /// the classic second-order central scheme.

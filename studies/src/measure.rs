@@ -1,4 +1,5 @@
-//! Wall-clock and memory measurement for the benchmark commands.
+//! Wall-clock and memory measurement for the studies and the benchmark
+//! commands.
 
 use std::time::Instant;
 
