@@ -197,10 +197,28 @@ fn nn_layers(c: &mut Criterion) {
     g.finish();
 }
 
+/// `diffsim bench hig`'s Adam update on a published HIG problem: its
+/// data, network, batch and learning rate.
+fn adam_update(g: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>, label: &str, cfg: diffsim_studies::oscillators::OscParams) {
+    use diffsim::train::hig::loss_and_gradient;
+    let (data, _) = diffsim_studies::oscillators::datasets(&cfg);
+    let net = cfg.network();
+    let mut t = cfg.initial_params(&net);
+    let mut adam = diffsim::train::Optimizer::adam(cfg.adam_lr);
+    let batch = &data[..cfg.adam_batch];
+    g.bench_function(BenchmarkId::new("adam_update", label), |b| {
+        b.iter(|| {
+            let (_, grad) = loss_and_gradient(&cfg.problem, &net, &t, batch);
+            adam.step(&mut t, &grad);
+        })
+    });
+}
+
 /// The gradient of an Adam update on the nonlinear HIG problem (batch 512,
 /// the MLP 4→20→20→20→96 with ReLU, 96 RK4 steps), whole and in its
 /// parts: the network's batched forward and VJP, and the physics' forward
-/// and Enzyme VJP for every sample on one thread.
+/// and Enzyme VJP for every sample on one thread, sample by sample and
+/// through the lane form; and the whole Adam update on both problems.
 fn hig_adam(c: &mut Criterion) {
     use diffsim::nn::{Activation, Init, presets};
     use diffsim::op::{Forward, Operator};
@@ -219,6 +237,11 @@ fn hig_adam(c: &mut Criterion) {
         .collect();
     let inputs: Vec<f64> = batch.iter().flat_map(|s| s.target.iter().copied()).collect();
     let mut us = vec![0.0; 512 * 96];
+    // The whole Adam update of `diffsim bench hig` on both published
+    // problems (one call each: an array of tuples iterated by value aborts
+    // Enzyme's type analysis in this flagged crate).
+    adam_update(&mut g, "linear", diffsim_studies::oscillators::OscParams::linear(1.0));
+    adam_update(&mut g, "nonlinear", diffsim_studies::oscillators::OscParams::nonlinear(1.0));
     g.bench_function("gradient_512", |b| b.iter(|| loss_and_gradient(&physics, &net, &theta, std::hint::black_box(&batch))));
     g.bench_function("net_forward_batch_512", |b| b.iter(|| net.forward_batch(&inputs, &theta, std::hint::black_box(&mut us))));
     let (mut dus, mut dxs, mut dtheta) = (vec![0.01; us.len()], vec![0.0; inputs.len()], vec![0.0; theta.len()]);

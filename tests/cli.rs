@@ -78,6 +78,41 @@ fn enzyme_log_guard_flags_enzyme_errors_only() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// `cargo-enzyme run` and `test` judge the compiler's messages only: a
+/// program that prints what looks like an Enzyme error (as a user's
+/// gradient check may) runs, exits 0, and its output and arguments reach it.
+#[test]
+fn the_guard_does_not_judge_what_a_program_prints() {
+    let dir = std::env::temp_dir().join(format!("diffsim-guard-run-{}", std::process::id()));
+    std::fs::create_dir_all(dir.join("src")).unwrap();
+    let manifest = concat!(env!("CARGO_MANIFEST_DIR"), "/rust-toolchain.toml");
+    std::fs::copy(manifest, dir.join("rust-toolchain.toml")).unwrap();
+    std::fs::write(dir.join("Cargo.toml"), "[package]\nname = \"prints-errors\"\nversion = \"0.1.0\"\nedition = \"2024\"\n").unwrap();
+    let main = r#"fn main() {
+    let line = format!("{}: <unknown>:0:0: in function f: {}: a gradient check failed", "error", "Enzyme");
+    println!("{line}");
+    eprintln!("{line}");
+    println!("args: {:?}", std::env::args().skip(1).collect::<Vec<_>>());
+}
+#[test]
+fn prints() {
+    println!("{}: in function g: {}: fake", "error", "Enzyme");
+}
+"#;
+    std::fs::write(dir.join("src/main.rs"), main).unwrap();
+    let guard = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/cargo-enzyme");
+    let run = |args: &[&str]| Command::new("bash").arg(guard).args(args).current_dir(&dir).env_remove("CARGO_TARGET_DIR").output().unwrap();
+    let out = run(&["run", "--release", "--", "--flag", "x"]);
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(stdout.contains("a gradient check failed") && stdout.contains(r#"args: ["--flag", "x"]"#), "{stdout}");
+    assert!(!stderr.contains("enzyme guard"), "{stderr}");
+    let out = run(&["test", "--release", "--", "--nocapture"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("Enzyme: fake"));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 #[test]
 fn demo_plume_writes_a_png() {
     let dir = std::env::temp_dir().join(format!("diffsim-plume-{}", std::process::id()));

@@ -51,7 +51,27 @@ pub fn dense_adjoint<R: Real>(n_in: usize, w: &[R], x: &[R], gy: &[R], gx: &mut 
 pub fn dense_batch<R: Real>(n_in: usize, w: &[R], b: &[R], xs: &[R], ys: &mut [R]) {
     let n_out = b.len();
     assert_eq!(xs.len() / n_in.max(1), ys.len() / n_out.max(1), "dense_batch: rows of xs and ys differ");
-    R::dense_batch_kernel(n_in, w, b, xs, ys);
+    let batch = ys.len() / n_out.max(1);
+    if split_pays(batch, n_in, n_out) {
+        // Two halves of the batch on two threads: each row as one thread
+        // would compute it.
+        let mid = batch / 2;
+        let ((xa, xb), (ya, yb)) = (xs.split_at(mid * n_in), ys.split_at_mut(mid * n_out));
+        rayon::join(|| R::dense_batch_kernel(n_in, w, b, xa, ya), || R::dense_batch_kernel(n_in, w, b, xb, yb));
+    } else {
+        R::dense_batch_kernel(n_in, w, b, xs, ys);
+    }
+}
+
+/// Batches of a dense layer with at least this many multiply-adds
+/// ([`dense_batch`], [`dense_batch_adjoint`]) split over two of rayon's
+/// threads: waking a parked thread costs a few microseconds, this work
+/// about ten.
+pub const DENSE_PAR_MIN_WORK: usize = 1 << 15;
+
+/// Whether a dense layer's batch pass splits over two threads.
+fn split_pays(batch: usize, n_in: usize, n_out: usize) -> bool {
+    batch >= 2 && batch.saturating_mul(n_in).saturating_mul(n_out) >= DENSE_PAR_MIN_WORK && rayon::current_num_threads() > 1
 }
 
 /// [`dense_batch`]'s loop, compiled once per vector width ([`Real`]'s hook).
@@ -79,7 +99,57 @@ pub fn dense_batch_adjoint<R: Real>(n_in: usize, w: &[R], xs: &[R], gys: &[R], g
     let n_out = gb.len();
     let batch = gys.len() / n_out.max(1);
     assert!(xs.len() == batch * n_in && gxs.len() == batch * n_in && gw.len() == n_out * n_in, "dense_batch_adjoint: sizes do not match");
-    R::dense_batch_adjoint_kernel(n_in, w, xs, gys, gxs, gw, gb);
+    if !split_pays(batch, n_in, n_out) || n_out < 2 {
+        R::dense_batch_adjoint_kernel(n_in, w, xs, gys, gxs, gw, gb);
+        return;
+    }
+    // Two threads, each with half the samples' input gradients and half the
+    // weight rows' gradients: every element is added to in the order of
+    // the fused pass (`gx_s` over the rows, `gw_o` and `gb_o` over the
+    // samples), so the result is the same bit for bit.
+    let (mid, half) = (batch / 2, n_out / 2);
+    let (gxa, gxb) = gxs.split_at_mut(mid * n_in);
+    let ((gwa, gwb), (gba, gbb)) = (gw.split_at_mut(half * n_in), gb.split_at_mut(half));
+    rayon::join(
+        || {
+            R::dense_input_gradient_kernel(n_in, w, &gys[..mid * n_out], gxa);
+            R::dense_weight_gradient_kernel(n_in, n_out, 0, xs, gys, gwa, gba);
+        },
+        || {
+            R::dense_input_gradient_kernel(n_in, w, &gys[mid * n_out..], gxb);
+            R::dense_weight_gradient_kernel(n_in, n_out, half, xs, gys, gwb, gbb);
+        },
+    );
+}
+
+/// `gxs_s += Wᵀ·gy_s` for the samples of `gys` (`n_out = w.len() / n_in`
+/// values each), the rows taken in order.
+#[inline(always)]
+fn dense_input_gradient_body<R: Real>(n_in: usize, w: &[R], gys: &[R], gxs: &mut [R]) {
+    let n_out = w.len() / n_in.max(1);
+    for (gy, gx) in gys.chunks_exact(n_out.max(1)).zip(gxs.chunks_exact_mut(n_in.max(1))) {
+        for (o, &g) in gy.iter().enumerate() {
+            for (gxi, &wi) in gx.iter_mut().zip(&w[o * n_in..(o + 1) * n_in]) {
+                *gxi += g * wi;
+            }
+        }
+    }
+}
+
+/// `gw_o += Σ_s gy_s[o]·x_s` and `gb_o += Σ_s gy_s[o]` for the rows `first..`
+/// that `gw` (`n_in` values a row) and `gb` hold, the samples taken in order.
+#[inline(always)]
+fn dense_weight_gradient_body<R: Real>(n_in: usize, n_out: usize, first: usize, xs: &[R], gys: &[R], gw: &mut [R], gb: &mut [R]) {
+    for (k, (grow, gbo)) in gw.chunks_exact_mut(n_in.max(1)).zip(gb.iter_mut()).enumerate() {
+        let o = first + k;
+        for (x, gy) in xs.chunks_exact(n_in.max(1)).zip(gys.chunks_exact(n_out.max(1))) {
+            let g = gy[o];
+            *gbo += g;
+            for (gwi, &xi) in grow.iter_mut().zip(x) {
+                *gwi += g * xi;
+            }
+        }
+    }
 }
 
 /// [`dense_batch_adjoint`]'s loops, compiled once per vector width
@@ -336,7 +406,7 @@ fn pad<R: Real>(s: &Conv1d, c: usize, x: &[R]) -> Vec<R> {
 /// The kernels [`Real`] dispatches to, compiled here once per type (with
 /// run-time choice of the vector instructions).
 macro_rules! kernels_for {
-    ($t:ty, $correlate:ident, $weight_gradient:ident, $tanh:ident, $dense:ident, $dense_adjoint:ident) => {
+    ($t:ty, $correlate:ident, $weight_gradient:ident, $tanh:ident, $dense:ident, $dense_adjoint:ident, $dense_gx:ident, $dense_gw:ident) => {
         crate::simd_dispatch! {
             #[allow(clippy::too_many_arguments)]
             pub(crate) fn $correlate(n: usize, k: usize, nq: usize, nr: usize, w: &[$t], taps: Taps, bias: Option<&[$t]>, inp: &[$t], out: &mut [$t], add: bool) => correlate_body::<$t>
@@ -351,13 +421,20 @@ macro_rules! kernels_for {
             pub(crate) fn $dense(n_in: usize, w: &[$t], b: &[$t], xs: &[$t], ys: &mut [$t]) => dense_batch_body::<$t>
         }
         crate::simd_dispatch! {
+            pub(crate) fn $dense_gx(n_in: usize, w: &[$t], gys: &[$t], gxs: &mut [$t]) => dense_input_gradient_body::<$t>
+        }
+        crate::simd_dispatch! {
+            #[allow(clippy::too_many_arguments)]
+            pub(crate) fn $dense_gw(n_in: usize, n_out: usize, first: usize, xs: &[$t], gys: &[$t], gw: &mut [$t], gb: &mut [$t]) => dense_weight_gradient_body::<$t>
+        }
+        crate::simd_dispatch! {
             #[allow(clippy::too_many_arguments)]
             pub(crate) fn $dense_adjoint(n_in: usize, w: &[$t], xs: &[$t], gys: &[$t], gxs: &mut [$t], gw: &mut [$t], gb: &mut [$t]) => dense_batch_adjoint_body::<$t>
         }
     };
 }
-kernels_for!(f64, correlate_f64, weight_gradient_f64, tanh_slice_f64, dense_batch_f64, dense_batch_adjoint_f64);
-kernels_for!(f32, correlate_f32, weight_gradient_f32, tanh_slice_f32, dense_batch_f32, dense_batch_adjoint_f32);
+kernels_for!(f64, correlate_f64, weight_gradient_f64, tanh_slice_f64, dense_batch_f64, dense_batch_adjoint_f64, dense_gx_f64, dense_gw_f64);
+kernels_for!(f32, correlate_f32, weight_gradient_f32, tanh_slice_f32, dense_batch_f32, dense_batch_adjoint_f32, dense_gx_f32, dense_gw_f32);
 
 /// `out[q][i] (= or +=) bias[q] + Σ_r Σ_t W(q, r, t)·inp[r][i + t]` for
 /// `q < nq`, `r < nr`, `t < k`, `i < n`, with input rows `taps.inp` and
@@ -1111,13 +1188,18 @@ mod tests {
     #[test]
     fn batched_dense_equals_per_sample_passes() {
         let (n_in, n_out) = (5, 7);
-        for batch in [1, 3, DENSE_BLOCK, DENSE_BLOCK + 1, 3 * DENSE_BLOCK + 2] {
+        // The last two split over two threads (at least DENSE_PAR_MIN_WORK
+        // multiply-adds), in a pool of two whatever the machine.
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+        let big = DENSE_PAR_MIN_WORK / (n_in * n_out) + 1;
+        for batch in [1, 3, DENSE_BLOCK, DENSE_BLOCK + 1, 3 * DENSE_BLOCK + 2, big, big + 1] {
+            assert_eq!(pool.install(|| split_pays(batch, n_in, n_out)), batch >= big);
             let (w, b) = (values(n_in * n_out, 1), values(n_out, 2));
             let (xs, gys) = (values(batch * n_in, 3), values(batch * n_out, 4));
             let mut ys = vec![0.0; batch * n_out];
-            dense_batch(n_in, &w, &b, &xs, &mut ys);
+            pool.install(|| dense_batch(n_in, &w, &b, &xs, &mut ys));
             let (mut gxs, mut gw, mut gb) = (vec![0.0; batch * n_in], vec![0.0; n_in * n_out], vec![0.0; n_out]);
-            dense_batch_adjoint(n_in, &w, &xs, &gys, &mut gxs, &mut gw, &mut gb);
+            pool.install(|| dense_batch_adjoint(n_in, &w, &xs, &gys, &mut gxs, &mut gw, &mut gb));
             let (mut sw, mut sb) = (vec![0.0; n_in * n_out], vec![0.0; n_out]);
             for s in 0..batch {
                 let (x, gy) = (&xs[s * n_in..(s + 1) * n_in], &gys[s * n_out..(s + 1) * n_out]);

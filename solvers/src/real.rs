@@ -63,6 +63,13 @@ pub trait Real:
     #[doc(hidden)]
     #[allow(clippy::too_many_arguments)]
     fn dense_batch_adjoint_kernel(n_in: usize, w: &[Self], xs: &[Self], gys: &[Self], gxs: &mut [Self], gw: &mut [Self], gb: &mut [Self]);
+    /// The input gradients of [`crate::nn::dense_batch_adjoint`] (its split form).
+    #[doc(hidden)]
+    fn dense_input_gradient_kernel(n_in: usize, w: &[Self], gys: &[Self], gxs: &mut [Self]);
+    /// The weight gradients of [`crate::nn::dense_batch_adjoint`] (its split form).
+    #[doc(hidden)]
+    #[allow(clippy::too_many_arguments)]
+    fn dense_weight_gradient_kernel(n_in: usize, n_out: usize, first: usize, xs: &[Self], gys: &[Self], gw: &mut [Self], gb: &mut [Self]);
 }
 
 /// Whether every value of `v` is finite (no NaN, no infinity), in one
@@ -107,7 +114,15 @@ crate::simd_dispatch! {
 /// The kernel hooks of [`Real`], forwarded to the instances compiled in
 /// [`crate::nn`].
 macro_rules! hooks {
-    ($tanh:ident, $correlate:ident, $weight_gradient:ident, $finite:ident, $dense:ident, $dense_adjoint:ident) => {
+    ($tanh:ident, $correlate:ident, $weight_gradient:ident, $finite:ident, $dense:ident, $dense_adjoint:ident, $dense_gx:ident, $dense_gw:ident) => {
+        #[inline]
+        fn dense_input_gradient_kernel(n_in: usize, w: &[Self], gys: &[Self], gxs: &mut [Self]) {
+            nn::$dense_gx(n_in, w, gys, gxs)
+        }
+        #[inline]
+        fn dense_weight_gradient_kernel(n_in: usize, n_out: usize, first: usize, xs: &[Self], gys: &[Self], gw: &mut [Self], gb: &mut [Self]) {
+            nn::$dense_gw(n_in, n_out, first, xs, gys, gw, gb)
+        }
         #[inline]
         fn dense_batch_kernel(n_in: usize, w: &[Self], b: &[Self], xs: &[Self], ys: &mut [Self]) {
             nn::$dense(n_in, w, b, xs, ys)
@@ -139,7 +154,7 @@ impl Real for f64 {
     type V = f64x8;
     const LANES: usize = 8;
     const NAME: &'static str = "f64";
-    hooks!(tanh_slice_f64, correlate_f64, weight_gradient_f64, all_finite_f64, dense_batch_f64, dense_batch_adjoint_f64);
+    hooks!(tanh_slice_f64, correlate_f64, weight_gradient_f64, all_finite_f64, dense_batch_f64, dense_batch_adjoint_f64, dense_gx_f64, dense_gw_f64);
     #[inline(always)]
     fn of(x: f64) -> Self {
         x
@@ -174,7 +189,7 @@ impl Real for f32 {
     type V = f32x16;
     const LANES: usize = 16;
     const NAME: &'static str = "f32";
-    hooks!(tanh_slice_f32, correlate_f32, weight_gradient_f32, all_finite_f32, dense_batch_f32, dense_batch_adjoint_f32);
+    hooks!(tanh_slice_f32, correlate_f32, weight_gradient_f32, all_finite_f32, dense_batch_f32, dense_batch_adjoint_f32, dense_gx_f32, dense_gw_f32);
     #[inline(always)]
     fn of(x: f64) -> Self {
         x as f32

@@ -94,9 +94,14 @@ pub struct ControlSample {
 }
 
 /// Samples per parallel task of the physics in [`loss_and_gradient_over`]:
-/// four groups of [`crate::op::LANES`], few enough that 128 samples keep
-/// two cores busy.
-const PHYSICS_CHUNK: usize = 32;
+/// the batch split evenly over rayon's threads, in whole groups of
+/// [`crate::op::LANES`] (each task wakes a thread: on the linear problem,
+/// 0.7 ms an update, a third of the time went to waking and parking
+/// threads when the batch was cut into 32-sample tasks).
+fn physics_chunk(samples: usize) -> usize {
+    let per_thread = samples.div_ceil(rayon::current_num_threads().max(1));
+    per_thread.div_ceil(crate::op::LANES).max(1) * crate::op::LANES
+}
 
 /// `(L, ∂L/∂θ)` over a batch by one VJP per sample (for gradient-based
 /// optimizers such as Adam), reduced in sample order.
@@ -138,22 +143,21 @@ pub fn loss_and_gradient_over<P: Vjp + Sync, N: Vjp + Sync>(
     }
     let mut losses = vec![0.0; mine.len()];
     let mut dus = vec![0.0; mine.len() * n_u];
-    let chunks = losses.par_chunks_mut(PHYSICS_CHUNK).zip(dus.par_chunks_mut(PHYSICS_CHUNK * n_u));
-    chunks.zip(mine.par_chunks(PHYSICS_CHUNK)).zip(x0s.par_chunks(PHYSICS_CHUNK * n_x)).zip(us.par_chunks(PHYSICS_CHUNK * n_u)).for_each(
-        |((((loss, du), samples), x0), u)| {
-            let mut y = vec![0.0; samples.len() * n_y];
-            physics.forward_each(x0, u, &mut y);
-            // `y` becomes the seed `∂L/∂y` in place.
-            for ((l, s), y) in loss.iter_mut().zip(samples).zip(y.chunks_exact_mut(n_y.max(1))) {
-                *l = y.iter().zip(&s.target).map(|(a, t)| (a - t) * (a - t)).sum::<f64>() / b;
-                for (a, t) in y.iter_mut().zip(&s.target) {
-                    *a = 2.0 * (*a - t) / b;
-                }
+    let chunk = physics_chunk(mine.len());
+    let chunks = losses.par_chunks_mut(chunk).zip(dus.par_chunks_mut(chunk * n_u));
+    chunks.zip(mine.par_chunks(chunk)).zip(x0s.par_chunks(chunk * n_x)).zip(us.par_chunks(chunk * n_u)).for_each(|((((loss, du), samples), x0), u)| {
+        let mut y = vec![0.0; samples.len() * n_y];
+        physics.forward_each(x0, u, &mut y);
+        // `y` becomes the seed `∂L/∂y` in place.
+        for ((l, s), y) in loss.iter_mut().zip(samples).zip(y.chunks_exact_mut(n_y.max(1))) {
+            *l = y.iter().zip(&s.target).map(|(a, t)| (a - t) * (a - t)).sum::<f64>() / b;
+            for (a, t) in y.iter_mut().zip(&s.target) {
+                *a = 2.0 * (*a - t) / b;
             }
-            let mut dx = vec![0.0; x0.len()];
-            physics.vjp_each(x0, u, &mut y, &mut dx, du);
-        },
-    );
+        }
+        let mut dx = vec![0.0; x0.len()];
+        physics.vjp_each(x0, u, &mut y, &mut dx, du);
+    });
     if world.size() > 1 {
         // Every rank receives every sample's [loss, network input, ∂L/∂u].
         let width = 1 + n_in + n_u;
