@@ -180,6 +180,10 @@ impl Forward for DiffuseImplicit {
         self.solve(p[0], x, y);
     }
 
+    fn solve_tolerance(&self) -> f64 {
+        self.solver.borrow().tolerance
+    }
+
     fn take_error(&self) -> Option<OpError> {
         self.log.take_error()
     }
@@ -371,6 +375,10 @@ impl<D: Forward> Forward for Diffuse<D> {
         if let Some(walls) = &self.velocity_box {
             walls.apply(y);
         }
+    }
+
+    fn solve_tolerance(&self) -> f64 {
+        self.parts().map(|(_, op)| op.solve_tolerance()).fold(0.0, f64::max)
     }
 
     fn take_error(&self) -> Option<OpError> {
@@ -657,6 +665,10 @@ macro_rules! linear_projection {
                 $crate::op::validate_forward(self, $name, x, p, y);
                 y.copy_from_slice(x);
                 self.apply(y);
+            }
+
+            fn solve_tolerance(&self) -> f64 {
+                self.solver.borrow().tolerance()
             }
 
             fn take_error(&self) -> Option<$crate::op::OpError> {

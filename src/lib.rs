@@ -18,7 +18,11 @@
 //! them by hand, or
 //! take finite differences with [`op::FiniteDiff`]. Linear solves are
 //! operators too: their VJP is the solve with the transposed matrix
-//! ([`problems::smoke::SmokeStep`], [`fluids::DiffuseImplicit`]). All three obey one contract: a VJP
+//! ([`problems::smoke::SmokeStep`], [`fluids::DiffuseImplicit`]); a
+//! user's own implicit step is its matrix-vector product and right-hand
+//! side as plain functions, [`linear_system!`] and
+//! [`implicit::LinearSolve`], whose derivatives follow by the implicit rule.
+//! All three obey one contract: a VJP
 //! *adds* `J_xᵀ·dy` into `dx` and consumes its seed.
 //!
 //! ```ignore
@@ -99,8 +103,9 @@
 //! **The workspace.** This crate is the library; the studies built on it
 //! (solver-in-the-loop, SIP, HIG, accuracy) are `diffsim-studies`, the
 //! command line `diffsim-cli`, the program `diffsim-bin`
-//! (docs/architecture.md). A crate of one's own depends on this one (and
-//! `diffsim-solvers`) alone.
+//! (docs/architecture.md). A crate of one's own depends on this one alone:
+//! the plain solvers are here as [`solvers`] (CG and its `System` trait,
+//! BiCGStab, the grids, the fluid and flow solvers, the network kernels).
 //!
 //! **Your own crate.** `diffsim new PATH` writes one that builds and passes
 //! out of the box (a solver, its checks, a rollout, the checks through it, a
@@ -117,6 +122,7 @@ pub mod distributed;
 pub mod files;
 pub mod fluids;
 pub mod fluids3d;
+pub mod implicit;
 pub mod memory;
 pub mod nn;
 pub mod op;
@@ -126,3 +132,8 @@ pub mod scene;
 pub mod train;
 pub mod volume;
 pub mod words;
+
+/// The plain forward solvers diffsim is built on (the `diffsim-solvers`
+/// crate, compiled without the autodiff flag): what a solver author reuses,
+/// so that a crate of one's own depends on `diffsim` alone.
+pub use diffsim_solvers as solvers;

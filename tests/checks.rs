@@ -265,3 +265,129 @@ fn central_gradient_of_a_scalar_function_matches_its_derivative() {
         assert!((a - b).abs() < 1e-8 * (1.0 + b.abs()), "{a} vs {b}");
     }
 }
+
+/// Backward-Euler diffusion on a periodic 1D grid, `(I + κ·L)·y = x` with
+/// `κ = p[0]` and `L` the negative discrete Laplacian, solved by CG to a
+/// relative tolerance: a step whose output is exact to that tolerance only.
+/// Its derivatives by the implicit rule (one solve with the same matrix),
+/// written by hand; it declares its tolerance or not.
+struct LooseImplicit {
+    n: usize,
+    tolerance: f64,
+    declared: bool,
+}
+
+struct Shifted {
+    kappa: f64,
+}
+
+impl diffsim_solvers::cg::System for Shifted {
+    fn apply(&mut self, v: &[f64], out: &mut [f64]) {
+        let n = v.len();
+        for i in 0..n {
+            out[i] = v[i] + self.kappa * (2.0 * v[i] - v[(i + n - 1) % n] - v[(i + 1) % n]);
+        }
+    }
+    fn precondition(&mut self, _r: &[f64], _z: &mut [f64]) -> bool {
+        false
+    }
+    fn null(&self) -> diffsim_solvers::cg::Null<'_> {
+        diffsim_solvers::cg::Null::None
+    }
+}
+
+impl LooseImplicit {
+    fn solve(&self, kappa: f64, b: &[f64]) -> Vec<f64> {
+        use diffsim_solvers::cg::{CgWork, Stop, solve};
+        let mut y = vec![0.0; self.n];
+        let stop = Stop { tolerance: self.tolerance, max_iterations: 10_000 };
+        solve(&mut Shifted { kappa }, &mut CgWork::new(self.n), stop, b, &mut y, false).expect("the shifted Laplacian is definite");
+        y
+    }
+
+    fn laplacian(v: &[f64]) -> Vec<f64> {
+        let n = v.len();
+        (0..n).map(|i| 2.0 * v[i] - v[(i + n - 1) % n] - v[(i + 1) % n]).collect()
+    }
+}
+
+impl Operator for LooseImplicit {
+    fn n_in(&self) -> usize {
+        self.n
+    }
+    fn n_out(&self) -> usize {
+        self.n
+    }
+    fn n_params(&self) -> usize {
+        1
+    }
+}
+
+impl Forward for LooseImplicit {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        y.copy_from_slice(&self.solve(p[0], x));
+    }
+    fn solve_tolerance(&self) -> f64 {
+        if self.declared { self.tolerance } else { 0.0 }
+    }
+}
+
+impl Vjp for LooseImplicit {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        // λ = A⁻ᵀ·dy (A symmetric); dx += λ, dκ −= λ·(L·y).
+        let lambda = self.solve(p[0], dy);
+        let ly = Self::laplacian(&self.solve(p[0], x));
+        for (d, l) in dx.iter_mut().zip(&lambda) {
+            *d += l;
+        }
+        dp[0] -= lambda.iter().zip(&ly).map(|(a, b)| a * b).sum::<f64>();
+        dy.fill(0.0);
+    }
+}
+
+impl Jvp for LooseImplicit {
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        y.copy_from_slice(&self.solve(p[0], x));
+        let ly = Self::laplacian(y);
+        let rhs: Vec<f64> = tx.iter().zip(&ly).map(|(t, l)| t - tp[0] * l).collect();
+        ty.copy_from_slice(&self.solve(p[0], &rhs));
+    }
+}
+
+#[test]
+fn the_checks_expect_a_declared_solve_tolerance() {
+    let n = 48;
+    let x: Vec<f64> = (0..n).map(|i| (0.3 * i as f64).sin() + 0.2 * (1.7 * i as f64).cos()).collect();
+    let p = [0.7];
+    // Solves to 10⁻⁸: the three checks pass when the tolerance is declared,
+    // and the Taylor report says what level it left out.
+    let declared = LooseImplicit { n, tolerance: 1e-8, declared: true };
+    let report = check_all(&declared, &x, &p, &CheckParams::default());
+    assert!(report.passed(), "{report}");
+    assert!(report.taylor.note.as_deref().is_some_and(|n| n.contains("solve tolerance 1.0e-8")), "{report}");
+    // The same operator held to rounding: the errors the solves leave fail
+    // the checks (as they did for the user of issue 51).
+    let undeclared = LooseImplicit { declared: false, ..declared };
+    let report = check_all(&undeclared, &x, &p, &CheckParams::default());
+    assert!(!report.passed(), "{report}");
+    // Declaring it through the parameters does what the operator's own
+    // declaration does.
+    let opts = CheckParams { solve_tolerance: Some(1e-8), ..CheckParams::default() };
+    assert!(check_all(&undeclared, &x, &p, &opts).passed());
+    // Solves too loose to leave the Taylor test anything to measure: an
+    // inconclusive verdict naming the tolerance, not a pass and not a failure.
+    let loose = LooseImplicit { n, tolerance: 1e-2, declared: true };
+    let t = taylor(&loose, &x, &p, &CheckParams::default());
+    assert!(matches!(&t.verdict, Verdict::Tolerance(why) if why.contains("solve tolerance 1.0e-2")), "{t}");
+    // A tight solve needs no declaration.
+    let tight = LooseImplicit { n, tolerance: 1e-13, declared: false };
+    assert!(check_all(&tight, &x, &p, &CheckParams::default()).passed());
+}
+
+#[test]
+#[should_panic(expected = "the solve tolerance must be a finite number ≥ 0, got -1")]
+fn a_negative_solve_tolerance_is_refused() {
+    let op = LooseImplicit { n: 8, tolerance: 1e-8, declared: true };
+    let opts = CheckParams { solve_tolerance: Some(-1.0), ..CheckParams::default() };
+    taylor(&op, &[0.1; 8], &[0.5], &opts);
+}

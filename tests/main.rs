@@ -14,6 +14,7 @@ mod flow;
 mod fluids;
 mod fluids3d;
 mod fuzz_replay;
+mod implicit;
 mod inputs;
 mod layout;
 mod memory;

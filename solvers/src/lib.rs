@@ -23,6 +23,7 @@ pub mod diffusion;
 pub mod exact;
 pub mod flow;
 pub mod grid;
+pub mod krylov;
 pub mod linalg;
 pub mod multigrid;
 pub mod nn;

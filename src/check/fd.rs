@@ -58,7 +58,8 @@ pub struct FdReport {
     /// Indices where even the smallest step crosses a kink, or where only
     /// steps below [`RELIABLE_STEP`] fit and miss.
     pub unusable: Vec<String>,
-    /// The verdict against `opts.tol`.
+    /// The verdict against `opts.tol` (or `10·s^{2/3}` for a solve
+    /// tolerance `s`, when larger).
     pub verdict: Verdict,
 }
 
@@ -128,6 +129,10 @@ pub fn finite_differences<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckPara
         indices.sort_unstable();
     }
 
+    // With inner solves to relative tolerance s, the best central
+    // difference is good to about s^{2/3}.
+    let solve = opts.solve_tolerance_of(op);
+    let tol = opts.tol.max(10.0 * solve.powf(2.0 / 3.0));
     let steps = sweep_steps();
     let mut sweep: Vec<FdStep> = steps.iter().map(|&rel_step| FdStep { rel_step, max_error: 0.0, worst: "-".into(), crossing_kink: 0 }).collect();
     let (mut error, mut worst, mut unusable) = (0.0f64, "-".to_string(), Vec::new());
@@ -166,15 +171,16 @@ pub fn finite_differences<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckPara
         // Only steps below the reliable ones fit before a kink, and they
         // miss: rounding (and a solver's tolerance) swamps them, so the
         // index is as good as on the kink.
-        if best.is_infinite() || (!reliable && best > opts.tol) {
+        if best.is_infinite() || (!reliable && best > tol) {
             unusable.push(name(i, n));
         } else if best > error || worst == "-" {
             error = error.max(best);
             worst = name(i, n);
         }
     }
-    let verdict = if error > opts.tol || error.is_nan() {
-        Verdict::Fail(format!("relative error {error:.3e} at {worst} exceeds {:.1e}", opts.tol))
+    let verdict = if error > tol || error.is_nan() {
+        let why = if tol > opts.tol { format!(" (10·s^(2/3) for the solve tolerance s = {solve:.1e})") } else { String::new() };
+        Verdict::Fail(format!("relative error {error:.3e} at {worst} exceeds {tol:.1e}{why}"))
     } else if !unusable.is_empty() {
         Verdict::Kink(format!("{} of {} indices sit within the smallest step of a kink: {}", unusable.len(), indices.len(), unusable.join(", ")))
     } else {

@@ -12,6 +12,11 @@
 //!   its promise `f(x + dx) ≈ f(x) + dy`, the relative miss over a sweep of
 //!   step sizes (what physical-gradient training relies on).
 //!
+//! Operators with inner iterative solves declare their tolerance
+//! ([`Forward::solve_tolerance`], or [`CheckParams::solve_tolerance`]): the
+//! checks then expect errors at that level instead of at rounding, and a
+//! Taylor test with nothing left above it is [`Verdict::Tolerance`].
+//!
 //! Piecewise-smooth operators declare [`Forward::smooth_radius`]; the checks
 //! keep their steps inside it, and when no usable step fits (the point sits
 //! on or next to a kink) the verdict is [`Verdict::Kink`], never a blind pass
@@ -47,6 +52,10 @@ pub enum Verdict {
     /// A kink (switch of a piecewise-smooth operator) is too close to the
     /// point for the check to say anything; the string says how close.
     Kink(String),
+    /// The operator's inner solves are accurate to a tolerance that leaves
+    /// the check nothing to measure above it (every Taylor remainder at
+    /// the solver's level); the string says which level.
+    Tolerance(String),
 }
 
 impl Verdict {
@@ -62,6 +71,7 @@ impl fmt::Display for Verdict {
             Verdict::Pass => write!(f, "pass"),
             Verdict::Fail(s) => write!(f, "FAIL: {s}"),
             Verdict::Kink(s) => write!(f, "inconclusive (kink): {s}"),
+            Verdict::Tolerance(s) => write!(f, "inconclusive (solver tolerance): {s}"),
         }
     }
 }
@@ -78,6 +88,34 @@ pub struct CheckParams {
     /// operator is smaller; otherwise a seeded random subset, always
     /// including the first and last index).
     pub max_indices: usize,
+    /// The relative accuracy of the operator's inner solves; `None` takes
+    /// the operator's own [`Forward::solve_tolerance`] (0 unless it
+    /// declares one). With a tolerance `s > 0` the checks expect errors at
+    /// that level: Taylor remainders below `100·s·|φ|` carry no rate (and
+    /// when none is left above, the verdict is [`Verdict::Tolerance`],
+    /// not a failure), finite differences are held to at least
+    /// `10·s^{2/3}` (the error of the best central difference of a map
+    /// known to `s`) and the dot product to at least `10·s`.
+    pub solve_tolerance: Option<f64>,
+}
+
+impl CheckParams {
+    /// The solve tolerance the checks of `op` use: this one's, or the
+    /// operator's.
+    ///
+    /// # Panics
+    /// If the tolerance is negative or not finite.
+    #[track_caller]
+    pub fn solve_tolerance_of<O: Forward + ?Sized>(&self, op: &O) -> f64 {
+        let s = self.solve_tolerance.unwrap_or_else(|| op.solve_tolerance());
+        if !(s.is_finite() && s >= 0.0) {
+            panic!(
+                "CheckParams: the solve tolerance must be a finite number ≥ 0, got {s} (from {})",
+                if self.solve_tolerance.is_some() { "CheckParams::solve_tolerance" } else { "the operator's solve_tolerance()" }
+            );
+        }
+        s
+    }
 }
 
 /// The former name of [`CheckParams`].
@@ -86,7 +124,7 @@ pub type CheckOptions = CheckParams;
 
 impl Default for CheckParams {
     fn default() -> Self {
-        Self { seed: 0x5eed, tol: 1e-6, max_indices: 64 }
+        Self { seed: 0x5eed, tol: 1e-6, max_indices: 64, solve_tolerance: None }
     }
 }
 

@@ -17,8 +17,9 @@ pub struct TaylorReport {
     pub rates: Vec<Option<f64>>,
     /// The smoothness radius along `v` (∞ for smooth operators).
     pub radius: f64,
-    /// The rounding level of `φ`: remainders at or below `100×` this carry
-    /// no rate (printed as "round-off").
+    /// The noise level of `φ` (its rounding, or the declared solve
+    /// tolerance times `|φ|` when larger): remainders at or below `100×`
+    /// this carry no rate (printed as "round-off").
     pub rounding: f64,
     /// The verdict: the rates at the smallest usable steps ≥ 1.8.
     pub verdict: Verdict,
@@ -72,7 +73,11 @@ pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> Taylo
     // Rounding level of φ: ε times the sum of magnitudes, with room for the
     // error that the operator's own arithmetic accumulates.
     let magnitude: f64 = w.iter().zip(&y).map(|(a, b)| (a * b).abs()).sum::<f64>() + phi0.abs();
-    let noise = 1e3 * f64::EPSILON * magnitude.max(f64::MIN_POSITIVE);
+    let rounding = 1e3 * f64::EPSILON * magnitude.max(f64::MIN_POSITIVE);
+    // An inner solve to relative tolerance s leaves errors of about s·|φ|.
+    let solve = opts.solve_tolerance_of(op);
+    let noise = rounding.max(solve * magnitude);
+    let solver_bound = solve * magnitude > rounding;
 
     let radius = op.smooth_radius(x, p, &vx, &vp);
     let zscale = max_abs(x).max(max_abs(p)).max(1.0);
@@ -102,6 +107,14 @@ pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> Taylo
         }
     } else if h0 < 1e-6 * zscale {
         Verdict::Kink(format!("a kink lies {radius:.2e} from the point along the test direction; no usable step fits"))
+    } else if solver_bound && (!valid.is_empty() || remainders.iter().any(|&r| r > 100.0 * rounding)) {
+        // Remainders stand above rounding but not 100× above the solver's
+        // level: the solves' tolerance, not the gradient, limits the test.
+        Verdict::Tolerance(format!(
+            "{} rate(s) left above 100× the solver's level {:.1e} (solve tolerance {solve:.1e}); tighten the solves to test the gradient",
+            valid.len(),
+            solve * magnitude
+        ))
     } else if remainders.iter().all(|&r| r <= 100.0 * noise) {
         // Locally linear (or curvature below rounding) and the gradient
         // exact to rounding: nothing to measure a rate on, and nothing wrong.
@@ -117,5 +130,8 @@ pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> Taylo
     } else {
         Verdict::Fail("too few remainders above rounding to measure a rate".into())
     };
+    if solver_bound && note.is_none() && verdict.passed() {
+        note = Some(format!("remainders below {:.1e} (100× the solver's level, solve tolerance {solve:.1e}) carry no rate", 100.0 * noise));
+    }
     TaylorReport { steps, remainders, rates, radius, rounding: noise, verdict, note }
 }

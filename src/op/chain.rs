@@ -110,6 +110,11 @@ impl Forward for Chain {
         self.forward_with(x, p, y, |_| {});
     }
 
+    /// The largest of the operators' solve tolerances.
+    fn solve_tolerance(&self) -> f64 {
+        self.ops.iter().map(|op| op.solve_tolerance()).fold(0.0, f64::max)
+    }
+
     /// The smallest radius of the operators, each at its own input along
     /// the tangent carried to it by the JVPs.
     fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {

@@ -28,6 +28,10 @@ impl<O: Forward> Forward for MeanMatched<O> {
         self.0.smooth_radius(x, p, dx, dp)
     }
 
+    fn solve_tolerance(&self) -> f64 {
+        self.0.solve_tolerance()
+    }
+
     fn take_error(&self) -> Option<OpError> {
         self.0.take_error()
     }

@@ -137,6 +137,18 @@ pub trait Forward<R: Real = f64>: Operator {
         f64::INFINITY
     }
 
+    /// The relative accuracy of the operator's inner iterative solves (a
+    /// CG tolerance on the relative residual): its outputs, and derivatives
+    /// by the implicit rule, are exact to about this relative level rather
+    /// than to rounding. The checks treat differences at that level as
+    /// noise ([`crate::check`]: a Taylor remainder there carries no rate).
+    /// `0` (the default) for an operator without iterative solves;
+    /// composites report the largest of their parts' (a rollout: its
+    /// step's times the number of steps, the errors adding up).
+    fn solve_tolerance(&self) -> f64 {
+        0.0
+    }
+
     /// The first failure since the last call (a linear solve that did not
     /// converge, say), cleared by the call. Operators whose forward or VJP
     /// can fail record it here, since those methods return nothing; rollouts

@@ -52,6 +52,10 @@ impl<O: Forward> Forward for Part<O> {
         self.op.forward(&x[r.clone()], p, &mut y[r]);
     }
 
+    fn solve_tolerance(&self) -> f64 {
+        self.op.solve_tolerance()
+    }
+
     fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
         let r = self.range.clone();
         self.op.smooth_radius(&x[r.clone()], p, &dx[r], dp)

@@ -73,6 +73,9 @@ impl<O: Forward + Send> Forward for PerThread<O> {
     fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
         self.mine().smooth_radius(x, p, dx, dp)
     }
+    fn solve_tolerance(&self) -> f64 {
+        self.mine().solve_tolerance()
+    }
     fn name(&self) -> super::OpName {
         self.mine().name()
     }

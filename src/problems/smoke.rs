@@ -256,6 +256,10 @@ macro_rules! smoke_step_operator {
                 self.project.apply(y);
             }
 
+            fn solve_tolerance(&self) -> f64 {
+                $crate::op::Forward::solve_tolerance(&self.project)
+            }
+
             fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
                 $radius(&self.advect.0, x, dx)
             }

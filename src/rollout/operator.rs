@@ -140,6 +140,11 @@ impl<O: Jvp, L: Loss> Forward for RolloutLoss<'_, O, L> {
         y[0] = r.loss(x0, self.loss).unwrap_or_else(|e| panic!("RolloutLoss: {e}"));
     }
 
+    /// The step's solve tolerance times the number of steps.
+    fn solve_tolerance(&self) -> f64 {
+        self.rollout.op.solve_tolerance() * self.rollout.steps as f64
+    }
+
     /// The smallest radius of the steps, each at its state along the
     /// tangent the JVPs carry to it (first order, as [`crate::op::Chain`]'s).
     fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
@@ -272,6 +277,11 @@ impl<O: Jvp> Forward for RolloutOperator<'_, O> {
         self.rollout.check_state(x).unwrap_or_else(|e| panic!("RolloutOperator: {e}"));
         let xt = self.rollout.final_state_unchecked(x);
         y.copy_from_slice(&xt);
+    }
+
+    /// The step's solve tolerance times the number of steps.
+    fn solve_tolerance(&self) -> f64 {
+        self.rollout.op.solve_tolerance() * self.rollout.steps as f64
     }
 
     /// The smallest radius of the steps along the tangent the JVPs carry

@@ -205,6 +205,11 @@ pub struct PressureSolver {
 }
 
 impl PressureSolver {
+    /// The relative tolerance its solves stop at.
+    pub fn tolerance(&self) -> f64 {
+        self.tolerance
+    }
+
     /// A solver for the `n × n` box with tolerance `tolerance`, at most
     /// `max_iterations` iterations, and the given preconditioner.
     pub fn new(n: usize, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {

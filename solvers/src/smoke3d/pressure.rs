@@ -231,6 +231,11 @@ struct Masked {
 }
 
 impl PressureSolver3 {
+    /// The relative tolerance its solves stop at.
+    pub fn tolerance(&self) -> f64 {
+        self.stop.tolerance
+    }
+
     /// A solver for the box `cfg` (any sides): relative `tolerance` on the true
     /// residual, more than `max_iterations` an error, preconditioned by
     /// [`Preconditioner::Multigrid`] (a closed box with two equal sides: the

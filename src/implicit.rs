@@ -1,0 +1,332 @@
+//! Implicit steps as ordinary Rust: a linear solve whose user writes only
+//! the forward physics.
+//!
+//! The user's system is two plain functions on slices, the matrix-vector
+//! product `A(p)·v` and the right-hand side `b(x, p)`:
+//!
+//! ```ignore
+//! fn matvec(s: &Heat, v: &[f64], p: &[f64], out: &mut [f64]) { /* out = A(p)·v */ }
+//! fn rhs(s: &Heat, x: &[f64], p: &[f64], b: &mut [f64]) { /* b = b(x, p) */ }
+//! diffsim::linear_system!(Heat => matvec, rhs);
+//! let step = LinearSolve::new(Heat { .. }, SolveParams::default());
+//! ```
+//!
+//! [`LinearSolve`] is then an operator `(x, p) ↦ y` with `A(p)·y = b(x, p)`,
+//! solved by CG (symmetric positive definite `A`) or BiCGStab (any other),
+//! and its derivatives follow from the implicit rule, never by
+//! differentiating the iterations:
+//!
+//! ```text
+//! VJP:  Aᵀ·λ = ȳ,   x̄ += (∂b/∂x)ᵀ·λ,   p̄ += (∂b/∂p)ᵀ·λ − (∂(A(p)·y)/∂p)ᵀ·λ
+//! JVP:  A·ẏ = (∂b/∂x)·ẋ + (∂b/∂p)·ṗ − (∂(A(p)·y)/∂p)·ṗ
+//! ```
+//!
+//! one more solve each. The terms in `∂/∂p`, `∂/∂x` and, for a
+//! non-symmetric `A`, the transposed product `Aᵀ·λ` come from Enzyme's
+//! derivatives of the user's two functions ([`linear_system!`](crate::linear_system)).
+//! Differentiating through the CG iterations instead gives the derivative
+//! of the truncated iteration, which lags the solution's (docs/implicit.md).
+//!
+//! A solve that does not converge leaves the output NaN and its error in
+//! [`Forward::take_error`]; a rollout stops there with that error.
+
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use diffsim_solvers::cg::{CgWork, NoConvergence, Null, Stop, System};
+use diffsim_solvers::krylov::bicgstab;
+
+use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+
+/// The sizes of a user's linear system `A(p)·y = b(x, p)`.
+pub trait LinearSystem {
+    /// Unknowns `y` (the operator's outputs).
+    fn n(&self) -> usize;
+    /// Inputs `x` of the right-hand side.
+    fn n_in(&self) -> usize;
+    /// Parameters `p` of the matrix and the right-hand side.
+    fn n_params(&self) -> usize {
+        0
+    }
+}
+
+/// A system's two functions and their derivatives, implemented by
+/// [`linear_system!`](crate::linear_system) with Enzyme; not written by
+/// hand.
+#[doc(hidden)]
+pub trait SystemFunctions: LinearSystem {
+    /// `out = A(p)·v`.
+    fn matvec(&self, v: &[f64], p: &[f64], out: &mut [f64]);
+    /// `dv += A(p)ᵀ·w`, `dp += (∂(A(p)·v)/∂p)ᵀ·w`; consumes `w`.
+    fn matvec_vjp(&self, v: &[f64], p: &[f64], w: &mut [f64], dv: &mut [f64], dp: &mut [f64]);
+    /// `out = A(p)·v`, `tout = A(p)·tv + (∂(A(p)·v)/∂p)·tp`.
+    #[allow(clippy::too_many_arguments)]
+    fn matvec_jvp(&self, v: &[f64], p: &[f64], tv: &[f64], tp: &[f64], out: &mut [f64], tout: &mut [f64]);
+    /// `b = b(x, p)`.
+    fn rhs(&self, x: &[f64], p: &[f64], b: &mut [f64]);
+    /// `dx += (∂b/∂x)ᵀ·w`, `dp += (∂b/∂p)ᵀ·w`; consumes `w`.
+    fn rhs_vjp(&self, x: &[f64], p: &[f64], w: &mut [f64], dx: &mut [f64], dp: &mut [f64]);
+    /// `b = b(x, p)`, `tb = (∂b/∂x)·tx + (∂b/∂p)·tp`.
+    #[allow(clippy::too_many_arguments)]
+    fn rhs_jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], b: &mut [f64], tb: &mut [f64]);
+}
+
+/// Makes `Sys` (a [`LinearSystem`], plain data) the system of a
+/// [`LinearSolve`] from its matrix-vector product `fn(&Sys, v, p, out)` and
+/// right-hand side `fn(&Sys, x, p, b)`, both plain functions that write
+/// every element of their output. Enzyme generates the derivatives the
+/// implicit rule needs. The crate that invokes it needs what
+/// [`differentiable!`](crate::differentiable) needs (the autodiff feature
+/// and flag, a fat-LTO release build).
+#[macro_export]
+macro_rules! linear_system {
+    ($ty:ty => $matvec:path, $rhs:path) => {
+        #[allow(clippy::too_many_arguments)]
+        const _: () = {
+            #[::std::autodiff::autodiff_reverse(diffsim_matvec_vjp, Const, Duplicated, Duplicated, Duplicated)]
+            fn diffsim_matvec_reverse(s: &$ty, v: &[f64], p: &[f64], out: &mut [f64]) {
+                $matvec(s, v, p, out)
+            }
+            #[::std::autodiff::autodiff_forward(diffsim_matvec_jvp, Const, Dual, Dual, Dual)]
+            fn diffsim_matvec_forward(s: &$ty, v: &[f64], p: &[f64], out: &mut [f64]) {
+                $matvec(s, v, p, out)
+            }
+            #[::std::autodiff::autodiff_reverse(diffsim_rhs_vjp, Const, Duplicated, Duplicated, Duplicated)]
+            fn diffsim_rhs_reverse(s: &$ty, x: &[f64], p: &[f64], b: &mut [f64]) {
+                $rhs(s, x, p, b)
+            }
+            #[::std::autodiff::autodiff_forward(diffsim_rhs_jvp, Const, Dual, Dual, Dual)]
+            fn diffsim_rhs_forward(s: &$ty, x: &[f64], p: &[f64], b: &mut [f64]) {
+                $rhs(s, x, p, b)
+            }
+
+            impl $crate::implicit::SystemFunctions for $ty {
+                fn matvec(&self, v: &[f64], p: &[f64], out: &mut [f64]) {
+                    $matvec(self, v, p, out)
+                }
+                #[inline(never)]
+                fn matvec_vjp(&self, v: &[f64], p: &[f64], w: &mut [f64], dv: &mut [f64], dp: &mut [f64]) {
+                    let n = $crate::implicit::LinearSystem::n(self);
+                    $crate::op::with_scratch(n, |out| diffsim_matvec_vjp(self, v, dv, p, dp, out, w));
+                }
+                #[inline(never)]
+                fn matvec_jvp(&self, v: &[f64], p: &[f64], tv: &[f64], tp: &[f64], out: &mut [f64], tout: &mut [f64]) {
+                    diffsim_matvec_jvp(self, v, tv, p, tp, out, tout)
+                }
+                fn rhs(&self, x: &[f64], p: &[f64], b: &mut [f64]) {
+                    $rhs(self, x, p, b)
+                }
+                #[inline(never)]
+                fn rhs_vjp(&self, x: &[f64], p: &[f64], w: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+                    let n = $crate::implicit::LinearSystem::n(self);
+                    $crate::op::with_scratch(n, |b| diffsim_rhs_vjp(self, x, dx, p, dp, b, w));
+                }
+                #[inline(never)]
+                fn rhs_jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], b: &mut [f64], tb: &mut [f64]) {
+                    diffsim_rhs_jvp(self, x, tx, p, tp, b, tb)
+                }
+            }
+        };
+    };
+}
+
+/// How a [`LinearSolve`] solves.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum SolveMethod {
+    /// Conjugate gradients: `A(p)` symmetric positive definite (the
+    /// adjoint solve is then the same solve).
+    Cg,
+    /// BiCGStab: any non-singular `A(p)` (the adjoint solves with `Aᵀ`,
+    /// its product from Enzyme's derivative of the matrix-vector product).
+    BiCgStab,
+}
+
+/// Settings of a [`LinearSolve`]; `Default`: CG to a relative residual of
+/// 1e-10, at most 10,000 iterations.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SolveParams {
+    /// The method.
+    pub method: SolveMethod,
+    /// Relative tolerance on the true residual, `‖b − A·y‖₂ ≤ tol·‖b‖₂`.
+    pub tolerance: f64,
+    /// More iterations (BiCGStab: matrix products) than this is an error.
+    pub max_iterations: usize,
+}
+
+impl Default for SolveParams {
+    fn default() -> Self {
+        SolveParams { method: SolveMethod::Cg, tolerance: 1e-10, max_iterations: 10_000 }
+    }
+}
+
+/// Iterations of a [`LinearSolve`]'s solves so far.
+#[derive(Debug, Default)]
+pub struct SolveInfo {
+    /// Of the forward solves (and the JVPs').
+    pub forward: AtomicUsize,
+    /// Of the adjoint solves.
+    pub adjoint: AtomicUsize,
+}
+
+/// The operator `(x, p) ↦ y` with `A(p)·y = b(x, p)` for a user's system
+/// `S` ([`linear_system!`](crate::linear_system)); derivatives by the
+/// implicit rule (module docs).
+#[derive(Debug)]
+pub struct LinearSolve<S> {
+    /// The user's system.
+    pub system: S,
+    /// How it is solved.
+    pub params: SolveParams,
+    /// Iterations so far.
+    pub info: SolveInfo,
+    error: Mutex<Option<NoConvergence>>,
+}
+
+impl<S: LinearSystem> LinearSolve<S> {
+    /// The solve of `system` with `params`.
+    ///
+    /// # Panics
+    /// If the tolerance is not a positive finite number or the iteration
+    /// limit is 0.
+    #[track_caller]
+    pub fn new(system: S, params: SolveParams) -> Self {
+        if !(params.tolerance.is_finite() && params.tolerance > 0.0) || params.max_iterations == 0 {
+            panic!(
+                "LinearSolve: the tolerance must be a positive number and the iteration limit at least 1, got {} and {}",
+                params.tolerance, params.max_iterations
+            );
+        }
+        LinearSolve { system, params, info: SolveInfo::default(), error: Mutex::new(None) }
+    }
+}
+
+/// `A(p)` as CG's [`System`].
+struct Matrix<'a, S> {
+    system: &'a S,
+    p: &'a [f64],
+}
+
+impl<S: SystemFunctions> System for Matrix<'_, S> {
+    fn apply(&mut self, v: &[f64], out: &mut [f64]) {
+        self.system.matvec(v, self.p, out);
+    }
+    fn precondition(&mut self, _r: &[f64], _z: &mut [f64]) -> bool {
+        false
+    }
+    fn null(&self) -> Null<'_> {
+        Null::None
+    }
+}
+
+impl<S: SystemFunctions> LinearSolve<S> {
+    fn stop(&self) -> Stop {
+        Stop { tolerance: self.params.tolerance, max_iterations: self.params.max_iterations }
+    }
+
+    /// Solves `A(p)·y = b` (`transposed`: `A(p)ᵀ·y = b`) into `y`; a
+    /// failure leaves `y` NaN and is kept for [`Forward::take_error`].
+    fn solve(&self, p: &[f64], b: &[f64], y: &mut [f64], transposed: bool) {
+        let n = self.system.n();
+        let result = match self.params.method {
+            SolveMethod::Cg => diffsim_solvers::cg::solve(&mut Matrix { system: &self.system, p }, &mut CgWork::new(n), self.stop(), b, y, false),
+            SolveMethod::BiCgStab if !transposed => bicgstab(|v, out| self.system.matvec(v, p, out), self.stop(), b, y, false),
+            SolveMethod::BiCgStab => {
+                let (mut w, mut dp) = (vec![0.0; n], vec![0.0; self.system.n_params()]);
+                let product = |v: &[f64], out: &mut [f64]| {
+                    // Aᵀ·v: the VJP of u ↦ A(p)·u, at any u (it is linear).
+                    w.copy_from_slice(v);
+                    out.fill(0.0);
+                    self.system.matvec_vjp(v, p, &mut w, out, &mut dp);
+                };
+                bicgstab(product, self.stop(), b, y, false)
+            }
+        };
+        let counter = if transposed { &self.info.adjoint } else { &self.info.forward };
+        match result {
+            Ok(it) => {
+                counter.fetch_add(it, Ordering::Relaxed);
+            }
+            Err(e) => {
+                counter.fetch_add(e.iterations, Ordering::Relaxed);
+                y.fill(f64::NAN);
+                let mut kept = self.error.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+                kept.get_or_insert(e);
+            }
+        }
+    }
+
+    fn symmetric(&self) -> bool {
+        self.params.method == SolveMethod::Cg
+    }
+}
+
+impl<S: LinearSystem> Operator for LinearSolve<S> {
+    fn n_in(&self) -> usize {
+        self.system.n_in()
+    }
+    fn n_out(&self) -> usize {
+        self.system.n()
+    }
+    fn n_params(&self) -> usize {
+        self.system.n_params()
+    }
+}
+
+impl<S: SystemFunctions> Forward for LinearSolve<S> {
+    #[track_caller]
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "LinearSolve", x, p, y);
+        let mut b = vec![0.0; self.system.n()];
+        self.system.rhs(x, p, &mut b);
+        self.solve(p, &b, y, false);
+    }
+
+    fn solve_tolerance(&self) -> f64 {
+        self.params.tolerance
+    }
+
+    fn take_error(&self) -> Option<OpError> {
+        let mut kept = self.error.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        kept.take().map(OpError::from)
+    }
+}
+
+impl<S: SystemFunctions> Vjp for LinearSolve<S> {
+    #[track_caller]
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "LinearSolve", x, p, dy, dx, dp);
+        let n = self.system.n();
+        // The solution (the forward solve again) and the adjoint solve.
+        let mut y = vec![0.0; n];
+        self.forward(x, p, &mut y);
+        let mut lambda = vec![0.0; n];
+        self.solve(p, dy, &mut lambda, !self.symmetric());
+        // p̄ −= (∂(A(p)·y)/∂p)ᵀ·λ.
+        let (mut w, mut dy_unused, mut dp_matrix) = (lambda.clone(), vec![0.0; n], vec![0.0; dp.len()]);
+        self.system.matvec_vjp(&y, p, &mut w, &mut dy_unused, &mut dp_matrix);
+        for (d, m) in dp.iter_mut().zip(&dp_matrix) {
+            *d -= m;
+        }
+        // x̄ += (∂b/∂x)ᵀ·λ, p̄ += (∂b/∂p)ᵀ·λ.
+        self.system.rhs_vjp(x, p, &mut lambda, dx, dp);
+        dy.fill(0.0);
+    }
+}
+
+impl<S: SystemFunctions> Jvp for LinearSolve<S> {
+    #[track_caller]
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        validate_jvp(self, "LinearSolve", x, p, tx, tp, y, ty);
+        let n = self.system.n();
+        let (mut b, mut tb) = (vec![0.0; n], vec![0.0; n]);
+        self.system.rhs_jvp(x, p, tx, tp, &mut b, &mut tb);
+        self.solve(p, &b, y, false);
+        // ẏ solves A·ẏ = ḃ − (∂(A(p)·y)/∂p)·ṗ.
+        let (mut ay, mut tay, zero) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+        self.system.matvec_jvp(y, p, &zero, tp, &mut ay, &mut tay);
+        for (t, a) in tb.iter_mut().zip(&tay) {
+            *t -= a;
+        }
+        self.solve(p, &tb, ty, false);
+    }
+}
