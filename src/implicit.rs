@@ -223,9 +223,11 @@ impl<S: SystemFunctions> LinearSolve<S> {
         Stop { tolerance: self.params.tolerance, max_iterations: self.params.max_iterations }
     }
 
-    /// Solves `A(p)·y = b` (`transposed`: `A(p)ᵀ·y = b`) into `y`; a
+    /// Solves `A(p)·y = b` (the adjoint solve: `A(p)ᵀ·y = b`) into `y`; a
     /// failure leaves `y` NaN and is kept for [`Forward::take_error`].
-    fn solve(&self, p: &[f64], b: &[f64], y: &mut [f64], transposed: bool) {
+    fn solve(&self, p: &[f64], b: &[f64], y: &mut [f64], adjoint: bool) {
+        // A symmetric matrix's adjoint solve is the same solve.
+        let transposed = adjoint && !self.symmetric();
         let n = self.system.n();
         let result = match self.params.method {
             SolveMethod::Cg => diffsim_solvers::cg::solve(&mut Matrix { system: &self.system, p }, &mut CgWork::new(n), self.stop(), b, y, false),
@@ -241,7 +243,7 @@ impl<S: SystemFunctions> LinearSolve<S> {
                 bicgstab(product, self.stop(), b, y, false)
             }
         };
-        let counter = if transposed { &self.info.adjoint } else { &self.info.forward };
+        let counter = if adjoint { &self.info.adjoint } else { &self.info.forward };
         match result {
             Ok(it) => {
                 counter.fetch_add(it, Ordering::Relaxed);
@@ -295,15 +297,34 @@ impl<S: SystemFunctions> Vjp for LinearSolve<S> {
     #[track_caller]
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         validate_vjp(self, "LinearSolve", x, p, dy, dx, dp);
-        let n = self.system.n();
-        // The solution (the forward solve again) and the adjoint solve.
-        let mut y = vec![0.0; n];
+        // The solution (the forward solve again), then the rule.
+        let mut y = vec![0.0; self.system.n()];
         self.forward(x, p, &mut y);
+        self.vjp_from_solution(x, p, &y, dy, dx, dp);
+    }
+
+    /// The solution is the rollout's next state: no forward solve.
+    #[track_caller]
+    fn vjp_overwrite_given(&self, x: &[f64], p: &[f64], y: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "LinearSolve", x, p, dy, dx, dp);
+        if y.len() != self.system.n() {
+            panic!("LinearSolve: the given solution has length {}, the system {}", y.len(), self.system.n());
+        }
+        dx.fill(0.0);
+        self.vjp_from_solution(x, p, y, dy, dx, dp);
+    }
+}
+
+impl<S: SystemFunctions> LinearSolve<S> {
+    /// The implicit rule at the solution `y`: one adjoint solve, then the
+    /// derivatives of the user's two functions.
+    fn vjp_from_solution(&self, x: &[f64], p: &[f64], y: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        let n = self.system.n();
         let mut lambda = vec![0.0; n];
-        self.solve(p, dy, &mut lambda, !self.symmetric());
+        self.solve(p, dy, &mut lambda, true);
         // p̄ −= (∂(A(p)·y)/∂p)ᵀ·λ.
         let (mut w, mut dy_unused, mut dp_matrix) = (lambda.clone(), vec![0.0; n], vec![0.0; dp.len()]);
-        self.system.matvec_vjp(&y, p, &mut w, &mut dy_unused, &mut dp_matrix);
+        self.system.matvec_vjp(y, p, &mut w, &mut dy_unused, &mut dp_matrix);
         for (d, m) in dp.iter_mut().zip(&dp_matrix) {
             *d -= m;
         }

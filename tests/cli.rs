@@ -581,6 +581,29 @@ fn pareto_and_stability_commands_report_json() {
     std::fs::remove_dir_all(&out).ok();
 }
 
+/// `bench implicit-heat`: the JSON line of a small run (the gradient
+/// makes no forward solve of its own: as many forward CG iterations as the
+/// forward run), the comparison with Enzyme through CG, and its flags.
+#[test]
+fn bench_implicit_heat_json_line() {
+    let (code, stdout, err) = diffsim(&["bench", "implicit-heat", "--n", "12", "--steps", "4", "--budget", "0", "--compare", "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert_eq!((v["problem"].as_str(), v["n"].as_u64(), v["steps"].as_u64()), (Some("implicit-heat"), Some(12), Some(4)), "{v}");
+    assert!(v["grad_over_forward"].as_f64().is_some_and(|r| r > 0.0), "{v}");
+    assert_eq!(v["cg_gradient_forward_iterations"], v["cg_forward_iterations"], "{v}");
+    assert!(v["cg_adjoint_iterations"].as_u64().is_some_and(|k| k > 0), "{v}");
+    let rows = v["compare"].as_array().unwrap();
+    assert_eq!(rows.len(), 4);
+    // The implicit rule's gradient converges with the tolerance.
+    let last = &rows[3];
+    assert!(last["implicit_error"].as_f64().unwrap() < 1e-9, "{v}");
+    assert!(rows.iter().all(|r| r["through_cg_error"].as_f64().is_some_and(f64::is_finite)), "{v}");
+    fails_with(&["bench", "implicit-heat", "--n", "1"], "invalid argument --n");
+    fails_with(&["bench", "implicit-heat", "--steps", "0"], "invalid argument --steps");
+    fails_with(&["bench", "implicit-heat", "--budget=-1"], "invalid argument --budget");
+}
+
 #[test]
 fn bench_p3_json_line() {
     let (code, stdout, err) = diffsim(&["bench", "p3", "--iterations", "2", "--threads", "2", "--json"]);

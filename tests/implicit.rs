@@ -1,64 +1,16 @@
 //! Implicit steps written as the forward physics only (`linear_system!`):
 //! their derivatives by the implicit rule through the three checks, alone
-//! and through a rollout, for a symmetric system (CG) and a non-symmetric
-//! one (BiCGStab); a solve that does not converge is an error, not a
-//! number.
+//! and through a rollout, for a symmetric system (CG: the library's
+//! `problems::implicit_heat`) and a non-symmetric one written here
+//! (BiCGStab); a rollout hands each step its solution; a solve that does
+//! not converge is an error, not a number.
 
 use diffsim::check::{CheckParams, check_all};
 use diffsim::implicit::{LinearSolve, LinearSystem, SolveMethod, SolveParams};
 use diffsim::op::{Forward, OperatorExt};
+use diffsim::problems::implicit_heat::{ImplicitHeat as Heat, heat_matvec};
 use diffsim::rollout::{AtSteps, Checkpointing, Rollout, RolloutLoss, Wrt};
-
-/// Backward Euler for heat conduction on an `n × n` grid with a
-/// conductivity `exp(θ)` per cell (faces take the mean of their two
-/// cells), insulated sides: `(I + dt·A(θ))·y = x`, the user's problem in
-/// issue 51.
-struct Heat {
-    n: usize,
-    dt: f64,
-}
-
-impl LinearSystem for Heat {
-    fn n(&self) -> usize {
-        self.n * self.n
-    }
-    fn n_in(&self) -> usize {
-        self.n * self.n
-    }
-    fn n_params(&self) -> usize {
-        self.n * self.n
-    }
-}
-
-fn heat_matvec(s: &Heat, v: &[f64], theta: &[f64], out: &mut [f64]) {
-    let n = s.n;
-    for j in 0..n {
-        for i in 0..n {
-            let k = j * n + i;
-            let mut acc = v[k];
-            let mut face = |m: usize| acc += s.dt * 0.5 * (theta[k].exp() + theta[m].exp()) * (v[k] - v[m]);
-            if i + 1 < n {
-                face(k + 1);
-            }
-            if i > 0 {
-                face(k - 1);
-            }
-            if j + 1 < n {
-                face(k + n);
-            }
-            if j > 0 {
-                face(k - n);
-            }
-            out[k] = acc;
-        }
-    }
-}
-
-fn heat_rhs(_: &Heat, x: &[f64], _theta: &[f64], b: &mut [f64]) {
-    b.copy_from_slice(x);
-}
-
-diffsim::linear_system!(Heat => heat_matvec, heat_rhs);
+use std::sync::atomic::Ordering;
 
 /// Implicit advection–diffusion on a periodic line, `(I + dt·(ν·L + c·D))·y
 /// = x + dt·s` with `L` the negative Laplacian, `D` the upwind difference
@@ -118,7 +70,7 @@ fn a_users_symmetric_system_passes_the_checks_by_the_implicit_rule() {
     let (dx, _) = op.vjp_new(&x, &theta, &w);
     let lambda = op.eval(&w, &theta);
     assert!(dx.iter().zip(&lambda).all(|(a, b)| (a - b).abs() < 1e-12), "the input gradient is not A⁻¹·w");
-    assert!(op.info.forward.load(std::sync::atomic::Ordering::Relaxed) > 0);
+    assert!(op.info.forward.load(Ordering::Relaxed) > 0);
 }
 
 #[test]
@@ -127,7 +79,7 @@ fn a_users_nonsymmetric_system_passes_the_checks_with_bicgstab() {
     let op = LinearSolve::new(Drift { n: 20, dt: 0.2 }, params);
     let report = check_all(&op, &field(20, 1.0), &[0.3, 0.8, 0.5], &CheckParams::default());
     assert!(report.passed(), "{report}");
-    assert!(op.info.adjoint.load(std::sync::atomic::Ordering::Relaxed) > 0, "the VJP solved with the transpose");
+    assert!(op.info.adjoint.load(Ordering::Relaxed) > 0, "the VJP solved with the transpose");
 }
 
 #[test]
@@ -170,4 +122,31 @@ fn a_solve_that_does_not_converge_is_an_error_and_leaves_no_number() {
 #[should_panic(expected = "LinearSolve: the tolerance must be a positive number")]
 fn a_solve_without_a_tolerance_is_refused() {
     LinearSolve::new(Heat { n: 2, dt: 0.1 }, SolveParams { tolerance: 0.0, ..SolveParams::default() });
+}
+
+/// The rollout hands each step's VJP the step's solution (the next state)
+/// wherever its schedule holds it: with stored states the backward pass
+/// makes no forward solve at all, and every schedule gives the same
+/// gradient bit for bit (a solve is deterministic).
+#[test]
+fn a_rollout_hands_each_implicit_step_its_solution() {
+    let n = 5;
+    let op = LinearSolve::new(Heat { n, dt: 0.05 }, SolveParams::default());
+    let (x0, theta) = (field(n * n, 1.0), field(n * n, 0.3));
+    let loss = |x: &[f64], g: &mut [f64]| -> f64 {
+        g.copy_from_slice(x);
+        0.5 * x.iter().map(|v| v * v).sum::<f64>()
+    };
+    let rollout = Rollout::new(&op, &theta, 12).unwrap();
+    let forward = || op.info.forward.load(Ordering::Relaxed);
+    let before = forward();
+    rollout.loss(&x0, &loss).unwrap();
+    let forward_only = forward() - before;
+    let before = forward();
+    let stored = rollout.value_and_grad(&x0, &loss, Checkpointing::Store).unwrap();
+    assert_eq!(forward() - before, forward_only, "the backward pass solved forward systems again");
+    for mode in [Checkpointing::Periodic { every: 4 }, Checkpointing::Binomial { snapshots: 2 }] {
+        let g = rollout.value_and_grad(&x0, &loss, mode).unwrap();
+        assert_eq!((&g.dx0, &g.dp), (&stored.dx0, &stored.dp), "{mode}");
+    }
 }

@@ -41,6 +41,10 @@ pub(super) enum BenchCommand {
     /// error against the f64 SVD on the real batch and on a near-singular
     /// one, the whole update and an Adam update.
     Hig(HigBenchArgs),
+    /// Implicit heat conduction (backward Euler, a conductivity per cell,
+    /// CG): forward against the gradient by the implicit rule, with the CG
+    /// iterations; `--compare` adds Enzyme through the CG iterations.
+    ImplicitHeat(ImplicitHeatArgs),
     /// The exchange between MPI ranks (`mpirun -np K diffsim bench
     /// exchange`): the time of an all-gather of n values per rank over a
     /// range of n, its latency and bandwidth (the inputs of the scaling
@@ -209,6 +213,7 @@ pub(super) fn run(cmd: BenchCommand, world: &diffsim::distributed::World) -> Res
         BenchCommand::Memory(a) => memory(a),
         BenchCommand::P4Cost(a) => p4_cost(a),
         BenchCommand::Hig(a) => hig(a),
+        BenchCommand::ImplicitHeat(a) => implicit_heat(a),
     }
 }
 
@@ -815,5 +820,126 @@ fn p4_cost(a: P4CostArgs) -> Result<(), CliError> {
     super::plot_or_warn(&a.out.join("p4_cost.png"), &axes, &series);
     println!("{table}");
     println!("wrote p4_cost.md and p4_cost.png to {}", a.out.display());
+    Ok(())
+}
+
+/// Arguments of `diffsim bench implicit-heat`.
+#[derive(Debug, Args)]
+pub(super) struct ImplicitHeatArgs {
+    /// Cells per side.
+    #[arg(long, default_value_t = 64)]
+    n: usize,
+    /// Backward-Euler steps.
+    #[arg(long, default_value_t = 20)]
+    steps: usize,
+    /// Seconds of repeats for each median (at least three runs each).
+    #[arg(long, default_value_t = 2.0)]
+    budget: f64,
+    /// Also differentiate through the CG iterations with Enzyme (the route
+    /// without the implicit rule) at tolerances 1e-6 … 1e-12: each
+    /// gradient's error against the implicit one at 1e-13, and its time.
+    #[arg(long)]
+    compare: bool,
+    /// Print one JSON line instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `diffsim bench implicit-heat`: the loss `½‖x_T − x*‖²` of `steps`
+/// backward-Euler steps of heat conduction with a conductivity per cell
+/// (`problems::implicit_heat`, CG to 1e-10), forward against the gradient
+/// with respect to the initial state and every cell's conductivity (the
+/// implicit rule: one adjoint solve a step, the rollout handing each step
+/// its solution), with the CG iterations of each.
+fn implicit_heat(a: ImplicitHeatArgs) -> Result<(), CliError> {
+    use diffsim::implicit::SolveParams;
+    use diffsim::problems::implicit_heat::ImplicitHeat;
+    use diffsim::rollout::{Checkpointing, Rollout};
+    use std::sync::atomic::Ordering;
+    if !(2..=2048).contains(&a.n) {
+        return Err(CliError::Argument { arg: "--n", reason: format!("must be between 2 and 2048 cells per side, got {}", a.n) });
+    }
+    if !(1..=100_000).contains(&a.steps) {
+        return Err(CliError::Argument { arg: "--steps", reason: format!("must be between 1 and 100000, got {}", a.steps) });
+    }
+    if !(a.budget.is_finite() && (0.0..=3600.0).contains(&a.budget)) {
+        return Err(CliError::Argument { arg: "--budget", reason: format!("must be between 0 and 3600 seconds, got {}", a.budget) });
+    }
+    let cells = (a.n * a.n) as u64;
+    // The stored states and a few vectors of the solves.
+    diffsim::memory::check(
+        "bench implicit-heat",
+        format!("{} states of {cells} cells", a.steps + 1),
+        diffsim::memory::f64s(&[cells, a.steps as u64 + 16]),
+        Some("a smaller --n or --steps".into()),
+    )?;
+    let (n, steps) = (a.n, a.steps);
+    let op = ImplicitHeat::step(n, 0.1, SolveParams::default());
+    let wave = |k: usize, a: f64, b: f64| a * (0.37 * (k % n) as f64).sin() * (0.23 * (k / n) as f64).cos() + b;
+    let x0: Vec<f64> = (0..n * n).map(|k| wave(k, 1.0, 0.5)).collect();
+    let theta: Vec<f64> = (0..n * n).map(|k| wave(k, 0.5, 0.0)).collect();
+    let target: Vec<f64> = (0..n * n).map(|k| wave(k, 0.2, 0.5)).collect();
+    let loss = |x: &[f64], g: &mut [f64]| -> f64 {
+        let mut value = 0.0;
+        for ((g, a), b) in g.iter_mut().zip(x).zip(&target) {
+            *g = a - b;
+            value += 0.5 * (a - b) * (a - b);
+        }
+        value
+    };
+    let rollout = Rollout::new(&op, &theta, steps)?;
+    let counts = || (op.info.forward.load(Ordering::Relaxed), op.info.adjoint.load(Ordering::Relaxed));
+    // One of each, counted.
+    let c0 = counts();
+    let value = rollout.loss(&x0, &loss)?;
+    let c1 = counts();
+    let g = rollout.value_and_grad(&x0, &loss, Checkpointing::Store)?;
+    let c2 = counts();
+    if !value.is_finite() || !diffsim::op::all_finite(&g.dx0) || !diffsim::op::all_finite(&g.dp) {
+        return Err(CliError::NotReported { what: "bench implicit-heat".into(), reason: "the loss or its gradient is not finite".into() });
+    }
+    let (forward_s, _) = median_time(a.budget, 3, 100_000, || rollout.loss(&x0, &loss));
+    let (grad_s, _) = median_time(a.budget, 3, 100_000, || rollout.value_and_grad(&x0, &loss, Checkpointing::Store));
+    let mut row = serde_json::json!({
+        "problem": "implicit-heat", "n": n, "steps": steps, "tolerance": op.params.tolerance,
+        "forward_s": forward_s, "grad_s": grad_s, "grad_over_forward": grad_s / forward_s,
+        "cg_forward_iterations": c1.0 - c0.0, "cg_gradient_forward_iterations": c2.0 - c1.0, "cg_adjoint_iterations": c2.1 - c1.1,
+        "loss": value,
+    });
+    if !a.json {
+        println!("implicit heat, {n}² cells, {steps} backward-Euler steps, CG to {:.0e}", op.params.tolerance);
+        println!("  forward    {:9.3} ms  ({} CG iterations)", 1e3 * forward_s, c1.0 - c0.0);
+        println!("  gradient   {:9.3} ms  ({} forward and {} adjoint CG iterations)", 1e3 * grad_s, c2.0 - c1.0, c2.1 - c1.1);
+        println!("  gradient / forward  {:.2}", grad_s / forward_s);
+    }
+    if a.compare {
+        use diffsim::problems::implicit_heat::HeatThroughCg;
+        let flat = |g: &diffsim::rollout::Gradient| g.dx0.iter().chain(&g.dp).copied().collect::<Vec<f64>>();
+        let tight = ImplicitHeat::step(n, 0.1, SolveParams { tolerance: 1e-13, ..SolveParams::default() });
+        let reference = flat(&Rollout::new(&tight, &theta, steps)?.value_and_grad(&x0, &loss, Checkpointing::Store)?);
+        let error = |g: &[f64]| diffsim_studies::accuracy::relative_l2(g, &reference);
+        let mut rows = Vec::new();
+        if !a.json {
+            println!("\n| CG tolerance | implicit rule: error | time (ms) | Enzyme through CG: error | time (ms) |\n|---|---|---|---|---|");
+        }
+        for tolerance in [1e-6, 1e-8, 1e-10, 1e-12] {
+            let implicit = ImplicitHeat::step(n, 0.1, SolveParams { tolerance, ..SolveParams::default() });
+            let through = HeatThroughCg { n, dt: 0.1, tolerance, max_iterations: 10_000 };
+            let (r1, r2) = (Rollout::new(&implicit, &theta, steps)?, Rollout::new(&through, &theta, steps)?);
+            let (t1, g1) = median_time(a.budget / 4.0, 1, 1000, || r1.value_and_grad(&x0, &loss, Checkpointing::Store));
+            let (t2, g2) = median_time(a.budget / 4.0, 1, 1000, || r2.value_and_grad(&x0, &loss, Checkpointing::Store));
+            let (e1, e2) = (error(&flat(&g1?)), error(&flat(&g2?)));
+            if !a.json {
+                println!("| {tolerance:.0e} | {e1:.1e} | {:.2} | {e2:.1e} | {:.2} |", 1e3 * t1, 1e3 * t2);
+            }
+            rows.push(
+                serde_json::json!({"tolerance": tolerance, "implicit_error": e1, "implicit_grad_s": t1, "through_cg_error": e2, "through_cg_grad_s": t2}),
+            );
+        }
+        row["compare"] = serde_json::Value::Array(rows);
+    }
+    if a.json {
+        println!("{row}");
+    }
     Ok(())
 }

@@ -14,7 +14,7 @@
 //!
 //! Operators with inner iterative solves declare their tolerance
 //! ([`Forward::solve_tolerance`], or [`CheckParams::solve_tolerance`]): the
-//! checks then expect errors at that level instead of at rounding, and a
+//! checks then allow errors at that level instead of at rounding, and a
 //! Taylor test with nothing left above it is [`Verdict::Tolerance`].
 //!
 //! Piecewise-smooth operators declare [`Forward::smooth_radius`]; the checks
@@ -90,12 +90,13 @@ pub struct CheckParams {
     pub max_indices: usize,
     /// The relative accuracy of the operator's inner solves; `None` takes
     /// the operator's own [`Forward::solve_tolerance`] (0 unless it
-    /// declares one). With a tolerance `s > 0` the checks expect errors at
-    /// that level: Taylor remainders below `100·s·|φ|` carry no rate (and
-    /// when none is left above, the verdict is [`Verdict::Tolerance`],
-    /// not a failure), finite differences are held to at least
-    /// `10·s^{2/3}` (the error of the best central difference of a map
-    /// known to `s`) and the dot product to at least `10·s`.
+    /// declares one). With a tolerance `s > 0` the checks allow errors at
+    /// that level: where the Taylor rates at rounding level fail, the test
+    /// judges again on the remainders above `100·s·|φ|` (and when too few
+    /// are left there, the verdict is [`Verdict::Tolerance`], not a
+    /// failure); finite differences are held to at least `10·s^{2/3}` (the
+    /// error of the best central difference of a map known to `s`) and the
+    /// dot product to at least `10·s`.
     pub solve_tolerance: Option<f64>,
 }
 

@@ -358,6 +358,16 @@ pub trait Vjp<R: Real = f64>: Forward<R> {
         self.vjp(x, p, dy, dx, dp);
     }
 
+    /// [`Vjp::vjp_overwrite`] when the output `y = f(x, p)` is at hand (a
+    /// rollout holds the next state): an operator whose VJP needs its own
+    /// output (an implicit step's solution, [`crate::implicit::LinearSolve`])
+    /// uses `y` instead of computing it again. `y` must be `f(x, p)`; the
+    /// default ignores it.
+    fn vjp_overwrite_given(&self, x: &[R], p: &[R], y: &[R], dy: &mut [R], dx: &mut [R], dp: &mut [R]) {
+        let _ = y;
+        self.vjp_overwrite(x, p, dy, dx, dp);
+    }
+
     /// [`Vjp::vjp`] over a batch laid out as in [`Forward::forward_batch`]:
     ///
     /// ```text

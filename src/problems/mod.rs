@@ -4,6 +4,7 @@
 pub mod burgers;
 pub mod drag;
 pub mod heat;
+pub mod implicit_heat;
 pub mod oscillators;
 pub mod ranges;
 pub mod smoke;

@@ -170,15 +170,19 @@ impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
     }
 
     /// `λ_t = (∂f/∂x at x_t)ᵀ·λ_{t+1} + ∂ℓ_t/∂x_t`, `dp_t += (∂f/∂p at
-    /// x_t)ᵀ·λ_{t+1}`.
-    fn vjp(&mut self, t: usize, x: &[R]) {
+    /// x_t)ᵀ·λ_{t+1}`; `next` is `x_{t+1}` where the schedule holds it
+    /// (an implicit step's VJP then needs no solve of its own).
+    fn vjp(&mut self, t: usize, x: &[R], next: Option<&[R]>) {
         let r = self.rollout;
         let dp = &mut self.dp[r.block(t)];
         if t + 1 == r.steps && self.non_finite.is_none() && !super::all_finite(&self.lam) {
             // The seed itself: the loss gradient at x_T.
             self.non_finite = Some(r.steps);
         }
-        r.op.vjp_overwrite(x, r.p_at(t), &mut self.lam, &mut self.lam_next, dp);
+        match next {
+            Some(y) => r.op.vjp_overwrite_given(x, r.p_at(t), y, &mut self.lam, &mut self.lam_next, dp),
+            None => r.op.vjp_overwrite(x, r.p_at(t), &mut self.lam, &mut self.lam_next, dp),
+        }
         std::mem::swap(&mut self.lam, &mut self.lam_next);
         if t > 0 {
             self.loss_term(t, x, true);
@@ -195,12 +199,13 @@ impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
         }
     }
 
-    /// Reverses steps `a..b` of a periodic segment from `x_a = ckpt` and
-    /// `seg[i] = x_{a+1+i}`.
-    fn reverse(&mut self, a: usize, b: usize, ckpt: &[R], seg: &[Vec<R>]) {
+    /// Reverses steps `a..b` of a periodic segment from `x_a = ckpt`,
+    /// `seg[i] = x_{a+1+i}` and, where known, `x_b = after`.
+    fn reverse(&mut self, a: usize, b: usize, ckpt: &[R], seg: &[Vec<R>], after: Option<&[R]>) {
         for t in (a..b).rev() {
             let x: &[R] = if t == a { ckpt } else { &seg[t - a - 1] };
-            self.vjp(t, x);
+            let next = if t + 1 < b { Some(&seg[t - a][..]) } else { after };
+            self.vjp(t, x, next);
         }
     }
 
@@ -227,13 +232,13 @@ impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
         loop {
             let t = b - a;
             if t == 1 {
-                self.vjp(a, xa);
+                self.vjp(a, xa, None);
                 return;
             }
             if s == 0 {
                 for j in (a..b).rev() {
                     let xj = self.advance(xa, a, j - a);
-                    self.vjp(j, &xj);
+                    self.vjp(j, &xj, None);
                     self.release(xj);
                 }
                 return;
@@ -427,11 +432,11 @@ fn periodic<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_, O, L, R>, 
             value += bw.loss_term(t + 1, &y, true);
         }
     }
-    bw.release(y);
     bw.release(x);
     // Backward, segment by segment from the last: on two threads, or here,
     // each segment recomputed from its checkpoint in turn.
     if let Some(two) = bw.two_threads.filter(|_| n_ckpt > 1 && k > 1) {
+        bw.release(y);
         let spare = (0..k - 1).map(|_| bw.alloc()).collect();
         for s in two(bw, store, k, seg, spare).into_iter().flatten() {
             bw.release(s);
@@ -446,8 +451,11 @@ fn periodic<R: Real, O: Vjp<R>, L: Loss<R>>(bw: &mut Backward<'_, '_, O, L, R>, 
             recompute(bw.rollout, a, ckpt, &mut seg[..b - a - 1]);
             bw.stats.step_evaluations += b - a - 1;
         }
-        bw.reverse(a, b, ckpt, &seg);
+        // x_b: the next checkpoint, or x_T after the last segment.
+        let after: &[R] = if c + 1 < n_ckpt { &store[(c + 1) * n..(c + 2) * n] } else { &y };
+        bw.reverse(a, b, ckpt, &seg, Some(after));
     }
+    bw.release(y);
     for s in seg {
         bw.release(s);
     }
@@ -523,7 +531,8 @@ pub(super) fn reverse_two_threads<R: Real, O: Vjp<R> + Sync, L: Loss<R> + Sync>(
             if recomputed {
                 bw.stats.step_evaluations += b - a - 1;
             }
-            bw.reverse(a, b, ckpt, &seg);
+            let after = (c + 1 < n_ckpt).then(|| &store[(c + 1) * n..(c + 2) * n]);
+            bw.reverse(a, b, ckpt, &seg, after);
             drop(bw);
             reversed.store(c, Ordering::Release);
         }
