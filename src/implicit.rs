@@ -12,7 +12,8 @@
 //! ```
 //!
 //! [`LinearSolve`] is then an operator `(x, p) ↦ y` with `A(p)·y = b(x, p)`,
-//! solved by CG (symmetric positive definite `A`) or BiCGStab (any other),
+//! solved by CG (symmetric positive definite `A`), BiCGStab (any other) or
+//! directly (a small system: assembled and factored by faer's sparse LU),
 //! and its derivatives follow from the implicit rule, never by
 //! differentiating the iterations:
 //!
@@ -33,7 +34,7 @@
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use diffsim_solvers::cg::{CgWork, NoConvergence, Null, Stop, System};
+use diffsim_solvers::cg::{CgWork, Null, Stop, System};
 use diffsim_solvers::krylov::bicgstab;
 
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
@@ -139,6 +140,12 @@ pub enum SolveMethod {
     /// BiCGStab: any non-singular `A(p)` (the adjoint solves with `Aᵀ`,
     /// its product from Enzyme's derivative of the matrix-vector product).
     BiCgStab,
+    /// A direct solve, for small systems: `A(p)` assembled by `n` products
+    /// with the unit vectors (its nonzero entries kept) and factored by
+    /// faer's sparse LU with partial pivoting; the adjoint solves with the
+    /// transposed factors. Exact to rounding (the tolerance is not used);
+    /// a singular matrix is an error.
+    Direct,
 }
 
 /// Settings of a [`LinearSolve`]; `Default`: CG to a relative residual of
@@ -147,7 +154,8 @@ pub enum SolveMethod {
 pub struct SolveParams {
     /// The method.
     pub method: SolveMethod,
-    /// Relative tolerance on the true residual, `‖b − A·y‖₂ ≤ tol·‖b‖₂`.
+    /// Relative tolerance on the true residual, `‖b − A·y‖₂ ≤ tol·‖b‖₂`
+    /// (the iterative methods).
     pub tolerance: f64,
     /// More iterations (BiCGStab: matrix products) than this is an error.
     pub max_iterations: usize,
@@ -179,7 +187,7 @@ pub struct LinearSolve<S> {
     pub params: SolveParams,
     /// Iterations so far.
     pub info: SolveInfo,
-    error: Mutex<Option<NoConvergence>>,
+    error: Mutex<Option<OpError>>,
 }
 
 impl<S: LinearSystem> LinearSolve<S> {
@@ -232,6 +240,7 @@ impl<S: SystemFunctions> LinearSolve<S> {
         let result = match self.params.method {
             SolveMethod::Cg => diffsim_solvers::cg::solve(&mut Matrix { system: &self.system, p }, &mut CgWork::new(n), self.stop(), b, y, false),
             SolveMethod::BiCgStab if !transposed => bicgstab(|v, out| self.system.matvec(v, p, out), self.stop(), b, y, false),
+            SolveMethod::Direct => return self.solve_direct(p, b, y, adjoint),
             SolveMethod::BiCgStab => {
                 let (mut w, mut dp) = (vec![0.0; n], vec![0.0; self.system.n_params()]);
                 let product = |v: &[f64], out: &mut [f64]| {
@@ -250,10 +259,47 @@ impl<S: SystemFunctions> LinearSolve<S> {
             }
             Err(e) => {
                 counter.fetch_add(e.iterations, Ordering::Relaxed);
-                y.fill(f64::NAN);
-                let mut kept = self.error.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-                kept.get_or_insert(e);
+                self.fail(y, OpError::from(e));
             }
+        }
+    }
+
+    /// Leaves `y` NaN and keeps the first failure for [`Forward::take_error`].
+    fn fail(&self, y: &mut [f64], e: OpError) {
+        y.fill(f64::NAN);
+        let mut kept = self.error.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        kept.get_or_insert(e);
+    }
+
+    /// [`SolveMethod::Direct`]: assembles `A(p)` column by column and solves
+    /// with its sparse LU (`adjoint`: with the transposed factors).
+    fn solve_direct(&self, p: &[f64], b: &[f64], y: &mut [f64], adjoint: bool) {
+        let n = self.system.n();
+        let (mut unit, mut column) = (vec![0.0; n], vec![0.0; n]);
+        let mut entries = Vec::new();
+        for j in 0..n {
+            unit[j] = 1.0;
+            self.system.matvec(&unit, p, &mut column);
+            unit[j] = 0.0;
+            entries.extend(column.iter().enumerate().filter(|(_, v)| **v != 0.0).map(|(i, &v)| (i, j, v)));
+        }
+        let singular = || OpError::Input(crate::op::OpMessage::new("LinearSolve: the matrix is singular"));
+        if entries.iter().any(|(_, _, v)| !v.is_finite()) {
+            return self.fail(y, OpError::Input(crate::op::OpMessage::new("LinearSolve: the matrix holds a NaN or an infinity")));
+        }
+        match diffsim_solvers::linalg::SparseLu::new(n, &entries) {
+            Ok(lu) => {
+                y.copy_from_slice(b);
+                if adjoint {
+                    lu.solve_transpose_in_place(y)
+                } else {
+                    lu.solve_in_place(y)
+                }
+                if !y.iter().all(|v| v.is_finite()) {
+                    self.fail(y, singular());
+                }
+            }
+            Err(_) => self.fail(y, singular()),
         }
     }
 
@@ -283,13 +329,14 @@ impl<S: SystemFunctions> Forward for LinearSolve<S> {
         self.solve(p, &b, y, false);
     }
 
+    /// The iterative methods' tolerance; 0 for the direct solve.
     fn solve_tolerance(&self) -> f64 {
-        self.params.tolerance
+        if self.params.method == SolveMethod::Direct { 0.0 } else { self.params.tolerance }
     }
 
     fn take_error(&self) -> Option<OpError> {
         let mut kept = self.error.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        kept.take().map(OpError::from)
+        kept.take()
     }
 }
 

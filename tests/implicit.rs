@@ -150,3 +150,51 @@ fn a_rollout_hands_each_implicit_step_its_solution() {
         assert_eq!((&g.dx0, &g.dp), (&stored.dx0, &stored.dp), "{mode}");
     }
 }
+
+/// A matrix of rank one: `A·v = (Σ v)·1`, singular for n > 1.
+struct RankOne {
+    n: usize,
+}
+
+impl LinearSystem for RankOne {
+    fn n(&self) -> usize {
+        self.n
+    }
+    fn n_in(&self) -> usize {
+        self.n
+    }
+}
+
+fn rank_one_matvec(s: &RankOne, v: &[f64], _p: &[f64], out: &mut [f64]) {
+    let sum: f64 = v.iter().sum();
+    for o in out.iter_mut().take(s.n) {
+        *o = sum;
+    }
+}
+
+fn copy_rhs(_: &RankOne, x: &[f64], _p: &[f64], b: &mut [f64]) {
+    b.copy_from_slice(x);
+}
+
+diffsim::linear_system!(RankOne => rank_one_matvec, copy_rhs);
+
+#[test]
+fn a_direct_solve_is_exact_and_refuses_a_singular_matrix() {
+    let direct = LinearSolve::new(Drift { n: 20, dt: 0.2 }, SolveParams { method: SolveMethod::Direct, ..SolveParams::default() });
+    let iterative = LinearSolve::new(Drift { n: 20, dt: 0.2 }, SolveParams { method: SolveMethod::BiCgStab, ..SolveParams::default() });
+    let (x, p) = (field(20, 1.0), [0.3, 0.8, 0.5]);
+    // Exact to rounding: no solve tolerance to declare, and the three
+    // checks pass at their rounding-level settings.
+    assert_eq!(direct.solve_tolerance(), 0.0);
+    let report = check_all(&direct, &x, &p, &CheckParams::default());
+    assert!(report.passed(), "{report}");
+    let (a, b) = (direct.eval(&x, &p), iterative.eval(&x, &p));
+    assert!(a.iter().zip(&b).all(|(u, v)| (u - v).abs() < 1e-8), "the direct and iterative solutions differ");
+    let (da, _) = direct.vjp_new(&x, &p, &field(20, -0.5));
+    let (db, _) = iterative.vjp_new(&x, &p, &field(20, -0.5));
+    assert!(da.iter().zip(&db).all(|(u, v)| (u - v).abs() < 1e-8), "the direct and iterative adjoints differ");
+    let singular = LinearSolve::new(RankOne { n: 4 }, SolveParams { method: SolveMethod::Direct, ..SolveParams::default() });
+    assert!(singular.eval(&[1.0, 2.0, 3.0, 4.0], &[]).iter().all(|v| v.is_nan()));
+    let e = singular.take_error().expect("a singular matrix is an error");
+    assert!(e.to_string().contains("the matrix is singular"), "{e}");
+}
