@@ -198,3 +198,16 @@ fn a_direct_solve_is_exact_and_refuses_a_singular_matrix() {
     let e = singular.take_error().expect("a singular matrix is an error");
     assert!(e.to_string().contains("the matrix is singular"), "{e}");
 }
+
+/// Enzyme through the CG iterations (the comparison route of `bench
+/// implicit-heat`): on a grid small enough for CG to terminate, at a tight
+/// tolerance, its gradient agrees with central differences of its forward.
+#[test]
+fn enzyme_through_cg_agrees_with_finite_differences_at_a_tight_tolerance() {
+    use diffsim::check::finite_differences;
+    use diffsim::problems::implicit_heat::HeatThroughCg;
+    let n = 4;
+    let op = HeatThroughCg { n, dt: 0.1, tolerance: 1e-13, max_iterations: 1000 };
+    let report = finite_differences(&op, &field(n * n, 1.0), &field(n * n, 0.4), &CheckParams { tol: 1e-5, ..CheckParams::default() });
+    assert!(report.verdict.passed(), "{report}");
+}

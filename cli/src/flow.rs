@@ -517,12 +517,7 @@ pub(super) fn drag_shape(a: DragShapeArgs) -> Result<(), CliError> {
     let _out = a.out.as_deref().map(|d| super::claim_out(d, a.overwrite, &inputs)).transpose()?;
     let p = DragStudyParams { optimise: opts, start, verify: !a.no_verify };
     if !a.json {
-        let place = match stream {
-            Stream::Channel => "the channel".to_string(),
-            Stream::Free { half_width } => format!("a free stream ({half_width} diameters to each side)"),
-        };
-        let re_shown = (opts.reynolds() * 1e6).round() / 1e6;
-        eprintln!("minimising the drag in {place} at Re {re_shown}, {per_d} cells per diameter, modes 2..={} …", a.modes);
+        eprintln!("minimising the drag in {} at Re {}, {per_d} cells per diameter, modes 2..={} …", p.place(), p.reynolds_shown(), a.modes);
     }
     let report = diffsim_studies::drag_shape::run(&p).map_err(super::train::study_error("drag-shape"))?;
     if let Some(dir) = &a.out {

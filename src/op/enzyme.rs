@@ -99,7 +99,7 @@ macro_rules! differentiable {
         fn forward_each(&self, xs: &[f64], ps: &[f64], ys: &mut [f64]) {
             use $crate::op::Operator as _;
             let sizes = [self.n_in(), self.n_params(), self.n_out()];
-            let count = $crate::op::batch_count($crate::op::Forward::name(self), "forward_each", &[(xs.len(), sizes[0]), (ps.len(), sizes[1]), (ys.len(), sizes[2])]);
+            let count = $crate::op::forward_each_count(self, xs, ps, ys);
             $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Forward);
             $crate::op::lanes::forward_each(sizes, count, xs, ps, ys, |x, p, y| $g(self, x, p, y));
         }
@@ -111,8 +111,7 @@ macro_rules! differentiable {
         fn vjp_each(&self, xs: &[f64], ps: &[f64], dys: &mut [f64], dxs: &mut [f64], dps: &mut [f64]) {
             use $crate::op::Operator as _;
             let sizes = [self.n_in(), self.n_params(), self.n_out()];
-            let slices = [(xs.len(), sizes[0]), (ps.len(), sizes[1]), (dys.len(), sizes[2]), (dxs.len(), sizes[0]), (dps.len(), sizes[1])];
-            let count = $crate::op::batch_count($crate::op::Forward::name(self), "vjp_each", &slices);
+            let count = $crate::op::vjp_each_count(self, xs, ps, dys, dxs, dps);
             $crate::op::count::record(::std::stringify!($ty), $crate::op::count::Method::Vjp);
             $crate::op::lanes::vjp_each(sizes, count, xs, ps, dys, dxs, dps, |x, dx, p, dp, y, dy| {
                 diffsim_generated_lanes_vjp(self, x, dx, p, dp, y, dy)

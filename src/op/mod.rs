@@ -202,19 +202,39 @@ pub trait Forward<R: Real = f64>: Operator {
     /// If the slices do not hold the same number of whole samples.
     fn forward_each(&self, xs: &[R], ps: &[R], ys: &mut [R]) {
         let (n_in, n_p, n_out) = (self.n_in(), self.n_params(), self.n_out());
-        let count = batch_count(self.name(), "forward_each", &[(xs.len(), n_in), (ps.len(), n_p), (ys.len(), n_out)]);
+        let count = forward_each_count(self, xs, ps, ys);
         for s in 0..count {
             self.forward(&xs[s * n_in..(s + 1) * n_in], &ps[s * n_p..(s + 1) * n_p], &mut ys[s * n_out..(s + 1) * n_out]);
         }
     }
 }
 
+/// The number of samples of a [`Forward::forward_each`] call (its default
+/// and the lane forms' check the slices through this one function).
+///
+/// # Panics
+/// Naming the operator, when the slices disagree or one holds a partial
+/// sample.
+#[doc(hidden)]
+#[track_caller]
+pub fn forward_each_count<R: Real, O: Forward<R> + ?Sized>(op: &O, xs: &[R], ps: &[R], ys: &[R]) -> usize {
+    batch_count(op.name(), "forward_each", &[(xs.len(), op.n_in()), (ps.len(), op.n_params()), (ys.len(), op.n_out())])
+}
+
+/// The number of samples of a [`Vjp::vjp_each`] call, checked as
+/// [`forward_each_count`] checks its.
+#[doc(hidden)]
+#[track_caller]
+pub fn vjp_each_count<R: Real, O: Forward<R> + ?Sized>(op: &O, xs: &[R], ps: &[R], dys: &[R], dxs: &[R], dps: &[R]) -> usize {
+    let (n_in, n_p, n_out) = (op.n_in(), op.n_params(), op.n_out());
+    batch_count(op.name(), "vjp_each", &[(xs.len(), n_in), (ps.len(), n_p), (dys.len(), n_out), (dxs.len(), n_in), (dps.len(), n_p)])
+}
+
 /// The number of samples in a batch's slices, each `(len, per_sample)`;
 /// panics naming the operator when they disagree or a slice holds a
 /// partial sample.
-#[doc(hidden)]
 #[track_caller]
-pub fn batch_count(name: OpName, method: &str, slices: &[(usize, usize)]) -> usize {
+fn batch_count(name: OpName, method: &str, slices: &[(usize, usize)]) -> usize {
     let count = slices.iter().find(|(_, n)| *n > 0).map_or(0, |(len, n)| len / n);
     for (k, &(len, n)) in slices.iter().enumerate() {
         if len != count * n {
@@ -411,8 +431,7 @@ pub trait Vjp<R: Real = f64>: Forward<R> {
     /// If the slices do not hold the same number of whole samples.
     fn vjp_each(&self, xs: &[R], ps: &[R], dys: &mut [R], dxs: &mut [R], dps: &mut [R]) {
         let (n_in, n_p, n_out) = (self.n_in(), self.n_params(), self.n_out());
-        let sizes = [(xs.len(), n_in), (ps.len(), n_p), (dys.len(), n_out), (dxs.len(), n_in), (dps.len(), n_p)];
-        let count = batch_count(self.name(), "vjp_each", &sizes);
+        let count = vjp_each_count(self, xs, ps, dys, dxs, dps);
         for s in 0..count {
             let (x, p) = (&xs[s * n_in..(s + 1) * n_in], &ps[s * n_p..(s + 1) * n_p]);
             self.vjp(x, p, &mut dys[s * n_out..(s + 1) * n_out], &mut dxs[s * n_in..(s + 1) * n_in], &mut dps[s * n_p..(s + 1) * n_p]);

@@ -111,8 +111,9 @@ pub fn loss_and_gradient<P: Vjp + Sync, N: Vjp + Sync>(physics: &P, net: &N, the
 
 /// [`loss_and_gradient`] of a batch of `batch_len` samples shared among
 /// the ranks of `world`: this rank evaluates the network on `mine` (its
-/// [`World::share`]) in one batched pass, runs the physics and its VJP per
-/// sample (in parallel), and every rank receives every sample's loss,
+/// [`World::share`]) in one batched pass, runs the physics and its VJP on
+/// each thread's share of the samples at once ([`crate::op::Forward::forward_each`],
+/// [`Vjp::vjp_each`]), and every rank receives every sample's loss,
 /// network input and control adjoint; then every rank takes the network's
 /// VJP over the whole batch at once ([`Vjp::vjp_batch`]: the parameters'
 /// gradient summed in sample order, no per-sample gradient formed). The

@@ -24,6 +24,21 @@ pub struct DragStudyParams {
     pub verify: bool,
 }
 
+impl DragStudyParams {
+    /// Where the body sits, in words.
+    pub fn place(&self) -> String {
+        match self.optimise.stream {
+            Stream::Channel => "the channel".to_string(),
+            Stream::Free { half_width } => format!("a free stream ({half_width} diameters to each side)"),
+        }
+    }
+
+    /// The Reynolds number without the rounding noise of `u_max`'s round trip.
+    pub fn reynolds_shown(&self) -> f64 {
+        (self.optimise.reynolds() * 1e6).round() / 1e6
+    }
+}
+
 /// What [`run`] found.
 #[derive(Clone, Debug)]
 pub struct DragShapeReport {
@@ -93,19 +108,6 @@ impl DragShapeReport {
         self.result.gradient_start / self.result.gradient_end
     }
 
-    /// Where the body sits, in words.
-    pub fn place(&self) -> String {
-        match self.params.optimise.stream {
-            Stream::Channel => "the channel".to_string(),
-            Stream::Free { half_width } => format!("a free stream ({half_width} diameters to each side)"),
-        }
-    }
-
-    /// The Reynolds number without the rounding noise of `u_max`'s round trip.
-    pub fn reynolds_shown(&self) -> f64 {
-        (self.params.optimise.reynolds() * 1e6).round() / 1e6
-    }
-
     /// The one-line result (the keys `drag-shape --json` prints).
     pub fn json(&self) -> serde_json::Value {
         let (o, r, per_d) = (&self.params.optimise, &self.result, self.params.optimise.cells_per_d);
@@ -135,8 +137,8 @@ impl DragShapeReport {
         let (reduction, shrink) = (self.reduction(), self.shrink());
         let mut out = format!(
             "Minimum drag at fixed area in {}, Re {}, {per_d} cells per diameter, Fourier modes 2..={}: {} L-BFGS iterations, {} steady solves, {:.1} s\n",
-            self.place(),
-            self.reynolds_shown(),
+            self.params.place(),
+            self.params.reynolds_shown(),
             o.modes,
             r.iterations,
             r.solves,
