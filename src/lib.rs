@@ -21,7 +21,12 @@
 //! ([`problems::smoke::SmokeStep`], [`fluids::DiffuseImplicit`]); a
 //! user's own implicit step is its matrix-vector product and right-hand
 //! side as plain functions, [`linear_system!`] and
-//! [`implicit::LinearSolve`], whose derivatives follow by the implicit rule.
+//! [`implicit::LinearSolve`], whose derivatives follow by the implicit rule;
+//! likewise a residual for Newton's method ([`nonlinear_system!`],
+//! [`implicit::NonlinearSolve`]) and a right-hand side `f(u, p)` for the
+//! time integrators, explicit and stiff ([`ode_system!`],
+//! [`implicit::Integrator`]). `use diffsim::prelude::*` brings the names a
+//! solver author writes with.
 //! All three obey one contract: a VJP
 //! *adds* `J_xᵀ·dy` into `dx` and consumes its seed.
 //!
@@ -126,6 +131,7 @@ pub mod implicit;
 pub mod memory;
 pub mod nn;
 pub mod op;
+pub mod prelude;
 pub mod problems;
 pub mod rollout;
 pub mod scene;

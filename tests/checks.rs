@@ -393,3 +393,48 @@ fn a_negative_solve_tolerance_is_refused() {
     let opts = CheckParams { solve_tolerance: Some(-1.0), ..CheckParams::default() };
     taylor(&op, &[0.1; 8], &[0.5], &opts);
 }
+
+/// `y = √x` per element, its VJP scaled by `factor` (1: correct).
+struct Root {
+    factor: f64,
+}
+
+impl Operator for Root {
+    fn n_in(&self) -> usize {
+        3
+    }
+    fn n_out(&self) -> usize {
+        3
+    }
+}
+
+impl Forward for Root {
+    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) {
+        for (y, x) in y.iter_mut().zip(x) {
+            *y = x.sqrt();
+        }
+    }
+}
+
+impl Vjp for Root {
+    fn vjp(&self, x: &[f64], _p: &[f64], dy: &mut [f64], dx: &mut [f64], _dp: &mut [f64]) {
+        for ((d, g), x) in dx.iter_mut().zip(dy.iter()).zip(x) {
+            *d += self.factor * g * 0.5 / x.sqrt();
+        }
+        dy.fill(0.0);
+    }
+}
+
+/// Near the edge of its domain (√ of a small number) the larger Taylor
+/// steps leave it (NaN): the smaller ones are judged, with a note, and a
+/// wrong gradient still fails there.
+#[test]
+fn taylor_judges_the_steps_that_stay_in_the_domain() {
+    let x = [0.004, 0.003, 0.005];
+    let right = taylor(&Root { factor: 1.0 }, &x, &[], &CheckParams::default());
+    assert!(right.remainders[0].is_nan(), "the largest step leaves the domain: {right}");
+    assert!(right.verdict.passed(), "{right}");
+    assert!(right.note.as_deref().is_some_and(|n| n.contains("no finite value")), "{right}");
+    let wrong = taylor(&Root { factor: 1.01 }, &x, &[], &CheckParams::default());
+    assert!(matches!(wrong.verdict, Verdict::Fail(_)), "{wrong}");
+}

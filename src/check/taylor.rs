@@ -58,7 +58,9 @@ impl fmt::Display for TaylorReport {
 /// undeclared kink within their reach. A remainder at rounding level for every step (a linear operator with
 /// an exact gradient) passes, and the report's note says so; a radius too
 /// small for any usable step, or one that leaves fewer than three
-/// remainders above rounding, gives [`Verdict::Kink`].
+/// remainders above rounding, gives [`Verdict::Kink`]. Where the operator
+/// gives NaN at the larger steps only (the perturbed input leaves its
+/// domain), the smaller steps are judged, with a note.
 #[track_caller]
 pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> TaylorReport {
     crate::op::check_lengths(op, "taylor", x, p, None);
@@ -80,7 +82,20 @@ pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> Taylo
     let h0 = (0.1 * zscale).min(0.5 * radius);
     let steps: Vec<f64> = (0..16).map(|k| h0 / 2f64.powi(k)).collect();
     let remainders: Vec<f64> = steps.iter().map(|&h| (functional(op, &axpy(x, h, &vx), &axpy(p, h, &vp), &w, &mut y) - phi0 - h * slope).abs()).collect();
-    let mut judged = judge(&steps, &remainders, slope, rounding, h0, radius, zscale);
+    // The perturbed point may leave the operator's domain at the larger
+    // steps (a concentration turned negative, a solve without a root): its
+    // output there is NaN. If every smaller step gives a number, judge on
+    // those; a NaN below a number is a failure.
+    let skip = remainders.iter().rposition(|r| r.is_nan()).map_or(0, |k| k + 1);
+    let skip = if skip < steps.len() && slope.is_finite() { skip } else { 0 };
+    let mut judged = judge(&steps[skip..], &remainders[skip..], slope, rounding, h0, radius, zscale);
+    if skip > 0 {
+        judged.rates.splice(0..0, std::iter::repeat_n(None, skip));
+        judged.note.get_or_insert(format!(
+            "the operator gives no finite value at steps ≥ {:.2e} (its input leaves the domain there, or its solve fails): judged on the smaller steps",
+            steps[skip - 1]
+        ));
+    }
     // An inner solve to relative tolerance s leaves errors of up to about
     // s·|φ|. Where the rates at rounding level fail and the operator
     // declares its solves' tolerance, judge again above the solver's level:
@@ -88,8 +103,9 @@ pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> Taylo
     // tolerance's limit, not the gradient's fault.
     let solve = opts.solve_tolerance_of(op);
     let level = solve * magnitude;
-    if level > rounding && matches!(judged.verdict, Verdict::Fail(_)) && !(remainders.iter().any(|r| r.is_nan()) || slope.is_nan()) {
-        let again = judge(&steps, &remainders, slope, level, h0, radius, zscale);
+    if level > rounding && matches!(judged.verdict, Verdict::Fail(_)) && !(remainders[skip..].iter().any(|r| r.is_nan()) || slope.is_nan()) {
+        let mut again = judge(&steps[skip..], &remainders[skip..], slope, level, h0, radius, zscale);
+        again.rates.splice(0..0, std::iter::repeat_n(None, skip));
         judged = if again.judged_rates {
             let note = again.verdict.passed().then(|| {
                 format!("the remainders below {:.1e} (100× the solver's level, solve tolerance {solve:.1e}) carry no rate: at rounding level the solves' errors showed", 100.0 * level)

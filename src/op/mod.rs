@@ -339,6 +339,17 @@ pub enum OpError {
         /// The largest stable value.
         limit: f64,
     },
+    /// Newton's method found no root: the residual's norm stayed above its
+    /// target (or no step along the Newton direction lowered it).
+    #[error("Newton's method did not converge: residual norm {residual:.3e} after {iterations} iterations (target {target:.1e})")]
+    NoRoot {
+        /// Newton iterations done.
+        iterations: usize,
+        /// The residual's 2-norm at the last iterate.
+        residual: f64,
+        /// The norm it had to reach.
+        target: f64,
+    },
     /// The input cannot be computed with (a shape that does not fit in the
     /// flow, say), in the operator's words.
     #[error("{0}")]

@@ -7,6 +7,7 @@ pub mod heat;
 pub mod implicit_heat;
 pub mod oscillators;
 pub mod ranges;
+pub mod robertson;
 pub mod smoke;
 pub mod smoke3d;
 

@@ -28,7 +28,7 @@ use crate::rollout::{AtSteps, Checkpointing, Rollout, RolloutError};
 
 pub use observe::{CheckpointPolicy, CsvLog, Observer, on_row, save_with};
 pub use optim::{Adam, AdamParams, Optimizer, Sgd, SgdParams, clip_by_norm};
-pub use rule::{ControlBatch, FnObjective, InverseBatch, Lbfgs, LbfgsParams, Objective, RolloutBatch, Sip, TrainError, UpdateRule};
+pub use rule::{ControlBatch, FnObjective, InverseBatch, Lbfgs, LbfgsParams, LbfgsStep, Objective, RolloutBatch, Sip, TrainError, UpdateRule};
 pub use trainer::{Schedule, Trainer, TrainerParams};
 
 /// How the network acts on each step.

@@ -1,5 +1,5 @@
-//! Implicit steps as ordinary Rust: a linear solve whose user writes only
-//! the forward physics.
+//! The linear solve: a user's system `A(p)·y = b(x, p)` as an operator whose
+//! user writes only the forward physics.
 //!
 //! The user's system is two plain functions on slices, the matrix-vector
 //! product `A(p)·v` and the right-hand side `b(x, p)`:
@@ -208,15 +208,12 @@ impl<S: LinearSystem> LinearSolve<S> {
     }
 }
 
-/// `A(p)` as CG's [`System`].
-struct Matrix<'a, S> {
-    system: &'a S,
-    p: &'a [f64],
-}
+/// A matrix given by its product, as CG's [`System`].
+struct Product<F>(F);
 
-impl<S: SystemFunctions> System for Matrix<'_, S> {
+impl<F: FnMut(&[f64], &mut [f64])> System for Product<F> {
     fn apply(&mut self, v: &[f64], out: &mut [f64]) {
-        self.system.matvec(v, self.p, out);
+        (self.0)(v, out);
     }
     fn precondition(&mut self, _r: &[f64], _z: &mut [f64]) -> bool {
         false
@@ -226,85 +223,106 @@ impl<S: SystemFunctions> System for Matrix<'_, S> {
     }
 }
 
-impl<S: SystemFunctions> LinearSolve<S> {
-    fn stop(&self) -> Stop {
-        Stop { tolerance: self.params.tolerance, max_iterations: self.params.max_iterations }
-    }
+/// Solves `A·y = b` (`transposed`: `Aᵀ·y = b`) by `params`, the matrix
+/// given by its product `apply` and transposed product `apply_t` (called
+/// only by BiCGStab's transposed solve), and returns the iterations (0 for
+/// the direct solve). CG takes `A` symmetric, so its transposed solve is
+/// the same solve. On failure `y` is left unspecified. Shared by the
+/// linear solve, Newton's method and the integrators.
+pub(crate) fn solve_system(
+    params: &SolveParams,
+    mut apply: impl FnMut(&[f64], &mut [f64]),
+    apply_t: impl FnMut(&[f64], &mut [f64]),
+    b: &[f64],
+    y: &mut [f64],
+    transposed: bool,
+) -> Result<usize, OpError> {
+    let stop = Stop { tolerance: params.tolerance, max_iterations: params.max_iterations };
+    let n = b.len();
+    let iterations = match params.method {
+        SolveMethod::Cg => diffsim_solvers::cg::solve(&mut Product(apply), &mut CgWork::new(n), stop, b, y, false)?,
+        SolveMethod::BiCgStab if transposed => bicgstab(apply_t, stop, b, y, false)?,
+        SolveMethod::BiCgStab => bicgstab(apply, stop, b, y, false)?,
+        SolveMethod::Direct => {
+            let lu = factor(n, &mut apply)?;
+            y.copy_from_slice(b);
+            if transposed {
+                lu.solve_transpose_in_place(y)
+            } else {
+                lu.solve_in_place(y)
+            }
+            if !y.iter().all(|v| v.is_finite()) {
+                return Err(singular());
+            }
+            0
+        }
+    };
+    Ok(iterations)
+}
 
+fn singular() -> OpError {
+    OpError::Input(crate::op::OpMessage::new("a direct solve: the matrix is singular"))
+}
+
+/// [`SolveMethod::Direct`]: the matrix assembled column by column from its
+/// products with the unit vectors (nonzero entries kept), and its sparse LU.
+fn factor(n: usize, apply: &mut impl FnMut(&[f64], &mut [f64])) -> Result<diffsim_solvers::linalg::SparseLu, OpError> {
+    let (mut unit, mut column) = (vec![0.0; n], vec![0.0; n]);
+    let mut entries = Vec::new();
+    for j in 0..n {
+        unit[j] = 1.0;
+        apply(&unit, &mut column);
+        unit[j] = 0.0;
+        entries.extend(column.iter().enumerate().filter(|(_, v)| **v != 0.0).map(|(i, &v)| (i, j, v)));
+    }
+    if entries.iter().any(|(_, _, v)| !v.is_finite()) {
+        return Err(OpError::Input(crate::op::OpMessage::new("a direct solve: the matrix holds a NaN or an infinity")));
+    }
+    diffsim_solvers::linalg::SparseLu::new(n, &entries).map_err(|_| singular())
+}
+
+/// Leaves `y` NaN and keeps the first failure in `kept` (for
+/// [`Forward::take_error`]).
+pub(crate) fn fail(kept: &Mutex<Option<OpError>>, y: &mut [f64], e: OpError) {
+    y.fill(f64::NAN);
+    let mut kept = kept.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    kept.get_or_insert(e);
+}
+
+/// Takes the kept failure.
+pub(crate) fn take(kept: &Mutex<Option<OpError>>) -> Option<OpError> {
+    let mut kept = kept.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    kept.take()
+}
+
+impl<S: SystemFunctions> LinearSolve<S> {
     /// Solves `A(p)·y = b` (the adjoint solve: `A(p)ᵀ·y = b`) into `y`; a
     /// failure leaves `y` NaN and is kept for [`Forward::take_error`].
     fn solve(&self, p: &[f64], b: &[f64], y: &mut [f64], adjoint: bool) {
-        // A symmetric matrix's adjoint solve is the same solve.
-        let transposed = adjoint && !self.symmetric();
-        let n = self.system.n();
-        let result = match self.params.method {
-            SolveMethod::Cg => diffsim_solvers::cg::solve(&mut Matrix { system: &self.system, p }, &mut CgWork::new(n), self.stop(), b, y, false),
-            SolveMethod::BiCgStab if !transposed => bicgstab(|v, out| self.system.matvec(v, p, out), self.stop(), b, y, false),
-            SolveMethod::Direct => return self.solve_direct(p, b, y, adjoint),
-            SolveMethod::BiCgStab => {
-                let (mut w, mut dp) = (vec![0.0; n], vec![0.0; self.system.n_params()]);
-                let product = |v: &[f64], out: &mut [f64]| {
-                    // Aᵀ·v: the VJP of u ↦ A(p)·u, at any u (it is linear).
-                    w.copy_from_slice(v);
-                    out.fill(0.0);
-                    self.system.matvec_vjp(v, p, &mut w, out, &mut dp);
-                };
-                bicgstab(product, self.stop(), b, y, false)
-            }
+        let (n, m) = (self.system.n(), self.system.n_params());
+        let (mut w, mut dp) = (Vec::new(), Vec::new());
+        let transposed_product = |v: &[f64], out: &mut [f64]| {
+            // Aᵀ·v: the VJP of u ↦ A(p)·u, at any u (it is linear).
+            w.clear();
+            w.extend_from_slice(v);
+            dp.resize(m, 0.0);
+            out.fill(0.0);
+            self.system.matvec_vjp(v, p, &mut w, out, &mut dp);
         };
+        let result = solve_system(&self.params, |v, out| self.system.matvec(v, p, out), transposed_product, b, y, adjoint);
+        debug_assert_eq!(y.len(), n);
         let counter = if adjoint { &self.info.adjoint } else { &self.info.forward };
         match result {
             Ok(it) => {
                 counter.fetch_add(it, Ordering::Relaxed);
             }
             Err(e) => {
-                counter.fetch_add(e.iterations, Ordering::Relaxed);
-                self.fail(y, OpError::from(e));
+                if let OpError::NoConvergence { iterations, .. } = e {
+                    counter.fetch_add(iterations, Ordering::Relaxed);
+                }
+                fail(&self.error, y, e);
             }
         }
-    }
-
-    /// Leaves `y` NaN and keeps the first failure for [`Forward::take_error`].
-    fn fail(&self, y: &mut [f64], e: OpError) {
-        y.fill(f64::NAN);
-        let mut kept = self.error.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        kept.get_or_insert(e);
-    }
-
-    /// [`SolveMethod::Direct`]: assembles `A(p)` column by column and solves
-    /// with its sparse LU (`adjoint`: with the transposed factors).
-    fn solve_direct(&self, p: &[f64], b: &[f64], y: &mut [f64], adjoint: bool) {
-        let n = self.system.n();
-        let (mut unit, mut column) = (vec![0.0; n], vec![0.0; n]);
-        let mut entries = Vec::new();
-        for j in 0..n {
-            unit[j] = 1.0;
-            self.system.matvec(&unit, p, &mut column);
-            unit[j] = 0.0;
-            entries.extend(column.iter().enumerate().filter(|(_, v)| **v != 0.0).map(|(i, &v)| (i, j, v)));
-        }
-        let singular = || OpError::Input(crate::op::OpMessage::new("LinearSolve: the matrix is singular"));
-        if entries.iter().any(|(_, _, v)| !v.is_finite()) {
-            return self.fail(y, OpError::Input(crate::op::OpMessage::new("LinearSolve: the matrix holds a NaN or an infinity")));
-        }
-        match diffsim_solvers::linalg::SparseLu::new(n, &entries) {
-            Ok(lu) => {
-                y.copy_from_slice(b);
-                if adjoint {
-                    lu.solve_transpose_in_place(y)
-                } else {
-                    lu.solve_in_place(y)
-                }
-                if !y.iter().all(|v| v.is_finite()) {
-                    self.fail(y, singular());
-                }
-            }
-            Err(_) => self.fail(y, singular()),
-        }
-    }
-
-    fn symmetric(&self) -> bool {
-        self.params.method == SolveMethod::Cg
     }
 }
 
@@ -335,8 +353,7 @@ impl<S: SystemFunctions> Forward for LinearSolve<S> {
     }
 
     fn take_error(&self) -> Option<OpError> {
-        let mut kept = self.error.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        kept.take()
+        take(&self.error)
     }
 }
 
