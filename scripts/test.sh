@@ -24,6 +24,9 @@ own=$(mktemp -d)/my-solver
 trap 'rm -rf "$(dirname "$own")"' EXIT
 target/release/diffsim new "$own"
 (cd "$own" && ./cargo-enzyme run --release && ./cargo-enzyme test --release)
+# The implicit template (docs/own-solver.md, "An implicit step"): the same.
+target/release/diffsim new "$own-implicit" --template implicit
+(cd "$own-implicit" && ./cargo-enzyme run --release && ./cargo-enzyme test --release)
 # A debug build there stops at once and says what to run instead.
 if (cd "$own" && cargo build >"$own.debug.log" 2>&1); then
     echo "a debug build of the new crate did not stop" >&2

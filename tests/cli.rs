@@ -659,6 +659,25 @@ fn new_writes_a_crate_with_its_names_the_toolchain_and_the_guard() {
     fails_with(&["new", dir.to_str().unwrap()], "exists and is not an empty folder");
 }
 
+/// `--template implicit` writes the implicit step's crate (its physics a
+/// right-hand side for the integrator), its names replaced; an unknown
+/// template is refused with the choices.
+#[test]
+fn new_writes_the_implicit_template() {
+    let dir = scratch_dir("new-implicit");
+    let (code, _, err) = diffsim(&["new", dir.to_str().unwrap(), "--name", "cool-down", "--template", "implicit"]);
+    assert_eq!(code, 0, "{err}");
+    let read = |f: &str| std::fs::read_to_string(dir.join(f)).unwrap_or_else(|e| panic!("{f}: {e}"));
+    let solver = read("solver/src/lib.rs");
+    assert!(solver.contains("diffsim::ode_system!(Heat => heat_rate);"), "{solver}");
+    assert!(read("src/lib.rs").contains("use cool_down_solver::{Heat, step};"));
+    assert!(read("run/tests/checks.rs").contains("cool_down::run().unwrap()"));
+    assert!(!read("Cargo.toml").contains("starter"));
+    let (code, _, err) = diffsim(&["new", scratch_dir("new-unknown").to_str().unwrap(), "--template", "explicitly"]);
+    assert_ne!(code, 0);
+    assert!(err.contains("starter") && err.contains("implicit"), "{err}");
+}
+
 #[test]
 fn new_rejects_bad_names_with_a_message() {
     let dir = scratch_dir("Bad Name");

@@ -63,8 +63,8 @@ mod differentiable_macro {
     }
 }
 
-/// docs/own-solver.md quotes the template of `diffsim new`
-/// (`examples/starter`) between `// ANCHOR: name` and `// ANCHOR_END: name`
+/// docs/own-solver.md quotes the templates of `diffsim new`
+/// (`examples/starter`, `examples/implicit`) between `// ANCHOR: name` and `// ANCHOR_END: name`
 /// lines; each quoted block must equal its region, and every region must be
 /// quoted, so the page cannot drift from the code the test command builds
 /// and runs.
@@ -90,13 +90,15 @@ fn own_solver_page_quotes_the_template() {
         quoted.push(marker.to_string());
         rest = &rest[start + len..];
     }
-    for path in ["examples/starter/solver/src/lib.rs", "examples/starter/src/lib.rs"].iter() {
+    for path in
+        ["examples/starter/solver/src/lib.rs", "examples/starter/src/lib.rs", "examples/implicit/solver/src/lib.rs", "examples/implicit/src/lib.rs"].iter()
+    {
         let file = read(path);
         for line in file.lines().filter_map(|l| l.trim().strip_prefix("// ANCHOR: ")) {
             assert!(quoted.contains(&format!("{path}#{line}")), "{path}#{line} is not quoted in docs/own-solver.md");
         }
     }
-    assert!(quoted.len() >= 9, "{quoted:?}");
+    assert!(quoted.len() >= 13, "{quoted:?}");
 }
 
 /// Every relative link of the README and the docs pages points to a file

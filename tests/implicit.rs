@@ -8,7 +8,7 @@
 use diffsim::check::{CheckParams, check_all};
 use diffsim::implicit::{LinearSolve, LinearSystem, SolveMethod, SolveParams};
 use diffsim::op::{Forward, OperatorExt};
-use diffsim::problems::implicit_heat::{ImplicitHeat as Heat, heat_matvec};
+use diffsim::problems::implicit_heat::{ImplicitHeat as Heat, heat_conductances, heat_matvec};
 use diffsim::rollout::{AtSteps, Checkpointing, Rollout, RolloutLoss, Wrt};
 use std::sync::atomic::Ordering;
 
@@ -64,7 +64,9 @@ fn a_users_symmetric_system_passes_the_checks_by_the_implicit_rule() {
     // (A symmetric, b = x), computed here by a second, independent solve.
     let y = op.eval(&x, &theta);
     let mut ay = vec![0.0; n * n];
-    heat_matvec(&Heat { n, dt: 0.1 }, &y, &theta, &mut ay);
+    let mut c = vec![0.0; Heat { n, dt: 0.1 }.n_coefficients()];
+    heat_conductances(&Heat { n, dt: 0.1 }, &theta, &mut c);
+    heat_matvec(&Heat { n, dt: 0.1 }, &y, &c, &mut ay);
     assert!(ay.iter().zip(&x).all(|(a, b)| (a - b).abs() < 1e-8), "A·y ≠ x");
     let w = field(n * n, -0.8);
     let (dx, _) = op.vjp_new(&x, &theta, &w);

@@ -9,7 +9,9 @@ implicit rule (a transposed solve), as diffsim does. Loss 1/2 |x_T - x*|^2,
 gradient with respect to the initial state and every conductivity; float64,
 jit. The same initial state, conductivities and target as the Rust bench.
 
-Usage: python implicit_heat_jax.py N STEPS BUDGET_SECONDS  -> one JSON line.
+Usage: python implicit_heat_jax.py N STEPS BUDGET_SECONDS [zero|rhs]  -> one JSON line
+(rhs: CG starts from the right-hand side, as `diffsim bench implicit-heat
+--start rhs`).
 """
 import json
 import statistics
@@ -23,6 +25,7 @@ import jax.numpy as jnp  # noqa: E402
 from jax.scipy.sparse.linalg import cg  # noqa: E402
 
 n, steps, budget = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
+start = sys.argv[4] if len(sys.argv) > 4 else "zero"
 dt, tol = 0.1, 1e-10
 
 
@@ -52,7 +55,7 @@ def matvec_of(theta):
 
 
 def solve(matvec, b):
-    return cg(matvec, b, tol=tol, atol=0.0, maxiter=10_000)[0]
+    return cg(matvec, b, x0=b if start == "rhs" else None, tol=tol, atol=0.0, maxiter=10_000)[0]
 
 
 def loss(x0, theta):
@@ -85,6 +88,6 @@ value = float(forward(x0, theta))
 v2, (gx, gt) = gradient(x0, theta)
 forward_s = median_time(lambda: forward(x0, theta))
 grad_s = median_time(lambda: gradient(x0, theta))
-print(json.dumps({"peer": "jax", "jax": jax.__version__, "n": n, "steps": steps, "tolerance": tol, "loss": value,
+print(json.dumps({"peer": "jax", "jax": jax.__version__, "n": n, "steps": steps, "tolerance": tol, "start": start, "loss": value,
                   "grad_norm": float(jnp.sqrt(jnp.sum(gx ** 2) + jnp.sum(gt ** 2))),
                   "forward_s": forward_s, "grad_s": grad_s, "grad_over_forward": grad_s / forward_s}))

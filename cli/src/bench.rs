@@ -835,6 +835,10 @@ pub(super) struct ImplicitHeatArgs {
     /// Seconds of repeats for each median (at least three runs each).
     #[arg(long, default_value_t = 2.0)]
     budget: f64,
+    /// Where CG starts: `zero`, or `rhs` (the right-hand side, close to
+    /// the solution of a time step).
+    #[arg(long, value_enum, default_value_t = StartArg::Zero)]
+    start: StartArg,
     /// Also differentiate through the CG iterations with Enzyme (the route
     /// without the implicit rule) at tolerances 1e-6 … 1e-12: each
     /// gradient's error against the implicit one at 1e-13, and its time.
@@ -843,6 +847,15 @@ pub(super) struct ImplicitHeatArgs {
     /// Print one JSON line instead of a table.
     #[arg(long)]
     json: bool,
+}
+
+/// [`diffsim::implicit::Start`] on the command line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub(super) enum StartArg {
+    /// From zero.
+    Zero,
+    /// From the right-hand side.
+    Rhs,
 }
 
 /// `diffsim bench implicit-heat`: the loss `½‖x_T − x*‖²` of `steps`
@@ -874,7 +887,11 @@ fn implicit_heat(a: ImplicitHeatArgs) -> Result<(), CliError> {
         Some("a smaller --n or --steps".into()),
     )?;
     let (n, steps) = (a.n, a.steps);
-    let op = ImplicitHeat::step(n, 0.1, SolveParams::default());
+    let start = match a.start {
+        StartArg::Zero => diffsim::implicit::Start::Zero,
+        StartArg::Rhs => diffsim::implicit::Start::Rhs,
+    };
+    let op = ImplicitHeat::step(n, 0.1, SolveParams { start, ..SolveParams::default() });
     let wave = |k: usize, a: f64, b: f64| a * (0.37 * (k % n) as f64).sin() * (0.23 * (k / n) as f64).cos() + b;
     let x0: Vec<f64> = (0..n * n).map(|k| wave(k, 1.0, 0.5)).collect();
     let theta: Vec<f64> = (0..n * n).map(|k| wave(k, 0.5, 0.0)).collect();
@@ -901,13 +918,13 @@ fn implicit_heat(a: ImplicitHeatArgs) -> Result<(), CliError> {
     let (forward_s, _) = median_time(a.budget, 3, 100_000, || rollout.loss(&x0, &loss));
     let (grad_s, _) = median_time(a.budget, 3, 100_000, || rollout.value_and_grad(&x0, &loss, Checkpointing::Store));
     let mut row = serde_json::json!({
-        "problem": "implicit-heat", "n": n, "steps": steps, "tolerance": op.params.tolerance,
+        "problem": "implicit-heat", "n": n, "steps": steps, "tolerance": op.params.tolerance, "start": format!("{:?}", a.start).to_lowercase(),
         "forward_s": forward_s, "grad_s": grad_s, "grad_over_forward": grad_s / forward_s,
         "cg_forward_iterations": c1.0 - c0.0, "cg_gradient_forward_iterations": c2.0 - c1.0, "cg_adjoint_iterations": c2.1 - c1.1,
         "loss": value,
     });
     if !a.json {
-        println!("implicit heat, {n}² cells, {steps} backward-Euler steps, CG to {:.0e}", op.params.tolerance);
+        println!("implicit heat, {n}² cells, {steps} backward-Euler steps, CG to {:.0e} from {:?}", op.params.tolerance, a.start);
         println!("  forward    {:9.3} ms  ({} CG iterations)", 1e3 * forward_s, c1.0 - c0.0);
         println!("  gradient   {:9.3} ms  ({} forward and {} adjoint CG iterations)", 1e3 * grad_s, c2.0 - c1.0, c2.1 - c1.1);
         println!("  gradient / forward  {:.2}", grad_s / forward_s);

@@ -1,6 +1,8 @@
-//! `diffsim new PATH [--name NAME]`: a crate of your own on diffsim, ready
-//! to build. It writes the template of `examples/starter` (the crate that
-//! `docs/own-solver.md` walks through) with its names replaced, the pinned
+//! `diffsim new PATH [--name NAME] [--template starter|implicit]`: a crate
+//! of your own on diffsim, ready to build. It writes a template,
+//! `examples/starter` (an explicit step, its hand and generated adjoints)
+//! or `examples/implicit` (an implicit step from its right-hand side), the
+//! crates `docs/own-solver.md` walks through, with its names replaced, the pinned
 //! toolchain, the Enzyme log guard, this checkout's lock file, and a cargo
 //! configuration that stops debug builds at once and (unless
 //! `--own-target`) shares this checkout's target folder.
@@ -15,9 +17,35 @@ use super::CliError;
 /// built with the autodiff flag, and arrays of tuples iterated by value
 /// abort rustc there (docs/pitfalls.md).
 macro_rules! template {
-    ($root:expr, $names:expr, $file:literal) => {
-        write($root, $file, &instantiate($file, include_str!(concat!("../../examples/starter/", $file)), $names))?
+    ($root:expr, $names:expr, $dir:literal, $file:literal) => {
+        write($root, $file, &instantiate($file, include_str!(concat!("../../examples/", $dir, "/", $file)), $names))?
     };
+}
+
+/// Writes every file of the template in `examples/$dir`.
+macro_rules! templates {
+    ($root:expr, $names:expr, $dir:literal) => {{
+        template!($root, $names, $dir, "Cargo.toml");
+        template!($root, $names, $dir, "README.md");
+        template!($root, $names, $dir, "src/lib.rs");
+        template!($root, $names, $dir, "solver/Cargo.toml");
+        template!($root, $names, $dir, "solver/src/lib.rs");
+        template!($root, $names, $dir, "run/Cargo.toml");
+        template!($root, $names, $dir, "run/src/main.rs");
+        template!($root, $names, $dir, "run/tests/checks.rs");
+    }};
+}
+
+/// The crate to start from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Template {
+    /// An explicit step (Fisher–KPP): `differentiable!`, `stencil3!`, lent
+    /// scratch, a hand adjoint beside Enzyme's, an Adam fit.
+    Starter,
+    /// An implicit step (backward-Euler heat conduction with a conductivity
+    /// per cell) from its right-hand side: `ode_system!` and the
+    /// integrator, an L-BFGS fit of the conductivities.
+    Implicit,
 }
 
 const TOOLCHAIN: &str = include_str!("../../rust-toolchain.toml");
@@ -45,6 +73,9 @@ pub struct NewArgs {
     /// seconds instead of minutes).
     #[arg(long)]
     own_target: bool,
+    /// The crate to start from.
+    #[arg(long, value_enum, default_value_t = Template::Starter)]
+    template: Template,
 }
 
 fn invalid(arg: &'static str, reason: impl Into<String>) -> CliError {
@@ -154,14 +185,10 @@ pub fn new(a: NewArgs) -> Result<(), CliError> {
 
     let root = &a.path;
     let names = Names { kebab: &kebab, snake: &snake, diffsim: &diffsim_str };
-    template!(root, &names, "Cargo.toml");
-    template!(root, &names, "README.md");
-    template!(root, &names, "src/lib.rs");
-    template!(root, &names, "solver/Cargo.toml");
-    template!(root, &names, "solver/src/lib.rs");
-    template!(root, &names, "run/Cargo.toml");
-    template!(root, &names, "run/src/main.rs");
-    template!(root, &names, "run/tests/checks.rs");
+    match a.template {
+        Template::Starter => templates!(root, &names, "starter"),
+        Template::Implicit => templates!(root, &names, "implicit"),
+    }
     write(root, "rust-toolchain.toml", TOOLCHAIN)?;
     write(root, "Cargo.lock", LOCK)?;
     write(root, ".gitignore", "/target\n*.log\n")?;

@@ -22,7 +22,21 @@
 //! JVP:  A·ẏ = (∂b/∂x)·ẋ + (∂b/∂p)·ṗ − (∂(A(p)·y)/∂p)·ṗ
 //! ```
 //!
-//! one more solve each. The terms in `∂/∂p`, `∂/∂x` and, for a
+//! one more solve each.
+//!
+//! A matrix whose entries cost work to form from `p` (an exponential per
+//! cell, a face average) can name a third function that forms its
+//! coefficients `c(p)` once per solve, the product then reading `c`:
+//!
+//! ```ignore
+//! fn conductances(s: &Heat, p: &[f64], c: &mut [f64]) { /* c = c(p) */ }
+//! fn matvec(s: &Heat, v: &[f64], c: &[f64], out: &mut [f64]) { /* out = A(c)·v */ }
+//! diffsim::linear_system!(Heat => matvec, rhs, coefficients = conductances);
+//! ```
+//!
+//! (with [`LinearSystem::n_coefficients`] their number): the iterations
+//! then never form them again, and `p̄` gets `(∂c/∂p)ᵀ·c̄` from Enzyme's
+//! derivative of `c`. The terms in `∂/∂p`, `∂/∂x` and, for a
 //! non-symmetric `A`, the transposed product `Aᵀ·λ` come from Enzyme's
 //! derivatives of the user's two functions ([`linear_system!`](crate::linear_system)).
 //! Differentiating through the CG iterations instead gives the derivative
@@ -31,8 +45,8 @@
 //! A solve that does not converge leaves the output NaN and its error in
 //! [`Forward::take_error`]; a rollout stops there with that error.
 
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
 
 use diffsim_solvers::cg::{CgWork, Null, Stop, System};
 use diffsim_solvers::krylov::bicgstab;
@@ -49,20 +63,46 @@ pub trait LinearSystem {
     fn n_params(&self) -> usize {
         0
     }
+    /// Coefficients `c(p)` the matrix-vector product reads, when the
+    /// system names a function that forms them
+    /// ([`linear_system!`](crate::linear_system)`(.., coefficients = f)`);
+    /// without one the product reads `p` itself.
+    fn n_coefficients(&self) -> usize {
+        self.n_params()
+    }
 }
 
-/// A system's two functions and their derivatives, implemented by
+/// A system's functions and their derivatives, implemented by
 /// [`linear_system!`](crate::linear_system) with Enzyme; not written by
 /// hand.
 #[doc(hidden)]
-pub trait SystemFunctions: LinearSystem {
-    /// `out = A(p)·v`.
-    fn matvec(&self, v: &[f64], p: &[f64], out: &mut [f64]);
-    /// `dv += A(p)ᵀ·w`, `dp += (∂(A(p)·v)/∂p)ᵀ·w`; consumes `w`.
-    fn matvec_vjp(&self, v: &[f64], p: &[f64], w: &mut [f64], dv: &mut [f64], dp: &mut [f64]);
-    /// `out = A(p)·v`, `tout = A(p)·tv + (∂(A(p)·v)/∂p)·tp`.
+pub trait SystemFunctions: SystemCoefficients + SystemProducts {}
+
+impl<T: SystemCoefficients + SystemProducts> SystemFunctions for T {}
+
+/// The coefficients `c(p)` of a system's matrix and their derivatives
+/// ([`linear_system!`](crate::linear_system)).
+#[doc(hidden)]
+pub trait SystemCoefficients: LinearSystem {
+    /// `c = c(p)` (without a coefficient function: `c = p`).
+    fn coefficients(&self, p: &[f64], c: &mut [f64]);
+    /// `dp += (∂c/∂p)ᵀ·dc`; consumes `dc`.
+    fn coefficients_vjp(&self, p: &[f64], dc: &mut [f64], dp: &mut [f64]);
+    /// `c = c(p)`, `tc = (∂c/∂p)·tp`.
+    fn coefficients_jvp(&self, p: &[f64], tp: &[f64], c: &mut [f64], tc: &mut [f64]);
+}
+
+/// A system's product and right-hand side and their derivatives
+/// ([`linear_system!`](crate::linear_system)).
+#[doc(hidden)]
+pub trait SystemProducts: LinearSystem {
+    /// `out = A(c)·v`.
+    fn matvec(&self, v: &[f64], c: &[f64], out: &mut [f64]);
+    /// `dv += A(c)ᵀ·w`, `dc += (∂(A(c)·v)/∂c)ᵀ·w`; consumes `w`.
+    fn matvec_vjp(&self, v: &[f64], c: &[f64], w: &mut [f64], dv: &mut [f64], dc: &mut [f64]);
+    /// `out = A(c)·v`, `tout = A(c)·tv + (∂(A(c)·v)/∂c)·tc`.
     #[allow(clippy::too_many_arguments)]
-    fn matvec_jvp(&self, v: &[f64], p: &[f64], tv: &[f64], tp: &[f64], out: &mut [f64], tout: &mut [f64]);
+    fn matvec_jvp(&self, v: &[f64], c: &[f64], tv: &[f64], tc: &[f64], out: &mut [f64], tout: &mut [f64]);
     /// `b = b(x, p)`.
     fn rhs(&self, x: &[f64], p: &[f64], b: &mut [f64]);
     /// `dx += (∂b/∂x)ᵀ·w`, `dp += (∂b/∂p)ᵀ·w`; consumes `w`.
@@ -75,22 +115,72 @@ pub trait SystemFunctions: LinearSystem {
 /// Makes `Sys` (a [`LinearSystem`], plain data) the system of a
 /// [`LinearSolve`] from its matrix-vector product `fn(&Sys, v, p, out)` and
 /// right-hand side `fn(&Sys, x, p, b)`, both plain functions that write
-/// every element of their output. Enzyme generates the derivatives the
+/// every element of their output; with `coefficients = c`, a function
+/// `fn(&Sys, p, c)` forms the matrix's coefficients once per solve and the
+/// product reads them instead of `p` (`fn(&Sys, v, c, out)`, module docs). Enzyme generates the derivatives the
 /// implicit rule needs. The crate that invokes it needs what
 /// [`differentiable!`](crate::differentiable) needs (the autodiff feature
 /// and flag, a fat-LTO release build).
 #[macro_export]
 macro_rules! linear_system {
     ($ty:ty => $matvec:path, $rhs:path) => {
+        $crate::linear_system!(@functions $ty, $matvec, $rhs);
+        const _: () = {
+            impl $crate::implicit::SystemCoefficients for $ty {
+                fn coefficients(&self, p: &[f64], c: &mut [f64]) {
+                    c.copy_from_slice(p)
+                }
+                fn coefficients_vjp(&self, _p: &[f64], dc: &mut [f64], dp: &mut [f64]) {
+                    for (d, c) in dp.iter_mut().zip(dc.iter_mut()) {
+                        *d += *c;
+                        *c = 0.0;
+                    }
+                }
+                fn coefficients_jvp(&self, p: &[f64], tp: &[f64], c: &mut [f64], tc: &mut [f64]) {
+                    c.copy_from_slice(p);
+                    tc.copy_from_slice(tp);
+                }
+            }
+        };
+    };
+    ($ty:ty => $matvec:path, $rhs:path, coefficients = $coef:path) => {
+        $crate::linear_system!(@functions $ty, $matvec, $rhs);
+        #[allow(clippy::too_many_arguments)]
+        const _: () = {
+            #[::std::autodiff::autodiff_reverse(diffsim_coefficients_vjp, Const, Duplicated, Duplicated)]
+            fn diffsim_coefficients_reverse(s: &$ty, p: &[f64], c: &mut [f64]) {
+                $coef(s, p, c)
+            }
+            #[::std::autodiff::autodiff_forward(diffsim_coefficients_jvp, Const, Dual, Dual)]
+            fn diffsim_coefficients_forward(s: &$ty, p: &[f64], c: &mut [f64]) {
+                $coef(s, p, c)
+            }
+            impl $crate::implicit::SystemCoefficients for $ty {
+                fn coefficients(&self, p: &[f64], c: &mut [f64]) {
+                    $coef(self, p, c)
+                }
+                #[inline(never)]
+                fn coefficients_vjp(&self, p: &[f64], dc: &mut [f64], dp: &mut [f64]) {
+                    let m = $crate::implicit::LinearSystem::n_coefficients(self);
+                    $crate::op::with_scratch(m, |c| diffsim_coefficients_vjp(self, p, dp, c, dc));
+                }
+                #[inline(never)]
+                fn coefficients_jvp(&self, p: &[f64], tp: &[f64], c: &mut [f64], tc: &mut [f64]) {
+                    diffsim_coefficients_jvp(self, p, tp, c, tc)
+                }
+            }
+        };
+    };
+    (@functions $ty:ty, $matvec:path, $rhs:path) => {
         #[allow(clippy::too_many_arguments)]
         const _: () = {
             #[::std::autodiff::autodiff_reverse(diffsim_matvec_vjp, Const, Duplicated, Duplicated, Duplicated)]
-            fn diffsim_matvec_reverse(s: &$ty, v: &[f64], p: &[f64], out: &mut [f64]) {
-                $matvec(s, v, p, out)
+            fn diffsim_matvec_reverse(s: &$ty, v: &[f64], c: &[f64], out: &mut [f64]) {
+                $matvec(s, v, c, out)
             }
             #[::std::autodiff::autodiff_forward(diffsim_matvec_jvp, Const, Dual, Dual, Dual)]
-            fn diffsim_matvec_forward(s: &$ty, v: &[f64], p: &[f64], out: &mut [f64]) {
-                $matvec(s, v, p, out)
+            fn diffsim_matvec_forward(s: &$ty, v: &[f64], c: &[f64], out: &mut [f64]) {
+                $matvec(s, v, c, out)
             }
             #[::std::autodiff::autodiff_reverse(diffsim_rhs_vjp, Const, Duplicated, Duplicated, Duplicated)]
             fn diffsim_rhs_reverse(s: &$ty, x: &[f64], p: &[f64], b: &mut [f64]) {
@@ -101,18 +191,18 @@ macro_rules! linear_system {
                 $rhs(s, x, p, b)
             }
 
-            impl $crate::implicit::SystemFunctions for $ty {
-                fn matvec(&self, v: &[f64], p: &[f64], out: &mut [f64]) {
-                    $matvec(self, v, p, out)
+            impl $crate::implicit::SystemProducts for $ty {
+                fn matvec(&self, v: &[f64], c: &[f64], out: &mut [f64]) {
+                    $matvec(self, v, c, out)
                 }
                 #[inline(never)]
-                fn matvec_vjp(&self, v: &[f64], p: &[f64], w: &mut [f64], dv: &mut [f64], dp: &mut [f64]) {
+                fn matvec_vjp(&self, v: &[f64], c: &[f64], w: &mut [f64], dv: &mut [f64], dc: &mut [f64]) {
                     let n = $crate::implicit::LinearSystem::n(self);
-                    $crate::op::with_scratch(n, |out| diffsim_matvec_vjp(self, v, dv, p, dp, out, w));
+                    $crate::op::with_scratch(n, |out| diffsim_matvec_vjp(self, v, dv, c, dc, out, w));
                 }
                 #[inline(never)]
-                fn matvec_jvp(&self, v: &[f64], p: &[f64], tv: &[f64], tp: &[f64], out: &mut [f64], tout: &mut [f64]) {
-                    diffsim_matvec_jvp(self, v, tv, p, tp, out, tout)
+                fn matvec_jvp(&self, v: &[f64], c: &[f64], tv: &[f64], tc: &[f64], out: &mut [f64], tout: &mut [f64]) {
+                    diffsim_matvec_jvp(self, v, tv, c, tc, out, tout)
                 }
                 fn rhs(&self, x: &[f64], p: &[f64], b: &mut [f64]) {
                     $rhs(self, x, p, b)
@@ -159,11 +249,27 @@ pub struct SolveParams {
     pub tolerance: f64,
     /// More iterations (BiCGStab: matrix products) than this is an error.
     pub max_iterations: usize,
+    /// Where the iterative methods start.
+    #[serde(default)]
+    pub start: Start,
+}
+
+/// The first iterate of an iterative solve.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum Start {
+    /// Zero.
+    #[default]
+    Zero,
+    /// The right-hand side: close to the solution when the matrix is close
+    /// to the identity, as in a time step `(I + dt·A)·y = x` (and its
+    /// adjoint). Deterministic, like `Zero`: the same solve gives the same
+    /// bits whatever was solved before.
+    Rhs,
 }
 
 impl Default for SolveParams {
     fn default() -> Self {
-        SolveParams { method: SolveMethod::Cg, tolerance: 1e-10, max_iterations: 10_000 }
+        SolveParams { method: SolveMethod::Cg, tolerance: 1e-10, max_iterations: 10_000, start: Start::Zero }
     }
 }
 
@@ -188,6 +294,11 @@ pub struct LinearSolve<S> {
     /// Iterations so far.
     pub info: SolveInfo,
     error: Mutex<Option<OpError>>,
+    /// The last parameters and their coefficients `c(p)`: a rollout solves
+    /// with the same `p` at every step, forward and backward.
+    cache: Mutex<(Vec<f64>, Arc<Vec<f64>>)>,
+    /// CG's vectors.
+    work: Mutex<CgWork>,
 }
 
 impl<S: LinearSystem> LinearSolve<S> {
@@ -204,7 +315,8 @@ impl<S: LinearSystem> LinearSolve<S> {
                 params.tolerance, params.max_iterations
             );
         }
-        LinearSolve { system, params, info: SolveInfo::default(), error: Mutex::new(None) }
+        let work = Mutex::new(CgWork::new(if params.method == SolveMethod::Cg { system.n() } else { 0 }));
+        LinearSolve { system, params, info: SolveInfo::default(), error: Mutex::new(None), cache: Mutex::new((Vec::new(), Arc::new(Vec::new()))), work }
     }
 }
 
@@ -236,13 +348,21 @@ pub(crate) fn solve_system(
     b: &[f64],
     y: &mut [f64],
     transposed: bool,
+    work: Option<&mut CgWork>,
 ) -> Result<usize, OpError> {
     let stop = Stop { tolerance: params.tolerance, max_iterations: params.max_iterations };
     let n = b.len();
+    let warm = params.start == Start::Rhs && params.method != SolveMethod::Direct;
+    if warm {
+        y.copy_from_slice(b);
+    }
     let iterations = match params.method {
-        SolveMethod::Cg => diffsim_solvers::cg::solve(&mut Product(apply), &mut CgWork::new(n), stop, b, y, false)?,
-        SolveMethod::BiCgStab if transposed => bicgstab(apply_t, stop, b, y, false)?,
-        SolveMethod::BiCgStab => bicgstab(apply, stop, b, y, false)?,
+        SolveMethod::Cg => match work {
+            Some(work) => diffsim_solvers::cg::solve(&mut Product(apply), work, stop, b, y, warm)?,
+            None => diffsim_solvers::cg::solve(&mut Product(apply), &mut CgWork::new(n), stop, b, y, warm)?,
+        },
+        SolveMethod::BiCgStab if transposed => bicgstab(apply_t, stop, b, y, warm)?,
+        SolveMethod::BiCgStab => bicgstab(apply, stop, b, y, warm)?,
         SolveMethod::Direct => {
             let lu = factor(n, &mut apply)?;
             y.copy_from_slice(b);
@@ -298,8 +418,8 @@ pub(crate) fn take(kept: &Mutex<Option<OpError>>) -> Option<OpError> {
 impl<S: SystemFunctions> LinearSolve<S> {
     /// Solves `A(p)·y = b` (the adjoint solve: `A(p)ᵀ·y = b`) into `y`; a
     /// failure leaves `y` NaN and is kept for [`Forward::take_error`].
-    fn solve(&self, p: &[f64], b: &[f64], y: &mut [f64], adjoint: bool) {
-        let (n, m) = (self.system.n(), self.system.n_params());
+    fn solve(&self, c: &[f64], b: &[f64], y: &mut [f64], adjoint: bool) {
+        let (n, m) = (self.system.n(), self.system.n_coefficients());
         let (mut w, mut dp) = (Vec::new(), Vec::new());
         let transposed_product = |v: &[f64], out: &mut [f64]| {
             // Aᵀ·v: the VJP of u ↦ A(p)·u, at any u (it is linear).
@@ -307,9 +427,12 @@ impl<S: SystemFunctions> LinearSolve<S> {
             w.extend_from_slice(v);
             dp.resize(m, 0.0);
             out.fill(0.0);
-            self.system.matvec_vjp(v, p, &mut w, out, &mut dp);
+            self.system.matvec_vjp(v, c, &mut w, out, &mut dp);
         };
-        let result = solve_system(&self.params, |v, out| self.system.matvec(v, p, out), transposed_product, b, y, adjoint);
+        // CG's vectors, kept between solves (a busy set is passed by).
+        let mut kept = self.work.try_lock();
+        let work = kept.as_deref_mut().ok().filter(|_| self.params.method == SolveMethod::Cg);
+        let result = solve_system(&self.params, |v, out| self.system.matvec(v, c, out), transposed_product, b, y, adjoint, work);
         debug_assert_eq!(y.len(), n);
         let counter = if adjoint { &self.info.adjoint } else { &self.info.forward };
         match result {
@@ -344,7 +467,8 @@ impl<S: SystemFunctions> Forward for LinearSolve<S> {
         validate_forward(self, "LinearSolve", x, p, y);
         let mut b = vec![0.0; self.system.n()];
         self.system.rhs(x, p, &mut b);
-        self.solve(p, &b, y, false);
+        let c = self.coefficients(p);
+        self.solve(&c, &b, y, false);
     }
 
     /// The iterative methods' tolerance; 0 for the direct solve.
@@ -380,18 +504,40 @@ impl<S: SystemFunctions> Vjp for LinearSolve<S> {
 }
 
 impl<S: SystemFunctions> LinearSolve<S> {
+    /// The matrix's coefficients `c(p)`, from the cache when `p` is the
+    /// last one's (bit for bit; a busy cache is passed by).
+    fn coefficients(&self, p: &[f64]) -> Arc<Vec<f64>> {
+        let same = |a: &[f64]| a.len() == p.len() && a.iter().zip(p).all(|(a, b)| a.to_bits() == b.to_bits());
+        if let Ok(cache) = self.cache.try_lock()
+            && same(&cache.0)
+        {
+            return Arc::clone(&cache.1);
+        }
+        let mut c = vec![0.0; self.system.n_coefficients()];
+        self.system.coefficients(p, &mut c);
+        let c = Arc::new(c);
+        if let Ok(mut cache) = self.cache.try_lock() {
+            cache.0.clear();
+            cache.0.extend_from_slice(p);
+            cache.1 = Arc::clone(&c);
+        }
+        c
+    }
+
     /// The implicit rule at the solution `y`: one adjoint solve, then the
-    /// derivatives of the user's two functions.
+    /// derivatives of the user's functions.
     fn vjp_from_solution(&self, x: &[f64], p: &[f64], y: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         let n = self.system.n();
+        let c = self.coefficients(p);
         let mut lambda = vec![0.0; n];
-        self.solve(p, dy, &mut lambda, true);
-        // p̄ −= (∂(A(p)·y)/∂p)ᵀ·λ.
-        let (mut w, mut dy_unused, mut dp_matrix) = (lambda.clone(), vec![0.0; n], vec![0.0; dp.len()]);
-        self.system.matvec_vjp(y, p, &mut w, &mut dy_unused, &mut dp_matrix);
-        for (d, m) in dp.iter_mut().zip(&dp_matrix) {
-            *d -= m;
+        self.solve(&c, dy, &mut lambda, true);
+        // p̄ −= (∂c/∂p)ᵀ·(∂(A(c)·y)/∂c)ᵀ·λ.
+        let (mut w, mut dy_unused, mut dc) = (lambda.clone(), vec![0.0; n], vec![0.0; c.len()]);
+        self.system.matvec_vjp(y, &c, &mut w, &mut dy_unused, &mut dc);
+        for d in &mut dc {
+            *d = -*d;
         }
+        self.system.coefficients_vjp(p, &mut dc, dp);
         // x̄ += (∂b/∂x)ᵀ·λ, p̄ += (∂b/∂p)ᵀ·λ.
         self.system.rhs_vjp(x, p, &mut lambda, dx, dp);
         dy.fill(0.0);
@@ -405,13 +551,16 @@ impl<S: SystemFunctions> Jvp for LinearSolve<S> {
         let n = self.system.n();
         let (mut b, mut tb) = (vec![0.0; n], vec![0.0; n]);
         self.system.rhs_jvp(x, p, tx, tp, &mut b, &mut tb);
-        self.solve(p, &b, y, false);
-        // ẏ solves A·ẏ = ḃ − (∂(A(p)·y)/∂p)·ṗ.
+        let m = self.system.n_coefficients();
+        let (mut c, mut tc) = (vec![0.0; m], vec![0.0; m]);
+        self.system.coefficients_jvp(p, tp, &mut c, &mut tc);
+        self.solve(&c, &b, y, false);
+        // ẏ solves A·ẏ = ḃ − (∂(A(c)·y)/∂c)·ċ.
         let (mut ay, mut tay, zero) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
-        self.system.matvec_jvp(y, p, &zero, tp, &mut ay, &mut tay);
+        self.system.matvec_jvp(y, &c, &zero, &tc, &mut ay, &mut tay);
         for (t, a) in tb.iter_mut().zip(&tay) {
             *t -= a;
         }
-        self.solve(p, &tb, ty, false);
+        self.solve(&c, &tb, ty, false);
     }
 }

@@ -26,6 +26,6 @@ mod linear;
 mod newton;
 mod ode;
 
-pub use linear::{LinearSolve, LinearSystem, SolveInfo, SolveMethod, SolveParams, SystemFunctions};
+pub use linear::{LinearSolve, LinearSystem, SolveInfo, SolveMethod, SolveParams, Start, SystemCoefficients, SystemFunctions, SystemProducts};
 pub use newton::{NewtonInfo, NewtonParams, NonlinearSolve, NonlinearSystem, ResidualFunctions};
 pub use ode::{Integrator, IntegratorParams, OdeSystem, RhsFunctions, Scheme};

@@ -212,7 +212,7 @@ pub(crate) fn jacobian_solve(
     out: &mut [f64],
     transposed: bool,
 ) -> Result<(), OpError> {
-    let result = solve_system(&params.linear, |v, o| eq.jacobian_product(y, v, o), |w, o| eq.jacobian_transpose_product(y, w, o), b, out, transposed);
+    let result = solve_system(&params.linear, |v, o| eq.jacobian_product(y, v, o), |w, o| eq.jacobian_transpose_product(y, w, o), b, out, transposed, None);
     let counter = if transposed { &info.adjoint } else { &info.linear };
     if transposed {
         info.adjoint_solves.fetch_add(1, Ordering::Relaxed);

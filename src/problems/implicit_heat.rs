@@ -7,6 +7,10 @@
 //! two cells'): symmetric positive definite, so CG solves it and the
 //! adjoint solve is the same solve ([`crate::implicit`]). The parameters `θ`
 //! (one per cell) are what an inverse problem recovers from the state.
+//!
+//! The matrix reads the faces' conductances `dt·(exp θ_k + exp θ_m)/2`,
+//! formed once per solve by [`heat_conductances`] (the system's
+//! coefficients), not in every product of the iterations.
 
 use crate::implicit::{LinearSolve, LinearSystem, SolveParams};
 
@@ -36,29 +40,69 @@ impl LinearSystem for ImplicitHeat {
     fn n_params(&self) -> usize {
         self.n * self.n
     }
+    /// The cells' conductivities (`n²`), then one conductance per face:
+    /// `n·(n−1)` between columns, as many between rows.
+    fn n_coefficients(&self) -> usize {
+        self.n * self.n + 2 * self.n * (self.n - 1)
+    }
 }
 
-/// `out = (I + dt·A(θ))·v`.
-pub fn heat_matvec(s: &ImplicitHeat, v: &[f64], theta: &[f64], out: &mut [f64]) {
+/// The cells' conductivities `exp θ`, then the faces' conductances times
+/// the time step, `dt·(exp θ_k + exp θ_m)/2`: first the faces between
+/// columns `i, i+1` (row by row, `n − 1` a row), then those between rows
+/// `j, j+1` (`n` a row).
+pub fn heat_conductances(s: &ImplicitHeat, theta: &[f64], c: &mut [f64]) {
     let n = s.n;
+    let (kappa, faces) = c.split_at_mut(n * n);
+    for (k, t) in kappa.iter_mut().zip(theta) {
+        *k = t.exp();
+    }
+    let (cx, cy) = faces.split_at_mut(n * (n - 1));
     for j in 0..n {
+        for i in 0..n - 1 {
+            cx[j * (n - 1) + i] = s.dt * 0.5 * (kappa[j * n + i] + kappa[j * n + i + 1]);
+        }
+    }
+    for j in 0..n - 1 {
         for i in 0..n {
-            let k = j * n + i;
-            let mut acc = v[k];
-            let mut face = |m: usize| acc += s.dt * 0.5 * (theta[k].exp() + theta[m].exp()) * (v[k] - v[m]);
-            if i + 1 < n {
-                face(k + 1);
+            cy[j * n + i] = s.dt * 0.5 * (kappa[j * n + i] + kappa[(j + 1) * n + i]);
+        }
+    }
+}
+
+/// `out = (I + dt·A(θ))·v` from the conductances `c` of
+/// [`heat_conductances`], row by row (each loop a plain pass over a row,
+/// which the compiler vectorises).
+pub fn heat_matvec(s: &ImplicitHeat, v: &[f64], c: &[f64], out: &mut [f64]) {
+    let n = s.n;
+    let (cx, cy) = c[n * n..].split_at(n * (n - 1));
+    for j in 0..n {
+        let row = &v[j * n..(j + 1) * n];
+        let o = &mut out[j * n..(j + 1) * n];
+        let cr = &cx[j * (n - 1)..(j + 1) * (n - 1)];
+        // A loop, not `copy_from_slice`: Enzyme cannot always type a
+        // memcpy (docs/pitfalls.md).
+        #[allow(clippy::manual_memcpy)]
+        for i in 0..n {
+            o[i] = row[i];
+        }
+        for i in 0..n - 1 {
+            o[i] += cr[i] * (row[i] - row[i + 1]);
+        }
+        for i in 1..n {
+            o[i] += cr[i - 1] * (row[i] - row[i - 1]);
+        }
+        if j > 0 {
+            let (below, cb) = (&v[(j - 1) * n..j * n], &cy[(j - 1) * n..j * n]);
+            for i in 0..n {
+                o[i] += cb[i] * (row[i] - below[i]);
             }
-            if i > 0 {
-                face(k - 1);
+        }
+        if j + 1 < n {
+            let (above, ca) = (&v[(j + 1) * n..(j + 2) * n], &cy[j * n..(j + 1) * n]);
+            for i in 0..n {
+                o[i] += ca[i] * (row[i] - above[i]);
             }
-            if j + 1 < n {
-                face(k + n);
-            }
-            if j > 0 {
-                face(k - n);
-            }
-            out[k] = acc;
         }
     }
 }
@@ -68,7 +112,7 @@ pub fn heat_rhs(_: &ImplicitHeat, x: &[f64], _theta: &[f64], b: &mut [f64]) {
     b.copy_from_slice(x);
 }
 
-crate::linear_system!(ImplicitHeat => heat_matvec, heat_rhs);
+crate::linear_system!(ImplicitHeat => heat_matvec, heat_rhs, coefficients = heat_conductances);
 
 /// The same step with its CG iterations written inside the function, so
 /// that Enzyme differentiates the iterations themselves (the route a user
@@ -108,11 +152,14 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     s
 }
 
-/// One step by plain CG from zero, `r`, `d`, `q` in lent scratch.
+/// One step by plain CG from zero: the conductances, `r`, `d`, `q` in
+/// lent scratch.
 fn heat_through_cg(op: &HeatThroughCg, x: &[f64], p: &[f64], y: &mut [f64], s: &mut [f64]) {
     let m = op.n * op.n;
     let sys = ImplicitHeat { n: op.n, dt: op.dt };
-    let (r, rest) = s.split_at_mut(m);
+    let (c, rest) = s.split_at_mut(op.n * op.n + 2 * op.n * (op.n - 1));
+    heat_conductances(&sys, p, c);
+    let (r, rest) = rest.split_at_mut(m);
     let (d, q) = rest.split_at_mut(m);
     for i in 0..m {
         y[i] = 0.0;
@@ -123,7 +170,7 @@ fn heat_through_cg(op: &HeatThroughCg, x: &[f64], p: &[f64], y: &mut [f64], s: &
     let mut rr = dot(r, r);
     let mut it = 0;
     while rr.sqrt() > target && it < op.max_iterations {
-        heat_matvec(&sys, d, p, q);
+        heat_matvec(&sys, d, c, q);
         let alpha = rr / dot(d, q);
         for i in 0..m {
             y[i] += alpha * d[i];
@@ -140,7 +187,7 @@ fn heat_through_cg(op: &HeatThroughCg, x: &[f64], p: &[f64], y: &mut [f64], s: &
 }
 
 fn heat_through_cg_scratch(op: &HeatThroughCg) -> usize {
-    3 * op.n * op.n
+    4 * op.n * op.n + 2 * op.n * (op.n - 1)
 }
 
 crate::differentiable!(HeatThroughCg => heat_through_cg, scratch = heat_through_cg_scratch);
