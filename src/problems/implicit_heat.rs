@@ -40,68 +40,71 @@ impl LinearSystem for ImplicitHeat {
     fn n_params(&self) -> usize {
         self.n * self.n
     }
-    /// The cells' conductivities (`n²`), then one conductance per face:
-    /// `n·(n−1)` between columns, as many between rows.
+    /// The cells' conductivities (`n²`), then the faces' conductances:
+    /// `n + 1` a row between columns (the two outer ones 0, insulated), and
+    /// `n + 1` rows of `n` between rows (the outer rows 0).
     fn n_coefficients(&self) -> usize {
-        self.n * self.n + 2 * self.n * (self.n - 1)
+        self.n * self.n + 2 * self.n * (self.n + 1)
     }
 }
 
 /// The cells' conductivities `exp θ`, then the faces' conductances times
-/// the time step, `dt·(exp θ_k + exp θ_m)/2`: first the faces between
-/// columns `i, i+1` (row by row, `n − 1` a row), then those between rows
-/// `j, j+1` (`n` a row).
+/// the time step, `dt·(exp θ_k + exp θ_m)/2`: row `j` of the faces between
+/// columns holds the face west of each cell and the last cell's east face
+/// (`n + 1` values, the outer two 0); row `j` of the faces between rows the
+/// face south of each cell of row `j` (`n + 1` rows, the outer two 0). The
+/// zeros let the product treat every cell alike.
 pub fn heat_conductances(s: &ImplicitHeat, theta: &[f64], c: &mut [f64]) {
     let n = s.n;
     let (kappa, faces) = c.split_at_mut(n * n);
     for (k, t) in kappa.iter_mut().zip(theta) {
         *k = t.exp();
     }
-    let (cx, cy) = faces.split_at_mut(n * (n - 1));
+    let (cx, cy) = faces.split_at_mut(n * (n + 1));
     for j in 0..n {
-        for i in 0..n - 1 {
-            cx[j * (n - 1) + i] = s.dt * 0.5 * (kappa[j * n + i] + kappa[j * n + i + 1]);
+        cx[j * (n + 1)] = 0.0;
+        cx[j * (n + 1) + n] = 0.0;
+        for i in 1..n {
+            cx[j * (n + 1) + i] = s.dt * 0.5 * (kappa[j * n + i - 1] + kappa[j * n + i]);
         }
     }
-    for j in 0..n - 1 {
+    for i in 0..n {
+        cy[i] = 0.0;
+        cy[n * n + i] = 0.0;
+    }
+    for j in 1..n {
         for i in 0..n {
-            cy[j * n + i] = s.dt * 0.5 * (kappa[j * n + i] + kappa[(j + 1) * n + i]);
+            cy[j * n + i] = s.dt * 0.5 * (kappa[(j - 1) * n + i] + kappa[j * n + i]);
         }
     }
 }
 
 /// `out = (I + dt·A(θ))·v` from the conductances `c` of
-/// [`heat_conductances`], row by row (each loop a plain pass over a row,
-/// which the compiler vectorises).
+/// [`heat_conductances`]: one pass over each row, every cell the same
+/// five-point formula (an insulated side's conductance is 0, and the
+/// missing neighbour row is the row itself), written as a zip of equal
+/// slices so that the compiler vectorises it.
 pub fn heat_matvec(s: &ImplicitHeat, v: &[f64], c: &[f64], out: &mut [f64]) {
     let n = s.n;
-    let (cx, cy) = c[n * n..].split_at(n * (n - 1));
+    let (cx, cy) = c[n * n..].split_at(n * (n + 1));
     for j in 0..n {
+        let (jb, ja) = (j.saturating_sub(1), (j + 1).min(n - 1));
         let row = &v[j * n..(j + 1) * n];
+        let (below, above) = (&v[jb * n..(jb + 1) * n], &v[ja * n..(ja + 1) * n]);
+        let (south, north) = (&cy[j * n..(j + 1) * n], &cy[(j + 1) * n..(j + 2) * n]);
+        let faces = &cx[j * (n + 1)..(j + 1) * (n + 1)];
         let o = &mut out[j * n..(j + 1) * n];
-        let cr = &cx[j * (n - 1)..(j + 1) * (n - 1)];
-        // A loop, not `copy_from_slice`: Enzyme cannot always type a
-        // memcpy (docs/pitfalls.md).
-        #[allow(clippy::manual_memcpy)]
-        for i in 0..n {
-            o[i] = row[i];
+        // Vertical exchange and the cell itself, every cell.
+        for (((((o, c), b), a), cs), cn) in o.iter_mut().zip(row).zip(below).zip(above).zip(south).zip(north) {
+            *o = c + cs * (c - b) + cn * (c - a);
         }
-        for i in 0..n - 1 {
-            o[i] += cr[i] * (row[i] - row[i + 1]);
-        }
-        for i in 1..n {
-            o[i] += cr[i - 1] * (row[i] - row[i - 1]);
-        }
-        if j > 0 {
-            let (below, cb) = (&v[(j - 1) * n..j * n], &cy[(j - 1) * n..j * n]);
-            for i in 0..n {
-                o[i] += cb[i] * (row[i] - below[i]);
+        // Horizontal exchange through the n − 1 inner faces of the row.
+        if n > 1 {
+            for (((o, c), w), cw) in o[1..].iter_mut().zip(&row[1..]).zip(&row[..n - 1]).zip(&faces[1..n]) {
+                *o += cw * (c - w);
             }
-        }
-        if j + 1 < n {
-            let (above, ca) = (&v[(j + 1) * n..(j + 2) * n], &cy[j * n..(j + 1) * n]);
-            for i in 0..n {
-                o[i] += ca[i] * (row[i] - above[i]);
+            for (((o, c), e), ce) in o[..n - 1].iter_mut().zip(&row[..n - 1]).zip(&row[1..]).zip(&faces[1..n]) {
+                *o += ce * (c - e);
             }
         }
     }
@@ -157,7 +160,7 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 fn heat_through_cg(op: &HeatThroughCg, x: &[f64], p: &[f64], y: &mut [f64], s: &mut [f64]) {
     let m = op.n * op.n;
     let sys = ImplicitHeat { n: op.n, dt: op.dt };
-    let (c, rest) = s.split_at_mut(op.n * op.n + 2 * op.n * (op.n - 1));
+    let (c, rest) = s.split_at_mut(op.n * op.n + 2 * op.n * (op.n + 1));
     heat_conductances(&sys, p, c);
     let (r, rest) = rest.split_at_mut(m);
     let (d, q) = rest.split_at_mut(m);
@@ -187,7 +190,7 @@ fn heat_through_cg(op: &HeatThroughCg, x: &[f64], p: &[f64], y: &mut [f64], s: &
 }
 
 fn heat_through_cg_scratch(op: &HeatThroughCg) -> usize {
-    4 * op.n * op.n + 2 * op.n * (op.n - 1)
+    4 * op.n * op.n + 2 * op.n * (op.n + 1)
 }
 
 crate::differentiable!(HeatThroughCg => heat_through_cg, scratch = heat_through_cg_scratch);
