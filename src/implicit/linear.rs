@@ -267,6 +267,14 @@ pub enum Start {
     Rhs,
 }
 
+impl SolveParams {
+    /// The relative error the solves leave: the tolerance of the iterative
+    /// methods, 0 for the direct solve (exact to rounding).
+    pub fn solve_tolerance(&self) -> f64 {
+        if self.method == SolveMethod::Direct { 0.0 } else { self.tolerance }
+    }
+}
+
 impl Default for SolveParams {
     fn default() -> Self {
         SolveParams { method: SolveMethod::Cg, tolerance: 1e-10, max_iterations: 10_000, start: Start::Zero }
@@ -401,12 +409,25 @@ fn factor(n: usize, apply: &mut impl FnMut(&[f64], &mut [f64])) -> Result<diffsi
     diffsim_solvers::linalg::SparseLu::new(n, &entries).map_err(|_| singular())
 }
 
-/// Leaves `y` NaN and keeps the first failure in `kept` (for
-/// [`Forward::take_error`]).
-pub(crate) fn fail(kept: &Mutex<Option<OpError>>, y: &mut [f64], e: OpError) {
-    y.fill(f64::NAN);
+/// Keeps the first failure in `kept` (for [`Forward::take_error`]).
+pub(crate) fn keep(kept: &Mutex<Option<OpError>>, e: OpError) {
     let mut kept = kept.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
     kept.get_or_insert(e);
+}
+
+/// Leaves `y` NaN and keeps the first failure in `kept`.
+pub(crate) fn fail(kept: &Mutex<Option<OpError>>, y: &mut [f64], e: OpError) {
+    y.fill(f64::NAN);
+    keep(kept, e);
+}
+
+/// Panics, naming the operator, when the output a rollout hands to
+/// `vjp_overwrite_given` is not `n_out` long.
+#[track_caller]
+pub(crate) fn check_given(name: &str, given: &[f64], n_out: usize) {
+    if given.len() != n_out {
+        panic!("{name}: the given output has length {}, the operator's output {n_out}", given.len());
+    }
 }
 
 /// Takes the kept failure.
@@ -473,7 +494,7 @@ impl<S: SystemFunctions> Forward for LinearSolve<S> {
 
     /// The iterative methods' tolerance; 0 for the direct solve.
     fn solve_tolerance(&self) -> f64 {
-        if self.params.method == SolveMethod::Direct { 0.0 } else { self.params.tolerance }
+        self.params.solve_tolerance()
     }
 
     fn take_error(&self) -> Option<OpError> {
@@ -495,9 +516,7 @@ impl<S: SystemFunctions> Vjp for LinearSolve<S> {
     #[track_caller]
     fn vjp_overwrite_given(&self, x: &[f64], p: &[f64], y: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         validate_vjp(self, "LinearSolve", x, p, dy, dx, dp);
-        if y.len() != self.system.n() {
-            panic!("LinearSolve: the given solution has length {}, the system {}", y.len(), self.system.n());
-        }
+        check_given("LinearSolve", y, self.system.n());
         dx.fill(0.0);
         self.vjp_from_solution(x, p, y, dy, dx, dp);
     }

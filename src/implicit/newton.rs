@@ -28,7 +28,7 @@
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use super::linear::{SolveMethod, SolveParams, fail, solve_system, take};
+use super::linear::{SolveMethod, SolveParams, check_given, fail, solve_system, take};
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
 /// The sizes of a user's nonlinear system `F(y, x, p) = 0`, and Newton's
@@ -168,8 +168,7 @@ impl NewtonParams {
 
     /// The level below which the solution's derivatives are not resolved.
     pub(crate) fn solve_tolerance(&self) -> f64 {
-        let linear = if self.linear.method == SolveMethod::Direct { 0.0 } else { self.linear.tolerance };
-        self.tolerance.max(linear)
+        self.tolerance.max(self.linear.solve_tolerance())
     }
 }
 
@@ -415,9 +414,7 @@ impl<S: ResidualFunctions> Vjp for NonlinearSolve<S> {
     #[track_caller]
     fn vjp_overwrite_given(&self, x: &[f64], p: &[f64], y: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         validate_vjp(self, "NonlinearSolve", x, p, dy, dx, dp);
-        if y.len() != self.system.n() {
-            panic!("NonlinearSolve: the given solution has length {}, the system {}", y.len(), self.system.n());
-        }
+        check_given("NonlinearSolve", y, self.system.n());
         dx.fill(0.0);
         self.vjp_from_solution(x, p, y, dy, dx, dp);
     }

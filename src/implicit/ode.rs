@@ -36,7 +36,7 @@
 
 use std::sync::Mutex;
 
-use super::linear::{fail, take};
+use super::linear::{check_given, fail, keep, take};
 use super::newton::{Equations, NewtonInfo, NewtonParams, jacobian_solve, newton};
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
@@ -468,8 +468,7 @@ impl<S: RhsFunctions> Integrator<S> {
         match self.stages(x, p, given.filter(|_| self.stiffly_accurate())) {
             Ok(st) => self.vjp_stages(p, &st, dy, dx, dp),
             Err(e) => {
-                let mut nan = vec![0.0; dx.len()];
-                fail(&self.error, &mut nan, e);
+                keep(&self.error, e);
                 dx.fill(f64::NAN);
                 dp.fill(f64::NAN);
                 dy.fill(0.0);
@@ -490,9 +489,7 @@ impl<S: RhsFunctions> Vjp for Integrator<S> {
     #[track_caller]
     fn vjp_overwrite_given(&self, x: &[f64], p: &[f64], y: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         validate_vjp(self, "Integrator", x, p, dy, dx, dp);
-        if y.len() != self.n_out() {
-            panic!("Integrator: the given output has length {}, the step {}", y.len(), self.n_out());
-        }
+        check_given("Integrator", y, self.n_out());
         dx.fill(0.0);
         self.vjp_at(x, p, Some(y), dy, dx, dp);
     }

@@ -160,7 +160,7 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 fn heat_through_cg(op: &HeatThroughCg, x: &[f64], p: &[f64], y: &mut [f64], s: &mut [f64]) {
     let m = op.n * op.n;
     let sys = ImplicitHeat { n: op.n, dt: op.dt };
-    let (c, rest) = s.split_at_mut(op.n * op.n + 2 * op.n * (op.n + 1));
+    let (c, rest) = s.split_at_mut(sys.n_coefficients());
     heat_conductances(&sys, p, c);
     let (r, rest) = rest.split_at_mut(m);
     let (d, q) = rest.split_at_mut(m);
@@ -190,7 +190,7 @@ fn heat_through_cg(op: &HeatThroughCg, x: &[f64], p: &[f64], y: &mut [f64], s: &
 }
 
 fn heat_through_cg_scratch(op: &HeatThroughCg) -> usize {
-    4 * op.n * op.n + 2 * op.n * (op.n + 1)
+    3 * op.n * op.n + ImplicitHeat { n: op.n, dt: op.dt }.n_coefficients()
 }
 
 crate::differentiable!(HeatThroughCg => heat_through_cg, scratch = heat_through_cg_scratch);
