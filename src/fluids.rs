@@ -4,15 +4,17 @@
 //! box); semi-Lagrangian, MacCormack and upwind advection; forces and
 //! inflow regions. Each wraps a
 //! plain function of `diffsim-solvers`; explicit ones get their derivatives
-//! from Enzyme, implicit ones from the solve with the transposed matrix.
+//! from Enzyme, implicit diffusion is a [`LinearSolve`] of its product
+//! (the implicit rule), the projection solves with the transposed matrix.
 
 use std::cell::{Cell, RefCell};
 
 use diffsim_solvers::boundary::Boundary;
-use diffsim_solvers::diffusion::{self, Grid, ImplicitSolver, laplacian};
+use diffsim_solvers::diffusion::{self, Grid};
 use diffsim_solvers::smoke::{self, NoConvergence, Preconditioner, PressureSolver, ProjectScratch, Scheme, Smoke2d};
 use diffsim_solvers::smoke3d::{self, Smoke3d};
 
+use crate::implicit::{LinearSolve, LinearSystem, SolveMethod, SolveParams, Start};
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
 /// The sizes of a fluid operator on packed states: `self.cfg.n_state()`
@@ -125,17 +127,47 @@ impl Jvp for DiffuseExplicit {
 }
 
 /// Implicit diffusion on a lattice ([`Grid`]), `(I + κ·A)·s' = s`,
-/// parameter `p = [κ]`, solved by conjugate gradients to a relative
-/// tolerance. The VJP is the same solve (the matrix is symmetric): with
-/// `M·λ = ḡ`, `x̄ += λ` and `κ̄ += −λᵀ·A·s'`. A solve that does not
-/// converge is reported through [`Forward::take_error`].
+/// parameter `p = [κ]`: a [`LinearSolve`] of [`DiffusionSystem`], solved by
+/// conjugate gradients from `s` to a relative tolerance, its derivatives by
+/// the implicit rule (the matrix is symmetric, so the VJP is the same
+/// solve; `κ̄` from Enzyme's derivative of the product). A solve that does
+/// not converge is reported through [`Forward::take_error`].
 #[derive(Debug)]
 pub struct DiffuseImplicit {
     grid: Grid,
-    solver: RefCell<ImplicitSolver>,
-    scratch: RefCell<(Vec<f64>, Vec<f64>)>,
-    log: SolveLog,
+    solve: LinearSolve<DiffusionSystem>,
 }
+
+/// The system of [`DiffuseImplicit`]: `(I + κ·A)·y = x` on a lattice, the
+/// product the explicit step with `−κ`.
+#[derive(Clone, Copy, Debug)]
+pub struct DiffusionSystem {
+    grid: Grid,
+}
+
+impl LinearSystem for DiffusionSystem {
+    fn n(&self) -> usize {
+        self.grid.len()
+    }
+    fn n_in(&self) -> usize {
+        self.grid.len()
+    }
+    fn n_params(&self) -> usize {
+        1
+    }
+}
+
+/// `out = (I + κ·A)·v`, `p = [κ]`.
+fn diffusion_product(s: &DiffusionSystem, v: &[f64], p: &[f64], out: &mut [f64]) {
+    diffusion::explicit(&s.grid, -p[0], v, out);
+}
+
+/// `b = x`.
+fn diffusion_rhs(_: &DiffusionSystem, x: &[f64], _p: &[f64], b: &mut [f64]) {
+    b.copy_from_slice(x);
+}
+
+crate::linear_system!(DiffusionSystem => diffusion_product, diffusion_rhs);
 
 impl DiffuseImplicit {
     /// Implicit diffusion of the cells of the closed `n × n` box, solves to
@@ -145,19 +177,15 @@ impl DiffuseImplicit {
     }
 
     /// Implicit diffusion on the lattice `grid`.
+    ///
+    /// # Panics
+    /// If the tolerance is not a positive number or the iteration limit 0
+    /// ([`LinearSolve::new`]).
+    #[track_caller]
     pub fn on(grid: Grid, tolerance: f64, max_iterations: usize) -> Self {
-        let len = grid.len();
-        Self {
-            grid,
-            solver: RefCell::new(ImplicitSolver::new(grid, tolerance, max_iterations)),
-            scratch: RefCell::new((vec![0.0; len], vec![0.0; len])),
-            log: SolveLog::default(),
-        }
-    }
-
-    fn solve(&self, kappa: f64, b: &[f64], x: &mut [f64]) {
-        let r = self.solver.borrow_mut().solve(kappa, b, x);
-        self.log.record(r, false);
+        // From the right-hand side, as a time step's solve starts best.
+        let params = SolveParams { method: SolveMethod::Cg, tolerance, max_iterations, start: Start::Rhs };
+        Self { grid, solve: LinearSolve::new(DiffusionSystem { grid }, params) }
     }
 }
 
@@ -177,15 +205,15 @@ impl Forward for DiffuseImplicit {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         crate::op::count::record("DiffuseImplicit", crate::op::count::Method::Forward);
         validate_forward(self, "DiffuseImplicit", x, p, y);
-        self.solve(p[0], x, y);
+        self.solve.forward(x, p, y);
     }
 
     fn solve_tolerance(&self) -> f64 {
-        self.solver.borrow().tolerance
+        self.solve.solve_tolerance()
     }
 
     fn take_error(&self) -> Option<OpError> {
-        self.log.take_error()
+        self.solve.take_error()
     }
 }
 
@@ -193,17 +221,13 @@ impl Vjp for DiffuseImplicit {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         crate::op::count::record("DiffuseImplicit", crate::op::count::Method::Vjp);
         validate_vjp(self, "DiffuseImplicit", x, p, dy, dx, dp);
-        let mut guard = self.scratch.borrow_mut();
-        let (lam, y) = &mut *guard;
-        self.solve(p[0], dy, lam);
-        for (d, &l) in dx.iter_mut().zip(lam.iter()) {
-            *d += l;
-        }
-        // κ̄ = −λᵀ·A·y with y = M⁻¹·x (recomputed: the VJP gets only x).
-        self.solve(p[0], x, y);
-        laplacian(&self.grid, y, dy);
-        dp[0] -= lam.iter().zip(dy.iter()).map(|(a, b)| a * b).sum::<f64>();
-        dy.fill(0.0);
+        self.solve.vjp(x, p, dy, dx, dp);
+    }
+
+    fn vjp_overwrite_given(&self, x: &[f64], p: &[f64], y: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        crate::op::count::record("DiffuseImplicit", crate::op::count::Method::Vjp);
+        validate_vjp(self, "DiffuseImplicit", x, p, dy, dx, dp);
+        self.solve.vjp_overwrite_given(x, p, y, dy, dx, dp);
     }
 }
 
@@ -211,15 +235,7 @@ impl Jvp for DiffuseImplicit {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         crate::op::count::record("DiffuseImplicit", crate::op::count::Method::Jvp);
         validate_jvp(self, "DiffuseImplicit", x, p, tx, tp, y, ty);
-        self.solve(p[0], x, y);
-        // M·ṫ = ẋ − κ̇·A·y.
-        let mut guard = self.scratch.borrow_mut();
-        let (rhs, _) = &mut *guard;
-        laplacian(&self.grid, y, rhs);
-        for (r, &t) in rhs.iter_mut().zip(tx) {
-            *r = t - tp[0] * *r;
-        }
-        self.solve(p[0], rhs, ty);
+        self.solve.jvp(x, p, tx, tp, y, ty);
     }
 }
 

@@ -153,6 +153,31 @@ fn a_rollout_hands_each_implicit_step_its_solution() {
     }
 }
 
+#[test]
+fn a_rollout_applies_the_coefficients_vjp_once_with_the_same_gradient() {
+    // With the same θ at every step the backward pass gathers the
+    // coefficients' cotangent and applies (∂c/∂θ)ᵀ once
+    // (`Vjp::vjp_deferred`); with θ given per step (T copies) each step's
+    // VJP applies it itself. The sums over the steps must agree.
+    let (n, steps) = (6, 9);
+    let op = LinearSolve::new(Heat { n, dt: 0.07 }, SolveParams { tolerance: 1e-13, ..SolveParams::default() });
+    let (x0, theta) = (field(n * n, 1.0), field(n * n, 0.4));
+    let loss = |x: &[f64], g: &mut [f64]| -> f64 {
+        g.copy_from_slice(x);
+        0.5 * x.iter().map(|v| v * v).sum::<f64>()
+    };
+    let shared = Rollout::new(&op, &theta, steps).unwrap().value_and_grad(&x0, &loss, Checkpointing::Store).unwrap();
+    let repeated: Vec<f64> = (0..steps).flat_map(|_| theta.iter().copied()).collect();
+    let each = Rollout::per_step(&op, &repeated, steps).unwrap().value_and_grad(&x0, &loss, Checkpointing::Store).unwrap();
+    assert_eq!(shared.dx0, each.dx0);
+    let summed: Vec<f64> = (0..n * n).map(|k| (0..steps).map(|t| each.dp[t * n * n + k]).sum()).collect();
+    let scale = summed.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(scale > 1e-3, "the test needs a gradient that is not zero");
+    for (k, (a, b)) in shared.dp.iter().zip(&summed).enumerate() {
+        assert!((a - b).abs() <= 1e-12 * scale, "θ[{k}]: {a} gathered, {b} step by step");
+    }
+}
+
 /// A matrix of rank one: `A·v = (Σ v)·1`, singular for n > 1.
 struct RankOne {
     n: usize,

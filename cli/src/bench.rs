@@ -45,6 +45,11 @@ pub(super) enum BenchCommand {
     /// CG): forward against the gradient by the implicit rule, with the CG
     /// iterations; `--compare` adds Enzyme through the CG iterations.
     ImplicitHeat(ImplicitHeatArgs),
+    /// Robertson's stiff kinetics: the gradient of a fit to ODEPACK's
+    /// published solution with respect to the three log-rates, by fixed
+    /// SDIRK steps and the implicit rule, checked against central
+    /// differences (`scripts/bench-robertson` runs diffsol beside it).
+    Robertson(RobertsonArgs),
     /// The exchange between MPI ranks (`mpirun -np K diffsim bench
     /// exchange`): the time of an all-gather of n values per rank over a
     /// range of n, its latency and bandwidth (the inputs of the scaling
@@ -214,6 +219,7 @@ pub(super) fn run(cmd: BenchCommand, world: &diffsim::distributed::World) -> Res
         BenchCommand::P4Cost(a) => p4_cost(a),
         BenchCommand::Hig(a) => hig(a),
         BenchCommand::ImplicitHeat(a) => implicit_heat(a),
+        BenchCommand::Robertson(a) => robertson(a),
     }
 }
 
@@ -847,6 +853,143 @@ pub(super) struct ImplicitHeatArgs {
     /// Print one JSON line instead of a table.
     #[arg(long)]
     json: bool,
+}
+
+/// Arguments of `diffsim bench robertson`.
+#[derive(Debug, Args)]
+pub(super) struct RobertsonArgs {
+    /// Steps in each of the three segments (0–0.4, 0.4–4, 4–40).
+    #[arg(long, default_value_t = 100)]
+    steps: usize,
+    /// The integrator: `sdirk2`, `sdirk3`, `backward-euler`, `crank-nicolson`.
+    #[arg(long, value_enum, default_value_t = RobertsonScheme::Sdirk2)]
+    scheme: RobertsonScheme,
+    /// Seconds of repeats for the median (at least three runs).
+    #[arg(long, default_value_t = 2.0)]
+    budget: f64,
+    /// Print one JSON line instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+/// The one-step schemes `bench robertson` offers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub(super) enum RobertsonScheme {
+    /// Backward Euler (order 1).
+    BackwardEuler,
+    /// Crank–Nicolson (order 2, not L-stable).
+    CrankNicolson,
+    /// Two-stage L-stable SDIRK (order 2).
+    Sdirk2,
+    /// Three-stage L-stable SDIRK (order 3).
+    Sdirk3,
+}
+
+/// `diffsim bench robertson`: the loss `½ Σ_i ‖u(t_i) − d_i‖²` of
+/// Robertson's kinetics at ODEPACK's three printed times (`d_i` its
+/// published states) and its gradient with respect to the three log-rates
+/// where a fit starts (off the published ones by 0.3, −0.4, 0.3),
+/// by `--steps` fixed steps of `--scheme` in each of the three segments
+/// (graded steps for the stiff start): one rollout a segment, each
+/// segment's gradient with respect to its start the seed of the segment
+/// before. The gradient is checked against central differences of the same
+/// computation before it is reported. `scripts/bench-robertson` runs it
+/// beside diffsol's adjoint.
+fn robertson(a: RobertsonArgs) -> Result<(), CliError> {
+    use diffsim::implicit::{Integrator, IntegratorParams, Scheme};
+    use diffsim::problems::robertson::{LSODE_STATES, LSODE_TIMES, Robertson, START, log_rates};
+    use diffsim::rollout::{Checkpointing, Rollout};
+    if !(1..=1_000_000).contains(&a.steps) {
+        return Err(CliError::Argument { arg: "--steps", reason: format!("must be between 1 and 1000000, got {}", a.steps) });
+    }
+    if !(a.budget.is_finite() && (0.0..=3600.0).contains(&a.budget)) {
+        return Err(CliError::Argument { arg: "--budget", reason: format!("must be between 0 and 3600 seconds, got {}", a.budget) });
+    }
+    let scheme = match a.scheme {
+        RobertsonScheme::BackwardEuler => Scheme::BackwardEuler,
+        RobertsonScheme::CrankNicolson => Scheme::CrankNicolson,
+        RobertsonScheme::Sdirk2 => Scheme::Sdirk2,
+        RobertsonScheme::Sdirk3 => Scheme::Sdirk3,
+    };
+    let m = a.steps;
+    let mut t0 = 0.0;
+    let ops: Vec<Integrator<Robertson>> = LSODE_TIMES
+        .iter()
+        .map(|&t| {
+            let op = Integrator::new(Robertson, IntegratorParams::new(scheme, (t - t0) / m as f64));
+            t0 = t;
+            op
+        })
+        .collect();
+    let run = |p: &[f64]| -> Result<(f64, Vec<f64>), diffsim::rollout::RolloutError> {
+        // The segments' starts, forward.
+        let mut starts = vec![START.to_vec()];
+        for op in &ops[..ops.len() - 1] {
+            let next = Rollout::new(op, p, m)?.final_state(starts.last().expect("a start"))?;
+            starts.push(next);
+        }
+        // Backward, the last segment first: its start's gradient seeds the
+        // loss of the segment before.
+        let (mut value, mut seed, mut dp) = (0.0, vec![0.0; 3], vec![0.0; 3]);
+        for (s, op) in ops.iter().enumerate().rev() {
+            let d = &LSODE_STATES[s];
+            let later = seed.clone();
+            let loss = move |x: &[f64], g: &mut [f64]| -> f64 {
+                let mut v = 0.0;
+                for i in 0..3 {
+                    g[i] = x[i] - d[i] + later[i];
+                    v += 0.5 * (x[i] - d[i]) * (x[i] - d[i]);
+                }
+                v
+            };
+            let g = Rollout::new(op, p, m)?.value_and_grad(&starts[s], &loss, Checkpointing::Store)?;
+            value += g.loss;
+            seed = g.dx0;
+            for (a, b) in dp.iter_mut().zip(&g.dp) {
+                *a += b;
+            }
+        }
+        Ok((value, dp))
+    };
+    let not_reported = |reason: String| CliError::NotReported { what: "bench robertson".into(), reason };
+    // Where a fit to the published solution starts (the test of the fit
+    // starts here too): the log-rates off by (0.3, −0.4, 0.3).
+    let truth = log_rates();
+    let p = [truth[0] + 0.3, truth[1] - 0.4, truth[2] + 0.3];
+    let (value, grad) = run(&p).map_err(|e| not_reported(e.to_string()))?;
+    if !value.is_finite() || !diffsim::op::all_finite(&grad) {
+        return Err(not_reported("the loss or its gradient is not finite".into()));
+    }
+    // Central differences of the same computation (h = 1e-5 on ln k).
+    let h = 1e-5;
+    let mut fd_error: f64 = 0.0;
+    let scale = grad.iter().fold(0.0f64, |s, g| s.max(g.abs()));
+    for i in 0..3 {
+        let (mut up, mut down) = (p, p);
+        up[i] += h;
+        down[i] -= h;
+        let (fu, _) = run(&up).map_err(|e| not_reported(e.to_string()))?;
+        let (fd, _) = run(&down).map_err(|e| not_reported(e.to_string()))?;
+        fd_error = fd_error.max(((fu - fd) / (2.0 * h) - grad[i]).abs() / scale);
+    }
+    if !(fd_error < 1e-5) {
+        return Err(not_reported(format!("the gradient disagrees with central differences (relative {fd_error:.1e})")));
+    }
+    let (grad_s, _) = median_time(a.budget, 3, 100_000, || run(&p));
+    let scheme_name = format!("{:?}", a.scheme).to_lowercase();
+    let row = serde_json::json!({
+        "problem": "robertson", "scheme": scheme_name, "steps_per_segment": m, "grad_s": grad_s,
+        "loss": value, "gradient": grad, "fd_relative_error": fd_error,
+    });
+    if a.json {
+        println!("{row}");
+    } else {
+        println!("Robertson, loss at t = 0.4, 4, 40, {m} {scheme_name} steps a segment");
+        println!("  loss      {value:.10e}");
+        println!("  gradient  [{:.10e}, {:.10e}, {:.10e}] (central differences agree to {fd_error:.1e})", grad[0], grad[1], grad[2]);
+        println!("  time      {:9.3} ms", 1e3 * grad_s);
+    }
+    Ok(())
 }
 
 /// [`diffsim::implicit::Start`] on the command line.

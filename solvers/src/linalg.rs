@@ -257,6 +257,29 @@ impl SparseCholesky {
     }
 }
 
+/// Solves `A·x = b` (`transposed`: `Aᵀ·x = b`) in place of `b` for a small
+/// dense `n × n` matrix `a` given column by column, by faer's LU with
+/// partial pivoting: the Jacobians of Newton's method on a few unknowns
+/// (an ODE's state), where setting up a sparse factorisation would cost
+/// many times the arithmetic. One call factors and solves, so that no faer
+/// type reaches the crates built with the autodiff flag (rustc's type
+/// trees crash on them). A singular matrix leaves infinities or NaN in `b`.
+///
+/// # Panics
+/// If `a` does not hold `n²` values or `b` not `n`.
+pub fn dense_solve(n: usize, a: &[f64], b: &mut [f64], transposed: bool) {
+    use faer::linalg::solvers::SolveCore;
+    assert_eq!(a.len(), n * n, "dense LU: the matrix must hold n² values");
+    assert_eq!(b.len(), n, "dense LU: right-hand side length");
+    let lu = faer::MatRef::from_column_major_slice(a, n, n).partial_piv_lu();
+    let rhs = faer::MatMut::from_column_major_slice_mut(b, n, 1);
+    if transposed {
+        lu.solve_transpose_in_place_with_conj(faer::Conj::No, rhs);
+    } else {
+        lu.solve_in_place_with_conj(faer::Conj::No, rhs);
+    }
+}
+
 /// A sparse square matrix factored by faer's sparse LU (partial pivoting,
 /// fill-reducing column ordering), then solved with it or its transpose:
 /// the Jacobians of Newton's method and their adjoints.

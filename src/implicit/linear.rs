@@ -13,7 +13,7 @@
 //!
 //! [`LinearSolve`] is then an operator `(x, p) ↦ y` with `A(p)·y = b(x, p)`,
 //! solved by CG (symmetric positive definite `A`), BiCGStab (any other) or
-//! directly (a small system: assembled and factored by faer's sparse LU),
+//! directly (a small system: assembled and factored by faer's LU),
 //! and its derivatives follow from the implicit rule, never by
 //! differentiating the iterations:
 //!
@@ -100,6 +100,8 @@ pub trait SystemProducts: LinearSystem {
     fn matvec(&self, v: &[f64], c: &[f64], out: &mut [f64]);
     /// `dv += A(c)ᵀ·w`, `dc += (∂(A(c)·v)/∂c)ᵀ·w`; consumes `w`.
     fn matvec_vjp(&self, v: &[f64], c: &[f64], w: &mut [f64], dv: &mut [f64], dc: &mut [f64]);
+    /// `dc += (∂(A(c)·v)/∂c)ᵀ·w` alone; consumes `w`.
+    fn matvec_vjp_coefficients(&self, v: &[f64], c: &[f64], w: &mut [f64], dc: &mut [f64]);
     /// `out = A(c)·v`, `tout = A(c)·tv + (∂(A(c)·v)/∂c)·tc`.
     #[allow(clippy::too_many_arguments)]
     fn matvec_jvp(&self, v: &[f64], c: &[f64], tv: &[f64], tc: &[f64], out: &mut [f64], tout: &mut [f64]);
@@ -178,6 +180,10 @@ macro_rules! linear_system {
             fn diffsim_matvec_reverse(s: &$ty, v: &[f64], c: &[f64], out: &mut [f64]) {
                 $matvec(s, v, c, out)
             }
+            #[::std::autodiff::autodiff_reverse(diffsim_matvec_vjp_coefficients, Const, Const, Duplicated, Duplicated)]
+            fn diffsim_matvec_coefficients_reverse(s: &$ty, v: &[f64], c: &[f64], out: &mut [f64]) {
+                $matvec(s, v, c, out)
+            }
             #[::std::autodiff::autodiff_forward(diffsim_matvec_jvp, Const, Dual, Dual, Dual)]
             fn diffsim_matvec_forward(s: &$ty, v: &[f64], c: &[f64], out: &mut [f64]) {
                 $matvec(s, v, c, out)
@@ -193,12 +199,40 @@ macro_rules! linear_system {
 
             impl $crate::implicit::SystemProducts for $ty {
                 fn matvec(&self, v: &[f64], c: &[f64], out: &mut [f64]) {
+                    // The iterations' products, in the widest vectors the
+                    // processor has (the user's function inlined into each
+                    // copy when it is `#[inline]`); the derivatives below
+                    // stay in the baseline instructions.
+                    #[cfg(target_arch = "x86_64")]
+                    {
+                        #[target_feature(enable = "avx512f")]
+                        fn wide(s: &$ty, v: &[f64], c: &[f64], out: &mut [f64]) {
+                            $matvec(s, v, c, out)
+                        }
+                        #[target_feature(enable = "avx2")]
+                        fn medium(s: &$ty, v: &[f64], c: &[f64], out: &mut [f64]) {
+                            $matvec(s, v, c, out)
+                        }
+                        if ::std::is_x86_feature_detected!("avx512f") {
+                            // SAFETY: the processor has AVX-512F, checked just above.
+                            return unsafe { wide(self, v, c, out) };
+                        }
+                        if ::std::is_x86_feature_detected!("avx2") {
+                            // SAFETY: the processor has AVX2, checked just above.
+                            return unsafe { medium(self, v, c, out) };
+                        }
+                    }
                     $matvec(self, v, c, out)
                 }
                 #[inline(never)]
                 fn matvec_vjp(&self, v: &[f64], c: &[f64], w: &mut [f64], dv: &mut [f64], dc: &mut [f64]) {
                     let n = $crate::implicit::LinearSystem::n(self);
                     $crate::op::with_scratch(n, |out| diffsim_matvec_vjp(self, v, dv, c, dc, out, w));
+                }
+                #[inline(never)]
+                fn matvec_vjp_coefficients(&self, v: &[f64], c: &[f64], w: &mut [f64], dc: &mut [f64]) {
+                    let n = $crate::implicit::LinearSystem::n(self);
+                    $crate::op::with_scratch(n, |out| diffsim_matvec_vjp_coefficients(self, v, c, dc, out, w));
                 }
                 #[inline(never)]
                 fn matvec_jvp(&self, v: &[f64], c: &[f64], tv: &[f64], tc: &[f64], out: &mut [f64], tout: &mut [f64]) {
@@ -231,10 +265,10 @@ pub enum SolveMethod {
     /// its product from Enzyme's derivative of the matrix-vector product).
     BiCgStab,
     /// A direct solve, for small systems: `A(p)` assembled by `n` products
-    /// with the unit vectors (its nonzero entries kept) and factored by
-    /// faer's sparse LU with partial pivoting; the adjoint solves with the
-    /// transposed factors. Exact to rounding (the tolerance is not used);
-    /// a singular matrix is an error.
+    /// with the unit vectors and factored by faer's LU with partial
+    /// pivoting, dense up to 64 unknowns, sparse (its nonzero entries kept)
+    /// above; the adjoint solves with the transposed factors. Exact to
+    /// rounding (the tolerance is not used); a singular matrix is an error.
     Direct,
 }
 
@@ -392,10 +426,52 @@ fn singular() -> OpError {
     OpError::Input(crate::op::OpMessage::new("a direct solve: the matrix is singular"))
 }
 
+/// Systems up to this size are factored dense (faer's dense LU), larger
+/// ones sparse: for a few unknowns (an ODE's state) setting up a sparse
+/// factorisation costs many times the arithmetic (`bench robertson`).
+const DENSE_UP_TO: usize = 64;
+
+/// The factors of a direct solve: the dense matrix (factored with each
+/// solve, [`diffsim_solvers::linalg::dense_solve`]; a direct solve solves
+/// once per assembly) or a sparse LU.
+enum Factors {
+    Dense(usize, Vec<f64>),
+    Sparse(diffsim_solvers::linalg::SparseLu),
+}
+
+impl Factors {
+    fn solve_in_place(&self, b: &mut [f64]) {
+        match self {
+            Factors::Dense(n, a) => diffsim_solvers::linalg::dense_solve(*n, a, b, false),
+            Factors::Sparse(lu) => lu.solve_in_place(b),
+        }
+    }
+    fn solve_transpose_in_place(&self, b: &mut [f64]) {
+        match self {
+            Factors::Dense(n, a) => diffsim_solvers::linalg::dense_solve(*n, a, b, true),
+            Factors::Sparse(lu) => lu.solve_transpose_in_place(b),
+        }
+    }
+}
+
 /// [`SolveMethod::Direct`]: the matrix assembled column by column from its
-/// products with the unit vectors (nonzero entries kept), and its sparse LU.
-fn factor(n: usize, apply: &mut impl FnMut(&[f64], &mut [f64])) -> Result<diffsim_solvers::linalg::SparseLu, OpError> {
+/// products with the unit vectors (dense up to [`DENSE_UP_TO`] unknowns,
+/// else its nonzero entries kept), and its LU.
+fn factor(n: usize, apply: &mut impl FnMut(&[f64], &mut [f64])) -> Result<Factors, OpError> {
+    let not_finite = || OpError::Input(crate::op::OpMessage::new("a direct solve: the matrix holds a NaN or an infinity"));
     let (mut unit, mut column) = (vec![0.0; n], vec![0.0; n]);
+    if n <= DENSE_UP_TO {
+        let mut a = vec![0.0; n * n];
+        for (j, col) in a.chunks_exact_mut(n.max(1)).enumerate() {
+            unit[j] = 1.0;
+            apply(&unit, col);
+            unit[j] = 0.0;
+        }
+        if !a.iter().all(|v| v.is_finite()) {
+            return Err(not_finite());
+        }
+        return Ok(Factors::Dense(n, a));
+    }
     let mut entries = Vec::new();
     for j in 0..n {
         unit[j] = 1.0;
@@ -404,9 +480,9 @@ fn factor(n: usize, apply: &mut impl FnMut(&[f64], &mut [f64])) -> Result<diffsi
         entries.extend(column.iter().enumerate().filter(|(_, v)| **v != 0.0).map(|(i, &v)| (i, j, v)));
     }
     if entries.iter().any(|(_, _, v)| !v.is_finite()) {
-        return Err(OpError::Input(crate::op::OpMessage::new("a direct solve: the matrix holds a NaN or an infinity")));
+        return Err(not_finite());
     }
-    diffsim_solvers::linalg::SparseLu::new(n, &entries).map_err(|_| singular())
+    diffsim_solvers::linalg::SparseLu::new(n, &entries).map(Factors::Sparse).map_err(|_| singular())
 }
 
 /// Keeps the first failure in `kept` (for [`Forward::take_error`]).
@@ -520,13 +596,54 @@ impl<S: SystemFunctions> Vjp for LinearSolve<S> {
         dx.fill(0.0);
         self.vjp_from_solution(x, p, y, dy, dx, dp);
     }
+
+    /// The coefficients' cotangent `c̄`, then the right-hand side's `p̄`.
+    fn n_deferred(&self) -> usize {
+        self.system.n_coefficients() + self.system.n_params()
+    }
+
+    /// The rule without the coefficients' VJP: `c̄` gathered over the
+    /// backward pass, `(∂c/∂p)ᵀ·c̄` formed once by `finish_deferred`.
+    #[track_caller]
+    fn vjp_deferred(&self, x: &[f64], p: &[f64], y: Option<&[f64]>, dy: &mut [f64], dx: &mut [f64], acc: &mut [f64]) {
+        if acc.len() != self.n_deferred() {
+            panic!("LinearSolve: the deferred cotangent has length {}, the operator's {}", acc.len(), self.n_deferred());
+        }
+        validate_vjp(self, "LinearSolve", x, p, dy, dx, &acc[self.system.n_coefficients()..]);
+        let solved;
+        let y = match y {
+            Some(y) => {
+                check_given("LinearSolve", y, self.system.n());
+                y
+            }
+            None => {
+                let mut own = vec![0.0; self.system.n()];
+                self.forward(x, p, &mut own);
+                solved = own;
+                &solved
+            }
+        };
+        dx.fill(0.0);
+        let (dc, dp) = acc.split_at_mut(self.system.n_coefficients());
+        self.rule(x, p, y, dy, dx, dc, dp);
+    }
+
+    fn finish_deferred(&self, p: &[f64], acc: &mut [f64], dp: &mut [f64]) {
+        let (dc, direct) = acc.split_at_mut(self.system.n_coefficients());
+        self.system.coefficients_vjp(p, dc, dp);
+        for (d, a) in dp.iter_mut().zip(direct.iter_mut()) {
+            *d += *a;
+            *a = 0.0;
+        }
+    }
 }
 
 impl<S: SystemFunctions> LinearSolve<S> {
     /// The matrix's coefficients `c(p)`, from the cache when `p` is the
     /// last one's (bit for bit; a busy cache is passed by).
     fn coefficients(&self, p: &[f64]) -> Arc<Vec<f64>> {
-        let same = |a: &[f64]| a.len() == p.len() && a.iter().zip(p).all(|(a, b)| a.to_bits() == b.to_bits());
+        // Bit for bit, without an early exit (so the compare vectorises).
+        let same = |a: &[f64]| a.len() == p.len() && a.iter().zip(p).fold(0, |d, (a, b)| d | (a.to_bits() ^ b.to_bits())) == 0;
         if let Ok(cache) = self.cache.try_lock()
             && same(&cache.0)
         {
@@ -546,18 +663,22 @@ impl<S: SystemFunctions> LinearSolve<S> {
     /// The implicit rule at the solution `y`: one adjoint solve, then the
     /// derivatives of the user's functions.
     fn vjp_from_solution(&self, x: &[f64], p: &[f64], y: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        let mut dc = vec![0.0; self.system.n_coefficients()];
+        self.rule(x, p, y, dy, dx, &mut dc, dp);
+        self.system.coefficients_vjp(p, &mut dc, dp);
+    }
+
+    /// The rule up to the coefficients' VJP: `λ` from `Aᵀ·λ = ȳ`, then
+    /// `c̄ −= (∂(A(c)·y)/∂c)ᵀ·λ`, `x̄ += (∂b/∂x)ᵀ·λ`, `p̄ += (∂b/∂p)ᵀ·λ`;
+    /// consumes `ȳ`.
+    #[allow(clippy::too_many_arguments)]
+    fn rule(&self, x: &[f64], p: &[f64], y: &[f64], dy: &mut [f64], dx: &mut [f64], dc: &mut [f64], dp: &mut [f64]) {
         let n = self.system.n();
         let c = self.coefficients(p);
         let mut lambda = vec![0.0; n];
         self.solve(&c, dy, &mut lambda, true);
-        // p̄ −= (∂c/∂p)ᵀ·(∂(A(c)·y)/∂c)ᵀ·λ.
-        let (mut w, mut dy_unused, mut dc) = (lambda.clone(), vec![0.0; n], vec![0.0; c.len()]);
-        self.system.matvec_vjp(y, &c, &mut w, &mut dy_unused, &mut dc);
-        for d in &mut dc {
-            *d = -*d;
-        }
-        self.system.coefficients_vjp(p, &mut dc, dp);
-        // x̄ += (∂b/∂x)ᵀ·λ, p̄ += (∂b/∂p)ᵀ·λ.
+        let mut w: Vec<f64> = lambda.iter().map(|l| -l).collect();
+        self.system.matvec_vjp_coefficients(y, &c, &mut w, dc);
         self.system.rhs_vjp(x, p, &mut lambda, dx, dp);
         dy.fill(0.0);
     }

@@ -337,8 +337,8 @@ impl<S: ResidualFunctions> Equations for At<'_, S> {
         self.system.residual(y, self.x, self.p, r);
     }
     fn jacobian_product(&self, y: &[f64], v: &[f64], out: &mut [f64]) {
-        let mut r = vec![0.0; y.len()];
-        self.system.residual_jvp_y(y, self.x, self.p, v, &mut r, out);
+        // The residual itself is not needed: into the thread's scratch.
+        crate::op::with_scratch(y.len(), |r| self.system.residual_jvp_y(y, self.x, self.p, v, r, out));
     }
     fn jacobian_transpose_product(&self, y: &[f64], w: &[f64], out: &mut [f64]) {
         let (mut seed, mut dx, mut dp) = (w.to_vec(), vec![0.0; self.x.len()], vec![0.0; self.p.len()]);

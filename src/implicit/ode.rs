@@ -289,8 +289,9 @@ impl<S: RhsFunctions> Equations for Stage<'_, S> {
         }
     }
     fn jacobian_product(&self, y: &[f64], v: &[f64], out: &mut [f64]) {
-        let mut f = vec![0.0; y.len()];
-        self.system.f_jvp_u(y, self.p, v, &mut f, out);
+        // f itself is not needed: into the thread's scratch (a direct
+        // solve calls this n times per Newton iteration).
+        crate::op::with_scratch(y.len(), |f| self.system.f_jvp_u(y, self.p, v, f, out));
         for (o, v) in out.iter_mut().zip(v) {
             *o = v - self.hg * *o;
         }

@@ -10,6 +10,7 @@
 //! | [`Forward`] | `y = f(x, p)`                              | overwrites `y` |
 //! | [`Vjp`]     | `dx += J_xᵀ·dy`, `dp += J_pᵀ·dy`           | **adds**; `dy` is consumed (zeroed) |
 //! | [`Vjp::vjp_overwrite`] | `dx = J_xᵀ·dy`, `dp += J_pᵀ·dy` | overwrites `dx`; `dy` unspecified |
+//! | [`Vjp::vjp_deferred`] | as `vjp_overwrite`, `p`'s part gathered in the operator's own form | a rollout's many VJPs at one `p`; [`Vjp::finish_deferred`] forms `dp` once |
 //! | [`Jvp`]     | `y = f(x, p)`, `ty = J_x·tx + J_p·tp`      | overwrites both |
 //! | [`LocalInverse`] | `dx` with `f(x + dx, p) ≈ f(x, p) + dy` | overwrites `dx` |
 //!
@@ -397,6 +398,39 @@ pub trait Vjp<R: Real = f64>: Forward<R> {
     fn vjp_overwrite_given(&self, x: &[R], p: &[R], y: &[R], dy: &mut [R], dx: &mut [R], dp: &mut [R]) {
         let _ = y;
         self.vjp_overwrite(x, p, dy, dx, dp);
+    }
+
+    /// The length of the buffer in which [`Vjp::vjp_deferred`] gathers the
+    /// parameters' cotangent over many VJPs at the same `p` (a rollout's
+    /// backward pass). Default: `n_params`, the gradient itself.
+    fn n_deferred(&self) -> usize {
+        self.n_params()
+    }
+
+    /// [`Vjp::vjp_overwrite_given`] (without `y`: [`Vjp::vjp_overwrite`])
+    /// for one of many VJPs at the same `p`, the parameters' part
+    /// accumulated into `acc` (length [`Vjp::n_deferred`]) in the
+    /// operator's own form; [`Vjp::finish_deferred`] then turns it into the
+    /// gradient once. An operator whose parameters enter through a costly
+    /// map `c(p)` (a linear system's coefficients,
+    /// [`crate::implicit::LinearSolve`]) gathers `c̄` and applies the map's
+    /// VJP once per backward pass instead of once per step. Default: `acc`
+    /// is the gradient.
+    fn vjp_deferred(&self, x: &[R], p: &[R], y: Option<&[R]>, dy: &mut [R], dx: &mut [R], acc: &mut [R]) {
+        match y {
+            Some(y) => self.vjp_overwrite_given(x, p, y, dy, dx, acc),
+            None => self.vjp_overwrite(x, p, dy, dx, acc),
+        }
+    }
+
+    /// `dp += ` the gradient gathered in `acc` by [`Vjp::vjp_deferred`]
+    /// calls at `p`; consumes `acc` (zeros on return). Default: `dp += acc`.
+    fn finish_deferred(&self, p: &[R], acc: &mut [R], dp: &mut [R]) {
+        let _ = p;
+        for (d, a) in dp.iter_mut().zip(acc.iter_mut()) {
+            *d += *a;
+            *a = R::zero();
+        }
     }
 
     /// [`Vjp::vjp`] over a batch laid out as in [`Forward::forward_batch`]:

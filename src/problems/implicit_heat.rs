@@ -80,10 +80,13 @@ pub fn heat_conductances(s: &ImplicitHeat, theta: &[f64], c: &mut [f64]) {
 }
 
 /// `out = (I + dt·A(θ))·v` from the conductances `c` of
-/// [`heat_conductances`]: one pass over each row, every cell the same
-/// five-point formula (an insulated side's conductance is 0, and the
-/// missing neighbour row is the row itself), written as a zip of equal
-/// slices so that the compiler vectorises it.
+/// [`heat_conductances`]: one pass over each row, every inner cell the
+/// same five-point formula (an insulated side's conductance is 0, and the
+/// missing neighbour row is the row itself) over slices of equal length,
+/// so that the compiler vectorises it; the row's two end cells apart.
+/// `#[inline(always)]`: the solve's products then run in the widest
+/// vectors the processor has ([`crate::linear_system!`]).
+#[inline(always)]
 pub fn heat_matvec(s: &ImplicitHeat, v: &[f64], c: &[f64], out: &mut [f64]) {
     let n = s.n;
     let (cx, cy) = c[n * n..].split_at(n * (n + 1));
@@ -94,20 +97,37 @@ pub fn heat_matvec(s: &ImplicitHeat, v: &[f64], c: &[f64], out: &mut [f64]) {
         let (south, north) = (&cy[j * n..(j + 1) * n], &cy[(j + 1) * n..(j + 2) * n]);
         let faces = &cx[j * (n + 1)..(j + 1) * (n + 1)];
         let o = &mut out[j * n..(j + 1) * n];
-        // Vertical exchange and the cell itself, every cell.
-        for (((((o, c), b), a), cs), cn) in o.iter_mut().zip(row).zip(below).zip(above).zip(south).zip(north) {
-            *o = c + cs * (c - b) + cn * (c - a);
+        // Cell i exchanges with i − 1 through faces[i], with i + 1 through
+        // faces[i + 1]; a missing neighbour is the cell itself. (Scalars,
+        // not a closure over the rows: Enzyme cannot type a closure that
+        // holds six slices.)
+        let m = n - 1;
+        let (east_of_first, west_of_last) = (row[1.min(m)], row[m.saturating_sub(1)]);
+        o[0] = cell(row[0], below[0], above[0], south[0], north[0], faces[0], row[0], faces[1], east_of_first);
+        o[m] = cell(row[m], below[m], above[m], south[m], north[m], faces[m], west_of_last, faces[m + 1], row[m]);
+        if n < 3 {
+            continue;
         }
-        // Horizontal exchange through the n − 1 inner faces of the row.
-        if n > 1 {
-            for (((o, c), w), cw) in o[1..].iter_mut().zip(&row[1..]).zip(&row[..n - 1]).zip(&faces[1..n]) {
-                *o += cw * (c - w);
-            }
-            for (((o, c), e), ce) in o[..n - 1].iter_mut().zip(&row[..n - 1]).zip(&row[1..]).zip(&faces[1..n]) {
-                *o += ce * (c - e);
-            }
+        // The inner cells 1..n − 1, every slice cut to their count k so
+        // that the loop carries no bounds checks and vectorises.
+        let k = n - 2;
+        let (x, w, e) = (&row[1..1 + k], &row[..k], &row[2..2 + k]);
+        let (cw, ce) = (&faces[1..1 + k], &faces[2..2 + k]);
+        let (b, a, cs, cn) = (&below[1..1 + k], &above[1..1 + k], &south[1..1 + k], &north[1..1 + k]);
+        let inner = &mut o[1..1 + k];
+        for i in 0..k {
+            let v = x[i];
+            inner[i] = v + cs[i] * (v - b[i]) + cn[i] * (v - a[i]) + cw[i] * (v - w[i]) + ce[i] * (v - e[i]);
         }
     }
+}
+
+/// One cell of [`heat_matvec`]: `x` exchanging with the cells below, above,
+/// west and east through their faces' conductances.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn cell(x: f64, below: f64, above: f64, cs: f64, cn: f64, cw: f64, west: f64, ce: f64, east: f64) -> f64 {
+    x + cs * (x - below) + cn * (x - above) + cw * (x - west) + ce * (x - east)
 }
 
 /// `b = x` (the previous state).

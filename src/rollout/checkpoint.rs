@@ -103,6 +103,10 @@ pub(super) struct Backward<'r, 'a, O, L, R> {
     /// Buffer the next VJP overwrites.
     lam_next: Vec<R>,
     dp: Vec<R>,
+    /// The parameters' cotangent in the operator's own form
+    /// ([`Vjp::vjp_deferred`]), when the parameters are the same at every
+    /// step; turned into `dp` at the end.
+    deferred: Option<Vec<R>>,
     /// Recycled state buffers.
     free: Vec<Vec<R>>,
     live: usize,
@@ -174,14 +178,15 @@ impl<'r, 'a, R: Real, O: Vjp<R>, L: Loss<R>> Backward<'r, 'a, O, L, R> {
     /// (an implicit step's VJP then needs no solve of its own).
     fn vjp(&mut self, t: usize, x: &[R], next: Option<&[R]>) {
         let r = self.rollout;
-        let dp = &mut self.dp[r.block(t)];
         if t + 1 == r.steps && self.non_finite.is_none() && !super::all_finite(&self.lam) {
             // The seed itself: the loss gradient at x_T.
             self.non_finite = Some(r.steps);
         }
-        match next {
-            Some(y) => r.op.vjp_overwrite_given(x, r.p_at(t), y, &mut self.lam, &mut self.lam_next, dp),
-            None => r.op.vjp_overwrite(x, r.p_at(t), &mut self.lam, &mut self.lam_next, dp),
+        let (lam, lam_next, p) = (&mut self.lam, &mut self.lam_next, r.p_at(t));
+        match (&mut self.deferred, next) {
+            (Some(acc), _) => r.op.vjp_deferred(x, p, next, lam, lam_next, acc),
+            (None, Some(y)) => r.op.vjp_overwrite_given(x, p, y, lam, lam_next, &mut self.dp[r.block(t)]),
+            (None, None) => r.op.vjp_overwrite(x, p, lam, lam_next, &mut self.dp[r.block(t)]),
         }
         std::mem::swap(&mut self.lam, &mut self.lam_next);
         if t > 0 {
@@ -334,6 +339,7 @@ pub(super) fn run<R: Real, O: Vjp<R>, L: Loss<R>>(
         lam: vec![R::zero(); n],
         lam_next: vec![R::zero(); n],
         dp: vec![R::zero(); r.p.len()],
+        deferred: (!r.per_step).then(|| vec![R::zero(); r.op.n_deferred()]),
         free,
         live: 0,
         stats: RolloutStats { steps, ..Default::default() },
@@ -370,6 +376,9 @@ pub(super) fn run<R: Real, O: Vjp<R>, L: Loss<R>>(
             }
         }
     };
+    if let Some(mut acc) = bw.deferred.take() {
+        r.op.finish_deferred(r.p, &mut acc, &mut bw.dp);
+    }
     bw.stats.peak_state_bytes = bw.stats.peak_states * n * std::mem::size_of::<R>();
     ws.free = std::mem::take(&mut bw.free);
     if let Some(step) = bw.non_finite {
