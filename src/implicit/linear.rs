@@ -120,7 +120,10 @@ pub trait SystemProducts: LinearSystem {
 /// every element of their output; with `coefficients = c`, a function
 /// `fn(&Sys, p, c)` forms the matrix's coefficients once per solve and the
 /// product reads them instead of `p` (`fn(&Sys, v, c, out)`, module docs). Enzyme generates the derivatives the
-/// implicit rule needs. The crate that invokes it needs what
+/// implicit rule needs. The solves call the product through copies
+/// compiled for AVX-512 and AVX2 (chosen at run time): mark it
+/// `#[inline(always)]` so that each copy inlines it and vectorises it that
+/// wide (the heat product of `problems::implicit_heat` does). The crate that invokes it needs what
 /// [`differentiable!`](crate::differentiable) needs (the autodiff feature
 /// and flag, a fat-LTO release build).
 #[macro_export]
