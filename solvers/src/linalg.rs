@@ -257,26 +257,50 @@ impl SparseCholesky {
     }
 }
 
+/// The largest system [`dense_solve`] takes.
+pub const DENSE_SOLVE_MAX: usize = 64;
+
 /// Solves `A·x = b` (`transposed`: `Aᵀ·x = b`) in place of `b` for a small
-/// dense `n × n` matrix `a` given column by column, by faer's LU with
-/// partial pivoting: the Jacobians of Newton's method on a few unknowns
-/// (an ODE's state), where setting up a sparse factorisation would cost
-/// many times the arithmetic. One call factors and solves, so that no faer
-/// type reaches the crates built with the autodiff flag (rustc's type
-/// trees crash on them). A singular matrix leaves infinities or NaN in `b`.
+/// dense `n × n` matrix `a` given column by column, which it overwrites with
+/// its LU factors (faer's LU with partial pivoting): the Jacobians of
+/// Newton's method on a few unknowns (an ODE's state), where setting up a
+/// sparse factorisation would cost many times the arithmetic. The
+/// permutations and faer's workspace live on the stack: no allocation. One
+/// call factors and solves, so that no faer type reaches the crates built
+/// with the autodiff flag (rustc's type trees crash on them). A singular
+/// matrix leaves infinities or NaN in `b`.
 ///
 /// # Panics
-/// If `a` does not hold `n²` values or `b` not `n`.
-pub fn dense_solve(n: usize, a: &[f64], b: &mut [f64], transposed: bool) {
-    use faer::linalg::solvers::SolveCore;
+/// If `n` exceeds [`DENSE_SOLVE_MAX`], `a` does not hold `n²` values or `b`
+/// not `n`.
+pub fn dense_solve(n: usize, a: &mut [f64], b: &mut [f64], transposed: bool) {
+    use faer::dyn_stack::{MemStack, StackReq};
+    use faer::linalg::lu::partial_pivoting::{factor, solve};
+    use std::mem::MaybeUninit;
+    assert!(n <= DENSE_SOLVE_MAX, "dense LU: {n} unknowns, at most {DENSE_SOLVE_MAX}");
     assert_eq!(a.len(), n * n, "dense LU: the matrix must hold n² values");
     assert_eq!(b.len(), n, "dense LU: right-hand side length");
-    let lu = faer::MatRef::from_column_major_slice(a, n, n).partial_piv_lu();
+    let par = faer::Par::Seq;
+    let req = StackReq::any_of(&[
+        factor::lu_in_place_scratch::<usize, f64>(n, n, par, Default::default()),
+        solve::solve_in_place_scratch::<usize, f64>(n, 1, par),
+        solve::solve_transpose_in_place_scratch::<usize, f64>(n, 1, par),
+    ]);
+    // n usizes or n doubles, aligned: 64 of either and their alignment fit.
+    let mut buffer = [MaybeUninit::<u8>::uninit(); 8 * DENSE_SOLVE_MAX + 256];
+    assert!(req.unaligned_bytes_required() <= buffer.len(), "dense LU: faer's workspace outgrew the stack buffer");
+    let stack = MemStack::new(&mut buffer);
+    let (mut fwd, mut bwd) = ([0usize; DENSE_SOLVE_MAX], [0usize; DENSE_SOLVE_MAX]);
+    let mut lu = faer::MatMut::from_column_major_slice_mut(a, n, n);
+    let (_, perm) = factor::lu_in_place(lu.as_mut(), &mut fwd[..n], &mut bwd[..n], par, stack, Default::default());
     let rhs = faer::MatMut::from_column_major_slice_mut(b, n, 1);
+    // L (unit lower) and U (upper) share the factored matrix: the
+    // triangular solves read their own triangle only.
+    let lu = lu.as_ref();
     if transposed {
-        lu.solve_transpose_in_place_with_conj(faer::Conj::No, rhs);
+        solve::solve_transpose_in_place_with_conj(lu, lu, perm, faer::Conj::No, rhs, par, stack);
     } else {
-        lu.solve_in_place_with_conj(faer::Conj::No, rhs);
+        solve::solve_in_place_with_conj(lu, lu, perm, faer::Conj::No, rhs, par, stack);
     }
 }
 
@@ -314,5 +338,32 @@ impl SparseLu {
         assert_eq!(b.len(), self.n, "sparse LU: right-hand side length");
         let rhs = faer::MatMut::from_column_major_slice_mut(b, self.n, 1);
         self.lu.solve_transpose_in_place_with_conj(faer::Conj::No, rhs);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::dense_solve;
+
+    /// A 3×3 system whose first pivot is 0 (so rows must swap), solved both
+    /// ways and checked by multiplying back.
+    #[test]
+    fn dense_solve_pivots_and_solves_both_ways() {
+        // Column by column: A = [[0, 2, 1], [1, 1, 0], [4, 0, 3]].
+        let a = [0.0, 1.0, 4.0, 2.0, 1.0, 0.0, 1.0, 0.0, 3.0];
+        let at = |i: usize, j: usize| a[j * 3 + i];
+        let b = [3.0, -1.0, 2.5];
+        for transposed in [false, true] {
+            let (mut lu, mut x) = (a, b);
+            dense_solve(3, &mut lu, &mut x, transposed);
+            for i in 0..3 {
+                let row: f64 = (0..3).map(|j| if transposed { at(j, i) } else { at(i, j) } * x[j]).sum();
+                assert!((row - b[i]).abs() < 1e-14, "transposed {transposed}, row {i}: {row} against {}", b[i]);
+            }
+        }
+        // Singular: infinities or NaN, not a number that looks right.
+        let (mut lu, mut x) = ([1.0, 2.0, 2.0, 4.0], [1.0, 1.0]);
+        dense_solve(2, &mut lu, &mut x, false);
+        assert!(x.iter().any(|v| !v.is_finite()), "{x:?}");
     }
 }

@@ -411,11 +411,7 @@ pub(crate) fn solve_system(
         SolveMethod::Direct => {
             let lu = factor(n, &mut apply)?;
             y.copy_from_slice(b);
-            if transposed {
-                lu.solve_transpose_in_place(y)
-            } else {
-                lu.solve_in_place(y)
-            }
+            lu.solve(y, transposed);
             if !y.iter().all(|v| v.is_finite()) {
                 return Err(singular());
             }
@@ -432,7 +428,7 @@ fn singular() -> OpError {
 /// Systems up to this size are factored dense (faer's dense LU), larger
 /// ones sparse: for a few unknowns (an ODE's state) setting up a sparse
 /// factorisation costs many times the arithmetic (`bench robertson`).
-const DENSE_UP_TO: usize = 64;
+const DENSE_UP_TO: usize = diffsim_solvers::linalg::DENSE_SOLVE_MAX;
 
 /// The factors of a direct solve: the dense matrix (factored with each
 /// solve, [`diffsim_solvers::linalg::dense_solve`]; a direct solve solves
@@ -443,16 +439,13 @@ enum Factors {
 }
 
 impl Factors {
-    fn solve_in_place(&self, b: &mut [f64]) {
-        match self {
-            Factors::Dense(n, a) => diffsim_solvers::linalg::dense_solve(*n, a, b, false),
+    /// `b = A⁻¹·b` (`transposed`: `A⁻ᵀ·b`); once (the dense matrix is
+    /// factored in place).
+    fn solve(mut self, b: &mut [f64], transposed: bool) {
+        match &mut self {
+            Factors::Dense(n, a) => diffsim_solvers::linalg::dense_solve(*n, a, b, transposed),
+            Factors::Sparse(lu) if transposed => lu.solve_transpose_in_place(b),
             Factors::Sparse(lu) => lu.solve_in_place(b),
-        }
-    }
-    fn solve_transpose_in_place(&self, b: &mut [f64]) {
-        match self {
-            Factors::Dense(n, a) => diffsim_solvers::linalg::dense_solve(*n, a, b, true),
-            Factors::Sparse(lu) => lu.solve_transpose_in_place(b),
         }
     }
 }
