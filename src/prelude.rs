@@ -7,9 +7,10 @@
 
 pub use crate::check::{CheckParams, check_all};
 pub use crate::implicit::{
-    Integrator, IntegratorParams, LinearSolve, LinearSystem, NewtonParams, NonlinearSolve, NonlinearSystem, OdeSystem, Scheme, SolveMethod, SolveParams,
+    FixedPoint, FixedPointParams, FixedPointSystem, Integrator, IntegratorParams, LinearSolve, LinearSystem, NewtonParams, NonlinearSolve, NonlinearSystem,
+    OdeSystem, Scheme, SolveMethod, SolveParams,
 };
 pub use crate::op::{Forward, Jvp, OpError, Operator, OperatorExt, Vjp};
 pub use crate::rollout::{AtSteps, Checkpointing, Loss, Rollout, RolloutError, RolloutLoss, Wrt};
 pub use crate::train::{Adam, AdamParams, FnObjective, Lbfgs, LbfgsParams, Objective, Trainer, TrainerParams, UpdateRule};
-pub use crate::{differentiable, linear_system, nonlinear_system, ode_system, stencil3};
+pub use crate::{differentiable, fixed_point_system, linear_system, nonlinear_system, ode_system, stencil3};

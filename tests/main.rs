@@ -10,6 +10,7 @@ mod checks;
 mod cli;
 mod distributed;
 mod doc_examples;
+mod fixed_point;
 mod flow;
 mod fluids;
 mod fluids3d;
