@@ -9,9 +9,10 @@ implicit rule (a transposed solve), as diffsim does. Loss 1/2 |x_T - x*|^2,
 gradient with respect to the initial state and every conductivity; float64,
 jit. The same initial state, conductivities and target as the Rust bench.
 
-Usage: python implicit_heat_jax.py N STEPS BUDGET_SECONDS [zero|rhs]  -> one JSON line
+Usage: python implicit_heat_jax.py N STEPS BUDGET_SECONDS [zero|rhs] [none|jacobi]  -> one JSON line
 (rhs: CG starts from the right-hand side, as `diffsim bench implicit-heat
---start rhs`).
+--start rhs`; jacobi: CG preconditioned by the matrix's diagonal, as
+`--preconditioner jacobi`).
 """
 import json
 import statistics
@@ -26,6 +27,7 @@ from jax.scipy.sparse.linalg import cg  # noqa: E402
 
 n, steps, budget = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
 start = sys.argv[4] if len(sys.argv) > 4 else "zero"
+precond = sys.argv[5] if len(sys.argv) > 5 else "none"
 dt, tol = 0.1, 1e-10
 
 
@@ -54,12 +56,29 @@ def matvec_of(theta):
     return matvec
 
 
-def solve(matvec, b):
-    return cg(matvec, b, x0=b if start == "rhs" else None, tol=tol, atol=0.0, maxiter=10_000)[0]
+def diagonal_of(theta):
+    kappa = jnp.exp(theta)
+    cx = dt * 0.5 * (kappa[:, 1:] + kappa[:, :-1])
+    cy = dt * 0.5 * (kappa[1:, :] + kappa[:-1, :])
+    d = jnp.ones_like(theta)
+    return d.at[:, :-1].add(cx).at[:, 1:].add(cx).at[:-1, :].add(cy).at[1:, :].add(cy)
+
+
+def solver(theta):
+    m = None
+    if precond == "jacobi":
+        d = jax.lax.stop_gradient(diagonal_of(theta))
+        m = lambda r: r / d  # noqa: E731
+
+    def solve(matvec, b):
+        return cg(matvec, b, x0=b if start == "rhs" else None, tol=tol, atol=0.0, maxiter=10_000, M=m)[0]
+
+    return solve
 
 
 def loss(x0, theta):
     matvec = matvec_of(theta)
+    solve = solver(theta)
 
     def step(x, _):
         return jax.lax.custom_linear_solve(matvec, x, solve, symmetric=True), None
@@ -88,6 +107,6 @@ value = float(forward(x0, theta))
 v2, (gx, gt) = gradient(x0, theta)
 forward_s = median_time(lambda: forward(x0, theta))
 grad_s = median_time(lambda: gradient(x0, theta))
-print(json.dumps({"peer": "jax", "jax": jax.__version__, "n": n, "steps": steps, "tolerance": tol, "start": start, "loss": value,
+print(json.dumps({"peer": "jax", "jax": jax.__version__, "n": n, "steps": steps, "tolerance": tol, "start": start, "preconditioner": precond, "loss": value,
                   "grad_norm": float(jnp.sqrt(jnp.sum(gx ** 2) + jnp.sum(gt ** 2))),
                   "forward_s": forward_s, "grad_s": grad_s, "grad_over_forward": grad_s / forward_s}))

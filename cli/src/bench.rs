@@ -8,7 +8,7 @@ use diffsim::problems::SmokeBenchmark;
 use diffsim::problems::burgers::P1;
 use diffsim::problems::smoke::{P2, SmokeStep};
 use diffsim::problems::smoke3d::{P4, SmokeStep3};
-use diffsim::rollout::Workspace;
+use diffsim::rollout::{Gradient, Rollout, RolloutError, Workspace};
 use diffsim_solvers::smoke::{P2_SIZES, Preconditioner};
 use diffsim_solvers::smoke3d::P4_SIZES;
 
@@ -845,6 +845,10 @@ pub(super) struct ImplicitHeatArgs {
     /// the solution of a time step).
     #[arg(long, value_enum, default_value_t = StartArg::Zero)]
     start: StartArg,
+    /// CG's preconditioner: `none`, or `jacobi` (the matrix's diagonal,
+    /// `problems::implicit_heat::PreconditionedHeat`).
+    #[arg(long, value_enum, default_value_t = HeatPreconditioner::None)]
+    preconditioner: HeatPreconditioner,
     /// Also differentiate through the CG iterations with Enzyme (the route
     /// without the implicit rule) at tolerances 1e-6 … 1e-12: each
     /// gradient's error against the implicit one at 1e-13, and its time.
@@ -992,6 +996,38 @@ fn robertson(a: RobertsonArgs) -> Result<(), CliError> {
     Ok(())
 }
 
+/// A heat step of the bench, plain or preconditioned: its rollout's loss
+/// and gradient, and its CG iterations so far (forward, adjoint).
+trait HeatStep {
+    fn loss(&self, x0: &[f64], theta: &[f64], steps: usize, loss: HeatLoss<'_>) -> Result<f64, RolloutError>;
+    fn value_and_grad(&self, x0: &[f64], theta: &[f64], steps: usize, loss: HeatLoss<'_>) -> Result<Gradient, RolloutError>;
+    fn counts(&self) -> (usize, usize);
+}
+
+type HeatLoss<'a> = &'a dyn Fn(&[f64], &mut [f64]) -> f64;
+
+impl<S: diffsim::implicit::SystemFunctions> HeatStep for diffsim::implicit::LinearSolve<S> {
+    fn loss(&self, x0: &[f64], theta: &[f64], steps: usize, loss: HeatLoss<'_>) -> Result<f64, RolloutError> {
+        Rollout::new(self, theta, steps)?.loss(x0, &loss)
+    }
+    fn value_and_grad(&self, x0: &[f64], theta: &[f64], steps: usize, loss: HeatLoss<'_>) -> Result<Gradient, RolloutError> {
+        Rollout::new(self, theta, steps)?.value_and_grad(x0, &loss, diffsim::rollout::Checkpointing::Store)
+    }
+    fn counts(&self) -> (usize, usize) {
+        use std::sync::atomic::Ordering;
+        (self.info.forward.load(Ordering::Relaxed), self.info.adjoint.load(Ordering::Relaxed))
+    }
+}
+
+/// The implicit heat bench's preconditioner.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub(super) enum HeatPreconditioner {
+    /// Plain CG.
+    None,
+    /// The diagonal.
+    Jacobi,
+}
+
 /// [`diffsim::implicit::Start`] on the command line.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub(super) enum StartArg {
@@ -1011,7 +1047,6 @@ fn implicit_heat(a: ImplicitHeatArgs) -> Result<(), CliError> {
     use diffsim::implicit::SolveParams;
     use diffsim::problems::implicit_heat::ImplicitHeat;
     use diffsim::rollout::{Checkpointing, Rollout};
-    use std::sync::atomic::Ordering;
     if !(2..=2048).contains(&a.n) {
         return Err(CliError::Argument { arg: "--n", reason: format!("must be between 2 and 2048 cells per side, got {}", a.n) });
     }
@@ -1034,7 +1069,18 @@ fn implicit_heat(a: ImplicitHeatArgs) -> Result<(), CliError> {
         StartArg::Zero => diffsim::implicit::Start::Zero,
         StartArg::Rhs => diffsim::implicit::Start::Rhs,
     };
-    let op = ImplicitHeat::step(n, 0.1, SolveParams { start, ..SolveParams::default() });
+    let params = SolveParams { start, ..SolveParams::default() };
+    let (plain, jacobi);
+    let op: &dyn HeatStep = match a.preconditioner {
+        HeatPreconditioner::None => {
+            plain = ImplicitHeat::step(n, 0.1, params);
+            &plain
+        }
+        HeatPreconditioner::Jacobi => {
+            jacobi = diffsim::problems::implicit_heat::PreconditionedHeat::step(n, 0.1, params);
+            &jacobi
+        }
+    };
     let wave = |k: usize, a: f64, b: f64| a * (0.37 * (k % n) as f64).sin() * (0.23 * (k / n) as f64).cos() + b;
     let x0: Vec<f64> = (0..n * n).map(|k| wave(k, 1.0, 0.5)).collect();
     let theta: Vec<f64> = (0..n * n).map(|k| wave(k, 0.5, 0.0)).collect();
@@ -1047,27 +1093,30 @@ fn implicit_heat(a: ImplicitHeatArgs) -> Result<(), CliError> {
         }
         value
     };
-    let rollout = Rollout::new(&op, &theta, steps)?;
-    let counts = || (op.info.forward.load(Ordering::Relaxed), op.info.adjoint.load(Ordering::Relaxed));
+    let counts = || op.counts();
     // One of each, counted.
     let c0 = counts();
-    let value = rollout.loss(&x0, &loss)?;
+    let value = op.loss(&x0, &theta, steps, &loss)?;
     let c1 = counts();
-    let g = rollout.value_and_grad(&x0, &loss, Checkpointing::Store)?;
+    let g = op.value_and_grad(&x0, &theta, steps, &loss)?;
     let c2 = counts();
     if !value.is_finite() || !diffsim::op::all_finite(&g.dx0) || !diffsim::op::all_finite(&g.dp) {
         return Err(CliError::NotReported { what: "bench implicit-heat".into(), reason: "the loss or its gradient is not finite".into() });
     }
-    let (forward_s, _) = median_time(a.budget, 3, 100_000, || rollout.loss(&x0, &loss));
-    let (grad_s, _) = median_time(a.budget, 3, 100_000, || rollout.value_and_grad(&x0, &loss, Checkpointing::Store));
+    let (forward_s, _) = median_time(a.budget, 3, 100_000, || op.loss(&x0, &theta, steps, &loss));
+    let (grad_s, _) = median_time(a.budget, 3, 100_000, || op.value_and_grad(&x0, &theta, steps, &loss));
     let mut row = serde_json::json!({
-        "problem": "implicit-heat", "n": n, "steps": steps, "tolerance": op.params.tolerance, "start": format!("{:?}", a.start).to_lowercase(),
+        "problem": "implicit-heat", "n": n, "steps": steps, "tolerance": params.tolerance, "start": format!("{:?}", a.start).to_lowercase(),
+        "preconditioner": format!("{:?}", a.preconditioner).to_lowercase(),
         "forward_s": forward_s, "grad_s": grad_s, "grad_over_forward": grad_s / forward_s,
         "cg_forward_iterations": c1.0 - c0.0, "cg_gradient_forward_iterations": c2.0 - c1.0, "cg_adjoint_iterations": c2.1 - c1.1,
         "loss": value,
     });
     if !a.json {
-        println!("implicit heat, {n}² cells, {steps} backward-Euler steps, CG to {:.0e} from {:?}", op.params.tolerance, a.start);
+        println!(
+            "implicit heat, {n}² cells, {steps} backward-Euler steps, CG to {:.0e} from {:?}, preconditioner {:?}",
+            params.tolerance, a.start, a.preconditioner
+        );
         println!("  forward    {:9.3} ms  ({} CG iterations)", 1e3 * forward_s, c1.0 - c0.0);
         println!("  gradient   {:9.3} ms  ({} forward and {} adjoint CG iterations)", 1e3 * grad_s, c2.0 - c1.0, c2.1 - c1.1);
         println!("  gradient / forward  {:.2}", grad_s / forward_s);

@@ -274,29 +274,88 @@ pub const DENSE_SOLVE_MAX: usize = 64;
 /// If `n` exceeds [`DENSE_SOLVE_MAX`], `a` does not hold `n²` values or `b`
 /// not `n`.
 pub fn dense_solve(n: usize, a: &mut [f64], b: &mut [f64], transposed: bool) {
+    let (mut fwd, mut bwd) = ([0usize; DENSE_SOLVE_MAX], [0usize; DENSE_SOLVE_MAX]);
+    dense_factor(n, a, &mut fwd[..n], &mut bwd[..n]);
+    dense_factored_solve(n, a, &fwd[..n], &bwd[..n], b, transposed);
+}
+
+/// A small dense matrix's LU factors (faer's LU with partial pivoting),
+/// kept to solve many right-hand sides: Newton's method with a Jacobian
+/// held over several iterations. Plain vectors inside (no faer type, for
+/// the crates built with the autodiff flag); each call to faer is one
+/// non-generic function.
+#[derive(Clone, Debug, Default)]
+pub struct DenseLu {
+    n: usize,
+    lu: Vec<f64>,
+    forward: Vec<usize>,
+    inverse: Vec<usize>,
+}
+
+impl DenseLu {
+    /// Factors the `n × n` matrix `a` (column by column) into this value's
+    /// storage, reused from call to call; `false` when a factor is not
+    /// finite (a singular matrix).
+    ///
+    /// # Panics
+    /// If `n` exceeds [`DENSE_SOLVE_MAX`] or `a` does not hold `n²` values.
+    pub fn factor(&mut self, n: usize, a: &[f64]) -> bool {
+        self.n = n;
+        self.lu.clear();
+        self.lu.extend_from_slice(a);
+        self.forward.resize(n, 0);
+        self.inverse.resize(n, 0);
+        dense_factor(n, &mut self.lu, &mut self.forward, &mut self.inverse);
+        self.lu.iter().all(|v| v.is_finite()) && (0..n).all(|i| self.lu[i * n + i] != 0.0)
+    }
+
+    /// Unknowns of the factored matrix.
+    pub fn n(&self) -> usize {
+        self.n
+    }
+
+    /// `b = A⁻¹·b` (`transposed`: `A⁻ᵀ·b`).
+    ///
+    /// # Panics
+    /// If `b` does not hold `n` values.
+    pub fn solve(&self, b: &mut [f64], transposed: bool) {
+        dense_factored_solve(self.n, &self.lu, &self.forward, &self.inverse, b, transposed);
+    }
+}
+
+/// faer's workspace for a dense LU of at most [`DENSE_SOLVE_MAX`] unknowns
+/// and its solves, on the stack.
+type DenseStack = [std::mem::MaybeUninit<u8>; 8 * DENSE_SOLVE_MAX + 256];
+
+fn dense_factor(n: usize, a: &mut [f64], forward: &mut [usize], inverse: &mut [usize]) {
     use faer::dyn_stack::{MemStack, StackReq};
-    use faer::linalg::lu::partial_pivoting::{factor, solve};
-    use std::mem::MaybeUninit;
+    use faer::linalg::lu::partial_pivoting::factor;
     assert!(n <= DENSE_SOLVE_MAX, "dense LU: {n} unknowns, at most {DENSE_SOLVE_MAX}");
     assert_eq!(a.len(), n * n, "dense LU: the matrix must hold n² values");
-    assert_eq!(b.len(), n, "dense LU: right-hand side length");
     let par = faer::Par::Seq;
-    let req = StackReq::any_of(&[
-        factor::lu_in_place_scratch::<usize, f64>(n, n, par, Default::default()),
-        solve::solve_in_place_scratch::<usize, f64>(n, 1, par),
-        solve::solve_transpose_in_place_scratch::<usize, f64>(n, 1, par),
-    ]);
+    let req = StackReq::any_of(&[factor::lu_in_place_scratch::<usize, f64>(n, n, par, Default::default())]);
     // n usizes or n doubles, aligned: 64 of either and their alignment fit.
-    let mut buffer = [MaybeUninit::<u8>::uninit(); 8 * DENSE_SOLVE_MAX + 256];
+    let mut buffer: DenseStack = [std::mem::MaybeUninit::uninit(); 8 * DENSE_SOLVE_MAX + 256];
     assert!(req.unaligned_bytes_required() <= buffer.len(), "dense LU: faer's workspace outgrew the stack buffer");
     let stack = MemStack::new(&mut buffer);
-    let (mut fwd, mut bwd) = ([0usize; DENSE_SOLVE_MAX], [0usize; DENSE_SOLVE_MAX]);
-    let mut lu = faer::MatMut::from_column_major_slice_mut(a, n, n);
-    let (_, perm) = factor::lu_in_place(lu.as_mut(), &mut fwd[..n], &mut bwd[..n], par, stack, Default::default());
+    let lu = faer::MatMut::from_column_major_slice_mut(a, n, n);
+    factor::lu_in_place(lu, forward, inverse, par, stack, Default::default());
+}
+
+fn dense_factored_solve(n: usize, lu: &[f64], forward: &[usize], inverse: &[usize], b: &mut [f64], transposed: bool) {
+    use faer::dyn_stack::{MemStack, StackReq};
+    use faer::linalg::lu::partial_pivoting::solve;
+    assert_eq!(b.len(), n, "dense LU: right-hand side length");
+    let par = faer::Par::Seq;
+    let req = StackReq::any_of(&[solve::solve_in_place_scratch::<usize, f64>(n, 1, par), solve::solve_transpose_in_place_scratch::<usize, f64>(n, 1, par)]);
+    let mut buffer: DenseStack = [std::mem::MaybeUninit::uninit(); 8 * DENSE_SOLVE_MAX + 256];
+    assert!(req.unaligned_bytes_required() <= buffer.len(), "dense LU: faer's workspace outgrew the stack buffer");
+    let stack = MemStack::new(&mut buffer);
+    let perm = faer::perm::PermRef::new_checked(forward, inverse, n);
+    let lu = faer::MatRef::from_column_major_slice(lu, n, n);
     let rhs = faer::MatMut::from_column_major_slice_mut(b, n, 1);
     // L (unit lower) and U (upper) share the factored matrix: the
     // triangular solves read their own triangle only.
-    let lu = lu.as_ref();
     if transposed {
         solve::solve_transpose_in_place_with_conj(lu, lu, perm, faer::Conj::No, rhs, par, stack);
     } else {
@@ -343,7 +402,7 @@ impl SparseLu {
 
 #[cfg(test)]
 mod tests {
-    use super::dense_solve;
+    use super::{DenseLu, dense_solve};
 
     /// A 3×3 system whose first pivot is 0 (so rows must swap), solved both
     /// ways and checked by multiplying back.
@@ -365,5 +424,23 @@ mod tests {
         let (mut lu, mut x) = ([1.0, 2.0, 2.0, 4.0], [1.0, 1.0]);
         dense_solve(2, &mut lu, &mut x, false);
         assert!(x.iter().any(|v| !v.is_finite()), "{x:?}");
+    }
+
+    /// Factors kept: the same answers as `dense_solve` for several
+    /// right-hand sides both ways, and a singular matrix reported.
+    #[test]
+    fn dense_lu_keeps_its_factors_for_many_solves() {
+        let a = [0.0, 1.0, 4.0, 2.0, 1.0, 0.0, 1.0, 0.0, 3.0];
+        let mut lu = DenseLu::default();
+        assert!(lu.factor(3, &a));
+        assert_eq!(lu.n(), 3);
+        for (k, transposed) in [(0, false), (1, true), (2, false)] {
+            let b = [1.0 + k as f64, -2.0, 0.5 * k as f64];
+            let (mut kept, mut once, mut fresh) = (b, b, a);
+            lu.solve(&mut kept, transposed);
+            dense_solve(3, &mut fresh, &mut once, transposed);
+            assert_eq!(kept, once, "right-hand side {k}");
+        }
+        assert!(!lu.factor(2, &[1.0, 2.0, 2.0, 4.0]), "a singular matrix factored");
     }
 }

@@ -42,6 +42,25 @@
 //! Differentiating through the CG iterations instead gives the derivative
 //! of the truncated iteration, which lags the solution's (docs/implicit.md).
 //!
+//! A fourth function may precondition the iterative methods,
+//! `z = M(c)⁻¹·r` from the coefficients (its diagonal, say):
+//!
+//! ```ignore
+//! fn jacobi(s: &Heat, c: &[f64], r: &[f64], z: &mut [f64]) { /* z = M(c)⁻¹·r */ }
+//! diffsim::linear_system!(Heat => matvec, rhs, coefficients = conductances, preconditioner = jacobi);
+//! ```
+//!
+//! CG needs `M` symmetric positive definite; BiCGStab applies it on the
+//! right (any non-singular `M`; its transposed solve uses the same `M`,
+//! which suits a symmetric one). The preconditioner changes how fast a
+//! solve converges, never its solution or derivatives, so it is not
+//! differentiated.
+//!
+//! A system whose matrix is singular with the constant null space (a
+//! Poisson matrix with Neumann sides) says so
+//! ([`LinearSystem::constant_null_space`]): CG solves it for the
+//! right-hand side without its mean, and returns the solution of zero mean.
+//!
 //! A solve that does not converge leaves the output NaN and its error in
 //! [`Forward::take_error`]; a rollout stops there with that error.
 
@@ -49,7 +68,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
 use diffsim_solvers::cg::{CgWork, Null, Stop, System};
-use diffsim_solvers::krylov::bicgstab;
+use diffsim_solvers::krylov::{bicgstab, bicgstab_preconditioned};
 
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
@@ -69,6 +88,15 @@ pub trait LinearSystem {
     /// without one the product reads `p` itself.
     fn n_coefficients(&self) -> usize {
         self.n_params()
+    }
+    /// Whether `A(p)` is singular with the constant vector as its null
+    /// space, for every `p` (a Poisson or conduction matrix with insulated,
+    /// Neumann, sides all round): CG then solves for the right-hand side
+    /// with its mean removed and returns the solution of zero mean, the
+    /// adjoint solve likewise, so the derivatives are those of that
+    /// solution. CG only ([`LinearSolve::new`] refuses the others).
+    fn constant_null_space(&self) -> bool {
+        false
     }
 }
 
@@ -112,6 +140,15 @@ pub trait SystemProducts: LinearSystem {
     /// `b = b(x, p)`, `tb = (∂b/∂x)·tx + (∂b/∂p)·tp`.
     #[allow(clippy::too_many_arguments)]
     fn rhs_jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], b: &mut [f64], tb: &mut [f64]);
+    /// Whether the system names a preconditioner
+    /// ([`linear_system!`](crate::linear_system)`(.., preconditioner = m)`).
+    fn has_preconditioner(&self) -> bool {
+        false
+    }
+    /// `z = M(c)⁻¹·r` (only called when [`Self::has_preconditioner`]).
+    fn precondition(&self, _c: &[f64], r: &[f64], z: &mut [f64]) {
+        z.copy_from_slice(r)
+    }
 }
 
 /// Makes `Sys` (a [`LinearSystem`], plain data) the system of a
@@ -119,7 +156,9 @@ pub trait SystemProducts: LinearSystem {
 /// right-hand side `fn(&Sys, x, p, b)`, both plain functions that write
 /// every element of their output; with `coefficients = c`, a function
 /// `fn(&Sys, p, c)` forms the matrix's coefficients once per solve and the
-/// product reads them instead of `p` (`fn(&Sys, v, c, out)`, module docs). Enzyme generates the derivatives the
+/// product reads them instead of `p` (`fn(&Sys, v, c, out)`, module docs);
+/// with `preconditioner = m`, a function `fn(&Sys, c, r, z)` computes
+/// `z = M⁻¹·r` for the iterative methods (not differentiated). Enzyme generates the derivatives the
 /// implicit rule needs. The solves call the product through copies
 /// compiled for AVX-512 and AVX2 (chosen at run time): mark it
 /// `#[inline(always)]` so that each copy inlines it and vectorises it that
@@ -128,8 +167,12 @@ pub trait SystemProducts: LinearSystem {
 /// and flag, a fat-LTO release build).
 #[macro_export]
 macro_rules! linear_system {
-    ($ty:ty => $matvec:path, $rhs:path) => {
-        $crate::linear_system!(@functions $ty, $matvec, $rhs);
+    ($ty:ty => $matvec:path, $rhs:path, coefficients = $coef:path $(, preconditioner = $pre:path)?) => {
+        $crate::linear_system!(@coefficients $ty, $coef);
+        $crate::linear_system!(@functions $ty, $matvec, $rhs, [$($pre)?]);
+    };
+    ($ty:ty => $matvec:path, $rhs:path $(, preconditioner = $pre:path)?) => {
+        $crate::linear_system!(@functions $ty, $matvec, $rhs, [$($pre)?]);
         const _: () = {
             impl $crate::implicit::SystemCoefficients for $ty {
                 fn coefficients(&self, p: &[f64], c: &mut [f64]) {
@@ -148,8 +191,7 @@ macro_rules! linear_system {
             }
         };
     };
-    ($ty:ty => $matvec:path, $rhs:path, coefficients = $coef:path) => {
-        $crate::linear_system!(@functions $ty, $matvec, $rhs);
+    (@coefficients $ty:ty, $coef:path) => {
         #[allow(clippy::too_many_arguments)]
         const _: () = {
             #[::std::autodiff::autodiff_reverse(diffsim_coefficients_vjp, Const, Duplicated, Duplicated)]
@@ -176,7 +218,7 @@ macro_rules! linear_system {
             }
         };
     };
-    (@functions $ty:ty, $matvec:path, $rhs:path) => {
+    (@functions $ty:ty, $matvec:path, $rhs:path, [$($pre:path)?]) => {
         #[allow(clippy::too_many_arguments)]
         const _: () = {
             #[::std::autodiff::autodiff_reverse(diffsim_matvec_vjp, Const, Duplicated, Duplicated, Duplicated)]
@@ -206,26 +248,7 @@ macro_rules! linear_system {
                     // processor has (the user's function inlined into each
                     // copy when it is `#[inline]`); the derivatives below
                     // stay in the baseline instructions.
-                    #[cfg(target_arch = "x86_64")]
-                    {
-                        #[target_feature(enable = "avx512f")]
-                        fn wide(s: &$ty, v: &[f64], c: &[f64], out: &mut [f64]) {
-                            $matvec(s, v, c, out)
-                        }
-                        #[target_feature(enable = "avx2")]
-                        fn medium(s: &$ty, v: &[f64], c: &[f64], out: &mut [f64]) {
-                            $matvec(s, v, c, out)
-                        }
-                        if ::std::is_x86_feature_detected!("avx512f") {
-                            // SAFETY: the processor has AVX-512F, checked just above.
-                            return unsafe { wide(self, v, c, out) };
-                        }
-                        if ::std::is_x86_feature_detected!("avx2") {
-                            // SAFETY: the processor has AVX2, checked just above.
-                            return unsafe { medium(self, v, c, out) };
-                        }
-                    }
-                    $matvec(self, v, c, out)
+                    $crate::linear_system!(@widest $ty, $matvec, self, v, c, out)
                 }
                 #[inline(never)]
                 fn matvec_vjp(&self, v: &[f64], c: &[f64], w: &mut [f64], dv: &mut [f64], dc: &mut [f64]) {
@@ -253,9 +276,42 @@ macro_rules! linear_system {
                 fn rhs_jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], b: &mut [f64], tb: &mut [f64]) {
                     diffsim_rhs_jvp(self, x, tx, p, tp, b, tb)
                 }
+                $(
+                    fn has_preconditioner(&self) -> bool {
+                        true
+                    }
+                    fn precondition(&self, c: &[f64], r: &[f64], z: &mut [f64]) {
+                        // In the widest vectors, like the product.
+                        $crate::linear_system!(@widest $ty, $pre, self, c, r, z)
+                    }
+                )?
             }
         };
     };
+    // `f(s, a, b, out)` through copies compiled for AVX-512 and AVX2, chosen
+    // at run time, else the baseline.
+    (@widest $ty:ty, $f:path, $s:expr, $a:expr, $b:expr, $out:expr) => {{
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx512f")]
+            fn wide(s: &$ty, a: &[f64], b: &[f64], out: &mut [f64]) {
+                $f(s, a, b, out)
+            }
+            #[target_feature(enable = "avx2")]
+            fn medium(s: &$ty, a: &[f64], b: &[f64], out: &mut [f64]) {
+                $f(s, a, b, out)
+            }
+            if ::std::is_x86_feature_detected!("avx512f") {
+                // SAFETY: the processor has AVX-512F, checked just above.
+                return unsafe { wide($s, $a, $b, $out) };
+            }
+            if ::std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the processor has AVX2, checked just above.
+                return unsafe { medium($s, $a, $b, $out) };
+            }
+        }
+        $f($s, $a, $b, $out)
+    }};
 }
 
 /// How a [`LinearSolve`] solves.
@@ -350,8 +406,9 @@ impl<S: LinearSystem> LinearSolve<S> {
     /// The solve of `system` with `params`.
     ///
     /// # Panics
-    /// If the tolerance is not a positive finite number or the iteration
-    /// limit is 0.
+    /// If the tolerance is not a positive finite number, the iteration
+    /// limit is 0, or the system has a constant null space and the method
+    /// is not CG.
     #[track_caller]
     pub fn new(system: S, params: SolveParams) -> Self {
         if !(params.tolerance.is_finite() && params.tolerance > 0.0) || params.max_iterations == 0 {
@@ -360,36 +417,65 @@ impl<S: LinearSystem> LinearSolve<S> {
                 params.tolerance, params.max_iterations
             );
         }
+        if system.constant_null_space() && params.method != SolveMethod::Cg {
+            panic!("LinearSolve: a system with a constant null space is solved by SolveMethod::Cg, got {:?}", params.method);
+        }
         let work = Mutex::new(CgWork::new(if params.method == SolveMethod::Cg { system.n() } else { 0 }));
         LinearSolve { system, params, info: SolveInfo::default(), error: Mutex::new(None), cache: Mutex::new((Vec::new(), Arc::new(Vec::new()))), work }
     }
 }
 
-/// A matrix given by its product, as CG's [`System`].
-struct Product<F>(F);
+/// A preconditioner, `z = M⁻¹·r`.
+pub(crate) type Precondition<'a> = &'a dyn Fn(&[f64], &mut [f64]);
 
-impl<F: FnMut(&[f64], &mut [f64])> System for Product<F> {
+/// A matrix given by its product (and perhaps a preconditioner), as CG's
+/// [`System`].
+struct Product<'a, F> {
+    apply: F,
+    precondition: Option<Precondition<'a>>,
+    constant_null: bool,
+}
+
+impl<F: FnMut(&[f64], &mut [f64])> System for Product<'_, F> {
     fn apply(&mut self, v: &[f64], out: &mut [f64]) {
-        (self.0)(v, out);
+        (self.apply)(v, out);
     }
-    fn precondition(&mut self, _r: &[f64], _z: &mut [f64]) -> bool {
-        false
+    fn precondition(&mut self, r: &[f64], z: &mut [f64]) -> bool {
+        match self.precondition {
+            Some(m) => {
+                m(r, z);
+                true
+            }
+            None => false,
+        }
     }
     fn null(&self) -> Null<'_> {
-        Null::None
+        if self.constant_null { Null::Constant(None) } else { Null::None }
     }
+}
+
+/// How [`solve_system`] may help its iterations: a preconditioner
+/// `z = M⁻¹·r` (CG and BiCGStab, on the right, the same `M` for the
+/// transposed solve; the direct solve ignores it), and whether `A` has the
+/// constant null space (CG).
+#[derive(Clone, Copy, Default)]
+pub(crate) struct Aids<'a> {
+    pub precondition: Option<Precondition<'a>>,
+    pub constant_null: bool,
 }
 
 /// Solves `A·y = b` (`transposed`: `Aᵀ·y = b`) by `params`, the matrix
 /// given by its product `apply` and transposed product `apply_t` (called
-/// only by BiCGStab's transposed solve), and returns the iterations (0 for
-/// the direct solve). CG takes `A` symmetric, so its transposed solve is
-/// the same solve. On failure `y` is left unspecified. Shared by the
-/// linear solve, Newton's method and the integrators.
+/// only by BiCGStab's transposed solve), helped by `aids`, and returns the
+/// iterations (0 for the direct solve). CG takes `A` symmetric, so its
+/// transposed solve is the same solve. On failure `y` is left unspecified.
+/// Shared by the linear solve, Newton's method and the integrators.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn solve_system(
     params: &SolveParams,
     mut apply: impl FnMut(&[f64], &mut [f64]),
     apply_t: impl FnMut(&[f64], &mut [f64]),
+    aids: Aids<'_>,
     b: &[f64],
     y: &mut [f64],
     transposed: bool,
@@ -402,12 +488,19 @@ pub(crate) fn solve_system(
         y.copy_from_slice(b);
     }
     let iterations = match params.method {
-        SolveMethod::Cg => match work {
-            Some(work) => diffsim_solvers::cg::solve(&mut Product(apply), work, stop, b, y, warm)?,
-            None => diffsim_solvers::cg::solve(&mut Product(apply), &mut CgWork::new(n), stop, b, y, warm)?,
+        SolveMethod::Cg => {
+            let mut system = Product { apply, precondition: aids.precondition, constant_null: aids.constant_null };
+            match work {
+                Some(work) => diffsim_solvers::cg::solve(&mut system, work, stop, b, y, warm)?,
+                None => diffsim_solvers::cg::solve(&mut system, &mut CgWork::new(n), stop, b, y, warm)?,
+            }
+        }
+        SolveMethod::BiCgStab => match (aids.precondition, transposed) {
+            (Some(m), true) => bicgstab_preconditioned(apply_t, m, stop, b, y, warm)?,
+            (Some(m), false) => bicgstab_preconditioned(apply, m, stop, b, y, warm)?,
+            (None, true) => bicgstab(apply_t, stop, b, y, warm)?,
+            (None, false) => bicgstab(apply, stop, b, y, warm)?,
         },
-        SolveMethod::BiCgStab if transposed => bicgstab(apply_t, stop, b, y, warm)?,
-        SolveMethod::BiCgStab => bicgstab(apply, stop, b, y, warm)?,
         SolveMethod::Direct => {
             let lu = factor(n, &mut apply)?;
             y.copy_from_slice(b);
@@ -430,9 +523,12 @@ fn singular() -> OpError {
 /// factorisation costs many times the arithmetic (`bench robertson`).
 const DENSE_UP_TO: usize = diffsim_solvers::linalg::DENSE_SOLVE_MAX;
 
-/// The factors of a direct solve: the dense matrix (factored with each
+/// The factors of a direct solve (the sparse variant stays inline: a boxed
+/// faer type is one more thing for rustc's type trees in this flagged
+/// crate): the dense matrix (factored with each
 /// solve, [`diffsim_solvers::linalg::dense_solve`]; a direct solve solves
 /// once per assembly) or a sparse LU.
+#[allow(clippy::large_enum_variant)]
 enum Factors {
     Dense(usize, Vec<f64>),
     Sparse(diffsim_solvers::linalg::SparseLu),
@@ -525,7 +621,10 @@ impl<S: SystemFunctions> LinearSolve<S> {
         // CG's vectors, kept between solves (a busy set is passed by).
         let mut kept = self.work.try_lock();
         let work = kept.as_deref_mut().ok().filter(|_| self.params.method == SolveMethod::Cg);
-        let result = solve_system(&self.params, |v, out| self.system.matvec(v, c, out), transposed_product, b, y, adjoint, work);
+        let precondition = |r: &[f64], z: &mut [f64]| self.system.precondition(c, r, z);
+        let precondition = self.system.has_preconditioner().then_some(&precondition as &dyn Fn(&[f64], &mut [f64]));
+        let aids = Aids { precondition, constant_null: self.system.constant_null_space() };
+        let result = solve_system(&self.params, |v, out| self.system.matvec(v, c, out), transposed_product, aids, b, y, adjoint, work);
         debug_assert_eq!(y.len(), n);
         let counter = if adjoint { &self.info.adjoint } else { &self.info.forward };
         match result {

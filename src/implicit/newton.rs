@@ -28,7 +28,7 @@
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use super::linear::{SolveMethod, SolveParams, check_given, fail, solve_system, take};
+use super::linear::{Aids, SolveMethod, SolveParams, check_given, fail, solve_system, take};
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
 /// The sizes of a user's nonlinear system `F(y, x, p) = 0`, and Newton's
@@ -211,7 +211,16 @@ pub(crate) fn jacobian_solve(
     out: &mut [f64],
     transposed: bool,
 ) -> Result<(), OpError> {
-    let result = solve_system(&params.linear, |v, o| eq.jacobian_product(y, v, o), |w, o| eq.jacobian_transpose_product(y, w, o), b, out, transposed, None);
+    let result = solve_system(
+        &params.linear,
+        |v, o| eq.jacobian_product(y, v, o),
+        |w, o| eq.jacobian_transpose_product(y, w, o),
+        Aids::default(),
+        b,
+        out,
+        transposed,
+        None,
+    );
     let counter = if transposed { &info.adjoint } else { &info.linear };
     if transposed {
         info.adjoint_solves.fetch_add(1, Ordering::Relaxed);
@@ -293,6 +302,161 @@ pub(crate) fn newton(eq: &impl Equations, params: &NewtonParams, info: &NewtonIn
     };
     info.newton.fetch_add(iterations, Ordering::Relaxed);
     result
+}
+
+/// A dense Jacobian's LU factors held over several Newton iterations
+/// (simplified Newton), for small systems solved directly: the implicit
+/// stages of an integrator step share one. Deterministic: what it holds
+/// depends only on the points it was formed at, never on earlier calls.
+#[derive(Debug)]
+pub(crate) struct HeldJacobian {
+    lu: diffsim_solvers::linalg::DenseLu,
+    matrix: Vec<f64>,
+    unit: Vec<f64>,
+    /// Whether `lu` holds factors (of the current equations' Jacobian).
+    valid: bool,
+    /// Newton's vectors: the residual, the trial point and its residual.
+    r: Vec<f64>,
+    trial: Vec<f64>,
+    r_trial: Vec<f64>,
+}
+
+impl HeldJacobian {
+    /// Nothing held yet, for `n` unknowns; `None` when `n` is too large to
+    /// hold dense or `params` do not solve directly.
+    pub(crate) fn for_params(n: usize, params: &NewtonParams) -> Option<Self> {
+        (params.linear.method == SolveMethod::Direct && n <= diffsim_solvers::linalg::DENSE_SOLVE_MAX).then(|| HeldJacobian {
+            lu: Default::default(),
+            matrix: vec![0.0; n * n],
+            unit: vec![0.0; n],
+            valid: false,
+            r: vec![0.0; n],
+            trial: vec![0.0; n],
+            r_trial: vec![0.0; n],
+        })
+    }
+
+    /// Unknowns it is made for.
+    pub(crate) fn n(&self) -> usize {
+        self.unit.len()
+    }
+
+    /// Solves `J(y)·out = b` (`transposed`: `J(y)ᵀ·out = b`) with a
+    /// Jacobian formed at `y` (the exact one, for an adjoint); what it
+    /// held before is replaced. An error when `J(y)` is singular.
+    pub(crate) fn solve_at(&mut self, eq: &impl Equations, y: &[f64], b: &[f64], out: &mut [f64], transposed: bool) -> Result<(), OpError> {
+        if !self.refresh(eq, y) {
+            self.valid = false;
+            return Err(OpError::Input(crate::op::OpMessage::new("a direct solve: the matrix is singular")));
+        }
+        // Held for this point only: the next Newton solve forms its own.
+        self.valid = false;
+        out.copy_from_slice(b);
+        self.lu.solve(out, transposed);
+        Ok(())
+    }
+
+    /// Forgets the factors (the equations' Jacobian changed form).
+    pub(crate) fn invalidate(&mut self) {
+        self.valid = false;
+    }
+
+    /// Forms `J(y)` column by column from its products and factors it;
+    /// `false` when it is singular or not finite.
+    fn refresh(&mut self, eq: &impl Equations, y: &[f64]) -> bool {
+        let n = y.len();
+        for (j, col) in self.matrix.chunks_exact_mut(n.max(1)).enumerate() {
+            self.unit[j] = 1.0;
+            eq.jacobian_product(y, &self.unit, col);
+            self.unit[j] = 0.0;
+        }
+        self.valid = self.matrix.iter().all(|v| v.is_finite()) && self.lu.factor(n, &self.matrix);
+        self.valid
+    }
+}
+
+/// Newton's method with the Jacobian held (simplified Newton): each step
+/// solves with the factors `held` has (formed at the first point that
+/// needed them, perhaps by an earlier call), and forms them again at the
+/// current point only when a step lowers `‖G‖₂` by less than a factor 4.
+/// When even a fresh Jacobian's step does not, it falls back on
+/// [`newton`] (fresh Jacobians and line search) from where it is. The
+/// same convergence test as [`newton`]; the root is the same to the
+/// tolerance.
+pub(crate) fn newton_held(eq: &impl Equations, params: &NewtonParams, info: &NewtonInfo, held: &mut HeldJacobian, y: &mut [f64]) -> Result<(), OpError> {
+    let (mut r, mut trial, mut r_trial) = (std::mem::take(&mut held.r), std::mem::take(&mut held.trial), std::mem::take(&mut held.r_trial));
+    let result = newton_held_in(eq, params, info, held, y, &mut r, &mut trial, &mut r_trial);
+    (held.r, held.trial, held.r_trial) = (r, trial, r_trial);
+    result
+}
+
+#[allow(clippy::too_many_arguments)]
+fn newton_held_in(
+    eq: &impl Equations,
+    params: &NewtonParams,
+    info: &NewtonInfo,
+    held: &mut HeldJacobian,
+    y: &mut [f64],
+    r: &mut Vec<f64>,
+    trial: &mut [f64],
+    r_trial: &mut Vec<f64>,
+) -> Result<(), OpError> {
+    eq.residual(y, r);
+    let mut size = norm(r);
+    if !size.is_finite() || !y.iter().all(|v| v.is_finite()) {
+        return Err(OpError::Input(crate::op::OpMessage::new("Newton's method: the starting point or its residual is not finite")));
+    }
+    let target = (params.tolerance * size).max(params.abs_tolerance);
+    let (mut iterations, mut fresh) = (0, false);
+    let result = loop {
+        if size <= target {
+            break Some(Ok(()));
+        }
+        if iterations == params.max_iterations {
+            break Some(Err(OpError::NoRoot { iterations, residual: size, target }));
+        }
+        if !held.valid {
+            if !held.refresh(eq, y) {
+                break None;
+            }
+            fresh = true;
+        }
+        iterations += 1;
+        // trial = y − J⁻¹·r.
+        for (t, r) in trial.iter_mut().zip(r.iter()) {
+            *t = -r;
+        }
+        held.lu.solve(trial, false);
+        let scale = y.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let rounding = trial.iter().fold(0.0f64, |m, v| m.max(v.abs())) <= 4.0 * f64::EPSILON * scale;
+        for (t, y) in trial.iter_mut().zip(y.iter()) {
+            *t += y;
+        }
+        eq.residual(trial, r_trial);
+        let s = norm(r_trial);
+        if s.is_finite() && (rounding || s <= 0.25 * size) {
+            y.copy_from_slice(trial);
+            std::mem::swap(r, r_trial);
+            size = s;
+            fresh = false;
+            if rounding {
+                break Some(Ok(()));
+            }
+        } else if fresh {
+            // A fresh Jacobian's full step did not contract: line search.
+            break None;
+        } else {
+            held.invalidate();
+        }
+    };
+    info.newton.fetch_add(iterations, Ordering::Relaxed);
+    match result {
+        Some(done) => done,
+        None => {
+            held.invalidate();
+            newton(eq, params, info, y)
+        }
+    }
 }
 
 /// The operator `(x, p) ↦ y` with `F(y, x, p) = 0` for a user's system `S`

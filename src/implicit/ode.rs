@@ -13,7 +13,12 @@
 //! A step with stages `Y_i = z_i + h·a_ii·f(Y_i)`, `z_i = u_n + h·Σ_{j<i}
 //! a_ij·k_j`, `k_i = f(Y_i)`, `u_{n+1} = u_n + h·Σ b_i·k_i` solves each
 //! implicit stage (`a_ii ≠ 0`) by Newton's method with the Jacobian
-//! `I − h·a_ii·∂f/∂u` (its products from Enzyme's derivatives of `f`). The
+//! `I − h·a_ii·∂f/∂u` (its products from Enzyme's derivatives of `f`).
+//! Solved directly (the default, up to 64 unknowns), the step's stages
+//! share one factored Jacobian, formed at the first stage's start and
+//! formed again only where Newton's steps stop contracting (simplified
+//! Newton, as stiff codes do); the roots are the same to the tolerance,
+//! and the adjoint solves use the exact Jacobian at each stage. The
 //! derivatives are the discrete step's, exact to the Newton tolerance: in
 //! reverse, stage by stage from the last,
 //!
@@ -37,7 +42,7 @@
 use std::sync::Mutex;
 
 use super::linear::{check_given, fail, keep, take};
-use super::newton::{Equations, NewtonInfo, NewtonParams, jacobian_solve, newton};
+use super::newton::{Equations, HeldJacobian, NewtonInfo, NewtonParams, jacobian_solve, newton, newton_held};
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
 /// The size of a user's system of ordinary differential equations
@@ -225,6 +230,25 @@ pub struct Integrator<S> {
     levels_in: usize,
     levels_out: usize,
     error: Mutex<Option<OpError>>,
+    /// A step's vectors, kept between calls.
+    work: Mutex<StepWork>,
+}
+
+/// A step's vectors, kept between calls so that a step allocates nothing
+/// (a busy set, on another thread, is passed by for a fresh one).
+#[derive(Debug, Default)]
+struct StepWork {
+    st: Stages,
+    z: Vec<f64>,
+    base: Vec<f64>,
+    /// The stages' Jacobian, when they are solved directly.
+    held: Option<HeldJacobian>,
+    /// The reverse sweep's vectors.
+    kbar: Vec<f64>,
+    dbase: Vec<f64>,
+    omega: Vec<f64>,
+    zbar: Vec<f64>,
+    zero: Vec<f64>,
 }
 
 impl<S: OdeSystem> Integrator<S> {
@@ -243,7 +267,18 @@ impl<S: OdeSystem> Integrator<S> {
         }
         let (stages, a, b) = params.scheme.tableau();
         let levels = params.scheme.levels();
-        Integrator { system, params, info: NewtonInfo::default(), stages, a, b, levels_in: levels, levels_out: levels, error: Mutex::new(None) }
+        Integrator {
+            system,
+            params,
+            info: NewtonInfo::default(),
+            stages,
+            a,
+            b,
+            levels_in: levels,
+            levels_out: levels,
+            error: Mutex::new(None),
+            work: Mutex::new(StepWork::default()),
+        }
     }
 
     /// The start of a [`Scheme::Bdf2`] rollout, `(u_0, p) ↦ [u_1, u_0]`
@@ -307,21 +342,46 @@ impl<S: RhsFunctions> Equations for Stage<'_, S> {
 }
 
 /// A step's stage values `Y_i` and slopes `k_i`, each `stages·n` long.
+#[derive(Debug, Default)]
 struct Stages {
     y: Vec<f64>,
     k: Vec<f64>,
 }
 
 impl<S: RhsFunctions> Integrator<S> {
-    /// Computes the stages at `(x, p)`; `last` is the output when the
-    /// scheme is stiffly accurate and it is known (a rollout's next state).
-    fn stages(&self, x: &[f64], p: &[f64], last: Option<&[f64]>) -> Result<Stages, OpError> {
+    /// Runs `f` with the kept step vectors (a fresh set when they are busy).
+    fn with_work<R>(&self, f: impl FnOnce(&mut StepWork) -> R) -> R {
+        match self.work.try_lock() {
+            Ok(mut w) => f(&mut w),
+            Err(_) => f(&mut StepWork::default()),
+        }
+    }
+
+    /// Computes the stages at `(x, p)` into `w.st`; `last` is the output
+    /// when the scheme is stiffly accurate and it is known (a rollout's
+    /// next state).
+    fn stages(&self, x: &[f64], p: &[f64], last: Option<&[f64]>, w: &mut StepWork) -> Result<(), OpError> {
         let (n, s, h) = (self.system.n(), self.stages, self.params.dt);
-        let mut st = Stages { y: vec![0.0; s * n], k: vec![0.0; s * n] };
-        let (mut z, mut base) = (vec![0.0; n], vec![0.0; n]);
-        self.base(x, &mut base);
+        w.st.y.resize(s * n, 0.0);
+        w.st.k.resize(s * n, 0.0);
+        w.z.resize(n, 0.0);
+        w.base.resize(n, 0.0);
+        if w.held.as_ref().is_none_or(|held| held.n() != n) {
+            w.held = HeldJacobian::for_params(n, &self.params.newton);
+        }
+        let StepWork { st, z, base, held, .. } = w;
+        self.base(x, base);
+        // One Jacobian for the step's implicit stages (they share h·γ in
+        // every scheme here), formed at the first stage's start and formed
+        // again only where Newton's steps stop contracting; nothing held
+        // from an earlier step, so a step's result depends on its inputs
+        // alone.
+        if let Some(held) = held.as_mut() {
+            held.invalidate();
+        }
+        let mut held_hg = f64::NAN;
         for i in 0..s {
-            z.copy_from_slice(&base);
+            z.copy_from_slice(base);
             for j in 0..i {
                 let a = h * self.a[i * s + j];
                 if a != 0.0 {
@@ -335,15 +395,25 @@ impl<S: RhsFunctions> Integrator<S> {
             match last {
                 Some(given) if i == s - 1 && gamma != 0.0 => y.copy_from_slice(&given[..n]),
                 _ => {
-                    y.copy_from_slice(&z);
+                    y.copy_from_slice(z);
                     if gamma != 0.0 {
-                        newton(&Stage { system: &self.system, p, z: &z, hg: h * gamma }, &self.params.newton, &self.info, y)?;
+                        let stage = Stage { system: &self.system, p, z, hg: h * gamma };
+                        match held.as_mut() {
+                            Some(held) => {
+                                if held_hg != h * gamma {
+                                    held.invalidate();
+                                    held_hg = h * gamma;
+                                }
+                                newton_held(&stage, &self.params.newton, &self.info, held, y)?
+                            }
+                            None => newton(&stage, &self.params.newton, &self.info, y)?,
+                        }
                     }
                 }
             }
             self.system.f(&st.y[i * n..(i + 1) * n], p, &mut st.k[i * n..(i + 1) * n]);
         }
-        Ok(st)
+        Ok(())
     }
 
     /// The point the stages start from: `u_n`, or BDF2's `(4·u_n − u_{n−1})/3`.
@@ -373,20 +443,24 @@ impl<S: RhsFunctions> Integrator<S> {
         }
     }
 
-    /// The reverse sweep through the stages (module docs).
-    fn vjp_stages(&self, p: &[f64], st: &Stages, dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+    /// The reverse sweep through the stages in `w.st` (module docs).
+    fn vjp_stages(&self, p: &[f64], w: &mut StepWork, dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         let (n, s, h) = (self.system.n(), self.stages, self.params.dt);
-        let mut kbar = vec![0.0; s * n];
+        let StepWork { st, held, kbar, dbase, omega, zbar, zero, .. } = w;
+        kbar.resize(s * n, 0.0);
         for (i, b) in self.b.iter().enumerate() {
             for (kb, d) in kbar[i * n..(i + 1) * n].iter_mut().zip(dy.iter()) {
                 *kb = h * b * d;
             }
         }
         // The adjoint of the base point.
-        let mut dbase = dy[..n].to_vec();
-        let (mut omega, mut zbar) = (vec![0.0; n], vec![0.0; n]);
+        dbase.clear();
+        dbase.extend_from_slice(&dy[..n]);
+        omega.resize(n, 0.0);
+        zbar.resize(n, 0.0);
         // z_i only sets a stage equation's constant, not its Jacobian.
-        let z = vec![0.0; n];
+        zero.clear();
+        zero.resize(n, 0.0);
         for i in (0..s).rev() {
             let gamma = self.a[i * s + i];
             let yi = &st.y[i * n..(i + 1) * n];
@@ -394,20 +468,29 @@ impl<S: RhsFunctions> Integrator<S> {
             if gamma == 0.0 {
                 omega.copy_from_slice(kb);
             } else {
-                let stage = Stage { system: &self.system, p, z: &z, hg: h * gamma };
-                if let Err(e) = jacobian_solve(&stage, &self.params.newton, &self.info, yi, kb, &mut omega, true) {
-                    fail(&self.error, &mut omega, e);
+                let stage = Stage { system: &self.system, p, z: zero, hg: h * gamma };
+                // The exact Jacobian at the stage: held factors when the
+                // stages are solved directly, else the linear method.
+                let solved = match held.as_mut() {
+                    Some(held) => {
+                        self.info.adjoint_solves.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        held.solve_at(&stage, yi, kb, omega, true)
+                    }
+                    None => jacobian_solve(&stage, &self.params.newton, &self.info, yi, kb, omega, true),
+                };
+                if let Err(e) = solved {
+                    fail(&self.error, omega, e);
                 }
             }
             zbar.fill(0.0);
-            self.system.f_vjp(yi, p, &mut omega, &mut zbar, dp);
-            for (d, zb) in dbase.iter_mut().zip(&zbar) {
+            self.system.f_vjp(yi, p, omega, zbar, dp);
+            for (d, zb) in dbase.iter_mut().zip(zbar.iter()) {
                 *d += zb;
             }
             for j in 0..i {
                 let a = h * self.a[i * s + j];
                 if a != 0.0 {
-                    for (kb, zb) in kbar[j * n..(j + 1) * n].iter_mut().zip(&zbar) {
+                    for (kb, zb) in kbar[j * n..(j + 1) * n].iter_mut().zip(zbar.iter()) {
                         *kb += a * zb;
                     }
                 }
@@ -419,7 +502,7 @@ impl<S: RhsFunctions> Integrator<S> {
                 dx[n + i] -= dbase[i] / 3.0;
             }
         } else {
-            for (dx, d) in dx.iter_mut().zip(&dbase) {
+            for (dx, d) in dx.iter_mut().zip(dbase.iter()) {
                 *dx += d;
             }
         }
@@ -448,10 +531,10 @@ impl<S: RhsFunctions> Forward for Integrator<S> {
     #[track_caller]
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "Integrator", x, p, y);
-        match self.stages(x, p, None) {
-            Ok(st) => self.combine(x, &st.k, y),
+        self.with_work(|w| match self.stages(x, p, None, w) {
+            Ok(()) => self.combine(x, &w.st.k, y),
             Err(e) => fail(&self.error, y, e),
-        }
+        })
     }
 
     /// The Newton tolerance of an implicit scheme; 0 for an explicit one.
@@ -466,15 +549,15 @@ impl<S: RhsFunctions> Forward for Integrator<S> {
 
 impl<S: RhsFunctions> Integrator<S> {
     fn vjp_at(&self, x: &[f64], p: &[f64], given: Option<&[f64]>, dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
-        match self.stages(x, p, given.filter(|_| self.stiffly_accurate())) {
-            Ok(st) => self.vjp_stages(p, &st, dy, dx, dp),
+        self.with_work(|w| match self.stages(x, p, given.filter(|_| self.stiffly_accurate()), w) {
+            Ok(()) => self.vjp_stages(p, w, dy, dx, dp),
             Err(e) => {
                 keep(&self.error, e);
                 dx.fill(f64::NAN);
                 dp.fill(f64::NAN);
                 dy.fill(0.0);
             }
-        }
+        })
     }
 }
 
@@ -501,14 +584,14 @@ impl<S: RhsFunctions> Jvp for Integrator<S> {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         validate_jvp(self, "Integrator", x, p, tx, tp, y, ty);
         let (n, s, h) = (self.system.n(), self.stages, self.params.dt);
-        let st = match self.stages(x, p, None) {
-            Ok(st) => st,
-            Err(e) => {
-                fail(&self.error, y, e);
-                ty.fill(f64::NAN);
-                return;
-            }
-        };
+        // The JVP keeps its own stages (it is not on a rollout's hot path).
+        let mut w = StepWork::default();
+        if let Err(e) = self.stages(x, p, None, &mut w) {
+            fail(&self.error, y, e);
+            ty.fill(f64::NAN);
+            return;
+        }
+        let st = &w.st;
         self.combine(x, &st.k, y);
         // k̇_i: (I − h·γ·∂f/∂u)·k̇_i = (∂f/∂u)·ż_i + (∂f/∂p)·ṗ, ż_i = ẋ + h·Σ a_ij·k̇_j.
         let mut tk = vec![0.0; s * n];

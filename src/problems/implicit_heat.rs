@@ -137,6 +137,77 @@ pub fn heat_rhs(_: &ImplicitHeat, x: &[f64], _theta: &[f64], b: &mut [f64]) {
 
 crate::linear_system!(ImplicitHeat => heat_matvec, heat_rhs, coefficients = heat_conductances);
 
+/// `z = D⁻¹·r` with `D` the diagonal of `I + dt·A(θ)` (`1` plus the
+/// cell's four face conductances, from the coefficients `c` of
+/// [`heat_conductances`]): the Jacobi preconditioner, symmetric positive
+/// definite as CG needs. It pays where the conductivity varies over orders
+/// of magnitude (a layered medium); with `θ` of order one it saves about
+/// one iteration in ten (docs/implicit.md).
+#[inline(always)]
+pub fn heat_jacobi(s: &ImplicitHeat, c: &[f64], r: &[f64], z: &mut [f64]) {
+    let n = s.n;
+    let (cx, cy) = c[n * n..].split_at(n * (n + 1));
+    for j in 0..n {
+        let (south, north) = (&cy[j * n..(j + 1) * n], &cy[(j + 1) * n..(j + 2) * n]);
+        let (west, east) = (&cx[j * (n + 1)..j * (n + 1) + n], &cx[j * (n + 1) + 1..(j + 1) * (n + 1)]);
+        let (r, z) = (&r[j * n..(j + 1) * n], &mut z[j * n..(j + 1) * n]);
+        for i in 0..n {
+            z[i] = r[i] / (1.0 + south[i] + north[i] + west[i] + east[i]);
+        }
+    }
+}
+
+/// [`ImplicitHeat`] solved by CG preconditioned with [`heat_jacobi`]: the
+/// same step, matrix and gradient, named with a preconditioner
+/// ([`crate::linear_system!`]`(.., preconditioner = heat_jacobi)`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PreconditionedHeat(pub ImplicitHeat);
+
+impl PreconditionedHeat {
+    /// The step as an operator `(x, θ) ↦ y`, solved with `params`.
+    pub fn step(n: usize, dt: f64, params: SolveParams) -> LinearSolve<PreconditionedHeat> {
+        LinearSolve::new(PreconditionedHeat(ImplicitHeat { n, dt }), params)
+    }
+}
+
+impl LinearSystem for PreconditionedHeat {
+    fn n(&self) -> usize {
+        self.0.n()
+    }
+    fn n_in(&self) -> usize {
+        self.0.n_in()
+    }
+    fn n_params(&self) -> usize {
+        self.0.n_params()
+    }
+    fn n_coefficients(&self) -> usize {
+        self.0.n_coefficients()
+    }
+}
+
+fn preconditioned_conductances(s: &PreconditionedHeat, theta: &[f64], c: &mut [f64]) {
+    heat_conductances(&s.0, theta, c)
+}
+
+#[inline(always)]
+fn preconditioned_matvec(s: &PreconditionedHeat, v: &[f64], c: &[f64], out: &mut [f64]) {
+    heat_matvec(&s.0, v, c, out)
+}
+
+fn preconditioned_rhs(s: &PreconditionedHeat, x: &[f64], theta: &[f64], b: &mut [f64]) {
+    heat_rhs(&s.0, x, theta, b)
+}
+
+#[inline(always)]
+fn preconditioned_jacobi(s: &PreconditionedHeat, c: &[f64], r: &[f64], z: &mut [f64]) {
+    heat_jacobi(&s.0, c, r, z)
+}
+
+crate::linear_system!(
+    PreconditionedHeat => preconditioned_matvec, preconditioned_rhs,
+    coefficients = preconditioned_conductances, preconditioner = preconditioned_jacobi
+);
+
 /// The same step with its CG iterations written inside the function, so
 /// that Enzyme differentiates the iterations themselves (the route a user
 /// takes without [`crate::implicit`]): for comparison only. Its derivative
