@@ -358,3 +358,75 @@ fn the_stages_held_jacobian_finds_the_roots_of_newton_krylov() {
         }
     }
 }
+
+/// Robertson's kinetics with its Jacobian written by hand
+/// (`ode_system!(.., jacobian = j)`); `error` scales one entry (`∂f₂/∂u₂`,
+/// the stiff one) to make it wrong.
+struct HandRobertson {
+    error: f64,
+}
+
+impl OdeSystem for HandRobertson {
+    fn n(&self) -> usize {
+        3
+    }
+    fn n_params(&self) -> usize {
+        3
+    }
+}
+
+fn hand_rates(_: &HandRobertson, u: &[f64], p: &[f64], du: &mut [f64]) {
+    diffsim::problems::robertson::robertson_rates(&Robertson, u, p, du)
+}
+
+/// `∂f/∂u` column by column.
+fn hand_jacobian(s: &HandRobertson, u: &[f64], p: &[f64], jac: &mut [f64]) {
+    let (k1, k2, k3) = (p[0].exp(), p[1].exp(), p[2].exp());
+    let (b, c) = (u[1], u[2]);
+    jac.copy_from_slice(&[-k1, k1, 0.0, k3 * c, (-k3 * c - 2.0 * k2 * b) * s.error, 2.0 * k2 * b, k3 * b, -k3 * b, 0.0]);
+}
+
+diffsim::ode_system!(HandRobertson => hand_rates, jacobian = hand_jacobian);
+
+/// A user's Jacobian replaces Enzyme's products where the stages are
+/// solved directly: the same steps and gradients as Enzyme's to the Newton
+/// tolerance, and the checks pass through a stiff rollout; a wrong one
+/// (one entry 10 % off) still lets Newton converge, so the step is right,
+/// but its gradient is not, and the checks say so.
+#[test]
+fn a_users_jacobian_gives_enzymes_steps_and_gradients_and_a_wrong_one_fails_the_checks() {
+    let u = [0.98, 3.3e-5, 0.0199];
+    let p = log_rates();
+    for scheme in [Scheme::BackwardEuler, Scheme::Sdirk2, Scheme::Sdirk3, Scheme::Bdf2] {
+        let params = IntegratorParams::new(scheme, 0.05);
+        let (enzyme, hand) = (Integrator::new(Robertson, params), Integrator::new(HandRobertson { error: 1.0 }, params));
+        let x = [u, [0.981, 3.2e-5, 0.0189]].concat();
+        let x = &x[..enzyme.n_in()];
+        let (a, b) = (enzyme.eval(x, &p), hand.eval(x, &p));
+        for (a, b) in a.iter().zip(&b) {
+            assert!((a - b).abs() <= 1e-10 * a.abs() + 1e-12, "{scheme:?}: step {a} against {b}");
+        }
+        let w: Vec<f64> = [1.0, 1e4, -0.5, 0.3, -2.0, 1.0][..enzyme.n_out()].to_vec();
+        let ((dx_a, dp_a), (dx_b, dp_b)) = (enzyme.vjp_new(x, &p, &w), hand.vjp_new(x, &p, &w));
+        let scale = dx_a.iter().chain(&dp_a).fold(0.0f64, |m, g| m.max(g.abs()));
+        for (g, h) in dx_a.iter().chain(&dp_a).zip(dx_b.iter().chain(&dp_b)) {
+            assert!((g - h).abs() <= 1e-9 * scale, "{scheme:?}: gradient {g} against {h}");
+        }
+    }
+    // Through 30 stiff SDIRK3 steps for the rates: right passes, wrong fails.
+    let target = [0.97, 3.0e-5, 0.03];
+    let loss = AtSteps { steps: vec![30], f: |_t: usize, x: &[f64], g: &mut [f64]| misfit(x, &target, g) };
+    // (One call per case: an array of tuples iterated by value aborts
+    // Enzyme's type analysis, docs/pitfalls.md.)
+    let checks = |error: f64| {
+        let op = Integrator::new(HandRobertson { error }, IntegratorParams::new(Scheme::Sdirk3, 0.05));
+        let as_op = RolloutLoss::new(Rollout::new(&op, &p, 30).unwrap(), &u, &loss, Checkpointing::Store, Wrt::P).unwrap();
+        let (x, q) = as_op.point();
+        let report = check_all(&as_op, x, q, &CheckParams::default());
+        (report.passed(), report.to_string())
+    };
+    let (right, report) = checks(1.0);
+    assert!(right, "the right Jacobian: {report}");
+    let (wrong, report) = checks(1.1);
+    assert!(!wrong, "a Jacobian 10 % off passed the checks: {report}");
+}

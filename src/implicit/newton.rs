@@ -194,6 +194,13 @@ pub(crate) trait Equations {
     fn jacobian_product(&self, y: &[f64], v: &[f64], out: &mut [f64]);
     /// `out = J(y)ᵀ·w`.
     fn jacobian_transpose_product(&self, y: &[f64], w: &[f64], out: &mut [f64]);
+    /// `J(y)` into `m` (`n × n`, column by column) when the equations have
+    /// it as a matrix (a user's Jacobian); `false` (nothing written) when
+    /// it is only known by its products.
+    fn jacobian_matrix(&self, y: &[f64], m: &mut [f64]) -> bool {
+        let _ = (y, m);
+        false
+    }
 }
 
 fn norm(v: &[f64]) -> f64 {
@@ -361,14 +368,17 @@ impl HeldJacobian {
         self.valid = false;
     }
 
-    /// Forms `J(y)` column by column from its products and factors it;
-    /// `false` when it is singular or not finite.
+    /// Forms `J(y)` (the equations' matrix, else column by column from its
+    /// products) and factors it; `false` when it is singular or not
+    /// finite.
     fn refresh(&mut self, eq: &impl Equations, y: &[f64]) -> bool {
         let n = y.len();
-        for (j, col) in self.matrix.chunks_exact_mut(n.max(1)).enumerate() {
-            self.unit[j] = 1.0;
-            eq.jacobian_product(y, &self.unit, col);
-            self.unit[j] = 0.0;
+        if !eq.jacobian_matrix(y, &mut self.matrix) {
+            for (j, col) in self.matrix.chunks_exact_mut(n.max(1)).enumerate() {
+                self.unit[j] = 1.0;
+                eq.jacobian_product(y, &self.unit, col);
+                self.unit[j] = 0.0;
+            }
         }
         self.valid = self.matrix.iter().all(|v| v.is_finite()) && self.lu.factor(n, &self.matrix);
         self.valid

@@ -69,16 +69,34 @@ pub trait RhsFunctions: OdeSystem {
     fn f_jvp(&self, u: &[f64], p: &[f64], tu: &[f64], tp: &[f64], out: &mut [f64], tout: &mut [f64]);
     /// `du += (∂f/∂u)ᵀ·w`, `dp += (∂f/∂p)ᵀ·w`; consumes `w`.
     fn f_vjp(&self, u: &[f64], p: &[f64], w: &mut [f64], du: &mut [f64], dp: &mut [f64]);
+    /// The user's Jacobian `∂f/∂u` into `jac` (`n × n`, column by column),
+    /// when the system names one (`ode_system!(.., jacobian = j)`); `false`
+    /// (nothing written) when it does not.
+    fn jacobian(&self, u: &[f64], p: &[f64], jac: &mut [f64]) -> bool {
+        let _ = (u, p, jac);
+        false
+    }
 }
 
 /// Makes `Sys` (an [`OdeSystem`], plain data) the system of an
 /// [`Integrator`] from its right-hand side `fn(&Sys, u, p, du)`, a plain
 /// function that writes every element of `du`. Enzyme generates the
-/// derivatives the schemes and their adjoints need. The crate that invokes
-/// it needs what [`differentiable!`](crate::differentiable) needs.
+/// derivatives the schemes and their adjoints need. With `jacobian = j`,
+/// a function `fn(&Sys, u, p, jac)` writing `∂f/∂u` (`n × n`, column by
+/// column: `jac[j·n + i] = ∂f_i/∂u_j`) replaces the `n` Enzyme products
+/// that form the Jacobian where the stages are solved directly (up to 64
+/// unknowns): Newton's steps and the adjoint solves use it, so it must be
+/// exact (the checks find a wrong one). The crate that invokes it needs
+/// what [`differentiable!`](crate::differentiable) needs.
 #[macro_export]
 macro_rules! ode_system {
+    ($ty:ty => $f:path, jacobian = $jac:path) => {
+        $crate::ode_system!(@functions $ty, $f, [$jac]);
+    };
     ($ty:ty => $f:path) => {
+        $crate::ode_system!(@functions $ty, $f, []);
+    };
+    (@functions $ty:ty, $f:path, [$($jac:path)?]) => {
         #[allow(clippy::too_many_arguments)]
         const _: () = {
             #[::std::autodiff::autodiff_reverse(diffsim_f_vjp, Const, Duplicated, Duplicated, Duplicated)]
@@ -111,6 +129,12 @@ macro_rules! ode_system {
                     let n = $crate::implicit::OdeSystem::n(self);
                     $crate::op::with_scratch(n, |out| diffsim_f_vjp(self, u, du, p, dp, out, w));
                 }
+                $(
+                    fn jacobian(&self, u: &[f64], p: &[f64], jac: &mut [f64]) -> bool {
+                        $jac(self, u, p, jac);
+                        true
+                    }
+                )?
             }
         };
     };
@@ -322,6 +346,17 @@ impl<S: RhsFunctions> Equations for Stage<'_, S> {
         for ((r, y), z) in r.iter_mut().zip(y).zip(self.z) {
             *r = y - z - self.hg * *r;
         }
+    }
+    /// `I − h·γ·∂f/∂u` from the user's Jacobian, when there is one.
+    fn jacobian_matrix(&self, y: &[f64], m: &mut [f64]) -> bool {
+        if !self.system.jacobian(y, self.p, m) {
+            return false;
+        }
+        let n = y.len();
+        for (k, v) in m.iter_mut().enumerate() {
+            *v = if k % (n + 1) == 0 { 1.0 } else { 0.0 } - self.hg * *v;
+        }
+        true
     }
     fn jacobian_product(&self, y: &[f64], v: &[f64], out: &mut [f64]) {
         // f itself is not needed: into the thread's scratch (a direct
