@@ -430,3 +430,33 @@ fn a_users_jacobian_gives_enzymes_steps_and_gradients_and_a_wrong_one_fails_the_
     let (wrong, report) = checks(1.1);
     assert!(!wrong, "a Jacobian 10 % off passed the checks: {report}");
 }
+
+/// A forward step keeps its stages for its VJP: a rollout's backward pass
+/// then solves nothing (no Newton iteration beyond the forward pass's),
+/// and a step's VJP from kept stages equals the one that solves them again
+/// (a fresh operator, nothing kept) to the Newton tolerance.
+#[test]
+fn a_rollout_s_backward_pass_reuses_the_forward_steps_stages() {
+    let (u, p) = ([0.98, 3.3e-5, 0.0199], log_rates());
+    let op = Integrator::new(Robertson, IntegratorParams::new(Scheme::Sdirk3, 0.05));
+    let newton = |op: &Integrator<Robertson>| op.info.newton.load(Ordering::Relaxed);
+    let loss = AtSteps { steps: vec![20], f: |_t: usize, x: &[f64], g: &mut [f64]| misfit(x, &[0.97, 3.0e-5, 0.03], g) };
+    let rollout = Rollout::new(&op, &p, 20).unwrap();
+    let before = newton(&op);
+    rollout.loss(&u, &loss).unwrap();
+    let forward = newton(&op) - before;
+    let before = newton(&op);
+    rollout.value_and_grad(&u, &loss, Checkpointing::Store).unwrap();
+    assert!(forward > 0);
+    assert_eq!(newton(&op) - before, forward, "the backward pass solved stages again");
+    let w = [1.0, 1e4, -0.5];
+    op.eval(&u, &p);
+    let (kept_dx, kept_dp) = op.vjp_new(&u, &p, &w);
+    let fresh = Integrator::new(Robertson, IntegratorParams::new(Scheme::Sdirk3, 0.05));
+    let (dx, dp) = fresh.vjp_new(&u, &p, &w);
+    let scale = dx.iter().chain(&dp).fold(0.0f64, |m, g| m.max(g.abs()));
+    for (a, b) in kept_dx.iter().chain(&kept_dp).zip(dx.iter().chain(&dp)) {
+        assert!((a - b).abs() <= 1e-9 * scale, "kept {a}, solved again {b}");
+    }
+    assert!(newton(&fresh) > 0, "the fresh operator solved its stages");
+}

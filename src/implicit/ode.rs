@@ -256,6 +256,34 @@ pub struct Integrator<S> {
     error: Mutex<Option<OpError>>,
     /// A step's vectors, kept between calls.
     work: Mutex<StepWork>,
+    /// Stage values of recent forward steps, for their VJPs.
+    cache: Mutex<StageCache>,
+}
+
+/// The stage values of recent forward steps of an implicit scheme, kept
+/// for their VJPs: a rollout's backward pass reverses the steps its
+/// forward pass took, and a step found here (the same `x` and `p`, bit for
+/// bit) is not solved again. At most [`STAGE_CACHE_VALUES`] values; when
+/// full it starts again empty, so memory stays bounded whatever the
+/// checkpointing (a step not found is solved again, as without it).
+#[derive(Debug, Default)]
+struct StageCache {
+    /// By a hash of `(x, p)`: `x`, `p`, the stage values, the slopes.
+    entries: std::collections::HashMap<u64, Vec<f64>>,
+    values: usize,
+}
+
+/// The stage cache's capacity in values (8 MB).
+const STAGE_CACHE_VALUES: usize = 1 << 20;
+
+/// A hash of the bits of `x` and `p`.
+fn stage_key(x: &[f64], p: &[f64]) -> u64 {
+    x.iter().chain(p).fold(0xcbf2_9ce4_8422_2325u64, |h, v| (h ^ v.to_bits()).wrapping_mul(0x0000_0100_0000_01b3).rotate_left(29))
+}
+
+/// Whether `a` and `b` hold the same bits.
+fn same_bits(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(u, v)| u.to_bits() == v.to_bits())
 }
 
 /// A step's vectors, kept between calls so that a step allocates nothing
@@ -302,6 +330,7 @@ impl<S: OdeSystem> Integrator<S> {
             levels_out: levels,
             error: Mutex::new(None),
             work: Mutex::new(StepWork::default()),
+            cache: Mutex::new(StageCache::default()),
         }
     }
 
@@ -567,7 +596,10 @@ impl<S: RhsFunctions> Forward for Integrator<S> {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "Integrator", x, p, y);
         self.with_work(|w| match self.stages(x, p, None, w) {
-            Ok(()) => self.combine(x, &w.st.k, y),
+            Ok(()) => {
+                self.combine(x, &w.st.k, y);
+                self.keep_stages(x, p, &w.st);
+            }
             Err(e) => fail(&self.error, y, e),
         })
     }
@@ -583,8 +615,63 @@ impl<S: RhsFunctions> Forward for Integrator<S> {
 }
 
 impl<S: RhsFunctions> Integrator<S> {
+    /// Keeps an implicit step's stages for its VJP ([`StageCache`]).
+    fn keep_stages(&self, x: &[f64], p: &[f64], st: &Stages) {
+        if !self.params.scheme.is_implicit() {
+            return;
+        }
+        let Ok(mut cache) = self.cache.try_lock() else { return };
+        let len = x.len() + p.len() + st.y.len() + st.k.len();
+        if cache.values + len > STAGE_CACHE_VALUES {
+            cache.entries.clear();
+            cache.values = 0;
+        }
+        let entry: Vec<f64> = x.iter().chain(p).chain(&st.y).chain(&st.k).copied().collect();
+        if let Some(old) = cache.entries.insert(stage_key(x, p), entry) {
+            cache.values -= old.len();
+        }
+        cache.values += len;
+    }
+
+    /// The stages a forward step at `(x, p)` kept, into `st` (and out of
+    /// the cache); `false` when there are none.
+    fn kept_stages(&self, x: &[f64], p: &[f64], st: &mut Stages) -> bool {
+        if !self.params.scheme.is_implicit() {
+            return false;
+        }
+        let Ok(mut cache) = self.cache.try_lock() else { return false };
+        let Some(entry) = cache.entries.remove(&stage_key(x, p)) else { return false };
+        cache.values -= entry.len();
+        let (kx, rest) = entry.split_at(x.len());
+        let (kp, rest) = rest.split_at(p.len());
+        if !(same_bits(kx, x) && same_bits(kp, p)) {
+            return false;
+        }
+        let (y, k) = rest.split_at(rest.len() / 2);
+        st.y.clear();
+        st.y.extend_from_slice(y);
+        st.k.clear();
+        st.k.extend_from_slice(k);
+        true
+    }
+
     fn vjp_at(&self, x: &[f64], p: &[f64], given: Option<&[f64]>, dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
-        self.with_work(|w| match self.stages(x, p, given.filter(|_| self.stiffly_accurate()), w) {
+        self.with_work(|w| {
+            if w.held.as_ref().is_none_or(|held| held.n() != self.system.n()) {
+                w.held = HeldJacobian::for_params(self.system.n(), &self.params.newton);
+            }
+            if self.kept_stages(x, p, &mut w.st) {
+                self.vjp_stages(p, w, dy, dx, dp);
+                return;
+            }
+            self.vjp_solved(x, p, given, w, dy, dx, dp)
+        })
+    }
+
+    /// The VJP with the stages solved again.
+    #[allow(clippy::too_many_arguments)]
+    fn vjp_solved(&self, x: &[f64], p: &[f64], given: Option<&[f64]>, w: &mut StepWork, dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        match self.stages(x, p, given.filter(|_| self.stiffly_accurate()), w) {
             Ok(()) => self.vjp_stages(p, w, dy, dx, dp),
             Err(e) => {
                 keep(&self.error, e);
@@ -592,7 +679,7 @@ impl<S: RhsFunctions> Integrator<S> {
                 dp.fill(f64::NAN);
                 dy.fill(0.0);
             }
-        })
+        }
     }
 }
 
