@@ -320,6 +320,15 @@ fn bdf2_from_its_start_gives_the_gradient_of_the_whole_computation() {
     assert!(report.passed(), "{report}");
 }
 
+/// Asserts that two VJPs `(dx, dp)` agree entry by entry within `tol`
+/// times the first one's largest entry.
+fn assert_same_gradient(a: (&[f64], &[f64]), b: (&[f64], &[f64]), tol: f64, what: &str) {
+    let scale = a.0.iter().chain(a.1).fold(0.0f64, |m, g| m.max(g.abs()));
+    for (g, h) in a.0.iter().chain(a.1).zip(b.0.iter().chain(b.1)) {
+        assert!((g - h).abs() <= tol * scale, "{what}: gradient {g} against {h}");
+    }
+}
+
 /// The stages' held Jacobian (simplified Newton, the direct default) finds
 /// the same roots as Newton–Krylov, which forms nothing and takes a fresh
 /// Jacobian's product at every iteration with line search: the same step
@@ -351,10 +360,7 @@ fn the_stages_held_jacobian_finds_the_roots_of_newton_krylov() {
             }
             let w = [1.0, 1e4, -0.5];
             let ((dx_a, dp_a), (dx_b, dp_b)) = (held.vjp_new(&u, &p, &w), krylov.vjp_new(&u, &p, &w));
-            let scale = dx_a.iter().chain(&dp_a).fold(0.0f64, |m, g| m.max(g.abs()));
-            for (g, h) in dx_a.iter().chain(&dp_a).zip(dx_b.iter().chain(&dp_b)) {
-                assert!((g - h).abs() <= 1e-8 * scale, "{scheme:?}, dt {dt}: gradient {g} against {h}");
-            }
+            assert_same_gradient((&dx_a, &dp_a), (&dx_b, &dp_b), 1e-8, &format!("{scheme:?}, dt {dt}"));
         }
     }
 }
@@ -408,10 +414,7 @@ fn a_users_jacobian_gives_enzymes_steps_and_gradients_and_a_wrong_one_fails_the_
         }
         let w: Vec<f64> = [1.0, 1e4, -0.5, 0.3, -2.0, 1.0][..enzyme.n_out()].to_vec();
         let ((dx_a, dp_a), (dx_b, dp_b)) = (enzyme.vjp_new(x, &p, &w), hand.vjp_new(x, &p, &w));
-        let scale = dx_a.iter().chain(&dp_a).fold(0.0f64, |m, g| m.max(g.abs()));
-        for (g, h) in dx_a.iter().chain(&dp_a).zip(dx_b.iter().chain(&dp_b)) {
-            assert!((g - h).abs() <= 1e-9 * scale, "{scheme:?}: gradient {g} against {h}");
-        }
+        assert_same_gradient((&dx_a, &dp_a), (&dx_b, &dp_b), 1e-9, &format!("{scheme:?}"));
     }
     // Through 30 stiff SDIRK3 steps for the rates: right passes, wrong fails.
     let target = [0.97, 3.0e-5, 0.03];
@@ -454,9 +457,6 @@ fn a_rollout_s_backward_pass_reuses_the_forward_steps_stages() {
     let (kept_dx, kept_dp) = op.vjp_new(&u, &p, &w);
     let fresh = Integrator::new(Robertson, IntegratorParams::new(Scheme::Sdirk3, 0.05));
     let (dx, dp) = fresh.vjp_new(&u, &p, &w);
-    let scale = dx.iter().chain(&dp).fold(0.0f64, |m, g| m.max(g.abs()));
-    for (a, b) in kept_dx.iter().chain(&kept_dp).zip(dx.iter().chain(&dp)) {
-        assert!((a - b).abs() <= 1e-9 * scale, "kept {a}, solved again {b}");
-    }
+    assert_same_gradient((&dx, &dp), (&kept_dx, &kept_dp), 1e-9, "solved again against kept");
     assert!(newton(&fresh) > 0, "the fresh operator solved its stages");
 }

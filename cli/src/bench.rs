@@ -1144,13 +1144,12 @@ fn implicit_heat(a: ImplicitHeatArgs) -> Result<(), CliError> {
         }
         value
     };
-    let counts = || op.counts();
     // One of each, counted.
-    let c0 = counts();
+    let c0 = op.counts();
     let value = op.loss(&x0, &theta, steps, &loss)?;
-    let c1 = counts();
+    let c1 = op.counts();
     let g = op.value_and_grad(&x0, &theta, steps, &loss)?;
-    let c2 = counts();
+    let c2 = op.counts();
     if !value.is_finite() || !diffsim::op::all_finite(&g.dx0) || !diffsim::op::all_finite(&g.dp) {
         return Err(CliError::NotReported { what: "bench implicit-heat".into(), reason: "the loss or its gradient is not finite".into() });
     }

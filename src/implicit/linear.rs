@@ -514,7 +514,14 @@ pub(crate) fn solve_system(
     Ok(iterations)
 }
 
-fn singular() -> OpError {
+/// Whether `a` and `b` hold the same bits; without an early exit, so that
+/// the compare vectorises.
+pub(crate) fn same_bits(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0, |d, (a, b)| d | (a.to_bits() ^ b.to_bits())) == 0
+}
+
+/// The error of a direct solve whose matrix is singular.
+pub(crate) fn singular() -> OpError {
     OpError::Input(crate::op::OpMessage::new("a direct solve: the matrix is singular"))
 }
 
@@ -737,10 +744,8 @@ impl<S: SystemFunctions> LinearSolve<S> {
     /// The matrix's coefficients `c(p)`, from the cache when `p` is the
     /// last one's (bit for bit; a busy cache is passed by).
     fn coefficients(&self, p: &[f64]) -> Arc<Vec<f64>> {
-        // Bit for bit, without an early exit (so the compare vectorises).
-        let same = |a: &[f64]| a.len() == p.len() && a.iter().zip(p).fold(0, |d, (a, b)| d | (a.to_bits() ^ b.to_bits())) == 0;
         if let Ok(cache) = self.cache.try_lock()
-            && same(&cache.0)
+            && same_bits(&cache.0, p)
         {
             return Arc::clone(&cache.1);
         }

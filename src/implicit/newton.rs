@@ -28,7 +28,7 @@
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use super::linear::{Aids, SolveMethod, SolveParams, check_given, fail, solve_system, take};
+use super::linear::{Aids, SolveMethod, SolveParams, check_given, fail, singular, solve_system, take};
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
 /// The sizes of a user's nonlinear system `F(y, x, p) = 0`, and Newton's
@@ -207,6 +207,24 @@ fn norm(v: &[f64]) -> f64 {
     v.iter().map(|a| a * a).sum::<f64>().sqrt()
 }
 
+/// Newton's start at `y`: its residual into `r`, and the residual's size
+/// and the size to reach; an error when either is not finite.
+fn start(eq: &impl Equations, params: &NewtonParams, y: &[f64], r: &mut [f64]) -> Result<(f64, f64), OpError> {
+    eq.residual(y, r);
+    let size = norm(r);
+    if !size.is_finite() || !y.iter().all(|v| v.is_finite()) {
+        return Err(OpError::Input(crate::op::OpMessage::new("Newton's method: the starting point or its residual is not finite")));
+    }
+    Ok((size, (params.tolerance * size).max(params.abs_tolerance)))
+}
+
+/// Whether the step `delta` from `y` is at rounding level: the root as
+/// close as it can be had.
+fn at_rounding(delta: &[f64], y: &[f64]) -> bool {
+    let scale = y.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    delta.iter().fold(0.0f64, |m, v| m.max(v.abs())) <= 4.0 * f64::EPSILON * scale
+}
+
 /// Solves `J(y)·out = b` (`transposed`: `J(y)ᵀ·out = b`) by the settings'
 /// linear method, counting its iterations.
 pub(crate) fn jacobian_solve(
@@ -250,12 +268,7 @@ pub(crate) fn jacobian_solve(
 pub(crate) fn newton(eq: &impl Equations, params: &NewtonParams, info: &NewtonInfo, y: &mut [f64]) -> Result<(), OpError> {
     let n = y.len();
     let (mut r, mut minus_r, mut delta, mut trial, mut r_trial) = (vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]);
-    eq.residual(y, &mut r);
-    let mut size = norm(&r);
-    if !size.is_finite() || !y.iter().all(|v| v.is_finite()) {
-        return Err(OpError::Input(crate::op::OpMessage::new("Newton's method: the starting point or its residual is not finite")));
-    }
-    let target = (params.tolerance * size).max(params.abs_tolerance);
+    let (mut size, target) = start(eq, params, y, &mut r)?;
     let mut iterations = 0;
     let result = loop {
         if size <= target {
@@ -275,9 +288,7 @@ pub(crate) fn newton(eq: &impl Equations, params: &NewtonParams, info: &NewtonIn
             Err(OpError::Input(_)) => break Err(OpError::NoRoot { iterations, residual: size, target }),
             Err(e) => break Err(e),
         }
-        // A step at rounding level: the root as close as it can be had.
-        let scale = y.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let rounding = delta.iter().fold(0.0f64, |m, v| m.max(v.abs())) <= 4.0 * f64::EPSILON * scale;
+        let rounding = at_rounding(&delta, y);
         // Backtracking on ‖F‖₂ along the Newton direction.
         let mut alpha = 1.0;
         let accepted = loop {
@@ -312,62 +323,30 @@ pub(crate) fn newton(eq: &impl Equations, params: &NewtonParams, info: &NewtonIn
 }
 
 /// A dense Jacobian's LU factors held over several Newton iterations
-/// (simplified Newton), for small systems solved directly: the implicit
-/// stages of an integrator step share one. Deterministic: what it holds
-/// depends only on the points it was formed at, never on earlier calls.
+/// (simplified Newton), for small systems solved directly, with Newton's
+/// vectors: the implicit stages of an integrator step share one.
+/// Deterministic: what it holds depends only on the points it was formed
+/// at, never on earlier calls.
 #[derive(Debug)]
 pub(crate) struct HeldJacobian {
-    lu: diffsim_solvers::linalg::DenseLu,
-    matrix: Vec<f64>,
-    unit: Vec<f64>,
-    /// Whether `lu` holds factors (of the current equations' Jacobian).
-    valid: bool,
+    factors: JacobianFactors,
     /// Newton's vectors: the residual, the trial point and its residual.
     r: Vec<f64>,
     trial: Vec<f64>,
     r_trial: Vec<f64>,
 }
 
-impl HeldJacobian {
-    /// Nothing held yet, for `n` unknowns; `None` when `n` is too large to
-    /// hold dense or `params` do not solve directly.
-    pub(crate) fn for_params(n: usize, params: &NewtonParams) -> Option<Self> {
-        (params.linear.method == SolveMethod::Direct && n <= diffsim_solvers::linalg::DENSE_SOLVE_MAX).then(|| HeldJacobian {
-            lu: Default::default(),
-            matrix: vec![0.0; n * n],
-            unit: vec![0.0; n],
-            valid: false,
-            r: vec![0.0; n],
-            trial: vec![0.0; n],
-            r_trial: vec![0.0; n],
-        })
-    }
+/// The held Jacobian itself.
+#[derive(Debug)]
+struct JacobianFactors {
+    lu: diffsim_solvers::linalg::DenseLu,
+    matrix: Vec<f64>,
+    unit: Vec<f64>,
+    /// Whether `lu` holds factors (of the current equations' Jacobian).
+    valid: bool,
+}
 
-    /// Unknowns it is made for.
-    pub(crate) fn n(&self) -> usize {
-        self.unit.len()
-    }
-
-    /// Solves `J(y)·out = b` (`transposed`: `J(y)ᵀ·out = b`) with a
-    /// Jacobian formed at `y` (the exact one, for an adjoint); what it
-    /// held before is replaced. An error when `J(y)` is singular.
-    pub(crate) fn solve_at(&mut self, eq: &impl Equations, y: &[f64], b: &[f64], out: &mut [f64], transposed: bool) -> Result<(), OpError> {
-        if !self.refresh(eq, y) {
-            self.valid = false;
-            return Err(OpError::Input(crate::op::OpMessage::new("a direct solve: the matrix is singular")));
-        }
-        // Held for this point only: the next Newton solve forms its own.
-        self.valid = false;
-        out.copy_from_slice(b);
-        self.lu.solve(out, transposed);
-        Ok(())
-    }
-
-    /// Forgets the factors (the equations' Jacobian changed form).
-    pub(crate) fn invalidate(&mut self) {
-        self.valid = false;
-    }
-
+impl JacobianFactors {
     /// Forms `J(y)` (the equations' matrix, else column by column from its
     /// products) and factors it; `false` when it is singular or not
     /// finite.
@@ -385,6 +364,44 @@ impl HeldJacobian {
     }
 }
 
+impl HeldJacobian {
+    /// Nothing held yet, for `n` unknowns; `None` when `n` is too large to
+    /// hold dense or `params` do not solve directly.
+    pub(crate) fn for_params(n: usize, params: &NewtonParams) -> Option<Self> {
+        (params.linear.method == SolveMethod::Direct && n <= diffsim_solvers::linalg::DENSE_SOLVE_MAX).then(|| HeldJacobian {
+            factors: JacobianFactors { lu: Default::default(), matrix: vec![0.0; n * n], unit: vec![0.0; n], valid: false },
+            r: vec![0.0; n],
+            trial: vec![0.0; n],
+            r_trial: vec![0.0; n],
+        })
+    }
+
+    /// Unknowns it is made for.
+    pub(crate) fn n(&self) -> usize {
+        self.r.len()
+    }
+
+    /// Solves `J(y)·out = b` (`transposed`: `J(y)ᵀ·out = b`) with a
+    /// Jacobian formed at `y` (the exact one, for an adjoint); what it
+    /// held before is replaced. An error when `J(y)` is singular.
+    pub(crate) fn solve_at(&mut self, eq: &impl Equations, y: &[f64], b: &[f64], out: &mut [f64], transposed: bool) -> Result<(), OpError> {
+        let formed = self.factors.refresh(eq, y);
+        // Held for this point only: the next Newton solve forms its own.
+        self.factors.valid = false;
+        if !formed {
+            return Err(singular());
+        }
+        out.copy_from_slice(b);
+        self.factors.lu.solve(out, transposed);
+        Ok(())
+    }
+
+    /// Forgets the factors (the equations' Jacobian changed form).
+    pub(crate) fn invalidate(&mut self) {
+        self.factors.valid = false;
+    }
+}
+
 /// Newton's method with the Jacobian held (simplified Newton): each step
 /// solves with the factors `held` has (formed at the first point that
 /// needed them, perhaps by an earlier call), and forms them again at the
@@ -394,29 +411,8 @@ impl HeldJacobian {
 /// same convergence test as [`newton`]; the root is the same to the
 /// tolerance.
 pub(crate) fn newton_held(eq: &impl Equations, params: &NewtonParams, info: &NewtonInfo, held: &mut HeldJacobian, y: &mut [f64]) -> Result<(), OpError> {
-    let (mut r, mut trial, mut r_trial) = (std::mem::take(&mut held.r), std::mem::take(&mut held.trial), std::mem::take(&mut held.r_trial));
-    let result = newton_held_in(eq, params, info, held, y, &mut r, &mut trial, &mut r_trial);
-    (held.r, held.trial, held.r_trial) = (r, trial, r_trial);
-    result
-}
-
-#[allow(clippy::too_many_arguments)]
-fn newton_held_in(
-    eq: &impl Equations,
-    params: &NewtonParams,
-    info: &NewtonInfo,
-    held: &mut HeldJacobian,
-    y: &mut [f64],
-    r: &mut Vec<f64>,
-    trial: &mut [f64],
-    r_trial: &mut Vec<f64>,
-) -> Result<(), OpError> {
-    eq.residual(y, r);
-    let mut size = norm(r);
-    if !size.is_finite() || !y.iter().all(|v| v.is_finite()) {
-        return Err(OpError::Input(crate::op::OpMessage::new("Newton's method: the starting point or its residual is not finite")));
-    }
-    let target = (params.tolerance * size).max(params.abs_tolerance);
+    let HeldJacobian { factors, r, trial, r_trial } = held;
+    let (mut size, target) = start(eq, params, y, r)?;
     let (mut iterations, mut fresh) = (0, false);
     let result = loop {
         if size <= target {
@@ -425,8 +421,8 @@ fn newton_held_in(
         if iterations == params.max_iterations {
             break Some(Err(OpError::NoRoot { iterations, residual: size, target }));
         }
-        if !held.valid {
-            if !held.refresh(eq, y) {
+        if !factors.valid {
+            if !factors.refresh(eq, y) {
                 break None;
             }
             fresh = true;
@@ -436,9 +432,8 @@ fn newton_held_in(
         for (t, r) in trial.iter_mut().zip(r.iter()) {
             *t = -r;
         }
-        held.lu.solve(trial, false);
-        let scale = y.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let rounding = trial.iter().fold(0.0f64, |m, v| m.max(v.abs())) <= 4.0 * f64::EPSILON * scale;
+        factors.lu.solve(trial, false);
+        let rounding = at_rounding(trial, y);
         for (t, y) in trial.iter_mut().zip(y.iter()) {
             *t += y;
         }
@@ -456,14 +451,14 @@ fn newton_held_in(
             // A fresh Jacobian's full step did not contract: line search.
             break None;
         } else {
-            held.invalidate();
+            factors.valid = false;
         }
     };
     info.newton.fetch_add(iterations, Ordering::Relaxed);
     match result {
         Some(done) => done,
         None => {
-            held.invalidate();
+            factors.valid = false;
             newton(eq, params, info, y)
         }
     }

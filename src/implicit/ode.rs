@@ -41,7 +41,7 @@
 
 use std::sync::Mutex;
 
-use super::linear::{check_given, fail, keep, take};
+use super::linear::{check_given, fail, keep, same_bits, take};
 use super::newton::{Equations, HeldJacobian, NewtonInfo, NewtonParams, jacobian_solve, newton, newton_held};
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
@@ -281,11 +281,6 @@ fn stage_key(x: &[f64], p: &[f64]) -> u64 {
     x.iter().chain(p).fold(0xcbf2_9ce4_8422_2325u64, |h, v| (h ^ v.to_bits()).wrapping_mul(0x0000_0100_0000_01b3).rotate_left(29))
 }
 
-/// Whether `a` and `b` hold the same bits.
-fn same_bits(a: &[f64], b: &[f64]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).all(|(u, v)| u.to_bits() == v.to_bits())
-}
-
 /// A step's vectors, kept between calls so that a step allocates nothing
 /// (a busy set, on another thread, is passed by for a fresh one).
 #[derive(Debug, Default)]
@@ -405,6 +400,16 @@ impl<S: RhsFunctions> Equations for Stage<'_, S> {
     }
 }
 
+impl StepWork {
+    /// Makes `held` the stages' Jacobian for `n` unknowns solved by
+    /// `params` (none when they are not solved directly).
+    fn hold_jacobian(&mut self, n: usize, params: &NewtonParams) {
+        if self.held.as_ref().is_none_or(|held| held.n() != n) {
+            self.held = HeldJacobian::for_params(n, params);
+        }
+    }
+}
+
 /// A step's stage values `Y_i` and slopes `k_i`, each `stages·n` long.
 #[derive(Debug, Default)]
 struct Stages {
@@ -430,9 +435,7 @@ impl<S: RhsFunctions> Integrator<S> {
         w.st.k.resize(s * n, 0.0);
         w.z.resize(n, 0.0);
         w.base.resize(n, 0.0);
-        if w.held.as_ref().is_none_or(|held| held.n() != n) {
-            w.held = HeldJacobian::for_params(n, &self.params.newton);
-        }
+        w.hold_jacobian(n, &self.params.newton);
         let StepWork { st, z, base, held, .. } = w;
         self.base(x, base);
         // One Jacobian for the step's implicit stages (they share h·γ in
@@ -657,9 +660,7 @@ impl<S: RhsFunctions> Integrator<S> {
 
     fn vjp_at(&self, x: &[f64], p: &[f64], given: Option<&[f64]>, dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         self.with_work(|w| {
-            if w.held.as_ref().is_none_or(|held| held.n() != self.system.n()) {
-                w.held = HeldJacobian::for_params(self.system.n(), &self.params.newton);
-            }
+            w.hold_jacobian(self.system.n(), &self.params.newton);
             if self.kept_stages(x, p, &mut w.st) {
                 self.vjp_stages(p, w, dy, dx, dp);
                 return;
