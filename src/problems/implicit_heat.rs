@@ -80,10 +80,13 @@ pub fn heat_conductances(s: &ImplicitHeat, theta: &[f64], c: &mut [f64]) {
 }
 
 /// `out = (I + dt·A(θ))·v` from the conductances `c` of
-/// [`heat_conductances`]: one pass over each row, every inner cell the
-/// same five-point formula (an insulated side's conductance is 0, and the
-/// missing neighbour row is the row itself) over slices of equal length,
-/// so that the compiler vectorises it; the row's two end cells apart.
+/// [`heat_conductances`]: one pass over each row, every cell the same
+/// five-point formula over slices of equal length, so that the compiler
+/// vectorises it. An insulated side's conductance is 0, so a missing
+/// neighbour may be any finite value: the row itself for the first and
+/// last rows, and inside, the cells on either side of the row in memory
+/// (the last of the row below for the first cell, the first of the row
+/// above for the last), which keeps the inner rows' loops whole.
 /// `#[inline(always)]`: the solve's products then run in the widest
 /// vectors the processor has ([`crate::linear_system!`]).
 #[inline(always)]
@@ -95,29 +98,18 @@ pub fn heat_matvec(s: &ImplicitHeat, v: &[f64], c: &[f64], out: &mut [f64]) {
         let row = &v[j * n..(j + 1) * n];
         let (below, above) = (&v[jb * n..(jb + 1) * n], &v[ja * n..(ja + 1) * n]);
         let (south, north) = (&cy[j * n..(j + 1) * n], &cy[(j + 1) * n..(j + 2) * n]);
-        let faces = &cx[j * (n + 1)..(j + 1) * (n + 1)];
+        let (cw, ce) = (&cx[j * (n + 1)..j * (n + 1) + n], &cx[j * (n + 1) + 1..(j + 1) * (n + 1)]);
         let o = &mut out[j * n..(j + 1) * n];
-        // Cell i exchanges with i − 1 through faces[i], with i + 1 through
-        // faces[i + 1]; a missing neighbour is the cell itself. (Scalars,
-        // not a closure over the rows: Enzyme cannot type a closure that
-        // holds six slices.)
-        let m = n - 1;
-        let (east_of_first, west_of_last) = (row[1.min(m)], row[m.saturating_sub(1)]);
-        o[0] = cell(row[0], below[0], above[0], south[0], north[0], faces[0], row[0], faces[1], east_of_first);
-        o[m] = cell(row[m], below[m], above[m], south[m], north[m], faces[m], west_of_last, faces[m + 1], row[m]);
-        if n < 3 {
-            continue;
-        }
-        // The inner cells 1..n − 1, every slice cut to their count k so
-        // that the loop carries no bounds checks and vectorises.
-        let k = n - 2;
-        let (x, w, e) = (&row[1..1 + k], &row[..k], &row[2..2 + k]);
-        let (cw, ce) = (&faces[1..1 + k], &faces[2..2 + k]);
-        let (b, a, cs, cn) = (&below[1..1 + k], &above[1..1 + k], &south[1..1 + k], &north[1..1 + k]);
-        let inner = &mut o[1..1 + k];
-        for i in 0..k {
-            let v = x[i];
-            inner[i] = v + cs[i] * (v - b[i]) + cn[i] * (v - a[i]) + cw[i] * (v - w[i]) + ce[i] * (v - e[i]);
+        if j > 0 && j + 1 < n {
+            let (west, east) = (&v[j * n - 1..(j + 1) * n - 1], &v[j * n + 1..(j + 1) * n + 1]);
+            for i in 0..n {
+                o[i] = cell(row[i], below[i], above[i], south[i], north[i], cw[i], west[i], ce[i], east[i]);
+            }
+        } else {
+            for i in 0..n {
+                let (west, east) = (row[i.saturating_sub(1)], row[(i + 1).min(n - 1)]);
+                o[i] = cell(row[i], below[i], above[i], south[i], north[i], cw[i], west, ce[i], east);
+            }
         }
     }
 }
