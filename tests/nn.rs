@@ -722,6 +722,13 @@ fn batched_networks_match_their_per_sample_passes() {
         batched_net_matches_per_sample::<f32>("mlp tanh f32", &mlp, batch, true);
         batched_net_matches_per_sample::<f64>("mlp relu", &relu, batch, true);
     }
+    // A batch whose forward passes run in two halves on two threads
+    // (batch × parameters above NET_PAR_MIN_WORK; an odd half), in a pool
+    // of two whatever the machine.
+    assert!(203 * mlp.n_params() >= diffsim::nn::NET_PAR_MIN_WORK);
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    pool.install(|| batched_net_matches_per_sample::<f64>("mlp tanh, two halves", &mlp, 203, true));
+    pool.install(|| batched_net_matches_per_sample::<f32>("mlp tanh f32, two halves", &mlp, 203, true));
     let conv = presets::conv_stack_1d(8, &[1, 4, 4, 1], 5, Padding::Periodic, Activation::Tanh).unwrap();
     let res = presets::resnet_1d(8, 1, 1, 4, 2, 3, Padding::Zero, Activation::Relu).unwrap();
     let unet = presets::unet_2d(8, 8, 1, 1, 2, 3, Padding::Zero, Activation::Tanh).unwrap();

@@ -415,9 +415,9 @@ mod tests {
         for transposed in [false, true] {
             let (mut lu, mut x) = (a, b);
             dense_solve(3, &mut lu, &mut x, transposed);
-            for i in 0..3 {
+            for (i, &bi) in b.iter().enumerate() {
                 let row: f64 = (0..3).map(|j| if transposed { at(j, i) } else { at(i, j) } * x[j]).sum();
-                assert!((row - b[i]).abs() < 1e-14, "transposed {transposed}, row {i}: {row} against {}", b[i]);
+                assert!((row - bi).abs() < 1e-14, "transposed {transposed}, row {i}: {row} against {bi}");
             }
         }
         // Singular: infinities or NaN, not a number that looks right.

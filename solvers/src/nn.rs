@@ -66,35 +66,107 @@ pub fn dense_batch<R: Real>(n_in: usize, w: &[R], b: &[R], xs: &[R], ys: &mut [R
 /// Batches of a dense layer with at least this many multiply-adds
 /// ([`dense_batch`], [`dense_batch_adjoint`]) split over two of rayon's
 /// threads: waking a parked thread costs a few microseconds, this work
-/// about ten.
-pub const DENSE_PAR_MIN_WORK: usize = 1 << 15;
+/// about fifteen (at 8–10 GMAC/s on one core; measured on an AMD EPYC with
+/// AVX-512, 20 → 20 over 256 samples took as long on two threads as on one,
+/// and 20 → 96 over 512 took 0.6 of its one-thread time).
+pub const DENSE_PAR_MIN_WORK: usize = 1 << 17;
 
 /// Whether a dense layer's batch pass splits over two threads.
 fn split_pays(batch: usize, n_in: usize, n_out: usize) -> bool {
     batch >= 2 && batch.saturating_mul(n_in).saturating_mul(n_out) >= DENSE_PAR_MIN_WORK && rayon::current_num_threads() > 1
 }
 
-/// [`dense_batch`]'s loop, compiled once per vector width ([`Real`]'s hook).
+/// Samples a dense kernel takes side by side, one to a vector lane: the
+/// layers of small networks (20 wide, 4 in) leave vectors over a row's
+/// values mostly empty, vectors over samples are always full.
+const DENSE_BLOCK: usize = 8;
+
+/// Copies `m` rows of `width` values from `rows` (`rows[l·width + i]`) into
+/// lane `l` of `lanes` (`lanes[i·DENSE_BLOCK + l]`).
 #[inline(always)]
-fn dense_batch_body<R: Real>(n_in: usize, w: &[R], b: &[R], xs: &[R], ys: &mut [R]) {
-    let n_out = b.len();
-    for (x, y) in xs.chunks_exact(n_in.max(1)).zip(ys.chunks_exact_mut(n_out.max(1))) {
-        for (o, (yo, bo)) in y.iter_mut().zip(b).enumerate() {
-            *yo = *bo + dot(&w[o * n_in..(o + 1) * n_in], x);
+fn to_lanes<R: Real>(width: usize, m: usize, rows: &[R], lanes: &mut [R]) {
+    for l in 0..m {
+        for (i, &v) in rows[l * width..(l + 1) * width].iter().enumerate() {
+            lanes[i * DENSE_BLOCK + l] = v;
         }
     }
 }
 
-/// Samples per block of [`dense_batch_adjoint`]: a weight row and its
-/// gradient row stay in registers/L1 while the block's samples pass.
-const DENSE_BLOCK: usize = 8;
+/// The inverse of [`to_lanes`] for the first `m` lanes.
+#[inline(always)]
+fn from_lanes<R: Real>(width: usize, m: usize, lanes: &[R], rows: &mut [R]) {
+    for l in 0..m {
+        for (i, v) in rows[l * width..(l + 1) * width].iter_mut().enumerate() {
+            *v = lanes[i * DENSE_BLOCK + l];
+        }
+    }
+}
+
+/// The `DENSE_BLOCK` values of `v` from `at` as an array (a copy in
+/// registers: the compiler then need not fear that stores alias them).
+#[inline(always)]
+fn lanes<R: Real>(v: &[R], at: usize) -> [R; DENSE_BLOCK] {
+    let mut out = [R::zero(); DENSE_BLOCK];
+    out.copy_from_slice(&v[at..at + DENSE_BLOCK]);
+    out
+}
+
+/// [`dense_batch`]'s loop, compiled once per vector width ([`Real`]'s hook):
+/// [`DENSE_BLOCK`] samples at a time, one to a lane, each output summed in
+/// the order of [`dense`]'s `dot` (four partial sums over the quadruples of
+/// inputs, added pairwise, then the remaining inputs one by one), so that
+/// every lane computes its sample's row bit for bit as [`dense`] does.
+#[inline(always)]
+fn dense_batch_body<R: Real>(n_in: usize, w: &[R], b: &[R], xs: &[R], ys: &mut [R]) {
+    const L: usize = DENSE_BLOCK;
+    let n_out = b.len();
+    if n_out == 0 {
+        return;
+    }
+    let batch = ys.len() / n_out;
+    let quads = n_in / 4 * 4;
+    let mut xt = vec![R::zero(); n_in * L];
+    let mut first = 0;
+    while first < batch {
+        let m = (batch - first).min(L);
+        to_lanes(n_in, m, &xs[first * n_in..(first + m) * n_in], &mut xt);
+        for (o, &bo) in b.iter().enumerate() {
+            let row = &w[o * n_in..(o + 1) * n_in];
+            let (mut s0, mut s1, mut s2, mut s3) = ([R::zero(); L], [R::zero(); L], [R::zero(); L], [R::zero(); L]);
+            for k in (0..quads).step_by(4) {
+                let (w0, w1, w2, w3) = (row[k], row[k + 1], row[k + 2], row[k + 3]);
+                let (x0, x1, x2, x3) = (lanes(&xt, k * L), lanes(&xt, (k + 1) * L), lanes(&xt, (k + 2) * L), lanes(&xt, (k + 3) * L));
+                for l in 0..L {
+                    s0[l] += w0 * x0[l];
+                    s1[l] += w1 * x1[l];
+                    s2[l] += w2 * x2[l];
+                    s3[l] += w3 * x3[l];
+                }
+            }
+            let mut t = [R::zero(); L];
+            for l in 0..L {
+                t[l] = (s0[l] + s1[l]) + (s2[l] + s3[l]);
+            }
+            for (i, &wi) in row.iter().enumerate().skip(quads) {
+                let x = lanes(&xt, i * L);
+                for l in 0..L {
+                    t[l] += wi * x[l];
+                }
+            }
+            for l in 0..m {
+                ys[(first + l) * n_out + o] = bo + t[l];
+            }
+        }
+        first += m;
+    }
+}
 
 /// Adjoint of [`dense_batch`]: `gxs_s += Wᵀ·gy_s` for every sample, and
 /// the parameters' gradients summed over the batch, `gw += Σ_s gy_s·x_sᵀ`,
-/// `gb += Σ_s gy_s`. The sums run in sample order (blocked over samples,
-/// each element added to in the order of the samples), so they equal, bit
-/// for bit, the per-sample gradients of [`dense_adjoint`] added one after
-/// another, for any batch size, and no per-sample gradient is formed.
+/// `gb += Σ_s gy_s`. The sums run in sample order (each element added to
+/// in the order of the samples), so they equal, bit for bit, the
+/// per-sample gradients of [`dense_adjoint`] added one after another, for
+/// any batch size, and no per-sample gradient is formed.
 pub fn dense_batch_adjoint<R: Real>(n_in: usize, w: &[R], xs: &[R], gys: &[R], gxs: &mut [R], gw: &mut [R], gb: &mut [R]) {
     let n_out = gb.len();
     let batch = gys.len() / n_out.max(1);
@@ -104,9 +176,8 @@ pub fn dense_batch_adjoint<R: Real>(n_in: usize, w: &[R], xs: &[R], gys: &[R], g
         return;
     }
     // Two threads, each with half the samples' input gradients and half the
-    // weight rows' gradients: every element is added to in the order of
-    // the fused pass (`gx_s` over the rows, `gw_o` and `gb_o` over the
-    // samples), so the result is the same bit for bit.
+    // weight rows' gradients: every element is added to in the same order,
+    // so the result is the same bit for bit.
     let (mid, half) = (batch / 2, n_out / 2);
     let (gxa, gxb) = gxs.split_at_mut(mid * n_in);
     let ((gwa, gwb), (gba, gbb)) = (gw.split_at_mut(half * n_in), gb.split_at_mut(half));
@@ -123,60 +194,131 @@ pub fn dense_batch_adjoint<R: Real>(n_in: usize, w: &[R], xs: &[R], gys: &[R], g
 }
 
 /// `gxs_s += Wᵀ·gy_s` for the samples of `gys` (`n_out = w.len() / n_in`
-/// values each), the rows taken in order.
+/// values each): [`DENSE_BLOCK`] samples at a time, one to a lane, each
+/// input's gradient added to over the outputs in order, as
+/// [`dense_adjoint`] adds to it.
 #[inline(always)]
 fn dense_input_gradient_body<R: Real>(n_in: usize, w: &[R], gys: &[R], gxs: &mut [R]) {
+    const L: usize = DENSE_BLOCK;
     let n_out = w.len() / n_in.max(1);
-    for (gy, gx) in gys.chunks_exact(n_out.max(1)).zip(gxs.chunks_exact_mut(n_in.max(1))) {
-        for (o, &g) in gy.iter().enumerate() {
-            for (gxi, &wi) in gx.iter_mut().zip(&w[o * n_in..(o + 1) * n_in]) {
-                *gxi += g * wi;
+    if n_in == 0 || n_out == 0 {
+        return;
+    }
+    let batch = gys.len() / n_out;
+    let (mut gxt, mut gyt) = (vec![R::zero(); n_in * L], vec![R::zero(); n_out * L]);
+    let mut first = 0;
+    while first < batch {
+        let m = (batch - first).min(L);
+        to_lanes(n_in, m, &gxs[first * n_in..(first + m) * n_in], &mut gxt);
+        to_lanes(n_out, m, &gys[first * n_out..(first + m) * n_out], &mut gyt);
+        // Four inputs at a time, their lanes held in registers over the
+        // outputs (four independent sums), then the rest one by one.
+        let quads = n_in / 4 * 4;
+        for i in (0..quads).step_by(4) {
+            let mut gx = [lanes(&gxt, i * L), lanes(&gxt, (i + 1) * L), lanes(&gxt, (i + 2) * L), lanes(&gxt, (i + 3) * L)];
+            for o in 0..n_out {
+                let (g, row) = (lanes(&gyt, o * L), &w[o * n_in + i..o * n_in + i + 4]);
+                for (q, gx) in gx.iter_mut().enumerate() {
+                    for l in 0..L {
+                        gx[l] += g[l] * row[q];
+                    }
+                }
+            }
+            for (q, gx) in gx.iter().enumerate() {
+                gxt[(i + q) * L..(i + q + 1) * L].copy_from_slice(gx);
             }
         }
+        for i in quads..n_in {
+            let mut gx = lanes(&gxt, i * L);
+            for o in 0..n_out {
+                let (g, wi) = (lanes(&gyt, o * L), w[o * n_in + i]);
+                for l in 0..L {
+                    gx[l] += g[l] * wi;
+                }
+            }
+            gxt[i * L..(i + 1) * L].copy_from_slice(&gx);
+        }
+        from_lanes(n_in, m, &gxt, &mut gxs[first * n_in..(first + m) * n_in]);
+        first += m;
     }
 }
 
 /// `gw_o += Σ_s gy_s[o]·x_s` and `gb_o += Σ_s gy_s[o]` for the rows `first..`
-/// that `gw` (`n_in` values a row) and `gb` hold, the samples taken in order.
+/// that `gw` (`n_in` values a row) and `gb` hold, the samples taken in
+/// order: a row's gradient held in whole vectors (the inputs copied once
+/// into rows padded to [`DENSE_BLOCK`] values) while the samples pass.
 #[inline(always)]
 fn dense_weight_gradient_body<R: Real>(n_in: usize, n_out: usize, first: usize, xs: &[R], gys: &[R], gw: &mut [R], gb: &mut [R]) {
-    for (k, (grow, gbo)) in gw.chunks_exact_mut(n_in.max(1)).zip(gb.iter_mut()).enumerate() {
-        let o = first + k;
-        for (x, gy) in xs.chunks_exact(n_in.max(1)).zip(gys.chunks_exact(n_out.max(1))) {
-            let g = gy[o];
-            *gbo += g;
-            for (gwi, &xi) in grow.iter_mut().zip(x) {
-                *gwi += g * xi;
+    const L: usize = DENSE_BLOCK;
+    if n_in == 0 || n_out == 0 {
+        for (k, gbo) in gb.iter_mut().enumerate() {
+            for gy in gys.chunks_exact(n_out.max(1)) {
+                *gbo += gy[first + k];
             }
+        }
+        return;
+    }
+    let batch = gys.len() / n_out;
+    let width = n_in.div_ceil(L) * L;
+    let mut xp = vec![R::zero(); batch * width];
+    for (x, p) in xs.chunks_exact(n_in).zip(xp.chunks_exact_mut(width)) {
+        p[..n_in].copy_from_slice(x);
+    }
+    for (k, gbo) in gb.iter_mut().enumerate() {
+        for gy in gys.chunks_exact(n_out) {
+            *gbo += gy[first + k];
+        }
+    }
+    // Four rows at a time, `L` values of each held in registers while the
+    // samples pass (four independent sums sharing each sample's inputs),
+    // then the rest of the rows one by one.
+    let rows = gw.len() / n_in;
+    let quads = rows / 4 * 4;
+    for k in (0..quads).step_by(4) {
+        let o = first + k;
+        for c in (0..width).step_by(L) {
+            let valid = (n_in - c).min(L);
+            let mut acc = [[R::zero(); L]; 4];
+            for (q, acc) in acc.iter_mut().enumerate() {
+                acc[..valid].copy_from_slice(&gw[(k + q) * n_in + c..(k + q) * n_in + c + valid]);
+            }
+            for (s, gy) in gys.chunks_exact(n_out).enumerate() {
+                let (g, x) = (&gy[o..o + 4], lanes(&xp, s * width + c));
+                for (q, acc) in acc.iter_mut().enumerate() {
+                    for l in 0..L {
+                        acc[l] += g[q] * x[l];
+                    }
+                }
+            }
+            for (q, acc) in acc.iter().enumerate() {
+                gw[(k + q) * n_in + c..(k + q) * n_in + c + valid].copy_from_slice(&acc[..valid]);
+            }
+        }
+    }
+    for k in quads..rows {
+        let o = first + k;
+        for c in (0..width).step_by(L) {
+            let valid = (n_in - c).min(L);
+            let mut acc = [R::zero(); L];
+            acc[..valid].copy_from_slice(&gw[k * n_in + c..k * n_in + c + valid]);
+            for (s, gy) in gys.chunks_exact(n_out).enumerate() {
+                let (g, x) = (gy[o], lanes(&xp, s * width + c));
+                for l in 0..L {
+                    acc[l] += g * x[l];
+                }
+            }
+            gw[k * n_in + c..k * n_in + c + valid].copy_from_slice(&acc[..valid]);
         }
     }
 }
 
 /// [`dense_batch_adjoint`]'s loops, compiled once per vector width
-/// ([`Real`]'s hook).
+/// ([`Real`]'s hook): the input gradients, then the weights' (the two
+/// touch different values, so the order between them changes nothing).
 #[inline(always)]
 fn dense_batch_adjoint_body<R: Real>(n_in: usize, w: &[R], xs: &[R], gys: &[R], gxs: &mut [R], gw: &mut [R], gb: &mut [R]) {
-    let n_out = gb.len();
-    let batch = gys.len() / n_out.max(1);
-    let mut first = 0;
-    while first < batch {
-        let end = (first + DENSE_BLOCK).min(batch);
-        for o in 0..n_out {
-            let row = &w[o * n_in..(o + 1) * n_in];
-            let grow = &mut gw[o * n_in..(o + 1) * n_in];
-            for s in first..end {
-                let g = gys[s * n_out + o];
-                gb[o] += g;
-                let x = &xs[s * n_in..(s + 1) * n_in];
-                let gx = &mut gxs[s * n_in..(s + 1) * n_in];
-                for ((gxi, gwi), (&wi, &xi)) in gx.iter_mut().zip(grow.iter_mut()).zip(row.iter().zip(x)) {
-                    *gxi += g * wi;
-                    *gwi += g * xi;
-                }
-            }
-        }
-        first = end;
-    }
+    dense_input_gradient_body(n_in, w, gys, gxs);
+    dense_weight_gradient_body(n_in, gb.len(), 0, xs, gys, gw, gb);
 }
 
 #[inline(always)]
@@ -1184,10 +1326,18 @@ mod tests {
 
     /// The batched dense layer: rows as `dense`'s, and its adjoint's sums
     /// equal to the per-sample adjoints added in sample order, bit for bit,
-    /// across block boundaries (batch sizes around [`DENSE_BLOCK`]).
+    /// across block boundaries (batch sizes around [`DENSE_BLOCK`]), for
+    /// rows shorter than, not a multiple of and longer than a vector, and
+    /// adding to gradients that were not zero.
     #[test]
     fn batched_dense_equals_per_sample_passes() {
-        let (n_in, n_out) = (5, 7);
+        batched_dense_case(5, 7);
+        batched_dense_case(3, 2);
+        batched_dense_case(20, 24);
+        batched_dense_case(16, 1);
+    }
+
+    fn batched_dense_case(n_in: usize, n_out: usize) {
         // The last two split over two threads (at least DENSE_PAR_MIN_WORK
         // multiply-adds), in a pool of two whatever the machine.
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
@@ -1198,22 +1348,23 @@ mod tests {
             let (xs, gys) = (values(batch * n_in, 3), values(batch * n_out, 4));
             let mut ys = vec![0.0; batch * n_out];
             pool.install(|| dense_batch(n_in, &w, &b, &xs, &mut ys));
-            let (mut gxs, mut gw, mut gb) = (vec![0.0; batch * n_in], vec![0.0; n_in * n_out], vec![0.0; n_out]);
+            let (mut gxs, mut gw, mut gb) = (values(batch * n_in, 5), values(n_in * n_out, 6), values(n_out, 7));
+            let (gxs0, mut sw, mut sb) = (gxs.clone(), gw.clone(), gb.clone());
             pool.install(|| dense_batch_adjoint(n_in, &w, &xs, &gys, &mut gxs, &mut gw, &mut gb));
-            let (mut sw, mut sb) = (vec![0.0; n_in * n_out], vec![0.0; n_out]);
             for s in 0..batch {
                 let (x, gy) = (&xs[s * n_in..(s + 1) * n_in], &gys[s * n_out..(s + 1) * n_out]);
                 let mut y = vec![0.0; n_out];
                 dense(n_in, &w, &b, x, &mut y);
-                assert_eq!(&ys[s * n_out..(s + 1) * n_out], &y[..]);
-                let (mut gx, mut gws, mut gbs) = (vec![0.0; n_in], vec![0.0; n_in * n_out], vec![0.0; n_out]);
+                assert_eq!(&ys[s * n_out..(s + 1) * n_out], &y[..], "{n_in} -> {n_out}, batch {batch}");
+                let mut gx = gxs0[s * n_in..(s + 1) * n_in].to_vec();
+                let (mut gws, mut gbs) = (vec![0.0; n_in * n_out], vec![0.0; n_out]);
                 dense_adjoint(n_in, &w, x, gy, &mut gx, &mut gws, &mut gbs);
-                assert_eq!(&gxs[s * n_in..(s + 1) * n_in], &gx[..]);
+                assert_eq!(&gxs[s * n_in..(s + 1) * n_in], &gx[..], "{n_in} -> {n_out}, batch {batch}");
                 sw.iter_mut().zip(&gws).for_each(|(a, b)| *a += b);
                 sb.iter_mut().zip(&gbs).for_each(|(a, b)| *a += b);
             }
-            assert_eq!(gw, sw, "batch {batch}");
-            assert_eq!(gb, sb, "batch {batch}");
+            assert_eq!(gw, sw, "{n_in} -> {n_out}, batch {batch}");
+            assert_eq!(gb, sb, "{n_in} -> {n_out}, batch {batch}");
         }
     }
 }

@@ -297,6 +297,8 @@ impl Layer {
                     *y += *x;
                 }
             }
+            // Value by value: the batch is one long slice.
+            Layer::Act { f, .. } => kernel::activate(*f, xs, ys),
             _ => {
                 for (x, y) in xs.chunks_exact(self.n_in()).zip(ys.chunks_exact_mut(self.n_out())) {
                     self.forward(x, p, y);
@@ -322,6 +324,8 @@ impl Layer {
                 }
                 net.backprop(xs, p, gys, gxs, gp);
             }
+            // Value by value, as `backprop` does a sample's.
+            Layer::Act { .. } => self.backprop(xs, ys, p, gys, gxs, gp),
             _ => {
                 for (s, (x, gx)) in xs.chunks_exact(n_in).zip(gxs.chunks_exact_mut(n_in)).enumerate() {
                     let y = ys.map(|ys| &ys[s * n_out..(s + 1) * n_out]);
@@ -529,10 +533,34 @@ impl Net {
         }
     }
 
+    /// Where a batch's forward pass splits into two halves of the samples,
+    /// one a thread (each sample's values are the same either way): from
+    /// [`NET_PAR_MIN_WORK`] samples × parameters, with two threads or more.
+    fn halves(&self, batch: usize) -> Option<usize> {
+        let work = batch.saturating_mul(self.n_params().max(1));
+        (batch >= 2 && work >= NET_PAR_MIN_WORK && rayon::current_num_threads() > 1).then_some(batch / 2)
+    }
+
     /// The inputs of layers `1..L` (the outputs of all but the last layer)
     /// for a batch of samples, one after another (one sample is a batch of
-    /// one).
+    /// one); a large batch in two halves on two threads.
     fn hidden<R: Real>(&self, xs: &[R], p: &[R]) -> Vec<Vec<R>> {
+        let Some(mid) = self.halves(xs.len() / self.n_in()) else {
+            return self.hidden_here(xs, p);
+        };
+        let (xa, xb) = xs.split_at(mid * self.n_in());
+        let (a, b) = rayon::join(|| self.hidden_here(xa, p), || self.hidden_here(xb, p));
+        a.into_iter()
+            .zip(b)
+            .map(|(mut a, b)| {
+                a.extend_from_slice(&b);
+                a
+            })
+            .collect()
+    }
+
+    /// [`Net::hidden`] on the calling thread.
+    fn hidden_here<R: Real>(&self, xs: &[R], p: &[R]) -> Vec<Vec<R>> {
         let batch = xs.len() / self.n_in();
         let last = self.layers.len() - 1;
         let mut outs: Vec<Vec<R>> = Vec::with_capacity(last);
@@ -545,7 +573,17 @@ impl Net {
     }
 
     fn forward_into<R: Real>(&self, xs: &[R], p: &[R], ys: &mut [R]) {
-        let hidden = self.hidden(xs, p);
+        let Some(mid) = self.halves(xs.len() / self.n_in()) else {
+            return self.forward_here(xs, p, ys);
+        };
+        let (xa, xb) = xs.split_at(mid * self.n_in());
+        let (ya, yb) = ys.split_at_mut(mid * self.n_out());
+        rayon::join(|| self.forward_here(xa, p, ya), || self.forward_here(xb, p, yb));
+    }
+
+    /// [`Net::forward_into`] on the calling thread.
+    fn forward_here<R: Real>(&self, xs: &[R], p: &[R], ys: &mut [R]) {
+        let hidden = self.hidden_here(xs, p);
         let last = self.layers.len() - 1;
         self.layers[last].forward_batch(hidden.last().map_or(xs, |v| v), &p[self.range(last)], ys);
     }
@@ -595,6 +633,12 @@ impl Net {
         r
     }
 }
+
+/// Samples × parameters from which a network's batch forward pass runs in
+/// two halves on two threads ([`Net::forward_batch`], and the forward pass
+/// inside [`Net::vjp_batch`]): below, handing half to a thread (a few
+/// microseconds) costs more than it saves.
+pub const NET_PAR_MIN_WORK: usize = 1 << 17;
 
 impl Operator for Net {
     fn n_in(&self) -> usize {

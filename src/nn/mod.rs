@@ -21,5 +21,5 @@ mod store;
 
 pub use diffsim_solvers::nn::{Activation, Conv1d, Conv2d, Padding};
 pub use layer::normal;
-pub use layer::{Init, Layer, Net, NetError};
+pub use layer::{Init, Layer, NET_PAR_MIN_WORK, Net, NetError};
 pub use store::{ParamEntry, ParamStore, StoreError};
