@@ -1000,6 +1000,203 @@ fn wrap_index(i: isize, n: usize, padding: Padding) -> Option<usize> {
     }
 }
 
+/// Values of padded maps (all channels) a batched convolution lays end to
+/// end in one call: long rows beyond this leave L2, where one sample's
+/// maps at a time stay in it ([`conv1d_batch`], [`conv2d_batch`]).
+const CONV_BATCH_VALUES: usize = 1 << 16;
+
+/// Samples a batched convolution takes in one call: as many as keep the
+/// widest side's padded maps (`channels × stride` values a sample) within
+/// [`CONV_BATCH_VALUES`], at least one.
+fn conv_chunk(channels: usize, stride: usize) -> usize {
+    (CONV_BATCH_VALUES / (channels * stride).max(1)).max(1)
+}
+
+/// The samples' padded maps (`stride` values a channel, `pad_one(s)` for
+/// sample `s`) laid end to end per channel: `out[c][s·stride + m]`.
+fn end_to_end<R: Real>(channels: usize, stride: usize, batch: usize, pad_one: impl Fn(usize) -> Vec<R>) -> Vec<R> {
+    let long = batch * stride;
+    let mut out = vec![R::zero(); channels * long];
+    for smp in 0..batch {
+        let p = pad_one(smp);
+        for c in 0..channels {
+            out[c * long + smp * stride..c * long + (smp + 1) * stride].copy_from_slice(&p[c * stride..(c + 1) * stride]);
+        }
+    }
+    out
+}
+
+/// Where the values of a batch's maps sit in the long rows of
+/// [`end_to_end`]: `rows` rows of `width` values a channel, row `j` of
+/// sample `s` from `s·stride + j·pitch` (1D: one row of `len`; 2D: `ny`
+/// rows `npx` apart).
+#[derive(Clone, Copy)]
+struct LongRows {
+    rows: usize,
+    width: usize,
+    pitch: usize,
+    stride: usize,
+}
+
+impl LongRows {
+    /// Calls `f(in the maps, in the long rows)` with the ranges of every row
+    /// of every channel of every sample (maps: `batch × channels × rows ×
+    /// width`, channel-major per sample; long rows: `channels` of
+    /// `long_len`).
+    fn each_row(&self, channels: usize, batch: usize, long_len: usize, mut f: impl FnMut(std::ops::Range<usize>, std::ops::Range<usize>)) {
+        let per_channel = self.rows * self.width;
+        for smp in 0..batch {
+            for c in 0..channels {
+                for j in 0..self.rows {
+                    let at = (smp * channels + c) * per_channel + j * self.width;
+                    let long = c * long_len + smp * self.stride + j * self.pitch;
+                    f(at..at + self.width, long..long + self.width);
+                }
+            }
+        }
+    }
+}
+
+/// [`conv1d`] over a batch (`xs` `batch × c_in × len`, `ys` `batch × c_out ×
+/// len`, samples one after another): the samples' padded rows laid end to
+/// end per channel and correlated at once (the `k − 1` positions between
+/// two samples computed and dropped), in chunks of samples that stay in
+/// L2. Each output is summed as [`conv1d`] sums it, so a sample's output
+/// does not depend on the batch it is in.
+pub fn conv1d_batch<R: Real>(s: &Conv1d, w: &[R], b: &[R], xs: &[R], ys: &mut [R]) {
+    let (per_in, per_out) = (s.c_in * s.len, s.c_out * s.len);
+    let batch = ys.len() / per_out.max(1);
+    assert!(w.len() >= s.n_weights() && b.len() >= s.c_out && xs.len() == batch * per_in && ys.len() == batch * per_out, "conv1d_batch: lengths");
+    let (k, p) = (s.k, s.len + s.k - 1);
+    let rows = LongRows { rows: 1, width: s.len, pitch: 0, stride: p };
+    let chunk = conv_chunk(s.c_in.max(s.c_out), p);
+    for first in (0..batch).step_by(chunk) {
+        let m = chunk.min(batch - first);
+        let (xs, ys) = (&xs[first * per_in..(first + m) * per_in], &mut ys[first * per_out..(first + m) * per_out]);
+        let long = m * p;
+        let xp = end_to_end(s.c_in, p, m, |smp| pad(s, s.c_in, &xs[smp * per_in..(smp + 1) * per_in]));
+        let mut yp = vec![R::zero(); s.c_out * long];
+        let taps = Taps { base: 0, q: (s.c_in * k) as isize, r: k as isize, t: 1, inp: long, out: long };
+        R::correlate(long - (k - 1), k, s.c_out, s.c_in, w, taps, Some(b), &xp, &mut yp, false);
+        rows.each_row(s.c_out, m, long, |y, l| ys[y].copy_from_slice(&yp[l]));
+    }
+}
+
+/// Adjoint of [`conv1d_batch`]: each sample's input gradient added to as
+/// [`conv1d_adjoint`] adds to it (the same bits), the biases' gradient
+/// summed sample by sample in order, and the weights' over the batch's
+/// long rows (equal to the per-sample sums up to rounding).
+pub fn conv1d_batch_adjoint<R: Real>(s: &Conv1d, w: &[R], xs: &[R], gys: &[R], gxs: &mut [R], gw: &mut [R], gb: &mut [R]) {
+    let (n, k, p) = (s.len, s.k, s.len + s.k - 1);
+    let (per_in, per_out) = (s.c_in * n, s.c_out * n);
+    let batch = gys.len() / per_out.max(1);
+    assert!(w.len() >= s.n_weights() && gw.len() >= s.n_weights() && gb.len() >= s.c_out, "conv1d_batch_adjoint: lengths");
+    assert!(xs.len() == batch * per_in && gxs.len() == batch * per_in && gys.len() == batch * per_out, "conv1d_batch_adjoint: lengths");
+    let rows = LongRows { rows: 1, width: n, pitch: 0, stride: p };
+    let chunk = conv_chunk(s.c_in.max(s.c_out), p);
+    for first in (0..batch).step_by(chunk) {
+        let m = chunk.min(batch - first);
+        let (xs, gys) = (&xs[first * per_in..(first + m) * per_in], &gys[first * per_out..(first + m) * per_out]);
+        let gxs = &mut gxs[first * per_in..(first + m) * per_in];
+        let long = m * p;
+        for gy in gys.chunks_exact(per_out) {
+            for o in 0..s.c_out {
+                gb[o] += gy[o * n..(o + 1) * n].iter().copied().sum::<R>();
+            }
+        }
+        // gx += Σ_o Σ_t w[o][c][k−1−t]·gyp[o][m + t], from the values there.
+        let gyp = end_to_end(s.c_out, p, m, |smp| pad(s, s.c_out, &gys[smp * per_out..(smp + 1) * per_out]));
+        let mut gxl = vec![R::zero(); s.c_in * long];
+        rows.each_row(s.c_in, m, long, |x, l| gxl[l].copy_from_slice(&gxs[x]));
+        let taps = Taps { base: (k - 1) as isize, q: k as isize, r: (s.c_in * k) as isize, t: -1, inp: long, out: long };
+        R::correlate(long - (k - 1), k, s.c_in, s.c_out, w, taps, None, &gyp, &mut gxl, true);
+        rows.each_row(s.c_in, m, long, |x, l| gxs[x].copy_from_slice(&gxl[l]));
+        // gw[o][c][t] += Σ_i gyz[o][i]·xp[c][i + t], gyz = gy with zeros
+        // between the samples.
+        let xp = end_to_end(s.c_in, p, m, |smp| pad(s, s.c_in, &xs[smp * per_in..(smp + 1) * per_in]));
+        let mut gyz = vec![R::zero(); s.c_out * long];
+        rows.each_row(s.c_out, m, long, |y, l| gyz[l].copy_from_slice(&gys[y]));
+        let wg = WeightGrad { n: long - (k - 1), k, c_in: s.c_in, c_out: s.c_out, gy: long, xp: long, gw_o: s.c_in * k, gw_c: k, gw_base: 0 };
+        R::weight_gradient(&wg, &gyz, &xp, gw);
+    }
+}
+
+/// [`conv2d`] over a batch, as [`conv1d_batch`]: the samples' padded maps
+/// laid end to end per channel (each map's last rows and the gap before
+/// the next computed and dropped), in chunks that stay in L2; each output
+/// as [`conv2d`] sums it.
+pub fn conv2d_batch<R: Real>(s: &Conv2d, w: &[R], b: &[R], xs: &[R], ys: &mut [R]) {
+    let (nx, ny, k) = (s.nx, s.ny, s.k);
+    let (per_in, per_out) = (s.c_in * nx * ny, s.c_out * nx * ny);
+    let batch = ys.len() / per_out.max(1);
+    assert!(w.len() >= s.n_weights() && b.len() >= s.c_out && xs.len() == batch * per_in && ys.len() == batch * per_out, "conv2d_batch: lengths");
+    let g = Grid2::new(s);
+    let rows = LongRows { rows: ny, width: nx, pitch: g.npx, stride: g.stride };
+    let chunk = conv_chunk(s.c_in.max(s.c_out), g.stride);
+    for first in (0..batch).step_by(chunk) {
+        let m = chunk.min(batch - first);
+        let (xs, ys) = (&xs[first * per_in..(first + m) * per_in], &mut ys[first * per_out..(first + m) * per_out]);
+        let long = m * g.stride;
+        let xp = end_to_end(s.c_in, g.stride, m, |smp| g.pad(s, s.c_in, &xs[smp * per_in..(smp + 1) * per_in]));
+        let mut yp = vec![R::zero(); s.c_out * long];
+        let positions = (m - 1) * g.stride + g.len;
+        for ty in 0..k {
+            let taps = Taps { base: (ty * k) as isize, q: (s.c_in * k * k) as isize, r: (k * k) as isize, t: 1, inp: long, out: long };
+            R::correlate(positions, k, s.c_out, s.c_in, w, taps, (ty == 0).then_some(b), &xp[ty * g.npx..], &mut yp, ty > 0);
+        }
+        rows.each_row(s.c_out, m, long, |y, l| ys[y].copy_from_slice(&yp[l]));
+    }
+}
+
+/// Adjoint of [`conv2d_batch`], as [`conv1d_batch_adjoint`] is of
+/// [`conv1d_batch`]: input gradients bit for bit as [`conv2d_adjoint`]'s,
+/// the biases' summed sample by sample, the weights' over the long rows.
+pub fn conv2d_batch_adjoint<R: Real>(s: &Conv2d, w: &[R], xs: &[R], gys: &[R], gxs: &mut [R], gw: &mut [R], gb: &mut [R]) {
+    let (nx, ny, k) = (s.nx, s.ny, s.k);
+    let (per_in, per_out) = (s.c_in * nx * ny, s.c_out * nx * ny);
+    let batch = gys.len() / per_out.max(1);
+    assert!(w.len() >= s.n_weights() && gw.len() >= s.n_weights() && gb.len() >= s.c_out, "conv2d_batch_adjoint: lengths");
+    assert!(xs.len() == batch * per_in && gxs.len() == batch * per_in && gys.len() == batch * per_out, "conv2d_batch_adjoint: lengths");
+    let g = Grid2::new(s);
+    let rows = LongRows { rows: ny, width: nx, pitch: g.npx, stride: g.stride };
+    let chunk = conv_chunk(s.c_in.max(s.c_out), g.stride);
+    for first in (0..batch).step_by(chunk) {
+        let m = chunk.min(batch - first);
+        let (xs, gys) = (&xs[first * per_in..(first + m) * per_in], &gys[first * per_out..(first + m) * per_out]);
+        let gxs = &mut gxs[first * per_in..(first + m) * per_in];
+        let long = m * g.stride;
+        let positions = (m - 1) * g.stride + g.len;
+        for gy in gys.chunks_exact(per_out) {
+            for o in 0..s.c_out {
+                gb[o] += gy[o * nx * ny..(o + 1) * nx * ny].iter().copied().sum::<R>();
+            }
+        }
+        // gxp = Σ_o Σ_{ty,tx} w[o][c][k−1−ty][k−1−tx]·gyp[o][m + ty·npx + tx],
+        // then gx += gxp, as conv2d_adjoint.
+        let gyp = end_to_end(s.c_out, g.stride, m, |smp| g.pad(s, s.c_out, &gys[smp * per_out..(smp + 1) * per_out]));
+        let mut gxp = vec![R::zero(); s.c_in * long];
+        for ty in 0..k {
+            let base = ((k - 1 - ty) * k + k - 1) as isize;
+            let taps = Taps { base, q: (k * k) as isize, r: (s.c_in * k * k) as isize, t: -1, inp: long, out: long };
+            R::correlate(positions, k, s.c_in, s.c_out, w, taps, None, &gyp[ty * g.npx..], &mut gxp, ty > 0);
+        }
+        rows.each_row(s.c_in, m, long, |x, l| {
+            for (a, &v) in gxs[x].iter_mut().zip(&gxp[l]) {
+                *a += v;
+            }
+        });
+        // gw[o][c][ty][tx] += Σ_m gyz[o][m]·xp[c][m + ty·npx + tx], gyz = gy
+        // with zeros in the padding columns, rows and gaps.
+        let mut gyz = vec![R::zero(); s.c_out * long];
+        rows.each_row(s.c_out, m, long, |y, l| gyz[l].copy_from_slice(&gys[y]));
+        let xp = end_to_end(s.c_in, g.stride, m, |smp| g.pad(s, s.c_in, &xs[smp * per_in..(smp + 1) * per_in]));
+        for ty in 0..k {
+            let wg = WeightGrad { n: positions, k, c_in: s.c_in, c_out: s.c_out, gy: long, xp: long, gw_o: s.c_in * k * k, gw_c: k * k, gw_base: ty * k };
+            R::weight_gradient(&wg, &gyz, &xp[ty * g.npx..], gw);
+        }
+    }
+}
+
 /// [`conv2d`] as plain loops (the reference for the blocked one).
 pub fn conv2d_simple<R: Real>(s: &Conv2d, w: &[R], b: &[R], x: &[R], y: &mut [R]) {
     let (nx, ny, k) = (s.nx, s.ny, s.k);
@@ -1365,6 +1562,72 @@ mod tests {
             }
             assert_eq!(gw, sw, "{n_in} -> {n_out}, batch {batch}");
             assert_eq!(gb, sb, "{n_in} -> {n_out}, batch {batch}");
+        }
+    }
+
+    /// The batched convolutions against one sample at a time: outputs,
+    /// input gradients and the biases' gradients bit for bit, the weights'
+    /// to rounding (summed over the long rows), for both paddings, 1D and
+    /// 2D, and across the chunks the batch is cut into (the 64-channel
+    /// cases take 15 and 1 samples a chunk).
+    #[test]
+    fn batched_convolutions_equal_per_sample_passes() {
+        conv1d_case(Conv1d { c_in: 3, c_out: 5, k: 5, len: 13, padding: Padding::Periodic }, 7);
+        conv1d_case(Conv1d { c_in: 2, c_out: 1, k: 3, len: 4, padding: Padding::Zero }, 3);
+        conv1d_case(Conv1d { c_in: 64, c_out: 64, k: 3, len: 64, padding: Padding::Zero }, 17);
+        conv2d_case(Conv2d { c_in: 2, c_out: 3, k: 3, nx: 5, ny: 4, padding: Padding::Zero }, 6);
+        conv2d_case(Conv2d { c_in: 3, c_out: 2, k: 5, nx: 6, ny: 7, padding: Padding::Periodic }, 4);
+        conv2d_case(Conv2d { c_in: 64, c_out: 64, k: 3, nx: 32, ny: 32, padding: Padding::Zero }, 3);
+    }
+
+    fn conv1d_case(s: Conv1d, batch: usize) {
+        let (per_in, per_out) = (s.c_in * s.len, s.c_out * s.len);
+        let forward = |w: &[f64], b: &[f64], x: &[f64], y: &mut [f64]| conv1d(&s, w, b, x, y);
+        let adjoint = |w: &[f64], x: &[f64], gy: &[f64], gx: &mut [f64], gw: &mut [f64], gb: &mut [f64]| conv1d_adjoint(&s, w, x, gy, gx, gw, gb);
+        let batched = |w: &[f64], b: &[f64], x: &[f64], y: &mut [f64]| conv1d_batch(&s, w, b, x, y);
+        let batched_adjoint = |w: &[f64], x: &[f64], gy: &[f64], gx: &mut [f64], gw: &mut [f64], gb: &mut [f64]| conv1d_batch_adjoint(&s, w, x, gy, gx, gw, gb);
+        conv_case(&format!("{s:?}"), (s.n_weights(), s.c_out, per_in, per_out), batch, forward, adjoint, batched, batched_adjoint);
+    }
+
+    fn conv2d_case(s: Conv2d, batch: usize) {
+        let (per_in, per_out) = (s.c_in * s.nx * s.ny, s.c_out * s.nx * s.ny);
+        let forward = |w: &[f64], b: &[f64], x: &[f64], y: &mut [f64]| conv2d(&s, w, b, x, y);
+        let adjoint = |w: &[f64], x: &[f64], gy: &[f64], gx: &mut [f64], gw: &mut [f64], gb: &mut [f64]| conv2d_adjoint(&s, w, x, gy, gx, gw, gb);
+        let batched = |w: &[f64], b: &[f64], x: &[f64], y: &mut [f64]| conv2d_batch(&s, w, b, x, y);
+        let batched_adjoint = |w: &[f64], x: &[f64], gy: &[f64], gx: &mut [f64], gw: &mut [f64], gb: &mut [f64]| conv2d_batch_adjoint(&s, w, x, gy, gx, gw, gb);
+        conv_case(&format!("{s:?}"), (s.n_weights(), s.c_out, per_in, per_out), batch, forward, adjoint, batched, batched_adjoint);
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn conv_case(
+        name: &str,
+        (n_w, n_b, per_in, per_out): (usize, usize, usize, usize),
+        batch: usize,
+        forward: impl Fn(&[f64], &[f64], &[f64], &mut [f64]),
+        adjoint: impl Fn(&[f64], &[f64], &[f64], &mut [f64], &mut [f64], &mut [f64]),
+        batched: impl Fn(&[f64], &[f64], &[f64], &mut [f64]),
+        batched_adjoint: impl Fn(&[f64], &[f64], &[f64], &mut [f64], &mut [f64], &mut [f64]),
+    ) {
+        let (w, b) = (values(n_w, 1), values(n_b, 2));
+        let (xs, gys) = (values(batch * per_in, 3), values(batch * per_out, 4));
+        let mut ys = vec![0.0; batch * per_out];
+        batched(&w, &b, &xs, &mut ys);
+        let (mut gxs, mut gw, mut gb) = (values(batch * per_in, 5), values(n_w, 6), values(n_b, 7));
+        let (gxs0, mut sw, mut sb) = (gxs.clone(), gw.clone(), gb.clone());
+        batched_adjoint(&w, &xs, &gys, &mut gxs, &mut gw, &mut gb);
+        for s in 0..batch {
+            let (x, gy) = (&xs[s * per_in..(s + 1) * per_in], &gys[s * per_out..(s + 1) * per_out]);
+            let mut y = vec![0.0; per_out];
+            forward(&w, &b, x, &mut y);
+            assert_eq!(&ys[s * per_out..(s + 1) * per_out], &y[..], "{name}: sample {s}'s output");
+            let mut gx = gxs0[s * per_in..(s + 1) * per_in].to_vec();
+            adjoint(&w, x, gy, &mut gx, &mut sw, &mut sb);
+            assert_eq!(&gxs[s * per_in..(s + 1) * per_in], &gx[..], "{name}: sample {s}'s input gradient");
+        }
+        assert_eq!(gb, sb, "{name}: the biases' gradient");
+        let scale = sw.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for (i, (a, e)) in gw.iter().zip(&sw).enumerate() {
+            assert!((a - e).abs() <= 1e-12 * scale, "{name}: weight {i}: {a} against {e}");
         }
     }
 }

@@ -297,6 +297,14 @@ impl Layer {
                     *y += *x;
                 }
             }
+            Layer::Conv1d(s) => {
+                let (w, b) = p.split_at(s.n_weights());
+                kernel::conv1d_batch(s, w, b, xs, ys);
+            }
+            Layer::Conv2d(s) => {
+                let (w, b) = p.split_at(s.n_weights());
+                kernel::conv2d_batch(s, w, b, xs, ys);
+            }
             // Value by value: the batch is one long slice.
             Layer::Act { f, .. } => kernel::activate(*f, xs, ys),
             _ => {
@@ -323,6 +331,16 @@ impl Layer {
                     *gx += *g;
                 }
                 net.backprop(xs, p, gys, gxs, gp);
+            }
+            Layer::Conv1d(s) => {
+                let (w, _) = p.split_at(s.n_weights());
+                let (gw, gb) = gp.split_at_mut(s.n_weights());
+                kernel::conv1d_batch_adjoint(s, w, xs, gys, gxs, gw, gb);
+            }
+            Layer::Conv2d(s) => {
+                let (w, _) = p.split_at(s.n_weights());
+                let (gw, gb) = gp.split_at_mut(s.n_weights());
+                kernel::conv2d_batch_adjoint(s, w, xs, gys, gxs, gw, gb);
             }
             // Value by value, as `backprop` does a sample's.
             Layer::Act { .. } => self.backprop(xs, ys, p, gys, gxs, gp),
@@ -543,24 +561,11 @@ impl Net {
 
     /// The inputs of layers `1..L` (the outputs of all but the last layer)
     /// for a batch of samples, one after another (one sample is a batch of
-    /// one); a large batch in two halves on two threads.
+    /// one), on the calling thread. (The VJP's forward pass stays on one
+    /// thread: split in halves, it took longer, 221 against 154 µs on the
+    /// linear HIG network's batch of 256, the idle workers competing with
+    /// the backward pass for two cores.)
     fn hidden<R: Real>(&self, xs: &[R], p: &[R]) -> Vec<Vec<R>> {
-        let Some(mid) = self.halves(xs.len() / self.n_in()) else {
-            return self.hidden_here(xs, p);
-        };
-        let (xa, xb) = xs.split_at(mid * self.n_in());
-        let (a, b) = rayon::join(|| self.hidden_here(xa, p), || self.hidden_here(xb, p));
-        a.into_iter()
-            .zip(b)
-            .map(|(mut a, b)| {
-                a.extend_from_slice(&b);
-                a
-            })
-            .collect()
-    }
-
-    /// [`Net::hidden`] on the calling thread.
-    fn hidden_here<R: Real>(&self, xs: &[R], p: &[R]) -> Vec<Vec<R>> {
         let batch = xs.len() / self.n_in();
         let last = self.layers.len() - 1;
         let mut outs: Vec<Vec<R>> = Vec::with_capacity(last);
@@ -583,7 +588,7 @@ impl Net {
 
     /// [`Net::forward_into`] on the calling thread.
     fn forward_here<R: Real>(&self, xs: &[R], p: &[R], ys: &mut [R]) {
-        let hidden = self.hidden_here(xs, p);
+        let hidden = self.hidden(xs, p);
         let last = self.layers.len() - 1;
         self.layers[last].forward_batch(hidden.last().map_or(xs, |v| v), &p[self.range(last)], ys);
     }
@@ -635,8 +640,7 @@ impl Net {
 }
 
 /// Samples × parameters from which a network's batch forward pass runs in
-/// two halves on two threads ([`Net::forward_batch`], and the forward pass
-/// inside [`Net::vjp_batch`]): below, handing half to a thread (a few
+/// two halves on two threads ([`Net::forward_batch`]): below, handing half to a thread (a few
 /// microseconds) costs more than it saves.
 pub const NET_PAR_MIN_WORK: usize = 1 << 17;
 
