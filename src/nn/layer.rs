@@ -297,16 +297,12 @@ impl Layer {
                     *y += *x;
                 }
             }
-            Layer::Conv1d(s) => {
-                let (w, b) = p.split_at(s.n_weights());
-                kernel::conv1d_batch(s, w, b, xs, ys);
-            }
-            Layer::Conv2d(s) => {
-                let (w, b) = p.split_at(s.n_weights());
-                kernel::conv2d_batch(s, w, b, xs, ys);
-            }
             // Value by value: the batch is one long slice.
             Layer::Act { f, .. } => kernel::activate(*f, xs, ys),
+            // One sample at a time, convolutions included: their blocked
+            // kernels keep a sample's maps in L1, and laying the batch's
+            // maps end to end in one long row took 1.1–2.1× as long
+            // (docs/networks.md).
             _ => {
                 for (x, y) in xs.chunks_exact(self.n_in()).zip(ys.chunks_exact_mut(self.n_out())) {
                     self.forward(x, p, y);
@@ -331,16 +327,6 @@ impl Layer {
                     *gx += *g;
                 }
                 net.backprop(xs, p, gys, gxs, gp);
-            }
-            Layer::Conv1d(s) => {
-                let (w, _) = p.split_at(s.n_weights());
-                let (gw, gb) = gp.split_at_mut(s.n_weights());
-                kernel::conv1d_batch_adjoint(s, w, xs, gys, gxs, gw, gb);
-            }
-            Layer::Conv2d(s) => {
-                let (w, _) = p.split_at(s.n_weights());
-                let (gw, gb) = gp.split_at_mut(s.n_weights());
-                kernel::conv2d_batch_adjoint(s, w, xs, gys, gxs, gw, gb);
             }
             // Value by value, as `backprop` does a sample's.
             Layer::Act { .. } => self.backprop(xs, ys, p, gys, gxs, gp),
