@@ -402,9 +402,6 @@ mod tests {
         }
     }
 
-    /// CG recovers a known solution to its tolerance, warm starts from a
-    /// solution in no iterations, and too few iterations are an error with
-    /// the residual reached.
     /// The eight-lane maximum agrees with a plain fold on every length and
     /// position, and a NaN or an infinity anywhere (a lane or the tail)
     /// comes out as the scalar loop says: NaN for NaN, infinity otherwise.
@@ -427,6 +424,9 @@ mod tests {
         }
     }
 
+    /// CG recovers a known solution to its tolerance, warm starts from a
+    /// solution in no iterations, and too few iterations are an error with
+    /// the residual reached.
     #[test]
     fn cg_solves_a_definite_system_and_reports_what_it_could_not() {
         let n = 50;

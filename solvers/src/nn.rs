@@ -211,35 +211,36 @@ fn dense_input_gradient_body<R: Real>(n_in: usize, w: &[R], gys: &[R], gxs: &mut
         let m = (batch - first).min(L);
         to_lanes(n_in, m, &gxs[first * n_in..(first + m) * n_in], &mut gxt);
         to_lanes(n_out, m, &gys[first * n_out..(first + m) * n_out], &mut gyt);
-        // Four inputs at a time, their lanes held in registers over the
-        // outputs (four independent sums), then the rest one by one.
+        // Four inputs at a time (four independent sums), then the rest one
+        // by one.
         let quads = n_in / 4 * 4;
         for i in (0..quads).step_by(4) {
-            let mut gx = [lanes(&gxt, i * L), lanes(&gxt, (i + 1) * L), lanes(&gxt, (i + 2) * L), lanes(&gxt, (i + 3) * L)];
-            for o in 0..n_out {
-                let (g, row) = (lanes(&gyt, o * L), &w[o * n_in + i..o * n_in + i + 4]);
-                for (q, gx) in gx.iter_mut().enumerate() {
-                    for l in 0..L {
-                        gx[l] += g[l] * row[q];
-                    }
-                }
-            }
-            for (q, gx) in gx.iter().enumerate() {
-                gxt[(i + q) * L..(i + q + 1) * L].copy_from_slice(gx);
-            }
+            input_gradient_lanes::<R, 4>(n_in, n_out, i, w, &gyt, &mut gxt);
         }
         for i in quads..n_in {
-            let mut gx = lanes(&gxt, i * L);
-            for o in 0..n_out {
-                let (g, wi) = (lanes(&gyt, o * L), w[o * n_in + i]);
-                for l in 0..L {
-                    gx[l] += g[l] * wi;
-                }
-            }
-            gxt[i * L..(i + 1) * L].copy_from_slice(&gx);
+            input_gradient_lanes::<R, 1>(n_in, n_out, i, w, &gyt, &mut gxt);
         }
         from_lanes(n_in, m, &gxt, &mut gxs[first * n_in..(first + m) * n_in]);
         first += m;
+    }
+}
+
+/// Inputs `i..i + Q` of a block's input gradients (`gxt`, in lanes), their
+/// lanes held in registers while the outputs pass in order.
+#[inline(always)]
+fn input_gradient_lanes<R: Real, const Q: usize>(n_in: usize, n_out: usize, i: usize, w: &[R], gyt: &[R], gxt: &mut [R]) {
+    const L: usize = DENSE_BLOCK;
+    let mut gx: [[R; L]; Q] = std::array::from_fn(|q| lanes(gxt, (i + q) * L));
+    for o in 0..n_out {
+        let (g, row) = (lanes(gyt, o * L), &w[o * n_in + i..o * n_in + i + Q]);
+        for (q, gx) in gx.iter_mut().enumerate() {
+            for l in 0..L {
+                gx[l] += g[l] * row[q];
+            }
+        }
+    }
+    for (q, gx) in gx.iter().enumerate() {
+        gxt[(i + q) * L..(i + q + 1) * L].copy_from_slice(gx);
     }
 }
 
@@ -250,64 +251,54 @@ fn dense_input_gradient_body<R: Real>(n_in: usize, w: &[R], gys: &[R], gxs: &mut
 #[inline(always)]
 fn dense_weight_gradient_body<R: Real>(n_in: usize, n_out: usize, first: usize, xs: &[R], gys: &[R], gw: &mut [R], gb: &mut [R]) {
     const L: usize = DENSE_BLOCK;
-    if n_in == 0 || n_out == 0 {
-        for (k, gbo) in gb.iter_mut().enumerate() {
-            for gy in gys.chunks_exact(n_out.max(1)) {
-                *gbo += gy[first + k];
-            }
-        }
-        return;
-    }
-    let batch = gys.len() / n_out;
-    let width = n_in.div_ceil(L) * L;
-    let mut xp = vec![R::zero(); batch * width];
-    for (x, p) in xs.chunks_exact(n_in).zip(xp.chunks_exact_mut(width)) {
-        p[..n_in].copy_from_slice(x);
-    }
     for (k, gbo) in gb.iter_mut().enumerate() {
-        for gy in gys.chunks_exact(n_out) {
+        for gy in gys.chunks_exact(n_out.max(1)) {
             *gbo += gy[first + k];
         }
     }
-    // Four rows at a time, `L` values of each held in registers while the
-    // samples pass (four independent sums sharing each sample's inputs),
-    // then the rest of the rows one by one.
+    if n_in == 0 || n_out == 0 {
+        return;
+    }
+    let width = n_in.div_ceil(L) * L;
+    let mut xp = vec![R::zero(); gys.len() / n_out * width];
+    for (x, p) in xs.chunks_exact(n_in).zip(xp.chunks_exact_mut(width)) {
+        p[..n_in].copy_from_slice(x);
+    }
+    // Four rows at a time (four independent sums sharing each sample's
+    // inputs), then the rest of the rows one by one.
     let rows = gw.len() / n_in;
     let quads = rows / 4 * 4;
     for k in (0..quads).step_by(4) {
-        let o = first + k;
-        for c in (0..width).step_by(L) {
-            let valid = (n_in - c).min(L);
-            let mut acc = [[R::zero(); L]; 4];
-            for (q, acc) in acc.iter_mut().enumerate() {
-                acc[..valid].copy_from_slice(&gw[(k + q) * n_in + c..(k + q) * n_in + c + valid]);
-            }
-            for (s, gy) in gys.chunks_exact(n_out).enumerate() {
-                let (g, x) = (&gy[o..o + 4], lanes(&xp, s * width + c));
-                for (q, acc) in acc.iter_mut().enumerate() {
-                    for l in 0..L {
-                        acc[l] += g[q] * x[l];
-                    }
-                }
-            }
-            for (q, acc) in acc.iter().enumerate() {
-                gw[(k + q) * n_in + c..(k + q) * n_in + c + valid].copy_from_slice(&acc[..valid]);
-            }
-        }
+        weight_gradient_rows::<R, 4>(n_in, n_out, first, k, &xp, gys, gw);
     }
     for k in quads..rows {
-        let o = first + k;
-        for c in (0..width).step_by(L) {
-            let valid = (n_in - c).min(L);
-            let mut acc = [R::zero(); L];
-            acc[..valid].copy_from_slice(&gw[k * n_in + c..k * n_in + c + valid]);
-            for (s, gy) in gys.chunks_exact(n_out).enumerate() {
-                let (g, x) = (gy[o], lanes(&xp, s * width + c));
+        weight_gradient_rows::<R, 1>(n_in, n_out, first, k, &xp, gys, gw);
+    }
+}
+
+/// Rows `k..k + Q` of `gw` (the layer's rows `first + k..`): `L` values of
+/// each held in registers while the samples pass in order (`xp`: the
+/// inputs in rows padded to whole vectors).
+#[inline(always)]
+fn weight_gradient_rows<R: Real, const Q: usize>(n_in: usize, n_out: usize, first: usize, k: usize, xp: &[R], gys: &[R], gw: &mut [R]) {
+    const L: usize = DENSE_BLOCK;
+    let (o, width) = (first + k, n_in.div_ceil(L) * L);
+    for c in (0..width).step_by(L) {
+        let valid = (n_in - c).min(L);
+        let mut acc = [[R::zero(); L]; Q];
+        for (q, acc) in acc.iter_mut().enumerate() {
+            acc[..valid].copy_from_slice(&gw[(k + q) * n_in + c..(k + q) * n_in + c + valid]);
+        }
+        for (s, gy) in gys.chunks_exact(n_out).enumerate() {
+            let (g, x) = (&gy[o..o + Q], lanes(xp, s * width + c));
+            for (q, acc) in acc.iter_mut().enumerate() {
                 for l in 0..L {
-                    acc[l] += g * x[l];
+                    acc[l] += g[q] * x[l];
                 }
             }
-            gw[k * n_in + c..k * n_in + c + valid].copy_from_slice(&acc[..valid]);
+        }
+        for (q, acc) in acc.iter().enumerate() {
+            gw[(k + q) * n_in + c..(k + q) * n_in + c + valid].copy_from_slice(&acc[..valid]);
         }
     }
 }

@@ -626,8 +626,8 @@ impl Net {
 }
 
 /// Samples × parameters from which a network's batch forward pass runs in
-/// two halves on two threads ([`Net::forward_batch`]): below, handing half to a thread (a few
-/// microseconds) costs more than it saves.
+/// two halves on two threads ([`Net::forward_batch`]): below, handing half
+/// to a thread (a few microseconds) costs more than it saves.
 pub const NET_PAR_MIN_WORK: usize = 1 << 17;
 
 impl Operator for Net {
