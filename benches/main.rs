@@ -106,8 +106,64 @@ fn p3(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, p1, p1_step, p2, p3, p4, solver_parts, scene_effects, nn_layers, hig_adam);
+criterion_group!(benches, p1, p1_step, p2, p3, p4, solver_parts, periodic_projection, scene_effects, nn_layers, hig_adam);
 criterion_main!(benches);
+
+/// The projection of a fully periodic box, by FFT against conjugate
+/// gradients to 1e-8 (2D: MIC(0), the periodic 2D solver's
+/// preconditioner; 3D: the aggregation V-cycle), at 64², 128² and 32³
+/// (docs/fluids.md, "Periodic boxes").
+fn periodic_projection(c: &mut Criterion) {
+    use diffsim_solvers::boundary::{Boundary, Side};
+    use diffsim_solvers::mac::fft::FftProjection;
+    use diffsim_solvers::smoke::{self, ProjectScratch, Smoke2d};
+    use diffsim_solvers::smoke3d::{self, PressureSolver3, Smoke3d};
+    let field = |len: usize| -> Vec<f64> { (0..len).map(|k| ((k as f64) * 0.618).fract() - 0.5).collect() };
+    let mut g = c.benchmark_group("periodic_projection");
+    g.sample_size(20);
+    for n in [64, 128] {
+        let cfg = Smoke2d::new(n, n).with_boundary(Boundary::all(Side::Periodic));
+        let x = field(cfg.n_state());
+        let mut y = x.clone();
+        let mut solver = smoke::PressureSolver::general(n, n, cfg.boundary, 1e-8, 5000, None);
+        let mut scratch = ProjectScratch::new(n * n);
+        g.bench_function(BenchmarkId::new("cg_2d", n), |b| {
+            b.iter(|| {
+                y.copy_from_slice(&x);
+                smoke::project(&cfg, &mut y, &mut solver, &mut scratch).unwrap()
+            })
+        });
+        let mut fft = FftProjection::new([n, n]);
+        g.bench_function(BenchmarkId::new("fft_2d", n), |b| {
+            b.iter(|| {
+                y.copy_from_slice(&x);
+                let (_, u, v) = cfg.split_mut(&mut y);
+                fft.project([u, v])
+            })
+        });
+    }
+    let n = 32;
+    let cfg = Smoke3d::new(n, n, n, 1.0).with_boundary(Boundary::all(Side::Periodic));
+    let x = field(cfg.n_state());
+    let mut y = x.clone();
+    let mut solver = PressureSolver3::new(&cfg, 1e-8, 5000, smoke::Preconditioner::Multigrid);
+    let mut scratch = ProjectScratch::new(cfg.n_s());
+    g.bench_function(BenchmarkId::new("cg_3d", n), |b| {
+        b.iter(|| {
+            y.copy_from_slice(&x);
+            smoke3d::project(&cfg, &mut y, &mut solver, &mut scratch).unwrap()
+        })
+    });
+    let mut fft = FftProjection::new([n, n, n]);
+    g.bench_function(BenchmarkId::new("fft_3d", n), |b| {
+        b.iter(|| {
+            y.copy_from_slice(&x);
+            let [_, u, v, w] = cfg.split_mut(&mut y);
+            fft.project([u, v, w])
+        })
+    });
+    g.finish();
+}
 
 /// One multigrid V-cycle and one plain CG matrix product at 64² and 128²,
 /// the costs behind the P2 solve times.

@@ -20,19 +20,19 @@ fn rect(nx: usize, ny: usize, b: Boundary) -> Smoke2d {
 fn boundaries() -> Vec<Boundary> {
     vec![
         Boundary::all(Side::Periodic),
-        Boundary::axes(Side::Periodic, Side::Closed),
-        Boundary { left: Side::Inflow(Profile::Uniform(0.4)), right: Side::Outflow, ..Boundary::CLOSED },
-        Boundary { bottom: Side::Inflow(Profile::Parabolic(0.5)), top: Side::Outflow, ..Boundary::axes(Side::Periodic, Side::Closed) },
-        Boundary { top: Side::Outflow, ..Boundary::CLOSED },
+        Boundary::axes([Side::Periodic, Side::Closed]),
+        Boundary::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(0.4))).with_upper(0, Side::Outflow),
+        Boundary::axes([Side::Periodic, Side::Closed]).with_lower(1, Side::Inflow(Profile::Parabolic(0.5))).with_upper(1, Side::Outflow),
+        Boundary::CLOSED.with_upper(1, Side::Outflow),
     ]
 }
 
 #[test]
 fn invalid_boundaries_are_refused_with_the_reason() {
-    assert!(Boundary::CLOSED.validate().is_ok());
-    let half = Boundary { left: Side::Periodic, ..Boundary::CLOSED };
+    assert!(Boundary::<2>::CLOSED.validate().is_ok());
+    let half = Boundary::<2>::CLOSED.with_lower(0, Side::Periodic);
     assert_eq!(half.validate(), Err(BoundaryError::HalfPeriodic { axis: "x" }));
-    let inflow = Boundary { left: Side::Inflow(Profile::Uniform(1.0)), ..Boundary::CLOSED };
+    let inflow = Boundary::<2>::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(1.0)));
     assert_eq!(inflow.validate(), Err(BoundaryError::InflowWithoutOutflow));
     assert!(inflow.validate().unwrap_err().to_string().contains("outflow"));
     for b in boundaries() {
@@ -44,7 +44,7 @@ fn invalid_boundaries_are_refused_with_the_reason() {
 fn faces_list_each_flux_once() {
     use diffsim_solvers::boundary::{Face, faces};
     let n = 3;
-    let b = Boundary::axes(Side::Periodic, Side::Outflow);
+    let b = Boundary::axes([Side::Periodic, Side::Outflow]);
     let x: Vec<Face> = faces(n, n, &b, 0);
     assert_eq!(x.len(), n * n, "periodic x: N faces per row");
     assert_eq!((x[0].lower, x[0].upper, x[0].projected, x[0].copy), (Some(2), Some(0), true, Some(3)));
@@ -125,7 +125,7 @@ fn a_channel_with_uniform_inflow_carries_it_through_after_one_projection() {
     // only divergence-free field with these boundary values is the uniform
     // one, so one step from rest gives it everywhere.
     let (n, speed) = (16, 0.6);
-    let b = Boundary { left: Side::Inflow(Profile::Uniform(speed)), right: Side::Outflow, ..Boundary::CLOSED };
+    let b = Boundary::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(speed))).with_upper(0, Side::Outflow);
     let cfg = Smoke2d { buoyancy: 0.0, ..rect(n, 6, b) };
     let step = SmokeStep::new(cfg, 1e-12, 2000, Preconditioner::None);
     let y = step.eval(&vec![0.0; cfg.n_state()], &[]);
@@ -150,7 +150,7 @@ fn projection_leaves_no_divergence_under_every_boundary() {
         divergence(&cfg, u, v, &mut d);
         let worst = d.iter().zip(&solid).filter(|(_, s)| !**s).map(|(d, _)| d.abs()).fold(0.0, f64::max);
         assert!(worst < 1e-9, "{b:?}: divergence {worst:e}");
-        if b.periodic_x() {
+        if b.periodic(0) {
             assert!((0..ny).all(|j| u[j * (n + 1)] == u[j * (n + 1) + n]), "periodic copy");
         }
     }
@@ -160,7 +160,7 @@ fn projection_leaves_no_divergence_under_every_boundary() {
 fn smoke_leaves_through_an_outflow_side() {
     // Upwind flux out of the top: the mass drops by exactly what crossed it.
     let n = 6;
-    let cfg = Smoke2d::p2(n).with_boundary(Boundary { top: Side::Outflow, ..Boundary::CLOSED });
+    let cfg = Smoke2d::p2(n).with_boundary(Boundary::CLOSED.with_upper(1, Side::Outflow));
     let mut x = vec![0.0; cfg.n_state()];
     x[..cfg.n_s()].fill(1.0);
     let vs = cfg.n_s() + cfg.n_u();
@@ -199,21 +199,21 @@ fn diffusion_on_a_periodic_box_conserves_mass_and_momentum() {
 #[test]
 fn regions_cut_off_from_the_outflow_are_found() {
     use diffsim_solvers::boundary::{SealedRegion, sealed_region};
-    let b = Boundary { left: Side::Inflow(Profile::Uniform(1.0)), right: Side::Outflow, ..Boundary::CLOSED };
+    let b = Boundary::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(1.0))).with_upper(0, Side::Outflow);
     let (nx, ny) = (6, 4);
     // A wall across the channel at column 2: columns 0-1 are fed and sealed.
     let wall: Vec<bool> = (0..nx * ny).map(|c| c % nx == 2).collect();
-    assert_eq!(sealed_region(nx, ny, &b, &wall), Some(SealedRegion { cells: 8, at: [0, 0] }));
+    assert_eq!(sealed_region([nx, ny], &b, &wall), Some(SealedRegion { cells: 8, at: [0, 0] }));
     // A gap in the wall drains it; a pocket with no inflow is no concern.
     let gap: Vec<bool> = (0..nx * ny).map(|c| c % nx == 2 && c / nx != 3).collect();
-    assert_eq!(sealed_region(nx, ny, &b, &gap), None);
+    assert_eq!(sealed_region([nx, ny], &b, &gap), None);
     let pocket: Vec<bool> = (0..nx * ny).map(|c| c % nx == 4).collect();
-    assert_eq!(sealed_region(nx, ny, &Boundary { left: Side::Closed, ..b }, &pocket), None);
+    assert_eq!(sealed_region([nx, ny], &b.with_lower(0, Side::Closed), &pocket), None);
     // Across a periodic axis the sealed part wraps: inflow at the bottom,
     // a full solid row 1, outflow at the top.
-    let bt = Boundary { bottom: Side::Inflow(Profile::Uniform(0.1)), top: Side::Outflow, ..Boundary::axes(Side::Periodic, Side::Closed) };
+    let bt = Boundary::axes([Side::Periodic, Side::Closed]).with_lower(1, Side::Inflow(Profile::Uniform(0.1))).with_upper(1, Side::Outflow);
     let row: Vec<bool> = (0..nx * ny).map(|c| c / nx == 1).collect();
-    assert_eq!(sealed_region(nx, ny, &bt, &row), Some(SealedRegion { cells: 6, at: [0, 0] }));
+    assert_eq!(sealed_region([nx, ny], &bt, &row), Some(SealedRegion { cells: 6, at: [0, 0] }));
     // The projection of such a box cannot converge: that is why scenes refuse it.
     let cfg = Smoke2d { nx, ny, ..Smoke2d::p2(nx).with_boundary(bt) };
     let op = Project::with_obstacles(cfg, 1e-10, 500, &row);

@@ -9,27 +9,27 @@ use diffsim::fluids::{Diffuse, DiffuseExplicit, DiffuseImplicit};
 use diffsim::fluids3d::{Advect3, AdvectUpwind3, Buoyancy3, Force3};
 use diffsim::op::{Forward, OperatorExt};
 use diffsim::problems::smoke3d::Project3;
-use diffsim_solvers::boundary::{Boundary, Boundary3, BoundaryError, Profile, Side};
+use diffsim_solvers::boundary::{Boundary, BoundaryError, Profile, Side};
 use diffsim_solvers::smoke::{self, Preconditioner, PressureSolver, ProjectScratch, Scheme, Smoke2d};
 use diffsim_solvers::smoke3d::{Smoke3d, Solid3, divergence, for_each_face3, solid_cells};
 
 use crate::p4::{field, state};
 
 /// One boundary of each kind on every axis, and mixtures.
-fn boundaries() -> Vec<Boundary3> {
+fn boundaries() -> Vec<Boundary<3>> {
     vec![
-        Boundary3::all(Side::Periodic),
-        Boundary3 { left: Side::Inflow(Profile::Parabolic(0.4)), right: Side::Outflow, ..Boundary3::axes(Side::Closed, Side::Closed, Side::Periodic) },
-        Boundary3 { front: Side::Inflow(Profile::Uniform(0.3)), top: Side::Outflow, ..Boundary3::axes(Side::Periodic, Side::Closed, Side::Closed) },
-        Boundary3 { back: Side::Outflow, ..Boundary3::all(Side::Outflow) },
+        Boundary::<3>::all(Side::Periodic),
+        Boundary::axes([Side::Closed, Side::Closed, Side::Periodic]).with_lower(0, Side::Inflow(Profile::Parabolic(0.4))).with_upper(0, Side::Outflow),
+        Boundary::axes([Side::Periodic, Side::Closed, Side::Closed]).with_upper(2, Side::Inflow(Profile::Uniform(0.3))).with_upper(1, Side::Outflow),
+        Boundary::<3>::all(Side::Outflow).with_lower(2, Side::Outflow),
     ]
 }
 
 #[test]
 fn invalid_3d_boundaries_are_refused_with_the_reason() {
-    let half = Boundary3 { front: Side::Periodic, ..Boundary3::CLOSED };
+    let half = Boundary::<3>::CLOSED.with_upper(2, Side::Periodic);
     assert_eq!(half.validate(), Err(BoundaryError::HalfPeriodic { axis: "z" }));
-    let inflow = Boundary3 { back: Side::Inflow(Profile::Uniform(1.0)), ..Boundary3::CLOSED };
+    let inflow = Boundary::<3>::CLOSED.with_lower(2, Side::Inflow(Profile::Uniform(1.0)));
     assert_eq!(inflow.validate(), Err(BoundaryError::InflowWithoutOutflow));
     for b in boundaries() {
         assert!(b.validate().is_ok(), "{b:?}");
@@ -38,7 +38,7 @@ fn invalid_3d_boundaries_are_refused_with_the_reason() {
 
 #[test]
 fn faces_of_a_periodic_axis_wrap_and_skip_the_copy() {
-    let cfg = Smoke3d::new(3, 4, 5, 1.0).with_boundary(Boundary3::axes(Side::Closed, Side::Outflow, Side::Periodic));
+    let cfg = Smoke3d::new(3, 4, 5, 1.0).with_boundary(Boundary::axes([Side::Closed, Side::Outflow, Side::Periodic]));
     let mut z = Vec::new();
     for_each_face3(&cfg, 2, |f| z.push(f));
     assert_eq!(z.len(), 3 * 4 * 5, "periodic z: Nz face slabs");
@@ -56,7 +56,7 @@ fn faces_of_a_periodic_axis_wrap_and_skip_the_copy() {
 /// y sides and a periodic z.
 fn twins(nx: usize, ny: usize, nz: usize, b: Boundary) -> (Smoke2d, Smoke3d) {
     let cfg2 = Smoke2d::new(nx, ny).with_boundary(b);
-    let b3 = Boundary3 { left: b.left, right: b.right, bottom: b.bottom, top: b.top, back: Side::Periodic, front: Side::Periodic };
+    let b3 = Boundary { sides: [b.axis(0), b.axis(1), [Side::Periodic; 2]] };
     (cfg2, Smoke3d::new(nx, ny, nz, 0.8).with_boundary(b3))
 }
 
@@ -80,8 +80,8 @@ fn flows_that_do_not_vary_along_a_periodic_z_match_the_2d_solver() {
     // face lists and matrices) against the 3D ones on a z-invariant state.
     let kinds = [
         Boundary::all(Side::Periodic),
-        Boundary { left: Side::Inflow(Profile::Uniform(0.4)), right: Side::Outflow, ..Boundary::CLOSED },
-        Boundary { bottom: Side::Inflow(Profile::Uniform(0.5)), top: Side::Outflow, ..Boundary::axes(Side::Periodic, Side::Closed) },
+        Boundary::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(0.4))).with_upper(0, Side::Outflow),
+        Boundary::axes([Side::Periodic, Side::Closed]).with_lower(1, Side::Inflow(Profile::Uniform(0.5))).with_upper(1, Side::Outflow),
         Boundary::all(Side::Outflow),
     ];
     for b in kinds {
@@ -160,7 +160,7 @@ fn projection_under_every_kind_leaves_no_divergence_and_keeps_the_sides() {
 fn a_uniform_through_flow_is_left_as_it_is_and_periodic_advection_shifts_exactly() {
     // Inflow on the left at 0.5, outflow on the right: u = 0.5 everywhere
     // is divergence-free and the projection keeps it (p = 0).
-    let b = Boundary3 { left: Side::Inflow(Profile::Uniform(0.5)), right: Side::Outflow, ..Boundary3::CLOSED };
+    let b = Boundary::<3>::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(0.5))).with_upper(0, Side::Outflow);
     let cfg = Smoke3d::new(6, 5, 4, 1.0).with_boundary(b);
     let mut x = vec![0.0; cfg.n_state()];
     let start = cfg.n_s();
@@ -170,7 +170,7 @@ fn a_uniform_through_flow_is_left_as_it_is_and_periodic_advection_shifts_exactly
     assert!(worst < 1e-12, "uniform through-flow changed by {worst:e}");
     // Every axis periodic, velocity (1, 0, 0) and a unit step: each step
     // moves every field one cell along x exactly; Nx steps bring it back.
-    let cfg = Smoke3d::new(5, 4, 3, 1.0).with_boundary(Boundary3::all(Side::Periodic));
+    let cfg = Smoke3d::new(5, 4, 3, 1.0).with_boundary(Boundary::<3>::all(Side::Periodic));
     let mut x = field(cfg.n_state(), 5);
     let [ns, nu] = [cfg.n_s(), cfg.n_face(0)];
     x[ns..ns + nu].fill(1.0);
@@ -263,7 +263,7 @@ fn the_aggregation_multigrid_is_galerkin_and_preconditions_any_box_and_sides() {
     // The V-cycle is symmetric and positive, and cuts the iterations of
     // every boundary (and of a closed box whose sides all differ).
     let mut kinds = boundaries();
-    kinds.push(Boundary3::CLOSED);
+    kinds.push(Boundary::<3>::CLOSED);
     let mut counts = Vec::new();
     for b in kinds {
         let dims = [24, 20, 16];
@@ -287,19 +287,19 @@ fn the_aggregation_multigrid_is_galerkin_and_preconditions_any_box_and_sides() {
 
 #[test]
 fn a_region_that_an_inflow_feeds_and_obstacles_seal_is_found() {
-    use diffsim_solvers::boundary::{SealedRegion, sealed_region3};
+    use diffsim_solvers::boundary::{SealedRegion, sealed_region};
     // Inflow on the back, outflow on the front: a wall across z at k = 3
     // seals the first three slabs; a hole in it opens them.
     let cfg = Smoke3d::new(5, 4, 6, 1.0);
-    let b = Boundary3 { back: Side::Inflow(Profile::Uniform(0.5)), front: Side::Outflow, ..Boundary3::CLOSED };
+    let b = Boundary::<3>::CLOSED.with_lower(2, Side::Inflow(Profile::Uniform(0.5))).with_upper(2, Side::Outflow);
     let wall = solid_cells(&cfg, &[Solid3::Box { lower: [-1.0, -1.0, 3.0], upper: [9.0, 9.0, 4.0] }]);
-    assert_eq!(sealed_region3(cfg.dims(), &b, &wall), Some(SealedRegion { cells: 3 * 20, at: [0, 0, 0] }));
+    assert_eq!(sealed_region(cfg.dims(), &b, &wall), Some(SealedRegion { cells: 3 * 20, at: [0, 0, 0] }));
     let mut holed = wall.clone();
     holed[(3 * 4 + 2) * 5 + 2] = false;
-    assert_eq!(sealed_region3(cfg.dims(), &b, &holed), None);
+    assert_eq!(sealed_region(cfg.dims(), &b, &holed), None);
     // A parabolic profile feeds the side's inner cells: still sealed.
-    let bp = Boundary3 { back: Side::Inflow(Profile::Parabolic(0.5)), ..b };
-    assert!(sealed_region3(cfg.dims(), &bp, &wall).is_some());
+    let bp = b.with_lower(2, Side::Inflow(Profile::Parabolic(0.5)));
+    assert!(sealed_region(cfg.dims(), &bp, &wall).is_some());
 }
 
 #[test]

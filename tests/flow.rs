@@ -30,7 +30,7 @@ fn a_channel_reaches_poiseuille_flow_at_second_order() {
             ny: n,
             h: 1.0 / n as f64,
             nu,
-            boundary: Boundary { left: Side::Inflow(Profile::Parabolic(1.0)), right: Side::Outflow, bottom: Side::Closed, top: Side::Closed },
+            boundary: Boundary { sides: [[Side::Inflow(Profile::Parabolic(1.0)), Side::Outflow], [Side::Closed, Side::Closed]] },
             wall_speed: WallSpeed::default(),
             convection: Convection::default(),
         };
@@ -93,7 +93,7 @@ fn the_cavity_converges_at_second_order_towards_ghia() {
 #[test]
 fn bad_flows_are_refused_and_an_unfinished_march_says_so() {
     let mut cfg = Flow2d::cavity(8, 100.0);
-    cfg.boundary = Boundary::axes(Side::Periodic, Side::Closed);
+    cfg.boundary = Boundary::axes([Side::Periodic, Side::Closed]);
     assert_eq!(Stepper::new(cfg, 1e-8).unwrap_err(), FlowError::Periodic);
     let mut cfg = Flow2d::cavity(8, 100.0);
     cfg.nu = 0.0;
@@ -118,8 +118,8 @@ fn bad_flows_are_refused_and_an_unfinished_march_says_so() {
 fn the_direct_pressure_solve_matches_mic0_under_every_boundary() {
     use diffsim_solvers::smoke::{PressureSolver, Smoke2d, obstacle_disc};
     let (nx, ny) = (24, 16);
-    let channel = Boundary { left: Side::Inflow(Profile::Uniform(1.0)), right: Side::Outflow, bottom: Side::Closed, top: Side::Closed };
-    let boundaries = [Boundary::CLOSED, Boundary::axes(Side::Periodic, Side::Closed), Boundary::all(Side::Periodic), channel];
+    let channel = Boundary { sides: [[Side::Inflow(Profile::Uniform(1.0)), Side::Outflow], [Side::Closed, Side::Closed]] };
+    let boundaries = [Boundary::CLOSED, Boundary::axes([Side::Periodic, Side::Closed]), Boundary::all(Side::Periodic), channel];
     for b in boundaries.iter() {
         for with_obstacle in [false, true] {
             let fluid = with_obstacle.then(|| {

@@ -137,7 +137,7 @@ fn the_2d_step_is_identical_for_any_thread_count() {
         let g = p.grad_in(&mut Workspace::new(), Checkpointing::Store).unwrap();
         // The parallel advection is the serial one, value for value, on the
         // closed box and with periodic sides.
-        for boundary in [Boundary::CLOSED, Boundary::axes(Side::Periodic, Side::Closed), Boundary::all(Side::Periodic)] {
+        for boundary in [Boundary::CLOSED, Boundary::axes([Side::Periodic, Side::Closed]), Boundary::all(Side::Periodic)] {
             let cfg = Smoke2d::p2(N).with_boundary(boundary);
             let x = crate::checks::smoke_state(&cfg, 17);
             let (mut serial, mut parallel) = (vec![0.0; x.len()], vec![0.0; x.len()]);

@@ -67,7 +67,7 @@ fn axis(walls_only: bool) -> BoxedStrategy<(Side, Side)> {
 /// A valid boundary (closed or periodic on each axis with `walls_only`).
 fn boundary(walls_only: bool) -> impl Strategy<Value = Boundary> {
     (axis(walls_only), axis(walls_only))
-        .prop_map(|((left, right), (bottom, top))| Boundary { left, right, bottom, top })
+        .prop_map(|((left, right), (bottom, top))| Boundary { sides: [[left, right], [bottom, top]] })
         .prop_filter("a valid boundary", |b| b.validate().is_ok())
 }
 
@@ -85,7 +85,7 @@ fn case(walls_only: bool) -> impl Strategy<Value = Case> {
         // An obstacle that cuts off a region the inflow feeds leaves no
         // divergence-free flow: scenes refuse it (`sealed_region`), and so do
         // the cases.
-        .prop_filter("no region sealed off with an inflow", |c| c.solid.as_ref().is_none_or(|s| sealed_region(c.nx, c.ny, &c.boundary, s).is_none()))
+        .prop_filter("no region sealed off with an inflow", |c| c.solid.as_ref().is_none_or(|s| sealed_region([c.nx, c.ny], &c.boundary, s).is_none()))
 }
 
 /// Fails the case with the operator's report unless all three checks pass.

@@ -17,7 +17,7 @@ fn short_channel() -> Flow2d {
         ny: 41,
         h: 0.01,
         nu: 1e-3,
-        boundary: Boundary { left: Side::Inflow(Profile::Parabolic(0.3)), right: Side::Outflow, bottom: Side::Closed, top: Side::Closed },
+        boundary: Boundary { sides: [[Side::Inflow(Profile::Parabolic(0.3)), Side::Outflow], [Side::Closed, Side::Closed]] },
         wall_speed: WallSpeed::default(),
         convection: Convection::default(),
     }

@@ -19,7 +19,7 @@ use rand::rngs::StdRng;
 use crate::checks::{assert_passes, smoke_state};
 
 fn channel(nx: usize, ny: usize) -> (Smoke2d, Vec<bool>) {
-    let b = Boundary { left: Side::Inflow(Profile::Uniform(0.7)), right: Side::Outflow, ..Boundary::CLOSED };
+    let b = Boundary::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(0.7))).with_upper(0, Side::Outflow);
     let cfg = Smoke2d { boundary: b, ..Smoke2d::new(nx, ny) };
     let solid = obstacle_disc(&cfg, [3.0, 2.6], 1.2).unwrap();
     (cfg, solid)

@@ -235,13 +235,13 @@ pub(super) fn write_images(scene: &Scene, out: &dyn Outputs, tag: &str, x: &[f64
 /// The speed at the cell centres of a 3D MAC velocity, scaled to its
 /// maximum.
 fn relative_speed_3d(cfg: &diffsim_solvers::smoke3d::Smoke3d, x: &[f64]) -> Vec<f64> {
-    use diffsim_solvers::smoke3d::At3;
+    use diffsim_solvers::mac::At;
     let [_, u, v, w] = cfg.split(x);
     let mac = cfg.mac();
     let [nx, ny, _] = cfg.dims();
     let speed: Vec<f64> = (0..cfg.n_s())
         .map(|c| {
-            let [a, b, d] = mac.velocity(At3::Centre, [u, v, w], [c % nx, (c / nx) % ny, c / (nx * ny)]);
+            let [a, b, d] = mac.velocity(At::Centre, [u, v, w], [c % nx, (c / nx) % ny, c / (nx * ny)]);
             (a * a + b * b + d * d).sqrt()
         })
         .collect();

@@ -1,7 +1,7 @@
 //! Boundary conditions of the 2D and 3D box, per side: closed walls,
 //! periodic wrap, inflow with a prescribed velocity profile, and free
-//! outflow. [`Boundary`] holds the four sides of a 2D box, [`Boundary3`]
-//! the six of a 3D one; the rules below act on one axis at a time
+//! outflow. [`Boundary<D>`](Boundary) holds the sides of a box of `D` axes
+//! (four in 2D, six in 3D); the rules below act on one axis at a time
 //! ([`axis_face`], [`validate_axes`]) and are shared by both.
 //!
 //! What each kind means for the MAC grids of [`crate::smoke`] and
@@ -82,17 +82,13 @@ impl Side {
     }
 }
 
-/// The four sides of the box (x to the right, y up).
+/// The sides of a box of `D` axes (2 or 3): `sides[a] = [lower, upper]`
+/// along axis `a`, that is `[left, right]` along x, `[bottom, top]` along y
+/// (up) and `[back, front]` along z (towards the viewer).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Boundary {
-    /// `x = 0`.
-    pub left: Side,
-    /// `x = N`.
-    pub right: Side,
-    /// `y = 0`.
-    pub bottom: Side,
-    /// `y = N`.
-    pub top: Side,
+pub struct Boundary<const D: usize = 2> {
+    /// `[lower, upper]` side of each axis.
+    pub sides: [[Side; 2]; D],
 }
 
 /// A boundary that cannot be simulated.
@@ -120,49 +116,82 @@ impl fmt::Display for BoundaryError {
 
 impl std::error::Error for BoundaryError {}
 
-impl Boundary {
-    /// Closed walls all round (P2).
-    pub const CLOSED: Boundary = Boundary::all(Side::Closed);
+impl<const D: usize> Boundary<D> {
+    /// Closed walls all round (P2, P4).
+    pub const CLOSED: Self = Self::all(Side::Closed);
 
     /// Every side the same kind.
     pub const fn all(side: Side) -> Self {
-        Self { left: side, right: side, bottom: side, top: side }
+        Self { sides: [[side; 2]; D] }
     }
 
-    /// `x` sides `sx`, `y` sides `sy`.
-    pub const fn axes(sx: Side, sy: Side) -> Self {
-        Self { left: sx, right: sx, bottom: sy, top: sy }
+    /// Both sides of each axis `a` of kind `sides[a]`.
+    pub const fn axes(sides: [Side; D]) -> Self {
+        let mut b = Self::all(Side::Closed);
+        let mut a = 0;
+        while a < D {
+            b.sides[a] = [sides[a], sides[a]];
+            a += 1;
+        }
+        b
     }
 
-    /// Whether the x axis wraps.
-    pub fn periodic_x(&self) -> bool {
-        self.left == Side::Periodic
+    /// The same box with the lower side of `axis` of kind `side`.
+    pub const fn with_lower(mut self, axis: usize, side: Side) -> Self {
+        self.sides[axis][0] = side;
+        self
     }
 
-    /// Whether the y axis wraps.
-    pub fn periodic_y(&self) -> bool {
-        self.bottom == Side::Periodic
+    /// The same box with the upper side of `axis` of kind `side`.
+    pub const fn with_upper(mut self, axis: usize, side: Side) -> Self {
+        self.sides[axis][1] = side;
+        self
+    }
+
+    /// The sides `[lower, upper]` of `axis` (0 x, 1 y, 2 z).
+    pub fn axis(&self, axis: usize) -> [Side; 2] {
+        self.sides[axis]
+    }
+
+    /// The lower side of `axis` (left, bottom, back).
+    pub fn lower(&self, axis: usize) -> Side {
+        self.sides[axis][0]
+    }
+
+    /// The upper side of `axis` (right, top, front).
+    pub fn upper(&self, axis: usize) -> Side {
+        self.sides[axis][1]
+    }
+
+    /// Whether `axis` wraps.
+    pub fn periodic(&self, axis: usize) -> bool {
+        self.sides[axis][0] == Side::Periodic
+    }
+
+    /// Which axes wrap.
+    pub fn wraps(&self) -> [bool; D] {
+        self.sides.map(|[lo, _]| lo == Side::Periodic)
     }
 
     /// Whether some side is an outflow (the pressure matrix is then definite).
     pub fn has_outflow(&self) -> bool {
-        self.sides().contains(&Side::Outflow)
+        self.sides.iter().flatten().any(|&s| s == Side::Outflow)
     }
 
     /// Every side [`Side::homogeneous`].
     pub fn homogeneous(&self) -> Self {
-        let h = Side::homogeneous;
-        Self { left: h(self.left), right: h(self.right), bottom: h(self.bottom), top: h(self.top) }
+        Self { sides: self.sides.map(|pair| pair.map(Side::homogeneous)) }
     }
 
-    /// The sides in the order left, right, bottom, top.
-    pub fn sides(&self) -> [Side; 4] {
-        [self.left, self.right, self.bottom, self.top]
-    }
-
-    /// Checks that the sides can be simulated together.
+    /// Checks that the sides can be simulated together ([`validate_axes`]).
     pub fn validate(&self) -> Result<(), BoundaryError> {
-        validate_axes(&[[self.left, self.right], [self.bottom, self.top]])
+        validate_axes(&self.sides)
+    }
+}
+
+impl<const D: usize> Default for Boundary<D> {
+    fn default() -> Self {
+        Self::CLOSED
     }
 }
 
@@ -180,74 +209,6 @@ pub fn validate_axes(axes: &[[Side; 2]]) -> Result<(), BoundaryError> {
         return Err(BoundaryError::InflowWithoutOutflow);
     }
     Ok(())
-}
-
-/// The six sides of a 3D box (x to the right, y up, z towards the viewer).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Boundary3 {
-    /// `x = 0`.
-    pub left: Side,
-    /// `x = Nx`.
-    pub right: Side,
-    /// `y = 0`.
-    pub bottom: Side,
-    /// `y = Ny`.
-    pub top: Side,
-    /// `z = 0`.
-    pub back: Side,
-    /// `z = Nz`.
-    pub front: Side,
-}
-
-impl Boundary3 {
-    /// Closed walls all round (P4).
-    pub const CLOSED: Boundary3 = Boundary3::all(Side::Closed);
-
-    /// Every side the same kind.
-    pub const fn all(side: Side) -> Self {
-        Self::axes(side, side, side)
-    }
-
-    /// `x` sides `sx`, `y` sides `sy`, `z` sides `sz`.
-    pub const fn axes(sx: Side, sy: Side, sz: Side) -> Self {
-        Self { left: sx, right: sx, bottom: sy, top: sy, back: sz, front: sz }
-    }
-
-    /// The sides `[lower, upper]` of `axis` (0 x, 1 y, 2 z).
-    pub fn axis(&self, axis: usize) -> [Side; 2] {
-        match axis {
-            0 => [self.left, self.right],
-            1 => [self.bottom, self.top],
-            _ => [self.back, self.front],
-        }
-    }
-
-    /// Which axes wrap.
-    pub fn wraps(&self) -> [bool; 3] {
-        [0, 1, 2].map(|a| self.axis(a)[0] == Side::Periodic)
-    }
-
-    /// Whether some side is an outflow (the pressure matrix is then definite).
-    pub fn has_outflow(&self) -> bool {
-        (0..3).any(|a| self.axis(a).contains(&Side::Outflow))
-    }
-
-    /// Every side [`Side::homogeneous`].
-    pub fn homogeneous(&self) -> Self {
-        let h = Side::homogeneous;
-        Self { left: h(self.left), right: h(self.right), bottom: h(self.bottom), top: h(self.top), back: h(self.back), front: h(self.front) }
-    }
-
-    /// Checks that the sides can be simulated together ([`validate_axes`]).
-    pub fn validate(&self) -> Result<(), BoundaryError> {
-        validate_axes(&[self.axis(0), self.axis(1), self.axis(2)])
-    }
-}
-
-impl Default for Boundary3 {
-    fn default() -> Self {
-        Self::CLOSED
-    }
 }
 
 /// Face `k` (of `0..=n`) of an axis of `n` cells whose sides are `lo` and
@@ -284,7 +245,7 @@ pub struct AxisFace {
 }
 
 /// A fluid region that an inflow side feeds and no outflow side drains
-/// ([`sealed_region`], [`sealed_region3`]).
+/// ([`sealed_region`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct SealedRegion<const D: usize = 2> {
     /// Its fluid cells.
@@ -295,21 +256,16 @@ pub struct SealedRegion<const D: usize = 2> {
 }
 
 /// The first fluid region (cells joined through faces, across periodic
-/// sides) of an `nx × ny` box with solid cells `solid` (row-major) that
-/// fluid enters through an inflow side and cannot leave, touching no
+/// sides) of a box of `dims` cells with solid cells `solid` (x fastest)
+/// that fluid enters through an inflow side and cannot leave, touching no
 /// outflow side: obstacles have cut it off. No divergence-free velocity
 /// exists there, so a pressure solve cannot converge; `None` when every
 /// fed region drains.
-pub fn sealed_region(nx: usize, ny: usize, b: &Boundary, solid: &[bool]) -> Option<SealedRegion<2>> {
-    sealed_in([nx, ny], [[b.left, b.right], [b.bottom, b.top]], solid)
+pub fn sealed_region<const D: usize>(dims: [usize; D], b: &Boundary<D>, solid: &[bool]) -> Option<SealedRegion<D>> {
+    sealed_in(dims, b.sides, solid)
 }
 
-/// [`sealed_region`] for a 3D box of `dims` cells (`[k][j][i]` flattened).
-pub fn sealed_region3(dims: [usize; 3], b: &Boundary3, solid: &[bool]) -> Option<SealedRegion<3>> {
-    sealed_in(dims, [b.axis(0), b.axis(1), b.axis(2)], solid)
-}
-
-/// [`sealed_region`] in `D` dimensions (x fastest in `solid`).
+/// [`sealed_region`] on the sides `[lower, upper]` of each axis.
 fn sealed_in<const D: usize>(dims: [usize; D], sides: [[Side; 2]; D], solid: &[bool]) -> Option<SealedRegion<D>> {
     let n: usize = dims.iter().product();
     assert_eq!(solid.len(), n, "sealed_region: mask length");
@@ -366,12 +322,6 @@ fn sealed_in<const D: usize>(dims: [usize; D], sides: [[Side; 2]; D], solid: &[b
     None
 }
 
-impl Default for Boundary {
-    fn default() -> Self {
-        Self::CLOSED
-    }
-}
-
 /// The two cells a face separates, `None` outside the box, and whether the
 /// pressure projection changes the face's velocity.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -400,7 +350,7 @@ pub struct Face {
 /// the projection calls this every step.
 #[inline]
 pub fn for_each_face(nx: usize, ny: usize, b: &Boundary, axis: usize, mut visit: impl FnMut(Face)) {
-    let (lo, hi) = if axis == 0 { (b.left, b.right) } else { (b.bottom, b.top) };
+    let [lo, hi] = b.axis(axis);
     // Cells along the axis and across it.
     let (n, m) = if axis == 0 { (nx, ny) } else { (ny, nx) };
     let cell = |along: usize, across: usize| if axis == 0 { across * nx + along } else { along * nx + across };

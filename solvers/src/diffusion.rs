@@ -59,7 +59,7 @@ impl Grid {
     /// The three lattices of a smoke state `[s, u, v]` for `cfg`'s boundary:
     /// cell centres, x-faces, y-faces (a periodic axis's copy faces left out).
     pub fn of_state(cfg: &Smoke2d) -> [Grid; 3] {
-        let (nx, ny, wx, wy) = (cfg.nx, cfg.ny, cfg.boundary.periodic_x(), cfg.boundary.periodic_y());
+        let (nx, ny, wx, wy) = (cfg.nx, cfg.ny, cfg.boundary.periodic(0), cfg.boundary.periodic(1));
         [
             Grid::plane(nx, nx, ny, wx, wy),
             Grid::plane(nx + 1, if wx { nx } else { nx + 1 }, ny, wx, wy),

@@ -25,6 +25,7 @@ pub mod flow;
 pub mod grid;
 pub mod krylov;
 pub mod linalg;
+pub mod mac;
 pub mod multigrid;
 pub mod nn;
 pub mod nonsmooth;

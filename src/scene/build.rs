@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use diffsim_solvers::boundary::{Boundary, Boundary3, Profile, Side};
+use diffsim_solvers::boundary::{Boundary, Profile, Side};
 use diffsim_solvers::burgers::Burgers1d;
 use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d};
 use diffsim_solvers::smoke3d::Smoke3d;
@@ -79,11 +79,8 @@ fn domain(file: &SceneFile, text: &str) -> Result<Domain, SceneError> {
                     return Err(SceneError::key("domain.length", "a box has unit cells; `length` is for 1D domains"));
                 }
                 let boundary = match &d.boundary {
-                    None => Boundary3::CLOSED,
-                    Some(v) => {
-                        let [[left, right], [bottom, top], [back, front]] = <[[Side; 2]; 3]>::try_from(boundary_sides(v, 3)?).expect("three axes");
-                        Boundary3 { left, right, bottom, top, back, front }
-                    }
+                    None => Boundary::<3>::CLOSED,
+                    Some(v) => Boundary { sides: <[[Side; 2]; 3]>::try_from(boundary_sides(v, 3)?).expect("three axes") },
                 };
                 boundary.validate().map_err(|e| SceneError::key("domain.boundary", e.to_string()))?;
                 Ok(Domain::Box3(Smoke3d::new(nx, ny, nz, 1.0).with_boundary(boundary)))
@@ -122,10 +119,7 @@ fn grid_fits(sizes: &[u64], arrays: u64) -> Result<(), SceneError> {
 pub(super) fn domain_boundary(d: &super::spec::DomainSpec) -> Result<Boundary, SceneError> {
     match &d.boundary {
         None => Ok(Boundary::CLOSED),
-        Some(v) => {
-            let [[left, right], [bottom, top]] = <[[Side; 2]; 2]>::try_from(boundary_sides(v, 2)?).expect("two axes");
-            Ok(Boundary { left, right, bottom, top })
-        }
+        Some(v) => Ok(Boundary { sides: <[[Side; 2]; 2]>::try_from(boundary_sides(v, 2)?).expect("two axes") }),
     }
 }
 
@@ -177,10 +171,10 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
         return Err(placed(text, last, SceneError::key("obstacles", "the obstacles cover every cell of the domain: no fluid is left to simulate")));
     }
     if let (Some(all), Some(last)) = (&solid, file.obstacles.last()) {
-        use diffsim_solvers::boundary::{sealed_region, sealed_region3};
+        use diffsim_solvers::boundary::sealed_region;
         let sealed = match &domain {
-            Domain::Box(cfg) => sealed_region(cfg.nx, cfg.ny, &cfg.boundary, all).map(|r| (r.cells, r.at.to_vec())),
-            Domain::Box3(cfg) => sealed_region3(cfg.dims(), &cfg.boundary, all).map(|r| (r.cells, r.at.to_vec())),
+            Domain::Box(cfg) => sealed_region([cfg.nx, cfg.ny], &cfg.boundary, all).map(|r| (r.cells, r.at.to_vec())),
+            Domain::Box3(cfg) => sealed_region(cfg.dims(), &cfg.boundary, all).map(|r| (r.cells, r.at.to_vec())),
             Domain::Line(_) => None,
         };
         if let Some((cells, at)) = sealed {

@@ -254,7 +254,7 @@ pub(super) fn build(file: SceneFile, text: &str) -> Result<SteadyScene, SceneErr
 
     // Newton's start.
     let mut start = flow.rest();
-    if let Side::Inflow(profile) = flow.boundary.left {
+    if let Side::Inflow(profile) = flow.boundary.lower(0) {
         for j in 0..flow.ny {
             let u = profile.at((j as f64 + 0.5) / flow.ny as f64);
             start[j * (flow.nx + 1)..(j + 1) * (flow.nx + 1)].fill(u);

@@ -157,7 +157,7 @@ impl WakeSetup {
     /// steps, solves to 1e-6.
     pub fn standard() -> Self {
         let speed = 1.0;
-        let boundary = Boundary { left: Side::Inflow(Profile::Uniform(speed)), right: Side::Outflow, ..Boundary::CLOSED };
+        let boundary = Boundary::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(speed))).with_upper(0, Side::Outflow);
         Self {
             coarse: Smoke2d { boundary, ..Smoke2d::new(64, 32) },
             factor: 4,
@@ -175,7 +175,7 @@ impl WakeSetup {
     /// The fine box: `factor` times the cells, inflow in fine cells per unit time.
     pub fn fine(&self) -> Smoke2d {
         let f = self.factor;
-        let boundary = Boundary { left: Side::Inflow(Profile::Uniform(self.speed * f as f64)), ..self.coarse.boundary };
+        let boundary = self.coarse.boundary.with_lower(0, Side::Inflow(Profile::Uniform(self.speed * f as f64)));
         Smoke2d { boundary, ..Smoke2d::new(self.coarse.nx * f, self.coarse.ny * f) }
     }
 

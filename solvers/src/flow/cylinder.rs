@@ -46,7 +46,7 @@ pub fn schafer_turek(cells_per_d: usize, u_max: f64) -> (Flow2d, Shape) {
         ny: (4.1 * cells_per_d as f64).round() as usize,
         h,
         nu: 1e-3,
-        boundary: Boundary { left: Side::Inflow(Profile::Parabolic(u_max)), right: Side::Outflow, bottom: Side::Closed, top: Side::Closed },
+        boundary: Boundary { sides: [[Side::Inflow(Profile::Parabolic(u_max)), Side::Outflow], [Side::Closed, Side::Closed]] },
         wall_speed: WallSpeed::default(),
         convection: Convection::Second,
     };

@@ -87,7 +87,7 @@ impl Stream {
                     ny: n,
                     h,
                     nu: 1e-3,
-                    boundary: Boundary { left: Side::Inflow(Profile::Uniform(ubar)), right: Side::Outflow, bottom: Side::Closed, top: Side::Closed },
+                    boundary: Boundary { sides: [[Side::Inflow(Profile::Uniform(ubar)), Side::Outflow], [Side::Closed, Side::Closed]] },
                     wall_speed: WallSpeed { bottom: ubar, top: ubar, ..WallSpeed::default() },
                     convection: Convection::Second,
                 };

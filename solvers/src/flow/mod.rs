@@ -188,7 +188,7 @@ impl Flow2d {
             return Err(FlowError::Grid);
         }
         self.boundary.validate().map_err(FlowError::Boundary)?;
-        if self.boundary.sides().contains(&Side::Periodic) {
+        if self.boundary.sides.iter().flatten().any(|&s| s == Side::Periodic) {
             return Err(FlowError::Periodic);
         }
         Ok(())

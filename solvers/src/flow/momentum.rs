@@ -50,16 +50,16 @@ pub fn fill_pads(cfg: &Flow2d, x: &[f64], pads: &mut Pads) {
         row[nx + 2] = row[nx + 1];
     }
     for i in 0..su {
-        pads.u[i] = tangential_ghost(b.bottom, w.bottom, pads.u[su + i]);
-        pads.u[(ny + 1) * su + i] = tangential_ghost(b.top, w.top, pads.u[ny * su + i]);
+        pads.u[i] = tangential_ghost(b.lower(1), w.bottom, pads.u[su + i]);
+        pads.u[(ny + 1) * su + i] = tangential_ghost(b.upper(1), w.top, pads.u[ny * su + i]);
     }
     // v: padded row J = j + 1, column I = i + 1, width nx + 2.
     let sv = nx + 2;
     for j in 0..=ny {
         let row = &mut pads.v[(j + 1) * sv..(j + 2) * sv];
         row[1..nx + 1].copy_from_slice(&v[j * nx..(j + 1) * nx]);
-        row[0] = tangential_ghost(b.left, w.left, row[1]);
-        row[nx + 1] = tangential_ghost(b.right, w.right, row[nx]);
+        row[0] = tangential_ghost(b.lower(0), w.left, row[1]);
+        row[nx + 1] = tangential_ghost(b.upper(0), w.right, row[nx]);
     }
     for i in 0..sv {
         pads.v[i] = pads.v[sv + i];
@@ -93,7 +93,7 @@ pub fn momentum(cfg: &Flow2d, x: &[f64], pads: &mut Pads, out: &mut [f64]) {
     let (pu, pv) = (&pads.u, &pads.v);
     let (su, sv) = (nx + 3, nx + 2);
     // u at x-face (i, j): padded U(i, j) = pu[(j+1)·su + i+1], V(i, j) = pv[(j+1)·sv + i+1].
-    let faces = advanced_faces(b.left, b.right, nx);
+    let faces = advanced_faces(b.lower(0), b.upper(0), nx);
     // Fourth order: four-point interpolation wherever its points lie in
     // the padded arrays (two-point averages next to the sides).
     let high = cfg.convection == Convection::Fourth;
@@ -131,7 +131,7 @@ pub fn momentum(cfg: &Flow2d, x: &[f64], pads: &mut Pads, out: &mut [f64]) {
         }
     }
     // v at y-face (i, j).
-    for j in advanced_faces(b.bottom, b.top, ny) {
+    for j in advanced_faces(b.lower(1), b.upper(1), ny) {
         let (r, rd, rn) = ((j + 1) * sv, j * sv, (j + 2) * sv);
         let (ur, ud) = ((j + 1) * su, j * su);
         for i in 0..nx {

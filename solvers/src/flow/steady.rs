@@ -152,7 +152,7 @@ impl SteadyFlow {
         let (nx, ny) = (cfg.nx, cfg.ny);
         let n_u = cfg.n_u();
         let b = cfg.boundary;
-        let (fu, fv) = (advanced_faces(b.left, b.right, nx), advanced_faces(b.bottom, b.top, ny));
+        let (fu, fv) = (advanced_faces(b.lower(0), b.upper(0), nx), advanced_faces(b.lower(1), b.upper(1), ny));
         let rows: Vec<Row> = (0..cfg.n_vel())
             .map(|k| {
                 let advanced = if k < n_u { fu.contains(&(k % (nx + 1))) } else { fv.contains(&((k - n_u) / nx)) };
@@ -172,10 +172,10 @@ impl SteadyFlow {
             .map(|c| {
                 let (i, j) = (c % nx, c / nx);
                 let faces = [
-                    (j * (nx + 1) + i, i > 0 || side(b.left), cut.aperture_u[j * (nx + 1) + i]),
-                    (j * (nx + 1) + i + 1, i + 1 < nx || side(b.right), cut.aperture_u[j * (nx + 1) + i + 1]),
-                    (n_u + j * nx + i, j > 0 || side(b.bottom), cut.aperture_v[j * nx + i]),
-                    (n_u + (j + 1) * nx + i, j + 1 < ny || side(b.top), cut.aperture_v[(j + 1) * nx + i]),
+                    (j * (nx + 1) + i, i > 0 || side(b.lower(0)), cut.aperture_u[j * (nx + 1) + i]),
+                    (j * (nx + 1) + i + 1, i + 1 < nx || side(b.upper(0)), cut.aperture_u[j * (nx + 1) + i + 1]),
+                    (n_u + j * nx + i, j > 0 || side(b.lower(1)), cut.aperture_v[j * nx + i]),
+                    (n_u + (j + 1) * nx + i, j + 1 < ny || side(b.upper(1)), cut.aperture_v[(j + 1) * nx + i]),
                 ];
                 faces.iter().any(|&(f, moved, a)| moved && a > 0.0 && cut.fluid[f] > 0.0)
             })

@@ -18,7 +18,7 @@
 //! mirror each other, so the V-cycle is a symmetric positive definite map,
 //! as conjugate gradients needs.
 
-use crate::boundary::{Boundary3, Side};
+use crate::boundary::{Boundary, Side};
 use crate::par::{SUM_PIECE, for_pieces, sum_pieces};
 
 /// Jacobi damping for the seven-point stencil.
@@ -47,7 +47,7 @@ pub enum Across {
 /// box of `dims` cells with sides `b`: the rule of the 3D pressure matrix,
 /// written once for the matrices and the preconditioners.
 #[inline(always)]
-pub fn across(dims: [usize; 3], b: &Boundary3, c: usize, q: [usize; 3], axis: usize) -> [Across; 2] {
+pub fn across(dims: [usize; 3], b: &Boundary<3>, c: usize, q: [usize; 3], axis: usize) -> [Across; 2] {
     let stride = [1, dims[0], dims[0] * dims[1]][axis];
     let span = (dims[axis] - 1) * stride;
     let [lo, hi] = b.axis(axis);
@@ -66,7 +66,7 @@ pub fn across(dims: [usize; 3], b: &Boundary3, c: usize, q: [usize; 3], axis: us
 /// p_m)` over the neighbours [`across`] gives (`p_m = 0` for a ghost,
 /// nothing at a wall). Overwrites `out`; slab by slab, in parallel on large
 /// boxes.
-pub fn apply_weighted3(dims: [usize; 3], b: &Boundary3, w: [f64; 3], p: &[f64], out: &mut [f64]) {
+pub fn apply_weighted3(dims: [usize; 3], b: &Boundary<3>, w: [f64; 3], p: &[f64], out: &mut [f64]) {
     apply_stencil3(dims, b, w, None, p, out);
 }
 
@@ -75,7 +75,7 @@ pub fn apply_weighted3(dims: [usize; 3], b: &Boundary3, w: [f64; 3], p: &[f64], 
 /// + (1 − f_c)·p_c` (a ghost counts `p_c`), which couples fluid cells only
 /// and keeps solid rows as the identity. The one loop behind both 3D
 /// pressure matrices (this one's and [`crate::smoke3d::apply_general_matrix3`]).
-pub fn apply_stencil3(dims: [usize; 3], b: &Boundary3, w: [f64; 3], fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
+pub fn apply_stencil3(dims: [usize; 3], b: &Boundary<3>, w: [f64; 3], fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
     let [nx, ny, nz] = dims;
     let slab = nx * ny;
     let f = |c: usize| fluid.map_or(1.0, |f| f[c]);
@@ -116,7 +116,7 @@ struct Level {
 }
 
 impl Level {
-    fn new(dims: [usize; 3], b: &Boundary3, w: [f64; 3]) -> Self {
+    fn new(dims: [usize; 3], b: &Boundary<3>, w: [f64; 3]) -> Self {
         let n = dims.iter().product();
         let [nx, ny, _] = dims;
         let omega_inv_diag = (0..n)
@@ -135,7 +135,7 @@ impl Level {
     }
 
     /// `e = ω·D⁻¹·r`, then `sweeps − 1` more sweeps.
-    fn smooth_from_zero(&mut self, b: &Boundary3, sweeps: usize) {
+    fn smooth_from_zero(&mut self, b: &Boundary<3>, sweeps: usize) {
         for ((e, &r), &d) in self.e.iter_mut().zip(&self.r).zip(&self.omega_inv_diag) {
             *e = d * r;
         }
@@ -145,7 +145,7 @@ impl Level {
     }
 
     /// One damped-Jacobi sweep `e ← e + ω·D⁻¹·(r − A·e)`.
-    fn sweep(&mut self, b: &Boundary3) {
+    fn sweep(&mut self, b: &Boundary<3>) {
         self.residual(b);
         for ((e, &t), &d) in self.e.iter_mut().zip(&self.t).zip(&self.omega_inv_diag) {
             *e += d * t;
@@ -153,7 +153,7 @@ impl Level {
     }
 
     /// `t = r − A·e`.
-    fn residual(&mut self, b: &Boundary3) {
+    fn residual(&mut self, b: &Boundary<3>) {
         apply_weighted3(self.dims, b, self.w, &self.e, &mut self.t);
         for (t, &r) in self.t.iter_mut().zip(&self.r) {
             *t = r - *t;
@@ -173,7 +173,7 @@ impl Level {
 /// The aggregation hierarchy of a box and its sides, with work buffers.
 #[derive(Clone, Debug)]
 pub struct AggregateMultigrid {
-    boundary: Boundary3,
+    boundary: Boundary<3>,
     levels: Vec<Level>,
     /// The coarse cell of each fine cell, per level but the coarsest.
     parents: Vec<Vec<u32>>,
@@ -182,7 +182,7 @@ pub struct AggregateMultigrid {
 impl AggregateMultigrid {
     /// The hierarchy for a box of `dims` cells (each at least 2) with sides
     /// `boundary`: levels until no axis can be halved.
-    pub fn new(dims: [usize; 3], boundary: Boundary3) -> Self {
+    pub fn new(dims: [usize; 3], boundary: Boundary<3>) -> Self {
         let mut levels = vec![Level::new(dims, &boundary, [1.0; 3])];
         let mut parents = Vec::new();
         loop {

@@ -1,8 +1,10 @@
 //! Advection of the smoke and the velocity: semi-Lagrangian, MacCormack
 //! (with or without limiter) and upwind, and the adjoint of P2's
-//! semi-Lagrangian step with buoyancy.
+//! semi-Lagrangian step with buoyancy. The traces are [`crate::mac`]'s,
+//! shared with 3D.
 
 use super::*;
+use crate::mac::advect::{LimitedField, advect_field, trace, trace_adjoint, trace_parallel, traced};
 
 /// Advection scheme.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -17,82 +19,6 @@ pub enum Scheme {
         /// Clamp to the local range.
         limiter: bool,
     },
-}
-
-/// Points of a lattice traced along the velocity `(u, v)`: `out[l·stride + k]
-/// = f(p − sdt·vel)` for `k < kx`, `l < ly`, `p` the point of sample
-/// `(k, l)` of the lattice `at` and `vel` the velocity there. (The velocity
-/// is looked up by an enum, not a closure: Enzyme cannot type a closure's
-/// returned pair when the closure is not inlined.)
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn trace<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, uv: (&[f64], &[f64]), f: &[f64], sdt: f64, out: &mut [f64]) {
-    let (lat, kx, ly) = mac.lattice(at);
-    for l in 0..ly {
-        for k in 0..kx {
-            out[l * lat.stride + k] = traced(mac, at, lat, uv, f, sdt, k, l);
-        }
-    }
-}
-
-/// [`trace`] with blocks of rows split over threads (the same values). The
-/// serial loop stays as it is: Enzyme differentiates it.
-fn trace_parallel<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, uv: (&[f64], &[f64]), f: &[f64], sdt: f64, out: &mut [f64]) {
-    let (lat, kx, ly) = mac.lattice(at);
-    let rows = crate::par::rows_per_piece(lat.stride);
-    crate::par::for_pieces(out, rows * lat.stride, |b, o| {
-        let l0 = b * rows;
-        for l in l0..(l0 + o.len() / lat.stride).min(ly) {
-            for k in 0..kx {
-                o[(l - l0) * lat.stride + k] = traced(mac, at, lat, uv, f, sdt, k, l);
-            }
-        }
-    });
-}
-
-/// The value traced back to sample `(k, l)` of the lattice `at`.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn traced<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, lat: Lattice, (u, v): (&[f64], &[f64]), f: &[f64], sdt: f64, k: usize, l: usize) -> f64 {
-    let (a, b) = mac.velocity(at, u, v, k, l);
-    sample::<WX, WY>(f, lat, k as f64 + lat.ox - sdt * a, l as f64 + lat.oy - sdt * b)
-}
-
-/// One field on the lattice `at` advected by `scheme`; `hat` and `tilde`
-/// are scratch of `f`'s length (MacCormack only).
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn advect_field<const WX: bool, const WY: bool>(
-    mac: Mac<WX, WY>,
-    at: At,
-    scheme: Scheme,
-    dt: f64,
-    uv: (&[f64], &[f64]),
-    f: &[f64],
-    out: &mut [f64],
-    hat: &mut [f64],
-    tilde: &mut [f64],
-) {
-    match scheme {
-        Scheme::SemiLagrangian => trace(mac, at, uv, f, dt, out),
-        Scheme::MacCormack { limiter } => {
-            trace(mac, at, uv, f, dt, hat);
-            trace(mac, at, uv, hat, -dt, tilde);
-            let (lat, kx, ly) = mac.lattice(at);
-            for l in 0..ly {
-                for k in 0..kx {
-                    let c = l * lat.stride + k;
-                    let mut val = hat[c] + 0.5 * (f[c] - tilde[c]);
-                    if limiter {
-                        let (a, b) = mac.velocity(at, uv.0, uv.1, k, l);
-                        let (lo, hi) = sample_range::<WX, WY>(f, lat, k as f64 + lat.ox - dt * a, l as f64 + lat.oy - dt * b);
-                        val = val.clamp(lo, hi);
-                    }
-                    out[c] = val;
-                }
-            }
-        }
-    }
 }
 
 /// Advection over a time step `dt` of the smoke (if `smoke`) and of the
@@ -117,17 +43,9 @@ pub fn advect(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, velocity: boo
 
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn advect_on<const WX: bool, const WY: bool>(
-    mac: Mac<WX, WY>,
-    scheme: Scheme,
-    dt: f64,
-    smoke: bool,
-    velocity: bool,
-    x: &[f64],
-    y: &mut [f64],
-    scratch: &mut [f64],
-) {
-    let (ns, nu) = (mac.nx * mac.ny, mac.ny * (mac.nx + 1));
+fn advect_on<W: Wraps<2>>(mac: Mac<2, W>, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+    let [nx, ny] = mac.n;
+    let (ns, nu) = (nx * ny, ny * (nx + 1));
     let (s, rest) = x.split_at(ns);
     let (u, v) = rest.split_at(nu);
     let (s2, rest) = y.split_at_mut(ns);
@@ -138,13 +56,13 @@ fn advect_on<const WX: bool, const WY: bool>(
     let (hat, tilde) = scratch.split_at_mut(half);
     let (ks, ku, kv) = (ns.min(half), nu.min(half), v.len().min(half));
     if smoke {
-        advect_field(mac, At::Centre, scheme, dt, (u, v), s, s2, &mut hat[..ks], &mut tilde[..ks]);
+        advect_field(mac, At::Centre, scheme, dt, [u, v], s, s2, &mut hat[..ks], &mut tilde[..ks]);
     } else {
         copy(s, s2);
     }
     if velocity {
-        advect_field(mac, At::UFace, scheme, dt, (u, v), u, u2, &mut hat[..ku], &mut tilde[..ku]);
-        advect_field(mac, At::VFace, scheme, dt, (u, v), v, v2, &mut hat[..kv], &mut tilde[..kv]);
+        advect_field(mac, At::Face(0), scheme, dt, [u, v], u, u2, &mut hat[..ku], &mut tilde[..ku]);
+        advect_field(mac, At::Face(1), scheme, dt, [u, v], v, v2, &mut hat[..kv], &mut tilde[..kv]);
     } else {
         copy(u, u2);
         copy(v, v2);
@@ -164,21 +82,22 @@ fn advect_on<const WX: bool, const WY: bool>(
 pub fn advect_along(cfg: &Smoke2d, dt: f64, x: &[f64], d: &[f64], out: &mut [f64]) {
     let n = cfg.n_state();
     assert!(cfg.nx.min(cfg.ny) >= 2 && x.len() == n && d.len() == n && out.len() == n, "smoke: state lengths");
-    with_mac!(cfg, mac => advect_along_on(mac, dt, x, d, out));
+    let (_, u, v) = cfg.split(x);
+    let (ds, du, dv) = cfg.split(d);
+    let (os, ou, ov) = cfg.split_mut(out);
+    with_mac!(cfg, mac => {
+        let all = 0..cfg.ny;
+        trace(mac, At::Centre, [u, v], ds, dt, all.clone(), os);
+        trace(mac, At::Face(0), [u, v], du, dt, all.clone(), ou);
+        trace(mac, At::Face(1), [u, v], dv, dt, all, ov);
+    });
     let (_, u2, v2) = cfg.split_mut(out);
     enforce_boundary_linear(cfg, u2, v2);
 }
 
-fn advect_along_on<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, dt: f64, x: &[f64], d: &[f64], out: &mut [f64]) {
-    let (ns, nu) = (mac.nx * mac.ny, mac.ny * (mac.nx + 1));
-    let (u, v) = x[ns..].split_at(nu);
-    let (ds, rest) = d.split_at(ns);
-    let (du, dv) = rest.split_at(nu);
-    let (os, rest) = out.split_at_mut(ns);
-    let (ou, ov) = rest.split_at_mut(nu);
-    trace(mac, At::Centre, (u, v), ds, dt, os);
-    trace(mac, At::UFace, (u, v), du, dt, ou);
-    trace(mac, At::VFace, (u, v), dv, dt, ov);
+/// The lattices advected: the centres with `smoke`, the faces with `velocity`.
+fn lattices(smoke: bool, velocity: bool) -> Vec<At> {
+    [(smoke, At::Centre), (velocity, At::Face(0)), (velocity, At::Face(1))].into_iter().filter(|p| p.0).map(|p| p.1).collect()
 }
 
 /// How far `x` may move along `d` before [`advect`] meets a kink: bilinear
@@ -192,44 +111,22 @@ fn advect_along_on<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, dt: f64, x:
 pub fn advect_radius(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
     let (_, u, v) = cfg.split(x);
     let (_, du, dv) = cfg.split(d);
-    with_mac!(cfg, mac => {
-        let mut r = f64::INFINITY;
-        let steps: &[f64] = match scheme {
-            Scheme::SemiLagrangian => &[dt],
-            Scheme::MacCormack { .. } => &[dt, -dt],
-        };
-        let lattices = [(smoke, At::Centre), (velocity, At::UFace), (velocity, At::VFace)];
-        for &(on, at) in lattices.iter() {
-            if !on {
-                continue;
-            }
-            let (_, kx, ly) = mac.lattice(at);
-            for l in 0..ly {
-                for k in 0..kx {
-                    if set_by_boundary(cfg, at, k, l) {
-                        continue;
-                    }
-                    let (a, b) = mac.velocity(at, u, v, k, l);
-                    let (da, db) = mac.velocity(at, du, dv, k, l);
-                    for &sdt in steps {
-                        r = r.min(lattice_gap(k as f64 - sdt * a, sdt * da)).min(lattice_gap(l as f64 - sdt * b, sdt * db));
-                    }
-                }
-            }
-        }
-        r
-    })
+    let steps: &[f64] = match scheme {
+        Scheme::SemiLagrangian => &[dt],
+        Scheme::MacCormack { .. } => &[dt, -dt],
+    };
+    crate::mac::advect::advect_radius(cfg.mac(), &lattices(smoke, velocity), steps, [u, v], [du, dv], |at, q| set_by_boundary(cfg, at, q))
 }
 
-/// Whether sample `(k, l)` of the lattice `at` is a face on a closed or
-/// inflow side: the boundary conditions set it after the trace, so where
-/// its trace lands does not matter (no kink of the step).
+/// Whether point `q` of the lattice `at` is a face on a closed or inflow
+/// side: the boundary conditions set it after the trace, so where its trace
+/// lands does not matter (no kink of the step).
 #[inline(always)]
-fn set_by_boundary(cfg: &Smoke2d, at: At, k: usize, l: usize) -> bool {
+fn set_by_boundary(cfg: &Smoke2d, at: At, [k, l]: [usize; 2]) -> bool {
     let b = &cfg.boundary;
     match at {
-        At::UFace => (k == 0 && b.left.sets_faces()) || (k == cfg.nx && b.right.sets_faces()),
-        At::VFace => (l == 0 && b.bottom.sets_faces()) || (l == cfg.ny && b.top.sets_faces()),
+        At::Face(0) => (k == 0 && b.lower(0).sets_faces()) || (k == cfg.nx && b.upper(0).sets_faces()),
+        At::Face(_) => (l == 0 && b.lower(1).sets_faces()) || (l == cfg.ny && b.upper(1).sets_faces()),
         At::Centre => false,
     }
 }
@@ -248,77 +145,16 @@ pub fn limiter_radius(cfg: &Smoke2d, dt: f64, smoke: bool, velocity: bool, x: &[
     }
     let eps = 1e-7 * (1.0 + x.iter().fold(0.0f64, |m, v| m.max(v.abs()))) / dmax;
     let xe: Vec<f64> = x.iter().zip(d).map(|(a, b)| a + eps * b).collect();
-    with_mac!(cfg, mac => limiter_on(cfg, mac, dt, smoke, velocity, [cfg.split(x), cfg.split(d), cfg.split(&xe)], eps))
-}
-
-type Fields<'a> = (&'a [f64], &'a [f64], &'a [f64]);
-
-/// [`limiter_radius`] on one MAC grid: `[x, d, x + eps·d]` split.
-#[allow(clippy::too_many_arguments)]
-fn limiter_on<const WX: bool, const WY: bool>(
-    cfg: &Smoke2d,
-    mac: Mac<WX, WY>,
-    dt: f64,
-    smoke: bool,
-    velocity: bool,
-    [x, d, xe]: [Fields<'_>; 3],
-    eps: f64,
-) -> f64 {
-    let mut r = f64::INFINITY;
-    // (One lattice at a time: the fields and their tangents by match, not a table.)
-    for at in [At::Centre, At::UFace, At::VFace] {
-        let (f, df, fe) = match at {
-            At::Centre if smoke => (x.0, d.0, xe.0),
-            At::UFace if velocity => (x.1, d.1, xe.1),
-            At::VFace if velocity => (x.2, d.2, xe.2),
-            _ => continue,
-        };
-        let (lat, kx, ly) = mac.lattice(at);
-        let val = unclamped(mac, at, dt, (x.1, x.2), f);
-        let vale = unclamped(mac, at, dt, (xe.1, xe.2), fe);
-        for l in 0..ly {
-            for k in 0..kx {
-                if set_by_boundary(cfg, at, k, l) {
-                    continue;
-                }
-                let c = l * lat.stride + k;
-                let (a, b) = mac.velocity(at, x.1, x.2, k, l);
-                let (idx, _, _) = corners::<WX, WY>(lat, k as f64 + lat.ox - dt * a, l as f64 + lat.oy - dt * b);
-                let rate = (vale[c] - val[c]) / eps;
-                // The bounds: the smallest and largest sample, and the runner-up of each.
-                let mut order = idx;
-                order.sort_by(|&i, &j| f[i].total_cmp(&f[j]));
-                let (lo, lo2, hi2, hi) = (order[0], order[1], order[2], order[3]);
-                r = r
-                    .min(crossing(val[c] - f[lo], rate - df[lo]))
-                    .min(crossing(f[hi] - val[c], df[hi] - rate))
-                    .min(crossing(f[lo2] - f[lo], df[lo2] - df[lo]))
-                    .min(crossing(f[hi] - f[hi2], df[hi] - df[hi2]));
-            }
-        }
+    let (fx, fd, fe) = (cfg.split(x), cfg.split(d), cfg.split(&xe));
+    let mut fields = Vec::new();
+    if smoke {
+        fields.push(LimitedField { at: At::Centre, f: fx.0, df: fd.0, fe: fe.0 });
     }
-    r
-}
-
-/// When a gap closing at `speed` reaches zero (∞ when it opens or stays;
-/// 0 when it is closed and about to open).
-pub(crate) fn crossing(gap: f64, speed: f64) -> f64 {
-    if gap == 0.0 {
-        if speed == 0.0 { f64::INFINITY } else { 0.0 }
-    } else if gap * speed < 0.0 {
-        gap.abs() / speed.abs()
-    } else {
-        f64::INFINITY
+    if velocity {
+        fields.push(LimitedField { at: At::Face(0), f: fx.1, df: fd.1, fe: fe.1 });
+        fields.push(LimitedField { at: At::Face(1), f: fx.2, df: fd.2, fe: fe.2 });
     }
-}
-
-/// MacCormack's value before the limiter at every point of the lattice `at`.
-#[inline(always)]
-fn unclamped<const WX: bool, const WY: bool>(mac: Mac<WX, WY>, at: At, dt: f64, uv: (&[f64], &[f64]), f: &[f64]) -> Vec<f64> {
-    let (mut hat, mut tilde) = (vec![0.0; f.len()], vec![0.0; f.len()]);
-    trace(mac, at, uv, f, dt, &mut hat);
-    trace(mac, at, uv, &hat, -dt, &mut tilde);
-    hat.iter().zip(f).zip(&tilde).map(|((h, f), t)| h + 0.5 * (f - t)).collect()
+    crate::mac::advect::limiter_radius(cfg.mac(), &fields, dt, [[fx.1, fx.2], [fe.1, fe.2]], eps, |at, q| set_by_boundary(cfg, at, q))
 }
 
 /// Scratch [`advect()`] needs: for MacCormack two fields of the largest
@@ -344,19 +180,6 @@ pub fn advect_buoyancy(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
     // own periodic copies, so the boundary conditions of `advect` still hold.
     let (s2, _, v2) = cfg.split_mut(y);
     add_buoyancy(cfg, cfg.buoyancy, s2, v2);
-}
-
-/// Rows `rows` of the lattice `at` traced back over a unit step into `out`,
-/// whose first row is row `j0`.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn trace_rows(mac: Mac<false, false>, at: At, uv: (&[f64], &[f64]), f: &[f64], rows: std::ops::Range<usize>, j0: usize, out: &mut [f64]) {
-    let (lat, kx, _) = mac.lattice(at);
-    for l in rows {
-        for k in 0..kx {
-            out[(l - j0) * lat.stride + k] = traced(mac, at, lat, uv, f, 1.0, k, l);
-        }
-    }
 }
 
 /// Lengths of rows `js` of `[s, u, v]` in the closed box (P2): `js.len()`
@@ -392,18 +215,16 @@ pub fn advect_buoyancy_rows(cfg: &Smoke2d, x: &[f64], js: std::ops::Range<usize>
         "smoke: rows of the closed box's step"
     );
     assert!(js.start < js.end && js.end <= ny, "smoke: rows {js:?} of {ny}");
-    let mac = Mac::<false, false> { nx: n, ny };
+    let mac = Mac::bounded([n, ny]);
     let (s, u, v) = cfg.split(x);
     let (s2, rest) = y.split_at_mut(lens[0]);
     let (u2, v2) = rest.split_at_mut(lens[1]);
-    let uv = (u, v);
     let j0 = js.start;
-    let v_end = js.end + (js.end == ny) as usize;
     // One call per field (a loop over an array of (lattice, slice) pairs
     // trips Enzyme, docs/pitfalls.md).
-    trace_rows(mac, At::Centre, uv, s, j0..js.end, j0, s2);
-    trace_rows(mac, At::UFace, uv, u, j0..js.end, j0, u2);
-    trace_rows(mac, At::VFace, uv, v, j0..v_end, j0, v2);
+    trace(mac, At::Centre, [u, v], s, 1.0, js.clone(), s2);
+    trace(mac, At::Face(0), [u, v], u, 1.0, js.clone(), u2);
+    trace(mac, At::Face(1), [u, v], v, 1.0, js.clone(), v2);
     // The closed walls (indexed stores: a fill is a memset Enzyme cannot type).
     for r in 0..js.len() {
         u2[r * (n + 1)] = 0.0;
@@ -418,10 +239,10 @@ pub fn advect_buoyancy_rows(cfg: &Smoke2d, x: &[f64], js: std::ops::Range<usize>
         }
     }
     // Buoyancy on the interior y-faces of the range.
-    let (centre, _, _) = mac.lattice(At::Centre);
+    let centre = mac.lattice(At::Centre);
     for l in j0.max(1)..js.end {
         for i in 0..n {
-            let below = if l > j0 { s2[(l - 1 - j0) * n + i] } else { traced(mac, At::Centre, centre, uv, s, 1.0, i, l - 1) };
+            let below = if l > j0 { s2[(l - 1 - j0) * n + i] } else { traced(mac, At::Centre, &centre, [u, v], s, 1.0, [i, l - 1]) };
             v2[(l - j0) * n + i] += cfg.buoyancy * 0.5 * (below + s2[(l - j0) * n + i]);
         }
     }
@@ -438,9 +259,9 @@ pub fn advect_buoyancy_parallel(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
     with_mac!(cfg, mac => {
         let (s, u, v) = cfg.split(x);
         let (s2, u2, v2) = cfg.split_mut(y);
-        trace_parallel(mac, At::Centre, (u, v), s, 1.0, s2);
-        trace_parallel(mac, At::UFace, (u, v), u, 1.0, u2);
-        trace_parallel(mac, At::VFace, (u, v), v, 1.0, v2);
+        trace_parallel(mac, At::Centre, [u, v], s, 1.0, s2);
+        trace_parallel(mac, At::Face(0), [u, v], u, 1.0, u2);
+        trace_parallel(mac, At::Face(1), [u, v], v, 1.0, v2);
     });
     let (_, u2, v2) = cfg.split_mut(y);
     enforce_boundary(cfg, u2, v2);
@@ -458,7 +279,7 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke2d, x: &[f64], gy: &mut [f64], gx: &mu
     let (gs2, gu2, gv2) = cfg.split_mut(gy);
     let (gs, gu, gv) = cfg.split_mut(gx);
     // Buoyancy (its own periodic copy came after its addition).
-    if cfg.boundary.periodic_y() {
+    if cfg.boundary.periodic(1) {
         for i in 0..n {
             gv2[i] += gv2[ny * n + i];
             gv2[ny * n + i] = 0.0;
@@ -475,46 +296,13 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke2d, x: &[f64], gy: &mut [f64], gx: &mu
         }
     }
     enforce_boundary_adjoint(cfg, gu2, gv2);
-    with_mac!(cfg, mac => semi_lagrangian_adjoint(mac, s, u, v, gs2, gu2, gv2, gs, gu, gv));
-}
-
-/// Adjoint of the semi-Lagrangian advection of smoke and velocity (unit
-/// time step): adds `Jᵀ·g₂` into `(gs, gu, gv)`.
-#[allow(clippy::too_many_arguments)]
-fn semi_lagrangian_adjoint<const WX: bool, const WY: bool>(
-    mac: Mac<WX, WY>,
-    s: &[f64],
-    u: &[f64],
-    v: &[f64],
-    gs2: &[f64],
-    gu2: &[f64],
-    gv2: &[f64],
-    gs: &mut [f64],
-    gu: &mut [f64],
-    gv: &mut [f64],
-) {
-    let (n, ny) = (mac.nx, mac.ny);
-    for j in 0..mac.nfy() {
-        for i in 0..n {
-            let (ub, vv) = mac.at_v(u, v, i, j);
-            let (dpx, dpy) = sample_adjoint::<WX, WY>(v, gv, mac.v(), i as f64 + 0.5 - ub, j as f64 - vv, gv2[j * n + i]);
-            mac.at_v_adjoint(gu, gv, i, j, (-dpx, -dpy));
-        }
-    }
-    for j in 0..ny {
-        for i in 0..mac.nfx() {
-            let (uu, vb) = mac.at_u(u, v, i, j);
-            let (dpx, dpy) = sample_adjoint::<WX, WY>(u, gu, mac.u(), i as f64 - uu, j as f64 + 0.5 - vb, gu2[j * (n + 1) + i]);
-            mac.at_u_adjoint(gu, gv, i, j, (-dpx, -dpy));
-        }
-    }
-    for j in 0..ny {
-        for i in 0..n {
-            let (uc, vc) = mac.at_centre(u, v, i, j);
-            let (dpx, dpy) = sample_adjoint::<WX, WY>(s, gs, mac.smoke(), i as f64 + 0.5 - uc, j as f64 + 0.5 - vc, gs2[j * n + i]);
-            mac.at_centre_adjoint(gu, gv, i, j, (-dpx, -dpy));
-        }
-    }
+    // The traces in reverse: y-faces, x-faces, centres.
+    with_mac!(cfg, mac => {
+        let mut gvel = [&mut *gu, &mut *gv];
+        trace_adjoint(mac, At::Face(1), [u, v], v, 1.0, gv2, None, &mut gvel);
+        trace_adjoint(mac, At::Face(0), [u, v], u, 1.0, gu2, None, &mut gvel);
+        trace_adjoint(mac, At::Centre, [u, v], s, 1.0, gs2, Some(&mut *gs), &mut gvel);
+    });
 }
 
 /// First-order upwind advection of the smoke by the MAC velocity, in
@@ -544,22 +332,22 @@ pub fn advect_upwind(cfg: &Smoke2d, dt: f64, x: &[f64], y: &mut [f64]) {
     // The sides: wrap, or exchange with the smoke-free outside.
     let b = &cfg.boundary;
     for k in 0..ny {
-        match b.left {
+        match b.lower(0) {
             Side::Periodic => upwind_flux(s, s2, dt * u[k * nu], Some(k * n + n - 1), Some(k * n)),
             Side::Inflow(_) | Side::Outflow => upwind_flux(s, s2, dt * u[k * nu], None, Some(k * n)),
             Side::Closed => {}
         }
-        if let Side::Inflow(_) | Side::Outflow = b.right {
+        if let Side::Inflow(_) | Side::Outflow = b.upper(0) {
             upwind_flux(s, s2, dt * u[k * nu + n], Some(k * n + n - 1), None);
         }
     }
     for k in 0..n {
-        match b.bottom {
+        match b.lower(1) {
             Side::Periodic => upwind_flux(s, s2, dt * v[k], Some((ny - 1) * n + k), Some(k)),
             Side::Inflow(_) | Side::Outflow => upwind_flux(s, s2, dt * v[k], None, Some(k)),
             Side::Closed => {}
         }
-        if let Side::Inflow(_) | Side::Outflow = b.top {
+        if let Side::Inflow(_) | Side::Outflow = b.upper(1) {
             upwind_flux(s, s2, dt * v[ny * n + k], Some((ny - 1) * n + k), None);
         }
     }

@@ -12,7 +12,7 @@ pub fn add_buoyancy(cfg: &Smoke2d, coefficient: f64, s: &[f64], v: &mut [f64]) {
             v[j * n + i] += coefficient * 0.5 * (s[(j - 1) * n + i] + s[j * n + i]);
         }
     }
-    if cfg.boundary.periodic_y() {
+    if cfg.boundary.periodic(1) {
         for i in 0..n {
             v[i] += coefficient * 0.5 * (s[(ny - 1) * n + i] + s[i]);
             v[ny * n + i] = v[i];
@@ -42,7 +42,7 @@ pub fn apply_force(cfg: &Smoke2d, dt: f64, x: &[f64], f: &[f64], y: &mut [f64]) 
     copy(x, y);
     let (fu, fv) = f.split_at(cfg.n_u());
     let (_, u2, v2) = cfg.split_mut(y);
-    let (wx, wy) = (cfg.boundary.periodic_x() as usize, cfg.boundary.periodic_y() as usize);
+    let (wx, wy) = (cfg.boundary.periodic(0) as usize, cfg.boundary.periodic(1) as usize);
     for j in 0..ny {
         for i in 1 - wx..n {
             u2[j * nu + i] += dt * fu[j * nu + i];

@@ -134,10 +134,10 @@ pub fn apply_boundary_matrix(nx: usize, ny: usize, b: &Boundary, w: Option<&[f64
                     }
                 }
             };
-            across(i > 0, c.wrapping_sub(1), b.left, c + n - 1);
-            across(i + 1 < n, c + 1, b.right, (c + 1).wrapping_sub(n));
-            across(j > 0, c.wrapping_sub(n), b.bottom, c + n * (ny - 1));
-            across(j + 1 < ny, c + n, b.top, i);
+            across(i > 0, c.wrapping_sub(1), b.lower(0), c + n - 1);
+            across(i + 1 < n, c + 1, b.upper(0), (c + 1).wrapping_sub(n));
+            across(j > 0, c.wrapping_sub(n), b.lower(1), c + n * (ny - 1));
+            across(j + 1 < ny, c + n, b.upper(1), i);
             out[c] = wt(c) * acc + (1.0 - wt(c)) * pc;
         }
     }
@@ -328,7 +328,7 @@ impl PressureSolver {
         aperture_u: &[f64],
         aperture_v: &[f64],
     ) -> Result<Self, crate::linalg::FactorFailed> {
-        assert!(!boundary.periodic_x() && !boundary.periodic_y(), "apertures with periodic sides");
+        assert!(!boundary.periodic(0) && !boundary.periodic(1), "apertures with periodic sides");
         assert_eq!(aperture_u.len(), ny * (nx + 1), "x-face apertures");
         assert_eq!(aperture_v.len(), (ny + 1) * nx, "y-face apertures");
         let mut k = Coefficients { diag: vec![0.0; nx * ny], ax: vec![0.0; nx * ny], ay: vec![0.0; nx * ny], wraps: false };
@@ -338,10 +338,10 @@ impl PressureSolver {
                 let c = j * nx + i;
                 let (l, r) = (aperture_u[j * (nx + 1) + i], aperture_u[j * (nx + 1) + i + 1]);
                 let (d, u) = (aperture_v[j * nx + i], aperture_v[(j + 1) * nx + i]);
-                let sum = l * if i > 0 { 1.0 } else { side(boundary.left) }
-                    + r * if i + 1 < nx { 1.0 } else { side(boundary.right) }
-                    + d * if j > 0 { 1.0 } else { side(boundary.bottom) }
-                    + u * if j + 1 < ny { 1.0 } else { side(boundary.top) };
+                let sum = l * if i > 0 { 1.0 } else { side(boundary.lower(0)) }
+                    + r * if i + 1 < nx { 1.0 } else { side(boundary.upper(0)) }
+                    + d * if j > 0 { 1.0 } else { side(boundary.lower(1)) }
+                    + u * if j + 1 < ny { 1.0 } else { side(boundary.upper(1)) };
                 k.diag[c] = sum;
                 k.ax[c] = if i + 1 < nx { -r } else { 0.0 };
                 k.ay[c] = if j + 1 < ny { -u } else { 0.0 };
@@ -399,13 +399,13 @@ impl PressureSolver {
             }
         }
         // Wrapped couplings: the last column with the first, the top row with the bottom.
-        if b.periodic_x() && nx > 2 {
+        if b.periodic(0) && nx > 2 {
             for j in 0..ny {
                 let (first, last) = (j * nx, j * nx + nx - 1);
                 t.push((last, first, -w(first) * w(last)));
             }
         }
-        if b.periodic_y() && ny > 2 {
+        if b.periodic(1) && ny > 2 {
             for i in 0..nx {
                 let (bottom, top) = (i, (ny - 1) * nx + i);
                 t.push((top, bottom, -w(bottom) * w(top)));
@@ -426,7 +426,7 @@ impl PressureSolver {
     fn coefficients_general(&self) -> Coefficients {
         let (nx, ny, b) = (self.nx, self.ny, self.boundary);
         let w = |c: usize| self.fluid.as_ref().map_or(1.0, |w| w[c]);
-        let mut k = Coefficients { diag: vec![0.0; nx * ny], ax: vec![0.0; nx * ny], ay: vec![0.0; nx * ny], wraps: b.periodic_x() || b.periodic_y() };
+        let mut k = Coefficients { diag: vec![0.0; nx * ny], ax: vec![0.0; nx * ny], ay: vec![0.0; nx * ny], wraps: b.periodic(0) || b.periodic(1) };
         for j in 0..ny {
             for i in 0..nx {
                 let c = j * nx + i;
@@ -443,10 +443,10 @@ impl PressureSolver {
                         }
                     }
                 };
-                let sum = side(i > 0, c.wrapping_sub(1), b.left, c + nx - 1)
-                    + side(i + 1 < nx, c + 1, b.right, (c + 1).wrapping_sub(nx))
-                    + side(j > 0, c.wrapping_sub(nx), b.bottom, c + nx * (ny - 1))
-                    + side(j + 1 < ny, c + nx, b.top, i);
+                let sum = side(i > 0, c.wrapping_sub(1), b.lower(0), c + nx - 1)
+                    + side(i + 1 < nx, c + 1, b.upper(0), (c + 1).wrapping_sub(nx))
+                    + side(j > 0, c.wrapping_sub(nx), b.lower(1), c + nx * (ny - 1))
+                    + side(j + 1 < ny, c + nx, b.upper(1), i);
                 k.diag[c] = w(c) * sum + (1.0 - w(c));
                 k.ax[c] = if i + 1 < nx { -w(c) * w(c + 1) } else { 0.0 };
                 k.ay[c] = if j + 1 < ny { -w(c) * w(c + nx) } else { 0.0 };

@@ -13,12 +13,12 @@ pub fn enforce_boundary(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
     // Position along the side, 0..1: a profile spans the whole side.
     let t = |k: usize, n: usize| (k as f64 + 0.5) / n as f64;
     for j in 0..ny {
-        match b.left {
+        match b.lower(0) {
             Side::Closed => u[j * nu] = 0.0,
             Side::Inflow(p) => u[j * nu] = p.at(t(j, ny)),
             Side::Periodic | Side::Outflow => {}
         }
-        match b.right {
+        match b.upper(0) {
             Side::Closed => u[j * nu + nx] = 0.0,
             Side::Inflow(p) => u[j * nu + nx] = -p.at(t(j, ny)),
             Side::Periodic => u[j * nu + nx] = u[j * nu],
@@ -27,12 +27,12 @@ pub fn enforce_boundary(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
     }
     let top = ny * nx;
     for i in 0..nx {
-        match b.bottom {
+        match b.lower(1) {
             Side::Closed => v[i] = 0.0,
             Side::Inflow(p) => v[i] = p.at(t(i, nx)),
             Side::Periodic | Side::Outflow => {}
         }
-        match b.top {
+        match b.upper(1) {
             Side::Closed => v[top + i] = 0.0,
             Side::Inflow(p) => v[top + i] = -p.at(t(i, nx)),
             Side::Periodic => v[top + i] = v[i],
@@ -55,27 +55,27 @@ pub fn enforce_boundary_adjoint(cfg: &Smoke2d, gu: &mut [f64], gv: &mut [f64]) {
     let nu = nx + 1;
     let b = &cfg.boundary;
     for j in 0..ny {
-        if let Side::Periodic = b.right {
+        if let Side::Periodic = b.upper(0) {
             gu[j * nu] += gu[j * nu + nx];
             gu[j * nu + nx] = 0.0;
         }
-        if b.left.sets_faces() {
+        if b.lower(0).sets_faces() {
             gu[j * nu] = 0.0;
         }
-        if b.right.sets_faces() {
+        if b.upper(0).sets_faces() {
             gu[j * nu + nx] = 0.0;
         }
     }
     let top = ny * nx;
     for i in 0..nx {
-        if let Side::Periodic = b.top {
+        if let Side::Periodic = b.upper(1) {
             gv[i] += gv[top + i];
             gv[top + i] = 0.0;
         }
-        if b.bottom.sets_faces() {
+        if b.lower(1).sets_faces() {
             gv[i] = 0.0;
         }
-        if b.top.sets_faces() {
+        if b.upper(1).sets_faces() {
             gv[top + i] = 0.0;
         }
     }

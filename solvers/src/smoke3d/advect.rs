@@ -1,91 +1,11 @@
 //! Semi-Lagrangian advection of the smoke and the velocity (trilinear), P4's
-//! buoyancy and walls, and the hand-written adjoint of the three.
+//! buoyancy and walls, and the hand-written adjoint of the three. The traces
+//! are [`crate::mac`]'s, shared with 2D.
 
 use std::ops::Range;
 
 use super::*;
-use crate::par::for_pieces;
-
-/// Points of the lattice `at` traced back along the velocity: `out[q] =
-/// f(q − dt·vel(q))` for every point `q` holding its own value in slabs
-/// `ks` (and the lattice's slabs past `nz` when `ks` reaches the top),
-/// `out` holding those slabs.
-#[inline(always)]
-pub(crate) fn trace<W: Wraps>(mac: Mac3<W>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, ks: Range<usize>, out: &mut [f64]) {
-    let lat = mac.lattice(at);
-    let end = if ks.end == mac.n[2] { lat.n[2] } else { ks.end };
-    for k in ks.start..end {
-        for j in 0..lat.n[1] {
-            for i in 0..lat.n[0] {
-                out[((k - ks.start) * lat.sy + j) * lat.sx + i] = traced(mac, at, lat, vel, f, dt, [i, j, k]);
-            }
-        }
-    }
-}
-
-/// [`trace`] with the slabs split over threads (the same values). The
-/// serial loop above stays as it is: Enzyme differentiates it, and slicing
-/// the output per slab there trips its reverse pass (docs/enzyme.md).
-fn trace_parallel<W: Wraps>(mac: Mac3<W>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, out: &mut [f64]) {
-    let lat = mac.lattice(at);
-    let slab = lat.sy * lat.sx;
-    // One arm per lattice, so that each slab's loop is compiled for a known
-    // lattice, as the serial loop is where it is inlined.
-    for_pieces(&mut out[..lat.n[2] * slab], slab, move |k, o| match at {
-        At3::Centre => trace_slab(mac, At3::Centre, vel, f, dt, k, o),
-        At3::U => trace_slab(mac, At3::U, vel, f, dt, k, o),
-        At3::V => trace_slab(mac, At3::V, vel, f, dt, k, o),
-        At3::W => trace_slab(mac, At3::W, vel, f, dt, k, o),
-    });
-}
-
-/// Slab `k` of [`trace`] into `o` (that slab of the lattice's array).
-#[inline(always)]
-fn trace_slab<W: Wraps>(mac: Mac3<W>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, k: usize, o: &mut [f64]) {
-    let lat = mac.lattice(at);
-    for j in 0..lat.n[1] {
-        for i in 0..lat.n[0] {
-            o[j * lat.sx + i] = traced(mac, at, lat, vel, f, dt, [i, j, k]);
-        }
-    }
-}
-
-/// The value traced back to point `q` of the lattice `at`.
-#[inline(always)]
-fn traced<W: Wraps>(mac: Mac3<W>, at: At3, lat: Lattice3, vel: [&[f64]; 3], f: &[f64], dt: f64, q: [usize; 3]) -> f64 {
-    let [a, b, c] = mac.velocity(at, vel, q);
-    let p = [q[0] as f64 + lat.o[0] - dt * a, q[1] as f64 + lat.o[1] - dt * b, q[2] as f64 + lat.o[2] - dt * c];
-    sample3(mac.wraps(), f, lat, p)
-}
-
-/// Adjoint of [`trace`] at time step `dt`: adds `Jᵀ·g` into the velocity's
-/// adjoint `gvel` and the traced field's: `gs` for the centres, else the
-/// component's own entry of `gvel` (a velocity component is both the field
-/// sampled and one of the velocities that trace it).
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn trace_adjoint<W: Wraps>(mac: Mac3<W>, at: At3, vel: [&[f64]; 3], f: &[f64], dt: f64, g: &[f64], mut gs: Option<&mut [f64]>, gvel: [&mut [f64]; 3]) {
-    let lat = mac.lattice(at);
-    let [gu, gv, gw] = gvel;
-    for k in 0..lat.n[2] {
-        for j in 0..lat.n[1] {
-            for i in 0..lat.n[0] {
-                let q = [i, j, k];
-                let [a, b, c] = mac.velocity(at, vel, q);
-                let p = [i as f64 + lat.o[0] - dt * a, j as f64 + lat.o[1] - dt * b, k as f64 + lat.o[2] - dt * c];
-                let gq = g[(k * lat.sy + j) * lat.sx + i];
-                let gf: &mut [f64] = match at {
-                    At3::Centre => gs.as_deref_mut().expect("smoke adjoint"),
-                    At3::U => &mut *gu,
-                    At3::V => &mut *gv,
-                    At3::W => &mut *gw,
-                };
-                let dp = sample3_adjoint(mac.wraps(), f, gf, lat, p, gq);
-                mac.velocity_adjoint(at, [&mut *gu, &mut *gv, &mut *gw], q, [-dt * dp[0], -dt * dp[1], -dt * dp[2]]);
-            }
-        }
-    }
-}
+use crate::mac::advect::{trace, trace_adjoint, trace_parallel};
 
 /// Steps 1–4 of P4: semi-Lagrangian advection of the smoke and of the
 /// velocity (time step `cfg.dt`, 1 in P4; each component sampled at its own faces along
@@ -113,16 +33,16 @@ pub fn advect_buoyancy_slabs(cfg: &Smoke3d, x: &[f64], ks: Range<usize>, y: &mut
     let lens = cfg.slab_lens(ks.clone());
     assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == cfg.n_state() && y.len() == lens.iter().sum::<usize>(), "smoke3d: state lengths");
     assert!(ks.start < ks.end && ks.end <= cfg.nz, "smoke3d: slabs {ks:?} of {}", cfg.nz);
-    let mac = Mac3::bounded(cfg.dims());
+    let mac = Mac::bounded(cfg.dims());
     let [s, u, v, w] = cfg.split(x);
     let (s2, rest) = y.split_at_mut(lens[0]);
     let (u2, rest) = rest.split_at_mut(lens[1]);
     let (v2, w2) = rest.split_at_mut(lens[2]);
     let vel = [u, v, w];
-    trace(mac, At3::Centre, vel, s, cfg.dt, ks.clone(), s2);
-    trace(mac, At3::U, vel, u, cfg.dt, ks.clone(), u2);
-    trace(mac, At3::V, vel, v, cfg.dt, ks.clone(), v2);
-    trace(mac, At3::W, vel, w, cfg.dt, ks.clone(), w2);
+    trace(mac, At::Centre, vel, s, cfg.dt, ks.clone(), s2);
+    trace(mac, At::Face(0), vel, u, cfg.dt, ks.clone(), u2);
+    trace(mac, At::Face(1), vel, v, cfg.dt, ks.clone(), v2);
+    trace(mac, At::Face(2), vel, w, cfg.dt, ks.clone(), w2);
     close_walls_slabs(cfg, ks.clone(), [u2, v2, w2]);
     add_buoyancy_slabs(cfg, cfg.buoyancy, ks.len(), s2, v2);
 }
@@ -136,14 +56,14 @@ pub fn advect_buoyancy_slabs(cfg: &Smoke3d, x: &[f64], ks: Range<usize>, y: &mut
 /// As [`advect_buoyancy`].
 pub fn advect_buoyancy_parallel(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
     assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
-    let mac = Mac3::bounded(cfg.dims());
+    let mac = Mac::bounded(cfg.dims());
     let [s, u, v, w] = cfg.split(x);
     let [s2, u2, v2, w2] = cfg.split_mut(y);
     let vel = [u, v, w];
-    trace_parallel(mac, At3::Centre, vel, s, cfg.dt, s2);
-    trace_parallel(mac, At3::U, vel, u, cfg.dt, u2);
-    trace_parallel(mac, At3::V, vel, v, cfg.dt, v2);
-    trace_parallel(mac, At3::W, vel, w, cfg.dt, w2);
+    trace_parallel(mac, At::Centre, vel, s, cfg.dt, s2);
+    trace_parallel(mac, At::Face(0), vel, u, cfg.dt, u2);
+    trace_parallel(mac, At::Face(1), vel, v, cfg.dt, v2);
+    trace_parallel(mac, At::Face(2), vel, w, cfg.dt, w2);
     close_walls(cfg, [u2, v2, w2]);
     add_buoyancy(cfg, cfg.buoyancy, s2, v2);
 }
@@ -208,7 +128,7 @@ fn add_buoyancy_slabs(cfg: &Smoke3d, coefficient: f64, slabs: usize, s: &[f64], 
 pub fn advect_buoyancy_adjoint(cfg: &Smoke3d, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
     let n = cfg.n_state();
     assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == n && gy.len() == n && gx.len() == n, "smoke3d: state lengths");
-    let mac = Mac3::bounded(cfg.dims());
+    let mac = Mac::bounded(cfg.dims());
     let [nx, ny, nz] = cfg.dims();
     let [s, u, v, w] = cfg.split(x);
     let [gs2, gu2, gv2, gw2] = cfg.split_mut(gy);
@@ -225,10 +145,10 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke3d, x: &[f64], gy: &mut [f64], gx: &mu
     close_walls(cfg, [&mut *gu2, &mut *gv2, &mut *gw2]);
     let [gs, gu, gv, gw] = cfg.split_mut(gx);
     let vel = [u, v, w];
-    trace_adjoint(mac, At3::W, vel, w, cfg.dt, gw2, None, [&mut *gu, &mut *gv, &mut *gw]);
-    trace_adjoint(mac, At3::V, vel, v, cfg.dt, gv2, None, [&mut *gu, &mut *gv, &mut *gw]);
-    trace_adjoint(mac, At3::U, vel, u, cfg.dt, gu2, None, [&mut *gu, &mut *gv, &mut *gw]);
-    trace_adjoint(mac, At3::Centre, vel, s, cfg.dt, gs2, Some(gs), [gu, gv, gw]);
+    trace_adjoint(mac, At::Face(2), vel, w, cfg.dt, gw2, None, &mut [&mut *gu, &mut *gv, &mut *gw]);
+    trace_adjoint(mac, At::Face(1), vel, v, cfg.dt, gv2, None, &mut [&mut *gu, &mut *gv, &mut *gw]);
+    trace_adjoint(mac, At::Face(0), vel, u, cfg.dt, gu2, None, &mut [&mut *gu, &mut *gv, &mut *gw]);
+    trace_adjoint(mac, At::Centre, vel, s, cfg.dt, gs2, Some(gs), &mut [gu, gv, gw]);
 }
 
 /// How far `x` may move along `d` before [`advect_buoyancy`] meets a kink:
@@ -261,9 +181,9 @@ pub fn advect3_adjoint(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], gy
         // The boundary conditions came last: set faces pass nothing back,
         // periodic copies hand theirs to face 0.
         enforce_boundary3_adjoint(cfg, [&mut *gu2, &mut *gv2, &mut *gw2]);
-        trace_adjoint(mac, At3::W, vel, w, cfg.dt, gw2, None, [&mut *gu, &mut *gv, &mut *gw]);
-        trace_adjoint(mac, At3::V, vel, v, cfg.dt, gv2, None, [&mut *gu, &mut *gv, &mut *gw]);
-        trace_adjoint(mac, At3::U, vel, u, cfg.dt, gu2, None, [&mut *gu, &mut *gv, &mut *gw]);
+        trace_adjoint(mac, At::Face(2), vel, w, cfg.dt, gw2, None, &mut [&mut *gu, &mut *gv, &mut *gw]);
+        trace_adjoint(mac, At::Face(1), vel, v, cfg.dt, gv2, None, &mut [&mut *gu, &mut *gv, &mut *gw]);
+        trace_adjoint(mac, At::Face(0), vel, u, cfg.dt, gu2, None, &mut [&mut *gu, &mut *gv, &mut *gw]);
     } else {
         for (g, g2) in [(&mut *gu, &*gu2), (&mut *gv, &*gv2), (&mut *gw, &*gw2)] {
             for (g, &g2) in g.iter_mut().zip(g2) {
@@ -272,7 +192,7 @@ pub fn advect3_adjoint(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], gy
         }
     }
     if smoke {
-        trace_adjoint(mac, At3::Centre, vel, s, cfg.dt, gs2, Some(gs), [gu, gv, gw]);
+        trace_adjoint(mac, At::Centre, vel, s, cfg.dt, gs2, Some(gs), &mut [gu, gv, gw]);
     } else {
         for (g, &g2) in gs.iter_mut().zip(&*gs2) {
             *g += g2;

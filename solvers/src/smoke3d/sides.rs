@@ -1,4 +1,4 @@
-//! The six sides of the 3D box ([`crate::boundary::Boundary3`]): the
+//! The six sides of the 3D box ([`crate::boundary::Boundary<3>`]): the
 //! velocity boundary conditions on the sides' faces, the faces of each axis
 //! with the cells beside them (across periodic sides too), and which faces
 //! the boundary sets after an advection.
@@ -147,9 +147,9 @@ pub fn for_each_face3(cfg: &Smoke3d, axis: usize, mut visit: impl FnMut(Face)) {
 /// the trace (on a closed or inflow side), so that where its trace lands
 /// does not matter (no kink of the step).
 #[inline(always)]
-pub(crate) fn set_by_boundary(cfg: &Smoke3d, at: At3, q: [usize; 3]) -> bool {
+pub(crate) fn set_by_boundary(cfg: &Smoke3d, at: At, q: [usize; 3]) -> bool {
     let a = at.axis();
-    if a == 3 {
+    if a >= 3 {
         return false;
     }
     let [lo, hi] = cfg.boundary.axis(a);

@@ -1,0 +1,320 @@
+//! The MAC grid's rules, each test written once and run for D = 2 and 3:
+//! sampling against the multilinear formula written out per corner, its
+//! adjoint against central differences, the velocity taps against the
+//! faces written out by hand, and the traces' adjoint (with respect to the
+//! velocity and the traced field together) against central differences.
+
+use super::advect::{trace, trace_adjoint};
+use super::fft::FftProjection;
+use super::*;
+
+/// A fixed pseudo-random sequence in [-1, 1) (no dependency, same values
+/// on every machine).
+fn values(len: usize, seed: u64) -> Vec<f64> {
+    let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    (0..len)
+        .map(|_| {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((s >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+        })
+        .collect()
+}
+
+/// Grids of each kind: bounded, wrapping on one axis, wrapping on all.
+fn grids<const D: usize>() -> Vec<Mac<D, [bool; D]>> {
+    let n: [usize; D] = std::array::from_fn(|a| 4 + a);
+    let mut one = [false; D];
+    one[0] = true;
+    vec![Mac { n, wrap: [false; D] }, Mac { n, wrap: one }, Mac { n, wrap: [true; D] }]
+}
+
+/// The lattices of a `D`-dimensional grid.
+fn all_at<const D: usize>() -> Vec<At> {
+    std::iter::once(At::Centre).chain((0..D).map(At::Face)).collect()
+}
+
+/// `Σ_corners f·Π weights`, the corners found by clamping or wrapping each
+/// axis on its own: the definition [`sample`] blends axis by axis.
+fn sample_by_definition<const D: usize>(wrap: [bool; D], f: &[f64], lat: &Lattice<D>, p: [f64; D]) -> f64 {
+    let mut total = 0.0;
+    for k in 0..1usize << D {
+        let (mut index, mut w) = (0, 1.0);
+        for a in 0..D {
+            let (i0, i1, t) = position(wrap[a], lat.n[a], p[a] - lat.o[a]);
+            let upper = (k >> a) & 1 == 1;
+            index += if upper { i1 } else { i0 } * lat.stride[a];
+            w *= if upper { t } else { 1.0 - t };
+        }
+        total += f[index] * w;
+    }
+    total
+}
+
+fn sampling<const D: usize>() {
+    for mac in grids::<D>() {
+        for at in all_at::<D>() {
+            let lat = mac.lattice(at);
+            let f = values(lat.len, 7);
+            for (m, p) in values(40 * D, 3).chunks(D).enumerate() {
+                // Points inside, on the lattice, and outside it.
+                let p: [f64; D] = std::array::from_fn(|a| if m % 5 == 0 { (m % 3) as f64 } else { 4.0 * p[a] + 2.5 });
+                let (s, want) = (sample(mac.wraps(), &f, &lat, p), sample_by_definition(mac.wraps(), &f, &lat, p));
+                assert!((s - want).abs() <= 1e-14, "D = {D}, {at:?} at {p:?}: {s} vs {want}");
+                let (lo, hi) = sample_range(mac.wraps(), &f, &lat, p);
+                assert!(lo <= s + 1e-15 && s <= hi + 1e-15, "the sample lies outside its corners' range");
+            }
+        }
+    }
+}
+
+#[test]
+fn sampling_is_the_multilinear_blend_of_the_corners() {
+    sampling::<2>();
+    sampling::<3>();
+}
+
+fn sample_adjoint_matches_differences<const D: usize>() {
+    let h = 1e-6;
+    for mac in grids::<D>() {
+        for at in all_at::<D>() {
+            let lat = mac.lattice(at);
+            let f = values(lat.len, 11);
+            for p in values(20 * D, 5).chunks(D) {
+                // Away from lattice planes, where sampling is smooth.
+                let p: [f64; D] = std::array::from_fn(|a| 3.0 * p[a] + 2.13);
+                let g = 0.7;
+                let mut gf = vec![0.0; lat.len];
+                let dp = sample_adjoint(mac.wraps(), &f, &mut gf, &lat, p, g);
+                for a in 0..D {
+                    let (mut lo, mut hi) = (p, p);
+                    lo[a] -= h;
+                    hi[a] += h;
+                    let fd = g * (sample(mac.wraps(), &f, &lat, hi) - sample(mac.wraps(), &f, &lat, lo)) / (2.0 * h);
+                    assert!((dp[a] - fd).abs() <= 1e-7, "D = {D}, ∂/∂p{a} at {p:?}: {} vs {fd}", dp[a]);
+                }
+                // Linear in f: the adjoint is the weights themselves.
+                let mut e = vec![0.0; lat.len];
+                for c in 0..lat.len {
+                    e[c] = 1.0;
+                    let want = g * sample(mac.wraps(), &e, &lat, p);
+                    assert!((gf[c] - want).abs() <= 1e-15, "D = {D}, ∂/∂f[{c}]: {} vs {want}", gf[c]);
+                    e[c] = 0.0;
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn sample_adjoint_matches_central_differences() {
+    sample_adjoint_matches_differences::<2>();
+    sample_adjoint_matches_differences::<3>();
+}
+
+fn velocity_taps<const D: usize>() {
+    for mac in grids::<D>() {
+        let vel_store: Vec<Vec<f64>> = (0..D).map(|b| values(mac.lattice(At::Face(b)).len, 20 + b as u64)).collect();
+        let vel: [&[f64]; D] = std::array::from_fn(|b| vel_store[b].as_slice());
+        for at in all_at::<D>() {
+            let lat = mac.lattice(at);
+            for c in 0..lat.len {
+                let q: [usize; D] = std::array::from_fn(|a| (c / lat.stride[a]) % (lat.stride.get(a + 1).copied().unwrap_or(lat.len) / lat.stride[a]));
+                if (0..D).any(|a| q[a] >= lat.n[a]) {
+                    continue; // a periodic copy
+                }
+                let v = mac.velocity(at, vel, q);
+                for b in 0..D {
+                    // Written out: the face at index q of component b's array,
+                    // its neighbour along b (wrapped), and along the face's
+                    // own axis the faces of the cells on both sides.
+                    let face = mac.lattice(At::Face(b));
+                    let wrap = |a: usize, k: isize| -> usize {
+                        let n = mac.n[a] as isize;
+                        if mac.wraps()[a] { k.rem_euclid(n) as usize } else { k.clamp(0, n - 1) as usize }
+                    };
+                    let want = if at == At::Face(b) {
+                        vel[b][face.index(q)]
+                    } else {
+                        let mut up = q;
+                        up[b] = if mac.wraps()[b] { (q[b] + 1) % mac.n[b] } else { q[b] + 1 };
+                        match at {
+                            At::Centre => 0.5 * (vel[b][face.index(q)] + vel[b][face.index(up)]),
+                            At::Face(a) => {
+                                let side = |p: [usize; D], k: isize| {
+                                    let mut p = p;
+                                    p[a] = wrap(a, k);
+                                    vel[b][face.index(p)]
+                                };
+                                let qa = q[a] as isize;
+                                0.25 * (side(q, qa - 1) + side(q, qa) + side(up, qa - 1) + side(up, qa))
+                            }
+                        }
+                    };
+                    assert!((v[b] - want).abs() <= 1e-15, "D = {D}, {at:?} q = {q:?} component {b}: {} vs {want}", v[b]);
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn velocity_is_the_mean_of_the_nearest_faces() {
+    velocity_taps::<2>();
+    velocity_taps::<3>();
+}
+
+/// `⟨g, trace(at)⟩` over the points holding their own value, with the
+/// velocity and the centres' field moved by `t` along `(dvel, df)` (on a
+/// face lattice the traced field is the velocity component itself).
+#[allow(clippy::too_many_arguments)]
+fn traced_sum<const D: usize>(mac: Mac<D, [bool; D]>, at: At, vel: &[Vec<f64>], f: &[f64], dvel: &[Vec<f64>], df: &[f64], g: &[f64], t: f64) -> f64 {
+    let moved: Vec<Vec<f64>> = vel.iter().zip(dvel).map(|(v, d)| v.iter().zip(d).map(|(a, b)| a + t * b).collect()).collect();
+    let vv: [&[f64]; D] = std::array::from_fn(|b| moved[b].as_slice());
+    let fm: Vec<f64> = f.iter().zip(df).map(|(a, b)| a + t * b).collect();
+    let field: &[f64] = if let At::Face(a) = at { vv[a] } else { &fm };
+    let lat = mac.lattice(at);
+    let mut out = vec![0.0; lat.len];
+    trace(mac, at, vv, field, 0.9, 0..mac.n[D - 1], &mut out);
+    (0..lat.len).filter(|&c| own(&lat, c)).map(|c| g[c] * out[c]).sum()
+}
+
+fn trace_adjoint_matches<const D: usize>() {
+    let h = 1e-6;
+    for mac in grids::<D>() {
+        let vel: Vec<Vec<f64>> = (0..D).map(|b| values(mac.lattice(At::Face(b)).len, 30 + b as u64).iter().map(|x| 0.8 * x).collect()).collect();
+        let dvel: Vec<Vec<f64>> = (0..D).map(|b| values(vel[b].len(), 60 + b as u64)).collect();
+        let vr: [&[f64]; D] = std::array::from_fn(|b| vel[b].as_slice());
+        for at in all_at::<D>() {
+            let lat = mac.lattice(at);
+            let n_centre = mac.lattice(At::Centre).len;
+            let (f, df) = (values(n_centre, 41), values(n_centre, 43));
+            let g: Vec<f64> = values(lat.len, 47).iter().enumerate().map(|(c, &x)| if own(&lat, c) { x } else { 0.0 }).collect();
+            let mut gvel_store: Vec<Vec<f64>> = (0..D).map(|b| vec![0.0; vel[b].len()]).collect();
+            let mut gvel: [&mut [f64]; D] = gvel_store.iter_mut().map(|v| v.as_mut_slice()).collect::<Vec<_>>().try_into().unwrap();
+            let mut gs = vec![0.0; n_centre];
+            let field: &[f64] = if let At::Face(a) = at { vr[a] } else { &f };
+            trace_adjoint(mac, at, vr, field, 0.9, &g, if at == At::Centre { Some(&mut gs) } else { None }, &mut gvel);
+            let adjoint: f64 = gvel_store.iter().zip(&dvel).flat_map(|(a, d)| a.iter().zip(d)).map(|(a, d)| a * d).sum::<f64>()
+                + gs.iter().zip(&df).map(|(a, d)| a * d).sum::<f64>();
+            let fd = (traced_sum(mac, at, &vel, &f, &dvel, &df, &g, h) - traced_sum(mac, at, &vel, &f, &dvel, &df, &g, -h)) / (2.0 * h);
+            assert!((fd - adjoint).abs() <= 1e-6 * fd.abs().max(1.0), "D = {D}, {at:?}, wraps {:?}: differences {fd} vs adjoint {adjoint}", mac.wrap);
+        }
+    }
+}
+
+/// Whether entry `c` of the lattice's array holds its own value (not a
+/// periodic copy).
+fn own<const D: usize>(lat: &Lattice<D>, c: usize) -> bool {
+    (0..D).all(|a| {
+        let extent = lat.stride.get(a + 1).copied().unwrap_or(lat.len) / lat.stride[a];
+        (c / lat.stride[a]) % extent < lat.n[a]
+    })
+}
+
+#[test]
+fn trace_adjoint_matches_central_differences() {
+    trace_adjoint_matches::<2>();
+    trace_adjoint_matches::<3>();
+}
+
+/// The periodic divergence of a MAC velocity (cells `x` fastest): `Σ_a
+/// (u_a[c + e_a] − u_a[c])`, face `n_a` read as face 0.
+fn periodic_divergence<const D: usize>(n: [usize; D], vel: &[Vec<f64>]) -> Vec<f64> {
+    let cells: usize = n.iter().product();
+    (0..cells)
+        .map(|c| {
+            let q: [usize; D] = std::array::from_fn(|a| (c / n[..a].iter().product::<usize>()) % n[a]);
+            (0..D)
+                .map(|a| {
+                    let index = |q: [usize; D]| (0..D).map(|b| q[b] * (0..b).map(|e| n[e] + (e == a) as usize).product::<usize>()).sum::<usize>();
+                    let mut up = q;
+                    up[a] = (q[a] + 1) % n[a];
+                    vel[a][index(up)] - vel[a][index(q)]
+                })
+                .sum()
+        })
+        .collect()
+}
+
+/// A random velocity on the faces of a periodic box, copies equal to
+/// their faces when `copies`, else random too (never read).
+fn periodic_velocity<const D: usize>(n: [usize; D], seed: u64, copies: bool) -> Vec<Vec<f64>> {
+    let fft = FftProjection::new(n);
+    (0..D)
+        .map(|a| {
+            let mut v = values(fft.face_len(a), seed + a as u64);
+            if copies {
+                let mut pairs = Vec::new();
+                fft.for_copies(a, |face, copy| pairs.push((face, copy)));
+                for (face, copy) in pairs {
+                    v[copy] = v[face];
+                }
+            }
+            v
+        })
+        .collect()
+}
+
+fn fft_projection<const D: usize>(n: [usize; D]) {
+    let mut fft = FftProjection::new(n);
+    let x = periodic_velocity(n, 70, false);
+    let mut y = x.clone();
+    fft.project(y.iter_mut().map(|v| v.as_mut_slice()).collect::<Vec<_>>().try_into().unwrap());
+    let div = periodic_divergence(n, &y);
+    let worst = div.iter().fold(0.0f64, |m, d| m.max(d.abs()));
+    assert!(worst < 1e-12, "D = {D}, {n:?}: divergence {worst:e} after the projection");
+    // The mean of each component stays; a projection twice is the projection.
+    let mut z = y.clone();
+    fft.project(z.iter_mut().map(|v| v.as_mut_slice()).collect::<Vec<_>>().try_into().unwrap());
+    let moved = y.iter().flatten().zip(z.iter().flatten()).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(moved < 1e-13, "D = {D}: projecting twice moved the field by {moved:e}");
+    // Adjoint: ⟨P x, w⟩ = ⟨x, Pᵀ w⟩ over whole arrays, copies included.
+    let w = periodic_velocity(n, 90, false);
+    let mut pw = w.clone();
+    fft.project_adjoint(pw.iter_mut().map(|v| v.as_mut_slice()).collect::<Vec<_>>().try_into().unwrap());
+    let dot = |a: &[Vec<f64>], b: &[Vec<f64>]| a.iter().flatten().zip(b.iter().flatten()).map(|(p, q)| p * q).sum::<f64>();
+    let (lhs, rhs) = (dot(&y, &w), dot(&x, &pw));
+    assert!((lhs - rhs).abs() <= 1e-12 * lhs.abs().max(1.0), "D = {D}: ⟨Px, w⟩ = {lhs} but ⟨x, Pᵀw⟩ = {rhs}");
+}
+
+#[test]
+fn fft_projection_is_divergence_free_idempotent_and_its_own_adjoint() {
+    fft_projection([8, 6]);
+    fft_projection([16, 16]);
+    fft_projection([5, 4, 6]);
+    fft_projection([8, 8, 8]);
+}
+
+#[test]
+fn fft_projection_matches_the_conjugate_gradient_projection() {
+    use crate::boundary::{Boundary, Side};
+    // 2D: the CG projection of the smoke solver on a periodic box.
+    let (nx, ny) = (12, 10);
+    let cfg = crate::smoke::Smoke2d::new(nx, ny).with_boundary(Boundary::all(Side::Periodic));
+    let mut solver = crate::smoke::PressureSolver::general(nx, ny, cfg.boundary, 1e-13, 2000, None);
+    let mut scratch = crate::smoke::ProjectScratch::new(nx * ny);
+    let vel = periodic_velocity([nx, ny], 5, true);
+    let mut state = vec![0.0; cfg.n_state()];
+    state[cfg.n_s()..].copy_from_slice(&[vel[0].clone(), vel[1].clone()].concat());
+    crate::smoke::project(&cfg, &mut state, &mut solver, &mut scratch).unwrap();
+    let mut y = vel.clone();
+    let [u, v] = &mut y[..] else { unreachable!() };
+    FftProjection::new([nx, ny]).project([u, v]);
+    let fft_state = [y[0].clone(), y[1].clone()].concat();
+    let diff = state[cfg.n_s()..].iter().zip(&fft_state).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(diff < 1e-10, "2D: FFT and CG projections differ by {diff:e}");
+    // 3D: the same against smoke3d's projection.
+    let dims = [5, 6, 4];
+    let cfg3 = crate::smoke3d::Smoke3d::new(dims[0], dims[1], dims[2], 1.0).with_boundary(Boundary::all(Side::Periodic));
+    let mut solver3 = crate::smoke3d::PressureSolver3::new(&cfg3, 1e-13, 2000, crate::smoke::Preconditioner::None);
+    let mut scratch3 = crate::smoke::ProjectScratch::new(cfg3.n_s());
+    let vel3 = periodic_velocity(dims, 15, true);
+    let mut state3 = vec![0.0; cfg3.n_state()];
+    state3[cfg3.n_s()..].copy_from_slice(&vel3.concat());
+    crate::smoke3d::project(&cfg3, &mut state3, &mut solver3, &mut scratch3).unwrap();
+    let mut y3 = vel3.clone();
+    let [u, v, w] = &mut y3[..] else { unreachable!() };
+    FftProjection::new(dims).project([u, v, w]);
+    let diff3 = state3[cfg3.n_s()..].iter().zip(&y3.concat()).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(diff3 < 1e-10, "3D: FFT and CG projections differ by {diff3:e}");
+}
