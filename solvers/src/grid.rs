@@ -15,10 +15,22 @@
 #[inline(always)]
 pub fn axis_position<const WRAP: bool>(m: usize, r: f64) -> (usize, usize, f64) {
     if WRAP {
-        let mf = m as f64;
-        let r = r - mf * (r / mf).floor();
-        let k0 = (r as usize).min(m - 1);
-        (k0, if k0 + 1 == m { 0 } else { k0 + 1 }, r - k0 as f64)
+        // The floor by truncation (no libm call: `f64::floor` is one on the
+        // baseline x86-64 target), then the cell wrapped into the period,
+        // by one addition or subtraction for a point within a period of the
+        // box (any trace of a stable step) and by a division otherwise.
+        let t = r as i64;
+        let fl = t - (r < t as f64) as i64;
+        let mi = m as i64;
+        let k = if fl < 0 && fl >= -mi {
+            fl + mi
+        } else if fl >= mi && fl < 2 * mi {
+            fl - mi
+        } else {
+            fl.rem_euclid(mi)
+        };
+        let k0 = k as usize;
+        (k0, if k0 + 1 == m { 0 } else { k0 + 1 }, r - fl as f64)
     } else {
         let g = r.clamp(0.0, (m - 1) as f64);
         // g ≥ 0, so truncation is the floor (one instruction, no libm call).

@@ -22,12 +22,14 @@
 
 pub(crate) mod advect;
 pub mod fft;
+pub mod periodic;
 
 use crate::grid::{beside, next, own_faces, passes, position};
 
 /// Which axes of a grid wrap: [`Bounded`] (none, known when compiling: the
-/// closed boxes of P2 and P4, whose loops then carry no test) or `[bool; D]`
-/// (known at run time: any boundary).
+/// closed boxes of P2 and P4, whose loops then carry no test), [`Wrapping`]
+/// (all: the periodic box of Navier–Stokes) or `[bool; D]` (known at run
+/// time: any boundary).
 pub trait Wraps<const D: usize>: Copy + Send + Sync {
     /// Whether each axis wraps.
     fn wraps(self) -> [bool; D];
@@ -41,6 +43,17 @@ impl<const D: usize> Wraps<D> for Bounded {
     #[inline(always)]
     fn wraps(self) -> [bool; D] {
         [false; D]
+    }
+}
+
+/// Every axis wraps (a fully periodic box, known when compiling).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Wrapping;
+
+impl<const D: usize> Wraps<D> for Wrapping {
+    #[inline(always)]
+    fn wraps(self) -> [bool; D] {
+        [true; D]
     }
 }
 
