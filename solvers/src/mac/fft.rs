@@ -28,17 +28,74 @@ use rustfft::{Fft, FftPlanner};
 /// cells per axis.
 pub struct FftProjection<const D: usize> {
     n: [usize; D],
-    /// Forward and inverse transforms along each axis.
-    forward: Vec<Arc<dyn Fft<f64>>>,
-    inverse: Vec<Arc<dyn Fft<f64>>>,
+    /// The transforms (behind non-generic functions).
+    transforms: Transforms,
     /// `e^{iθ} − 1` per axis and wavenumber index.
     div: [Vec<Complex<f64>>; D],
     /// One complex field per pair of components, and the projected spectra.
     spectra: Vec<Vec<Complex<f64>>>,
     projected: Vec<Vec<Complex<f64>>>,
+}
+
+/// The forward and inverse transforms along each axis of a box, with their
+/// buffers. Every rustfft call sits in a non-generic function of this
+/// crate (built without the autodiff flag): rustfft's generic code
+/// instantiated in a crate built with it crashes rustc (its type trees of
+/// rustfft's AVX vector types), as faer's does.
+struct Transforms {
+    n: Vec<usize>,
+    forward: Vec<Arc<dyn Fft<f64>>>,
+    inverse: Vec<Arc<dyn Fft<f64>>>,
     /// A field with one axis made contiguous, and the transforms' scratch.
     lines: Vec<Complex<f64>>,
     scratch: Vec<Complex<f64>>,
+}
+
+impl Transforms {
+    /// The plans of a box of `n` cells per axis.
+    #[inline(never)]
+    fn new(n: &[usize]) -> Self {
+        let mut planner = FftPlanner::<f64>::new();
+        let forward: Vec<_> = n.iter().map(|&m| planner.plan_fft_forward(m)).collect();
+        let inverse: Vec<_> = n.iter().map(|&m| planner.plan_fft_inverse(m)).collect();
+        let scratch_len = forward.iter().chain(&inverse).map(|f| f.get_inplace_scratch_len()).max().unwrap_or(0);
+        let cells = n.iter().product();
+        Self { n: n.to_vec(), forward, inverse, lines: vec![Complex::default(); cells], scratch: vec![Complex::default(); scratch_len] }
+    }
+
+    /// The transform of `field` (x fastest), forward or inverse
+    /// (unnormalised), one axis at a time.
+    #[inline(never)]
+    fn apply(&mut self, field: &mut [Complex<f64>], forward: bool) {
+        let cells = self.lines.len();
+        for a in 0..self.n.len() {
+            let plan = if forward { &self.forward[a] } else { &self.inverse[a] };
+            let m = self.n[a];
+            if a == 0 {
+                plan.process_with_scratch(field, &mut self.scratch);
+                continue;
+            }
+            // Gather the lines along `a` contiguously, transform, scatter back.
+            let inner: usize = self.n[..a].iter().product();
+            let lines = &mut self.lines;
+            let (block, blocks) = (inner * m, cells / (inner * m));
+            for b in 0..blocks {
+                for k in 0..m {
+                    for i in 0..inner {
+                        lines[(b * inner + i) * m + k] = field[b * block + k * inner + i];
+                    }
+                }
+            }
+            plan.process_with_scratch(lines, &mut self.scratch);
+            for b in 0..blocks {
+                for k in 0..m {
+                    for i in 0..inner {
+                        field[b * block + k * inner + i] = lines[(b * inner + i) * m + k];
+                    }
+                }
+            }
+        }
+    }
 }
 
 impl<const D: usize> std::fmt::Debug for FftProjection<D> {
@@ -54,9 +111,6 @@ impl<const D: usize> FftProjection<D> {
     /// If an axis has fewer than 2 cells.
     pub fn new(n: [usize; D]) -> Self {
         assert!(n.iter().all(|&m| m >= 2), "fft projection: every axis needs at least 2 cells, got {n:?}");
-        let mut planner = FftPlanner::<f64>::new();
-        let forward: Vec<_> = n.iter().map(|&m| planner.plan_fft_forward(m)).collect();
-        let inverse: Vec<_> = n.iter().map(|&m| planner.plan_fft_inverse(m)).collect();
         let div = n.map(|m| {
             (0..m)
                 .map(|k| {
@@ -66,17 +120,13 @@ impl<const D: usize> FftProjection<D> {
                 .collect()
         });
         let cells: usize = n.iter().product();
-        let scratch_len = forward.iter().chain(&inverse).map(|f| f.get_inplace_scratch_len()).max().unwrap_or(0);
         let pairs = D.div_ceil(2);
         Self {
             n,
-            forward,
-            inverse,
+            transforms: Transforms::new(&n),
             div,
             spectra: vec![vec![Complex::default(); cells]; pairs],
             projected: vec![vec![Complex::default(); cells]; pairs],
-            lines: vec![Complex::default(); cells],
-            scratch: vec![Complex::default(); scratch_len],
         }
     }
 
@@ -189,44 +239,16 @@ impl<const D: usize> FftProjection<D> {
     }
 
     /// The `D`-dimensional transform of pair `p`'s field, forward or inverse
-    /// (unnormalised), one axis at a time.
+    /// (unnormalised).
     fn transform(&mut self, p: usize, forward: bool) {
-        let cells = self.lines.len();
-        for a in 0..D {
-            let plan = if forward { &self.forward[a] } else { &self.inverse[a] };
-            let m = self.n[a];
-            if a == 0 {
-                plan.process_with_scratch(&mut self.spectra[p], &mut self.scratch);
-                continue;
-            }
-            // Gather the lines along `a` contiguously, transform, scatter back.
-            let inner: usize = self.n[..a].iter().product();
-            let field = &mut self.spectra[p];
-            let lines = &mut self.lines;
-            let (block, blocks) = (inner * m, cells / (inner * m));
-            for b in 0..blocks {
-                for k in 0..m {
-                    for i in 0..inner {
-                        lines[(b * inner + i) * m + k] = field[b * block + k * inner + i];
-                    }
-                }
-            }
-            plan.process_with_scratch(lines, &mut self.scratch);
-            for b in 0..blocks {
-                for k in 0..m {
-                    for i in 0..inner {
-                        field[b * block + k * inner + i] = lines[(b * inner + i) * m + k];
-                    }
-                }
-            }
-        }
+        self.transforms.apply(&mut self.spectra[p], forward);
     }
 
     /// The projection mode by mode: each component's spectrum split out of
     /// its pair (`U(k) = (Z(k) + conj Z(−k))/2`, `V(k) = (Z(k) − conj
     /// Z(−k))/2i`), `p = D·U / (D·G)`, `U −= G·p`, joined again.
     fn multiply(&mut self) {
-        let cells = self.lines.len();
+        let cells = self.spectra[0].len();
         let mut q = [0usize; D];
         for c in 0..cells {
             // The mirrored mode −k, and the symbols.

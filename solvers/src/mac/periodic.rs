@@ -48,9 +48,8 @@ pub struct Periodic<const D: usize> {
 #[derive(Debug)]
 pub struct PeriodicWork<const D: usize> {
     fft: FftProjection<D>,
-    advected: Vec<Vec<f64>>,
-    hat: Vec<f64>,
-    tilde: Vec<f64>,
+    next: Vec<f64>,
+    scratch: Vec<f64>,
 }
 
 impl<const D: usize> Periodic<D> {
@@ -66,63 +65,158 @@ impl<const D: usize> Periodic<D> {
 
     /// Buffers for [`Self::step`].
     pub fn work(&self) -> PeriodicWork<D> {
-        let longest = (0..D).map(|a| self.face_len(a)).max().unwrap_or(0);
-        PeriodicWork {
-            fft: FftProjection::new(self.n),
-            advected: (0..D).map(|a| vec![0.0; self.face_len(a)]).collect(),
-            hat: vec![0.0; longest],
-            tilde: vec![0.0; longest],
-        }
+        PeriodicWork { fft: FftProjection::new(self.n), next: vec![0.0; self.n_vel()], scratch: vec![0.0; self.explicit_scratch_len()] }
     }
 
-    /// The number of equal sub-steps a step of `dt` takes from the velocity
-    /// `vel`: the fewest that keep `κ` within [`viscous_limit`] and the
-    /// Courant number within [`COURANT_LIMIT`].
-    pub fn substeps(&self, dt: f64, vel: &[&[f64]; D]) -> usize {
-        let speed = vel.iter().flat_map(|v| v.iter()).fold(0.0f64, |m, u| m.max(u.abs()));
-        let kappa = self.viscosity * dt / (self.h * self.h);
+    /// The number of equal sub-steps a step of `dt` takes from the packed
+    /// velocity `vel` with viscosity `nu`: the fewest that keep `κ` within
+    /// [`viscous_limit`] and the Courant number within [`COURANT_LIMIT`].
+    pub fn substeps(&self, nu: f64, dt: f64, vel: &[f64]) -> usize {
+        let speed = vel.iter().fold(0.0f64, |m, u| m.max(u.abs()));
+        let kappa = nu * dt / (self.h * self.h);
         let courant = speed * dt / self.h;
         let k = (kappa / viscous_limit(D)).max(courant / COURANT_LIMIT).ceil();
         (k as usize).max(1)
     }
 
-    /// One step of `dt` in place on the velocity `vel` (the face arrays of
-    /// each axis): [`Self::substeps`] sub-steps of advection, viscosity and
-    /// projection. Returns the number of sub-steps.
+    /// One step of `dt` in place on the packed velocity `vel` (`[u, v(,
+    /// w)]`, each face array with its copies): [`Self::substeps`] sub-steps
+    /// of advection, viscosity and projection. Returns the number of
+    /// sub-steps.
     ///
     /// # Panics
-    /// If an array has the wrong length.
-    pub fn step(&self, dt: f64, vel: &mut [Vec<f64>], work: &mut PeriodicWork<D>) -> usize {
-        assert_eq!(vel.len(), D, "periodic step: one face array per axis");
-        for (a, v) in vel.iter().enumerate() {
-            assert_eq!(v.len(), self.face_len(a), "periodic step: length of the velocity of axis {a}");
-        }
-        let k = self.substeps(dt, &std::array::from_fn(|a| vel[a].as_slice()));
-        let sdt = dt / k as f64;
+    /// If `vel` has the wrong length.
+    pub fn step(&self, dt: f64, vel: &mut [f64], work: &mut PeriodicWork<D>) -> usize {
+        assert_eq!(vel.len(), self.n_vel(), "periodic step: length of the packed velocity");
+        let k = self.substeps(self.viscosity, dt, vel);
         for _ in 0..k {
-            self.substep(sdt, vel, work);
+            self.substep(dt / k as f64, vel, work);
         }
         k
     }
 
-    /// One sub-step of `dt` (no splitting).
-    pub fn substep(&self, dt: f64, vel: &mut [Vec<f64>], work: &mut PeriodicWork<D>) {
-        let mac = self.mac();
-        {
-            let v: [&[f64]; D] = std::array::from_fn(|a| vel[a].as_slice());
-            for a in 0..D {
-                let len = v[a].len();
-                let (hat, tilde) = (&mut work.hat[..len], &mut work.tilde[..len]);
-                advect_field(mac, At::Face(a), self.scheme, dt / self.h, v, v[a], &mut work.advected[a], hat, tilde);
-            }
+    /// One sub-step of `dt` (no splitting): [`Self::explicit`], then the
+    /// projection.
+    pub fn substep(&self, dt: f64, vel: &mut [f64], work: &mut PeriodicWork<D>) {
+        self.explicit(self.viscosity, dt, vel, &mut work.next, &mut work.scratch);
+        self.project(&mut work.fft, &mut work.next);
+        vel.copy_from_slice(&work.next);
+    }
+
+    /// The projection of the packed velocity `vel` by `fft`, in place.
+    pub fn project(&self, fft: &mut FftProjection<D>, vel: &mut [f64]) {
+        fft.project(self.components(vel));
+    }
+
+    /// The adjoint of [`Self::project`] on the packed adjoint `g`, in place.
+    pub fn project_adjoint(&self, fft: &mut FftProjection<D>, g: &mut [f64]) {
+        fft.project_adjoint(self.components(g));
+    }
+
+    /// The packed velocity cut into its components.
+    fn components<'a>(&self, vel: &'a mut [f64]) -> [&'a mut [f64]; D] {
+        let mut parts = Vec::with_capacity(D);
+        let mut rest = vel;
+        for a in 0..D {
+            let (head, tail) = rest.split_at_mut(self.face_len(a));
+            parts.push(head);
+            rest = tail;
         }
-        let kappa = self.viscosity * dt / (self.h * self.h);
+        parts.try_into().expect("one face array per axis")
+    }
+}
+
+impl<const D: usize> Periodic<D> {
+    /// Length of the packed velocity `[u, v(, w)]` (each face array with
+    /// its copies).
+    pub fn n_vel(&self) -> usize {
+        (0..D).map(|a| self.face_len(a)).sum()
+    }
+
+    /// Scratch [`Self::explicit`] needs: the advected velocity and, for
+    /// MacCormack, two fields of the longest component.
+    pub fn explicit_scratch_len(&self) -> usize {
+        let longest = (0..D).map(|a| self.face_len(a)).max().unwrap_or(0);
+        self.n_vel() + 2 * longest
+    }
+
+    /// The explicit part of one sub-step on the packed velocity `x`:
+    /// advection over `dt`, then viscosity `nu`, written to `y` (the
+    /// projection follows, outside). `nu` and `dt` are arguments so that a
+    /// gradient reaches them. Plain loops on slices, one call per component
+    /// (Enzyme differentiates this).
+    ///
+    /// # Panics
+    /// If a length is wrong.
+    pub fn explicit(&self, nu: f64, dt: f64, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+        let n_vel = self.n_vel();
+        assert!(x.len() == n_vel && y.len() == n_vel && scratch.len() >= self.explicit_scratch_len(), "periodic step: packed lengths");
+        let mac = self.mac();
+        let (l0, l1) = (self.face_len(0), self.face_len(1));
+        let (advected, rest) = scratch.split_at_mut(n_vel);
+        let half = (rest.len() / 2).min(l0.max(l1).max(if D == 3 { self.face_len(2) } else { 0 }));
+        let (hat, rest) = rest.split_at_mut(half);
+        let tilde = &mut rest[..half];
+        // The components, each a slice of the packed state (a splat of the
+        // first, the others set: see `Lattice::row_start`).
+        let mut vel = [&x[..l0]; D];
+        vel[1] = &x[l0..l0 + l1];
+        if D == 3 {
+            vel[2] = &x[l0 + l1..];
+        }
+        let cells = dt / self.h;
+        advect_field(mac, At::Face(0), self.scheme, cells, vel, vel[0], &mut advected[..l0], &mut hat[..l0], &mut tilde[..l0]);
+        advect_field(mac, At::Face(1), self.scheme, cells, vel, vel[1], &mut advected[l0..l0 + l1], &mut hat[..l1], &mut tilde[..l1]);
+        if D == 3 {
+            let l2 = n_vel - l0 - l1;
+            advect_field(mac, At::Face(2), self.scheme, cells, vel, vel[2], &mut advected[l0 + l1..], &mut hat[..l2], &mut tilde[..l2]);
+        }
+        let kappa = nu * dt / (self.h * self.h);
+        diffuse(&mac.lattice(At::Face(0)), 0, kappa, &advected[..l0], &mut y[..l0]);
+        diffuse(&mac.lattice(At::Face(1)), 1, kappa, &advected[l0..l0 + l1], &mut y[l0..l0 + l1]);
+        if D == 3 {
+            diffuse(&mac.lattice(At::Face(2)), 2, kappa, &advected[l0 + l1..], &mut y[l0 + l1..]);
+        }
+    }
+
+    /// How far the packed velocity `x` and the time step `dt` may move along
+    /// `(dx, ddt)` before a trace of one sub-step crosses a lattice plane,
+    /// where multilinear sampling kinks (for MacCormack, the forward trace
+    /// too; its limiter is not counted). Over the first sub-step only.
+    pub fn radius(&self, dt: f64, x: &[f64], dx: &[f64], ddt: f64) -> f64 {
+        let mac = self.mac();
+        let split = |f: &[f64]| -> Vec<Vec<f64>> {
+            let mut start = 0;
+            (0..D)
+                .map(|a| {
+                    let part = f[start..start + self.face_len(a)].to_vec();
+                    start += self.face_len(a);
+                    part
+                })
+                .collect()
+        };
+        let (vel, dvel) = (split(x), split(dx));
+        let vel: [&[f64]; D] = std::array::from_fn(|a| vel[a].as_slice());
+        let dvel: [&[f64]; D] = std::array::from_fn(|a| dvel[a].as_slice());
+        let signs: &[f64] = match self.scheme {
+            Scheme::SemiLagrangian => &[1.0],
+            Scheme::MacCormack { .. } => &[1.0, -1.0],
+        };
+        let mut r = f64::INFINITY;
         for a in 0..D {
             let lat = mac.lattice(At::Face(a));
-            diffuse(&lat, a, kappa, &work.advected[a], &mut vel[a]);
+            for q in lat.points() {
+                let (v, dv) = (mac.velocity(At::Face(a), vel, q), mac.velocity(At::Face(a), dvel, q));
+                for &sign in signs {
+                    for b in 0..D {
+                        let pos = q[b] as f64 - sign * dt * v[b] / self.h;
+                        let speed = sign * (dt * dv[b] + ddt * v[b]) / self.h;
+                        r = r.min(crate::grid::lattice_gap(pos, speed));
+                    }
+                }
+            }
         }
-        let arrays: Vec<&mut [f64]> = vel.iter_mut().map(|v| v.as_mut_slice()).collect();
-        work.fft.project(arrays.try_into().expect("one face array per axis"));
+        r
     }
 }
 
@@ -135,27 +229,33 @@ pub fn diffuse<const D: usize>(lat: &super::Lattice<D>, axis: usize, kappa: f64,
         for r in 0..lat.rows_per_slab() {
             let q = lat.row_start(k, r);
             let row = lat.index(q);
-            // The rows beside this one along the other axes (wrapped): the
-            // same for every sample of the row.
-            let mut beside = [(row, row); 3];
-            for a in 1..D {
-                let (st, n) = (lat.stride[a], lat.n[a]);
-                let down = if q[a] == 0 { row + (n - 1) * st } else { row - st };
-                let up = if q[a] + 1 == n { row - (n - 1) * st } else { row + st };
-                beside[a] = (down, up);
-            }
+            // The rows beside this one along y and z (wrapped; z's only in
+            // 3D): the same for every sample of the row.
+            let (y0, y1) = neighbours(lat, q, row, 1);
+            let (z0, z1) = if D == 3 { neighbours(lat, q, row, 2) } else { (row, row) };
             for i in 0..m {
                 let (left, right) = (if i == 0 { m - 1 } else { i - 1 }, if i + 1 == m { 0 } else { i + 1 });
                 let c = s[row + i];
                 let mut lap = s[row + left] + s[row + right] - 2.0 * c;
-                for &(down, up) in &beside[1..D] {
-                    lap += s[down + i] + s[up + i] - 2.0 * c;
+                lap += s[y0 + i] + s[y1 + i] - 2.0 * c;
+                if D == 3 {
+                    lap += s[z0 + i] + s[z1 + i] - 2.0 * c;
                 }
                 out[row + i] = c + kappa * lap;
             }
         }
     }
     refresh_copies(lat, axis, out);
+}
+
+/// The rows before and after the row starting at `row` (point `q`) along
+/// axis `a`, wrapped.
+#[inline(always)]
+fn neighbours<const D: usize>(lat: &super::Lattice<D>, q: [usize; D], row: usize, a: usize) -> (usize, usize) {
+    let (st, n) = (lat.stride[a], lat.n[a]);
+    let down = if q[a] == 0 { row + (n - 1) * st } else { row - st };
+    let up = if q[a] + 1 == n { row - (n - 1) * st } else { row + st };
+    (down, up)
 }
 
 /// On the face lattice of `axis`, face `n` (the copy) set to face 0.
