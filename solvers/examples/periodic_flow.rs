@@ -20,6 +20,17 @@ fn taylor_green(n: usize, f: f64) -> Vec<Vec<f64>> {
     vec![u.collect(), v.collect()]
 }
 
+/// The shortest of `runs` calls of `f`, in seconds.
+fn best_of(runs: usize, mut f: impl FnMut()) -> f64 {
+    (0..runs)
+        .map(|_| {
+            let start = Instant::now();
+            f();
+            start.elapsed().as_secs_f64()
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
 fn main() {
     let (nu, t) = (0.05, 1.0);
     println!("2D Taylor-Green vortex on [0, 2pi]^2, nu = {nu}, t = {t}, time step 0.5 h: largest error on the faces");
@@ -50,26 +61,18 @@ fn main() {
         for n in [64usize, 128] {
             let flow = Periodic { n: [n, n], h: 2.0 * PI / n as f64, viscosity: 0.01, scheme };
             let (mut work, mut vel) = (flow.work(), taylor_green(n, 1.0).concat());
-            let best = (0..20)
-                .map(|_| {
-                    let start = Instant::now();
-                    flow.step(0.5 * flow.h, &mut vel, &mut work);
-                    start.elapsed().as_secs_f64()
-                })
-                .fold(f64::INFINITY, f64::min);
+            let best = best_of(20, || {
+                flow.step(0.5 * flow.h, &mut vel, &mut work);
+            });
             println!("  2D {n}² {scheme:?}: {:.0} µs", best * 1e6);
         }
         let n = 32;
         let flow = Periodic { n: [n, n, n], h: 2.0 * PI / n as f64, viscosity: 0.01, scheme };
         let mut work = flow.work();
         let mut vel: Vec<f64> = (0..flow.n_vel()).map(|k| ((k as f64) * 0.618).fract() - 0.5).collect();
-        let best = (0..5)
-            .map(|_| {
-                let start = Instant::now();
-                flow.step(0.5 * flow.h, &mut vel, &mut work);
-                start.elapsed().as_secs_f64()
-            })
-            .fold(f64::INFINITY, f64::min);
+        let best = best_of(5, || {
+            flow.step(0.5 * flow.h, &mut vel, &mut work);
+        });
         println!("  3D {n}³ {scheme:?}: {:.0} µs", best * 1e6);
     }
 }

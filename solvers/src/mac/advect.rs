@@ -18,23 +18,12 @@ use crate::smoke::Scheme;
 /// the top faces of the slowest axis), `out` holding those slabs.
 #[inline(always)]
 pub(crate) fn trace<const D: usize, W: Wraps<D>>(mac: Mac<D, W>, at: At, vel: [&[f64]; D], f: &[f64], dt: f64, ks: Range<usize>, out: &mut [f64]) {
-    let lat = mac.lattice(at);
-    let end = if ks.end == mac.n[D - 1] { lat.n[D - 1] } else { ks.end };
-    let base = ks.start * lat.stride[D - 1];
-    for k in ks.start..end {
-        for r in 0..lat.rows_per_slab() {
-            let mut q = lat.row_start(k, r);
-            let row = lat.index(q) - base;
-            for i in 0..lat.n[0] {
-                q[0] = i;
-                out[row + i] = traced(mac, at, &lat, vel, f, dt, q);
-            }
-        }
-    }
+    let end = if ks.end == mac.n[D - 1] { mac.lattice(at).n[D - 1] } else { ks.end };
+    trace_block(mac, at, vel, f, dt, ks.start..end, out)
 }
 
 /// [`trace`] over the whole lattice with blocks of slabs split over
-/// threads (the same values). The serial loop above stays as it is: Enzyme
+/// threads (the same values). The serial trace stays unsliced: Enzyme
 /// differentiates it, and slicing the output per slab there trips its
 /// reverse pass (docs/enzyme.md).
 pub(crate) fn trace_parallel<const D: usize, W: Wraps<D>>(mac: Mac<D, W>, at: At, vel: [&[f64]; D], f: &[f64], dt: f64, out: &mut [f64]) {
@@ -55,8 +44,8 @@ pub(crate) fn trace_parallel<const D: usize, W: Wraps<D>>(mac: Mac<D, W>, at: At
     });
 }
 
-/// Slabs `ks` of [`trace`] into `o` (those slabs of the lattice's array,
-/// without the extra top slab).
+/// Lattice slabs `ks` traced into `o` (those slabs of the lattice's array):
+/// the loop of [`trace`] and of each piece of [`trace_parallel`].
 #[inline(always)]
 fn trace_block<const D: usize, W: Wraps<D>>(mac: Mac<D, W>, at: At, vel: [&[f64]; D], f: &[f64], dt: f64, ks: Range<usize>, o: &mut [f64]) {
     let lat = mac.lattice(at);
@@ -174,15 +163,19 @@ pub(crate) fn unclamped<const D: usize, W: Wraps<D>>(mac: Mac<D, W>, at: At, dt:
 /// `lattices` meet a kink: multilinear sampling is smooth between lattice
 /// planes and kinks where a traced point crosses one (or a clamped edge).
 /// The smallest, over the points traced back by each of `steps` (the time
-/// steps of the traces: `[dt]`, or `[dt, −dt]` for MacCormack) with the
-/// velocity `vel` moving at `dvel`, of the distance to the nearest plane
-/// over the speed at which the point moves; ∞ when none moves. Points for
-/// which `set(at, q)` holds are skipped (faces the boundary conditions set
-/// after the trace: where their trace lands does not matter).
+/// steps of the traces, in cells per unit speed: `[dt]`, or `[dt, −dt]`
+/// for MacCormack; each moving at its entry of `rates`, 0 when the step is
+/// fixed) with the velocity `vel` moving at `dvel`, of the distance to the
+/// nearest plane over the speed at which the point moves; ∞ when none
+/// moves. Points for which `set(at, q)` holds are skipped (faces the
+/// boundary conditions set after the trace: where their trace lands does
+/// not matter).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn advect_radius<const D: usize, W: Wraps<D>>(
     mac: Mac<D, W>,
     lattices: &[At],
     steps: &[f64],
+    rates: &[f64],
     vel: [&[f64]; D],
     dvel: [&[f64]; D],
     set: impl Fn(At, [usize; D]) -> bool,
@@ -192,9 +185,9 @@ pub(crate) fn advect_radius<const D: usize, W: Wraps<D>>(
         let lat = mac.lattice(at);
         for q in lat.points().filter(|&q| !set(at, q)) {
             let (v, dv) = (mac.velocity(at, vel, q), mac.velocity(at, dvel, q));
-            for &sdt in steps {
+            for (&sdt, &rate) in steps.iter().zip(rates) {
                 for a in 0..D {
-                    r = r.min(crate::grid::lattice_gap(q[a] as f64 - sdt * v[a], sdt * dv[a]));
+                    r = r.min(crate::grid::lattice_gap(q[a] as f64 - sdt * v[a], sdt * dv[a] + rate * v[a]));
                 }
             }
         }

@@ -15,9 +15,10 @@
 //! once per call from the velocity it starts from (so that a call is one
 //! function of its input, and its gradient that function's).
 
-use super::advect::advect_field;
+use super::advect::{advect_field, advect_radius};
 use super::fft::FftProjection;
 use super::{At, Mac, Wrapping};
+use crate::diffusion::Grid;
 use crate::smoke::Scheme;
 
 /// Largest `κ = ν·dt/h²` of one explicit viscous sub-step in `D`
@@ -113,7 +114,18 @@ impl<const D: usize> Periodic<D> {
         fft.project_adjoint(self.components(g));
     }
 
-    /// The packed velocity cut into its components.
+    /// The packed velocity's components.
+    fn parts<'a>(&self, vel: &'a [f64]) -> [&'a [f64]; D] {
+        let mut parts = [vel; D];
+        let mut start = 0;
+        for (a, part) in parts.iter_mut().enumerate() {
+            *part = &vel[start..start + self.face_len(a)];
+            start += self.face_len(a);
+        }
+        parts
+    }
+
+    /// The packed velocity cut into its components, mutably.
     fn components<'a>(&self, vel: &'a mut [f64]) -> [&'a mut [f64]; D] {
         let mut parts = Vec::with_capacity(D);
         let mut rest = vel;
@@ -157,13 +169,7 @@ impl<const D: usize> Periodic<D> {
         let half = (rest.len() / 2).min(l0.max(l1).max(if D == 3 { self.face_len(2) } else { 0 }));
         let (hat, rest) = rest.split_at_mut(half);
         let tilde = &mut rest[..half];
-        // The components, each a slice of the packed state (a splat of the
-        // first, the others set: see `Lattice::row_start`).
-        let mut vel = [&x[..l0]; D];
-        vel[1] = &x[l0..l0 + l1];
-        if D == 3 {
-            vel[2] = &x[l0 + l1..];
-        }
+        let vel = self.parts(x);
         let cells = dt / self.h;
         advect_field(mac, At::Face(0), self.scheme, cells, vel, vel[0], &mut advected[..l0], &mut hat[..l0], &mut tilde[..l0]);
         advect_field(mac, At::Face(1), self.scheme, cells, vel, vel[1], &mut advected[l0..l0 + l1], &mut hat[..l1], &mut tilde[..l1]);
@@ -184,78 +190,27 @@ impl<const D: usize> Periodic<D> {
     /// where multilinear sampling kinks (for MacCormack, the forward trace
     /// too; its limiter is not counted). Over the first sub-step only.
     pub fn radius(&self, dt: f64, x: &[f64], dx: &[f64], ddt: f64) -> f64 {
-        let mac = self.mac();
-        let split = |f: &[f64]| -> Vec<Vec<f64>> {
-            let mut start = 0;
-            (0..D)
-                .map(|a| {
-                    let part = f[start..start + self.face_len(a)].to_vec();
-                    start += self.face_len(a);
-                    part
-                })
-                .collect()
+        let (cells, rate) = (dt / self.h, ddt / self.h);
+        let (steps, rates): (&[f64], &[f64]) = match self.scheme {
+            Scheme::SemiLagrangian => (&[cells], &[rate]),
+            Scheme::MacCormack { .. } => (&[cells, -cells], &[rate, -rate]),
         };
-        let (vel, dvel) = (split(x), split(dx));
-        let vel: [&[f64]; D] = std::array::from_fn(|a| vel[a].as_slice());
-        let dvel: [&[f64]; D] = std::array::from_fn(|a| dvel[a].as_slice());
-        let signs: &[f64] = match self.scheme {
-            Scheme::SemiLagrangian => &[1.0],
-            Scheme::MacCormack { .. } => &[1.0, -1.0],
-        };
-        let mut r = f64::INFINITY;
-        for a in 0..D {
-            let lat = mac.lattice(At::Face(a));
-            for q in lat.points() {
-                let (v, dv) = (mac.velocity(At::Face(a), vel, q), mac.velocity(At::Face(a), dvel, q));
-                for &sign in signs {
-                    for b in 0..D {
-                        let pos = q[b] as f64 - sign * dt * v[b] / self.h;
-                        let speed = sign * (dt * dv[b] + ddt * v[b]) / self.h;
-                        r = r.min(crate::grid::lattice_gap(pos, speed));
-                    }
-                }
-            }
-        }
-        r
+        let lattices: Vec<At> = (0..D).map(At::Face).collect();
+        advect_radius(self.mac(), &lattices, steps, rates, self.parts(x), self.parts(dx), |_, _| false)
     }
 }
 
 /// `out = s + κ·Δs` on the own samples of the periodic face lattice `lat`
-/// of `axis` (the `2D+1`-point Laplacian, wrapping on every axis), its
-/// copies (face `n` along `axis`) refreshed.
+/// of `axis` (the `2D+1`-point Laplacian, wrapping on every axis:
+/// [`crate::diffusion::explicit`] on the lattice's [`Grid`]), its copies
+/// (face `n` along `axis`) refreshed.
 pub fn diffuse<const D: usize>(lat: &super::Lattice<D>, axis: usize, kappa: f64, s: &[f64], out: &mut [f64]) {
-    let m = lat.n[0];
-    for k in 0..lat.n[D - 1] {
-        for r in 0..lat.rows_per_slab() {
-            let q = lat.row_start(k, r);
-            let row = lat.index(q);
-            // The rows beside this one along y and z (wrapped; z's only in
-            // 3D): the same for every sample of the row.
-            let (y0, y1) = neighbours(lat, q, row, 1);
-            let (z0, z1) = if D == 3 { neighbours(lat, q, row, 2) } else { (row, row) };
-            for i in 0..m {
-                let (left, right) = (if i == 0 { m - 1 } else { i - 1 }, if i + 1 == m { 0 } else { i + 1 });
-                let c = s[row + i];
-                let mut lap = s[row + left] + s[row + right] - 2.0 * c;
-                lap += s[y0 + i] + s[y1 + i] - 2.0 * c;
-                if D == 3 {
-                    lap += s[z0 + i] + s[z1 + i] - 2.0 * c;
-                }
-                out[row + i] = c + kappa * lap;
-            }
-        }
-    }
+    // Rows per slab in the array (one more along `axis` when it is y).
+    let rows = if D == 3 { lat.stride[2] / lat.stride[1] } else { lat.len / lat.stride[1] };
+    let grid =
+        Grid { stride: lat.stride[1], nx: lat.n[0], ny: lat.n[1], nz: if D == 3 { lat.n[2] } else { 1 }, wrap_x: true, wrap_y: true, wrap_z: D == 3, rows };
+    crate::diffusion::explicit(&grid, kappa, s, out);
     refresh_copies(lat, axis, out);
-}
-
-/// The rows before and after the row starting at `row` (point `q`) along
-/// axis `a`, wrapped.
-#[inline(always)]
-fn neighbours<const D: usize>(lat: &super::Lattice<D>, q: [usize; D], row: usize, a: usize) -> (usize, usize) {
-    let (st, n) = (lat.stride[a], lat.n[a]);
-    let down = if q[a] == 0 { row + (n - 1) * st } else { row - st };
-    let up = if q[a] + 1 == n { row - (n - 1) * st } else { row + st };
-    (down, up)
 }
 
 /// On the face lattice of `axis`, face `n` (the copy) set to face 0.

@@ -115,7 +115,7 @@ pub fn advect_radius(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, veloci
         Scheme::SemiLagrangian => &[dt],
         Scheme::MacCormack { .. } => &[dt, -dt],
     };
-    crate::mac::advect::advect_radius(cfg.mac(), &lattices(smoke, velocity), steps, [u, v], [du, dv], |at, q| set_by_boundary(cfg, at, q))
+    crate::mac::advect::advect_radius(cfg.mac(), &lattices(smoke, velocity), steps, &[0.0; 2], [u, v], [du, dv], |at, q| set_by_boundary(cfg, at, q))
 }
 
 /// Whether point `q` of the lattice `at` is a face on a closed or inflow

@@ -75,7 +75,7 @@ pub fn advect3_radius(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool
     };
     // A face on a wall is set by the walls after the trace (when the
     // velocity is advected, as it is on its lattices).
-    crate::mac::advect::advect_radius(cfg.mac(), &lattices(smoke, velocity), steps, [u, v, w], [du, dv, dw], |at, q| set_by_boundary(cfg, at, q))
+    crate::mac::advect::advect_radius(cfg.mac(), &lattices(smoke, velocity), steps, &[0.0; 2], [u, v, w], [du, dv, dw], |at, q| set_by_boundary(cfg, at, q))
 }
 
 /// How far `x` may move along `d` before MacCormack's limiter switches (the
