@@ -116,13 +116,13 @@ criterion_main!(benches);
 fn periodic_projection(c: &mut Criterion) {
     use diffsim_solvers::boundary::{Boundary, Side};
     use diffsim_solvers::mac::fft::FftProjection;
-    use diffsim_solvers::smoke::{self, ProjectScratch, Smoke2d};
-    use diffsim_solvers::smoke3d::{self, PressureSolver3, Smoke3d};
+    use diffsim_solvers::smoke::{self, MacGrid, ProjectScratch};
+    use diffsim_solvers::smoke3d::{self, PressureSolver3};
     let field = |len: usize| -> Vec<f64> { (0..len).map(|k| ((k as f64) * 0.618).fract() - 0.5).collect() };
     let mut g = c.benchmark_group("periodic_projection");
     g.sample_size(20);
     for n in [64, 128] {
-        let cfg = Smoke2d::new(n, n).with_boundary(Boundary::all(Side::Periodic));
+        let cfg = MacGrid::new([n, n]).with_boundary(Boundary::all(Side::Periodic));
         let x = field(cfg.n_state());
         let mut y = x.clone();
         let mut solver = smoke::PressureSolver::general(n, n, cfg.boundary, 1e-8, 5000, None);
@@ -137,13 +137,13 @@ fn periodic_projection(c: &mut Criterion) {
         g.bench_function(BenchmarkId::new("fft_2d", n), |b| {
             b.iter(|| {
                 y.copy_from_slice(&x);
-                let (_, u, v) = cfg.split_mut(&mut y);
+                let (_, [u, v]) = cfg.split_mut(&mut y);
                 fft.project([u, v])
             })
         });
     }
     let n = 32;
-    let cfg = Smoke3d::new(n, n, n, 1.0).with_boundary(Boundary::all(Side::Periodic));
+    let cfg = MacGrid::new([n, n, n]).with_dt(1.0).with_boundary(Boundary::all(Side::Periodic));
     let x = field(cfg.n_state());
     let mut y = x.clone();
     let mut solver = PressureSolver3::new(&cfg, 1e-8, 5000, smoke::Preconditioner::Multigrid);
@@ -158,7 +158,7 @@ fn periodic_projection(c: &mut Criterion) {
     g.bench_function(BenchmarkId::new("fft_3d", n), |b| {
         b.iter(|| {
             y.copy_from_slice(&x);
-            let [_, u, v, w] = cfg.split_mut(&mut y);
+            let (_, [u, v, w]) = cfg.split_mut(&mut y);
             fft.project([u, v, w])
         })
     });

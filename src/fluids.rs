@@ -11,8 +11,8 @@ use std::cell::{Cell, RefCell};
 
 use diffsim_solvers::boundary::Boundary;
 use diffsim_solvers::diffusion::{self, Grid};
-use diffsim_solvers::smoke::{self, NoConvergence, Preconditioner, PressureSolver, ProjectScratch, Scheme, Smoke2d};
-use diffsim_solvers::smoke3d::{self, Smoke3d};
+use diffsim_solvers::smoke::{self, MacGrid, NoConvergence, Preconditioner, PressureSolver, ProjectScratch, Scheme};
+use diffsim_solvers::smoke3d;
 
 use crate::implicit::{LinearSolve, LinearSystem, SolveMethod, SolveParams, Start};
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
@@ -259,9 +259,9 @@ pub struct Diffuse<D> {
 #[derive(Clone, Copy, Debug)]
 enum Walls {
     /// A 2D box's sides ([`smoke::enforce_boundary`]).
-    Box(Smoke2d),
+    Box(MacGrid<2>),
     /// A 3D box's sides ([`smoke3d::enforce_boundary3`]).
-    Box3(Smoke3d),
+    Box3(MacGrid<3>),
 }
 
 impl Walls {
@@ -269,11 +269,11 @@ impl Walls {
     fn apply(&self, y: &mut [f64]) {
         match self {
             Walls::Box(cfg) => {
-                let (_, u, v) = cfg.split_mut(y);
+                let (_, [u, v]) = cfg.split_mut(y);
                 smoke::enforce_boundary(cfg, u, v);
             }
             Walls::Box3(cfg) => {
-                let [_, u, v, w] = cfg.split_mut(y);
+                let (_, [u, v, w]) = cfg.split_mut(y);
                 smoke3d::enforce_boundary3(cfg, [u, v, w]);
             }
         }
@@ -283,11 +283,11 @@ impl Walls {
     fn apply_linear(&self, t: &mut [f64]) {
         match self {
             Walls::Box(cfg) => {
-                let (_, u, v) = cfg.split_mut(t);
+                let (_, [u, v]) = cfg.split_mut(t);
                 smoke::enforce_boundary_linear(cfg, u, v);
             }
             Walls::Box3(cfg) => {
-                let [_, u, v, w] = cfg.split_mut(t);
+                let (_, [u, v, w]) = cfg.split_mut(t);
                 smoke3d::enforce_boundary3_linear(cfg, [u, v, w]);
             }
         }
@@ -297,11 +297,11 @@ impl Walls {
     fn apply_adjoint(&self, g: &mut [f64]) {
         match self {
             Walls::Box(cfg) => {
-                let (_, gu, gv) = cfg.split_mut(g);
+                let (_, [gu, gv]) = cfg.split_mut(g);
                 smoke::enforce_boundary_adjoint(cfg, gu, gv);
             }
             Walls::Box3(cfg) => {
-                let [_, gu, gv, gw] = cfg.split_mut(g);
+                let (_, [gu, gv, gw]) = cfg.split_mut(g);
                 smoke3d::enforce_boundary3_adjoint(cfg, [gu, gv, gw]);
             }
         }
@@ -310,9 +310,9 @@ impl Walls {
 
 impl<D: Operator> Diffuse<D> {
     /// The chosen fields of the box `cfg`, each lattice's operator made by `op`.
-    pub fn in_box(cfg: Smoke2d, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self {
+    pub fn in_box(cfg: MacGrid<2>, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self {
         let [gs, gu, gv] = Grid::of_state(&cfg);
-        let (ns, nu) = (cfg.n_s(), cfg.n_u());
+        let (ns, nu) = (cfg.n_s(), cfg.n_face(0));
         let mut parts = Vec::new();
         if smoke {
             parts.push((0, op(gs)));
@@ -326,12 +326,12 @@ impl<D: Operator> Diffuse<D> {
 
     /// The chosen fields of the closed 3D box `cfg` (`[s, u, v, w]`, each
     /// velocity component on its own faces, the walls closed after).
-    pub fn in_box_3d(cfg: Smoke3d, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self {
+    pub fn in_box_3d(cfg: MacGrid<3>, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self {
         let grids = Grid::of_state_3d(&cfg);
         let mut parts = Vec::new();
         for (f, grid) in grids.into_iter().enumerate() {
             if (f == 0 && smoke) || (f > 0 && velocity) {
-                parts.push((cfg.slab_starts(0)[f], op(grid)));
+                parts.push((if f == 0 { 0 } else { cfg.slab_starts(0).1[f - 1] }, op(grid)));
             }
         }
         Self { n: cfg.n_state(), parts, velocity_box: velocity.then_some(Walls::Box3(cfg)) }
@@ -348,7 +348,7 @@ impl<D: Operator> Diffuse<D> {
 
 impl Diffuse<DiffuseExplicit> {
     /// Explicit diffusion of the smoke and/or the velocity of a box.
-    pub fn explicit(cfg: Smoke2d, smoke: bool, velocity: bool) -> Self {
+    pub fn explicit(cfg: MacGrid<2>, smoke: bool, velocity: bool) -> Self {
         Self::in_box(cfg, smoke, velocity, DiffuseExplicit::on)
     }
 }
@@ -356,7 +356,7 @@ impl Diffuse<DiffuseExplicit> {
 impl Diffuse<DiffuseImplicit> {
     /// Implicit diffusion of the smoke and/or the velocity of a box, each
     /// solve to relative `tolerance` in at most `max_iterations` iterations.
-    pub fn implicit(cfg: Smoke2d, smoke: bool, velocity: bool, tolerance: f64, max_iterations: usize) -> Self {
+    pub fn implicit(cfg: MacGrid<2>, smoke: bool, velocity: bool, tolerance: f64, max_iterations: usize) -> Self {
         Self::in_box(cfg, smoke, velocity, |g| DiffuseImplicit::on(g, tolerance, max_iterations))
     }
 }
@@ -444,7 +444,7 @@ impl<D: Jvp> Jvp for Diffuse<D> {
 #[derive(Clone, Copy, Debug)]
 pub struct AdvectUpwind {
     /// The grid.
-    pub cfg: Smoke2d,
+    pub cfg: MacGrid<2>,
     /// Time step.
     pub dt: f64,
 }
@@ -470,7 +470,7 @@ crate::differentiable!(AdvectUpwind => advect_upwind, smooth_radius = upwind_rad
 #[derive(Clone, Copy, Debug)]
 pub struct Advect {
     /// The grid and its boundary.
-    pub cfg: Smoke2d,
+    pub cfg: MacGrid<2>,
     /// The scheme.
     pub scheme: Scheme,
     /// Time step.
@@ -483,7 +483,7 @@ pub struct Advect {
 
 impl Advect {
     /// Both fields, unit time step.
-    pub fn new(cfg: Smoke2d, scheme: Scheme) -> Self {
+    pub fn new(cfg: MacGrid<2>, scheme: Scheme) -> Self {
         Self { cfg, scheme, dt: 1.0, smoke: true, velocity: true }
     }
 }
@@ -513,13 +513,13 @@ crate::differentiable!(Advect => advect, smooth_radius = advect_radius, scratch 
 
 /// An external force field on the faces as the parameters:
 /// `[s, u, v] ↦ [s, u + dt·fu, v + dt·fv]`, `p = [fu, fv]`
-/// ([`Smoke2d::n_vel`] values, the velocity layout; wall faces are not forced). The parameter
+/// ([`MacGrid<2>::n_vel`] values, the velocity layout; wall faces are not forced). The parameter
 /// gradient is the gradient with respect to the force, for control.
 /// Derivatives by Enzyme.
 #[derive(Clone, Copy, Debug)]
 pub struct Force {
     /// The grid.
-    pub cfg: Smoke2d,
+    pub cfg: MacGrid<2>,
     /// Time step.
     pub dt: f64,
 }
@@ -538,7 +538,7 @@ crate::differentiable!(Force => force);
 #[derive(Clone, Copy, Debug)]
 pub struct Inflow {
     /// The grid.
-    pub cfg: Smoke2d,
+    pub cfg: MacGrid<2>,
     /// Cells `[i0, i1, j0, j1]`, half-open ranges.
     pub region: [usize; 4],
 }
@@ -561,7 +561,7 @@ crate::differentiable!(Inflow => inflow);
 /// through [`Forward::take_error`].
 #[derive(Debug)]
 pub struct Project {
-    cfg: Smoke2d,
+    cfg: MacGrid<2>,
     /// Fluid indicator per cell when there are obstacles.
     fluid: Option<Vec<f64>>,
     solver: RefCell<PressureSolver>,
@@ -613,14 +613,14 @@ impl Project {
     ///
     /// # Panics
     /// If `cfg.boundary` does not [validate](diffsim_solvers::boundary::Boundary::validate).
-    pub fn new(cfg: Smoke2d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
+    pub fn new(cfg: MacGrid<2>, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
         if let Err(e) = cfg.boundary.validate() {
             panic!("{e}");
         }
-        let solver = if cfg.boundary == Boundary::CLOSED && cfg.is_square() {
-            PressureSolver::new(cfg.nx, tolerance, max_iterations, precond)
+        let solver = if cfg.boundary == Boundary::CLOSED && cfg.is_cube() {
+            PressureSolver::new(cfg.n[0], tolerance, max_iterations, precond)
         } else {
-            PressureSolver::general(cfg.nx, cfg.ny, cfg.boundary, tolerance, max_iterations, None)
+            PressureSolver::general(cfg.n[0], cfg.n[1], cfg.boundary, tolerance, max_iterations, None)
         };
         Self { cfg, fluid: None, solver: RefCell::new(solver), scratch: RefCell::new(ProjectScratch::new(cfg.n_s())), log: SolveLog::default() }
     }
@@ -628,10 +628,10 @@ impl Project {
     /// The projection with solid cells where `solid[c]` is true: the
     /// obstacle mask first, then a solve that couples fluid cells only
     /// (CG preconditioned by MIC(0) of that matrix).
-    pub fn with_obstacles(cfg: Smoke2d, tolerance: f64, max_iterations: usize, solid: &[bool]) -> Self {
+    pub fn with_obstacles(cfg: MacGrid<2>, tolerance: f64, max_iterations: usize, solid: &[bool]) -> Self {
         let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
         let mut op = Self::new(cfg, tolerance, max_iterations, Preconditioner::None);
-        op.solver = RefCell::new(PressureSolver::general(cfg.nx, cfg.ny, cfg.boundary, tolerance, max_iterations, Some(fluid.clone())));
+        op.solver = RefCell::new(PressureSolver::general(cfg.n[0], cfg.n[1], cfg.boundary, tolerance, max_iterations, Some(fluid.clone())));
         op.fluid = Some(fluid);
         op
     }
@@ -727,7 +727,7 @@ linear_projection!(Project, "Project");
 #[derive(Clone, Copy, Debug)]
 pub struct Buoyancy {
     /// The grid.
-    pub cfg: Smoke2d,
+    pub cfg: MacGrid<2>,
     /// Time step.
     pub dt: f64,
 }

@@ -6,8 +6,9 @@
 //! it) and the projection with obstacles
 //! ([`crate::problems::smoke3d::Project3`]) are P4's operators.
 
+use diffsim_solvers::smoke::MacGrid;
 use diffsim_solvers::smoke::Scheme;
-use diffsim_solvers::smoke3d::{self, Smoke3d};
+use diffsim_solvers::smoke3d;
 
 /// Buoyancy over a time step `dt` along `axis` (0 x, 1 y, 2 z) with the
 /// coefficient as the parameter `p = [b]`: the component of `axis` on its
@@ -17,7 +18,7 @@ use diffsim_solvers::smoke3d::{self, Smoke3d};
 #[derive(Clone, Copy, Debug)]
 pub struct Buoyancy3 {
     /// The grid.
-    pub cfg: Smoke3d,
+    pub cfg: MacGrid<3>,
     /// Time step.
     pub dt: f64,
     /// The axis the force acts along.
@@ -39,7 +40,7 @@ crate::differentiable!(Buoyancy3 => buoyancy3);
 #[derive(Clone, Copy, Debug)]
 pub struct Inflow3 {
     /// The grid.
-    pub cfg: Smoke3d,
+    pub cfg: MacGrid<3>,
     /// Cells `[i0, i1, j0, j1, k0, k1]`, half-open ranges.
     pub region: [usize; 6],
 }
@@ -53,13 +54,13 @@ fn inflow3(op: &Inflow3, x: &[f64], p: &[f64], y: &mut [f64]) {
 crate::differentiable!(Inflow3 => inflow3);
 
 /// An external force over a time step `dt`, given per velocity face as the
-/// parameters (`p`: [`Smoke3d::n_vel`] values, the velocity's layout):
+/// parameters (`p`: [`MacGrid<3>::n_vel`] values, the velocity's layout):
 /// `vel += dt·p` on the interior faces ([`smoke3d::apply_force3`]).
 /// Derivatives by Enzyme, with respect to the state and the force.
 #[derive(Clone, Copy, Debug)]
 pub struct Force3 {
     /// The grid.
-    pub cfg: Smoke3d,
+    pub cfg: MacGrid<3>,
     /// Time step.
     pub dt: f64,
 }
@@ -82,7 +83,7 @@ crate::differentiable!(Force3 => force3);
 #[derive(Clone, Copy, Debug)]
 pub struct Advect3 {
     /// The grid (its `dt` is the time step).
-    pub cfg: Smoke3d,
+    pub cfg: MacGrid<3>,
     /// The scheme.
     pub scheme: Scheme,
     /// Whether the smoke is advected.
@@ -121,7 +122,7 @@ crate::differentiable!(Advect3 => advect3, smooth_radius = advect3_radius, scrat
 #[derive(Clone, Copy, Debug)]
 pub struct AdvectUpwind3 {
     /// The grid (its `dt` is the time step).
-    pub cfg: Smoke3d,
+    pub cfg: MacGrid<3>,
 }
 
 crate::fluids::state_sizes!(AdvectUpwind3);

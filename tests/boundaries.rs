@@ -7,13 +7,13 @@ use diffsim::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, Force, Project};
 use diffsim::op::{Forward, OperatorExt};
 use diffsim::problems::smoke::{SmokeAdvect, SmokeAdvectHand, SmokeStep};
 use diffsim_solvers::boundary::{Boundary, BoundaryError, Profile, Side};
-use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d, divergence};
+use diffsim_solvers::smoke::{MacGrid, Preconditioner, Scheme, divergence};
 
 use crate::checks::{assert_passes, smoke_state};
 
 /// P2's buoyant box of `nx × ny` cells with boundary `b`.
-fn rect(nx: usize, ny: usize, b: Boundary) -> Smoke2d {
-    Smoke2d { nx, ny, ..Smoke2d::p2(nx).with_boundary(b) }
+fn rect(nx: usize, ny: usize, b: Boundary) -> MacGrid<2> {
+    MacGrid { n: [nx, ny], ..MacGrid::p2(nx).with_boundary(b) }
 }
 
 /// One boundary of each kind, and mixtures.
@@ -101,7 +101,7 @@ fn periodic_advection_wraps_exactly() {
     for (k, s) in x[..cfg.n_s()].iter_mut().enumerate() {
         *s = k as f64;
     }
-    let (us, vs) = (cfg.n_s(), cfg.n_s() + cfg.n_u());
+    let (us, vs) = (cfg.n_s(), cfg.n_s() + cfg.n_face(0));
     x[us..vs].fill(1.0);
     x[vs..].fill(-1.0);
     for scheme in [Scheme::SemiLagrangian, Scheme::MacCormack { limiter: true }] {
@@ -126,10 +126,10 @@ fn a_channel_with_uniform_inflow_carries_it_through_after_one_projection() {
     // one, so one step from rest gives it everywhere.
     let (n, speed) = (16, 0.6);
     let b = Boundary::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(speed))).with_upper(0, Side::Outflow);
-    let cfg = Smoke2d { buoyancy: 0.0, ..rect(n, 6, b) };
+    let cfg = MacGrid { buoyancy: 0.0, ..rect(n, 6, b) };
     let step = SmokeStep::new(cfg, 1e-12, 2000, Preconditioner::None);
     let y = step.eval(&vec![0.0; cfg.n_state()], &[]);
-    let (_, u, v) = cfg.split(&y);
+    let (_, [u, v]) = cfg.split(&y);
     assert!(u.iter().all(|&w| (w - speed).abs() < 1e-9), "u: {:?}", &u[..n + 1]);
     assert!(v.iter().all(|&w| w.abs() < 1e-9));
 }
@@ -145,7 +145,7 @@ fn projection_leaves_no_divergence_under_every_boundary() {
         for _ in 0..3 {
             x = step.eval(&x, &[]);
         }
-        let (_, u, v) = cfg.split(&x);
+        let (_, [u, v]) = cfg.split(&x);
         let mut d = vec![0.0; n * ny];
         divergence(&cfg, u, v, &mut d);
         let worst = d.iter().zip(&solid).filter(|(_, s)| !**s).map(|(d, _)| d.abs()).fold(0.0, f64::max);
@@ -160,10 +160,10 @@ fn projection_leaves_no_divergence_under_every_boundary() {
 fn smoke_leaves_through_an_outflow_side() {
     // Upwind flux out of the top: the mass drops by exactly what crossed it.
     let n = 6;
-    let cfg = Smoke2d::p2(n).with_boundary(Boundary::CLOSED.with_upper(1, Side::Outflow));
+    let cfg = MacGrid::p2(n).with_boundary(Boundary::CLOSED.with_upper(1, Side::Outflow));
     let mut x = vec![0.0; cfg.n_state()];
     x[..cfg.n_s()].fill(1.0);
-    let vs = cfg.n_s() + cfg.n_u();
+    let vs = cfg.n_s() + cfg.n_face(0);
     x[vs..].fill(0.5);
     let y = AdvectUpwind { cfg, dt: 0.2 }.eval(&x, &[]);
     let mass = |v: &[f64]| v[..cfg.n_s()].iter().sum::<f64>();
@@ -174,12 +174,12 @@ fn smoke_leaves_through_an_outflow_side() {
 #[test]
 fn diffusion_on_a_periodic_box_conserves_mass_and_momentum() {
     let n = 8;
-    let cfg = Smoke2d::p2(n).with_boundary(Boundary::all(Side::Periodic));
+    let cfg = MacGrid::p2(n).with_boundary(Boundary::all(Side::Periodic));
     let x = smoke_state(&cfg, 17);
     let ns = cfg.n_s();
     // Sums over the samples (a periodic axis's copy faces left out).
     let sums = |y: &[f64]| {
-        let (s, u, v) = cfg.split(y);
+        let (s, [u, v]) = cfg.split(y);
         let su: f64 = (0..n).map(|j| u[j * (n + 1)..j * (n + 1) + n].iter().sum::<f64>()).sum();
         (s.iter().sum::<f64>(), su, v[..n * n].iter().sum::<f64>())
     };
@@ -215,7 +215,7 @@ fn regions_cut_off_from_the_outflow_are_found() {
     let row: Vec<bool> = (0..nx * ny).map(|c| c / nx == 1).collect();
     assert_eq!(sealed_region([nx, ny], &bt, &row), Some(SealedRegion { cells: 6, at: [0, 0] }));
     // The projection of such a box cannot converge: that is why scenes refuse it.
-    let cfg = Smoke2d { nx, ny, ..Smoke2d::p2(nx).with_boundary(bt) };
+    let cfg = MacGrid { n: [nx, ny], ..MacGrid::p2(nx).with_boundary(bt) };
     let op = Project::with_obstacles(cfg, 1e-10, 500, &row);
     let _ = op.eval(&smoke_state(&cfg, 1), &[]);
     assert!(op.take_error().is_some(), "a sealed fed region converged");

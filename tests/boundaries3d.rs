@@ -10,8 +10,8 @@ use diffsim::fluids3d::{Advect3, AdvectUpwind3, Buoyancy3, Force3};
 use diffsim::op::{Forward, OperatorExt};
 use diffsim::problems::smoke3d::Project3;
 use diffsim_solvers::boundary::{Boundary, BoundaryError, Profile, Side};
-use diffsim_solvers::smoke::{self, Preconditioner, PressureSolver, ProjectScratch, Scheme, Smoke2d};
-use diffsim_solvers::smoke3d::{Smoke3d, Solid3, divergence, for_each_face3, solid_cells};
+use diffsim_solvers::smoke::{self, MacGrid, Preconditioner, PressureSolver, ProjectScratch, Scheme};
+use diffsim_solvers::smoke3d::{Solid3, divergence, for_each_face3, solid_cells};
 
 use crate::p4::{field, state};
 
@@ -38,7 +38,7 @@ fn invalid_3d_boundaries_are_refused_with_the_reason() {
 
 #[test]
 fn faces_of_a_periodic_axis_wrap_and_skip_the_copy() {
-    let cfg = Smoke3d::new(3, 4, 5, 1.0).with_boundary(Boundary::axes([Side::Closed, Side::Outflow, Side::Periodic]));
+    let cfg = MacGrid::new([3, 4, 5]).with_dt(1.0).with_boundary(Boundary::axes([Side::Closed, Side::Outflow, Side::Periodic]));
     let mut z = Vec::new();
     for_each_face3(&cfg, 2, |f| z.push(f));
     assert_eq!(z.len(), 3 * 4 * 5, "periodic z: Nz face slabs");
@@ -54,16 +54,16 @@ fn faces_of_a_periodic_axis_wrap_and_skip_the_copy() {
 
 /// The 2D box `nx × ny` and the 3D box `nx × ny × nz` with the same x and
 /// y sides and a periodic z.
-fn twins(nx: usize, ny: usize, nz: usize, b: Boundary) -> (Smoke2d, Smoke3d) {
-    let cfg2 = Smoke2d::new(nx, ny).with_boundary(b);
+fn twins(nx: usize, ny: usize, nz: usize, b: Boundary) -> (MacGrid<2>, MacGrid<3>) {
+    let cfg2 = MacGrid::new([nx, ny]).with_boundary(b);
     let b3 = Boundary { sides: [b.axis(0), b.axis(1), [Side::Periodic; 2]] };
-    (cfg2, Smoke3d::new(nx, ny, nz, 0.8).with_boundary(b3))
+    (cfg2, MacGrid::new([nx, ny, nz]).with_dt(0.8).with_boundary(b3))
 }
 
 /// A 2D state lifted to the 3D twin: the same in every z slab, `w = 0`.
-fn lift(cfg2: &Smoke2d, cfg3: &Smoke3d, x: &[f64]) -> Vec<f64> {
-    let (s, u, v) = cfg2.split(x);
-    let nz = cfg3.nz;
+fn lift(cfg2: &MacGrid<2>, cfg3: &MacGrid<3>, x: &[f64]) -> Vec<f64> {
+    let (s, [u, v]) = cfg2.split(x);
+    let nz = cfg3.n[2];
     let mut y = Vec::with_capacity(cfg3.n_state());
     for f in [s, u, v] {
         for _ in 0..nz {
@@ -88,7 +88,7 @@ fn flows_that_do_not_vary_along_a_periodic_z_match_the_2d_solver() {
         let (cfg2, cfg3) = twins(7, 6, 4, b);
         let mut x2 = crate::checks::smoke_state(&cfg2, 11);
         {
-            let (_, u, v) = cfg2.split_mut(&mut x2);
+            let (_, [u, v]) = cfg2.split_mut(&mut x2);
             smoke::enforce_boundary(&cfg2, u, v);
         }
         let x3 = lift(&cfg2, &cfg3, &x2);
@@ -104,7 +104,7 @@ fn flows_that_do_not_vary_along_a_periodic_z_match_the_2d_solver() {
             close(&y3, &lift(&cfg2, &cfg3, &y2), &format!("{scheme:?} advection"));
         }
         let mut y2 = x2.clone();
-        let mut solver = PressureSolver::general(cfg2.nx, cfg2.ny, b, 1e-13, 2000, None);
+        let mut solver = PressureSolver::general(cfg2.n[0], cfg2.n[1], b, 1e-13, 2000, None);
         smoke::project(&cfg2, &mut y2, &mut solver, &mut ProjectScratch::new(cfg2.n_s())).unwrap();
         for precond in [Preconditioner::Mic0, Preconditioner::None] {
             let y3 = Project3::new(cfg3, 1e-13, 2000, precond).eval(&x3, &[]);
@@ -114,8 +114,8 @@ fn flows_that_do_not_vary_along_a_periodic_z_match_the_2d_solver() {
 }
 
 /// The largest divergence over the fluid cells of a packed state.
-fn max_divergence(cfg: &Smoke3d, x: &[f64], solid: Option<&[bool]>) -> f64 {
-    let [_, u, v, w] = cfg.split(x);
+fn max_divergence(cfg: &MacGrid<3>, x: &[f64], solid: Option<&[bool]>) -> f64 {
+    let (_, [u, v, w]) = cfg.split(x);
     let mut d = vec![0.0; cfg.n_s()];
     divergence(cfg, [u, v, w], &mut d);
     d.iter().enumerate().filter(|(c, _)| solid.is_none_or(|s| !s[*c])).map(|(_, d)| d.abs()).fold(0.0, f64::max)
@@ -124,7 +124,7 @@ fn max_divergence(cfg: &Smoke3d, x: &[f64], solid: Option<&[bool]>) -> f64 {
 #[test]
 fn projection_under_every_kind_leaves_no_divergence_and_keeps_the_sides() {
     for b in boundaries() {
-        let cfg = Smoke3d::new(8, 7, 6, 1.0).with_boundary(b);
+        let cfg = MacGrid::new([8, 7, 6]).with_dt(1.0).with_boundary(b);
         let x = state(&cfg, 7);
         let sphere = solid_cells(&cfg, &[Solid3::Sphere { center: [4.0, 3.5, 3.0], radius: 1.6 }]);
         for (solid, name) in [(None, "no obstacle"), (Some(&sphere[..]), "a sphere")] {
@@ -142,7 +142,7 @@ fn projection_under_every_kind_leaves_no_divergence_and_keeps_the_sides() {
             assert!(again < 1e-9 * scale, "{b:?}, {name}: not idempotent ({again:e})");
             // Periodic copies hold their face 0; closed and inflow faces keep their value.
             for axis in 0..3 {
-                let start = cfg.slab_starts(0)[1 + axis];
+                let start = cfg.slab_starts(0).1[axis];
                 for_each_face3(&cfg, axis, |f| {
                     if let Some(k) = f.copy {
                         assert_eq!(y[start + k], y[start + f.index], "{b:?}: copy of face {}", f.index);
@@ -161,7 +161,7 @@ fn a_uniform_through_flow_is_left_as_it_is_and_periodic_advection_shifts_exactly
     // Inflow on the left at 0.5, outflow on the right: u = 0.5 everywhere
     // is divergence-free and the projection keeps it (p = 0).
     let b = Boundary::<3>::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(0.5))).with_upper(0, Side::Outflow);
-    let cfg = Smoke3d::new(6, 5, 4, 1.0).with_boundary(b);
+    let cfg = MacGrid::new([6, 5, 4]).with_dt(1.0).with_boundary(b);
     let mut x = vec![0.0; cfg.n_state()];
     let start = cfg.n_s();
     x[start..start + cfg.n_face(0)].fill(0.5);
@@ -170,7 +170,7 @@ fn a_uniform_through_flow_is_left_as_it_is_and_periodic_advection_shifts_exactly
     assert!(worst < 1e-12, "uniform through-flow changed by {worst:e}");
     // Every axis periodic, velocity (1, 0, 0) and a unit step: each step
     // moves every field one cell along x exactly; Nx steps bring it back.
-    let cfg = Smoke3d::new(5, 4, 3, 1.0).with_boundary(Boundary::<3>::all(Side::Periodic));
+    let cfg = MacGrid::new([5, 4, 3]).with_dt(1.0).with_boundary(Boundary::<3>::all(Side::Periodic));
     let mut x = field(cfg.n_state(), 5);
     let [ns, nu] = [cfg.n_s(), cfg.n_face(0)];
     x[ns..ns + nu].fill(1.0);
@@ -197,7 +197,7 @@ fn every_3d_operator_passes_all_checks_under_every_boundary() {
         }
     };
     for b in boundaries() {
-        let cfg = Smoke3d::new(6, 5, 4, 0.8).with_boundary(b);
+        let cfg = MacGrid::new([6, 5, 4]).with_dt(0.8).with_boundary(b);
         let x = state(&cfg, 31);
         let name = |op: &str| format!("{op} under {b:?}");
         for scheme in [Scheme::SemiLagrangian, Scheme::MacCormack { limiter: false }] {
@@ -270,7 +270,7 @@ fn the_aggregation_multigrid_is_galerkin_and_preconditions_any_box_and_sides() {
         let mut mg = AggregateMultigrid::new(dims, b);
         assert!(mg.depth() >= 3, "{b:?}: {} levels", mg.depth());
         crate::checks::assert_symmetric_positive(&format!("{b:?}"), dims.iter().product(), !b.has_outflow(), |r, z| mg.apply(r, z));
-        let cfg = Smoke3d::new(dims[0], dims[1], dims[2], 1.0).with_boundary(b);
+        let cfg = MacGrid::new([dims[0], dims[1], dims[2]]).with_dt(1.0).with_boundary(b);
         let x = state(&cfg, 91);
         let iterations = |precond| {
             let op = Project3::new(cfg, 1e-10, 3000, precond);
@@ -290,16 +290,16 @@ fn a_region_that_an_inflow_feeds_and_obstacles_seal_is_found() {
     use diffsim_solvers::boundary::{SealedRegion, sealed_region};
     // Inflow on the back, outflow on the front: a wall across z at k = 3
     // seals the first three slabs; a hole in it opens them.
-    let cfg = Smoke3d::new(5, 4, 6, 1.0);
+    let cfg = MacGrid::new([5, 4, 6]).with_dt(1.0);
     let b = Boundary::<3>::CLOSED.with_lower(2, Side::Inflow(Profile::Uniform(0.5))).with_upper(2, Side::Outflow);
     let wall = solid_cells(&cfg, &[Solid3::Box { lower: [-1.0, -1.0, 3.0], upper: [9.0, 9.0, 4.0] }]);
-    assert_eq!(sealed_region(cfg.dims(), &b, &wall), Some(SealedRegion { cells: 3 * 20, at: [0, 0, 0] }));
+    assert_eq!(sealed_region(cfg.n, &b, &wall), Some(SealedRegion { cells: 3 * 20, at: [0, 0, 0] }));
     let mut holed = wall.clone();
     holed[(3 * 4 + 2) * 5 + 2] = false;
-    assert_eq!(sealed_region(cfg.dims(), &b, &holed), None);
+    assert_eq!(sealed_region(cfg.n, &b, &holed), None);
     // A parabolic profile feeds the side's inner cells: still sealed.
     let bp = b.with_lower(2, Side::Inflow(Profile::Parabolic(0.5)));
-    assert!(sealed_region(cfg.dims(), &bp, &wall).is_some());
+    assert!(sealed_region(cfg.n, &bp, &wall).is_some());
 }
 
 #[test]
@@ -307,7 +307,7 @@ fn enzyme_advection_adjoint_matches_the_hand_written_one_under_every_boundary() 
     use diffsim::op::Vjp;
     use diffsim_solvers::smoke3d::advect3_adjoint;
     for b in boundaries() {
-        let cfg = Smoke3d::new(7, 6, 5, 0.9).with_boundary(b);
+        let cfg = MacGrid::new([7, 6, 5]).with_dt(0.9).with_boundary(b);
         let x = state(&cfg, 17);
         for (smoke, velocity) in [(true, true), (true, false), (false, true)] {
             let op = Advect3 { cfg, scheme: Scheme::SemiLagrangian, smoke, velocity };

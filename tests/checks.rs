@@ -198,7 +198,7 @@ pub(crate) fn assert_symmetric_positive(what: &str, len: usize, mean_free: bool,
 
 /// A seeded P2 state on an `n × n` box: smoke in [0, 1], velocities in
 /// [−0.3, 0.3] (so that the back-traces stay mostly inside cells).
-pub(crate) fn smoke_state(cfg: &diffsim_solvers::smoke::Smoke2d, seed: u64) -> Vec<f64> {
+pub(crate) fn smoke_state(cfg: &diffsim_solvers::smoke::MacGrid<2>, seed: u64) -> Vec<f64> {
     let raw = state(cfg.n_state(), seed);
     raw.iter().enumerate().map(|(k, r)| if k < cfg.n_s() { r.abs() } else { 0.3 * r }).collect()
 }
@@ -206,10 +206,10 @@ pub(crate) fn smoke_state(cfg: &diffsim_solvers::smoke::Smoke2d, seed: u64) -> V
 #[test]
 fn smoke_operators_pass_all_checks() {
     use diffsim::problems::smoke::{SmokeAdvect, SmokeStep};
-    use diffsim_solvers::smoke::{Preconditioner, Smoke2d};
+    use diffsim_solvers::smoke::{MacGrid, Preconditioner};
     // 5: odd, no coarse level; 8 and 12: two levels.
     for n in [5, 8, 12] {
-        let cfg = Smoke2d::p2(n);
+        let cfg = MacGrid::p2(n);
         let x = smoke_state(&cfg, n as u64);
         assert_passes(&format!("SmokeAdvect n={n}"), &SmokeAdvect(cfg), &x, &[]);
         // Tight solves so that the finite differences see the exact map.
@@ -224,9 +224,9 @@ fn smoke_operators_pass_all_checks() {
 fn smoke_advection_hand_adjoint_matches_enzyme() {
     use diffsim::check::{finite_differences, taylor};
     use diffsim::problems::smoke::{SmokeAdvect, SmokeAdvectHand};
-    use diffsim_solvers::smoke::Smoke2d;
+    use diffsim_solvers::smoke::MacGrid;
     for n in [5, 8] {
-        let cfg = Smoke2d::p2(n);
+        let cfg = MacGrid::p2(n);
         let x = smoke_state(&cfg, 40 + n as u64);
         let o = CheckParams { tol: 1e-12, ..Default::default() };
         // Enzyme's JVP against the hand VJP: an independent pair.
@@ -242,9 +242,9 @@ fn smoke_advection_hand_adjoint_matches_enzyme() {
 #[test]
 fn smoke_step_with_an_obstacle_passes_all_checks() {
     use diffsim::problems::smoke::SmokeStep;
-    use diffsim_solvers::smoke::Smoke2d;
+    use diffsim_solvers::smoke::MacGrid;
     for n in [6, 9] {
-        let cfg = Smoke2d::p2(n);
+        let cfg = MacGrid::p2(n);
         // A 2×2 solid block off the centre.
         let solid: Vec<bool> = (0..n * n).map(|c| (2..4).contains(&(c % n)) && (2..4).contains(&(c / n))).collect();
         let step = SmokeStep::with_obstacles(cfg, 1e-13, 2000, &solid);

@@ -6,7 +6,7 @@ use diffsim::check::{CheckParams, check_all};
 use diffsim::fluids::{AdvectUpwind, DiffuseExplicit, DiffuseImplicit};
 use diffsim::op::{OpError, OperatorExt};
 use diffsim::rollout::{Pass, Rollout, RolloutError};
-use diffsim_solvers::smoke::Smoke2d;
+use diffsim_solvers::smoke::MacGrid;
 
 fn field(n: usize, seed: u64) -> Vec<f64> {
     (0..n).map(|k| (((k as f64 + 1.0) * 0.6180339887 * (seed as f64 + 0.7)).fract() - 0.5) * 2.0).collect()
@@ -26,7 +26,7 @@ fn diffusion_operators_pass_all_checks() {
 #[test]
 fn upwind_advection_passes_all_checks_and_conserves_mass() {
     for n in [4, 7] {
-        let cfg = Smoke2d::p2(n);
+        let cfg = MacGrid::p2(n);
         let op = AdvectUpwind { cfg, dt: 0.4 };
         // Smoke in [0, 2], velocities bounded away from the switch at 0.
         let x: Vec<f64> = field(cfg.n_state(), 3 + n as u64)
@@ -76,7 +76,7 @@ fn maccormack_passes_the_checks_and_its_limiter_creates_no_extrema() {
     use diffsim::fluids::Advect;
     use diffsim_solvers::smoke::Scheme;
     for n in [5, 8] {
-        let cfg = Smoke2d::p2(n);
+        let cfg = MacGrid::p2(n);
         let x: Vec<f64> = field(cfg.n_state(), 11 + n as u64).iter().enumerate().map(|(k, v)| if k < cfg.n_s() { 1.0 + v } else { 0.3 * v }).collect();
         let mc = |limiter| Advect::new(cfg, Scheme::MacCormack { limiter });
         let r = check_all(&mc(false), &x, &[], &CheckParams::default());
@@ -100,7 +100,7 @@ fn maccormack_is_more_accurate_than_semi_lagrangian_on_a_smooth_translation() {
     use diffsim::fluids::Advect;
     use diffsim_solvers::smoke::Scheme;
     let n = 32;
-    let cfg = Smoke2d::p2(n);
+    let cfg = MacGrid::p2(n);
     let bump = |x: f64, y: f64| (-((x - 12.0).powi(2) + (y - 12.0).powi(2)) / 18.0).exp();
     let mut x = vec![0.0; cfg.n_state()];
     for j in 0..n {
@@ -108,7 +108,7 @@ fn maccormack_is_more_accurate_than_semi_lagrangian_on_a_smooth_translation() {
             x[j * n + i] = bump(i as f64 + 0.5, j as f64 + 0.5);
         }
     }
-    let (us, vs) = (cfg.n_s(), cfg.n_s() + cfg.n_u());
+    let (us, vs) = (cfg.n_s(), cfg.n_s() + cfg.n_face(0));
     x[us..vs].fill(0.3);
     x[vs..].fill(0.2);
     let run = |scheme: Scheme| -> f64 {
@@ -135,7 +135,7 @@ fn maccormack_is_more_accurate_than_semi_lagrangian_on_a_smooth_translation() {
 fn force_and_inflow_pass_all_checks() {
     use diffsim::fluids::{Force, Inflow};
     for n in [4, 7] {
-        let cfg = Smoke2d::p2(n);
+        let cfg = MacGrid::p2(n);
         let x = field(cfg.n_state(), 21 + n as u64);
         let f = field(cfg.n_vel(), 5);
         let r = check_all(&Force { cfg, dt: 0.5 }, &x, &f, &CheckParams::default());

@@ -7,8 +7,9 @@ use diffsim::check::{CheckParams, check_all};
 use diffsim::op::{Forward, OperatorExt};
 use diffsim::problems::smoke3d::{P4, Project3, SmokeStep3};
 use diffsim::rollout::{Checkpointing, Workspace};
+use diffsim_solvers::smoke::MacGrid;
 use diffsim_solvers::smoke::Preconditioner;
-use diffsim_solvers::smoke3d::{Smoke3d, Solid3, divergence, open_faces, solid_cells};
+use diffsim_solvers::smoke3d::{Solid3, divergence, open_faces, solid_cells};
 
 use crate::p4::{field, state};
 
@@ -29,7 +30,7 @@ fn shapes(n: usize) -> Vec<Solid3> {
 #[test]
 fn shapes_cover_the_cells_they_should() {
     let n = 24;
-    let cfg = Smoke3d::p4(n);
+    let cfg = MacGrid::p4(n);
     let h = n as f64;
     // A sphere of radius 0.3·N: its volume in cells to a few percent.
     let r = 0.3 * h;
@@ -63,17 +64,17 @@ fn shapes_cover_the_cells_they_should() {
 #[test]
 fn projection_with_obstacles_leaves_no_divergence_and_no_flow_into_solids() {
     let n = 16;
-    let cfg = Smoke3d::p4(n);
+    let cfg = MacGrid::p4(n);
     let solid = solid_cells(&cfg, &shapes(n));
     let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
     let op = Project3::with_obstacles(cfg, 1e-12, 1000, Preconditioner::Multigrid, &solid);
     // Closed walls (the projection changes interior faces only).
     let mut x = state(&cfg, 7);
-    let [_, u, v, w] = cfg.split_mut(&mut x);
+    let (_, [u, v, w]) = cfg.split_mut(&mut x);
     diffsim_solvers::smoke3d::close_walls(&cfg, [u, v, w]);
     let y = op.eval(&x, &[]);
     assert!(op.take_error().is_none());
-    let [s, u, v, w] = cfg.split(&y);
+    let (s, [u, v, w]) = cfg.split(&y);
     let mut d = vec![0.0; cfg.n_s()];
     divergence(&cfg, [u, v, w], &mut d);
     let speed = u.iter().chain(v).chain(w).map(|v| v * v).sum::<f64>().sqrt();
@@ -102,7 +103,7 @@ fn projection_with_obstacles_leaves_no_divergence_and_no_flow_into_solids() {
 #[test]
 fn projection_and_step_with_obstacles_pass_all_checks() {
     for n in [6, 8] {
-        let cfg = Smoke3d::p4(n);
+        let cfg = MacGrid::p4(n);
         let solid = solid_cells(&cfg, &shapes(n));
         assert!(solid.iter().any(|&s| s), "n = {n}: the shapes cover no cell");
         let x = state(&cfg, 20 + n as u64);
@@ -122,7 +123,7 @@ fn rollout_with_obstacles_enzyme_matches_the_hand_adjoint() {
     // explicit adjoint and the hand-written one, chained with the masked
     // projection's implicit adjoint, give the same gradient.
     let n = 16;
-    let cfg = Smoke3d::p4(n);
+    let cfg = MacGrid::p4(n);
     let h = n as f64;
     let solid = solid_cells(&cfg, &[Solid3::Sphere { center: [0.5 * h, 0.55 * h, 0.5 * h], radius: 0.15 * h }]);
     let run = |hand: bool| {
@@ -153,7 +154,7 @@ fn rollout_with_obstacles_enzyme_matches_the_hand_adjoint() {
 #[test]
 fn buoyancy_and_inflow_pass_all_checks() {
     use diffsim::fluids3d::{Buoyancy3, Inflow3};
-    let cfg = Smoke3d::new(6, 7, 5, 0.5);
+    let cfg = MacGrid::new([6, 7, 5]).with_dt(0.5);
     let x = state(&cfg, 31);
     for axis in 0..3 {
         let r = check_all(&Buoyancy3 { cfg, dt: 0.5, axis }, &x, &[0.3], &CheckParams::default());
@@ -311,7 +312,7 @@ with_respect_to = ["smoke.init", "buoyancy.coefficient"]
 fn diffusion_and_force_in_3d_pass_all_checks() {
     use diffsim::fluids::{Diffuse, DiffuseExplicit, DiffuseImplicit};
     use diffsim::fluids3d::Force3;
-    let cfg = Smoke3d::new(6, 5, 4, 0.5);
+    let cfg = MacGrid::new([6, 5, 4]).with_dt(0.5);
     let x = state(&cfg, 41);
     let explicit = Diffuse::in_box_3d(cfg, true, true, DiffuseExplicit::on);
     let r = check_all(&explicit, &x, &[0.1], &CheckParams::default());
@@ -330,7 +331,7 @@ fn diffusion_in_3d_decays_a_mode_at_the_exact_rate() {
     // The cell lattice's Laplacian is the closed box's pressure matrix,
     // written apart (the multigrid's slab-by-slab product).
     let n = 8;
-    let g = Grid::of_state_3d(&Smoke3d::p4(n))[0];
+    let g = Grid::of_state_3d(&MacGrid::p4(n))[0];
     let s = field(n * n * n, 3);
     let (mut a, mut b) = (vec![0.0; s.len()], vec![0.0; s.len()]);
     laplacian(&g, &s, &mut a);
@@ -358,7 +359,7 @@ fn maccormack_and_upwind_in_3d_pass_the_checks() {
     use diffsim::check::Verdict;
     use diffsim::fluids3d::{Advect3, AdvectUpwind3};
     use diffsim_solvers::smoke::Scheme;
-    let cfg = Smoke3d::new(6, 6, 5, 0.8);
+    let cfg = MacGrid::new([6, 6, 5]).with_dt(0.8);
     let x = state(&cfg, 51);
     let mc = |limiter, smoke, velocity| Advect3 { cfg, scheme: Scheme::MacCormack { limiter }, smoke, velocity };
     let r = check_all(&mc(false, true, true), &x, &[], &CheckParams::default());
@@ -392,7 +393,7 @@ fn maccormack_in_3d_is_more_accurate_than_semi_lagrangian_on_a_smooth_translatio
     use diffsim::fluids3d::Advect3;
     use diffsim_solvers::smoke::Scheme;
     let n = 20;
-    let cfg = Smoke3d::new(n, n, n, 1.0);
+    let cfg = MacGrid::new([n, n, n]).with_dt(1.0);
     let v = [0.3, 0.2, 0.25];
     let bump = |p: [f64; 3]| (-((p[0] - 8.0).powi(2) + (p[1] - 8.0).powi(2) + (p[2] - 8.0).powi(2)) / 8.0).exp();
     let centre = |c: usize| [(c % n) as f64 + 0.5, ((c / n) % n) as f64 + 0.5, (c / (n * n)) as f64 + 0.5];
@@ -426,7 +427,7 @@ fn projection_of_any_box_with_mic0_passes_the_checks() {
     use diffsim_solvers::smoke3d::Mic3;
     // A box whose sides all differ, with a sphere: MIC(0) of its own
     // matrix, the aggregation V-cycle on the fluid cells, none.
-    let cfg = Smoke3d::new(7, 9, 5, 1.0);
+    let cfg = MacGrid::new([7, 9, 5]).with_dt(1.0);
     let solid = solid_cells(&cfg, &[Solid3::Sphere { center: [3.5, 4.5, 2.5], radius: 1.6 }]);
     assert!(solid.iter().any(|&s| s));
     let x = state(&cfg, 61);
@@ -437,11 +438,11 @@ fn projection_of_any_box_with_mic0_passes_the_checks() {
     }
     // Divergence-free after projection, walls closed first.
     let mut x = x;
-    let [_, u, v, w] = cfg.split_mut(&mut x);
+    let (_, [u, v, w]) = cfg.split_mut(&mut x);
     diffsim_solvers::smoke3d::close_walls(&cfg, [u, v, w]);
     let op = Project3::with_obstacles(cfg, 1e-12, 500, Preconditioner::Mic0, &solid);
     let y = op.eval(&x, &[]);
-    let [_, u, v, w] = cfg.split(&y);
+    let (_, [u, v, w]) = cfg.split(&y);
     let mut d = vec![0.0; cfg.n_s()];
     divergence(&cfg, [u, v, w], &mut d);
     assert!(d.iter().all(|d| d.abs() < 1e-9), "divergence left: {:e}", d.iter().fold(0.0f64, |m, d| m.max(d.abs())));
@@ -457,10 +458,10 @@ fn iterations_per_preconditioner_in_3d() {
     // sphere (printed; the solves must converge): multigrid of the box on
     // the fluid cells, MIC(0) of the matrix, none.
     let n = 24;
-    let cfg = Smoke3d::p4(n);
+    let cfg = MacGrid::p4(n);
     let solid = solid_cells(&cfg, &[Solid3::Sphere { center: [12.0, 14.0, 12.0], radius: 5.0 }]);
     let mut x = state(&cfg, 71);
-    let [_, u, v, w] = cfg.split_mut(&mut x);
+    let (_, [u, v, w]) = cfg.split_mut(&mut x);
     diffsim_solvers::smoke3d::close_walls(&cfg, [u, v, w]);
     let mut counts = Vec::new();
     for precond in [Preconditioner::Multigrid, Preconditioner::Mic0, Preconditioner::None] {
@@ -481,7 +482,7 @@ fn multigrid_takes_any_box_with_two_equal_sides() {
     // slabs come last): the projection passes the checks with obstacles,
     // and the V-cycle of a stack of slabs is symmetric and positive.
     for dims in [[8, 8, 12], [6, 10, 6], [10, 6, 6]] {
-        let cfg = Smoke3d::new(dims[0], dims[1], dims[2], 1.0);
+        let cfg = MacGrid::new([dims[0], dims[1], dims[2]]).with_dt(1.0);
         let solid = solid_cells(&cfg, &[Solid3::Sphere { center: [dims[0] as f64 / 2.0, dims[1] as f64 / 2.0, dims[2] as f64 / 2.0], radius: 1.8 }]);
         let op = Project3::with_obstacles(cfg, 1e-13, 500, Preconditioner::Multigrid, &solid);
         assert_eq!(op.preconditioner(), Preconditioner::Multigrid);

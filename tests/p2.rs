@@ -53,9 +53,9 @@ fn checkpointing_gives_the_stored_gradient() {
 fn a_solve_that_cannot_converge_is_an_error() {
     use diffsim::op::OpError;
     use diffsim::rollout::{Pass, RolloutError};
-    use diffsim_solvers::smoke::Smoke2d;
+    use diffsim_solvers::smoke::MacGrid;
     let mut p = P2::new(16, 3, Preconditioner::None);
-    p.step = diffsim::problems::smoke::SmokeStep::new(Smoke2d::p2(16), 1e-12, 3, Preconditioner::None);
+    p.step = diffsim::problems::smoke::SmokeStep::new(MacGrid::p2(16), 1e-12, 3, Preconditioner::None);
     match p.value() {
         Err(RolloutError::Operator { pass: Pass::Forward, error: OpError::NoConvergence { iterations: 3, relative_residual, .. } }) => {
             assert!(relative_residual > 1e-12 && relative_residual.is_finite())
@@ -79,16 +79,16 @@ fn multigrid_preconditioner_is_symmetric_and_positive() {
 fn obstacles_block_the_flow_and_the_projection_keeps_the_fluid_divergence_free() {
     use diffsim::op::OperatorExt;
     use diffsim::problems::smoke::SmokeStep;
-    use diffsim_solvers::smoke::{Smoke2d, divergence, p2_initial};
+    use diffsim_solvers::smoke::{MacGrid, divergence, p2_initial};
     let n = 24;
-    let cfg = Smoke2d::p2(n);
+    let cfg = MacGrid::p2(n);
     let solid: Vec<bool> = (0..n * n).map(|c| (8..16).contains(&(c % n)) && (10..12).contains(&(c / n))).collect();
     let step = SmokeStep::with_obstacles(cfg, 1e-10, 2000, &solid);
     let mut x = p2_initial(&cfg);
     for _ in 0..8 {
         x = step.eval(&x, &[]);
     }
-    let (s, u, v) = cfg.split(&x);
+    let (s, [u, v]) = cfg.split(&x);
     let nu = n + 1;
     for j in 0..n {
         for i in 0..n {
@@ -108,25 +108,25 @@ fn obstacles_block_the_flow_and_the_projection_keeps_the_fluid_divergence_free()
 
 #[test]
 fn obstacle_shapes() {
-    use diffsim_solvers::smoke::{Smoke2d, obstacle_box, obstacle_disc};
-    let b = obstacle_box(&Smoke2d::p2(8), [2.0, 3.0], [5.0, 4.0]).unwrap();
+    use diffsim_solvers::smoke::{MacGrid, obstacle_box, obstacle_disc};
+    let b = obstacle_box(&MacGrid::p2(8), [2.0, 3.0], [5.0, 4.0]).unwrap();
     let cells: Vec<usize> = (0..64).filter(|&c| b[c]).collect();
     assert_eq!(cells, vec![3 * 8 + 2, 3 * 8 + 3, 3 * 8 + 4]);
     // Partly outside: clipped; wholly outside: none.
-    assert_eq!(obstacle_box(&Smoke2d::p2(8), [6.0, 6.0], [20.0, 20.0]).unwrap().iter().filter(|&&s| s).count(), 4);
-    assert!(obstacle_box(&Smoke2d::p2(8), [9.0, 9.0], [12.0, 12.0]).is_none());
-    let d = obstacle_disc(&Smoke2d::p2(16), [8.0, 8.0], 2.0).unwrap();
+    assert_eq!(obstacle_box(&MacGrid::p2(8), [6.0, 6.0], [20.0, 20.0]).unwrap().iter().filter(|&&s| s).count(), 4);
+    assert!(obstacle_box(&MacGrid::p2(8), [9.0, 9.0], [12.0, 12.0]).is_none());
+    let d = obstacle_disc(&MacGrid::p2(16), [8.0, 8.0], 2.0).unwrap();
     assert_eq!(d.iter().filter(|&&s| s).count(), 12);
-    assert!(obstacle_disc(&Smoke2d::p2(16), [40.0, 40.0], 2.0).is_none());
+    assert!(obstacle_disc(&MacGrid::p2(16), [40.0, 40.0], 2.0).is_none());
     // On an oblong box cells are counted along rows of `nx`.
-    let r = obstacle_box(&Smoke2d::new(8, 4), [6.0, 1.0], [20.0, 2.0]).unwrap();
+    let r = obstacle_box(&MacGrid::new([8, 4]), [6.0, 1.0], [20.0, 2.0]).unwrap();
     assert_eq!((r.len(), (0..32).filter(|&c| r[c]).collect::<Vec<_>>()), (32, vec![14, 15]));
 }
 
 #[test]
 fn the_2d_step_is_identical_for_any_thread_count() {
     use diffsim_solvers::boundary::{Boundary, Side};
-    use diffsim_solvers::smoke::{Smoke2d, advect_buoyancy, advect_buoyancy_parallel};
+    use diffsim_solvers::smoke::{MacGrid, advect_buoyancy, advect_buoyancy_parallel};
     // 96² cells: the forward advection and CG's sums run split over
     // threads (the 2D V-cycle stays on one: split by rows it lost its
     // vector code and ran slower, docs/p2.md).
@@ -138,7 +138,7 @@ fn the_2d_step_is_identical_for_any_thread_count() {
         // The parallel advection is the serial one, value for value, on the
         // closed box and with periodic sides.
         for boundary in [Boundary::CLOSED, Boundary::axes([Side::Periodic, Side::Closed]), Boundary::all(Side::Periodic)] {
-            let cfg = Smoke2d::p2(N).with_boundary(boundary);
+            let cfg = MacGrid::p2(N).with_boundary(boundary);
             let x = crate::checks::smoke_state(&cfg, 17);
             let (mut serial, mut parallel) = (vec![0.0; x.len()], vec![0.0; x.len()]);
             advect_buoyancy(&cfg, &x, &mut serial);
@@ -154,8 +154,8 @@ fn the_step_by_row_ranges_is_the_step_and_its_parallel_adjoint_is_the_hand_one()
     use diffsim::check::{CheckParams, check_all};
     use diffsim::op::{OperatorExt, Vjp};
     use diffsim::problems::smoke::{SmokeAdvect, SmokeAdvectRows};
-    use diffsim_solvers::smoke::{Smoke2d, advect_buoyancy, advect_buoyancy_adjoint, row_lens, row_starts};
-    let cfg = Smoke2d::p2(20);
+    use diffsim_solvers::smoke::{MacGrid, advect_buoyancy, advect_buoyancy_adjoint};
+    let cfg = MacGrid::p2(20);
     let x = crate::checks::smoke_state(&cfg, 29);
     let mut whole = vec![0.0; x.len()];
     advect_buoyancy(&cfg, &x, &mut whole);
@@ -164,7 +164,7 @@ fn the_step_by_row_ranges_is_the_step_and_its_parallel_adjoint_is_the_hand_one()
     for js in [0..7, 7..8, 8..20] {
         let y = SmokeAdvectRows::new(cfg, js.clone()).eval(&x, &[]);
         let mut o = 0;
-        for (len, start) in row_lens(&cfg, js.clone()).into_iter().zip(row_starts(&cfg, js.start)) {
+        for (start, len) in cfg.slab_pieces(js.clone()) {
             joined[start..start + len].copy_from_slice(&y[o..o + len]);
             o += len;
         }
@@ -173,7 +173,7 @@ fn the_step_by_row_ranges_is_the_step_and_its_parallel_adjoint_is_the_hand_one()
     // A range's own derivatives pass the checks (first rows, last rows), at
     // a state whose traced points all lie away from the lattice lines (u of
     // one sign, v of the other, speeds in [0.15, 0.45]).
-    let (ns, nu) = (cfg.n_s(), cfg.n_u());
+    let (ns, nu) = (cfg.n_s(), cfg.n_face(0));
     let away: Vec<f64> = crate::p4::field(cfg.n_state(), 5)
         .iter()
         .enumerate()

@@ -6,8 +6,9 @@
 use diffsim::check::{CheckParams, check_all};
 use diffsim::problems::smoke3d::{P4, Project3, SmokeAdvect3, SmokeAdvect3Hand, SmokeAdvect3Slabs, SmokeStep3, slab_ranges};
 use diffsim::rollout::{Checkpointing, Workspace};
+use diffsim_solvers::smoke::MacGrid;
 use diffsim_solvers::smoke::Preconditioner;
-use diffsim_solvers::smoke3d::{P4_SIZES, Smoke3d, p4_mid};
+use diffsim_solvers::smoke3d::{P4_SIZES, p4_mid};
 
 fn check_size(k: usize, hand: bool) {
     let r = &P4_SIZES[k];
@@ -55,7 +56,7 @@ pub(crate) fn field(n: usize, seed: u64) -> Vec<f64> {
 /// step: the means a trace uses stay as far from 0, so every traced point
 /// lies at least 0.15 cells from the lattice planes where trilinear
 /// sampling kinks, as the Taylor test needs.
-pub(crate) fn state(cfg: &Smoke3d, seed: u64) -> Vec<f64> {
+pub(crate) fn state(cfg: &MacGrid<3>, seed: u64) -> Vec<f64> {
     let (ns, nu, nv) = (cfg.n_s(), cfg.n_face(0), cfg.n_face(1));
     field(cfg.n_state(), seed)
         .iter()
@@ -76,14 +77,14 @@ pub(crate) fn state(cfg: &Smoke3d, seed: u64) -> Vec<f64> {
 #[test]
 fn explicit_part_passes_all_checks() {
     for n in [6, 7] {
-        let cfg = Smoke3d::p4(n);
+        let cfg = MacGrid::p4(n);
         let x = state(&cfg, n as u64);
         let r = check_all(&SmokeAdvect3(cfg), &x, &[], &CheckParams::default());
         assert!(r.passed(), "Enzyme n = {n}:\n{r}");
     }
     // The slab ranges whose adjoints the parallel VJP sums: a middle range
     // and the top one (which also holds the last z-faces).
-    let cfg = Smoke3d::p4(8);
+    let cfg = MacGrid::p4(8);
     let x = state(&cfg, 3);
     for ks in [3..5, 5..8] {
         let r = check_all(&SmokeAdvect3Slabs::new(cfg, ks.clone()), &x, &[], &CheckParams::default());
@@ -94,16 +95,16 @@ fn explicit_part_passes_all_checks() {
 #[test]
 fn slab_ranges_tile_the_step() {
     use diffsim::op::OperatorExt;
-    let cfg = Smoke3d::p4(16);
+    let cfg = MacGrid::p4(16);
     let x = state(&cfg, 9);
     let full = SmokeAdvect3(cfg).eval(&x, &[]);
-    let ranges = slab_ranges(cfg.nz);
+    let ranges = slab_ranges(cfg.n[2]);
     assert_eq!(ranges.len(), 2);
     let mut pieces: Vec<Vec<f64>> = vec![Vec::new(); 4];
     for ks in &ranges {
         let y = SmokeAdvect3Slabs::new(cfg, ks.clone()).eval(&x, &[]);
         let mut o = 0;
-        for (f, len) in cfg.slab_lens(ks.clone()).into_iter().enumerate() {
+        for (f, (_, len)) in cfg.slab_pieces(ks.clone()).into_iter().enumerate() {
             pieces[f].extend_from_slice(&y[o..o + len]);
             o += len;
         }
@@ -117,7 +118,7 @@ fn hand_adjoint_passes_the_checks_against_enzyme() {
     use diffsim::check::{dot_product_between, finite_differences, taylor};
     use diffsim::op::Vjp;
     for n in [6, 8, 16] {
-        let cfg = Smoke3d::p4(n);
+        let cfg = MacGrid::p4(n);
         let x = state(&cfg, 40 + n as u64);
         if n == 16 {
             // Enzyme's adjoint over two slab ranges summed (the parallel
@@ -145,7 +146,7 @@ fn hand_adjoint_passes_the_checks_against_enzyme() {
 #[test]
 fn projection_and_full_step_pass_all_checks() {
     for n in [6, 8] {
-        let cfg = Smoke3d::p4(n);
+        let cfg = MacGrid::p4(n);
         let x = state(&cfg, 10 + n as u64);
         for precond in [Preconditioner::Multigrid, Preconditioner::None] {
             let r = check_all(&Project3::new(cfg, 1e-13, 500, precond), &x, &[], &CheckParams::default());
@@ -159,17 +160,17 @@ fn projection_and_full_step_pass_all_checks() {
 #[test]
 fn projection_leaves_no_divergence() {
     use diffsim::op::OperatorExt;
-    let cfg = Smoke3d::p4(12);
+    let cfg = MacGrid::p4(12);
     // A velocity with closed walls (the projection changes interior faces only).
     let mut x = state(&cfg, 5);
-    let [_, u, v, w] = cfg.split_mut(&mut x);
+    let (_, [u, v, w]) = cfg.split_mut(&mut x);
     diffsim_solvers::smoke3d::close_walls(&cfg, [u, v, w]);
     let y = Project3::new(cfg, 1e-12, 500, Preconditioner::Multigrid).eval(&x, &[]);
-    let [_, u, v, w] = cfg.split(&y);
+    let (_, [u, v, w]) = cfg.split(&y);
     let mut d = vec![0.0; cfg.n_s()];
     diffsim_solvers::smoke3d::divergence(&cfg, [u, v, w], &mut d);
     let before = {
-        let [_, u, v, w] = cfg.split(&x);
+        let (_, [u, v, w]) = cfg.split(&x);
         let mut d0 = vec![0.0; cfg.n_s()];
         diffsim_solvers::smoke3d::divergence(&cfg, [u, v, w], &mut d0);
         d0.iter().map(|v| v * v).sum::<f64>().sqrt()
@@ -198,7 +199,7 @@ fn results_are_identical_for_any_thread_count() {
     crate::checks::assert_identical_for_any_thread_count(|threads| {
         let p = P4::new(THREADED_N, 3, Preconditioner::Multigrid);
         let g = p.grad_in(&mut Workspace::new(), Checkpointing::Store).unwrap();
-        let cfg = Smoke3d::p4(THREADED_N);
+        let cfg = MacGrid::p4(THREADED_N);
         let x = state(&cfg, 5);
         let (mut serial, mut parallel) = (vec![0.0; x.len()], vec![0.0; x.len()]);
         diffsim_solvers::smoke3d::advect_buoyancy(&cfg, &x, &mut serial);

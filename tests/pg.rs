@@ -223,8 +223,8 @@ fn sip_and_physics_gradients_match_finite_differences() {
 fn moving_smoke(n: usize, warm: usize) -> (diffsim::problems::smoke::SmokeStep, Vec<f64>) {
     use diffsim::op::Forward;
     use diffsim::problems::smoke::SmokeStep;
-    use diffsim_solvers::smoke::{Preconditioner, Smoke2d};
-    let cfg = Smoke2d::p2(n);
+    use diffsim_solvers::smoke::{MacGrid, Preconditioner};
+    let cfg = MacGrid::p2(n);
     let step = SmokeStep::new(cfg, 1e-12, 2000, Preconditioner::Mic0);
     let mut x = vec![0.0; cfg.n_state()];
     let s0 = diffsim_studies::smoke::blobs(&mut StdRng::seed_from_u64(3), n);
@@ -283,11 +283,11 @@ fn smoke_rise_passes_the_checks_and_its_inverse_recovers_initial_smoke() {
     use diffsim::check::local_inverse_error;
     use diffsim::op::PerThread;
     use diffsim::problems::smoke::{SmokeRise, SmokeStep};
-    use diffsim_solvers::smoke::{Preconditioner, Smoke2d};
+    use diffsim_solvers::smoke::{MacGrid, Preconditioner};
     use diffsim_studies::smoke::{SmokeParams, inverse_alone};
     // The gradient checks through 4 steps (tight solves: the finite
     // differences see the exact map).
-    let rise = SmokeRise { step: SmokeStep::new(Smoke2d::p2(8), 1e-13, 2000, Preconditioner::Mic0), steps: 4 };
+    let rise = SmokeRise { step: SmokeStep::new(MacGrid::p2(8), 1e-13, 2000, Preconditioner::Mic0), steps: 4 };
     let x: Vec<f64> = state(64, 21).iter().map(|v| v.abs()).collect();
     assert_passes("SmokeRise", &rise, &x, &[]);
 
@@ -310,7 +310,7 @@ fn smoke_rise_passes_the_checks_and_its_inverse_recovers_initial_smoke() {
     assert!(errors[6].1 < 0.5 * errors[1].1, "re-simulated MAE: {errors:?}");
 
     // A solve that fails is an error of the batch, not a silent result.
-    let physics = PerThread::new(|| SmokeRise { step: SmokeStep::new(Smoke2d::p2(8), 1e-12, 1, Preconditioner::None), steps: 3 });
+    let physics = PerThread::new(|| SmokeRise { step: SmokeStep::new(MacGrid::p2(8), 1e-12, 1, Preconditioner::None), steps: 3 });
     let net = presets::mlp(&[64, 64], Activation::Tanh).unwrap();
     let theta = net.init(&mut StdRng::seed_from_u64(1), Init::Glorot);
     let batch = vec![InverseSample { observed: vec![0.5; 64], truth: vec![0.5; 64] }];

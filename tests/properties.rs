@@ -17,7 +17,7 @@ use diffsim::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, Force, Project};
 use diffsim::op::{Jvp, OperatorExt, Vjp};
 use diffsim::problems::smoke::SmokeStep;
 use diffsim_solvers::boundary::{Boundary, Profile, Side, sealed_region};
-use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d, divergence, enforce_boundary};
+use diffsim_solvers::smoke::{MacGrid, Preconditioner, Scheme, divergence, enforce_boundary};
 use proptest::prelude::*;
 use proptest::test_runner::{Config, RngSeed};
 
@@ -35,8 +35,8 @@ struct Case {
 }
 
 impl Case {
-    fn cfg(&self) -> Smoke2d {
-        Smoke2d { nx: self.nx, ny: self.ny, ..Smoke2d::p2(self.nx).with_boundary(self.boundary) }
+    fn cfg(&self) -> MacGrid<2> {
+        MacGrid { n: [self.nx, self.ny], ..MacGrid::p2(self.nx).with_boundary(self.boundary) }
     }
 }
 
@@ -169,7 +169,7 @@ proptest! {
         // closed side, the inflow's profile), as every step hands it over:
         // otherwise no divergence-free field matches its boundary fluxes.
         let mut x = smoke_state(&cfg, c.seed);
-        let (_, u, v) = cfg.split_mut(&mut x);
+        let (_, [u, v]) = cfg.split_mut(&mut x);
         enforce_boundary(&cfg, u, v);
         let y = match &c.solid {
             Some(solid) => Project::with_obstacles(cfg, tol, 4000, solid).eval(&x, &[]),
@@ -177,7 +177,7 @@ proptest! {
         };
         let fluid = |k: usize| c.solid.as_ref().is_none_or(|s| !s[k]);
         let norm = |state: &[f64]| {
-            let (_, u, v) = cfg.split(state);
+            let (_, [u, v]) = cfg.split(state);
             let mut d = vec![0.0; cfg.n_s()];
             divergence(&cfg, u, v, &mut d);
             d.iter().enumerate().filter(|(k, _)| fluid(*k)).map(|(_, d)| d * d).sum::<f64>().sqrt()
@@ -197,7 +197,7 @@ proptest! {
         use diffsim::op::Forward;
         let cfg = c.cfg();
         let mut x = smoke_state(&cfg, c.seed);
-        let (_, u, v) = cfg.split_mut(&mut x);
+        let (_, [u, v]) = cfg.split_mut(&mut x);
         enforce_boundary(&cfg, u, v);
         let op = match &c.solid {
             Some(solid) => Project::with_obstacles(cfg, 1e-10, 4000, solid),
@@ -215,7 +215,7 @@ proptest! {
         // A NaN on an interior x-face (no obstacle: a solid face is set, not read).
         if c.solid.is_none() {
             let mut bad = x.clone();
-            bad[cfg.n_s() + (cfg.ny / 2) * (cfg.nx + 1) + cfg.nx / 2] = f64::NAN;
+            bad[cfg.n_s() + (cfg.n[1] / 2) * (cfg.n[0] + 1) + cfg.n[0] / 2] = f64::NAN;
             op.eval(&bad, &[]);
             prop_assert!(op.take_error().is_some(), "{c:?}: a NaN velocity was projected without an error");
         }

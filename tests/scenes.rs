@@ -86,7 +86,7 @@ fn scene_parameter_gradients_match_finite_differences() {
     let fd = (value(&up, &scene.x0) - value(&down, &scene.x0)) / (2.0 * h);
     let ad = grad_of(&g, "buoyancy.coefficient")[0];
     assert!((fd - ad).abs() <= 1e-6 * fd.abs().max(1.0), "buoyancy: finite differences {fd} vs gradient {ad}");
-    let c = scene.cfg().nx * 16 + 30;
+    let c = scene.cfg().n[0] * 16 + 30;
     let (mut up, mut down) = (scene.x0.clone(), scene.x0.clone());
     up[c] += h;
     down[c] -= h;
@@ -140,7 +140,7 @@ fn control_force_gradient_per_step_with_losses_at_listed_steps() {
     assert_eq!(loss.steps, vec![2, 5]);
     let g = scene.gradient(loss, Checkpointing::periodic_sqrt(scene.steps)).unwrap();
     let input = g.inputs.iter().find(|i| i.name == "force.control").unwrap();
-    let (nu, np, steps) = (scene.cfg().n_u(), scene.params.len(), scene.steps);
+    let (nu, np, steps) = (scene.cfg().n_face(0), scene.params.len(), scene.steps);
     assert_eq!(input.arrays[0].1, vec![steps as u64, 8, 9]);
     assert_eq!(input.arrays[1].1, vec![steps as u64, 9, 8]);
     let p = scene.rollout_params();
@@ -262,7 +262,7 @@ fn initial_values_from_npy_files() {
     let ok = scene("\"s.npy\"", "[\"u.npy\", \"v.npy\"]").unwrap();
     assert_eq!(&ok.x0[..64], &s[..]);
     // Interior faces as given; the closed walls are set to zero.
-    let (_, u0, _) = ok.cfg().split(&ok.x0);
+    let (_, [u0, _]) = ok.cfg().split(&ok.x0);
     assert_eq!(u0[9 + 4], u[9 + 4]);
     assert_eq!(u0[9], 0.0);
     let cases = vec![("\"missing.npy\"", "cannot read"), ("\"garbage.npy\"", "not a valid .npy"), ("\"wrong.npy\"", "shape [8, 9], expected [8, 8]")];

@@ -10,7 +10,7 @@ use diffsim::op::{OperatorExt, PerThread};
 use diffsim::rollout::{AtSteps, Checkpointing, Rollout};
 use diffsim::train::{Coupled, Coupling, Sample, batch_gradient};
 use diffsim_solvers::boundary::{Boundary, Profile, Side};
-use diffsim_solvers::smoke::{Scheme, Smoke2d, divergence, obstacle_disc};
+use diffsim_solvers::smoke::{MacGrid, Scheme, divergence, obstacle_disc};
 use diffsim_studies::sol::SolProblem;
 use diffsim_studies::wake::{WakeSetup, WakeStep};
 use rand::SeedableRng;
@@ -18,9 +18,9 @@ use rand::rngs::StdRng;
 
 use crate::checks::{assert_passes, smoke_state};
 
-fn channel(nx: usize, ny: usize) -> (Smoke2d, Vec<bool>) {
+fn channel(nx: usize, ny: usize) -> (MacGrid<2>, Vec<bool>) {
     let b = Boundary::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(0.7))).with_upper(0, Side::Outflow);
-    let cfg = Smoke2d { boundary: b, ..Smoke2d::new(nx, ny) };
+    let cfg = MacGrid::new([nx, ny]).with_boundary(b);
     let solid = obstacle_disc(&cfg, [3.0, 2.6], 1.2).unwrap();
     (cfg, solid)
 }
@@ -34,8 +34,8 @@ fn the_wake_step_passes_all_checks_on_an_oblong_channel_with_a_disc() {
     }
 }
 
-fn max_divergence(cfg: &Smoke2d, x: &[f64], solid: &[bool]) -> f64 {
-    let (_, u, v) = cfg.split(x);
+fn max_divergence(cfg: &MacGrid<2>, x: &[f64], solid: &[bool]) -> f64 {
+    let (_, [u, v]) = cfg.split(x);
     let mut d = vec![0.0; cfg.n_s()];
     divergence(cfg, u, v, &mut d);
     d.iter().zip(solid).filter(|(_, s)| !**s).map(|(d, _)| d.abs()).fold(0.0, f64::max)
@@ -58,22 +58,22 @@ fn reference_states_and_their_downsampling_stay_divergence_free() {
     let d = max_divergence(&setup.coarse, &traj[1], &solid);
     assert!(d < 1e-4, "coarse divergence {d:e}");
     // The inflow arrives at the coarse inflow faces in coarse units.
-    let (_, u, _) = setup.coarse.split(&traj[1]);
+    let (_, [u, _]) = setup.coarse.split(&traj[1]);
     assert!((u[0] - setup.speed).abs() < 1e-12, "{}", u[0]);
 }
 
 #[test]
 fn mac_gathers_and_the_correction_network_pass_all_checks() {
     let (nx, ny) = (6, 4);
-    let cfg = Smoke2d::new(nx, ny);
+    let cfg = MacGrid::new([nx, ny]);
     let to = presets::mac_to_channels(nx, ny);
     let back = presets::channels_to_mac(nx, ny, None);
     let net = diffsim::nn::Net::new(vec![to, back]).unwrap();
     // The round trip keeps u on each cell's left face and v on its bottom face.
     let x = smoke_state(&cfg, 7);
     let y = net.eval(&x, &[]);
-    let (_, u, v) = cfg.split(&y);
-    let (_, xu, xv) = cfg.split(&x);
+    let (_, [u, v]) = cfg.split(&y);
+    let (_, [xu, xv]) = cfg.split(&x);
     assert!(y[..cfg.n_s()].iter().all(|&s| s == 0.0));
     assert_eq!((u[nx + 1 + 2], u[nx + 1 + nx], v[nx + 3], v[ny * nx + 3]), (xu[nx + 1 + 2], 0.0, xv[nx + 3], 0.0));
     let stack = presets::mac_conv_stack(nx, ny, &[2, 3, 2], 3, Activation::Tanh, None).unwrap();

@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use clap::Args;
-use diffsim_solvers::smoke::Smoke2d;
+use diffsim_solvers::smoke::MacGrid;
 
 use super::CliError;
 use diffsim::fluids::Inflow;
@@ -31,7 +31,7 @@ pub(super) fn plume(a: PlumeArgs) -> Result<(), CliError> {
         return Err(CliError::Argument { arg: "--n", reason: format!("need at least 16 cells per side, got {}", a.n) });
     }
     let n = a.n;
-    let cfg = Smoke2d::p2(n);
+    let cfg = MacGrid::p2(n);
     // A plate across the middle, off-centre so that the plume is deflected.
     let solid: Vec<bool> = (0..n * n)
         .map(|c| {

@@ -94,9 +94,9 @@ impl Views {
         };
         let views = Views { slice: (axis("--slice", name)?, index), mip: axis("--mip", mip.trim())? };
         if let (Domain::Box3(cfg), (ax, Some(k))) = (domain, views.slice)
-            && k >= cfg.dims()[ax]
+            && k >= cfg.n[ax]
         {
-            return Err(CliError::Argument { arg: "--slice", reason: format!("index {k} is past the {} cells along {name}", cfg.dims()[ax]) });
+            return Err(CliError::Argument { arg: "--slice", reason: format!("index {k} is past the {} cells along {name}", cfg.n[ax]) });
         }
         Ok(views)
     }
@@ -189,13 +189,13 @@ pub(super) fn write_images(scene: &Scene, out: &dyn Outputs, tag: &str, x: &[f64
             }
         }
         Domain::Box(cfg) => {
-            let (n, ny) = (cfg.nx, cfg.ny);
+            let (n, ny) = (cfg.n[0], cfg.n[1]);
             let none = vec![false; cfg.n_s()];
             let solid = scene.solid.as_deref().unwrap_or(&none);
             let (name, values) = if scene.fields.contains(&Field::Smoke) {
                 (format!("smoke{tag}.png"), x[scene.domain.range(Field::Smoke)].to_vec())
             } else {
-                let (_, u, v) = cfg.split(x);
+                let (_, [u, v]) = cfg.split(x);
                 (format!("speed{tag}.png"), relative_speed((n, ny), u, v))
             };
             let path = out.file(&name)?;
@@ -204,7 +204,7 @@ pub(super) fn write_images(scene: &Scene, out: &dyn Outputs, tag: &str, x: &[f64
         }
         Domain::Box3(cfg) => {
             use diffsim::volume::{any_projection, max_projection, slice, slice_marks};
-            let dims = cfg.dims();
+            let dims = cfg.n;
             let none = vec![false; cfg.n_s()];
             let solid = scene.solid.as_deref().unwrap_or(&none);
             let (field, values) = if scene.fields.contains(&Field::Smoke) {
@@ -234,11 +234,11 @@ pub(super) fn write_images(scene: &Scene, out: &dyn Outputs, tag: &str, x: &[f64
 
 /// The speed at the cell centres of a 3D MAC velocity, scaled to its
 /// maximum.
-fn relative_speed_3d(cfg: &diffsim_solvers::smoke3d::Smoke3d, x: &[f64]) -> Vec<f64> {
+fn relative_speed_3d(cfg: &diffsim_solvers::smoke::MacGrid<3>, x: &[f64]) -> Vec<f64> {
     use diffsim_solvers::mac::At;
-    let [_, u, v, w] = cfg.split(x);
+    let (_, [u, v, w]) = cfg.split(x);
     let mac = cfg.mac();
-    let [nx, ny, _] = cfg.dims();
+    let [nx, ny, _] = cfg.n;
     let speed: Vec<f64> = (0..cfg.n_s())
         .map(|c| {
             let [a, b, d] = mac.velocity(At::Centre, [u, v, w], [c % nx, (c / nx) % ny, c / (nx * ny)]);
@@ -375,8 +375,8 @@ pub(super) fn duration(s: f64) -> String {
 fn describe(d: &Domain) -> String {
     match d {
         Domain::Line(l) => format!("{} cells on a line of length {}", l.n, l.n as f64 * l.dx),
-        Domain::Box(cfg) => format!("{}×{} cells", cfg.nx, cfg.ny),
-        Domain::Box3(cfg) => format!("{}×{}×{} cells", cfg.nx, cfg.ny, cfg.nz),
+        Domain::Box(cfg) => format!("{}×{} cells", cfg.n[0], cfg.n[1]),
+        Domain::Box3(cfg) => format!("{}×{}×{} cells", cfg.n[0], cfg.n[1], cfg.n[2]),
     }
 }
 

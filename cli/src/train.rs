@@ -776,7 +776,7 @@ fn sol_wake(a: SolWakeArgs, world: &World) -> Result<(), CliError> {
     }
     if !a.study.json && world.is_root() {
         let fine = cfg.setup.fine();
-        println!("computing {} reference trajectories on the {}×{} grid …", cfg.train + cfg.test, fine.nx, fine.ny);
+        println!("computing {} reference trajectories on the {}×{} grid …", cfg.train + cfg.test, fine.n[0], fine.n[1]);
     }
     run_sol_study(&cfg, "sol-wake", "flow past a disc", &a.study, &a.out, world)
 }

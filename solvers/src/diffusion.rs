@@ -12,8 +12,7 @@
 //! - implicit: `(I + κ·A)·s' = s`, stable for every `κ ≥ 0`. The matrix is
 //!   symmetric positive definite, so its adjoint is the same solve.
 
-use crate::smoke::{NoConvergence, Smoke2d, apply_pressure_matrix};
-use crate::smoke3d::Smoke3d;
+use crate::smoke::{MacGrid, NoConvergence, apply_pressure_matrix};
 
 /// A lattice of `nx × ny × nz` samples at `f[m·slab + l·stride + k]` in a
 /// slice of [`Grid::len`] values (a line or a plane: `nz = 1`); on a
@@ -58,8 +57,8 @@ impl Grid {
 
     /// The three lattices of a smoke state `[s, u, v]` for `cfg`'s boundary:
     /// cell centres, x-faces, y-faces (a periodic axis's copy faces left out).
-    pub fn of_state(cfg: &Smoke2d) -> [Grid; 3] {
-        let (nx, ny, wx, wy) = (cfg.nx, cfg.ny, cfg.boundary.periodic(0), cfg.boundary.periodic(1));
+    pub fn of_state(cfg: &MacGrid<2>) -> [Grid; 3] {
+        let (nx, ny, wx, wy) = (cfg.n[0], cfg.n[1], cfg.boundary.periodic(0), cfg.boundary.periodic(1));
         [
             Grid::plane(nx, nx, ny, wx, wy),
             Grid::plane(nx + 1, if wx { nx } else { nx + 1 }, ny, wx, wy),
@@ -70,11 +69,11 @@ impl Grid {
     /// The four lattices of a 3D state `[s, u, v, w]` for `cfg`'s sides:
     /// cell centres and the faces normal to x, y and z (a periodic axis's
     /// copy faces left out).
-    pub fn of_state_3d(cfg: &Smoke3d) -> [Grid; 4] {
+    pub fn of_state_3d(cfg: &MacGrid<3>) -> [Grid; 4] {
         let w = cfg.boundary.wraps();
         [3, 0, 1, 2].map(|axis| {
             // The array's extents, and the samples (own faces) per axis.
-            let ext = if axis == 3 { cfg.dims() } else { cfg.face_dims(axis) };
+            let ext = if axis == 3 { cfg.n } else { cfg.face_dims(axis) };
             let own = [0, 1, 2].map(|a| ext[a] - (a == axis && w[a]) as usize);
             Grid { stride: ext[0], nx: own[0], ny: own[1], nz: own[2], wrap_x: w[0], wrap_y: w[1], wrap_z: w[2], rows: ext[1] }
         })

@@ -5,7 +5,7 @@
 //! [`SmokeRise`], P2's solver as the forward map of an inverse problem
 //! (initial smoke to the smoke `T` steps later).
 
-use diffsim_solvers::smoke::{self, Preconditioner, Smoke2d};
+use diffsim_solvers::smoke::{self, MacGrid, Preconditioner};
 
 use crate::fluids::Project;
 
@@ -18,7 +18,7 @@ use crate::op::{Forward, Jvp, LocalInverse, OpError, Operator, Vjp, validate_for
 /// ([`super::ranges`]): the same result for any thread count; otherwise
 /// the adjoint of the whole step.
 #[derive(Clone, Copy, Debug)]
-pub struct SmokeAdvect(pub Smoke2d);
+pub struct SmokeAdvect(pub MacGrid<2>);
 
 impl Operator for SmokeAdvect {
     fn n_in(&self) -> usize {
@@ -42,15 +42,13 @@ impl Forward for SmokeAdvect {
 impl Vjp for SmokeAdvect {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         let cfg = self.0;
-        let ranges = super::ranges::split_ranges(cfg.ny);
+        let ranges = super::ranges::split_ranges(cfg.n[1]);
         if cfg.boundary != diffsim_solvers::boundary::Boundary::CLOSED || ranges.len() == 1 {
             return SmokeAdvectWhole(cfg).vjp(x, p, dy, dx, dp);
         }
         validate_vjp(self, "SmokeAdvect", x, p, dy, dx, dp);
         // Each field's rows are contiguous in the packed state.
-        let pieces = |js: &std::ops::Range<usize>| {
-            smoke::row_lens(&cfg, js.clone()).iter().zip(&smoke::row_starts(&cfg, js.start)).map(|(&len, &start)| (start, len)).collect()
-        };
+        let pieces = |js: &std::ops::Range<usize>| cfg.slab_pieces(js.clone());
         super::ranges::vjp_over_ranges(&ranges, |js| SmokeAdvectRows::new(cfg, js), pieces, x, dy, dx);
     }
 }
@@ -63,7 +61,7 @@ impl Jvp for SmokeAdvect {
 
 /// The whole of [`SmokeAdvect`], as Enzyme differentiates it.
 #[derive(Clone, Copy, Debug)]
-struct SmokeAdvectWhole(Smoke2d);
+struct SmokeAdvectWhole(MacGrid<2>);
 
 impl Operator for SmokeAdvectWhole {
     fn n_in(&self) -> usize {
@@ -81,7 +79,7 @@ fn smoke_advect(op: &SmokeAdvectWhole, x: &[f64], _p: &[f64], y: &mut [f64]) {
 
 /// P2's step traces every field back by one unit of time: bilinear
 /// samples kink where a traced point crosses a lattice line.
-fn p2_radius(cfg: &Smoke2d, x: &[f64], dx: &[f64]) -> f64 {
+fn p2_radius(cfg: &MacGrid<2>, x: &[f64], dx: &[f64]) -> f64 {
     smoke::advect_radius(cfg, smoke::Scheme::SemiLagrangian, 1.0, true, true, x, dx)
 }
 
@@ -92,12 +90,12 @@ fn smoke_advect_radius(op: &SmokeAdvectWhole, x: &[f64], _p: &[f64], dx: &[f64],
 crate::differentiable!(SmokeAdvectWhole => smoke_advect, smooth_radius = smoke_advect_radius);
 
 /// Rows `j0..j1` of [`SmokeAdvect`]'s output in the closed box, packed as
-/// [`smoke::row_lens`] says, with Enzyme-generated VJP and JVP: the piece
+/// [`MacGrid::slab_lens`] says, with Enzyme-generated VJP and JVP: the piece
 /// of the step whose adjoints [`SmokeAdvect`] runs in parallel. Over
 /// `0..ny` it is [`SmokeAdvect`].
 #[derive(Clone, Copy, Debug)]
 pub struct SmokeAdvectRows {
-    cfg: Smoke2d,
+    cfg: MacGrid<2>,
     j0: usize,
     j1: usize,
 }
@@ -107,9 +105,9 @@ impl SmokeAdvectRows {
     ///
     /// # Panics
     /// If the box is not closed, or `js` is empty or reaches past `ny`.
-    pub fn new(cfg: Smoke2d, js: std::ops::Range<usize>) -> Self {
+    pub fn new(cfg: MacGrid<2>, js: std::ops::Range<usize>) -> Self {
         assert!(cfg.boundary == diffsim_solvers::boundary::Boundary::CLOSED, "SmokeAdvectRows: the closed box only");
-        assert!(js.start < js.end && js.end <= cfg.ny, "SmokeAdvectRows: rows {js:?} of {}", cfg.ny);
+        assert!(js.start < js.end && js.end <= cfg.n[1], "SmokeAdvectRows: rows {js:?} of {}", cfg.n[1]);
         Self { cfg, j0: js.start, j1: js.end }
     }
 }
@@ -119,7 +117,7 @@ impl Operator for SmokeAdvectRows {
         self.cfg.n_state()
     }
     fn n_out(&self) -> usize {
-        smoke::row_lens(&self.cfg, self.j0..self.j1).iter().sum()
+        self.cfg.slabs_len(self.j0..self.j1)
     }
 }
 
@@ -137,7 +135,7 @@ crate::differentiable!(SmokeAdvectRows => smoke_advect_rows, smooth_radius = smo
 /// Steps 1–4 of P2 with the hand-written adjoint (the reference for
 /// [`SmokeAdvect`]'s generated one).
 #[derive(Clone, Copy, Debug)]
-pub struct SmokeAdvectHand(pub Smoke2d);
+pub struct SmokeAdvectHand(pub MacGrid<2>);
 
 /// `Operator`, `Forward` and `Vjp` of the explicit part `$ty(grid)` with a
 /// hand-written adjoint: the forward `$explicit(grid, x, y)`, the adjoint
@@ -201,7 +199,7 @@ impl SmokeStep {
     ///
     /// # Panics
     /// If `cfg.boundary` does not [validate](diffsim_solvers::boundary::Boundary::validate).
-    pub fn new(cfg: Smoke2d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
+    pub fn new(cfg: MacGrid<2>, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
         Self { advect: SmokeAdvect(cfg), hand: false, project: Project::new(cfg, tolerance, max_iterations, precond) }
     }
 
@@ -214,12 +212,12 @@ impl SmokeStep {
 
     /// A step of the box `cfg` with solid cells where `solid[c]` is true
     /// (see [`Project::with_obstacles`]).
-    pub fn with_obstacles(cfg: Smoke2d, tolerance: f64, max_iterations: usize, solid: &[bool]) -> Self {
+    pub fn with_obstacles(cfg: MacGrid<2>, tolerance: f64, max_iterations: usize, solid: &[bool]) -> Self {
         Self { advect: SmokeAdvect(cfg), hand: false, project: Project::with_obstacles(cfg, tolerance, max_iterations, solid) }
     }
 
     /// The grid.
-    pub fn cfg(&self) -> &Smoke2d {
+    pub fn cfg(&self) -> &MacGrid<2> {
         &self.advect.0
     }
 
@@ -313,7 +311,7 @@ impl LocalInverse for SmokeStep {
         assert_eq!(dx.len(), self.n_in(), "SmokeStep::local_inverse: dx has the wrong length");
         let cfg = *self.cfg();
         let mut d = dy.to_vec();
-        let (s, _, v) = cfg.split_mut(&mut d);
+        let (s, [_, v]) = cfg.split_mut(&mut d);
         smoke::add_buoyancy(&cfg, -cfg.buoyancy, s, v);
         smoke::advect_along(&cfg, -1.0, x, &d, dx);
         self.project.apply(dx);
@@ -346,7 +344,7 @@ impl SmokeRise {
     /// `steps` steps of P2 on `n × n` cells, solves to relative tolerance
     /// 1e-8 with a sparse Cholesky preconditioner (a direct solve).
     pub fn new(n: usize, steps: usize) -> Self {
-        Self { step: SmokeStep::new(Smoke2d::p2(n), 1e-8, 2000, Preconditioner::Cholesky), steps }
+        Self { step: SmokeStep::new(MacGrid::p2(n), 1e-8, 2000, Preconditioner::Cholesky), steps }
     }
 
     /// The packed states `x_0 = [s_0, 0, 0], …, x_T`.
@@ -463,7 +461,7 @@ impl P2 {
     /// The P2 problem with solves to relative tolerance 1e-8, at most 2000
     /// iterations, preconditioned by `precond`.
     pub fn new(n: usize, steps: usize, precond: Preconditioner) -> Self {
-        let cfg = Smoke2d::p2(n);
+        let cfg = MacGrid::p2(n);
         Self { step: SmokeStep::new(cfg, 1e-8, 2000, precond), steps, x0: smoke::p2_initial(&cfg), target: smoke::p2_target(&cfg) }
     }
 

@@ -5,8 +5,9 @@
 
 use std::cell::RefCell;
 
+use diffsim_solvers::smoke::MacGrid;
 use diffsim_solvers::smoke::{Preconditioner, ProjectScratch};
-use diffsim_solvers::smoke3d::{self, PressureSolver3, Smoke3d};
+use diffsim_solvers::smoke3d::{self, PressureSolver3};
 
 use super::ranges::{split_ranges, vjp_over_ranges};
 
@@ -35,7 +36,7 @@ macro_rules! state_operator {
 /// over fixed slab ranges in parallel, summed in a fixed order
 /// ([`slab_ranges`]): the same result for any thread count.
 #[derive(Clone, Copy, Debug)]
-pub struct SmokeAdvect3(pub Smoke3d);
+pub struct SmokeAdvect3(pub MacGrid<3>);
 
 state_operator!(SmokeAdvect3, o => o.0);
 
@@ -56,13 +57,12 @@ impl Vjp for SmokeAdvect3 {
         validate_vjp(self, "SmokeAdvect3", x, p, dy, dx, dp);
         closed_only(&self.0);
         let cfg = self.0;
-        let ranges = slab_ranges(cfg.nz);
+        let ranges = slab_ranges(cfg.n[2]);
         if ranges.len() == 1 {
-            return SmokeAdvect3Slabs::new(cfg, 0..cfg.nz).vjp(x, p, dy, dx, dp);
+            return SmokeAdvect3Slabs::new(cfg, 0..cfg.n[2]).vjp(x, p, dy, dx, dp);
         }
         // Each field's slabs are contiguous in the packed state.
-        let pieces =
-            |ks: &std::ops::Range<usize>| cfg.slab_lens(ks.clone()).iter().zip(&cfg.slab_starts(ks.start)).map(|(&len, &start)| (start, len)).collect();
+        let pieces = |ks: &std::ops::Range<usize>| cfg.slab_pieces(ks.clone());
         vjp_over_ranges(&ranges, |ks| SmokeAdvect3Slabs::new(cfg, ks), pieces, x, dy, dx);
     }
 }
@@ -71,12 +71,12 @@ impl Jvp for SmokeAdvect3 {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         validate_jvp(self, "SmokeAdvect3", x, p, tx, tp, y, ty);
         closed_only(&self.0);
-        SmokeAdvect3Slabs::new(self.0, 0..self.0.nz).jvp(x, p, tx, tp, y, ty);
+        SmokeAdvect3Slabs::new(self.0, 0..self.0.n[2]).jvp(x, p, tx, tp, y, ty);
     }
 }
 
 /// P4's step is the closed box's: checked before the generated code runs.
-fn closed_only(cfg: &Smoke3d) {
+fn closed_only(cfg: &MacGrid<3>) {
     assert!(cfg.is_closed(), "SmokeAdvect3 is P4's step of the closed box; a box with other sides takes fluids3d::Advect3");
 }
 
@@ -87,12 +87,12 @@ pub fn slab_ranges(nz: usize) -> Vec<std::ops::Range<usize>> {
 }
 
 /// Slabs `k0..k1` (along z) of [`SmokeAdvect3`]'s output, packed as
-/// [`Smoke3d::slab_lens`] says, with Enzyme-generated VJP and JVP: the
+/// [`MacGrid<3>::slab_lens`] says, with Enzyme-generated VJP and JVP: the
 /// piece of the step whose adjoints [`SmokeAdvect3`] runs in parallel.
 /// Over `0..nz` it is [`SmokeAdvect3`].
 #[derive(Clone, Copy, Debug)]
 pub struct SmokeAdvect3Slabs {
-    cfg: Smoke3d,
+    cfg: MacGrid<3>,
     k0: usize,
     k1: usize,
 }
@@ -102,8 +102,8 @@ impl SmokeAdvect3Slabs {
     ///
     /// # Panics
     /// If `ks` is empty or reaches past `nz`.
-    pub fn new(cfg: Smoke3d, ks: std::ops::Range<usize>) -> Self {
-        assert!(ks.start < ks.end && ks.end <= cfg.nz, "SmokeAdvect3Slabs: slabs {ks:?} of {}", cfg.nz);
+    pub fn new(cfg: MacGrid<3>, ks: std::ops::Range<usize>) -> Self {
+        assert!(ks.start < ks.end && ks.end <= cfg.n[2], "SmokeAdvect3Slabs: slabs {ks:?} of {}", cfg.n[2]);
         Self { cfg, k0: ks.start, k1: ks.end }
     }
 }
@@ -113,7 +113,7 @@ impl Operator for SmokeAdvect3Slabs {
         self.cfg.n_state()
     }
     fn n_out(&self) -> usize {
-        self.cfg.slab_lens(self.k0..self.k1).iter().sum()
+        self.cfg.slabs_len(self.k0..self.k1)
     }
 }
 
@@ -131,7 +131,7 @@ crate::differentiable!(SmokeAdvect3Slabs => smoke_advect3_slabs, smooth_radius =
 /// Steps 1–4 of P4 with the hand-written adjoint (the reference for
 /// [`SmokeAdvect3`]'s generated one).
 #[derive(Clone, Copy, Debug)]
-pub struct SmokeAdvect3Hand(pub Smoke3d);
+pub struct SmokeAdvect3Hand(pub MacGrid<3>);
 
 crate::problems::smoke::hand_explicit_operator!(SmokeAdvect3Hand, smoke3d::advect_buoyancy, smoke3d::advect_buoyancy_adjoint, smoke3d::advect_radius);
 
@@ -145,7 +145,7 @@ crate::problems::smoke::hand_explicit_operator!(SmokeAdvect3Hand, smoke3d::advec
 /// does not converge is reported through [`Forward::take_error`].
 #[derive(Debug)]
 pub struct Project3 {
-    cfg: Smoke3d,
+    cfg: MacGrid<3>,
     /// Each axis's open faces, when there are obstacles (the fluid mask is
     /// the solver's).
     open: Option<[Vec<f64>; 3]>,
@@ -163,12 +163,12 @@ impl Project3 {
     ///
     /// # Panics
     /// For the Cholesky preconditioner (2D only).
-    pub fn new(cfg: Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
+    pub fn new(cfg: MacGrid<3>, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
         Self::with_solver(cfg, None, PressureSolver3::new(&cfg, tolerance, max_iterations, precond))
     }
 
     /// The projection with `solver` (and the open faces when it has obstacles).
-    fn with_solver(cfg: Smoke3d, open: Option<[Vec<f64>; 3]>, solver: PressureSolver3) -> Self {
+    fn with_solver(cfg: MacGrid<3>, open: Option<[Vec<f64>; 3]>, solver: PressureSolver3) -> Self {
         Self { cfg, open, solver: RefCell::new(solver), scratch: RefCell::new(ProjectScratch::new(cfg.n_s())), log: SolveLog::default() }
     }
 
@@ -182,7 +182,7 @@ impl Project3 {
     /// # Panics
     /// As [`Project3::new`], if `solid` does not have a value per cell, or
     /// if every cell is solid.
-    pub fn with_obstacles(cfg: Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner, solid: &[bool]) -> Self {
+    pub fn with_obstacles(cfg: MacGrid<3>, tolerance: f64, max_iterations: usize, precond: Preconditioner, solid: &[bool]) -> Self {
         assert_eq!(solid.len(), cfg.n_s(), "3D projection: one solid flag per cell");
         assert!(solid.iter().any(|&s| !s), "3D projection: every cell is solid");
         let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
@@ -236,7 +236,7 @@ pub struct SmokeStep3 {
 
 impl SmokeStep3 {
     /// A step of the closed box `cfg` (see [`Project3::new`]).
-    pub fn new(cfg: Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
+    pub fn new(cfg: MacGrid<3>, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
         Self { advect: SmokeAdvect3(cfg), hand: false, project: Project3::new(cfg, tolerance, max_iterations, precond) }
     }
 
@@ -258,7 +258,7 @@ impl SmokeStep3 {
     }
 
     /// The grid.
-    pub fn cfg(&self) -> &Smoke3d {
+    pub fn cfg(&self) -> &MacGrid<3> {
         &self.advect.0
     }
 }
@@ -274,7 +274,7 @@ impl P4 {
     /// The P4 problem with solves to relative tolerance 1e-8, at most 2000
     /// iterations, preconditioned by `precond` (multigrid or none).
     pub fn new(n: usize, steps: usize, precond: Preconditioner) -> Self {
-        let cfg = Smoke3d::p4(n);
+        let cfg = MacGrid::p4(n);
         Self { step: SmokeStep3::new(cfg, 1e-8, 2000, precond), steps, x0: smoke3d::p4_initial(&cfg), target: smoke3d::p4_target(&cfg) }
     }
 

@@ -5,8 +5,7 @@ use std::path::Path;
 
 use diffsim_solvers::boundary::{Boundary, Profile, Side};
 use diffsim_solvers::burgers::Burgers1d;
-use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d};
-use diffsim_solvers::smoke3d::Smoke3d;
+use diffsim_solvers::smoke::{MacGrid, Preconditioner, Scheme};
 use toml::Spanned;
 
 use super::init::{axis_of, field_init, shape_cells};
@@ -66,7 +65,7 @@ fn domain(file: &SceneFile, text: &str) -> Result<Domain, SceneError> {
                 }
                 let boundary = domain_boundary(d)?;
                 boundary.validate().map_err(|e| SceneError::key("domain.boundary", e.to_string()))?;
-                Ok(Domain::Box(Smoke2d { boundary, ..Smoke2d::new(nx, ny) }))
+                Ok(Domain::Box(MacGrid::new([nx, ny]).with_boundary(boundary)))
             }
             3 => {
                 let [nx, ny, nz] = [0, 1, 2].map(|a| count(&format!("domain.size[{a}]"), size[a]));
@@ -83,7 +82,7 @@ fn domain(file: &SceneFile, text: &str) -> Result<Domain, SceneError> {
                     Some(v) => Boundary { sides: <[[Side; 2]; 3]>::try_from(boundary_sides(v, 3)?).expect("three axes") },
                 };
                 boundary.validate().map_err(|e| SceneError::key("domain.boundary", e.to_string()))?;
-                Ok(Domain::Box3(Smoke3d::new(nx, ny, nz, 1.0).with_boundary(boundary)))
+                Ok(Domain::Box3(MacGrid::new([nx, ny, nz]).with_dt(1.0).with_boundary(boundary)))
             }
             k => Err(SceneError::key("domain.size", format!("expected [n] (1D), [nx, ny] (2D) or [nx, ny, nz] (3D), got {k} value(s)"))),
         }
@@ -173,8 +172,8 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
     if let (Some(all), Some(last)) = (&solid, file.obstacles.last()) {
         use diffsim_solvers::boundary::sealed_region;
         let sealed = match &domain {
-            Domain::Box(cfg) => sealed_region([cfg.nx, cfg.ny], &cfg.boundary, all).map(|r| (r.cells, r.at.to_vec())),
-            Domain::Box3(cfg) => sealed_region(cfg.dims(), &cfg.boundary, all).map(|r| (r.cells, r.at.to_vec())),
+            Domain::Box(cfg) => sealed_region([cfg.n[0], cfg.n[1]], &cfg.boundary, all).map(|r| (r.cells, r.at.to_vec())),
+            Domain::Box3(cfg) => sealed_region(cfg.n, &cfg.boundary, all).map(|r| (r.cells, r.at.to_vec())),
             Domain::Line(_) => None,
         };
         if let Some((cells, at)) = sealed {
@@ -477,7 +476,7 @@ impl Builder<'_> {
                             _ => {
                                 let cfg = *self_cfg(&domain);
                                 self.ops.push(Box::new(Force { cfg, dt }));
-                                vec![cfg.n_u(), cfg.n_v()]
+                                vec![cfg.n_face(0), cfg.n_face(1)]
                             }
                         };
                         for (&value, count) in f.value.iter().zip(faces) {
@@ -515,7 +514,7 @@ impl Builder<'_> {
                 self.params.push(finite(&at("coefficient"), b.coefficient)?);
             }
             (EffectSpec::Inflow(i), Domain::Box(cfg)) => {
-                let (r, values) = inflow(k, &i, &[cfg.nx, cfg.ny], self.dt)?;
+                let (r, values) = inflow(k, &i, &[cfg.n[0], cfg.n[1]], self.dt)?;
                 self.effects.push("inflow".into());
                 self.ops.push(Box::new(Inflow { cfg, region: [r[0], r[1], r[2], r[3]] }));
                 self.params.extend(values);
@@ -546,7 +545,7 @@ impl Builder<'_> {
     /// the other domains'): advection (semi-Lagrangian, MacCormack, upwind),
     /// buoyancy along any axis, inflow regions and the pressure projection
     /// of a cube (with obstacles).
-    fn effect_3d(&mut self, k: usize, e: EffectSpec, cfg: Smoke3d) -> Result<(), SceneError> {
+    fn effect_3d(&mut self, k: usize, e: EffectSpec, cfg: MacGrid<3>) -> Result<(), SceneError> {
         let at = |key: &str| format!("effects[{k}].{key}");
         let n = cfg.n_state();
         match e {
@@ -584,7 +583,7 @@ impl Builder<'_> {
                 self.params.push(finite(&at("coefficient"), b.coefficient)?);
             }
             EffectSpec::Inflow(i) => {
-                let (r, values) = inflow(k, &i, &cfg.dims(), self.dt)?;
+                let (r, values) = inflow(k, &i, &cfg.n, self.dt)?;
                 self.effects.push("inflow".into());
                 self.ops.push(Box::new(Inflow3 { cfg, region: [r[0], r[1], r[2], r[3], r[4], r[5]] }));
                 self.params.extend(values);
@@ -655,7 +654,7 @@ fn preconditioner(key: &str, name: &str, known: &[&str]) -> Result<Preconditione
     }
 }
 
-fn self_cfg(domain: &Domain) -> &Smoke2d {
+fn self_cfg(domain: &Domain) -> &MacGrid<2> {
     match domain {
         Domain::Box(cfg) => cfg,
         Domain::Line(_) => unreachable!("2D effects are refused on a line before this"),

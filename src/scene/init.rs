@@ -8,8 +8,9 @@
 use std::path::Path;
 
 use diffsim_solvers::flow::Shape;
+use diffsim_solvers::smoke::MacGrid;
 use diffsim_solvers::smoke::{enforce_boundary, obstacle_box, obstacle_disc};
-use diffsim_solvers::smoke3d::{Smoke3d, Solid3, enforce_boundary3, solid_cells};
+use diffsim_solvers::smoke3d::{Solid3, enforce_boundary3, solid_cells};
 
 use super::spec::{InitSpec, NpyPaths, ShapeSpec};
 use super::value::{finite, positive};
@@ -73,7 +74,7 @@ pub(super) fn axis_of(key: &str, name: &str) -> Result<usize, SceneError> {
 
 /// The solid cells of a 3D shape (a cell is solid when its centre lies
 /// inside; `npy`: where the file's value is not zero).
-fn shape_cells_3d(key: &str, cfg: &Smoke3d, shape: &ShapeSpec, dir: &Path) -> Result<Vec<bool>, SceneError> {
+fn shape_cells_3d(key: &str, cfg: &MacGrid<3>, shape: &ShapeSpec, dir: &Path) -> Result<Vec<bool>, SceneError> {
     let solid = match shape {
         ShapeSpec::Box { lower, upper } => {
             let (a, b) = box_corners(key, lower, upper, 3)?;
@@ -100,7 +101,7 @@ fn shape_cells_3d(key: &str, cfg: &Smoke3d, shape: &ShapeSpec, dir: &Path) -> Re
             Solid3::Cylinder { axis, center: [c[0], c[1], c[2]], radius: positive(&format!("{key}.radius"), *radius)?, extent }
         }
         ShapeSpec::Npy(path) => {
-            let shape = [cfg.nz as u64, cfg.ny as u64, cfg.nx as u64];
+            let shape = [cfg.n[2] as u64, cfg.n[1] as u64, cfg.n[0] as u64];
             let full = dir.join(path);
             let fail = |why: String| SceneError::key(format!("{key}.npy"), format!("{}: {why}", full.display()));
             let bytes = crate::files::read_bytes(&full, 8 * cfg.n_s() as u64 + 65_536, "`.npy` obstacle mask").map_err(|e| fail(e.to_string()))?;
@@ -138,7 +139,7 @@ pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec, dir: &P
         }
         (Domain::Box(cfg), ShapeSpec::Fourier { .. } | ShapeSpec::Polygon { .. }) => {
             let body = shape_of(key, shape)?;
-            let (nx, ny) = (cfg.nx, cfg.ny);
+            let (nx, ny) = (cfg.n[0], cfg.n[1]);
             let cells: Vec<bool> = (0..nx * ny).map(|c| body.level((c % nx) as f64 + 0.5, (c / nx) as f64 + 0.5) < 0.0).collect();
             cells.iter().any(|&c| c).then_some(cells)
         }
@@ -160,8 +161,8 @@ pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec, dir: &P
     };
     cells.ok_or_else(|| {
         let size = match domain {
-            Domain::Box(cfg) => format!("{}×{} domain", cfg.nx, cfg.ny),
-            Domain::Box3(cfg) => format!("{}×{}×{} domain", cfg.nx, cfg.ny, cfg.nz),
+            Domain::Box(cfg) => format!("{}×{} domain", cfg.n[0], cfg.n[1]),
+            Domain::Box3(cfg) => format!("{}×{}×{} domain", cfg.n[0], cfg.n[1], cfg.n[2]),
             Domain::Line(l) => format!("domain [0, {})", l.n as f64 * l.dx),
         };
         SceneError::key(key, format!("the shape lies wholly outside the {size}"))
@@ -203,7 +204,7 @@ pub(super) fn field_init(key: &str, domain: &Domain, field: Field, init: &InitSp
                 Domain::Line(_) => vec![v[0]; len],
                 Domain::Box(cfg) => {
                     let mut uv = vec![v[0]; cfg.n_vel()];
-                    uv[cfg.n_u()..].fill(v[1]);
+                    uv[cfg.n_face(0)..].fill(v[1]);
                     uv
                 }
                 Domain::Box3(cfg) => (0..3).flat_map(|a| std::iter::repeat_n(v[a], cfg.n_face(a))).collect(),
@@ -220,7 +221,7 @@ pub(super) fn field_init(key: &str, domain: &Domain, field: Field, init: &InitSp
     };
     match (field, domain) {
         (Field::Velocity, Domain::Box(cfg)) => {
-            let (u, v) = values.split_at_mut(cfg.n_u());
+            let (u, v) = values.split_at_mut(cfg.n_face(0));
             enforce_boundary(cfg, u, v);
         }
         (Field::Velocity, Domain::Box3(cfg)) => {
@@ -250,7 +251,7 @@ fn sine(domain: &Domain, field: Field, a: f64, k: &[f64]) -> Vec<f64> {
             (0..l.n).map(|i| a * (TAU * k[0] * i as f64 * l.dx / len).sin()).collect()
         }
         Domain::Box(cfg) => {
-            let (n, ny) = (cfg.nx, cfg.ny);
+            let (n, ny) = (cfg.n[0], cfg.n[1]);
             // `k` periods across the box along each axis.
             let at = |x: f64, y: f64| a * (TAU * (k[0] * x / n as f64 + k[1] * y / ny as f64)).sin();
             match field {
@@ -272,7 +273,7 @@ fn sine(domain: &Domain, field: Field, a: f64, k: &[f64]) -> Vec<f64> {
             }
         }
         Domain::Box3(cfg) => {
-            let n = cfg.dims();
+            let n = cfg.n;
             // `k` periods across the box along each axis.
             let at = |p: [f64; 3]| a * (TAU * (0..3).map(|b| k[b] * p[b] / n[b] as f64).sum::<f64>()).sin();
             // Samples of the centres (axis 3) or of the faces normal to an axis.

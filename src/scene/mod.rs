@@ -25,8 +25,7 @@ pub use steady::{ForceLoss, SteadyGradient, SteadyRun, SteadyScene, param_names}
 use std::ops::Range;
 use std::path::Path;
 
-use diffsim_solvers::smoke::Smoke2d;
-use diffsim_solvers::smoke3d::Smoke3d;
+use diffsim_solvers::smoke::MacGrid;
 
 use crate::op::Chain;
 use crate::rollout::{AtSteps, Checkpointing, Loss, Rollout, RolloutError};
@@ -110,10 +109,10 @@ pub enum Domain {
     /// A line (1D scenes: Burgers, heat).
     Line(Line),
     /// A box of `nx × ny` unit cells with its boundary (2D).
-    Box(Smoke2d),
+    Box(MacGrid<2>),
     /// A closed box of `nx × ny × nz` unit cells (3D), its time step in
     /// `dt` (the advection's).
-    Box3(Smoke3d),
+    Box3(MacGrid<3>),
 }
 
 /// One array of a field as written to `.npy`: its file-name suffix, its
@@ -166,15 +165,15 @@ impl Domain {
         let r = self.range(field);
         match (self, field) {
             (Domain::Line(l), _) => vec![Array { suffix: "", range: r, shape: vec![l.n as u64] }],
-            (Domain::Box(cfg), Field::Smoke) => vec![Array { suffix: "", range: r, shape: vec![cfg.ny as u64, cfg.nx as u64] }],
+            (Domain::Box(cfg), Field::Smoke) => vec![Array { suffix: "", range: r, shape: vec![cfg.n[1] as u64, cfg.n[0] as u64] }],
             (Domain::Box(cfg), Field::Velocity) => {
-                let (nx, ny, nu) = (cfg.nx as u64, cfg.ny as u64, cfg.n_u());
+                let (nx, ny, nu) = (cfg.n[0] as u64, cfg.n[1] as u64, cfg.n_face(0));
                 vec![
                     Array { suffix: "_u", range: r.start..r.start + nu, shape: vec![ny, nx + 1] },
                     Array { suffix: "_v", range: r.start + nu..r.end, shape: vec![ny + 1, nx] },
                 ]
             }
-            (Domain::Box3(cfg), Field::Smoke) => vec![Array { suffix: "", range: r, shape: vec![cfg.nz as u64, cfg.ny as u64, cfg.nx as u64] }],
+            (Domain::Box3(cfg), Field::Smoke) => vec![Array { suffix: "", range: r, shape: vec![cfg.n[2] as u64, cfg.n[1] as u64, cfg.n[0] as u64] }],
             (Domain::Box3(cfg), Field::Velocity) => {
                 let mut start = r.start;
                 ["_u", "_v", "_w"]
@@ -276,7 +275,7 @@ impl Scene {
     ///
     /// # Panics
     /// For a 1D or 3D scene.
-    pub fn cfg(&self) -> &Smoke2d {
+    pub fn cfg(&self) -> &MacGrid<2> {
         match &self.domain {
             Domain::Box(cfg) => cfg,
             Domain::Line(_) | Domain::Box3(_) => panic!("Scene::cfg: a {}D scene has no 2D grid", self.domain.dims()),

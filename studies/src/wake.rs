@@ -28,7 +28,7 @@ use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
 use diffsim_solvers::boundary::{Boundary, Profile, Side, for_each_face};
-use diffsim_solvers::smoke::{Scheme, Smoke2d, obstacle_disc};
+use diffsim_solvers::smoke::{MacGrid, Scheme, obstacle_disc};
 
 use crate::sol::{Method, SolProblem, StudyParams, TrainParams, Trajectory};
 use diffsim::fluids::{Advect, Diffuse, DiffuseExplicit, Project};
@@ -56,7 +56,7 @@ impl WakeStep {
     /// The step on `cfg` with advection `scheme`, time step `dt`, viscosity
     /// `nu` (cell units), solid cells `solid`, pressure solves to relative
     /// `tolerance`.
-    pub fn new(cfg: Smoke2d, scheme: Scheme, dt: f64, nu: f64, solid: &[bool], tolerance: f64) -> Self {
+    pub fn new(cfg: MacGrid<2>, scheme: Scheme, dt: f64, nu: f64, solid: &[bool], tolerance: f64) -> Self {
         let advect = Advect { dt, smoke: false, ..Advect::new(cfg, scheme) };
         let n = cfg.n_state();
         Self {
@@ -128,7 +128,7 @@ impl Jvp for WakeStep {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct WakeSetup {
     /// The coarse box (the source solver's) with its boundary.
-    pub coarse: Smoke2d,
+    pub coarse: MacGrid<2>,
     /// Refinement of the reference in space (and in time: `factor` fine
     /// steps per coarse step).
     pub factor: usize,
@@ -159,7 +159,7 @@ impl WakeSetup {
         let speed = 1.0;
         let boundary = Boundary::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(speed))).with_upper(0, Side::Outflow);
         Self {
-            coarse: Smoke2d { boundary, ..Smoke2d::new(64, 32) },
+            coarse: MacGrid::new([64, 32]).with_boundary(boundary),
             factor: 4,
             scheme: Scheme::SemiLagrangian,
             dt: 0.5,
@@ -173,14 +173,14 @@ impl WakeSetup {
     }
 
     /// The fine box: `factor` times the cells, inflow in fine cells per unit time.
-    pub fn fine(&self) -> Smoke2d {
+    pub fn fine(&self) -> MacGrid<2> {
         let f = self.factor;
         let boundary = self.coarse.boundary.with_lower(0, Side::Inflow(Profile::Uniform(self.speed * f as f64)));
-        Smoke2d { boundary, ..Smoke2d::new(self.coarse.nx * f, self.coarse.ny * f) }
+        MacGrid::new([self.coarse.n[0] * f, self.coarse.n[1] * f]).with_boundary(boundary)
     }
 
     /// Solid cells of the disc on the box `cfg`, `scale` cells per coarse cell.
-    fn solid(&self, cfg: &Smoke2d, scale: f64) -> Vec<bool> {
+    fn solid(&self, cfg: &MacGrid<2>, scale: f64) -> Vec<bool> {
         let c = [self.center[0] * scale, self.center[1] * scale];
         obstacle_disc(cfg, c, self.radius * scale).unwrap_or_else(|| vec![false; cfg.n_s()])
     }
@@ -199,7 +199,7 @@ impl WakeSetup {
     pub fn initial(&self, rng: &mut impl Rng) -> Vec<f64> {
         let fine = self.fine();
         let f = self.factor as f64;
-        let (lx, ly) = (self.coarse.nx as f64, self.coarse.ny as f64);
+        let (lx, ly) = (self.coarse.n[0] as f64, self.coarse.n[1] as f64);
         let modes: Vec<(f64, f64, f64)> =
             (0..3).map(|_| (rng.random_range(-1.5..1.5), rng.random_range(1..=4) as f64, rng.random_range(1..=3) as f64)).collect();
         // ψ at fine node (i, j), in coarse units.
@@ -208,8 +208,8 @@ impl WakeSetup {
             modes.iter().map(|(a, m, l)| a * (PI * m * x / lx).sin() * (PI * l * y / ly).sin()).sum::<f64>()
         };
         let mut x = vec![0.0; fine.n_state()];
-        let (nx, ny) = (fine.nx, fine.ny);
-        let (_, u, v) = fine.split_mut(&mut x);
+        let (nx, ny) = (fine.n[0], fine.n[1]);
+        let (_, [u, v]) = fine.split_mut(&mut x);
         // Velocity in fine cells per unit time: f·(∂ψ/∂Y) ≈ f²·Δψ.
         for j in 0..ny {
             for i in 0..=nx {
@@ -229,18 +229,18 @@ impl WakeSetup {
     /// cells per unit time; no smoke.
     pub fn downsample(&self, fine_x: &[f64]) -> Vec<f64> {
         let (c, fine, f) = (self.coarse, self.fine(), self.factor);
-        let (_, fu, fv) = fine.split(fine_x);
+        let (_, [fu, fv]) = fine.split(fine_x);
         let mut x = vec![0.0; c.n_state()];
-        let (_, u, v) = c.split_mut(&mut x);
+        let (_, [u, v]) = c.split_mut(&mut x);
         let scale = 1.0 / (f * f) as f64;
-        for j in 0..c.ny {
-            for i in 0..=c.nx {
-                u[j * (c.nx + 1) + i] = scale * (0..f).map(|r| fu[(f * j + r) * (fine.nx + 1) + f * i]).sum::<f64>();
+        for j in 0..c.n[1] {
+            for i in 0..=c.n[0] {
+                u[j * (c.n[0] + 1) + i] = scale * (0..f).map(|r| fu[(f * j + r) * (fine.n[0] + 1) + f * i]).sum::<f64>();
             }
         }
-        for j in 0..=c.ny {
-            for i in 0..c.nx {
-                v[j * c.nx + i] = scale * (0..f).map(|r| fv[f * j * fine.nx + f * i + r]).sum::<f64>();
+        for j in 0..=c.n[1] {
+            for i in 0..c.n[0] {
+                v[j * c.n[0] + i] = scale * (0..f).map(|r| fv[f * j * fine.n[0] + f * i + r]).sum::<f64>();
             }
         }
         x
@@ -278,8 +278,8 @@ impl WakeSetup {
         let c = &self.coarse;
         let solid = self.solid(c, 1.0);
         let mut keep = vec![false; c.n_state()];
-        for (axis, start) in [(0, c.n_s()), (1, c.n_s() + c.n_u())] {
-            for_each_face(c.nx, c.ny, &c.boundary, axis, |f| {
+        for (axis, start) in [(0, c.n_s()), (1, c.n_s() + c.n_face(0))] {
+            for_each_face(c.n[0], c.n[1], &c.boundary, axis, |f| {
                 let open = [f.lower, f.upper].iter().all(|cell| cell.is_none_or(|k| !solid[k]));
                 keep[start + f.index] = f.projected && open;
             });
@@ -292,7 +292,7 @@ impl WakeSetup {
     /// writing only the [correctable](Self::correctable) faces.
     pub fn network(&self, act: Activation) -> Net {
         let keep = self.correctable();
-        presets::mac_conv_stack(self.coarse.nx, self.coarse.ny, &[2, 16, 16, 2], 3, act, Some(&keep)).expect("the preset is well formed")
+        presets::mac_conv_stack(self.coarse.n[0], self.coarse.n[1], &[2, 16, 16, 2], 3, act, Some(&keep)).expect("the preset is well formed")
     }
 }
 

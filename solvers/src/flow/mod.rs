@@ -21,7 +21,7 @@
 //! and the centreline profiles.
 
 use crate::boundary::{Boundary, BoundaryError, Side};
-use crate::smoke::{NoConvergence, PressureSolver, ProjectScratch, Smoke2d, enforce_boundary, project_velocity};
+use crate::smoke::{MacGrid, NoConvergence, PressureSolver, ProjectScratch, enforce_boundary, project_velocity};
 use momentum::{Pads, momentum};
 use std::fmt;
 
@@ -168,8 +168,8 @@ impl std::error::Error for FlowError {}
 impl Flow2d {
     /// The MAC grid of the flow (the smoke solver's, for its projection and
     /// boundary rules).
-    pub fn grid(&self) -> Smoke2d {
-        Smoke2d::new(self.nx, self.ny).with_boundary(self.boundary)
+    pub fn grid(&self) -> MacGrid<2> {
+        MacGrid::new([self.nx, self.ny]).with_boundary(self.boundary)
     }
 
     /// Number of velocities `Ny·(Nx+1) + (Ny+1)·Nx`.
@@ -179,7 +179,7 @@ impl Flow2d {
 
     /// Number of x-face velocities.
     pub fn n_u(&self) -> usize {
-        self.grid().n_u()
+        self.grid().n_face(0)
     }
 
     /// Checks that the flow can be simulated.
@@ -275,7 +275,7 @@ pub struct StepReport {
 #[derive(Debug)]
 pub struct Stepper {
     cfg: Flow2d,
-    grid: Smoke2d,
+    grid: MacGrid<2>,
     /// The projection without bodies.
     solver: Option<PressureSolver>,
     scratch: ProjectScratch,

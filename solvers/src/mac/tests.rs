@@ -292,7 +292,7 @@ fn fft_projection_matches_the_conjugate_gradient_projection() {
     use crate::boundary::{Boundary, Side};
     // 2D: the CG projection of the smoke solver on a periodic box.
     let (nx, ny) = (12, 10);
-    let cfg = crate::smoke::Smoke2d::new(nx, ny).with_boundary(Boundary::all(Side::Periodic));
+    let cfg = crate::smoke::MacGrid::new([nx, ny]).with_boundary(Boundary::all(Side::Periodic));
     let mut solver = crate::smoke::PressureSolver::general(nx, ny, cfg.boundary, 1e-13, 2000, None);
     let mut scratch = crate::smoke::ProjectScratch::new(nx * ny);
     let vel = periodic_velocity([nx, ny], 5, true);
@@ -307,7 +307,7 @@ fn fft_projection_matches_the_conjugate_gradient_projection() {
     assert!(diff < 1e-10, "2D: FFT and CG projections differ by {diff:e}");
     // 3D: the same against smoke3d's projection.
     let dims = [5, 6, 4];
-    let cfg3 = crate::smoke3d::Smoke3d::new(dims[0], dims[1], dims[2], 1.0).with_boundary(Boundary::all(Side::Periodic));
+    let cfg3 = crate::smoke::MacGrid::new(dims).with_boundary(Boundary::all(Side::Periodic));
     let mut solver3 = crate::smoke3d::PressureSolver3::new(&cfg3, 1e-13, 2000, crate::smoke::Preconditioner::None);
     let mut scratch3 = crate::smoke::ProjectScratch::new(cfg3.n_s());
     let vel3 = periodic_velocity(dims, 15, true);

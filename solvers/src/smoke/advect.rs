@@ -31,12 +31,12 @@ pub enum Scheme {
 /// # Panics
 /// If a length is wrong or a side has fewer than 2 cells.
 #[allow(clippy::too_many_arguments)]
-pub fn advect(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
-    assert!(cfg.nx.min(cfg.ny) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+pub fn advect(cfg: &MacGrid<2>, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+    assert!(cfg.n[0].min(cfg.n[1]) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
     assert!(scratch.len() >= advect_scratch_len(cfg, scheme), "smoke: advection scratch");
     with_mac!(cfg, mac => advect_on(mac, scheme, dt, smoke, velocity, x, y, scratch));
     if velocity {
-        let (_, u2, v2) = cfg.split_mut(y);
+        let (_, [u2, v2]) = cfg.split_mut(y);
         enforce_boundary(cfg, u2, v2);
     }
 }
@@ -79,19 +79,19 @@ fn advect_on<W: Wraps<2>>(mac: Mac<2, W>, scheme: Scheme, dt: f64, smoke: bool, 
 ///
 /// # Panics
 /// If a length is wrong or a side has fewer than 2 cells.
-pub fn advect_along(cfg: &Smoke2d, dt: f64, x: &[f64], d: &[f64], out: &mut [f64]) {
+pub fn advect_along(cfg: &MacGrid<2>, dt: f64, x: &[f64], d: &[f64], out: &mut [f64]) {
     let n = cfg.n_state();
-    assert!(cfg.nx.min(cfg.ny) >= 2 && x.len() == n && d.len() == n && out.len() == n, "smoke: state lengths");
-    let (_, u, v) = cfg.split(x);
-    let (ds, du, dv) = cfg.split(d);
-    let (os, ou, ov) = cfg.split_mut(out);
+    assert!(cfg.n[0].min(cfg.n[1]) >= 2 && x.len() == n && d.len() == n && out.len() == n, "smoke: state lengths");
+    let (_, [u, v]) = cfg.split(x);
+    let (ds, [du, dv]) = cfg.split(d);
+    let (os, [ou, ov]) = cfg.split_mut(out);
     with_mac!(cfg, mac => {
-        let all = 0..cfg.ny;
+        let all = 0..cfg.n[1];
         trace(mac, At::Centre, [u, v], ds, dt, all.clone(), os);
         trace(mac, At::Face(0), [u, v], du, dt, all.clone(), ou);
         trace(mac, At::Face(1), [u, v], dv, dt, all, ov);
     });
-    let (_, u2, v2) = cfg.split_mut(out);
+    let (_, [u2, v2]) = cfg.split_mut(out);
     enforce_boundary_linear(cfg, u2, v2);
 }
 
@@ -108,9 +108,9 @@ fn lattices(smoke: bool, velocity: bool) -> Vec<At> {
 /// point; ∞ when `d` moves none. MacCormack's limiter is not counted: its
 /// clamp kinks wherever it engages, which no radius of this kind bounds.
 #[allow(clippy::too_many_arguments)]
-pub fn advect_radius(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
-    let (_, u, v) = cfg.split(x);
-    let (_, du, dv) = cfg.split(d);
+pub fn advect_radius(cfg: &MacGrid<2>, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
+    let (_, [u, v]) = cfg.split(x);
+    let (_, [du, dv]) = cfg.split(d);
     let steps: &[f64] = match scheme {
         Scheme::SemiLagrangian => &[dt],
         Scheme::MacCormack { .. } => &[dt, -dt],
@@ -122,11 +122,11 @@ pub fn advect_radius(cfg: &Smoke2d, scheme: Scheme, dt: f64, smoke: bool, veloci
 /// side: the boundary conditions set it after the trace, so where its trace
 /// lands does not matter (no kink of the step).
 #[inline(always)]
-fn set_by_boundary(cfg: &Smoke2d, at: At, [k, l]: [usize; 2]) -> bool {
+fn set_by_boundary(cfg: &MacGrid<2>, at: At, [k, l]: [usize; 2]) -> bool {
     let b = &cfg.boundary;
     match at {
-        At::Face(0) => (k == 0 && b.lower(0).sets_faces()) || (k == cfg.nx && b.upper(0).sets_faces()),
-        At::Face(_) => (l == 0 && b.lower(1).sets_faces()) || (l == cfg.ny && b.upper(1).sets_faces()),
+        At::Face(0) => (k == 0 && b.lower(0).sets_faces()) || (k == cfg.n[0] && b.upper(0).sets_faces()),
+        At::Face(_) => (l == 0 && b.lower(1).sets_faces()) || (l == cfg.n[1] && b.upper(1).sets_faces()),
         At::Centre => false,
     }
 }
@@ -138,7 +138,7 @@ fn set_by_boundary(cfg: &Smoke2d, at: At, [k, l]: [usize; 2]) -> bool {
 /// unclamped values come from a step of `1e-7` relative along `d` (exact
 /// for the bounds, which are samples of the field); within the sampling
 /// radius of [`advect_radius`], which the caller takes too.
-pub fn limiter_radius(cfg: &Smoke2d, dt: f64, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
+pub fn limiter_radius(cfg: &MacGrid<2>, dt: f64, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
     let dmax = d.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     if dmax == 0.0 {
         return f64::INFINITY;
@@ -151,18 +151,19 @@ pub fn limiter_radius(cfg: &Smoke2d, dt: f64, smoke: bool, velocity: bool, x: &[
         fields.push(LimitedField { at: At::Centre, f: fx.0, df: fd.0, fe: fe.0 });
     }
     if velocity {
-        fields.push(LimitedField { at: At::Face(0), f: fx.1, df: fd.1, fe: fe.1 });
-        fields.push(LimitedField { at: At::Face(1), f: fx.2, df: fd.2, fe: fe.2 });
+        for a in 0..2 {
+            fields.push(LimitedField { at: At::Face(a), f: fx.1[a], df: fd.1[a], fe: fe.1[a] });
+        }
     }
-    crate::mac::advect::limiter_radius(cfg.mac(), &fields, dt, [[fx.1, fx.2], [fe.1, fe.2]], eps, |at, q| set_by_boundary(cfg, at, q))
+    crate::mac::advect::limiter_radius(cfg.mac(), &fields, dt, [fx.1, fe.1], eps, |at, q| set_by_boundary(cfg, at, q))
 }
 
 /// Scratch [`advect()`] needs: for MacCormack two fields of the largest
 /// component's size (`2·max(n_u, n_v)`), none for semi-Lagrangian.
-pub fn advect_scratch_len(cfg: &Smoke2d, scheme: Scheme) -> usize {
+pub fn advect_scratch_len(cfg: &MacGrid<2>, scheme: Scheme) -> usize {
     match scheme {
         Scheme::SemiLagrangian => 0,
-        Scheme::MacCormack { .. } => 2 * cfg.n_u().max(cfg.n_v()),
+        Scheme::MacCormack { .. } => 2 * cfg.n_face(0).max(cfg.n_face(1)),
     }
 }
 
@@ -172,32 +173,18 @@ pub fn advect_scratch_len(cfg: &Smoke2d, scheme: Scheme) -> usize {
 /// (the velocity not yet divergence-free).
 ///
 /// # Panics
-/// If `x` or `y` is not of length [`Smoke2d::n_state`] or a side has fewer
+/// If `x` or `y` is not of length [`MacGrid<2>::n_state`] or a side has fewer
 /// than 2 cells.
-pub fn advect_buoyancy(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
+pub fn advect_buoyancy(cfg: &MacGrid<2>, x: &[f64], y: &mut [f64]) {
     advect(cfg, Scheme::SemiLagrangian, 1.0, true, true, x, y, &mut []);
     // Buoyancy touches no closed, inflow or outflow face and refreshes its
     // own periodic copies, so the boundary conditions of `advect` still hold.
-    let (s2, _, v2) = cfg.split_mut(y);
+    let (s2, [_, v2]) = cfg.split_mut(y);
     add_buoyancy(cfg, cfg.buoyancy, s2, v2);
 }
 
-/// Lengths of rows `js` of `[s, u, v]` in the closed box (P2): `js.len()`
-/// rows of each field, and for `v` also its top row when `js` reaches it.
-/// Over `0..ny`, the packed state.
-pub fn row_lens(cfg: &Smoke2d, js: std::ops::Range<usize>) -> [usize; 3] {
-    let (n, m) = (cfg.nx, js.len());
-    [m * n, m * (n + 1), (m + (js.end == cfg.ny) as usize) * n]
-}
-
-/// Where row `j` of each field starts in the packed state.
-pub fn row_starts(cfg: &Smoke2d, j: usize) -> [usize; 3] {
-    let n = cfg.nx;
-    [j * n, cfg.n_s() + j * (n + 1), cfg.n_s() + cfg.n_u() + j * n]
-}
-
 /// Rows `js` of [`advect_buoyancy`]'s output in the closed box (P2),
-/// packed as [`row_lens`] says (`y` of their total length): each output row
+/// packed as [`MacGrid::slab_lens`] says (`y` of their total length): each output row
 /// depends on the whole input but on no other output row (the buoyancy of
 /// a range's first y-face traces the smoke row below it again), so that an
 /// adjoint can be taken row range by row range in parallel, then summed in
@@ -207,18 +194,15 @@ pub fn row_starts(cfg: &Smoke2d, j: usize) -> [usize; 3] {
 /// # Panics
 /// If the box is not closed, a length is wrong, or `js` is empty or past
 /// `ny`.
-pub fn advect_buoyancy_rows(cfg: &Smoke2d, x: &[f64], js: std::ops::Range<usize>, y: &mut [f64]) {
-    let (n, ny) = (cfg.nx, cfg.ny);
-    let lens = row_lens(cfg, js.clone());
-    assert!(
-        cfg.boundary == Boundary::CLOSED && n.min(ny) >= 2 && x.len() == cfg.n_state() && y.len() == lens.iter().sum::<usize>(),
-        "smoke: rows of the closed box's step"
-    );
+pub fn advect_buoyancy_rows(cfg: &MacGrid<2>, x: &[f64], js: std::ops::Range<usize>, y: &mut [f64]) {
+    let (n, ny) = (cfg.n[0], cfg.n[1]);
+    let (ls, [lu, _]) = cfg.slab_lens(js.clone());
+    assert!(cfg.is_closed() && n.min(ny) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.slabs_len(js.clone()), "smoke: rows of the closed box's step");
     assert!(js.start < js.end && js.end <= ny, "smoke: rows {js:?} of {ny}");
     let mac = Mac::bounded([n, ny]);
-    let (s, u, v) = cfg.split(x);
-    let (s2, rest) = y.split_at_mut(lens[0]);
-    let (u2, v2) = rest.split_at_mut(lens[1]);
+    let (s, [u, v]) = cfg.split(x);
+    let (s2, rest) = y.split_at_mut(ls);
+    let (u2, v2) = rest.split_at_mut(lu);
     let j0 = js.start;
     // One call per field (a loop over an array of (lattice, slice) pairs
     // trips Enzyme, docs/pitfalls.md).
@@ -254,30 +238,30 @@ pub fn advect_buoyancy_rows(cfg: &Smoke2d, x: &[f64], js: std::ops::Range<usize>
 ///
 /// # Panics
 /// As [`advect_buoyancy`].
-pub fn advect_buoyancy_parallel(cfg: &Smoke2d, x: &[f64], y: &mut [f64]) {
-    assert!(cfg.nx.min(cfg.ny) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+pub fn advect_buoyancy_parallel(cfg: &MacGrid<2>, x: &[f64], y: &mut [f64]) {
+    assert!(cfg.n[0].min(cfg.n[1]) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
     with_mac!(cfg, mac => {
-        let (s, u, v) = cfg.split(x);
-        let (s2, u2, v2) = cfg.split_mut(y);
+        let (s, [u, v]) = cfg.split(x);
+        let (s2, [u2, v2]) = cfg.split_mut(y);
         trace_parallel(mac, At::Centre, [u, v], s, 1.0, s2);
         trace_parallel(mac, At::Face(0), [u, v], u, 1.0, u2);
         trace_parallel(mac, At::Face(1), [u, v], v, 1.0, v2);
     });
-    let (_, u2, v2) = cfg.split_mut(y);
+    let (_, [u2, v2]) = cfg.split_mut(y);
     enforce_boundary(cfg, u2, v2);
-    let (s2, _, v2) = cfg.split_mut(y);
+    let (s2, [_, v2]) = cfg.split_mut(y);
     add_buoyancy(cfg, cfg.buoyancy, s2, v2);
 }
 
 /// Hand-written adjoint of [`advect_buoyancy`]: `gx += Jᵀ·gy` at the state
 /// `x` (accumulates into `gx`; `gy` is used as scratch and left
 /// unspecified). The reference for Enzyme's generated adjoint.
-pub fn advect_buoyancy_adjoint(cfg: &Smoke2d, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
-    let (n, ny) = (cfg.nx, cfg.ny);
+pub fn advect_buoyancy_adjoint(cfg: &MacGrid<2>, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
+    let (n, ny) = (cfg.n[0], cfg.n[1]);
     assert!(n.min(ny) >= 2 && x.len() == cfg.n_state() && gy.len() == cfg.n_state() && gx.len() == cfg.n_state(), "smoke: state lengths");
-    let (s, u, v) = cfg.split(x);
-    let (gs2, gu2, gv2) = cfg.split_mut(gy);
-    let (gs, gu, gv) = cfg.split_mut(gx);
+    let (s, [u, v]) = cfg.split(x);
+    let (gs2, [gu2, gv2]) = cfg.split_mut(gy);
+    let (gs, [gu, gv]) = cfg.split_mut(gx);
     // Buoyancy (its own periodic copy came after its addition).
     if cfg.boundary.periodic(1) {
         for i in 0..n {
@@ -310,10 +294,10 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke2d, x: &[f64], gy: &mut [f64], gx: &mu
 /// face, across periodic sides, and through inflow and outflow sides (with
 /// smoke-free fluid outside); none through closed sides. Reads
 /// `x = [s, u, v]`, writes `y = [s', u, v]`.
-pub fn advect_upwind(cfg: &Smoke2d, dt: f64, x: &[f64], y: &mut [f64]) {
-    let (n, ny) = (cfg.nx, cfg.ny);
+pub fn advect_upwind(cfg: &MacGrid<2>, dt: f64, x: &[f64], y: &mut [f64]) {
+    let (n, ny) = (cfg.n[0], cfg.n[1]);
     assert!(n.min(ny) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
-    let (s, u, v) = cfg.split(x);
+    let (s, [u, v]) = cfg.split(x);
     let nu = n + 1;
     let (s2, rest) = y.split_at_mut(cfg.n_s());
     copy(s, s2);
@@ -370,12 +354,12 @@ fn upwind_flux(s: &[f64], s2: &mut [f64], c: f64, lower: Option<usize>, upper: O
 
 /// Distance to the nearest upwind switch of [`advect_upwind`] along `d`: the
 /// smallest `|u_f / d_f|` over the faces that carry flux.
-pub fn upwind_radius(cfg: &Smoke2d, x: &[f64], d: &[f64]) -> f64 {
-    let (_, u, v) = cfg.split(x);
-    let (_, du, dv) = cfg.split(d);
+pub fn upwind_radius(cfg: &MacGrid<2>, x: &[f64], d: &[f64]) -> f64 {
+    let (_, [u, v]) = cfg.split(x);
+    let (_, [du, dv]) = cfg.split(d);
     let mut r = f64::INFINITY;
     for (axis, (vel, dvel)) in [(u, du), (v, dv)].into_iter().enumerate() {
-        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
+        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
             if f.side != Some(Side::Closed) && dvel[f.index] != 0.0 {
                 r = r.min((vel[f.index] / dvel[f.index]).abs());
             }

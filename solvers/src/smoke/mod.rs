@@ -23,7 +23,7 @@
 //!
 //! The lattices, their bilinear sampling and the MAC grid's index rules are
 //! [`crate::mac`]'s, shared with 3D. The module in files: this one holds the
-//! grid ([`Smoke2d`]);
+//! grid ([`MacGrid<2>`]);
 //! `advect` the advection schemes and their adjoints, `forces` buoyancy,
 //! external forces and inflow, `walls` the velocity boundary conditions and
 //! obstacles, `pressure` the divergence, the pressure matrices and the
@@ -33,98 +33,16 @@
 use crate::boundary::{Boundary, Side, for_each_face};
 use crate::mac::{At, Mac, Wraps};
 
-/// Grid of the smoke problem: `nx × ny` unit cells, buoyancy coefficient,
-/// and the boundary conditions.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Smoke2d {
-    /// Cells along x (columns).
-    pub nx: usize,
-    /// Cells along y (rows).
-    pub ny: usize,
-    /// Buoyancy: `v += buoyancy · (smoke averaged to the y-face)`.
-    pub buoyancy: f64,
-    /// The four sides (closed for P2). Check with [`Boundary::validate`]
-    /// before simulating.
-    pub boundary: Boundary,
-}
-
-impl Smoke2d {
-    /// The P2 setting (buoyancy 0.1, closed box).
-    pub fn p2(n: usize) -> Self {
-        Self { nx: n, ny: n, buoyancy: 0.1, boundary: Boundary::CLOSED }
-    }
-
-    /// A closed box of `nx × ny` cells without buoyancy.
-    pub fn new(nx: usize, ny: usize) -> Self {
-        Self { nx, ny, buoyancy: 0.0, boundary: Boundary::CLOSED }
-    }
-
-    /// Whether the box is square (`nx = ny`).
-    pub fn is_square(&self) -> bool {
-        self.nx == self.ny
-    }
-
-    /// The same grid with other boundary conditions.
-    pub fn with_boundary(self, boundary: Boundary) -> Self {
-        Self { boundary, ..self }
-    }
-
-    /// Number of smoke values (cells) `Nx·Ny`.
-    pub fn n_s(&self) -> usize {
-        self.nx * self.ny
-    }
-
-    /// Number of x-face velocities `Ny·(Nx+1)`.
-    pub fn n_u(&self) -> usize {
-        self.ny * (self.nx + 1)
-    }
-
-    /// Number of y-face velocities `(Ny+1)·Nx`.
-    pub fn n_v(&self) -> usize {
-        (self.ny + 1) * self.nx
-    }
-
-    /// Number of velocities `n_u + n_v`.
-    pub fn n_vel(&self) -> usize {
-        self.n_u() + self.n_v()
-    }
-
-    /// Length of the packed state `[s, u, v]`: `Nx·Ny + Ny·(Nx+1) + (Ny+1)·Nx`.
-    pub fn n_state(&self) -> usize {
-        self.n_s() + self.n_vel()
-    }
-
-    /// The index rules of this grid's MAC lattices, its axes wrapping where
-    /// the sides are periodic.
-    pub fn mac(&self) -> Mac<2, [bool; 2]> {
-        Mac { n: [self.nx, self.ny], wrap: [self.boundary.periodic(0), self.boundary.periodic(1)] }
-    }
-
-    /// Splits a packed state `[s, u, v]`.
-    pub fn split<'a>(&self, x: &'a [f64]) -> (&'a [f64], &'a [f64], &'a [f64]) {
-        let (s, rest) = x.split_at(self.n_s());
-        let (u, v) = rest.split_at(self.n_u());
-        (s, u, v)
-    }
-
-    /// Splits a packed state `[s, u, v]`, mutably.
-    pub fn split_mut<'a>(&self, x: &'a mut [f64]) -> (&'a mut [f64], &'a mut [f64], &'a mut [f64]) {
-        let (s, rest) = x.split_at_mut(self.n_s());
-        let (u, v) = rest.split_at_mut(self.n_u());
-        (s, u, v)
-    }
-}
-
 /// Calls `$body` with `$mac` bound to the [`Mac`] of the configuration:
 /// [`crate::mac::Bounded`] when no axis wraps (P2's closed box: its loops carry no
 /// test), else with the wrapping axes known at run time.
 macro_rules! with_mac {
     ($cfg:expr, $mac:ident => $body:expr) => {
-        if $cfg.boundary.periodic(0) || $cfg.boundary.periodic(1) {
+        if $cfg.boundary.wraps().contains(&true) {
             let $mac = $cfg.mac();
             $body
         } else {
-            let $mac = Mac::bounded([$cfg.nx, $cfg.ny]);
+            let $mac = $cfg.bounded();
             $body
         }
     };
@@ -149,12 +67,14 @@ fn open(fluid: Option<&[f64]>, f: &crate::boundary::Face) -> f64 {
 
 mod advect;
 mod forces;
+mod grid;
 mod p2;
 mod pressure;
 mod walls;
 
 pub use advect::*;
 pub use forces::*;
+pub use grid::*;
 pub use p2::*;
 pub use pressure::*;
 pub use walls::*;

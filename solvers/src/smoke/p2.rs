@@ -6,15 +6,15 @@ use super::*;
 
 /// P2's initial state: zero velocity, smoke 1 in every cell whose centre lies
 /// within `N/8` of `(N/2, N/4)`, packed as `[s, u, v]`.
-pub fn p2_initial(cfg: &Smoke2d) -> Vec<f64> {
+pub fn p2_initial(cfg: &MacGrid<2>) -> Vec<f64> {
     let mut x = vec![0.0; cfg.n_state()];
-    x[..cfg.n_s()].copy_from_slice(&disc(cfg.nx, 0.25));
+    x[..cfg.n_s()].copy_from_slice(&disc(cfg.n[0], 0.25));
     x
 }
 
 /// P2's target smoke: the same disc centred at `(N/2, 3N/4)`.
-pub fn p2_target(cfg: &Smoke2d) -> Vec<f64> {
-    disc(cfg.nx, 0.75)
+pub fn p2_target(cfg: &MacGrid<2>) -> Vec<f64> {
+    disc(cfg.n[0], 0.75)
 }
 
 fn disc(n: usize, cy: f64) -> Vec<f64> {

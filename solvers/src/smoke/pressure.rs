@@ -9,11 +9,11 @@ use std::fmt;
 /// Divergence of a MAC velocity, `d[c] = Σ` outward flux over the faces
 /// of cell `c` (overwrites `d`): `u[j][i+1] − u[j][i] + v[j+1][i] − v[j][i]`
 /// inside the box; a periodic axis's face `N` is not read (face `0` wraps).
-pub fn divergence(cfg: &Smoke2d, u: &[f64], v: &[f64], d: &mut [f64]) {
+pub fn divergence(cfg: &MacGrid<2>, u: &[f64], v: &[f64], d: &mut [f64]) {
     if cfg.boundary == Boundary::CLOSED {
         // P2's box in plain loops (the face list's sums in its order).
-        let (n, nu) = (cfg.nx, cfg.nx + 1);
-        for j in 0..cfg.ny {
+        let (n, nu) = (cfg.n[0], cfg.n[0] + 1);
+        for j in 0..cfg.n[1] {
             for i in 0..n {
                 d[j * n + i] = -u[j * nu + i] + u[j * nu + i + 1] - v[j * n + i] + v[(j + 1) * n + i];
             }
@@ -22,7 +22,7 @@ pub fn divergence(cfg: &Smoke2d, u: &[f64], v: &[f64], d: &mut [f64]) {
     }
     d.fill(0.0);
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
+        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
             let w = vel[f.index];
             if let Some(c) = f.lower {
                 d[c] += w;
@@ -35,9 +35,9 @@ pub fn divergence(cfg: &Smoke2d, u: &[f64], v: &[f64], d: &mut [f64]) {
 }
 
 /// Transpose of [`divergence`]: `(u, v) += Dᵀ·d` (accumulates).
-pub fn divergence_transpose(cfg: &Smoke2d, d: &[f64], u: &mut [f64], v: &mut [f64]) {
+pub fn divergence_transpose(cfg: &MacGrid<2>, d: &[f64], u: &mut [f64], v: &mut [f64]) {
     if cfg.boundary == Boundary::CLOSED {
-        let (n, ny, nu) = (cfg.nx, cfg.ny, cfg.nx + 1);
+        let (n, ny, nu) = (cfg.n[0], cfg.n[1], cfg.n[0] + 1);
         let at = |j: usize, i: usize| if j < ny && i < n { d[j * n + i] } else { 0.0 };
         for j in 0..ny {
             for i in 0..=n {
@@ -52,7 +52,7 @@ pub fn divergence_transpose(cfg: &Smoke2d, d: &[f64], u: &mut [f64], v: &mut [f6
         return;
     }
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
+        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
     }
 }
 
@@ -722,8 +722,8 @@ impl ProjectScratch {
 /// mask), `(u, v) −= G·p` on the faces the projection changes (interior,
 /// periodic, outflow; fluid–fluid only), periodic copies refreshed. The
 /// solver must be built for `cfg`'s boundary. Returns the CG iterations.
-pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
-    let (_, u, v) = cfg.split_mut(y);
+pub fn project(cfg: &MacGrid<2>, y: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
+    let (_, [u, v]) = cfg.split_mut(y);
     project_velocity(cfg, u, v, None, None, solver, scratch, false)
 }
 
@@ -741,7 +741,7 @@ pub fn project(cfg: &Smoke2d, y: &mut [f64], solver: &mut PressureSolver, scratc
 /// `a_f·M_f`.
 #[allow(clippy::too_many_arguments)]
 pub fn project_velocity(
-    cfg: &Smoke2d,
+    cfg: &MacGrid<2>,
     u: &mut [f64],
     v: &mut [f64],
     apertures: Option<(&[f64], &[f64])>,
@@ -758,7 +758,7 @@ pub fn project_velocity(
             let d = &mut scratch.d;
             d.fill(0.0);
             for (axis, vel) in [&*u, &*v].into_iter().enumerate() {
-                for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
+                for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
                     let w = weight(axis, f.index) * vel[f.index];
                     if let Some(c) = f.lower {
                         d[c] += w;
@@ -782,13 +782,13 @@ pub fn project_velocity(
     let (p, fluid) = (&scratch.p, solver.fluid());
     if cfg.boundary == Boundary::CLOSED && fluid.is_none() && apertures.is_none() && grad_scale.is_none() {
         // P2's box: the interior faces in plain loops.
-        let (n, nu) = (cfg.nx, cfg.nx + 1);
-        for j in 0..cfg.ny {
+        let (n, nu) = (cfg.n[0], cfg.n[0] + 1);
+        for j in 0..cfg.n[1] {
             for i in 1..n {
                 u[j * nu + i] -= p[j * n + i] - p[j * n + i - 1];
             }
         }
-        for j in 1..cfg.ny {
+        for j in 1..cfg.n[1] {
             for i in 0..n {
                 v[j * n + i] -= p[j * n + i] - p[(j - 1) * n + i];
             }
@@ -796,13 +796,13 @@ pub fn project_velocity(
         return Ok(iterations);
     }
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
+        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
             if f.projected {
                 let grad = f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]);
                 let open = match apertures {
                     None => open(fluid, &f),
                     Some(_) => {
-                        (weight(axis, f.index) > 0.0) as u8 as f64 * grad_scale.map_or(1.0, |m| m[if axis == 0 { f.index } else { cfg.n_u() + f.index }])
+                        (weight(axis, f.index) > 0.0) as u8 as f64 * grad_scale.map_or(1.0, |m| m[if axis == 0 { f.index } else { cfg.n_face(0) + f.index }])
                     }
                 };
                 vel[f.index] -= open * grad;
@@ -821,21 +821,21 @@ pub fn project_velocity(
 /// symmetric — to the same tolerance; never a backward pass through the
 /// iterations); since the solve's right-hand side was `−W·D·(u, v)`,
 /// `λ_(u,v) += −Dᵀ·W·μ`. Returns the CG iterations.
-pub fn project_adjoint(cfg: &Smoke2d, g: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
-    let (_, gu, gv) = cfg.split_mut(g);
+pub fn project_adjoint(cfg: &MacGrid<2>, g: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
+    let (_, [gu, gv]) = cfg.split_mut(g);
     let lp = &mut scratch.d;
     lp.fill(0.0);
     if cfg.boundary == Boundary::CLOSED && solver.fluid().is_none() {
         // P2's box: the interior faces in plain loops, in the face list's order.
-        let (n, nu) = (cfg.nx, cfg.nx + 1);
-        for j in 0..cfg.ny {
+        let (n, nu) = (cfg.n[0], cfg.n[0] + 1);
+        for j in 0..cfg.n[1] {
             for i in 1..n {
                 let l = gu[j * nu + i];
                 lp[j * n + i] -= l;
                 lp[j * n + i - 1] += l;
             }
         }
-        for j in 1..cfg.ny {
+        for j in 1..cfg.n[1] {
             for i in 0..n {
                 let l = gv[j * n + i];
                 lp[j * n + i] -= l;
@@ -855,9 +855,9 @@ pub fn project_adjoint(cfg: &Smoke2d, g: &mut [f64], solver: &mut PressureSolver
 
 /// `λ_p = −Gᵀ·λ` of [`project_adjoint`] through the face list (periodic
 /// copies handed to their originals first), accumulated into `lp`.
-fn project_adjoint_faces(cfg: &Smoke2d, fluid: Option<&[f64]>, gu: &mut [f64], gv: &mut [f64], lp: &mut [f64]) {
+fn project_adjoint_faces(cfg: &MacGrid<2>, fluid: Option<&[f64]>, gu: &mut [f64], gv: &mut [f64], lp: &mut [f64]) {
     for (axis, gvel) in [&mut *gu, &mut *gv].into_iter().enumerate() {
-        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
+        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
             if !f.projected {
                 return;
             }

@@ -6,8 +6,8 @@ use super::*;
 /// The velocity boundary conditions, in place: closed sides' faces 0,
 /// inflow sides' faces the profile (inward), outflow faces as they are,
 /// and on periodic axes face `N` the copy of face `0`.
-pub fn enforce_boundary(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
-    let (nx, ny) = (cfg.nx, cfg.ny);
+pub fn enforce_boundary(cfg: &MacGrid<2>, u: &mut [f64], v: &mut [f64]) {
+    let (nx, ny) = (cfg.n[0], cfg.n[1]);
     let nu = nx + 1;
     let b = &cfg.boundary;
     // Position along the side, 0..1: a profile spans the whole side.
@@ -43,15 +43,15 @@ pub fn enforce_boundary(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
 
 /// The linear part of [`enforce_boundary`] (inflow faces set to 0, not to
 /// the profile), for tangents: closed and inflow faces 0, periodic copies.
-pub fn enforce_boundary_linear(cfg: &Smoke2d, u: &mut [f64], v: &mut [f64]) {
+pub fn enforce_boundary_linear(cfg: &MacGrid<2>, u: &mut [f64], v: &mut [f64]) {
     enforce_boundary(&cfg.with_boundary(cfg.boundary.homogeneous()), u, v);
 }
 
 /// Adjoint of [`enforce_boundary`] (of its linear part) on the velocity
 /// adjoint, in place: set faces pass nothing back, copies pass theirs to the
 /// original.
-pub fn enforce_boundary_adjoint(cfg: &Smoke2d, gu: &mut [f64], gv: &mut [f64]) {
-    let (nx, ny) = (cfg.nx, cfg.ny);
+pub fn enforce_boundary_adjoint(cfg: &MacGrid<2>, gu: &mut [f64], gv: &mut [f64]) {
+    let (nx, ny) = (cfg.n[0], cfg.n[1]);
     let nu = nx + 1;
     let b = &cfg.boundary;
     for j in 0..ny {
@@ -85,13 +85,13 @@ pub fn enforce_boundary_adjoint(cfg: &Smoke2d, gu: &mut [f64], gv: &mut [f64]) {
 /// touches a solid cell, in place on a packed state: the obstacle boundary
 /// condition. Linear and self-adjoint (a diagonal 0/1 mask), so the same
 /// call is its own VJP.
-pub fn apply_obstacle_mask(cfg: &Smoke2d, fluid: &[f64], x: &mut [f64]) {
-    let (s, u, v) = cfg.split_mut(x);
+pub fn apply_obstacle_mask(cfg: &MacGrid<2>, fluid: &[f64], x: &mut [f64]) {
+    let (s, [u, v]) = cfg.split_mut(x);
     for (sv, &w) in s.iter_mut().zip(fluid) {
         *sv *= w;
     }
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.nx, cfg.ny, &cfg.boundary, axis, |f| {
+        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
             let o = open(Some(fluid), &f);
             vel[f.index] *= o;
             if let Some(k) = f.copy {
@@ -105,18 +105,18 @@ pub fn apply_obstacle_mask(cfg: &Smoke2d, fluid: &[f64], x: &mut [f64]) {
 /// first), for the fluid operators and, complemented, as the fluid mask of
 /// [`PressureSolver::general`]: a cell is solid when its centre lies inside. The box is clipped to the
 /// domain; `None` when no cell centre lies inside (a box wholly outside).
-pub fn obstacle_box(cfg: &Smoke2d, lower: [f64; 2], upper: [f64; 2]) -> Option<Vec<bool>> {
+pub fn obstacle_box(cfg: &MacGrid<2>, lower: [f64; 2], upper: [f64; 2]) -> Option<Vec<bool>> {
     obstacle(cfg, |x, y| x >= lower[0] && x < upper[0] && y >= lower[1] && y < upper[1])
 }
 
 /// Solid cells of a disc (centre in cell units, x first): a cell is solid
 /// when its centre lies within `radius`. `None` when no cell is covered.
-pub fn obstacle_disc(cfg: &Smoke2d, center: [f64; 2], radius: f64) -> Option<Vec<bool>> {
+pub fn obstacle_disc(cfg: &MacGrid<2>, center: [f64; 2], radius: f64) -> Option<Vec<bool>> {
     obstacle(cfg, |x, y| (x - center[0]).powi(2) + (y - center[1]).powi(2) <= radius * radius)
 }
 
-fn obstacle(cfg: &Smoke2d, inside: impl Fn(f64, f64) -> bool) -> Option<Vec<bool>> {
-    let n = cfg.nx;
+fn obstacle(cfg: &MacGrid<2>, inside: impl Fn(f64, f64) -> bool) -> Option<Vec<bool>> {
+    let n = cfg.n[0];
     let solid: Vec<bool> = (0..cfg.n_s()).map(|c| inside((c % n) as f64 + 0.5, (c / n) as f64 + 0.5)).collect();
     solid.iter().any(|&s| s).then_some(solid)
 }

@@ -14,14 +14,14 @@ use crate::mac::advect::{trace, trace_adjoint, trace_parallel};
 /// divergence-free).
 ///
 /// # Panics
-/// If `x` or `y` is not of length [`Smoke3d::n_state`] or a side has fewer
+/// If `x` or `y` is not of length [`MacGrid<3>::n_state`] or a side has fewer
 /// than 2 cells.
-pub fn advect_buoyancy(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
-    advect_buoyancy_slabs(cfg, x, 0..cfg.nz, y);
+pub fn advect_buoyancy(cfg: &MacGrid<3>, x: &[f64], y: &mut [f64]) {
+    advect_buoyancy_slabs(cfg, x, 0..cfg.n[2], y);
 }
 
 /// Slabs `ks` of [`advect_buoyancy`]'s output, packed as
-/// [`Smoke3d::slab_lens`] says (`y` of their total length): each output slab
+/// [`MacGrid<3>::slab_lens`] says (`y` of their total length): each output slab
 /// depends on the whole input but on no other output slab, so that an
 /// adjoint can be taken slab range by slab range (in parallel, then summed
 /// in a fixed order). Over `0..nz`, [`advect_buoyancy`] itself.
@@ -29,15 +29,15 @@ pub fn advect_buoyancy(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
 /// # Panics
 /// If `x` or `y` has the wrong length, `ks` is empty or past `nz`, or a
 /// side has fewer than 2 cells.
-pub fn advect_buoyancy_slabs(cfg: &Smoke3d, x: &[f64], ks: Range<usize>, y: &mut [f64]) {
-    let lens = cfg.slab_lens(ks.clone());
-    assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == cfg.n_state() && y.len() == lens.iter().sum::<usize>(), "smoke3d: state lengths");
-    assert!(ks.start < ks.end && ks.end <= cfg.nz, "smoke3d: slabs {ks:?} of {}", cfg.nz);
-    let mac = Mac::bounded(cfg.dims());
-    let [s, u, v, w] = cfg.split(x);
-    let (s2, rest) = y.split_at_mut(lens[0]);
-    let (u2, rest) = rest.split_at_mut(lens[1]);
-    let (v2, w2) = rest.split_at_mut(lens[2]);
+pub fn advect_buoyancy_slabs(cfg: &MacGrid<3>, x: &[f64], ks: Range<usize>, y: &mut [f64]) {
+    let (ls, [lu, lv, lw]) = cfg.slab_lens(ks.clone());
+    assert!(cfg.min_cells() >= 2 && x.len() == cfg.n_state() && y.len() == ls + lu + lv + lw, "smoke3d: state lengths");
+    assert!(ks.start < ks.end && ks.end <= cfg.n[2], "smoke3d: slabs {ks:?} of {}", cfg.n[2]);
+    let mac = Mac::bounded(cfg.n);
+    let (s, [u, v, w]) = cfg.split(x);
+    let (s2, rest) = y.split_at_mut(ls);
+    let (u2, rest) = rest.split_at_mut(lu);
+    let (v2, w2) = rest.split_at_mut(lv);
     let vel = [u, v, w];
     trace(mac, At::Centre, vel, s, cfg.dt, ks.clone(), s2);
     trace(mac, At::Face(0), vel, u, cfg.dt, ks.clone(), u2);
@@ -54,11 +54,11 @@ pub fn advect_buoyancy_slabs(cfg: &Smoke3d, x: &[f64], ks: Range<usize>, y: &mut
 ///
 /// # Panics
 /// As [`advect_buoyancy`].
-pub fn advect_buoyancy_parallel(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
-    assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
-    let mac = Mac::bounded(cfg.dims());
-    let [s, u, v, w] = cfg.split(x);
-    let [s2, u2, v2, w2] = cfg.split_mut(y);
+pub fn advect_buoyancy_parallel(cfg: &MacGrid<3>, x: &[f64], y: &mut [f64]) {
+    assert!(cfg.n[0].min(cfg.n[1]).min(cfg.n[2]) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
+    let mac = Mac::bounded(cfg.n);
+    let (s, [u, v, w]) = cfg.split(x);
+    let (s2, [u2, v2, w2]) = cfg.split_mut(y);
     let vel = [u, v, w];
     trace_parallel(mac, At::Centre, vel, s, cfg.dt, s2);
     trace_parallel(mac, At::Face(0), vel, u, cfg.dt, u2);
@@ -69,14 +69,14 @@ pub fn advect_buoyancy_parallel(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
 }
 
 /// Zeroes the velocity on the six walls (P4's step 3).
-pub fn close_walls(cfg: &Smoke3d, vel: [&mut [f64]; 3]) {
-    close_walls_slabs(cfg, 0..cfg.nz, vel);
+pub fn close_walls(cfg: &MacGrid<3>, vel: [&mut [f64]; 3]) {
+    close_walls_slabs(cfg, 0..cfg.n[2], vel);
 }
 
 /// [`close_walls`] on slabs `ks` of the velocity (packed as
-/// [`Smoke3d::slab_lens`] says).
-fn close_walls_slabs(cfg: &Smoke3d, ks: Range<usize>, [u, v, w]: [&mut [f64]; 3]) {
-    let [nx, ny, nz] = cfg.dims();
+/// [`MacGrid<3>::slab_lens`] says).
+fn close_walls_slabs(cfg: &MacGrid<3>, ks: Range<usize>, [u, v, w]: [&mut [f64]; 3]) {
+    let [nx, ny, nz] = cfg.n;
     for k in 0..ks.len() {
         for j in 0..ny {
             let r = (k * ny + j) * (nx + 1);
@@ -103,13 +103,13 @@ fn close_walls_slabs(cfg: &Smoke3d, ks: Range<usize>, [u, v, w]: [&mut [f64]; 3]
 
 /// Buoyancy along +y, in place: `v[k][j][i] += coefficient · (s[k][j−1][i]
 /// + s[k][j][i]) / 2` on the interior y-faces.
-pub fn add_buoyancy(cfg: &Smoke3d, coefficient: f64, s: &[f64], v: &mut [f64]) {
-    add_buoyancy_slabs(cfg, coefficient, cfg.nz, s, v);
+pub fn add_buoyancy(cfg: &MacGrid<3>, coefficient: f64, s: &[f64], v: &mut [f64]) {
+    add_buoyancy_slabs(cfg, coefficient, cfg.n[2], s, v);
 }
 
 /// [`add_buoyancy`] on `slabs` slabs of `s` and `v`.
-fn add_buoyancy_slabs(cfg: &Smoke3d, coefficient: f64, slabs: usize, s: &[f64], v: &mut [f64]) {
-    let [nx, ny, _] = cfg.dims();
+fn add_buoyancy_slabs(cfg: &MacGrid<3>, coefficient: f64, slabs: usize, s: &[f64], v: &mut [f64]) {
+    let [nx, ny, _] = cfg.n;
     for k in 0..slabs {
         for j in 1..ny {
             for i in 0..nx {
@@ -125,13 +125,13 @@ fn add_buoyancy_slabs(cfg: &Smoke3d, coefficient: f64, slabs: usize, s: &[f64], 
 ///
 /// # Panics
 /// As [`advect_buoyancy`], and if `gy` or `gx` has the wrong length.
-pub fn advect_buoyancy_adjoint(cfg: &Smoke3d, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
+pub fn advect_buoyancy_adjoint(cfg: &MacGrid<3>, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
     let n = cfg.n_state();
-    assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == n && gy.len() == n && gx.len() == n, "smoke3d: state lengths");
-    let mac = Mac::bounded(cfg.dims());
-    let [nx, ny, nz] = cfg.dims();
-    let [s, u, v, w] = cfg.split(x);
-    let [gs2, gu2, gv2, gw2] = cfg.split_mut(gy);
+    assert!(cfg.n[0].min(cfg.n[1]).min(cfg.n[2]) >= 2 && x.len() == n && gy.len() == n && gx.len() == n, "smoke3d: state lengths");
+    let mac = Mac::bounded(cfg.n);
+    let [nx, ny, nz] = cfg.n;
+    let (s, [u, v, w]) = cfg.split(x);
+    let (gs2, [gu2, gv2, gw2]) = cfg.split_mut(gy);
     // Buoyancy, then the walls (which zero what they set).
     for k in 0..nz {
         for j in 1..ny {
@@ -143,7 +143,7 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke3d, x: &[f64], gy: &mut [f64], gx: &mu
         }
     }
     close_walls(cfg, [&mut *gu2, &mut *gv2, &mut *gw2]);
-    let [gs, gu, gv, gw] = cfg.split_mut(gx);
+    let (gs, [gu, gv, gw]) = cfg.split_mut(gx);
     let vel = [u, v, w];
     trace_adjoint(mac, At::Face(2), vel, w, cfg.dt, gw2, None, &mut [&mut *gu, &mut *gv, &mut *gw]);
     trace_adjoint(mac, At::Face(1), vel, v, cfg.dt, gv2, None, &mut [&mut *gu, &mut *gv, &mut *gw]);
@@ -157,7 +157,7 @@ pub fn advect_buoyancy_adjoint(cfg: &Smoke3d, x: &[f64], gy: &mut [f64], gx: &mu
 /// traced points of the four lattices (the walls' own faces left out: the
 /// walls set them), of the distance to the nearest plane over the speed at
 /// which `d` moves the point; ∞ when `d` moves none.
-pub fn advect_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
+pub fn advect_radius(cfg: &MacGrid<3>, x: &[f64], d: &[f64]) -> f64 {
     advect3_radius(cfg, crate::smoke::Scheme::SemiLagrangian, true, true, x, d)
 }
 
@@ -169,13 +169,13 @@ pub fn advect_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
 ///
 /// # Panics
 /// As [`advect3`], and if `gy` or `gx` has the wrong length.
-pub fn advect3_adjoint(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
+pub fn advect3_adjoint(cfg: &MacGrid<3>, smoke: bool, velocity: bool, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
     let n = cfg.n_state();
-    assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == n && gy.len() == n && gx.len() == n, "smoke3d: state lengths");
+    assert!(cfg.n[0].min(cfg.n[1]).min(cfg.n[2]) >= 2 && x.len() == n && gy.len() == n && gx.len() == n, "smoke3d: state lengths");
     let mac = cfg.mac();
-    let [s, u, v, w] = cfg.split(x);
-    let [gs2, gu2, gv2, gw2] = cfg.split_mut(gy);
-    let [gs, gu, gv, gw] = cfg.split_mut(gx);
+    let (s, [u, v, w]) = cfg.split(x);
+    let (gs2, [gu2, gv2, gw2]) = cfg.split_mut(gy);
+    let (gs, [gu, gv, gw]) = cfg.split_mut(gx);
     let vel = [u, v, w];
     if velocity {
         // The boundary conditions came last: set faces pass nothing back,

@@ -3,14 +3,14 @@
 //! state, so that Enzyme differentiates them (with respect to the state and
 //! the coefficients).
 
-use super::Smoke3d;
+use super::MacGrid;
 use crate::smoke::copy;
 
 /// Where the faces normal to `axis` start in the packed state, and their
 /// extents `[x, y, z]`.
 #[inline(always)]
-fn faces(cfg: &Smoke3d, axis: usize) -> (usize, [usize; 3]) {
-    (cfg.slab_starts(0)[1 + axis], cfg.face_dims(axis))
+fn faces(cfg: &MacGrid<3>, axis: usize) -> (usize, [usize; 3]) {
+    (cfg.slab_starts(0).1[axis], cfg.face_dims(axis))
 }
 
 /// Buoyancy along `axis` (0 x, 1 y, 2 z; a negative coefficient pushes the
@@ -21,14 +21,14 @@ fn faces(cfg: &Smoke3d, axis: usize) -> (usize, [usize; 3]) {
 ///
 /// # Panics
 /// If `x` or `y` is not a packed state or `axis > 2`.
-pub fn apply_buoyancy3(cfg: &Smoke3d, axis: usize, coefficient: f64, x: &[f64], y: &mut [f64]) {
+pub fn apply_buoyancy3(cfg: &MacGrid<3>, axis: usize, coefficient: f64, x: &[f64], y: &mut [f64]) {
     assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && axis < 3, "smoke3d: buoyancy lengths");
     copy(x, y);
-    let [nx, ny, _] = cfg.dims();
+    let [nx, ny, _] = cfg.n;
     let (start, e) = faces(cfg, axis);
     // Cells one step down `axis` from cell c are at c − stride.
     let stride = [1, nx, nx * ny][axis];
-    let n = cfg.dims()[axis];
+    let n = cfg.n[axis];
     let wrap = cfg.boundary.wraps()[axis];
     for k in 0..e[2] {
         for j in 0..e[1] {
@@ -49,12 +49,12 @@ pub fn apply_buoyancy3(cfg: &Smoke3d, axis: usize, coefficient: f64, x: &[f64], 
 /// On a periodic `axis`, each last face of the packed state `y` set to the
 /// copy of its face `0`.
 #[inline(always)]
-fn refresh_copies(cfg: &Smoke3d, axis: usize, y: &mut [f64]) {
+fn refresh_copies(cfg: &MacGrid<3>, axis: usize, y: &mut [f64]) {
     if !cfg.boundary.wraps()[axis] {
         return;
     }
     let (start, e) = faces(cfg, axis);
-    let n = cfg.dims()[axis];
+    let n = cfg.n[axis];
     let step = [1, e[0], e[0] * e[1]][axis];
     for k in 0..e[2] {
         for j in 0..e[1] {
@@ -75,8 +75,8 @@ fn refresh_copies(cfg: &Smoke3d, axis: usize, y: &mut [f64]) {
 ///
 /// # Panics
 /// If the lengths are wrong or the region is empty or leaves the box.
-pub fn apply_inflow3(cfg: &Smoke3d, region: [usize; 6], x: &[f64], p: &[f64], y: &mut [f64]) {
-    let [nx, ny, nz] = cfg.dims();
+pub fn apply_inflow3(cfg: &MacGrid<3>, region: [usize; 6], x: &[f64], p: &[f64], y: &mut [f64]) {
+    let [nx, ny, nz] = cfg.n;
     let [i0, i1, j0, j1, k0, k1] = region;
     assert!(
         x.len() == cfg.n_state() && y.len() == cfg.n_state() && p.len() == 4 && i0 < i1 && i1 <= nx && j0 < j1 && j1 <= ny && k0 < k1 && k1 <= nz,
@@ -111,15 +111,15 @@ pub fn apply_inflow3(cfg: &Smoke3d, region: [usize; 6], x: &[f64], p: &[f64], y:
 /// An external force over a time step `dt`: `[s, u, v, w] ↦ [s, u + dt·fu,
 /// v + dt·fv, w + dt·fw]` on the interior faces and those that wrap across
 /// a periodic side (copies refreshed), with the force `f` given per face
-/// (the velocity layout, [`Smoke3d::n_vel`] values); the faces on the
+/// (the velocity layout, [`MacGrid<3>::n_vel`] values); the faces on the
 /// other sides keep their velocity.
 ///
 /// # Panics
 /// If the lengths are wrong.
-pub fn apply_force3(cfg: &Smoke3d, dt: f64, x: &[f64], f: &[f64], y: &mut [f64]) {
+pub fn apply_force3(cfg: &MacGrid<3>, dt: f64, x: &[f64], f: &[f64], y: &mut [f64]) {
     assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state() && f.len() == cfg.n_vel(), "smoke3d: force lengths");
     copy(x, y);
-    let n = cfg.dims();
+    let n = cfg.n;
     let ns = cfg.n_s();
     let wraps = cfg.boundary.wraps();
     for axis in 0..3 {

@@ -4,7 +4,7 @@
 //! the 2D solver's MIC(0) (Bridson, *Fluid Simulation for Computer
 //! Graphics*, §5), with the same safety factors.
 
-use super::Smoke3d;
+use super::MacGrid;
 use crate::multigrid::{Across, across, apply_stencil3};
 
 /// The seven-point pressure matrix of the box `cfg` (any sides) with solid
@@ -15,8 +15,8 @@ use crate::multigrid::{Across, across, apply_stencil3};
 /// sides add nothing (Neumann). Symmetric; without an outflow side the
 /// constants on the fluid cells are its null space. Slab by slab, in
 /// parallel on large boxes.
-pub fn apply_general_matrix3(cfg: &Smoke3d, fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
-    apply_stencil3(cfg.dims(), &cfg.boundary, [1.0; 3], fluid, p, out);
+pub fn apply_general_matrix3(cfg: &MacGrid<3>, fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
+    apply_stencil3(cfg.n, &cfg.boundary, [1.0; 3], fluid, p, out);
 }
 
 /// MIC(0) of [`apply_general_matrix3`]'s matrix: `M = (D + L)·D⁻¹·(D + L)ᵀ`
@@ -41,10 +41,10 @@ impl Mic3 {
     /// (periodic and outflow sides too), its off-diagonal part the
     /// couplings inside the box (those across a periodic side are left
     /// out, as in 2D).
-    pub fn new(cfg: &Smoke3d, fluid: Option<&[f64]>) -> Self {
+    pub fn new(cfg: &MacGrid<3>, fluid: Option<&[f64]>) -> Self {
         const TAU: f64 = 0.97;
         const SIGMA: f64 = 0.25;
-        let dims = cfg.dims();
+        let dims = cfg.n;
         let [nx, ny, _] = dims;
         let (slab, n) = (nx * ny, cfg.n_s());
         let w = |c: usize| fluid.map_or(1.0, |f| f[c]);

@@ -5,7 +5,7 @@
 //! As in 2D, a cell is solid when its centre lies inside a shape; the
 //! projection then couples fluid cells only ([`PressureSolver3::with_obstacles`](super::PressureSolver3::with_obstacles)).
 
-use super::{Smoke3d, for_each_face3};
+use super::{MacGrid, for_each_face3};
 
 /// A solid shape in cell units (x first; cell `(i, j, k)` has its centre at
 /// `(i + ½, j + ½, k + ½)`).
@@ -57,8 +57,8 @@ impl Solid3 {
 
 /// The solid cells of `shapes` (a cell is solid when its centre lies in
 /// any of them), `[k][j][i]` flattened as the smoke.
-pub fn solid_cells(cfg: &Smoke3d, shapes: &[Solid3]) -> Vec<bool> {
-    let [nx, ny, _] = cfg.dims();
+pub fn solid_cells(cfg: &MacGrid<3>, shapes: &[Solid3]) -> Vec<bool> {
+    let [nx, ny, _] = cfg.n;
     (0..cfg.n_s())
         .map(|c| {
             let q = [(c % nx) as f64 + 0.5, ((c / nx) % ny) as f64 + 0.5, (c / (nx * ny)) as f64 + 0.5];
@@ -70,7 +70,7 @@ pub fn solid_cells(cfg: &Smoke3d, shapes: &[Solid3]) -> Vec<bool> {
 /// The open fraction of every face of each axis: 1 between two fluid cells
 /// (or a fluid cell and a side of the box; across a periodic side, the
 /// last cell and the first), 0 where a solid cell touches it.
-pub fn open_faces(cfg: &Smoke3d, fluid: &[f64]) -> [Vec<f64>; 3] {
+pub fn open_faces(cfg: &MacGrid<3>, fluid: &[f64]) -> [Vec<f64>; 3] {
     [0, 1, 2].map(|axis| {
         let mut open = vec![0.0; cfg.n_face(axis)];
         for_each_face3(cfg, axis, |f| {
@@ -86,7 +86,7 @@ pub fn open_faces(cfg: &Smoke3d, fluid: &[f64]) -> [Vec<f64>; 3] {
 
 /// The number of solid cells beside each cell (at most six; across a
 /// periodic side too).
-pub fn solid_neighbours(cfg: &Smoke3d, fluid: &[f64]) -> Vec<f64> {
+pub fn solid_neighbours(cfg: &MacGrid<3>, fluid: &[f64]) -> Vec<f64> {
     let mut count = vec![0.0; cfg.n_s()];
     for axis in 0..3 {
         for_each_face3(cfg, axis, |f| {
@@ -104,8 +104,8 @@ pub fn solid_neighbours(cfg: &Smoke3d, fluid: &[f64]) -> Vec<f64> {
 /// face that touches one set to zero. Linear and self-adjoint (a diagonal
 /// 0/1 mask): the same call is its own transpose. `open` is
 /// [`open_faces`] of the fluid mask.
-pub fn apply_obstacle_mask3(cfg: &Smoke3d, fluid: &[f64], open: &[Vec<f64>; 3], x: &mut [f64]) {
-    let [s, u, v, w] = cfg.split_mut(x);
+pub fn apply_obstacle_mask3(cfg: &MacGrid<3>, fluid: &[f64], open: &[Vec<f64>; 3], x: &mut [f64]) {
+    let (s, [u, v, w]) = cfg.split_mut(x);
     for (sv, &f) in s.iter_mut().zip(fluid) {
         *sv *= f;
     }

@@ -6,15 +6,15 @@ use super::*;
 
 /// P4's initial state: zero velocity, smoke 1 in every cell whose centre
 /// lies within `N/8` of `(N/2, N/4, N/2)`, packed as `[s, u, v, w]`.
-pub fn p4_initial(cfg: &Smoke3d) -> Vec<f64> {
+pub fn p4_initial(cfg: &MacGrid<3>) -> Vec<f64> {
     let mut x = vec![0.0; cfg.n_state()];
-    x[..cfg.n_s()].copy_from_slice(&ball(cfg.nx, 0.25));
+    x[..cfg.n_s()].copy_from_slice(&ball(cfg.n[0], 0.25));
     x
 }
 
 /// P4's target smoke: the same ball centred at `(N/2, 3N/4, N/2)`.
-pub fn p4_target(cfg: &Smoke3d) -> Vec<f64> {
-    ball(cfg.nx, 0.75)
+pub fn p4_target(cfg: &MacGrid<3>) -> Vec<f64> {
+    ball(cfg.n[0], 0.75)
 }
 
 fn ball(n: usize, cy: f64) -> Vec<f64> {

@@ -15,8 +15,8 @@ use crate::smoke::{Preconditioner, ProjectScratch};
 /// Calls `f(c, faces)` for every cell `c` with the flat indices of its six
 /// faces, `[u_left, u_right, v_below, v_above, w_back, w_front]`.
 #[inline(always)]
-fn for_each_cell(cfg: &Smoke3d, mut f: impl FnMut(usize, [usize; 6])) {
-    let [nx, ny, nz] = cfg.dims();
+fn for_each_cell(cfg: &MacGrid<3>, mut f: impl FnMut(usize, [usize; 6])) {
+    let [nx, ny, nz] = cfg.n;
     for k in 0..nz {
         for j in 0..ny {
             let (ru, rv0, rv1) = ((k * ny + j) * (nx + 1), (k * (ny + 1) + j) * nx, (k * (ny + 1) + j + 1) * nx);
@@ -31,7 +31,7 @@ fn for_each_cell(cfg: &Smoke3d, mut f: impl FnMut(usize, [usize; 6])) {
 /// Divergence of the MAC velocity, `d[c] = Σ` outward flux over the six
 /// faces of cell `c` (overwrites `d`); across a periodic side the flux of
 /// face `0` (its copy is not read).
-pub fn divergence(cfg: &Smoke3d, [u, v, w]: [&[f64]; 3], d: &mut [f64]) {
+pub fn divergence(cfg: &MacGrid<3>, [u, v, w]: [&[f64]; 3], d: &mut [f64]) {
     if !cfg.is_closed() {
         d.fill(0.0);
         for (axis, vel) in [u, v, w].into_iter().enumerate() {
@@ -50,7 +50,7 @@ pub fn divergence(cfg: &Smoke3d, [u, v, w]: [&[f64]; 3], d: &mut [f64]) {
 }
 
 /// Transpose of [`divergence`]: `(u, v, w) += Dᵀ·d` (accumulates).
-pub fn divergence_transpose(cfg: &Smoke3d, d: &[f64], [u, v, w]: [&mut [f64]; 3]) {
+pub fn divergence_transpose(cfg: &MacGrid<3>, d: &[f64], [u, v, w]: [&mut [f64]; 3]) {
     if !cfg.is_closed() {
         for (axis, vel) in [u, v, w].into_iter().enumerate() {
             for_each_face3(cfg, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
@@ -72,7 +72,7 @@ pub fn divergence_transpose(cfg: &Smoke3d, d: &[f64], [u, v, w]: [&mut [f64]; 3]
 /// periodic, outflow): the pressure difference across each face, upper
 /// cell minus lower (`p = 0` beyond an outflow side), scaled by `s`;
 /// periodic copies refreshed.
-fn subtract_gradient(cfg: &Smoke3d, scale: f64, p: &[f64], [u, v, w]: [&mut [f64]; 3]) {
+fn subtract_gradient(cfg: &MacGrid<3>, scale: f64, p: &[f64], [u, v, w]: [&mut [f64]; 3]) {
     if !cfg.is_closed() {
         for (axis, vel) in [u, v, w].into_iter().enumerate() {
             for_each_face3(cfg, axis, |f| {
@@ -86,7 +86,7 @@ fn subtract_gradient(cfg: &Smoke3d, scale: f64, p: &[f64], [u, v, w]: [&mut [f64
         }
         return;
     }
-    let [nx, ny, nz] = cfg.dims();
+    let [nx, ny, nz] = cfg.n;
     for k in 0..nz {
         for j in 0..ny {
             let (ru, rc) = ((k * ny + j) * (nx + 1), (k * ny + j) * nx);
@@ -112,7 +112,7 @@ fn subtract_gradient(cfg: &Smoke3d, scale: f64, p: &[f64], [u, v, w]: [&mut [f64
 /// Transpose of `G` on the faces the projection changes: `out = Gᵀ·g`
 /// (overwrites), after each periodic copy's adjoint is handed to its face
 /// `0` (the copy is written from it, never read).
-fn gradient_transpose(cfg: &Smoke3d, [u, v, w]: [&mut [f64]; 3], out: &mut [f64]) {
+fn gradient_transpose(cfg: &MacGrid<3>, [u, v, w]: [&mut [f64]; 3], out: &mut [f64]) {
     out.fill(0.0);
     if !cfg.is_closed() {
         for (axis, g) in [u, v, w].into_iter().enumerate() {
@@ -133,7 +133,7 @@ fn gradient_transpose(cfg: &Smoke3d, [u, v, w]: [&mut [f64]; 3], out: &mut [f64]
         }
         return;
     }
-    let [nx, ny, nz] = cfg.dims();
+    let [nx, ny, nz] = cfg.n;
     for k in 0..nz {
         for j in 0..ny {
             let (ru, rc) = ((k * ny + j) * (nx + 1), (k * ny + j) * nx);
@@ -164,7 +164,7 @@ fn gradient_transpose(cfg: &Smoke3d, [u, v, w]: [&mut [f64]; 3], out: &mut [f64]
 /// the matrix or not at all, with its work vectors kept between solves.
 #[derive(Clone, Debug)]
 pub struct PressureSolver3 {
-    cfg: Smoke3d,
+    cfg: MacGrid<3>,
     /// The stopping rule.
     pub stop: Stop,
     precond: Precond3,
@@ -246,7 +246,7 @@ impl PressureSolver3 {
     ///
     /// # Panics
     /// For the Cholesky preconditioner (2D only).
-    pub fn new(cfg: &Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
+    pub fn new(cfg: &MacGrid<3>, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
         Self::build(cfg, tolerance, max_iterations, precond, None)
     }
 
@@ -262,13 +262,13 @@ impl PressureSolver3 {
     ///
     /// # Panics
     /// As [`PressureSolver3::new`], or if `fluid` does not have a value per cell.
-    pub fn with_obstacles(cfg: &Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner, fluid: Vec<f64>) -> Self {
+    pub fn with_obstacles(cfg: &MacGrid<3>, tolerance: f64, max_iterations: usize, precond: Preconditioner, fluid: Vec<f64>) -> Self {
         assert_eq!(fluid.len(), cfg.n_s(), "fluid mask length");
         Self::build(cfg, tolerance, max_iterations, precond, Some(fluid))
     }
 
-    fn build(cfg: &Smoke3d, tolerance: f64, max_iterations: usize, precond: Preconditioner, fluid: Option<Vec<f64>>) -> Self {
-        let dims = cfg.dims();
+    fn build(cfg: &MacGrid<3>, tolerance: f64, max_iterations: usize, precond: Preconditioner, fluid: Option<Vec<f64>>) -> Self {
+        let dims = cfg.n;
         let precond = match (precond, slab_axis(dims)) {
             (Preconditioner::Multigrid, Some(axis)) if cfg.is_closed() => {
                 let side = dims[(axis + 1) % 3];
@@ -312,7 +312,7 @@ impl PressureSolver3 {
 
 impl System for PressureSolver3 {
     fn apply(&mut self, p: &[f64], out: &mut [f64]) {
-        let [nx, ny, nz] = self.cfg.dims();
+        let [nx, ny, nz] = self.cfg.n;
         let square = nx == ny && self.cfg.is_closed();
         match &mut self.obstacles {
             // The square slabs' fast product.
@@ -338,7 +338,7 @@ impl System for PressureSolver3 {
     }
 
     fn precondition(&mut self, r: &[f64], z: &mut [f64]) -> bool {
-        let dims = self.cfg.dims();
+        let dims = self.cfg.n;
         // The V-cycle of the slabs along `axis`.
         let cycle = |mg: &mut Multigrid, axis: usize, [a, b]: &mut [Vec<f64>; 2], r: &[f64], z: &mut [f64]| {
             if axis == 2 {
@@ -386,8 +386,8 @@ impl System for PressureSolver3 {
 /// ([`apply_obstacle_mask3`](super::apply_obstacle_mask3)): the gradient
 /// across a face beside a solid cell is then dropped, and the result is
 /// divergence-free in every fluid cell.
-pub fn project(cfg: &Smoke3d, y: &mut [f64], solver: &mut PressureSolver3, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
-    let [_, u, v, w] = cfg.split_mut(y);
+pub fn project(cfg: &MacGrid<3>, y: &mut [f64], solver: &mut PressureSolver3, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
+    let (_, [u, v, w]) = cfg.split_mut(y);
     divergence(cfg, [u, v, w], &mut scratch.d);
     for d in scratch.d.iter_mut() {
         *d = -*d;
@@ -401,8 +401,8 @@ pub fn project(cfg: &Smoke3d, y: &mut [f64], solver: &mut PressureSolver3, scrat
 /// the adjoint `g`: `λ_p = −Gᵀ·λ`, the solve `A·μ = λ_p` (the transposed —
 /// here the same — system to the same tolerance), `λ += −Dᵀ·μ`. Returns
 /// the CG iterations.
-pub fn project_adjoint(cfg: &Smoke3d, g: &mut [f64], solver: &mut PressureSolver3, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
-    let [_, gu, gv, gw] = cfg.split_mut(g);
+pub fn project_adjoint(cfg: &MacGrid<3>, g: &mut [f64], solver: &mut PressureSolver3, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
+    let (_, [gu, gv, gw]) = cfg.split_mut(g);
     gradient_transpose(cfg, [&mut *gu, &mut *gv, &mut *gw], &mut scratch.d);
     for d in scratch.d.iter_mut() {
         *d = -*d;

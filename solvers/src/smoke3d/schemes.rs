@@ -12,7 +12,7 @@ use crate::smoke::{Scheme, copy};
 
 /// Scratch [`advect3`] needs: for MacCormack two fields of the largest
 /// lattice, none for semi-Lagrangian.
-pub fn advect3_scratch_len(cfg: &Smoke3d, scheme: Scheme) -> usize {
+pub fn advect3_scratch_len(cfg: &MacGrid<3>, scheme: Scheme) -> usize {
     match scheme {
         Scheme::SemiLagrangian => 0,
         Scheme::MacCormack { .. } => 2 * (0..3).map(|a| cfg.n_face(a)).max().unwrap_or(0),
@@ -30,12 +30,12 @@ pub fn advect3_scratch_len(cfg: &Smoke3d, scheme: Scheme) -> usize {
 /// # Panics
 /// If a length is wrong or a side has fewer than 2 cells.
 #[allow(clippy::too_many_arguments)]
-pub fn advect3(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
-    assert!(cfg.nx.min(cfg.ny).min(cfg.nz) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
+pub fn advect3(cfg: &MacGrid<3>, scheme: Scheme, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+    assert!(cfg.n[0].min(cfg.n[1]).min(cfg.n[2]) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
     assert!(scratch.len() >= advect3_scratch_len(cfg, scheme), "smoke3d: advection scratch");
     let mac = cfg.mac();
-    let [s, u, v, w] = cfg.split(x);
-    let [s2, u2, v2, w2] = cfg.split_mut(y);
+    let (s, [u, v, w]) = cfg.split(x);
+    let (s2, [u2, v2, w2]) = cfg.split_mut(y);
     let vel = [u, v, w];
     let half = scratch.len() / 2;
     let (hat, tilde) = scratch.split_at_mut(half);
@@ -66,9 +66,9 @@ fn lattices(smoke: bool, velocity: bool) -> Vec<At> {
 /// (a traced point crossing a lattice plane): over the backward trace, and
 /// for MacCormack also the forward one. MacCormack's limiter is
 /// [`limiter3_radius`].
-pub fn advect3_radius(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
-    let [_, u, v, w] = cfg.split(x);
-    let [_, du, dv, dw] = cfg.split(d);
+pub fn advect3_radius(cfg: &MacGrid<3>, scheme: Scheme, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
+    let (_, [u, v, w]) = cfg.split(x);
+    let (_, [du, dv, dw]) = cfg.split(d);
     let steps: &[f64] = match scheme {
         Scheme::SemiLagrangian => &[cfg.dt],
         Scheme::MacCormack { .. } => &[cfg.dt, -cfg.dt],
@@ -83,7 +83,7 @@ pub fn advect3_radius(cfg: &Smoke3d, scheme: Scheme, smoke: bool, velocity: bool
 /// the smallest or largest of its eight samples, or the bound passes from
 /// one sample to another. First order, rates from a step of `1e-7`
 /// relative along `d`; within [`advect3_radius`], which the caller takes too.
-pub fn limiter3_radius(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
+pub fn limiter3_radius(cfg: &MacGrid<3>, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
     let dmax = d.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     if dmax == 0.0 {
         return f64::INFINITY;
@@ -93,12 +93,12 @@ pub fn limiter3_radius(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], d:
     let (fx, fd, fe) = (cfg.split(x), cfg.split(d), cfg.split(&xe));
     let fields: Vec<LimitedField<'_>> = lattices(smoke, velocity)
         .into_iter()
-        .map(|at| {
-            let k = if at == At::Centre { 0 } else { 1 + at.axis() };
-            LimitedField { at, f: fx[k], df: fd[k], fe: fe[k] }
+        .map(|at| match at {
+            At::Centre => LimitedField { at, f: fx.0, df: fd.0, fe: fe.0 },
+            At::Face(a) => LimitedField { at, f: fx.1[a], df: fd.1[a], fe: fe.1[a] },
         })
         .collect();
-    let vel = [[fx[1], fx[2], fx[3]], [fe[1], fe[2], fe[3]]];
+    let vel = [fx.1, fe.1];
     crate::mac::advect::limiter_radius(cfg.mac(), &fields, cfg.dt, vel, eps, |at, q| set_by_boundary(cfg, at, q))
 }
 
@@ -109,13 +109,13 @@ pub fn limiter3_radius(cfg: &Smoke3d, smoke: bool, velocity: bool, x: &[f64], d:
 ///
 /// # Panics
 /// If a length is wrong.
-pub fn advect_upwind3(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
+pub fn advect_upwind3(cfg: &MacGrid<3>, x: &[f64], y: &mut [f64]) {
     assert!(x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke3d: state lengths");
     copy(x, y);
     let dt = cfg.dt;
     for axis in 0..3 {
         // The component's faces in the packed state.
-        let start = cfg.slab_starts(0)[1 + axis];
+        let start = cfg.slab_starts(0).1[axis];
         let e = cfg.face_dims(axis);
         for k in 0..e[2] {
             for j in 0..e[1] {
@@ -134,9 +134,9 @@ pub fn advect_upwind3(cfg: &Smoke3d, x: &[f64], y: &mut [f64]) {
 
 /// Distance to the nearest upwind switch of [`advect_upwind3`] along `d`:
 /// the smallest `|vel_f / d_f|` over the interior faces.
-pub fn upwind3_radius(cfg: &Smoke3d, x: &[f64], d: &[f64]) -> f64 {
-    let [_, u, v, w] = cfg.split(x);
-    let [_, du, dv, dw] = cfg.split(d);
+pub fn upwind3_radius(cfg: &MacGrid<3>, x: &[f64], d: &[f64]) -> f64 {
+    let (_, [u, v, w]) = cfg.split(x);
+    let (_, [du, dv, dw]) = cfg.split(d);
     let mut r = f64::INFINITY;
     for (axis, (vel, dvel)) in [(u, du), (v, dv), (w, dw)].into_iter().enumerate() {
         for_each_face3(cfg, axis, |f| {

@@ -10,7 +10,7 @@ use crate::boundary::{Face, axis_face};
 /// faces 0, an inflow side's the profile (inward, [`crate::boundary::Profile::across`]),
 /// an outflow side's as they are, and on a periodic axis face `N` the copy
 /// of face `0`. For P4's closed box, [`close_walls`].
-pub fn enforce_boundary3(cfg: &Smoke3d, [u, v, w]: [&mut [f64]; 3]) {
+pub fn enforce_boundary3(cfg: &MacGrid<3>, [u, v, w]: [&mut [f64]; 3]) {
     // One call per component: a loop over the three slices in an array
     // lost the periodic copies' derivatives in Enzyme (docs/pitfalls.md).
     set_sides(cfg, 0, u);
@@ -20,8 +20,8 @@ pub fn enforce_boundary3(cfg: &Smoke3d, [u, v, w]: [&mut [f64]; 3]) {
 
 /// [`enforce_boundary3`] on the faces `f` normal to `a`.
 #[inline(always)]
-fn set_sides(cfg: &Smoke3d, a: usize, f: &mut [f64]) {
-    let n = cfg.dims();
+fn set_sides(cfg: &MacGrid<3>, a: usize, f: &mut [f64]) {
+    let n = cfg.n;
     let [lo, hi] = cfg.boundary.axis(a);
     let e = cfg.face_dims(a);
     // The side's two axes, in x, y, z order.
@@ -60,14 +60,14 @@ fn set_sides(cfg: &Smoke3d, a: usize, f: &mut [f64]) {
 /// closed ones), for tangents. (A separate boundary, not a flag: a flag
 /// choosing between the profile and 0 leaves Enzyme a value it cannot
 /// type, docs/pitfalls.md.)
-pub fn enforce_boundary3_linear(cfg: &Smoke3d, vel: [&mut [f64]; 3]) {
+pub fn enforce_boundary3_linear(cfg: &MacGrid<3>, vel: [&mut [f64]; 3]) {
     enforce_boundary3(&cfg.with_boundary(cfg.boundary.homogeneous()), vel);
 }
 
 /// Adjoint of [`enforce_boundary3`] (of its linear part) on the velocity
 /// adjoint, in place: set faces pass nothing back, a periodic copy passes
 /// its adjoint to face `0`.
-pub fn enforce_boundary3_adjoint(cfg: &Smoke3d, vel: [&mut [f64]; 3]) {
+pub fn enforce_boundary3_adjoint(cfg: &MacGrid<3>, vel: [&mut [f64]; 3]) {
     for (a, g) in vel.into_iter().enumerate() {
         for_each_face3(cfg, a, |f| {
             if let Some(k) = f.copy {
@@ -87,8 +87,8 @@ pub fn enforce_boundary3_adjoint(cfg: &Smoke3d, vel: [&mut [f64]; 3]) {
 /// integers, for differentiated loops ([`for_each_face3`] builds a
 /// [`Face`], whose integer fields Enzyme warns about there).
 #[inline(always)]
-pub(crate) fn cells_beside(cfg: &Smoke3d, axis: usize, q: [usize; 3]) -> Option<(usize, usize)> {
-    let n = cfg.dims();
+pub(crate) fn cells_beside(cfg: &MacGrid<3>, axis: usize, q: [usize; 3]) -> Option<(usize, usize)> {
+    let n = cfg.n;
     let stride = [1, n[0], n[0] * n[1]][axis];
     let cell = (q[2] * n[1] + q[1]) * n[0] + q[0];
     let k = q[axis];
@@ -107,8 +107,8 @@ pub(crate) fn cells_beside(cfg: &Smoke3d, axis: usize, q: [usize; 3]) -> Option<
 /// projection does with it ([`Face`]); a periodic axis's duplicate last
 /// faces are left out (each is `copy` of its face `0`).
 #[inline]
-pub fn for_each_face3(cfg: &Smoke3d, axis: usize, mut visit: impl FnMut(Face)) {
-    let n = cfg.dims();
+pub fn for_each_face3(cfg: &MacGrid<3>, axis: usize, mut visit: impl FnMut(Face)) {
+    let n = cfg.n;
     let [nx, ny, _] = n;
     let [lo, hi] = cfg.boundary.axis(axis);
     let e = cfg.face_dims(axis);
@@ -147,11 +147,11 @@ pub fn for_each_face3(cfg: &Smoke3d, axis: usize, mut visit: impl FnMut(Face)) {
 /// the trace (on a closed or inflow side), so that where its trace lands
 /// does not matter (no kink of the step).
 #[inline(always)]
-pub(crate) fn set_by_boundary(cfg: &Smoke3d, at: At, q: [usize; 3]) -> bool {
+pub(crate) fn set_by_boundary(cfg: &MacGrid<3>, at: At, q: [usize; 3]) -> bool {
     let a = at.axis();
     if a >= 3 {
         return false;
     }
     let [lo, hi] = cfg.boundary.axis(a);
-    (q[a] == 0 && lo.sets_faces()) || (q[a] == cfg.dims()[a] && hi.sets_faces())
+    (q[a] == 0 && lo.sets_faces()) || (q[a] == cfg.n[a] && hi.sets_faces())
 }

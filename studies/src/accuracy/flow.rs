@@ -12,7 +12,7 @@ use std::f64::consts::PI;
 
 use diffsim_solvers::boundary::{Boundary, Side};
 use diffsim_solvers::exact::{HeatMode, TaylorGreen, Translation};
-use diffsim_solvers::smoke::{Preconditioner, Scheme, Smoke2d};
+use diffsim_solvers::smoke::{MacGrid, Preconditioner, Scheme};
 
 use super::{AccuracyError, Diffusion, all_finite, positive, relative_l2, steps_to};
 use diffsim::fluids::{Advect, AdvectUpwind, Diffuse, Project};
@@ -22,8 +22,8 @@ use diffsim::op::{Forward, OpError};
 pub const LENGTH: f64 = 2.0 * PI;
 
 /// The periodic `n × n` box without buoyancy.
-pub fn periodic_box(n: usize) -> Smoke2d {
-    Smoke2d { nx: n, ny: n, buoyancy: 0.0, boundary: Boundary::all(Side::Periodic) }
+pub fn periodic_box(n: usize) -> MacGrid<2> {
+    MacGrid::new([n, n]).with_boundary(Boundary::all(Side::Periodic))
 }
 
 /// Name of an advection scheme in reports.
@@ -37,7 +37,7 @@ pub fn scheme_name(scheme: Scheme) -> &'static str {
 
 /// Diffusion of the chosen fields of a box, explicit or implicit
 /// (parameter `p = [κ]`).
-fn diffuser(cfg: Smoke2d, smoke: bool, velocity: bool, diffusion: Diffusion, max_iterations: usize) -> Box<dyn Forward> {
+fn diffuser(cfg: MacGrid<2>, smoke: bool, velocity: bool, diffusion: Diffusion, max_iterations: usize) -> Box<dyn Forward> {
     match diffusion {
         Diffusion::Explicit => Box::new(Diffuse::explicit(cfg, smoke, velocity)),
         Diffusion::Implicit { tolerance } => Box::new(Diffuse::implicit(cfg, smoke, velocity, tolerance, max_iterations)),
@@ -63,10 +63,10 @@ fn after(stage: &'static str, step: usize, error: Option<OpError>, state: &[f64]
 
 /// Relative L2 error of the velocity samples of a packed state against
 /// `(u, v)` (a periodic axis's copy faces left out).
-fn velocity_error(cfg: &Smoke2d, x: &[f64], u: &[f64], v: &[f64]) -> f64 {
-    debug_assert!(cfg.is_square(), "the periodic box is square");
-    let n = cfg.nx;
-    let (_, xu, xv) = cfg.split(x);
+fn velocity_error(cfg: &MacGrid<2>, x: &[f64], u: &[f64], v: &[f64]) -> f64 {
+    debug_assert!(cfg.is_cube(), "the periodic box is square");
+    let n = cfg.n[0];
+    let (_, [xu, xv]) = cfg.split(x);
     let (mut a, mut b) = (Vec::with_capacity(2 * n * n), Vec::with_capacity(2 * n * n));
     for j in 0..n {
         for i in 0..n {
@@ -221,8 +221,8 @@ impl TranslationRun {
         let exact = self.exact_solution();
         let (steps, dt) = steps_to(self.t_end, self.cfl * h);
         let mut x = exact.cells(n, 0.0);
-        x.extend(std::iter::repeat_n(exact.velocity.0 / h, cfg.n_u()));
-        x.extend(std::iter::repeat_n(exact.velocity.1 / h, cfg.n_v()));
+        x.extend(std::iter::repeat_n(exact.velocity.0 / h, cfg.n_face(0)));
+        x.extend(std::iter::repeat_n(exact.velocity.1 / h, cfg.n_face(1)));
         let mut y = vec![0.0; x.len()];
         for step in 0..steps {
             match self.scheme {

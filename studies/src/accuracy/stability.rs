@@ -12,7 +12,7 @@ use serde_json::{Map, Value, json};
 
 use diffsim_solvers::burgers::Burgers1d;
 use diffsim_solvers::exact::HeatMode;
-use diffsim_solvers::smoke::Smoke2d;
+use diffsim_solvers::smoke::MacGrid;
 
 use super::AccuracyError;
 use super::Diffusion;
@@ -280,13 +280,13 @@ pub fn exploding_gradient_clipped() -> Case {
 /// enough converge, forward and adjoint.
 pub fn ill_conditioned_pressure() -> Case {
     let n = 96;
-    let cfg = Smoke2d::p2(n);
+    let cfg = MacGrid::p2(n);
     let mut solid = vec![false; n * n];
     for j in 0..n - 1 {
         solid[j * n + n / 2] = true;
     }
     let mut x = vec![0.0; cfg.n_state()];
-    for (k, u) in x[cfg.n_s()..cfg.n_s() + cfg.n_u()].iter_mut().enumerate() {
+    for (k, u) in x[cfg.n_s()..cfg.n_s() + cfg.n_face(0)].iter_mut().enumerate() {
         *u = ((k * 7919) % 101) as f64 / 101.0 - 0.5;
     }
     let short = Project::with_obstacles(cfg, 1e-10, 50, &solid);
