@@ -1,8 +1,9 @@
-//! 2D fluid operators on the P2 grid conventions (unit cells, MAC velocity,
-//! any [`diffsim_solvers::boundary::Boundary`]; see
-//! [`diffsim_solvers::smoke`]): diffusion, explicit and implicit (closed
-//! box); semi-Lagrangian, MacCormack and upwind advection; forces and
-//! inflow regions. Each wraps a
+//! Fluid operators on the MAC grid of [`diffsim_solvers::smoke::MacGrid`]
+//! in 2D and 3D (unit cells, staggered velocity, any
+//! [`diffsim_solvers::boundary::Boundary`]): diffusion, explicit and
+//! implicit; semi-Lagrangian, MacCormack and upwind advection; buoyancy,
+//! forces and inflow regions; the 2D projection (3D's is
+//! [`crate::problems::smoke3d::Project3`]). Each wraps a
 //! plain function of `diffsim-solvers`; explicit ones get their derivatives
 //! from Enzyme, implicit diffusion is a [`LinearSolve`] of its product
 //! (the implicit rule), the projection solves with the transposed matrix.
@@ -12,20 +13,19 @@ use std::cell::{Cell, RefCell};
 use diffsim_solvers::boundary::Boundary;
 use diffsim_solvers::diffusion::{self, Grid};
 use diffsim_solvers::smoke::{self, MacGrid, NoConvergence, Preconditioner, PressureSolver, ProjectScratch, Scheme};
-use diffsim_solvers::smoke3d;
 
 use crate::implicit::{LinearSolve, LinearSystem, SolveMethod, SolveParams, Start};
 use crate::op::{Forward, Jvp, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
-/// The sizes of a fluid operator on packed states: `self.cfg.n_state()`
-/// values in and out, and the parameters `|op| count` (none by default).
-/// Serves the 2D operators here and the 3D ones in [`crate::fluids3d`].
+/// The sizes of a fluid operator on packed states of any dimension `D`:
+/// `self.cfg.n_state()` values in and out, and the parameters `|op| count`
+/// (none by default).
 macro_rules! state_sizes {
-    ($ty:ty) => {
-        $crate::fluids::state_sizes!($ty, |_op| 0);
+    ($ty:ident) => {
+        state_sizes!($ty, |_op| 0);
     };
-    ($ty:ty, |$op:ident| $params:expr) => {
-        impl $crate::op::Operator for $ty {
+    ($ty:ident, |$op:ident| $params:expr) => {
+        impl<const D: usize> $crate::op::Operator for $ty<D> {
             fn n_in(&self) -> usize {
                 self.cfg.n_state()
             }
@@ -39,7 +39,6 @@ macro_rules! state_sizes {
         }
     };
 }
-pub(crate) use state_sizes;
 
 /// Explicit diffusion of a field on a lattice ([`Grid`]), `s' = s − κ·A·s`,
 /// with the parameter `p = [κ]` (κ = ν·dt). Derivatives by Enzyme, with
@@ -255,56 +254,40 @@ pub struct Diffuse<D> {
     velocity_box: Option<Walls>,
 }
 
-/// The velocity boundary conditions re-applied after a velocity diffusion.
+/// The velocity boundary conditions re-applied after a velocity diffusion:
+/// the box's sides, in 2D or 3D ([`smoke::enforce_boundary`]).
 #[derive(Clone, Copy, Debug)]
 enum Walls {
-    /// A 2D box's sides ([`smoke::enforce_boundary`]).
+    /// A 2D box.
     Box(MacGrid<2>),
-    /// A 3D box's sides ([`smoke3d::enforce_boundary3`]).
+    /// A 3D box.
     Box3(MacGrid<3>),
+}
+
+/// `$body` with `$cfg` the grid of either kind of box.
+macro_rules! with_box {
+    ($walls:expr, $cfg:ident => $body:expr) => {
+        match $walls {
+            Walls::Box($cfg) => $body,
+            Walls::Box3($cfg) => $body,
+        }
+    };
 }
 
 impl Walls {
     /// The boundary conditions in place on a state.
     fn apply(&self, y: &mut [f64]) {
-        match self {
-            Walls::Box(cfg) => {
-                let (_, [u, v]) = cfg.split_mut(y);
-                smoke::enforce_boundary(cfg, u, v);
-            }
-            Walls::Box3(cfg) => {
-                let (_, [u, v, w]) = cfg.split_mut(y);
-                smoke3d::enforce_boundary3(cfg, [u, v, w]);
-            }
-        }
+        with_box!(self, cfg => smoke::enforce_boundary(cfg, &mut y[cfg.n_s()..]))
     }
 
     /// Their linear part in place on a tangent.
     fn apply_linear(&self, t: &mut [f64]) {
-        match self {
-            Walls::Box(cfg) => {
-                let (_, [u, v]) = cfg.split_mut(t);
-                smoke::enforce_boundary_linear(cfg, u, v);
-            }
-            Walls::Box3(cfg) => {
-                let (_, [u, v, w]) = cfg.split_mut(t);
-                smoke3d::enforce_boundary3_linear(cfg, [u, v, w]);
-            }
-        }
+        with_box!(self, cfg => smoke::enforce_boundary_linear(cfg, &mut t[cfg.n_s()..]))
     }
 
     /// Their adjoint in place on an adjoint.
     fn apply_adjoint(&self, g: &mut [f64]) {
-        match self {
-            Walls::Box(cfg) => {
-                let (_, [gu, gv]) = cfg.split_mut(g);
-                smoke::enforce_boundary_adjoint(cfg, gu, gv);
-            }
-            Walls::Box3(cfg) => {
-                let (_, [gu, gv, gw]) = cfg.split_mut(g);
-                smoke3d::enforce_boundary3_adjoint(cfg, [gu, gv, gw]);
-            }
-        }
+        with_box!(self, cfg => smoke::enforce_boundary_adjoint(cfg, &mut g[cfg.n_s()..]))
     }
 }
 
@@ -437,40 +420,44 @@ impl<D: Jvp> Jvp for Diffuse<D> {
     }
 }
 
-/// First-order upwind advection of the smoke in a packed `[s, u, v]` state
-/// (P2 layout) over a time step `dt`: `[s, u, v] ↦ [s', u, v]`. Derivatives
-/// by Enzyme; the upwind switch is declared through
+/// First-order upwind advection of the smoke in a packed state over a time
+/// step `dt` ([`smoke::advect_upwind`]; the velocity passes through), in 2D
+/// and 3D. Derivatives by Enzyme; the upwind switch is declared through
 /// [`Forward::smooth_radius`].
 #[derive(Clone, Copy, Debug)]
-pub struct AdvectUpwind {
+pub struct AdvectUpwind<const D: usize> {
     /// The grid.
-    pub cfg: MacGrid<2>,
+    pub cfg: MacGrid<D>,
     /// Time step.
     pub dt: f64,
 }
 
 state_sizes!(AdvectUpwind);
 
-fn advect_upwind(op: &AdvectUpwind, x: &[f64], _p: &[f64], y: &mut [f64]) {
+fn advect_upwind<const D: usize>(op: &AdvectUpwind<D>, x: &[f64], _p: &[f64], y: &mut [f64]) {
     smoke::advect_upwind(&op.cfg, op.dt, x, y)
 }
 
-fn upwind_radius(op: &AdvectUpwind, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+fn upwind_radius<const D: usize>(op: &AdvectUpwind<D>, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
     smoke::upwind_radius(&op.cfg, x, dx)
 }
 
-crate::differentiable!(AdvectUpwind => advect_upwind, smooth_radius = upwind_radius);
+crate::differentiable!(AdvectUpwind<2> => advect_upwind::<2>, smooth_radius = upwind_radius::<2>);
+crate::differentiable!(AdvectUpwind<3> => advect_upwind::<3>, smooth_radius = upwind_radius::<3>);
 
 /// Semi-Lagrangian or MacCormack advection over a time step `dt` of the
-/// smoke and/or the velocity in a packed `[s, u, v]` state (P2 layout, any
-/// boundary; [`smoke::advect`]): fields not advected pass through, an
-/// advected velocity gets the boundary conditions. Derivatives by Enzyme.
-/// With MacCormack's limiter the map has kinks where the clamp engages; the
-/// gradient checks report them when they spoil a rate.
+/// smoke and/or the velocity in a packed state, in 2D and 3D, any boundary
+/// ([`smoke::advect`]): fields not advected pass through, an advected
+/// velocity gets the boundary conditions. Derivatives by Enzyme; the
+/// sampling kinks and the limiter's switches are declared through
+/// [`Forward::smooth_radius`]. P2's and P4's own steps are
+/// [`crate::problems::smoke::SmokeAdvect`] and
+/// [`crate::problems::smoke3d::SmokeAdvect3`] (both fields, with buoyancy,
+/// parallel, with a hand adjoint beside them).
 #[derive(Clone, Copy, Debug)]
-pub struct Advect {
+pub struct Advect<const D: usize> {
     /// The grid and its boundary.
-    pub cfg: MacGrid<2>,
+    pub cfg: MacGrid<D>,
     /// The scheme.
     pub scheme: Scheme,
     /// Time step.
@@ -481,27 +468,27 @@ pub struct Advect {
     pub velocity: bool,
 }
 
-impl Advect {
-    /// Both fields, unit time step.
-    pub fn new(cfg: MacGrid<2>, scheme: Scheme) -> Self {
-        Self { cfg, scheme, dt: 1.0, smoke: true, velocity: true }
+impl<const D: usize> Advect<D> {
+    /// Both fields over the grid's time step.
+    pub fn new(cfg: MacGrid<D>, scheme: Scheme) -> Self {
+        Self { cfg, scheme, dt: cfg.dt, smoke: true, velocity: true }
     }
 }
 
 state_sizes!(Advect);
 
-fn advect(op: &Advect, x: &[f64], _p: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+fn advect<const D: usize>(op: &Advect<D>, x: &[f64], _p: &[f64], y: &mut [f64], scratch: &mut [f64]) {
     smoke::advect(&op.cfg, op.scheme, op.dt, op.smoke, op.velocity, x, y, scratch)
 }
 
 /// MacCormack's intermediate fields.
-fn advect_scratch(op: &Advect) -> usize {
+fn advect_scratch<const D: usize>(op: &Advect<D>) -> usize {
     smoke::advect_scratch_len(&op.cfg, op.scheme)
 }
 
-/// Where the bilinear samples stay between lattice lines, and with
+/// Where the multilinear samples stay between lattice planes, and with
 /// MacCormack's limiter also where its clamp switches.
-fn advect_radius(op: &Advect, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+fn advect_radius<const D: usize>(op: &Advect<D>, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
     let sampling = smoke::advect_radius(&op.cfg, op.scheme, op.dt, op.smoke, op.velocity, x, dx);
     match op.scheme {
         Scheme::MacCormack { limiter: true } => sampling.min(smoke::limiter_radius(&op.cfg, op.dt, op.smoke, op.velocity, x, dx)),
@@ -509,47 +496,51 @@ fn advect_radius(op: &Advect, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) ->
     }
 }
 
-crate::differentiable!(Advect => advect, smooth_radius = advect_radius, scratch = advect_scratch);
+crate::differentiable!(Advect<2> => advect::<2>, smooth_radius = advect_radius::<2>, scratch = advect_scratch::<2>);
+crate::differentiable!(Advect<3> => advect::<3>, smooth_radius = advect_radius::<3>, scratch = advect_scratch::<3>);
 
-/// An external force field on the faces as the parameters:
-/// `[s, u, v] ↦ [s, u + dt·fu, v + dt·fv]`, `p = [fu, fv]`
-/// ([`MacGrid<2>::n_vel`] values, the velocity layout; wall faces are not forced). The parameter
-/// gradient is the gradient with respect to the force, for control.
-/// Derivatives by Enzyme.
+/// An external force field on the faces as the parameters, in 2D and 3D:
+/// `vel ↦ vel + dt·p` with `p` given per face ([`MacGrid::n_vel`] values,
+/// the velocity layout; the faces on closed, inflow and outflow sides are
+/// not forced; [`smoke::apply_force`]). The parameter gradient is the
+/// gradient with respect to the force, for control. Derivatives by Enzyme.
 #[derive(Clone, Copy, Debug)]
-pub struct Force {
+pub struct Force<const D: usize> {
     /// The grid.
-    pub cfg: MacGrid<2>,
+    pub cfg: MacGrid<D>,
     /// Time step.
     pub dt: f64,
 }
 
 state_sizes!(Force, |op| op.cfg.n_vel());
 
-fn force(op: &Force, x: &[f64], p: &[f64], y: &mut [f64]) {
+fn force<const D: usize>(op: &Force<D>, x: &[f64], p: &[f64], y: &mut [f64]) {
     smoke::apply_force(&op.cfg, op.dt, x, p, y)
 }
 
-crate::differentiable!(Force => force);
+crate::differentiable!(Force<2> => force::<2>);
+crate::differentiable!(Force<3> => force::<3>);
 
-/// Inflow: in the cells `region = [i0, i1, j0, j1]` (half-open) the smoke is
-/// set to `p[0]` and the velocity of the region's faces to `(p[1], p[2])`
-/// every step. Derivatives by Enzyme (with respect to the inflow values too).
+/// Inflow, in 2D and 3D: in the cells `region[a][0]..region[a][1]` along
+/// each axis the smoke is set to `p[0]` and the velocity of the region's
+/// faces to `(p[1], …, p[D])` every step ([`smoke::apply_inflow`]).
+/// Derivatives by Enzyme (with respect to the inflow values too).
 #[derive(Clone, Copy, Debug)]
-pub struct Inflow {
+pub struct Inflow<const D: usize> {
     /// The grid.
-    pub cfg: MacGrid<2>,
-    /// Cells `[i0, i1, j0, j1]`, half-open ranges.
-    pub region: [usize; 4],
+    pub cfg: MacGrid<D>,
+    /// The cells per axis, half-open ranges `[start, end]`.
+    pub region: [[usize; 2]; D],
 }
 
-state_sizes!(Inflow, |_op| 3);
+state_sizes!(Inflow, |_op| D + 1);
 
-fn inflow(op: &Inflow, x: &[f64], p: &[f64], y: &mut [f64]) {
+fn inflow<const D: usize>(op: &Inflow<D>, x: &[f64], p: &[f64], y: &mut [f64]) {
     smoke::apply_inflow(&op.cfg, op.region, x, p, y)
 }
 
-crate::differentiable!(Inflow => inflow);
+crate::differentiable!(Inflow<2> => inflow::<2>);
+crate::differentiable!(Inflow<3> => inflow::<3>);
 
 /// The pressure projection of a packed `[s, u, v]` state as an operator
 /// (linear): with obstacles, the obstacle mask (smoke in solids and velocity
@@ -720,22 +711,27 @@ pub(crate) use linear_projection;
 
 linear_projection!(Project, "Project");
 
-/// Buoyancy over a time step `dt` with the coefficient as the parameter
-/// `p = [b]`: `v += dt·b·(smoke averaged to the y-face)` on the interior y-faces (and the
-/// wrapping ones of a periodic y axis). Derivatives by Enzyme, with respect
-/// to the state and to `b`.
+/// Buoyancy over a time step `dt` along `axis` (0 x, 1 y, 2 z) with the
+/// coefficient as the parameter `p = [b]`, in 2D and 3D: the component of
+/// `axis` on its faces between two cells (interior, and across a periodic
+/// side) gains `dt·b·(smoke averaged to the face)`
+/// ([`smoke::apply_buoyancy`]). Derivatives by Enzyme, with respect to the
+/// state and `b`.
 #[derive(Clone, Copy, Debug)]
-pub struct Buoyancy {
+pub struct Buoyancy<const D: usize> {
     /// The grid.
-    pub cfg: MacGrid<2>,
+    pub cfg: MacGrid<D>,
     /// Time step.
     pub dt: f64,
+    /// The axis the force acts along (1: up).
+    pub axis: usize,
 }
 
 state_sizes!(Buoyancy, |_op| 1);
 
-fn buoyancy(op: &Buoyancy, x: &[f64], p: &[f64], y: &mut [f64]) {
-    smoke::apply_buoyancy(&op.cfg, op.dt * p[0], x, y)
+fn buoyancy<const D: usize>(op: &Buoyancy<D>, x: &[f64], p: &[f64], y: &mut [f64]) {
+    smoke::apply_buoyancy(&op.cfg, op.axis, op.dt * p[0], x, y)
 }
 
-crate::differentiable!(Buoyancy => buoyancy);
+crate::differentiable!(Buoyancy<2> => buoyancy::<2>);
+crate::differentiable!(Buoyancy<3> => buoyancy::<3>);

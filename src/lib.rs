@@ -126,7 +126,6 @@ pub mod check;
 pub mod distributed;
 pub mod files;
 pub mod fluids;
-pub mod fluids3d;
 pub mod implicit;
 pub mod memory;
 pub mod nn;

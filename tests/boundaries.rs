@@ -45,14 +45,14 @@ fn faces_list_each_flux_once() {
     use diffsim_solvers::boundary::{Face, faces};
     let n = 3;
     let b = Boundary::axes([Side::Periodic, Side::Outflow]);
-    let x: Vec<Face> = faces(n, n, &b, 0);
+    let x: Vec<Face> = faces([n, n], &b, 0);
     assert_eq!(x.len(), n * n, "periodic x: N faces per row");
     assert_eq!((x[0].lower, x[0].upper, x[0].projected, x[0].copy), (Some(2), Some(0), true, Some(3)));
-    let y: Vec<Face> = faces(n, n, &b, 1);
+    let y: Vec<Face> = faces([n, n], &b, 1);
     assert_eq!(y.len(), n * (n + 1));
     assert_eq!((y[0].lower, y[0].upper, y[0].projected), (None, Some(0), true));
     assert_eq!((y[n * n].index, y[n * n].lower, y[n * n].upper), (n * n, Some(6), None));
-    let closed: Vec<Face> = faces(n, n, &Boundary::CLOSED, 1);
+    let closed: Vec<Face> = faces([n, n], &Boundary::CLOSED, 1);
     assert!(!closed[0].projected && !closed[1].projected && closed[n].projected);
 }
 
@@ -72,7 +72,7 @@ fn every_operator_passes_all_checks_under_every_boundary() {
             assert_passes(&name("upwind"), &AdvectUpwind { cfg, dt: 0.4 }, &x, &[]);
             let f = crate::checks::state(cfg.n_vel(), 7);
             assert_passes(&name("force"), &Force { cfg, dt: 0.5 }, &x, &f);
-            assert_passes(&name("buoyancy"), &Buoyancy { cfg, dt: 0.5 }, &x, &[0.3]);
+            assert_passes(&name("buoyancy"), &Buoyancy { cfg, dt: 0.5, axis: 1 }, &x, &[0.3]);
             assert_passes(&name("projection with obstacle"), &Project::with_obstacles(cfg, 1e-13, 4000, &solid), &x, &[]);
             assert_passes(&name("explicit diffusion and viscosity"), &Diffuse::explicit(cfg, true, true), &x, &[0.2]);
             assert_passes(&name("implicit viscosity"), &Diffuse::implicit(cfg, false, true, 1e-13, 2000), &x, &[1.5]);

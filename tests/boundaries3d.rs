@@ -5,13 +5,14 @@
 //! operator under every kind, with and without an obstacle.
 
 use diffsim::check::{CheckParams, Verdict, check_all};
+use diffsim::fluids::{Advect, AdvectUpwind, Buoyancy, Force};
 use diffsim::fluids::{Diffuse, DiffuseExplicit, DiffuseImplicit};
-use diffsim::fluids3d::{Advect3, AdvectUpwind3, Buoyancy3, Force3};
 use diffsim::op::{Forward, OperatorExt};
 use diffsim::problems::smoke3d::Project3;
+use diffsim_solvers::boundary::for_each_face;
 use diffsim_solvers::boundary::{Boundary, BoundaryError, Profile, Side};
 use diffsim_solvers::smoke::{self, MacGrid, Preconditioner, PressureSolver, ProjectScratch, Scheme};
-use diffsim_solvers::smoke3d::{Solid3, divergence, for_each_face3, solid_cells};
+use diffsim_solvers::smoke3d::{Solid3, divergence, solid_cells};
 
 use crate::p4::{field, state};
 
@@ -40,12 +41,12 @@ fn invalid_3d_boundaries_are_refused_with_the_reason() {
 fn faces_of_a_periodic_axis_wrap_and_skip_the_copy() {
     let cfg = MacGrid::new([3, 4, 5]).with_dt(1.0).with_boundary(Boundary::axes([Side::Closed, Side::Outflow, Side::Periodic]));
     let mut z = Vec::new();
-    for_each_face3(&cfg, 2, |f| z.push(f));
+    for_each_face(cfg.n, &cfg.boundary, 2, |f| z.push(f));
     assert_eq!(z.len(), 3 * 4 * 5, "periodic z: Nz face slabs");
     // Face (0, 0, 0) wraps from the last slab's cell to the first's; its copy is face (0, 0, 5).
     assert_eq!((z[0].lower, z[0].upper, z[0].projected, z[0].copy), (Some(4 * 12), Some(0), true, Some(5 * 12)));
     let mut y = Vec::new();
-    for_each_face3(&cfg, 1, |f| y.push(f));
+    for_each_face(cfg.n, &cfg.boundary, 1, |f| y.push(f));
     assert_eq!(y.len(), 3 * 5 * 5);
     // The outflow bottom and top faces are projected with one cell each.
     assert_eq!((y[0].lower, y[0].upper, y[0].projected), (None, Some(0), true));
@@ -88,8 +89,8 @@ fn flows_that_do_not_vary_along_a_periodic_z_match_the_2d_solver() {
         let (cfg2, cfg3) = twins(7, 6, 4, b);
         let mut x2 = crate::checks::smoke_state(&cfg2, 11);
         {
-            let (_, [u, v]) = cfg2.split_mut(&mut x2);
-            smoke::enforce_boundary(&cfg2, u, v);
+            let ns = cfg2.n_s();
+            smoke::enforce_boundary(&cfg2, &mut x2[ns..]);
         }
         let x3 = lift(&cfg2, &cfg3, &x2);
         let close = |a: &[f64], b: &[f64], what: &str| {
@@ -100,7 +101,7 @@ fn flows_that_do_not_vary_along_a_periodic_z_match_the_2d_solver() {
             let mut y2 = vec![0.0; cfg2.n_state()];
             let mut scratch = vec![0.0; smoke::advect_scratch_len(&cfg2, scheme)];
             smoke::advect(&cfg2, scheme, cfg3.dt, true, true, &x2, &mut y2, &mut scratch);
-            let y3 = Advect3 { cfg: cfg3, scheme, smoke: true, velocity: true }.eval(&x3, &[]);
+            let y3 = Advect { cfg: cfg3, dt: cfg3.dt, scheme, smoke: true, velocity: true }.eval(&x3, &[]);
             close(&y3, &lift(&cfg2, &cfg3, &y2), &format!("{scheme:?} advection"));
         }
         let mut y2 = x2.clone();
@@ -143,7 +144,7 @@ fn projection_under_every_kind_leaves_no_divergence_and_keeps_the_sides() {
             // Periodic copies hold their face 0; closed and inflow faces keep their value.
             for axis in 0..3 {
                 let start = cfg.slab_starts(0).1[axis];
-                for_each_face3(&cfg, axis, |f| {
+                for_each_face(cfg.n, &cfg.boundary, axis, |f| {
                     if let Some(k) = f.copy {
                         assert_eq!(y[start + k], y[start + f.index], "{b:?}: copy of face {}", f.index);
                     }
@@ -175,7 +176,7 @@ fn a_uniform_through_flow_is_left_as_it_is_and_periodic_advection_shifts_exactly
     let [ns, nu] = [cfg.n_s(), cfg.n_face(0)];
     x[ns..ns + nu].fill(1.0);
     x[ns + nu..].fill(0.0);
-    let op = Advect3 { cfg, scheme: Scheme::SemiLagrangian, smoke: true, velocity: true };
+    let op = Advect { cfg, dt: cfg.dt, scheme: Scheme::SemiLagrangian, smoke: true, velocity: true };
     let one = op.eval(&x, &[]);
     for (c, &v) in one.iter().enumerate().take(ns) {
         let (i, rest) = (c % 5, c - c % 5);
@@ -201,20 +202,20 @@ fn every_3d_operator_passes_all_checks_under_every_boundary() {
         let x = state(&cfg, 31);
         let name = |op: &str| format!("{op} under {b:?}");
         for scheme in [Scheme::SemiLagrangian, Scheme::MacCormack { limiter: false }] {
-            let r = check_all(&Advect3 { cfg, scheme, smoke: true, velocity: true }, &x, &[], &opts);
+            let r = check_all(&Advect { cfg, dt: cfg.dt, scheme, smoke: true, velocity: true }, &x, &[], &opts);
             assert!(r.passed(), "{}:\n{r}", name(&format!("{scheme:?}")));
         }
         no_fail(
-            &check_all(&Advect3 { cfg, scheme: Scheme::MacCormack { limiter: true }, smoke: true, velocity: true }, &x, &[], &opts),
+            &check_all(&Advect { cfg, dt: cfg.dt, scheme: Scheme::MacCormack { limiter: true }, smoke: true, velocity: true }, &x, &[], &opts),
             &name("limited MacCormack"),
         );
-        let r = check_all(&AdvectUpwind3 { cfg }, &x, &[], &opts);
+        let r = check_all(&AdvectUpwind { cfg, dt: cfg.dt }, &x, &[], &opts);
         assert!(r.passed(), "{}:\n{r}", name("upwind"));
         for axis in 0..3 {
-            let r = check_all(&Buoyancy3 { cfg, dt: 0.5, axis }, &x, &[0.3], &opts);
+            let r = check_all(&Buoyancy { cfg, dt: 0.5, axis }, &x, &[0.3], &opts);
             assert!(r.passed(), "{}:\n{r}", name(&format!("buoyancy along {axis}")));
         }
-        let r = check_all(&Force3 { cfg, dt: 0.5 }, &x, &field(cfg.n_vel(), 8), &opts);
+        let r = check_all(&Force { cfg, dt: 0.5 }, &x, &field(cfg.n_vel(), 8), &opts);
         assert!(r.passed(), "{}:\n{r}", name("force"));
         let r = check_all(&Diffuse::in_box_3d(cfg, true, true, DiffuseExplicit::on), &x, &[0.1], &opts);
         assert!(r.passed(), "{}:\n{r}", name("explicit diffusion"));
@@ -305,17 +306,17 @@ fn a_region_that_an_inflow_feeds_and_obstacles_seal_is_found() {
 #[test]
 fn enzyme_advection_adjoint_matches_the_hand_written_one_under_every_boundary() {
     use diffsim::op::Vjp;
-    use diffsim_solvers::smoke3d::advect3_adjoint;
+    use diffsim_solvers::smoke::advect_adjoint;
     for b in boundaries() {
         let cfg = MacGrid::new([7, 6, 5]).with_dt(0.9).with_boundary(b);
         let x = state(&cfg, 17);
         for (smoke, velocity) in [(true, true), (true, false), (false, true)] {
-            let op = Advect3 { cfg, scheme: Scheme::SemiLagrangian, smoke, velocity };
+            let op = Advect { cfg, dt: cfg.dt, scheme: Scheme::SemiLagrangian, smoke, velocity };
             let g = field(cfg.n_state(), 23);
             let (mut dy, mut enzyme) = (g.clone(), vec![0.0; cfg.n_state()]);
             op.vjp(&x, &[], &mut dy, &mut enzyme, &mut []);
             let (mut gy, mut hand) = (g.clone(), vec![0.0; cfg.n_state()]);
-            advect3_adjoint(&cfg, smoke, velocity, &x, &mut gy, &mut hand);
+            advect_adjoint(&cfg, cfg.dt, smoke, velocity, &x, &mut gy, &mut hand);
             let scale = hand.iter().fold(0.0f64, |m, v| m.max(v.abs()));
             let worst = enzyme.iter().zip(&hand).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
             assert!(worst < 1e-12 * scale, "{b:?}, smoke {smoke}, velocity {velocity}: Enzyme vs hand {worst:e}");

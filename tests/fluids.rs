@@ -140,7 +140,7 @@ fn force_and_inflow_pass_all_checks() {
         let f = field(cfg.n_vel(), 5);
         let r = check_all(&Force { cfg, dt: 0.5 }, &x, &f, &CheckParams::default());
         assert!(r.passed(), "force n = {n}:\n{r}");
-        let op = Inflow { cfg, region: [1, 3, 0, 2] };
+        let op = Inflow { cfg, region: [[1, 3], [0, 2]] };
         let r = check_all(&op, &x, &[1.0, 0.2, 0.7], &CheckParams::default());
         assert!(r.passed(), "inflow n = {n}:\n{r}");
         // The inflow values are what the region holds afterwards.

@@ -70,8 +70,8 @@ fn projection_with_obstacles_leaves_no_divergence_and_no_flow_into_solids() {
     let op = Project3::with_obstacles(cfg, 1e-12, 1000, Preconditioner::Multigrid, &solid);
     // Closed walls (the projection changes interior faces only).
     let mut x = state(&cfg, 7);
-    let (_, [u, v, w]) = cfg.split_mut(&mut x);
-    diffsim_solvers::smoke3d::close_walls(&cfg, [u, v, w]);
+    let ns = cfg.n_s();
+    diffsim_solvers::smoke::enforce_boundary(&cfg, &mut x[ns..]);
     let y = op.eval(&x, &[]);
     assert!(op.take_error().is_none());
     let (s, [u, v, w]) = cfg.split(&y);
@@ -153,14 +153,14 @@ fn rollout_with_obstacles_enzyme_matches_the_hand_adjoint() {
 
 #[test]
 fn buoyancy_and_inflow_pass_all_checks() {
-    use diffsim::fluids3d::{Buoyancy3, Inflow3};
+    use diffsim::fluids::{Buoyancy, Inflow};
     let cfg = MacGrid::new([6, 7, 5]).with_dt(0.5);
     let x = state(&cfg, 31);
     for axis in 0..3 {
-        let r = check_all(&Buoyancy3 { cfg, dt: 0.5, axis }, &x, &[0.3], &CheckParams::default());
+        let r = check_all(&Buoyancy { cfg, dt: 0.5, axis }, &x, &[0.3], &CheckParams::default());
         assert!(r.passed(), "buoyancy along axis {axis}:\n{r}");
     }
-    let inflow = Inflow3 { cfg, region: [0, 2, 1, 3, 2, 5] };
+    let inflow = Inflow { cfg, region: [[0, 2], [1, 3], [2, 5]] };
     let r = check_all(&inflow, &x, &[0.8, 0.1, 0.4, -0.2], &CheckParams::default());
     assert!(r.passed(), "inflow:\n{r}");
     // The region's cells and faces are set, the rest passes through.
@@ -310,8 +310,8 @@ with_respect_to = ["smoke.init", "buoyancy.coefficient"]
 
 #[test]
 fn diffusion_and_force_in_3d_pass_all_checks() {
+    use diffsim::fluids::Force;
     use diffsim::fluids::{Diffuse, DiffuseExplicit, DiffuseImplicit};
-    use diffsim::fluids3d::Force3;
     let cfg = MacGrid::new([6, 5, 4]).with_dt(0.5);
     let x = state(&cfg, 41);
     let explicit = Diffuse::in_box_3d(cfg, true, true, DiffuseExplicit::on);
@@ -321,7 +321,7 @@ fn diffusion_and_force_in_3d_pass_all_checks() {
     let r = check_all(&implicit, &x, &[0.7], &CheckParams::default());
     assert!(r.passed(), "implicit diffusion:\n{r}");
     let f = field(cfg.n_vel(), 8);
-    let r = check_all(&Force3 { cfg, dt: 0.5 }, &x, &f, &CheckParams::default());
+    let r = check_all(&Force { cfg, dt: 0.5 }, &x, &f, &CheckParams::default());
     assert!(r.passed(), "force:\n{r}");
 }
 
@@ -357,11 +357,11 @@ fn diffusion_in_3d_decays_a_mode_at_the_exact_rate() {
 #[test]
 fn maccormack_and_upwind_in_3d_pass_the_checks() {
     use diffsim::check::Verdict;
-    use diffsim::fluids3d::{Advect3, AdvectUpwind3};
+    use diffsim::fluids::{Advect, AdvectUpwind};
     use diffsim_solvers::smoke::Scheme;
     let cfg = MacGrid::new([6, 6, 5]).with_dt(0.8);
     let x = state(&cfg, 51);
-    let mc = |limiter, smoke, velocity| Advect3 { cfg, scheme: Scheme::MacCormack { limiter }, smoke, velocity };
+    let mc = |limiter, smoke, velocity| Advect { cfg, dt: cfg.dt, scheme: Scheme::MacCormack { limiter }, smoke, velocity };
     let r = check_all(&mc(false, true, true), &x, &[], &CheckParams::default());
     assert!(r.passed(), "MacCormack:\n{r}");
     // With the limiter the map is piecewise smooth: the checks may report a
@@ -374,12 +374,12 @@ fn maccormack_and_upwind_in_3d_pass_the_checks() {
     let (lo, hi) = x[..cfg.n_s()].iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
     assert!(y[..cfg.n_s()].iter().all(|&v| v >= lo - 1e-12 && v <= hi + 1e-12), "the limiter let a new extremum through");
     // One field alone, semi-Lagrangian: the velocity passes through.
-    let sl = Advect3 { cfg, scheme: Scheme::SemiLagrangian, smoke: true, velocity: false };
+    let sl = Advect { cfg, dt: cfg.dt, scheme: Scheme::SemiLagrangian, smoke: true, velocity: false };
     let r = check_all(&sl, &x, &[], &CheckParams::default());
     assert!(r.passed(), "semi-Lagrangian smoke:\n{r}");
     assert_eq!(&sl.eval(&x, &[])[cfg.n_s()..], &x[cfg.n_s()..]);
     // Upwind: checked, and the smoke conserved in the closed box.
-    let up = AdvectUpwind3 { cfg };
+    let up = AdvectUpwind { cfg, dt: cfg.dt };
     let r = check_all(&up, &x, &[], &CheckParams::default());
     assert!(r.passed(), "upwind:\n{r}");
     let mass = |v: &[f64]| v[..cfg.n_s()].iter().sum::<f64>();
@@ -390,7 +390,7 @@ fn maccormack_and_upwind_in_3d_pass_the_checks() {
 fn maccormack_in_3d_is_more_accurate_than_semi_lagrangian_on_a_smooth_translation() {
     // A smooth ball translated by a constant velocity (0.3, 0.2, 0.25) for 8
     // steps: each scheme against the exactly translated ball.
-    use diffsim::fluids3d::Advect3;
+    use diffsim::fluids::Advect;
     use diffsim_solvers::smoke::Scheme;
     let n = 20;
     let cfg = MacGrid::new([n, n, n]).with_dt(1.0);
@@ -409,7 +409,7 @@ fn maccormack_in_3d_is_more_accurate_than_semi_lagrangian_on_a_smooth_translatio
         start += cfg.n_face(a);
     }
     let run = |scheme: Scheme| -> f64 {
-        let op = Advect3 { cfg, scheme, smoke: true, velocity: false };
+        let op = Advect { cfg, dt: cfg.dt, scheme, smoke: true, velocity: false };
         let mut s = x.clone();
         for _ in 0..8 {
             s = op.eval(&s, &[]);
@@ -438,8 +438,8 @@ fn projection_of_any_box_with_mic0_passes_the_checks() {
     }
     // Divergence-free after projection, walls closed first.
     let mut x = x;
-    let (_, [u, v, w]) = cfg.split_mut(&mut x);
-    diffsim_solvers::smoke3d::close_walls(&cfg, [u, v, w]);
+    let ns = cfg.n_s();
+    diffsim_solvers::smoke::enforce_boundary(&cfg, &mut x[ns..]);
     let op = Project3::with_obstacles(cfg, 1e-12, 500, Preconditioner::Mic0, &solid);
     let y = op.eval(&x, &[]);
     let (_, [u, v, w]) = cfg.split(&y);
@@ -461,8 +461,8 @@ fn iterations_per_preconditioner_in_3d() {
     let cfg = MacGrid::p4(n);
     let solid = solid_cells(&cfg, &[Solid3::Sphere { center: [12.0, 14.0, 12.0], radius: 5.0 }]);
     let mut x = state(&cfg, 71);
-    let (_, [u, v, w]) = cfg.split_mut(&mut x);
-    diffsim_solvers::smoke3d::close_walls(&cfg, [u, v, w]);
+    let ns = cfg.n_s();
+    diffsim_solvers::smoke::enforce_boundary(&cfg, &mut x[ns..]);
     let mut counts = Vec::new();
     for precond in [Preconditioner::Multigrid, Preconditioner::Mic0, Preconditioner::None] {
         for obstacles in [false, true] {

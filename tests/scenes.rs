@@ -298,7 +298,7 @@ fn undeclared_effects_never_run() {
     let counts = count::stop();
     let mut names: Vec<&str> = counts.iter().map(|c| c.name).collect();
     names.sort_unstable();
-    assert_eq!(names, vec!["Advect", "Buoyancy", "Project"], "{counts:?}");
+    assert_eq!(names, vec!["Advect<2>", "Buoyancy<2>", "Project"], "{counts:?}");
     assert!(counts.iter().all(|c| c.forward == 2 && c.vjp == 0));
 }
 

@@ -40,7 +40,7 @@ pub(super) fn plume(a: PlumeArgs) -> Result<(), CliError> {
         })
         .collect();
     let step = SmokeStep::with_obstacles(cfg, 1e-6, 5000, &solid);
-    let source = Inflow { cfg, region: [n * 7 / 16, n * 9 / 16, n / 16, n / 16 + 3] };
+    let source = Inflow { cfg, region: [[n * 7 / 16, n * 9 / 16], [n / 16, n / 16 + 3]] };
     let mut x = vec![0.0; cfg.n_state()];
     let mut y = vec![0.0; cfg.n_state()];
     for t in 0..a.steps {

@@ -55,6 +55,26 @@ impl Profile {
     }
 }
 
+impl Profile {
+    /// The inward speed at the face of a `D`-dimensional box whose position
+    /// across the side is `t` (each axis's position in `(0, 1)`, the entry of
+    /// the side's own axis `axis` ignored): [`Profile::at`] in 2D,
+    /// [`Profile::across`] in 3D.
+    #[inline(always)]
+    pub fn on_side<const D: usize>(&self, axis: usize, t: [f64; D]) -> f64 {
+        if D == 2 {
+            self.at(t[1 - axis])
+        } else {
+            let (b, c) = match axis {
+                0 => (1, 2),
+                1 => (0, 2),
+                _ => (0, 1),
+            };
+            self.across(t[b], t[c])
+        }
+    }
+}
+
 /// The condition on one side of the box.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Side {
@@ -69,6 +89,13 @@ pub enum Side {
 }
 
 impl Side {
+    /// Whether fluid (and what it carries) passes through the side: inflow
+    /// and outflow.
+    #[inline(always)]
+    pub fn lets_through(self) -> bool {
+        matches!(self, Side::Inflow(_) | Side::Outflow)
+    }
+
     /// Whether the side sets its faces' normal velocity (closed: 0, inflow:
     /// the profile), so that nothing computed there before survives.
     pub fn sets_faces(self) -> bool {
@@ -212,8 +239,7 @@ pub fn validate_axes(axes: &[[Side; 2]]) -> Result<(), BoundaryError> {
 }
 
 /// Face `k` (of `0..=n`) of an axis of `n` cells whose sides are `lo` and
-/// `hi`, along that axis alone: the rule [`for_each_face`] (2D) and
-/// [`crate::smoke3d::for_each_face3`] (3D) apply per axis. `None` for the
+/// `hi`, along that axis alone: the rule [`for_each_face`] applies per axis. `None` for the
 /// duplicate last face of a periodic axis (a copy of face `0`).
 #[inline(always)]
 pub fn axis_face(k: usize, n: usize, lo: Side, hi: Side) -> Option<AxisFace> {
@@ -342,50 +368,60 @@ pub struct Face {
     pub copy: Option<usize>,
 }
 
-/// Calls `visit` for each face of one axis of an `nx × ny` box that carries
-/// flux, in a fixed order: all x-faces (`axis = 0`, index `j·(Nx+1) + i`, row
-/// by row) or all y-faces (`axis = 1`, index `j·Nx + i`, row by row). A
-/// periodic axis's duplicate last face is left out (its velocity is a copy
-/// of face `0`, which wraps from the last cell to cell `0`). Plain loops:
+/// Calls `visit` for each face normal to `axis` of a box of `n` cells whose
+/// sides are `b`, in memory order (x fastest, the face array's extents
+/// those of the cells with one more along `axis`), with the cells beside it
+/// (across a periodic side: the last cell and the first) and what the
+/// projection does with it ([`Face`]). A periodic axis's duplicate last
+/// faces are left out (each is the `copy` of its face `0`). Plain loops:
 /// the projection calls this every step.
 #[inline]
-pub fn for_each_face(nx: usize, ny: usize, b: &Boundary, axis: usize, mut visit: impl FnMut(Face)) {
+pub fn for_each_face<const D: usize>(n: [usize; D], b: &Boundary<D>, axis: usize, mut visit: impl FnMut(Face)) {
     let [lo, hi] = b.axis(axis);
-    // Cells along the axis and across it.
-    let (n, m) = if axis == 0 { (nx, ny) } else { (ny, nx) };
-    let cell = |along: usize, across: usize| if axis == 0 { across * nx + along } else { along * nx + across };
-    let index = |k: usize, across: usize| if axis == 0 { across * (nx + 1) + k } else { k * nx + across };
-    let mut at = |k: usize, across: usize| {
-        if let Some(f) = axis_face(k, n, lo, hi) {
+    let mut e = n;
+    e[axis] += 1;
+    // Strides of the cell array and of the face array.
+    let (mut cs, mut fs) = ([1; D], [1; D]);
+    for a in 1..D {
+        cs[a] = cs[a - 1] * n[a - 1];
+        fs[a] = fs[a - 1] * e[a - 1];
+    }
+    let total: usize = e.iter().product();
+    let mut q = [0; D];
+    for index in 0..total {
+        if let Some(f) = axis_face(q[axis], n[axis], lo, hi) {
+            // Offsets of the face's row of cells and faces, the axis's own
+            // position left out.
+            let (mut cell, mut face) = (0, 0);
+            for a in 0..D {
+                if a != axis {
+                    cell += q[a] * cs[a];
+                    face += q[a] * fs[a];
+                }
+            }
             visit(Face {
-                index: index(k, across),
-                lower: f.lower.map(|l| cell(l, across)),
-                upper: f.upper.map(|u| cell(u, across)),
+                index,
+                lower: f.lower.map(|l| cell + l * cs[axis]),
+                upper: f.upper.map(|u| cell + u * cs[axis]),
                 projected: f.projected,
                 side: f.side,
-                copy: f.copy.map(|c| index(c, across)),
+                copy: f.copy.map(|c| face + c * fs[axis]),
             });
         }
-    };
-    // Row by row in memory: x-faces along a row, y-face rows one after another.
-    if axis == 0 {
-        for across in 0..m {
-            for k in 0..=n {
-                at(k, across);
+        // The next face in memory order.
+        for a in 0..D {
+            q[a] += 1;
+            if q[a] < e[a] {
+                break;
             }
-        }
-    } else {
-        for k in 0..=n {
-            for across in 0..m {
-                at(k, across);
-            }
+            q[a] = 0;
         }
     }
 }
 
 /// The faces of [`for_each_face`], collected.
-pub fn faces(nx: usize, ny: usize, b: &Boundary, axis: usize) -> Vec<Face> {
-    let mut all = Vec::with_capacity((nx + 1) * (ny + 1));
-    for_each_face(nx, ny, b, axis, |f| all.push(f));
+pub fn faces<const D: usize>(n: [usize; D], b: &Boundary<D>, axis: usize) -> Vec<Face> {
+    let mut all = Vec::new();
+    for_each_face(n, b, axis, |f| all.push(f));
     all
 }

@@ -35,7 +35,7 @@ impl Forward for SmokeAdvect {
     }
 
     fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-        p2_radius(&self.0, x, dx)
+        step_radius(&self.0, x, dx)
     }
 }
 
@@ -77,14 +77,14 @@ fn smoke_advect(op: &SmokeAdvectWhole, x: &[f64], _p: &[f64], y: &mut [f64]) {
     smoke::advect_buoyancy(&op.0, x, y)
 }
 
-/// P2's step traces every field back by one unit of time: bilinear
-/// samples kink where a traced point crosses a lattice line.
-fn p2_radius(cfg: &MacGrid<2>, x: &[f64], dx: &[f64]) -> f64 {
-    smoke::advect_radius(cfg, smoke::Scheme::SemiLagrangian, 1.0, true, true, x, dx)
+/// P2's and P4's step traces every field back over `cfg.dt` (1):
+/// multilinear samples kink where a traced point crosses a lattice plane.
+pub(crate) fn step_radius<const D: usize>(cfg: &MacGrid<D>, x: &[f64], dx: &[f64]) -> f64 {
+    smoke::advect_radius(cfg, smoke::Scheme::SemiLagrangian, cfg.dt, true, true, x, dx)
 }
 
 fn smoke_advect_radius(op: &SmokeAdvectWhole, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-    p2_radius(&op.0, x, dx)
+    step_radius(&op.0, x, dx)
 }
 
 crate::differentiable!(SmokeAdvectWhole => smoke_advect, smooth_radius = smoke_advect_radius);
@@ -123,11 +123,11 @@ impl Operator for SmokeAdvectRows {
 
 /// The thin wrapper Enzyme differentiates.
 fn smoke_advect_rows(op: &SmokeAdvectRows, x: &[f64], _p: &[f64], y: &mut [f64]) {
-    smoke::advect_buoyancy_rows(&op.cfg, x, op.j0..op.j1, y)
+    smoke::advect_buoyancy_slabs(&op.cfg, x, op.j0..op.j1, y)
 }
 
 fn smoke_advect_rows_radius(op: &SmokeAdvectRows, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-    p2_radius(&op.cfg, x, dx)
+    step_radius(&op.cfg, x, dx)
 }
 
 crate::differentiable!(SmokeAdvectRows => smoke_advect_rows, smooth_radius = smoke_advect_rows_radius);
@@ -174,7 +174,7 @@ macro_rules! hand_explicit_operator {
 }
 pub(crate) use hand_explicit_operator;
 
-hand_explicit_operator!(SmokeAdvectHand, smoke::advect_buoyancy, smoke::advect_buoyancy_adjoint, p2_radius);
+hand_explicit_operator!(SmokeAdvectHand, smoke::advect_buoyancy, smoke::advect_buoyancy_adjoint, step_radius);
 
 /// One full P2 step: [`SmokeAdvect`], then the pressure projection
 /// ([`Project`], with the obstacle mask when there are obstacles).
@@ -291,7 +291,7 @@ macro_rules! smoke_step_operator {
 }
 pub(crate) use smoke_step_operator;
 
-smoke_step_operator!(SmokeStep, "SmokeStep", SmokeAdvectHand, smoke::advect_buoyancy_parallel, p2_radius);
+smoke_step_operator!(SmokeStep, "SmokeStep", SmokeAdvectHand, smoke::advect_buoyancy_parallel, step_radius);
 
 impl LocalInverse for SmokeStep {
     /// The step run backwards in time on the perturbation, along the
@@ -312,7 +312,7 @@ impl LocalInverse for SmokeStep {
         let cfg = *self.cfg();
         let mut d = dy.to_vec();
         let (s, [_, v]) = cfg.split_mut(&mut d);
-        smoke::add_buoyancy(&cfg, -cfg.buoyancy, s, v);
+        smoke::add_buoyancy(&cfg, 1, -cfg.buoyancy, s, v);
         smoke::advect_along(&cfg, -1.0, x, &d, dx);
         self.project.apply(dx);
     }

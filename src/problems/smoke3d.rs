@@ -5,11 +5,12 @@
 
 use std::cell::RefCell;
 
-use diffsim_solvers::smoke::MacGrid;
+use diffsim_solvers::smoke::{self, MacGrid};
 use diffsim_solvers::smoke::{Preconditioner, ProjectScratch};
 use diffsim_solvers::smoke3d::{self, PressureSolver3};
 
 use super::ranges::{split_ranges, vjp_over_ranges};
+use super::smoke::step_radius;
 
 use crate::fluids::SolveLog;
 use crate::op::{Forward, Jvp, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
@@ -44,11 +45,11 @@ impl Forward for SmokeAdvect3 {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "SmokeAdvect3", x, p, y);
         closed_only(&self.0);
-        smoke3d::advect_buoyancy_parallel(&self.0, x, y);
+        smoke::advect_buoyancy_parallel(&self.0, x, y);
     }
 
     fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-        smoke3d::advect_radius(&self.0, x, dx)
+        step_radius(&self.0, x, dx)
     }
 }
 
@@ -77,7 +78,7 @@ impl Jvp for SmokeAdvect3 {
 
 /// P4's step is the closed box's: checked before the generated code runs.
 fn closed_only(cfg: &MacGrid<3>) {
-    assert!(cfg.is_closed(), "SmokeAdvect3 is P4's step of the closed box; a box with other sides takes fluids3d::Advect3");
+    assert!(cfg.is_closed(), "SmokeAdvect3 is P4's step of the closed box; a box with other sides takes fluids::Advect");
 }
 
 /// The fixed slab ranges [`SmokeAdvect3`]'s VJP splits `nz` slabs into
@@ -119,11 +120,11 @@ impl Operator for SmokeAdvect3Slabs {
 
 /// The thin wrapper Enzyme differentiates.
 fn smoke_advect3_slabs(op: &SmokeAdvect3Slabs, x: &[f64], _p: &[f64], y: &mut [f64]) {
-    smoke3d::advect_buoyancy_slabs(&op.cfg, x, op.k0..op.k1, y)
+    smoke::advect_buoyancy_slabs(&op.cfg, x, op.k0..op.k1, y)
 }
 
 fn smoke_advect3_slabs_radius(op: &SmokeAdvect3Slabs, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-    smoke3d::advect_radius(&op.cfg, x, dx)
+    step_radius(&op.cfg, x, dx)
 }
 
 crate::differentiable!(SmokeAdvect3Slabs => smoke_advect3_slabs, smooth_radius = smoke_advect3_slabs_radius);
@@ -133,7 +134,7 @@ crate::differentiable!(SmokeAdvect3Slabs => smoke_advect3_slabs, smooth_radius =
 #[derive(Clone, Copy, Debug)]
 pub struct SmokeAdvect3Hand(pub MacGrid<3>);
 
-crate::problems::smoke::hand_explicit_operator!(SmokeAdvect3Hand, smoke3d::advect_buoyancy, smoke3d::advect_buoyancy_adjoint, smoke3d::advect_radius);
+crate::problems::smoke::hand_explicit_operator!(SmokeAdvect3Hand, smoke::advect_buoyancy, smoke::advect_buoyancy_adjoint, step_radius);
 
 /// The 3D pressure projection of a packed `[s, u, v, w]` state (linear):
 /// `(u, v, w) −= G·A⁺·(−D·(u, v, w))` by preconditioned CG to a relative
@@ -265,7 +266,7 @@ impl SmokeStep3 {
 
 state_operator!(SmokeStep3, o => o.advect.0);
 
-crate::problems::smoke::smoke_step_operator!(SmokeStep3, "SmokeStep3", SmokeAdvect3Hand, smoke3d::advect_buoyancy_parallel, smoke3d::advect_radius);
+crate::problems::smoke::smoke_step_operator!(SmokeStep3, "SmokeStep3", SmokeAdvect3Hand, smoke::advect_buoyancy_parallel, step_radius);
 
 /// Benchmark P4 at `n³` cells and `steps` steps.
 pub type P4 = crate::problems::SmokeBenchmark<SmokeStep3>;

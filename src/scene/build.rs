@@ -13,7 +13,6 @@ use super::spec::{EffectSpec, SceneFile, ShapeSpec};
 use super::value::{count, finite, iterations, positive, tolerance};
 use super::{Array, Control, Domain, Field, Line, Scene, SceneError, SceneLoss};
 use crate::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, DiffuseExplicit, DiffuseImplicit, Force, Inflow, Project};
-use crate::fluids3d::{Advect3, AdvectUpwind3, Buoyancy3, Force3, Inflow3};
 use crate::op::{AddParams, Chain, Effect, Part};
 use crate::problems::burgers::BurgersEnzyme;
 use crate::problems::smoke3d::{Project3, SmokeAdvect3};
@@ -470,7 +469,7 @@ impl Builder<'_> {
                     None => {
                         let faces = match domain {
                             Domain::Box3(cfg) => {
-                                self.ops.push(Box::new(Force3 { cfg, dt }));
+                                self.ops.push(Box::new(Force { cfg, dt }));
                                 vec![cfg.n_face(0), cfg.n_face(1), cfg.n_face(2)]
                             }
                             _ => {
@@ -509,14 +508,14 @@ impl Builder<'_> {
                 }
                 self.need(&at("kind"), "buoyancy", &[Field::Smoke, Field::Velocity])?;
                 self.effects.push("buoyancy".into());
-                self.ops.push(Box::new(Buoyancy { cfg, dt }));
+                self.ops.push(Box::new(Buoyancy { cfg, dt, axis: 1 }));
                 self.name(k, "buoyancy", "coefficient", 1.0);
                 self.params.push(finite(&at("coefficient"), b.coefficient)?);
             }
             (EffectSpec::Inflow(i), Domain::Box(cfg)) => {
                 let (r, values) = inflow(k, &i, &[cfg.n[0], cfg.n[1]], self.dt)?;
                 self.effects.push("inflow".into());
-                self.ops.push(Box::new(Inflow { cfg, region: [r[0], r[1], r[2], r[3]] }));
+                self.ops.push(Box::new(Inflow { cfg, region: [[r[0], r[1]], [r[2], r[3]]] }));
                 self.params.extend(values);
             }
             (_, Domain::Box3(_)) => unreachable!("3D effects are built by effect_3d"),
@@ -555,8 +554,8 @@ impl Builder<'_> {
                 match self.advection_scheme(k, &a, v)? {
                     // Both fields semi-Lagrangian: P4's step (in parallel, with its hand adjoint beside it).
                     Some(Scheme::SemiLagrangian) if s && v && cfg.is_closed() => self.ops.push(Box::new(SmokeAdvect3(cfg))),
-                    Some(scheme) => self.ops.push(Box::new(Advect3 { cfg, scheme, smoke: s, velocity: v })),
-                    None => self.ops.push(Box::new(AdvectUpwind3 { cfg })),
+                    Some(scheme) => self.ops.push(Box::new(Advect { cfg, scheme, dt: cfg.dt, smoke: s, velocity: v })),
+                    None => self.ops.push(Box::new(AdvectUpwind { cfg, dt: cfg.dt })),
                 }
             }
             EffectSpec::Pressure(p) => {
@@ -578,14 +577,14 @@ impl Builder<'_> {
                 let axis = axis_of(&at("axis"), &b.axis)?;
                 self.need(&at("kind"), "buoyancy", &[Field::Smoke, Field::Velocity])?;
                 self.effects.push("buoyancy".into());
-                self.ops.push(Box::new(Buoyancy3 { cfg, dt: self.dt, axis }));
+                self.ops.push(Box::new(Buoyancy { cfg, dt: self.dt, axis }));
                 self.name(k, "buoyancy", "coefficient", 1.0);
                 self.params.push(finite(&at("coefficient"), b.coefficient)?);
             }
             EffectSpec::Inflow(i) => {
                 let (r, values) = inflow(k, &i, &cfg.n, self.dt)?;
                 self.effects.push("inflow".into());
-                self.ops.push(Box::new(Inflow3 { cfg, region: [r[0], r[1], r[2], r[3], r[4], r[5]] }));
+                self.ops.push(Box::new(Inflow { cfg, region: [[r[0], r[1]], [r[2], r[3]], [r[4], r[5]]] }));
                 self.params.extend(values);
             }
             EffectSpec::Diffusion(_) | EffectSpec::Force(_) => unreachable!("built by effect for every domain"),

@@ -10,7 +10,7 @@ use std::path::Path;
 use diffsim_solvers::flow::Shape;
 use diffsim_solvers::smoke::MacGrid;
 use diffsim_solvers::smoke::{enforce_boundary, obstacle_box, obstacle_disc};
-use diffsim_solvers::smoke3d::{Solid3, enforce_boundary3, solid_cells};
+use diffsim_solvers::smoke3d::{Solid3, solid_cells};
 
 use super::spec::{InitSpec, NpyPaths, ShapeSpec};
 use super::value::{finite, positive};
@@ -220,15 +220,8 @@ pub(super) fn field_init(key: &str, domain: &Domain, field: Field, init: &InitSp
         (InitSpec::Sphere { .. }, Field::Velocity, Domain::Line(_)) => return Err(only_3d(key)),
     };
     match (field, domain) {
-        (Field::Velocity, Domain::Box(cfg)) => {
-            let (u, v) = values.split_at_mut(cfg.n_face(0));
-            enforce_boundary(cfg, u, v);
-        }
-        (Field::Velocity, Domain::Box3(cfg)) => {
-            let (u, rest) = values.split_at_mut(cfg.n_face(0));
-            let (v, w) = rest.split_at_mut(cfg.n_face(1));
-            enforce_boundary3(cfg, [u, v, w]);
-        }
+        (Field::Velocity, Domain::Box(cfg)) => enforce_boundary(cfg, &mut values),
+        (Field::Velocity, Domain::Box3(cfg)) => enforce_boundary(cfg, &mut values),
         _ => {}
     }
     // A finite amplitude can still evaluate to NaN (a sine of wavenumber

@@ -42,7 +42,7 @@ use diffsim::op::{Forward, Jvp, OpError, Operator, PerThread, Vjp, validate_forw
 /// [`PerThread`]).
 #[derive(Debug)]
 pub struct WakeStep {
-    advect: Advect,
+    advect: Advect<2>,
     diffuse: Diffuse<DiffuseExplicit>,
     kappa: [f64; 1],
     /// The projection (with the disc).
@@ -279,7 +279,7 @@ impl WakeSetup {
         let solid = self.solid(c, 1.0);
         let mut keep = vec![false; c.n_state()];
         for (axis, start) in [(0, c.n_s()), (1, c.n_s() + c.n_face(0))] {
-            for_each_face(c.n[0], c.n[1], &c.boundary, axis, |f| {
+            for_each_face(c.n, &c.boundary, axis, |f| {
                 let open = [f.lower, f.upper].iter().all(|cell| cell.is_none_or(|k| !solid[k]));
                 keep[start + f.index] = f.projected && open;
             });

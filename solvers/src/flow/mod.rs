@@ -197,8 +197,7 @@ impl Flow2d {
     /// The fluid at rest with the boundary values set.
     pub fn rest(&self) -> Vec<f64> {
         let mut x = vec![0.0; self.n_vel()];
-        let (u, v) = x.split_at_mut(self.n_u());
-        enforce_boundary(&self.grid(), u, v);
+        enforce_boundary(&self.grid(), &mut x);
         x
     }
 }
@@ -482,8 +481,8 @@ impl Stepper {
                     }
                 }
             }
+            enforce_boundary(&self.grid, x);
             let (u, v) = x.split_at_mut(self.cfg.n_u());
-            enforce_boundary(&self.grid, u, v);
             let weight = b * dt;
             if self.last_dt > 0.0 {
                 let r = weight / self.last_dt;

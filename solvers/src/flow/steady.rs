@@ -182,10 +182,7 @@ impl SteadyFlow {
             .collect();
         let pinned = pinned_cells(&cfg, &rows, &open);
         let mut bc = cfg.rest();
-        {
-            let (u, v) = bc.split_at_mut(n_u);
-            enforce_boundary(&cfg.grid(), u, v);
-        }
+        enforce_boundary(&cfg.grid(), &mut bc);
         Ok(Self { cfg, cut, sens, rows, open, pinned, bc })
     }
 

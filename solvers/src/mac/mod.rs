@@ -20,6 +20,56 @@
 // Loops over the axes index several per-axis arrays at once.
 #![allow(clippy::needless_range_loop)]
 
+/// Runs `$body` once per axis `0..D` (`D` at most 3), with `$a` a
+/// constant in each copy: the loop written out. In code Enzyme
+/// differentiates, an index into a small array (`n[a]`, `stride[a]`) by a
+/// loop variable left as a run-time value types the array as integers at
+/// every offset, which clashes with the floating-point fields that follow it
+/// in memory (docs/pitfalls.md); a constant index does not.
+macro_rules! each_axis {
+    ($d:expr, $a:ident => $body:block) => {{
+        // A running value the last copy updates is not read again.
+        #[allow(unused_assignments)]
+        {
+            {
+                let $a: usize = 0;
+                $body
+            }
+            if $d > 1 {
+                let $a: usize = 1;
+                $body
+            }
+            if $d > 2 {
+                let $a: usize = 2;
+                $body
+            }
+        }
+    }};
+}
+pub(crate) use each_axis;
+
+/// Runs `$body` with `$a` the constant equal to `$axis` (a run-time axis
+/// below 3), for the same reason as [`each_axis`].
+macro_rules! on_axis {
+    ($axis:expr, $a:ident => $body:block) => {
+        match $axis {
+            0 => {
+                let $a: usize = 0;
+                $body
+            }
+            1 => {
+                let $a: usize = 1;
+                $body
+            }
+            _ => {
+                let $a: usize = 2;
+                $body
+            }
+        }
+    };
+}
+pub(crate) use on_axis;
+
 pub(crate) mod advect;
 pub mod fft;
 pub mod periodic;
@@ -105,9 +155,9 @@ impl<const D: usize> Lattice<D> {
     #[inline(always)]
     pub fn index(&self, q: [usize; D]) -> usize {
         let mut c = 0;
-        for a in 0..D {
+        each_axis!(D, a => {
             c += q[a] * self.stride[a];
-        }
+        });
         c
     }
 
@@ -116,9 +166,11 @@ impl<const D: usize> Lattice<D> {
     #[inline(always)]
     pub fn rows_per_slab(&self) -> usize {
         let mut r = 1;
-        for a in 1..D.saturating_sub(1) {
-            r *= self.n[a];
-        }
+        each_axis!(D, a => {
+            if a >= 1 && a + 1 < D {
+                r *= self.n[a];
+            }
+        });
         r
     }
 
@@ -149,10 +201,12 @@ impl<const D: usize> Lattice<D> {
         let mut q = [k; D];
         q[0] = 0;
         let mut rest = r;
-        for a in 1..D - 1 {
-            q[a] = rest % self.n[a];
-            rest /= self.n[a];
-        }
+        each_axis!(D, a => {
+            if a >= 1 && a + 1 < D {
+                q[a] = rest % self.n[a];
+                rest /= self.n[a];
+            }
+        });
         q
     }
 }
@@ -203,7 +257,7 @@ impl<const D: usize, W: Wraps<D>> Mac<D, W> {
         let (face, w) = (at.axis(), self.wraps());
         // Splats of non-zero constants, filled in (see `row_start`).
         let mut lat = Lattice { stride: [1; D], n: self.n, o: [0.5; D], len: 1 };
-        for b in 0..D {
+        each_axis!(D, b => {
             lat.stride[b] = lat.len;
             if b == face {
                 // One more face than cells along the face's axis.
@@ -213,7 +267,7 @@ impl<const D: usize, W: Wraps<D>> Mac<D, W> {
             } else {
                 lat.len *= self.n[b];
             }
-        }
+        });
         lat
     }
 
@@ -221,10 +275,10 @@ impl<const D: usize, W: Wraps<D>> Mac<D, W> {
     #[inline(always)]
     fn face_index(self, b: usize, q: [usize; D]) -> usize {
         let (mut c, mut s) = (0, 1);
-        for a in 0..D {
+        each_axis!(D, a => {
             c += q[a] * s;
             s *= self.n[a] + (a == b) as usize;
-        }
+        });
         c
     }
 
@@ -290,18 +344,20 @@ impl<const D: usize, W: Wraps<D>> Mac<D, W> {
     pub fn velocity(self, at: At, vel: [&[f64]; D], q: [usize; D]) -> [f64; D] {
         // A splat of the first component, the others filled in (see `row_start`).
         let mut v = [self.component(at, 0, vel[0], q); D];
-        for b in 1..D {
-            v[b] = self.component(at, b, vel[b], q);
-        }
+        each_axis!(D, b => {
+            if b >= 1 {
+                v[b] = self.component(at, b, vel[b], q);
+            }
+        });
         v
     }
 
     /// Adds `gᵀ·∂(velocity)/∂vel` into `gvel`.
     #[inline(always)]
     pub fn velocity_adjoint(self, at: At, gvel: &mut [&mut [f64]; D], q: [usize; D], g: [f64; D]) {
-        for b in 0..D {
+        each_axis!(D, b => {
             self.component_adjoint(at, b, gvel[b], q, g[b]);
-        }
+        });
     }
 
     /// The point `q` of lattice `lat` traced back over `dt` along the
@@ -309,9 +365,9 @@ impl<const D: usize, W: Wraps<D>> Mac<D, W> {
     #[inline(always)]
     pub fn back(lat: &Lattice<D>, q: [usize; D], v: [f64; D], dt: f64) -> [f64; D] {
         let mut p = v;
-        for a in 0..D {
+        each_axis!(D, a => {
             p[a] = q[a] as f64 + lat.o[a] - dt * v[a];
-        }
+        });
         p
     }
 }
@@ -323,18 +379,20 @@ impl<const D: usize, W: Wraps<D>> Mac<D, W> {
 pub fn corners<const D: usize>(wrap: [bool; D], lat: &Lattice<D>, p: [f64; D]) -> ([usize; 8], [f64; D]) {
     // Arrays started from splats of run-time values (see `Lattice::row_start`).
     let (mut lo, mut hi, mut fr) = ([lat.len; D], [lat.len; D], p);
-    for a in 0..D {
+    each_axis!(D, a => {
         let (i0, i1, f) = position(wrap[a], lat.n[a], p[a] - lat.o[a]);
         lo[a] = i0 * lat.stride[a];
         hi[a] = i1 * lat.stride[a];
         fr[a] = f;
-    }
+    });
     let mut c = [lat.len; 8];
     for k in 0..1 << D {
         let mut index = if k & 1 == 1 { hi[0] } else { lo[0] };
-        for a in 1..D {
-            index += if (k >> a) & 1 == 1 { hi[a] } else { lo[a] };
-        }
+        each_axis!(D, a => {
+            if a >= 1 {
+                index += if (k >> a) & 1 == 1 { hi[a] } else { lo[a] };
+            }
+        });
         c[k] = index;
     }
     (c, fr)
@@ -352,12 +410,12 @@ pub fn sample<const D: usize>(wrap: [bool; D], f: &[f64], lat: &Lattice<D>, p: [
         v[k] = f[c[k]];
     }
     let mut m = 1 << D;
-    for a in 0..D {
+    each_axis!(D, a => {
         m /= 2;
         for k in 0..m {
             v[k] = v[2 * k] * (1.0 - fr[a]) + v[2 * k + 1] * fr[a];
         }
-    }
+    });
     v[0]
 }
 

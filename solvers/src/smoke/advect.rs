@@ -1,7 +1,8 @@
-//! Advection of the smoke and the velocity: semi-Lagrangian, MacCormack
-//! (with or without limiter) and upwind, and the adjoint of P2's
-//! semi-Lagrangian step with buoyancy. The traces are [`crate::mac`]'s,
-//! shared with 3D.
+//! Advection of the smoke and the velocity in any dimension:
+//! semi-Lagrangian, MacCormack (with or without limiter) and upwind, P2's
+//! and P4's explicit step (advection, walls, buoyancy) with its hand-written
+//! adjoint, and the kink radii of the gradient checks. The traces are
+//! [`crate::mac`]'s.
 
 use super::*;
 use crate::mac::advect::{LimitedField, advect_field, trace, trace_adjoint, trace_parallel, traced};
@@ -9,11 +10,11 @@ use crate::mac::advect::{LimitedField, advect_field, trace, trace_adjoint, trace
 /// Advection scheme.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Scheme {
-    /// One backward trace, bilinear sample (first order).
+    /// One backward trace, multilinear sample (first order).
     SemiLagrangian,
     /// A backward trace, a forward trace from its result, half the
     /// difference as a correction (second order). With `limiter`, each value
-    /// is clamped to the range of the four samples the backward trace blended
+    /// is clamped to the range of the samples the backward trace blended
     /// (Selle et al. 2008): no new extrema, first order at extrema.
     MacCormack {
         /// Clamp to the local range.
@@ -22,123 +23,142 @@ pub enum Scheme {
 }
 
 /// Advection over a time step `dt` of the smoke (if `smoke`) and of the
-/// velocity by itself (if `velocity`), each sampled back along the velocity
-/// at its own points (the other component averaged from the four nearest
-/// faces); then the velocity boundary conditions. Fields not advected are
-/// copied. Reads `x = [s, u, v]`, overwrites `y`. `scratch` holds
-/// [`advect_scratch_len`] values (none for semi-Lagrangian).
+/// velocity by itself (if `velocity`), each field sampled back along the
+/// velocity at its own points (the other components averaged from the
+/// nearest faces; wrapping across periodic sides, clamped at the others);
+/// then the velocity boundary conditions ([`enforce_boundary`]). Fields not
+/// advected are copied. Reads the packed state `x`, overwrites `y`.
+/// `scratch` holds [`advect_scratch_len`] values (none for semi-Lagrangian).
 ///
 /// # Panics
-/// If a length is wrong or a side has fewer than 2 cells.
+/// If a length is wrong or an axis has fewer than 2 cells.
 #[allow(clippy::too_many_arguments)]
-pub fn advect(cfg: &MacGrid<2>, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
-    assert!(cfg.n[0].min(cfg.n[1]) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+pub fn advect<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+    assert!(cfg.min_cells() >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
     assert!(scratch.len() >= advect_scratch_len(cfg, scheme), "smoke: advection scratch");
-    with_mac!(cfg, mac => advect_on(mac, scheme, dt, smoke, velocity, x, y, scratch));
+    with_mac!(cfg, mac => advect_on(cfg, mac, scheme, dt, smoke, velocity, x, y, scratch));
     if velocity {
-        let (_, [u2, v2]) = cfg.split_mut(y);
-        enforce_boundary(cfg, u2, v2);
+        enforce_boundary(cfg, &mut y[cfg.n_s()..]);
     }
 }
 
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn advect_on<W: Wraps<2>>(mac: Mac<2, W>, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
-    let [nx, ny] = mac.n;
-    let (ns, nu) = (nx * ny, ny * (nx + 1));
-    let (s, rest) = x.split_at(ns);
-    let (u, v) = rest.split_at(nu);
-    let (s2, rest) = y.split_at_mut(ns);
-    let (u2, v2) = rest.split_at_mut(nu);
+fn advect_on<const D: usize, W: Wraps<D>>(
+    cfg: &MacGrid<D>,
+    mac: Mac<D, W>,
+    scheme: Scheme,
+    dt: f64,
+    smoke: bool,
+    velocity: bool,
+    x: &[f64],
+    y: &mut [f64],
+    scratch: &mut [f64],
+) {
+    let (s, vel) = cfg.split(x);
+    let (s2, vel2) = y.split_at_mut(cfg.n_s());
     // Each field's scratch: the first values of each half (none for
     // semi-Lagrangian).
     let half = scratch.len() / 2;
     let (hat, tilde) = scratch.split_at_mut(half);
-    let (ks, ku, kv) = (ns.min(half), nu.min(half), v.len().min(half));
+    let ks = s.len().min(half);
     if smoke {
-        advect_field(mac, At::Centre, scheme, dt, [u, v], s, s2, &mut hat[..ks], &mut tilde[..ks]);
+        advect_field(mac, At::Centre, scheme, dt, vel, s, s2, &mut hat[..ks], &mut tilde[..ks]);
     } else {
         copy(s, s2);
     }
-    if velocity {
-        advect_field(mac, At::Face(0), scheme, dt, [u, v], u, u2, &mut hat[..ku], &mut tilde[..ku]);
-        advect_field(mac, At::Face(1), scheme, dt, [u, v], v, v2, &mut hat[..kv], &mut tilde[..kv]);
-    } else {
-        copy(u, u2);
-        copy(v, v2);
-    }
+    let mut start = 0;
+    each_axis!(D, a => {
+        let len = vel[a].len();
+        let k = len.min(half);
+        let out = &mut vel2[start..start + len];
+        start += len;
+        if velocity {
+            advect_field(mac, At::Face(a), scheme, dt, vel, vel[a], out, &mut hat[..k], &mut tilde[..k]);
+        } else {
+            copy(vel[a], out);
+        }
+    });
 }
 
-/// A perturbation `d = [ds, du, dv]` of the state carried along the
-/// velocity of the state `x` over `dt` (semi-Lagrangian: each field sampled
-/// at its own points traced back by `dt` times `x`'s velocity there), then
-/// the linear velocity boundary conditions; overwrites `out`. Linear in
-/// `d`. With `dt = −1` it runs P2's advection backwards in time along the
-/// step's velocity: the approximate inverse of [`advect_buoyancy`]'s
-/// transport that the smoke step's local inverse uses.
+/// A perturbation `d` of the state carried along the velocity of the
+/// state `x` over `dt` (semi-Lagrangian: each field sampled at its own
+/// points traced back by `dt` times `x`'s velocity there), then the linear
+/// velocity boundary conditions; overwrites `out`. Linear in `d`. With
+/// `dt = −1` it runs P2's advection backwards in time along the step's
+/// velocity: the approximate inverse of [`advect_buoyancy`]'s transport
+/// that the smoke step's local inverse uses.
 ///
 /// # Panics
-/// If a length is wrong or a side has fewer than 2 cells.
-pub fn advect_along(cfg: &MacGrid<2>, dt: f64, x: &[f64], d: &[f64], out: &mut [f64]) {
+/// If a length is wrong or an axis has fewer than 2 cells.
+pub fn advect_along<const D: usize>(cfg: &MacGrid<D>, dt: f64, x: &[f64], d: &[f64], out: &mut [f64]) {
     let n = cfg.n_state();
-    assert!(cfg.n[0].min(cfg.n[1]) >= 2 && x.len() == n && d.len() == n && out.len() == n, "smoke: state lengths");
-    let (_, [u, v]) = cfg.split(x);
-    let (ds, [du, dv]) = cfg.split(d);
-    let (os, [ou, ov]) = cfg.split_mut(out);
+    assert!(cfg.min_cells() >= 2 && x.len() == n && d.len() == n && out.len() == n, "smoke: state lengths");
+    let (_, vel) = cfg.split(x);
+    let (ds, dvel) = cfg.split(d);
+    let (os, ovel) = out.split_at_mut(cfg.n_s());
     with_mac!(cfg, mac => {
-        let all = 0..cfg.n[1];
-        trace(mac, At::Centre, [u, v], ds, dt, all.clone(), os);
-        trace(mac, At::Face(0), [u, v], du, dt, all.clone(), ou);
-        trace(mac, At::Face(1), [u, v], dv, dt, all, ov);
+        let all = 0..cfg.n[D - 1];
+        trace(mac, At::Centre, vel, ds, dt, all.clone(), os);
+        each_axis!(D, a => {
+            trace(mac, At::Face(a), vel, dvel[a], dt, all.clone(), &mut ovel[cfg.face_range(a)]);
+        });
     });
-    let (_, [u2, v2]) = cfg.split_mut(out);
-    enforce_boundary_linear(cfg, u2, v2);
+    enforce_boundary_linear(cfg, ovel);
 }
 
 /// The lattices advected: the centres with `smoke`, the faces with `velocity`.
-fn lattices(smoke: bool, velocity: bool) -> Vec<At> {
-    [(smoke, At::Centre), (velocity, At::Face(0)), (velocity, At::Face(1))].into_iter().filter(|p| p.0).map(|p| p.1).collect()
+fn lattices<const D: usize>(smoke: bool, velocity: bool) -> Vec<At> {
+    let mut l = Vec::new();
+    if smoke {
+        l.push(At::Centre);
+    }
+    if velocity {
+        l.extend((0..D).map(At::Face));
+    }
+    l
 }
 
-/// How far `x` may move along `d` before [`advect`] meets a kink: bilinear
-/// sampling is smooth between lattice lines and kinks where a traced point
-/// crosses one (or a clamped edge). The smallest, over the traced points
-/// (the backward trace, and for MacCormack also the forward one), of the
-/// distance to the nearest line over the speed at which `d` moves the
-/// point; ∞ when `d` moves none. MacCormack's limiter is not counted: its
-/// clamp kinks wherever it engages, which no radius of this kind bounds.
+/// How far `x` may move along `d` before [`advect`] meets a kink:
+/// multilinear sampling is smooth between lattice planes and kinks where a
+/// traced point crosses one (or a clamped edge). The smallest, over the
+/// traced points (the backward trace, and for MacCormack also the forward
+/// one; the faces the boundary sets after the trace left out), of the
+/// distance to the nearest plane over the speed at which `d` moves the
+/// point; ∞ when `d` moves none. MacCormack's limiter is
+/// [`limiter_radius`].
 #[allow(clippy::too_many_arguments)]
-pub fn advect_radius(cfg: &MacGrid<2>, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
-    let (_, [u, v]) = cfg.split(x);
-    let (_, [du, dv]) = cfg.split(d);
+pub fn advect_radius<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
+    let (_, vel) = cfg.split(x);
+    let (_, dvel) = cfg.split(d);
     let steps: &[f64] = match scheme {
         Scheme::SemiLagrangian => &[dt],
         Scheme::MacCormack { .. } => &[dt, -dt],
     };
-    crate::mac::advect::advect_radius(cfg.mac(), &lattices(smoke, velocity), steps, &[0.0; 2], [u, v], [du, dv], |at, q| set_by_boundary(cfg, at, q))
+    crate::mac::advect::advect_radius(cfg.mac(), &lattices::<D>(smoke, velocity), steps, &[0.0; 2], vel, dvel, |at, q| set_by_boundary(cfg, at, q))
 }
 
-/// Whether point `q` of the lattice `at` is a face on a closed or inflow
-/// side: the boundary conditions set it after the trace, so where its trace
-/// lands does not matter (no kink of the step).
+/// Whether point `q` of the lattice `at` is a face the boundary sets after
+/// the trace (on a closed or inflow side), so that where its trace lands
+/// does not matter (no kink of the step).
 #[inline(always)]
-fn set_by_boundary(cfg: &MacGrid<2>, at: At, [k, l]: [usize; 2]) -> bool {
-    let b = &cfg.boundary;
-    match at {
-        At::Face(0) => (k == 0 && b.lower(0).sets_faces()) || (k == cfg.n[0] && b.upper(0).sets_faces()),
-        At::Face(_) => (l == 0 && b.lower(1).sets_faces()) || (l == cfg.n[1] && b.upper(1).sets_faces()),
-        At::Centre => false,
+fn set_by_boundary<const D: usize>(cfg: &MacGrid<D>, at: At, q: [usize; D]) -> bool {
+    let a = at.axis();
+    if a >= D {
+        return false;
     }
+    let [lo, hi] = cfg.boundary.axis(a);
+    (q[a] == 0 && lo.sets_faces()) || (q[a] == cfg.n[a] && hi.sets_faces())
 }
 
 /// How far `x` may move along `d` before MacCormack's limiter switches: the
-/// clamp of each value to the range of the four samples its backward trace
+/// clamp of each value to the range of the samples its backward trace
 /// blended kinks where the unclamped value crosses a bound, and where the
 /// bound passes from one sample to another. First order: the rates of the
 /// unclamped values come from a step of `1e-7` relative along `d` (exact
 /// for the bounds, which are samples of the field); within the sampling
 /// radius of [`advect_radius`], which the caller takes too.
-pub fn limiter_radius(cfg: &MacGrid<2>, dt: f64, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
+pub fn limiter_radius<const D: usize>(cfg: &MacGrid<D>, dt: f64, smoke: bool, velocity: bool, x: &[f64], d: &[f64]) -> f64 {
     let dmax = d.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     if dmax == 0.0 {
         return f64::INFINITY;
@@ -146,222 +166,281 @@ pub fn limiter_radius(cfg: &MacGrid<2>, dt: f64, smoke: bool, velocity: bool, x:
     let eps = 1e-7 * (1.0 + x.iter().fold(0.0f64, |m, v| m.max(v.abs()))) / dmax;
     let xe: Vec<f64> = x.iter().zip(d).map(|(a, b)| a + eps * b).collect();
     let (fx, fd, fe) = (cfg.split(x), cfg.split(d), cfg.split(&xe));
-    let mut fields = Vec::new();
-    if smoke {
-        fields.push(LimitedField { at: At::Centre, f: fx.0, df: fd.0, fe: fe.0 });
-    }
-    if velocity {
-        for a in 0..2 {
-            fields.push(LimitedField { at: At::Face(a), f: fx.1[a], df: fd.1[a], fe: fe.1[a] });
-        }
-    }
+    let fields: Vec<LimitedField<'_>> = lattices::<D>(smoke, velocity)
+        .into_iter()
+        .map(|at| match at {
+            At::Centre => LimitedField { at, f: fx.0, df: fd.0, fe: fe.0 },
+            At::Face(a) => LimitedField { at, f: fx.1[a], df: fd.1[a], fe: fe.1[a] },
+        })
+        .collect();
     crate::mac::advect::limiter_radius(cfg.mac(), &fields, dt, [fx.1, fe.1], eps, |at, q| set_by_boundary(cfg, at, q))
 }
 
 /// Scratch [`advect()`] needs: for MacCormack two fields of the largest
-/// component's size (`2·max(n_u, n_v)`), none for semi-Lagrangian.
-pub fn advect_scratch_len(cfg: &MacGrid<2>, scheme: Scheme) -> usize {
+/// lattice, none for semi-Lagrangian.
+pub fn advect_scratch_len<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme) -> usize {
     match scheme {
         Scheme::SemiLagrangian => 0,
-        Scheme::MacCormack { .. } => 2 * cfg.n_face(0).max(cfg.n_face(1)),
+        Scheme::MacCormack { .. } => 2 * (0..D).map(|a| cfg.n_face(a)).max().unwrap_or(0),
     }
 }
 
-/// Steps 1–4 of P2, for any boundary: semi-Lagrangian advection of smoke and
-/// velocity (unit time step), buoyancy, the velocity boundary conditions.
-/// Reads the packed state `x = [s, u, v]`, overwrites `y = [s', u', v']`
-/// (the velocity not yet divergence-free).
+/// Steps 1–4 of P2 and P4, for any boundary: semi-Lagrangian advection of
+/// the smoke and the velocity over `cfg.dt` (1 in P2 and P4), the velocity
+/// boundary conditions, buoyancy along +y (`cfg.buoyancy`). Reads the
+/// packed state `x`, overwrites `y` (the velocity not yet divergence-free).
 ///
 /// # Panics
-/// If `x` or `y` is not of length [`MacGrid<2>::n_state`] or a side has fewer
-/// than 2 cells.
-pub fn advect_buoyancy(cfg: &MacGrid<2>, x: &[f64], y: &mut [f64]) {
-    advect(cfg, Scheme::SemiLagrangian, 1.0, true, true, x, y, &mut []);
+/// If `x` or `y` is not of length [`MacGrid::n_state`] or an axis has
+/// fewer than 2 cells.
+pub fn advect_buoyancy<const D: usize>(cfg: &MacGrid<D>, x: &[f64], y: &mut [f64]) {
+    advect(cfg, Scheme::SemiLagrangian, cfg.dt, true, true, x, y, &mut []);
     // Buoyancy touches no closed, inflow or outflow face and refreshes its
     // own periodic copies, so the boundary conditions of `advect` still hold.
-    let (s2, [_, v2]) = cfg.split_mut(y);
-    add_buoyancy(cfg, cfg.buoyancy, s2, v2);
+    let (s2, vel2) = y.split_at_mut(cfg.n_s());
+    add_buoyancy(cfg, 1, cfg.buoyancy, s2, &mut vel2[cfg.face_range(1)]);
 }
 
-/// Rows `js` of [`advect_buoyancy`]'s output in the closed box (P2),
-/// packed as [`MacGrid::slab_lens`] says (`y` of their total length): each output row
-/// depends on the whole input but on no other output row (the buoyancy of
-/// a range's first y-face traces the smoke row below it again), so that an
-/// adjoint can be taken row range by row range in parallel, then summed in
-/// a fixed order. The same values as [`advect_buoyancy`], operation for
-/// operation.
+/// Slabs `ks` (layers along the slowest axis: rows in 2D) of
+/// [`advect_buoyancy`]'s output in the closed box (P2, P4), packed as
+/// [`MacGrid::slab_lens`] says (`y` of their total length): each output
+/// slab depends on the whole input but on no other output slab (in 2D the
+/// buoyancy of a range's first y-face traces the smoke row below it again),
+/// so that an adjoint can be taken slab range by slab range in parallel,
+/// then summed in a fixed order. The same values as [`advect_buoyancy`],
+/// operation for operation.
 ///
 /// # Panics
-/// If the box is not closed, a length is wrong, or `js` is empty or past
-/// `ny`.
-pub fn advect_buoyancy_rows(cfg: &MacGrid<2>, x: &[f64], js: std::ops::Range<usize>, y: &mut [f64]) {
-    let (n, ny) = (cfg.n[0], cfg.n[1]);
-    let (ls, [lu, _]) = cfg.slab_lens(js.clone());
-    assert!(cfg.is_closed() && n.min(ny) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.slabs_len(js.clone()), "smoke: rows of the closed box's step");
-    assert!(js.start < js.end && js.end <= ny, "smoke: rows {js:?} of {ny}");
-    let mac = Mac::bounded([n, ny]);
-    let (s, [u, v]) = cfg.split(x);
-    let (s2, rest) = y.split_at_mut(ls);
-    let (u2, v2) = rest.split_at_mut(lu);
-    let j0 = js.start;
-    // One call per field (a loop over an array of (lattice, slice) pairs
-    // trips Enzyme, docs/pitfalls.md).
-    trace(mac, At::Centre, [u, v], s, 1.0, js.clone(), s2);
-    trace(mac, At::Face(0), [u, v], u, 1.0, js.clone(), u2);
-    trace(mac, At::Face(1), [u, v], v, 1.0, js.clone(), v2);
-    // The closed walls (indexed stores: a fill is a memset Enzyme cannot type).
-    for r in 0..js.len() {
-        u2[r * (n + 1)] = 0.0;
-        u2[r * (n + 1) + n] = 0.0;
-    }
-    for i in 0..n {
-        if j0 == 0 {
-            v2[i] = 0.0;
-        }
-        if js.end == ny {
-            v2[js.len() * n + i] = 0.0;
-        }
-    }
-    // Buoyancy on the interior y-faces of the range.
-    let centre = mac.lattice(At::Centre);
-    for l in j0.max(1)..js.end {
-        for i in 0..n {
-            let below = if l > j0 { s2[(l - 1 - j0) * n + i] } else { traced(mac, At::Centre, &centre, [u, v], s, 1.0, [i, l - 1]) };
-            v2[(l - j0) * n + i] += cfg.buoyancy * 0.5 * (below + s2[(l - j0) * n + i]);
+/// If the box is not closed, a length is wrong, or `ks` is empty or past
+/// the last slab.
+pub fn advect_buoyancy_slabs<const D: usize>(cfg: &MacGrid<D>, x: &[f64], ks: std::ops::Range<usize>, y: &mut [f64]) {
+    let n = cfg.cells();
+    let last = n[D - 1];
+    assert!(
+        cfg.is_closed() && cfg.min_cells() >= 2 && x.len() == cfg.n_state() && y.len() == cfg.slabs_len(ks.clone()),
+        "smoke: slabs of the closed box's step"
+    );
+    assert!(ks.start < ks.end && ks.end <= last, "smoke: slabs {ks:?} of {last}");
+    let mac = cfg.bounded();
+    let (s, vel) = cfg.split(x);
+    // The output's pieces: the smoke's slabs, then each component's
+    // (`at[a]..at[a + 1]` of the velocity part).
+    let (ls, lf) = cfg.slab_lens(ks.clone());
+    let (s2, vel2) = y.split_at_mut(ls);
+    trace(mac, At::Centre, vel, s, cfg.dt, ks.clone(), s2);
+    // Each component's slabs in turn, then its walls.
+    let mut start = 0;
+    each_axis!(D, a => {
+        let out = &mut vel2[start..start + lf[a]];
+        trace(mac, At::Face(a), vel, vel[a], cfg.dt, ks.clone(), out);
+        close_walls(cfg, ks.clone(), a, out);
+        start += lf[a];
+    });
+    let v2 = &mut vel2[lf[0]..lf[0] + lf[1]];
+    // Buoyancy on the interior y-faces of the slabs (in 2D the first y-face
+    // of a range has its lower cell in the row before the range: traced
+    // again).
+    let (centre, faces) = (mac.lattice(At::Centre), mac.lattice(At::Face(1)));
+    let (cbase, fbase) = (ks.start * centre.stride[D - 1], ks.start * faces.stride[D - 1]);
+    for k in ks.clone() {
+        for r in 0..faces.rows_per_slab() {
+            let mut q = faces.row_start(k, r);
+            if q[1] == 0 || q[1] >= n[1] {
+                continue;
+            }
+            for i in 0..n[0] {
+                q[0] = i;
+                let mut below = q;
+                below[1] -= 1;
+                let c = centre.index(q) - cbase;
+                let lower = if below[D - 1] < ks.start { traced(mac, At::Centre, &centre, vel, s, cfg.dt, below) } else { s2[centre.index(below) - cbase] };
+                v2[faces.index(q) - fbase] += cfg.buoyancy * 0.5 * (lower + s2[c]);
+            }
         }
     }
 }
 
-/// [`advect_buoyancy`] with each lattice's rows split over threads
+/// The closed walls of slabs `ks` of the faces normal to `a` (`f` those
+/// slabs, as [`MacGrid::slab_lens`] packs them): every face on a side set
+/// to 0.
+#[inline(always)]
+fn close_walls<const D: usize>(cfg: &MacGrid<D>, ks: std::ops::Range<usize>, a: usize, f: &mut [f64]) {
+    let n = cfg.cells();
+    let faces = cfg.bounded().lattice(At::Face(a));
+    // This lattice's slabs: those of `ks`, and its last face slab when `ks`
+    // reaches the end.
+    let end = if ks.end == n[D - 1] { faces.n[D - 1] } else { ks.end };
+    let base = ks.start * faces.stride[D - 1];
+    for k in ks.start..end {
+        for r in 0..faces.rows_per_slab() {
+            let mut q = faces.row_start(k, r);
+            for i in 0..faces.n[0] {
+                q[0] = i;
+                if q[a] == 0 || q[a] == n[a] {
+                    f[faces.index(q) - base] = 0.0;
+                }
+            }
+        }
+    }
+}
+
+/// [`advect_buoyancy`] with each lattice's slabs split over threads
 /// ([`crate::par`]): the same values for any thread count. Not for
 /// differentiated code (Enzyme differentiates [`advect_buoyancy`]).
 ///
 /// # Panics
 /// As [`advect_buoyancy`].
-pub fn advect_buoyancy_parallel(cfg: &MacGrid<2>, x: &[f64], y: &mut [f64]) {
-    assert!(cfg.n[0].min(cfg.n[1]) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+pub fn advect_buoyancy_parallel<const D: usize>(cfg: &MacGrid<D>, x: &[f64], y: &mut [f64]) {
+    assert!(cfg.min_cells() >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
     with_mac!(cfg, mac => {
-        let (s, [u, v]) = cfg.split(x);
-        let (s2, [u2, v2]) = cfg.split_mut(y);
-        trace_parallel(mac, At::Centre, [u, v], s, 1.0, s2);
-        trace_parallel(mac, At::Face(0), [u, v], u, 1.0, u2);
-        trace_parallel(mac, At::Face(1), [u, v], v, 1.0, v2);
+        let (s, vel) = cfg.split(x);
+        let (s2, vel2) = cfg.split_mut(y);
+        trace_parallel(mac, At::Centre, vel, s, cfg.dt, s2);
+        for a in 0..D {
+            trace_parallel(mac, At::Face(a), vel, vel[a], cfg.dt, &mut *vel2[a]);
+        }
     });
-    let (_, [u2, v2]) = cfg.split_mut(y);
-    enforce_boundary(cfg, u2, v2);
-    let (s2, [_, v2]) = cfg.split_mut(y);
-    add_buoyancy(cfg, cfg.buoyancy, s2, v2);
+    let (s2, vel2) = y.split_at_mut(cfg.n_s());
+    enforce_boundary(cfg, vel2);
+    add_buoyancy(cfg, 1, cfg.buoyancy, s2, &mut vel2[cfg.face_range(1)]);
 }
 
 /// Hand-written adjoint of [`advect_buoyancy`]: `gx += Jᵀ·gy` at the state
 /// `x` (accumulates into `gx`; `gy` is used as scratch and left
 /// unspecified). The reference for Enzyme's generated adjoint.
-pub fn advect_buoyancy_adjoint(cfg: &MacGrid<2>, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
-    let (n, ny) = (cfg.n[0], cfg.n[1]);
-    assert!(n.min(ny) >= 2 && x.len() == cfg.n_state() && gy.len() == cfg.n_state() && gx.len() == cfg.n_state(), "smoke: state lengths");
-    let (s, [u, v]) = cfg.split(x);
-    let (gs2, [gu2, gv2]) = cfg.split_mut(gy);
-    let (gs, [gu, gv]) = cfg.split_mut(gx);
-    // Buoyancy (its own periodic copy came after its addition).
-    if cfg.boundary.periodic(1) {
-        for i in 0..n {
-            gv2[i] += gv2[ny * n + i];
-            gv2[ny * n + i] = 0.0;
-            let b = cfg.buoyancy * 0.5 * gv2[i];
-            gs2[(ny - 1) * n + i] += b;
-            gs2[i] += b;
+///
+/// # Panics
+/// As [`advect_buoyancy`], and if `gy` or `gx` has the wrong length.
+pub fn advect_buoyancy_adjoint<const D: usize>(cfg: &MacGrid<D>, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
+    let n = cfg.n_state();
+    assert!(cfg.min_cells() >= 2 && x.len() == n && gy.len() == n && gx.len() == n, "smoke: state lengths");
+    let (gs2, gvel2) = gy.split_at_mut(cfg.n_s());
+    add_buoyancy_adjoint(cfg, 1, cfg.buoyancy, &mut gvel2[cfg.face_range(1)], gs2);
+    advect_adjoint(cfg, cfg.dt, true, true, x, gy, gx);
+}
+
+/// Adjoint of [`add_buoyancy`] along `axis`: the face adjoint `gf` passes
+/// `coefficient / 2` of itself to each cell beside the face (`gs +=`); a
+/// periodic copy first hands its adjoint to face `0`.
+fn add_buoyancy_adjoint<const D: usize>(cfg: &MacGrid<D>, axis: usize, coefficient: f64, gf: &mut [f64], gs: &mut [f64]) {
+    for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+        if let Some(k) = f.copy {
+            gf[f.index] += gf[k];
+            gf[k] = 0.0;
         }
-    }
-    for j in 1..ny {
-        for i in 0..n {
-            let b = cfg.buoyancy * 0.5 * gv2[j * n + i];
-            gs2[(j - 1) * n + i] += b;
-            gs2[j * n + i] += b;
+        if let (Some(lo), Some(hi)) = (f.lower, f.upper) {
+            let b = coefficient * 0.5 * gf[f.index];
+            gs[lo] += b;
+            gs[hi] += b;
         }
-    }
-    enforce_boundary_adjoint(cfg, gu2, gv2);
-    // The traces in reverse: y-faces, x-faces, centres.
-    with_mac!(cfg, mac => {
-        let mut gvel = [&mut *gu, &mut *gv];
-        trace_adjoint(mac, At::Face(1), [u, v], v, 1.0, gv2, None, &mut gvel);
-        trace_adjoint(mac, At::Face(0), [u, v], u, 1.0, gu2, None, &mut gvel);
-        trace_adjoint(mac, At::Centre, [u, v], s, 1.0, gs2, Some(&mut *gs), &mut gvel);
     });
 }
 
+/// Hand-written adjoint of [`advect`] with the semi-Lagrangian scheme over
+/// `dt`, in any box: `gx += Jᵀ·gy` at the state `x` (accumulates into `gx`;
+/// `gy` is used as scratch and left unspecified). The reference for
+/// Enzyme's generated adjoint under every boundary kind.
+///
+/// # Panics
+/// As [`advect`], and if `gy` or `gx` has the wrong length.
+pub fn advect_adjoint<const D: usize>(cfg: &MacGrid<D>, dt: f64, smoke: bool, velocity: bool, x: &[f64], gy: &mut [f64], gx: &mut [f64]) {
+    let n = cfg.n_state();
+    assert!(cfg.min_cells() >= 2 && x.len() == n && gy.len() == n && gx.len() == n, "smoke: state lengths");
+    let (s, vel) = cfg.split(x);
+    if velocity {
+        // The boundary conditions came last: set faces pass nothing back,
+        // periodic copies hand theirs to face 0.
+        enforce_boundary_adjoint(cfg, &mut gy[cfg.n_s()..]);
+    }
+    let (gs2, gvel2) = cfg.split_mut(gy);
+    let (gs, mut gvel) = cfg.split_mut(gx);
+    if velocity {
+        with_mac!(cfg, mac => {
+            for a in (0..D).rev() {
+                trace_adjoint(mac, At::Face(a), vel, vel[a], dt, &*gvel2[a], None, &mut gvel);
+            }
+        });
+    } else {
+        for a in 0..D {
+            for (g, &g2) in gvel[a].iter_mut().zip(&*gvel2[a]) {
+                *g += g2;
+            }
+        }
+    }
+    if smoke {
+        with_mac!(cfg, mac => trace_adjoint(mac, At::Centre, vel, s, dt, gs2, Some(&mut *gs), &mut gvel));
+    } else {
+        for (g, &g2) in gs.iter_mut().zip(&*gs2) {
+            *g += g2;
+        }
+    }
+}
+
 /// First-order upwind advection of the smoke by the MAC velocity, in
-/// conservative (flux) form over one time step `dt`: through every interior
-/// face, across periodic sides, and through inflow and outflow sides (with
-/// smoke-free fluid outside); none through closed sides. Reads
-/// `x = [s, u, v]`, writes `y = [s', u, v]`.
-pub fn advect_upwind(cfg: &MacGrid<2>, dt: f64, x: &[f64], y: &mut [f64]) {
-    let (n, ny) = (cfg.n[0], cfg.n[1]);
-    assert!(n.min(ny) >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
-    let (s, [u, v]) = cfg.split(x);
-    let nu = n + 1;
-    let (s2, rest) = y.split_at_mut(cfg.n_s());
-    copy(s, s2);
-    // Interior x-faces: flux from cell (i−1, j) to (i, j).
-    for j in 0..ny {
-        for i in 1..n {
-            upwind_flux(s, s2, dt * u[j * nu + i], Some(j * n + i - 1), Some(j * n + i));
+/// conservative (flux) form over one time step `dt`: through every face
+/// between two cells (across periodic sides too), and through inflow and
+/// outflow sides (with smoke-free fluid outside); none through closed
+/// sides. Reads the packed state `x`, writes `y` (the velocity passes
+/// through).
+///
+/// # Panics
+/// If a length is wrong.
+pub fn advect_upwind<const D: usize>(cfg: &MacGrid<D>, dt: f64, x: &[f64], y: &mut [f64]) {
+    assert!(cfg.min_cells() >= 2 && x.len() == cfg.n_state() && y.len() == cfg.n_state(), "smoke: state lengths");
+    copy(x, y);
+    let n = cfg.cells();
+    let mac = cfg.bounded();
+    let cells = mac.lattice(At::Centre);
+    each_axis!(D, axis => {
+        let start = cfg.n_s() + cfg.face_range(axis).start;
+        let faces = mac.lattice(At::Face(axis));
+        let [lo, hi] = cfg.boundary.axis(axis);
+        let wrap = lo == Side::Periodic;
+        let (m, down) = (n[axis], cells.stride[axis]);
+        for k in 0..faces.n[D - 1] {
+            for r in 0..faces.rows_per_slab() {
+                let mut q = faces.row_start(k, r);
+                for i in 0..faces.n[0] {
+                    q[0] = i;
+                    let along = q[axis];
+                    // The cells beside the face (`None`: outside the box),
+                    // and whether fluid passes.
+                    let (lower, upper, passes) = if along > 0 && along < m {
+                        let c = cells.index(q);
+                        (Some(c - down), Some(c), true)
+                    } else if along == 0 {
+                        let c = cells.index(q);
+                        (wrap.then(|| c + (m - 1) * down), Some(c), wrap || lo.lets_through())
+                    } else {
+                        (Some(cells.index(q) - down), None, hi.lets_through())
+                    };
+                    if passes {
+                        let c = dt * x[start + faces.index(q)];
+                        let from = if c > 0.0 { lower } else { upper };
+                        let f = c * from.map_or(0.0, |l| x[l]);
+                        if let Some(l) = lower {
+                            y[l] -= f;
+                        }
+                        if let Some(u) = upper {
+                            y[u] += f;
+                        }
+                    }
+                }
+            }
         }
-    }
-    // Interior y-faces: flux from cell (i, j−1) to (i, j).
-    for j in 1..ny {
-        for i in 0..n {
-            upwind_flux(s, s2, dt * v[j * n + i], Some((j - 1) * n + i), Some(j * n + i));
-        }
-    }
-    // The sides: wrap, or exchange with the smoke-free outside.
-    let b = &cfg.boundary;
-    for k in 0..ny {
-        match b.lower(0) {
-            Side::Periodic => upwind_flux(s, s2, dt * u[k * nu], Some(k * n + n - 1), Some(k * n)),
-            Side::Inflow(_) | Side::Outflow => upwind_flux(s, s2, dt * u[k * nu], None, Some(k * n)),
-            Side::Closed => {}
-        }
-        if let Side::Inflow(_) | Side::Outflow = b.upper(0) {
-            upwind_flux(s, s2, dt * u[k * nu + n], Some(k * n + n - 1), None);
-        }
-    }
-    for k in 0..n {
-        match b.lower(1) {
-            Side::Periodic => upwind_flux(s, s2, dt * v[k], Some((ny - 1) * n + k), Some(k)),
-            Side::Inflow(_) | Side::Outflow => upwind_flux(s, s2, dt * v[k], None, Some(k)),
-            Side::Closed => {}
-        }
-        if let Side::Inflow(_) | Side::Outflow = b.upper(1) {
-            upwind_flux(s, s2, dt * v[ny * n + k], Some((ny - 1) * n + k), None);
-        }
-    }
-    copy(&x[cfg.n_s()..], rest);
+    });
 }
 
-/// The upwind flux `c·s_upwind` (`c` = velocity·dt) from cell `lower` to
-/// cell `upper` (`None`: outside, where the smoke is 0).
-#[inline(always)]
-fn upwind_flux(s: &[f64], s2: &mut [f64], c: f64, lower: Option<usize>, upper: Option<usize>) {
-    let from = if c > 0.0 { lower } else { upper };
-    let f = c * from.map_or(0.0, |k| s[k]);
-    if let Some(k) = lower {
-        s2[k] -= f;
-    }
-    if let Some(k) = upper {
-        s2[k] += f;
-    }
-}
-
-/// Distance to the nearest upwind switch of [`advect_upwind`] along `d`: the
-/// smallest `|u_f / d_f|` over the faces that carry flux.
-pub fn upwind_radius(cfg: &MacGrid<2>, x: &[f64], d: &[f64]) -> f64 {
-    let (_, [u, v]) = cfg.split(x);
-    let (_, [du, dv]) = cfg.split(d);
+/// Distance to the nearest upwind switch of [`advect_upwind`] along `d`:
+/// the smallest `|u_f / d_f|` over the faces that carry flux.
+pub fn upwind_radius<const D: usize>(cfg: &MacGrid<D>, x: &[f64], d: &[f64]) -> f64 {
+    let (_, vel) = cfg.split(x);
+    let (_, dvel) = cfg.split(d);
     let mut r = f64::INFINITY;
-    for (axis, (vel, dvel)) in [(u, du), (v, dv)].into_iter().enumerate() {
-        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
-            if f.side != Some(Side::Closed) && dvel[f.index] != 0.0 {
-                r = r.min((vel[f.index] / dvel[f.index]).abs());
+    for a in 0..D {
+        for_each_face(cfg.n, &cfg.boundary, a, |f| {
+            if f.side != Some(Side::Closed) && dvel[a][f.index] != 0.0 {
+                r = r.min((vel[a][f.index] / dvel[a][f.index]).abs());
             }
         });
     }

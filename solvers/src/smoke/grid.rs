@@ -62,6 +62,20 @@ impl<const D: usize> MacGrid<D> {
         Self { dt, ..self }
     }
 
+    /// The cells along each axis, `n` read entry by entry. Code Enzyme
+    /// differentiates takes `n` this way: a copy of the whole array field
+    /// reaches Enzyme typed as integers at every offset past it, which
+    /// clashes with the floating-point fields that follow it in the struct
+    /// (docs/pitfalls.md).
+    #[inline(always)]
+    pub fn cells(&self) -> [usize; D] {
+        let mut c = [1; D];
+        crate::mac::each_axis!(D, a => {
+            c[a] = self.n[a];
+        });
+        c
+    }
+
     /// Whether every side is closed (P2's and P4's box).
     pub fn is_closed(&self) -> bool {
         self.boundary == Boundary::CLOSED
@@ -74,19 +88,19 @@ impl<const D: usize> MacGrid<D> {
 
     /// The fewest cells along an axis.
     pub fn min_cells(&self) -> usize {
-        self.n.iter().copied().min().unwrap_or(0)
+        self.cells().into_iter().min().unwrap_or(0)
     }
 
     /// The index rules of this grid's MAC lattices, its axes wrapping where
     /// the sides are periodic.
     pub fn mac(&self) -> Mac<D, [bool; D]> {
-        Mac { n: self.n, wrap: self.boundary.wraps() }
+        Mac { n: self.cells(), wrap: self.boundary.wraps() }
     }
 
     /// The index rules with no axis wrapping (for a box with no periodic
     /// side: its loops then carry no test).
     pub fn bounded(&self) -> Mac<D, Bounded> {
-        Mac::bounded(self.n)
+        Mac::bounded(self.cells())
     }
 
     /// Number of cells (smoke values).
@@ -97,7 +111,7 @@ impl<const D: usize> MacGrid<D> {
     /// Extents of the array of faces normal to `axis`: the cells with one
     /// more along that axis.
     pub fn face_dims(&self, axis: usize) -> [usize; D] {
-        let mut e = self.n;
+        let mut e = self.cells();
         e[axis] += 1;
         e
     }
@@ -117,18 +131,31 @@ impl<const D: usize> MacGrid<D> {
         self.n_s() + self.n_vel()
     }
 
+    /// Where the faces normal to `axis` lie in the packed velocity `[u₀, …,
+    /// u_{D−1}]` (add [`MacGrid::n_s`] for the packed state). Code Enzyme
+    /// differentiates writes each component through one such slice of the
+    /// packed velocity (an array of mutable slices trips its reverse pass).
+    #[inline(always)]
+    pub fn face_range(&self, axis: usize) -> Range<usize> {
+        let mut start = 0;
+        for a in 0..axis {
+            start += self.n_face(a);
+        }
+        start..start + self.n_face(axis)
+    }
+
     /// Splits a packed velocity `[u₀, …, u_{D−1}]` into its components.
     #[inline(always)]
     pub fn components<'a>(&self, vel: &'a [f64]) -> [&'a [f64]; D] {
         // Filled from a splat of a slice (no array constructor Enzyme cannot
-        // type, docs/pitfalls.md).
+        // type), one constant index at a time (docs/pitfalls.md).
         let mut parts = [vel; D];
-        let mut rest = vel;
-        for (a, part) in parts.iter_mut().enumerate() {
-            let (f, r) = rest.split_at(self.n_face(a));
-            *part = f;
-            rest = r;
-        }
+        let mut start = 0;
+        crate::mac::each_axis!(D, a => {
+            let len = self.n_face(a);
+            parts[a] = &vel[start..start + len];
+            start += len;
+        });
         parts
     }
 

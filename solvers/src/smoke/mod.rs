@@ -30,8 +30,8 @@
 //! projection's conjugate-gradient solve, `p2` benchmark P2's set-up and
 //! reference values.
 
-use crate::boundary::{Boundary, Side, for_each_face};
-use crate::mac::{At, Mac, Wraps};
+use crate::boundary::{Side, for_each_face};
+use crate::mac::{At, Mac, Wraps, each_axis, on_axis};
 
 /// Calls `$body` with `$mac` bound to the [`Mac`] of the configuration:
 /// [`crate::mac::Bounded`] when no axis wraps (P2's closed box: its loops carry no

@@ -4,6 +4,7 @@
 //! adjoint, the same solve).
 
 use super::*;
+use crate::boundary::Boundary;
 use std::fmt;
 
 /// Divergence of a MAC velocity, `d[c] = Σ` outward flux over the faces
@@ -22,7 +23,7 @@ pub fn divergence(cfg: &MacGrid<2>, u: &[f64], v: &[f64], d: &mut [f64]) {
     }
     d.fill(0.0);
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
             let w = vel[f.index];
             if let Some(c) = f.lower {
                 d[c] += w;
@@ -52,7 +53,7 @@ pub fn divergence_transpose(cfg: &MacGrid<2>, d: &[f64], u: &mut [f64], v: &mut 
         return;
     }
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
     }
 }
 
@@ -758,7 +759,7 @@ pub fn project_velocity(
             let d = &mut scratch.d;
             d.fill(0.0);
             for (axis, vel) in [&*u, &*v].into_iter().enumerate() {
-                for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
+                for_each_face(cfg.n, &cfg.boundary, axis, |f| {
                     let w = weight(axis, f.index) * vel[f.index];
                     if let Some(c) = f.lower {
                         d[c] += w;
@@ -796,7 +797,7 @@ pub fn project_velocity(
         return Ok(iterations);
     }
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
             if f.projected {
                 let grad = f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]);
                 let open = match apertures {
@@ -857,7 +858,7 @@ pub fn project_adjoint(cfg: &MacGrid<2>, g: &mut [f64], solver: &mut PressureSol
 /// copies handed to their originals first), accumulated into `lp`.
 fn project_adjoint_faces(cfg: &MacGrid<2>, fluid: Option<&[f64]>, gu: &mut [f64], gv: &mut [f64], lp: &mut [f64]) {
     for (axis, gvel) in [&mut *gu, &mut *gv].into_iter().enumerate() {
-        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
             if !f.projected {
                 return;
             }

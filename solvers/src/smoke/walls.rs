@@ -3,39 +3,58 @@
 
 use super::*;
 
-/// The velocity boundary conditions, in place: closed sides' faces 0,
-/// inflow sides' faces the profile (inward), outflow faces as they are,
-/// and on periodic axes face `N` the copy of face `0`.
-pub fn enforce_boundary(cfg: &MacGrid<2>, u: &mut [f64], v: &mut [f64]) {
-    let (nx, ny) = (cfg.n[0], cfg.n[1]);
-    let nu = nx + 1;
-    let b = &cfg.boundary;
-    // Position along the side, 0..1: a profile spans the whole side.
-    let t = |k: usize, n: usize| (k as f64 + 0.5) / n as f64;
-    for j in 0..ny {
-        match b.lower(0) {
-            Side::Closed => u[j * nu] = 0.0,
-            Side::Inflow(p) => u[j * nu] = p.at(t(j, ny)),
+/// The velocity boundary conditions, in place: a closed side's faces 0,
+/// an inflow side's the profile (inward, [`crate::boundary::Profile::on_side`]),
+/// an outflow side's as they are, and on a periodic axis face `N` the copy
+/// of face `0`. On the packed velocity `vel` ([`MacGrid::n_vel`] values).
+pub fn enforce_boundary<const D: usize>(cfg: &MacGrid<D>, vel: &mut [f64]) {
+    // Component by component, each a slice of the packed velocity (an array
+    // of slices iterated by value lost the periodic copies' derivatives in
+    // Enzyme, docs/pitfalls.md).
+    each_axis!(D, a => {
+        set_sides(cfg, a, &mut vel[cfg.face_range(a)]);
+    });
+}
+
+/// [`enforce_boundary`] on the faces `f` normal to `a`: over the points of
+/// the side (every axis but `a`, x fastest), its first and last face.
+#[inline(always)]
+fn set_sides<const D: usize>(cfg: &MacGrid<D>, a: usize, f: &mut [f64]) {
+    let n = cfg.cells();
+    let [lo, hi] = cfg.boundary.axis(a);
+    let e = cfg.face_dims(a);
+    // Strides of the face array; the side's points counted across it.
+    let mut stride = e;
+    let (mut step, mut points) = (1, 1);
+    each_axis!(D, b => {
+        stride[b] = step;
+        step *= e[b];
+        if b != a {
+            points *= n[b];
+        }
+    });
+    for m in 0..points {
+        // The point's position on the other axes, and across the side.
+        let (mut first, mut rest) = (0, m);
+        let mut t = [0.5; D];
+        each_axis!(D, b => {
+            if b != a {
+                let q = rest % n[b];
+                rest /= n[b];
+                first += q * stride[b];
+                t[b] = (q as f64 + 0.5) / n[b] as f64;
+            }
+        });
+        let last = first + n[a] * stride[a];
+        match lo {
+            Side::Closed => f[first] = 0.0,
+            Side::Inflow(p) => f[first] = p.on_side(a, t),
             Side::Periodic | Side::Outflow => {}
         }
-        match b.upper(0) {
-            Side::Closed => u[j * nu + nx] = 0.0,
-            Side::Inflow(p) => u[j * nu + nx] = -p.at(t(j, ny)),
-            Side::Periodic => u[j * nu + nx] = u[j * nu],
-            Side::Outflow => {}
-        }
-    }
-    let top = ny * nx;
-    for i in 0..nx {
-        match b.lower(1) {
-            Side::Closed => v[i] = 0.0,
-            Side::Inflow(p) => v[i] = p.at(t(i, nx)),
-            Side::Periodic | Side::Outflow => {}
-        }
-        match b.upper(1) {
-            Side::Closed => v[top + i] = 0.0,
-            Side::Inflow(p) => v[top + i] = -p.at(t(i, nx)),
-            Side::Periodic => v[top + i] = v[i],
+        match hi {
+            Side::Closed => f[last] = 0.0,
+            Side::Inflow(p) => f[last] = -p.on_side(a, t),
+            Side::Periodic => f[last] = f[first],
             Side::Outflow => {}
         }
     }
@@ -43,41 +62,26 @@ pub fn enforce_boundary(cfg: &MacGrid<2>, u: &mut [f64], v: &mut [f64]) {
 
 /// The linear part of [`enforce_boundary`] (inflow faces set to 0, not to
 /// the profile), for tangents: closed and inflow faces 0, periodic copies.
-pub fn enforce_boundary_linear(cfg: &MacGrid<2>, u: &mut [f64], v: &mut [f64]) {
-    enforce_boundary(&cfg.with_boundary(cfg.boundary.homogeneous()), u, v);
+/// (A separate boundary, not a flag: a flag choosing between the profile
+/// and 0 leaves Enzyme a value it cannot type, docs/pitfalls.md.)
+pub fn enforce_boundary_linear<const D: usize>(cfg: &MacGrid<D>, vel: &mut [f64]) {
+    enforce_boundary(&cfg.with_boundary(cfg.boundary.homogeneous()), vel);
 }
 
 /// Adjoint of [`enforce_boundary`] (of its linear part) on the velocity
-/// adjoint, in place: set faces pass nothing back, copies pass theirs to the
-/// original.
-pub fn enforce_boundary_adjoint(cfg: &MacGrid<2>, gu: &mut [f64], gv: &mut [f64]) {
-    let (nx, ny) = (cfg.n[0], cfg.n[1]);
-    let nu = nx + 1;
-    let b = &cfg.boundary;
-    for j in 0..ny {
-        if let Side::Periodic = b.upper(0) {
-            gu[j * nu] += gu[j * nu + nx];
-            gu[j * nu + nx] = 0.0;
-        }
-        if b.lower(0).sets_faces() {
-            gu[j * nu] = 0.0;
-        }
-        if b.upper(0).sets_faces() {
-            gu[j * nu + nx] = 0.0;
-        }
-    }
-    let top = ny * nx;
-    for i in 0..nx {
-        if let Side::Periodic = b.upper(1) {
-            gv[i] += gv[top + i];
-            gv[top + i] = 0.0;
-        }
-        if b.lower(1).sets_faces() {
-            gv[i] = 0.0;
-        }
-        if b.upper(1).sets_faces() {
-            gv[top + i] = 0.0;
-        }
+/// adjoint, in place: set faces pass nothing back, a periodic copy passes
+/// its adjoint to face `0`. On the packed velocity adjoint.
+pub fn enforce_boundary_adjoint<const D: usize>(cfg: &MacGrid<D>, vel: &mut [f64]) {
+    for (a, g) in cfg.components_mut(vel).into_iter().enumerate() {
+        for_each_face(cfg.n, &cfg.boundary, a, |f| {
+            if let Some(k) = f.copy {
+                g[f.index] += g[k];
+                g[k] = 0.0;
+            }
+            if f.side.is_some_and(Side::sets_faces) {
+                g[f.index] = 0.0;
+            }
+        });
     }
 }
 
@@ -91,7 +95,7 @@ pub fn apply_obstacle_mask(cfg: &MacGrid<2>, fluid: &[f64], x: &mut [f64]) {
         *sv *= w;
     }
     for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.n[0], cfg.n[1], &cfg.boundary, axis, |f| {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
             let o = open(Some(fluid), &f);
             vel[f.index] *= o;
             if let Some(k) = f.copy {

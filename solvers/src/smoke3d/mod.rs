@@ -21,25 +21,15 @@
 //! the hand-written [`advect_buoyancy_adjoint`] beside it) and [`project`]
 //! (a linear solve; its adjoint [`project_adjoint`] is the same solve).
 
-use crate::boundary::Side;
-use crate::mac::{At, Mac};
-
+use crate::boundary::for_each_face;
 use crate::smoke::MacGrid;
 
-mod advect;
-mod forces;
 mod mic;
 mod obstacles;
 mod p4;
 mod pressure;
-mod schemes;
-mod sides;
 
-pub use advect::*;
-pub use forces::*;
 pub use mic::*;
 pub use obstacles::*;
 pub use p4::*;
 pub use pressure::*;
-pub use schemes::*;
-pub use sides::*;

@@ -5,7 +5,8 @@
 //! As in 2D, a cell is solid when its centre lies inside a shape; the
 //! projection then couples fluid cells only ([`PressureSolver3::with_obstacles`](super::PressureSolver3::with_obstacles)).
 
-use super::{MacGrid, for_each_face3};
+use super::MacGrid;
+use crate::boundary::for_each_face;
 
 /// A solid shape in cell units (x first; cell `(i, j, k)` has its centre at
 /// `(i + ½, j + ½, k + ½)`).
@@ -73,7 +74,7 @@ pub fn solid_cells(cfg: &MacGrid<3>, shapes: &[Solid3]) -> Vec<bool> {
 pub fn open_faces(cfg: &MacGrid<3>, fluid: &[f64]) -> [Vec<f64>; 3] {
     [0, 1, 2].map(|axis| {
         let mut open = vec![0.0; cfg.n_face(axis)];
-        for_each_face3(cfg, axis, |f| {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
             let o = f.lower.map_or(1.0, |c| fluid[c]) * f.upper.map_or(1.0, |c| fluid[c]);
             open[f.index] = o;
             if let Some(k) = f.copy {
@@ -89,7 +90,7 @@ pub fn open_faces(cfg: &MacGrid<3>, fluid: &[f64]) -> [Vec<f64>; 3] {
 pub fn solid_neighbours(cfg: &MacGrid<3>, fluid: &[f64]) -> Vec<f64> {
     let mut count = vec![0.0; cfg.n_s()];
     for axis in 0..3 {
-        for_each_face3(cfg, axis, |f| {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
             if let (Some(a), Some(b)) = (f.lower, f.upper) {
                 count[a] += 1.0 - fluid[b];
                 count[b] += 1.0 - fluid[a];

@@ -35,7 +35,7 @@ pub fn divergence(cfg: &MacGrid<3>, [u, v, w]: [&[f64]; 3], d: &mut [f64]) {
     if !cfg.is_closed() {
         d.fill(0.0);
         for (axis, vel) in [u, v, w].into_iter().enumerate() {
-            for_each_face3(cfg, axis, |f| {
+            for_each_face(cfg.n, &cfg.boundary, axis, |f| {
                 if let Some(c) = f.lower {
                     d[c] += vel[f.index];
                 }
@@ -53,7 +53,7 @@ pub fn divergence(cfg: &MacGrid<3>, [u, v, w]: [&[f64]; 3], d: &mut [f64]) {
 pub fn divergence_transpose(cfg: &MacGrid<3>, d: &[f64], [u, v, w]: [&mut [f64]; 3]) {
     if !cfg.is_closed() {
         for (axis, vel) in [u, v, w].into_iter().enumerate() {
-            for_each_face3(cfg, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
+            for_each_face(cfg.n, &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
         }
         return;
     }
@@ -75,7 +75,7 @@ pub fn divergence_transpose(cfg: &MacGrid<3>, d: &[f64], [u, v, w]: [&mut [f64];
 fn subtract_gradient(cfg: &MacGrid<3>, scale: f64, p: &[f64], [u, v, w]: [&mut [f64]; 3]) {
     if !cfg.is_closed() {
         for (axis, vel) in [u, v, w].into_iter().enumerate() {
-            for_each_face3(cfg, axis, |f| {
+            for_each_face(cfg.n, &cfg.boundary, axis, |f| {
                 if f.projected {
                     vel[f.index] -= scale * (f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]));
                     if let Some(k) = f.copy {
@@ -116,7 +116,7 @@ fn gradient_transpose(cfg: &MacGrid<3>, [u, v, w]: [&mut [f64]; 3], out: &mut [f
     out.fill(0.0);
     if !cfg.is_closed() {
         for (axis, g) in [u, v, w].into_iter().enumerate() {
-            for_each_face3(cfg, axis, |f| {
+            for_each_face(cfg.n, &cfg.boundary, axis, |f| {
                 if f.projected {
                     if let Some(k) = f.copy {
                         g[f.index] += g[k];
