@@ -450,10 +450,9 @@ crate::differentiable!(AdvectUpwind<3> => advect_upwind::<3>, smooth_radius = up
 /// ([`smoke::advect`]): fields not advected pass through, an advected
 /// velocity gets the boundary conditions. Derivatives by Enzyme; the
 /// sampling kinks and the limiter's switches are declared through
-/// [`Forward::smooth_radius`]. P2's and P4's own steps are
-/// [`crate::problems::smoke::SmokeAdvect`] and
-/// [`crate::problems::smoke3d::SmokeAdvect3`] (both fields, with buoyancy,
-/// parallel, with a hand adjoint beside them).
+/// [`Forward::smooth_radius`]. P2's and P4's own step is
+/// [`crate::problems::smoke::SmokeAdvect`] (both fields, with buoyancy,
+/// parallel, with a hand adjoint beside it).
 #[derive(Clone, Copy, Debug)]
 pub struct Advect<const D: usize> {
     /// The grid and its boundary.
@@ -553,8 +552,9 @@ crate::differentiable!(Inflow<3> => inflow::<3>);
 #[derive(Debug)]
 pub struct Project {
     cfg: MacGrid<2>,
-    /// Fluid indicator per cell when there are obstacles.
-    fluid: Option<Vec<f64>>,
+    /// Fluid indicator per cell and open fraction per face when there are
+    /// obstacles.
+    mask: Option<(Vec<f64>, Vec<f64>)>,
     solver: RefCell<PressureSolver>,
     scratch: RefCell<ProjectScratch>,
     /// The solves' iteration counts and first failure.
@@ -613,17 +613,17 @@ impl Project {
         } else {
             PressureSolver::general(cfg.n[0], cfg.n[1], cfg.boundary, tolerance, max_iterations, None)
         };
-        Self { cfg, fluid: None, solver: RefCell::new(solver), scratch: RefCell::new(ProjectScratch::new(cfg.n_s())), log: SolveLog::default() }
+        Self { cfg, mask: None, solver: RefCell::new(solver), scratch: RefCell::new(ProjectScratch::new(cfg.n_s())), log: SolveLog::default() }
     }
 
     /// The projection with solid cells where `solid[c]` is true: the
     /// obstacle mask first, then a solve that couples fluid cells only
     /// (CG preconditioned by MIC(0) of that matrix).
     pub fn with_obstacles(cfg: MacGrid<2>, tolerance: f64, max_iterations: usize, solid: &[bool]) -> Self {
-        let fluid: Vec<f64> = solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect();
+        let fluid = smoke::fluid_of(solid);
         let mut op = Self::new(cfg, tolerance, max_iterations, Preconditioner::None);
         op.solver = RefCell::new(PressureSolver::general(cfg.n[0], cfg.n[1], cfg.boundary, tolerance, max_iterations, Some(fluid.clone())));
-        op.fluid = Some(fluid);
+        op.mask = Some((fluid.clone(), smoke::open_faces(&cfg, &fluid)));
         op
     }
 
@@ -634,8 +634,8 @@ impl Project {
 
     /// The map in place on a packed state (or tangent).
     pub fn apply(&self, y: &mut [f64]) {
-        if let Some(w) = &self.fluid {
-            smoke::apply_obstacle_mask(&self.cfg, w, y);
+        if let Some((fluid, open)) = &self.mask {
+            smoke::apply_obstacle_mask(&self.cfg, fluid, open, y);
         }
         let r = smoke::project(&self.cfg, y, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
         self.log.record(r, false);
@@ -645,8 +645,8 @@ impl Project {
     pub fn apply_adjoint(&self, g: &mut [f64]) {
         let r = smoke::project_adjoint(&self.cfg, g, &mut self.solver.borrow_mut(), &mut self.scratch.borrow_mut());
         self.log.record(r, true);
-        if let Some(w) = &self.fluid {
-            smoke::apply_obstacle_mask(&self.cfg, w, g);
+        if let Some((fluid, open)) = &self.mask {
+            smoke::apply_obstacle_mask(&self.cfg, fluid, open, g);
         }
     }
 }

@@ -18,6 +18,24 @@ use std::sync::atomic::{AtomicU64, Ordering};
 /// hundred kB of states peaks at 7-8 MB here; counted once in every check.
 pub const BASE: u64 = 8_000_000;
 
+/// Keeps freed memory in the process instead of returning each large block
+/// to the system (glibc's allocator; elsewhere nothing happens). Generated
+/// adjoints allocate their tapes afresh on every call, several megabytes
+/// each for P4's step; returned to the system and mapped again each time,
+/// they cost a page fault per page, which measured 40 % of the time of
+/// P4's slab adjoint at 32³ (docs/p4.md). Call once at start-up, before any
+/// thread exists; the command line and the benchmarks do.
+pub fn keep_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: `mallopt` only sets the allocator's thresholds; called at
+    // start-up it races with no allocation on another thread.
+    unsafe {
+        // Blocks up to 1 GiB from the heap, and the heap's top kept.
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 30);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30);
+    }
+}
+
 /// A request that does not fit.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum MemoryError {

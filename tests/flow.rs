@@ -50,7 +50,7 @@ fn a_channel_reaches_poiseuille_flow_at_second_order() {
         let dpdx = (p[j * 2 * n + i + 1] - p[j * 2 * n + i - 1]) / (2.0 * cfg.h);
         pressure_errors.push((dpdx + 8.0 * nu).abs() / (8.0 * nu));
         let mut d = vec![0.0; n * 2 * n];
-        divergence(&cfg.grid(), u, v, &mut d);
+        divergence(&cfg.grid(), [u, v], &mut d);
         assert!(d.iter().all(|d| d.abs() < 1e-8), "divergence-free");
         errors.push(err);
     }
@@ -116,14 +116,14 @@ fn bad_flows_are_refused_and_an_unfinished_march_says_so() {
 /// without an obstacle, in one or two iterations.
 #[test]
 fn the_direct_pressure_solve_matches_mic0_under_every_boundary() {
-    use diffsim_solvers::smoke::{MacGrid, PressureSolver, obstacle_disc};
+    use diffsim_solvers::smoke::{MacGrid, PressureSolver, Solid, solid_cells};
     let (nx, ny) = (24, 16);
     let channel = Boundary { sides: [[Side::Inflow(Profile::Uniform(1.0)), Side::Outflow], [Side::Closed, Side::Closed]] };
     let boundaries = [Boundary::CLOSED, Boundary::axes([Side::Periodic, Side::Closed]), Boundary::all(Side::Periodic), channel];
     for b in boundaries.iter() {
         for with_obstacle in [false, true] {
             let fluid = with_obstacle.then(|| {
-                let solid = obstacle_disc(&MacGrid::new([nx, ny]).with_boundary(*b), [8.0, 8.0], 3.0).unwrap();
+                let solid = solid_cells(&MacGrid::new([nx, ny]).with_boundary(*b), &[Solid::Ball { center: [8.0, 8.0], radius: 3.0 }]);
                 solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect::<Vec<f64>>()
             });
             let rhs: Vec<f64> = (0..nx * ny).map(|c| ((c * 37 % 11) as f64 - 5.0) * fluid.as_ref().map_or(1.0, |w| w[c])).collect();

@@ -9,7 +9,8 @@ use diffsim::problems::smoke3d::{P4, Project3, SmokeStep3};
 use diffsim::rollout::{Checkpointing, Workspace};
 use diffsim_solvers::smoke::MacGrid;
 use diffsim_solvers::smoke::Preconditioner;
-use diffsim_solvers::smoke3d::{Solid3, divergence, open_faces, solid_cells};
+use diffsim_solvers::smoke::divergence;
+use diffsim_solvers::smoke::{Solid, open_faces, solid_cells};
 
 use crate::p4::{field, state};
 
@@ -19,11 +20,11 @@ fn central(f: impl Fn(f64) -> f64, h: f64) -> f64 {
 }
 
 /// A sphere and a box, away from each other and from the walls.
-fn shapes(n: usize) -> Vec<Solid3> {
+fn shapes(n: usize) -> Vec<Solid<3>> {
     let h = n as f64;
     vec![
-        Solid3::Sphere { center: [0.35 * h, 0.5 * h, 0.5 * h], radius: 0.2 * h },
-        Solid3::Box { lower: [0.65 * h, 0.25 * h, 0.3 * h], upper: [0.8 * h, 0.5 * h, 0.6 * h] },
+        Solid::Ball { center: [0.35 * h, 0.5 * h, 0.5 * h], radius: 0.2 * h },
+        Solid::Box { lower: [0.65 * h, 0.25 * h, 0.3 * h], upper: [0.8 * h, 0.5 * h, 0.6 * h] },
     ]
 }
 
@@ -34,12 +35,12 @@ fn shapes_cover_the_cells_they_should() {
     let h = n as f64;
     // A sphere of radius 0.3·N: its volume in cells to a few percent.
     let r = 0.3 * h;
-    let ball = solid_cells(&cfg, &[Solid3::Sphere { center: [h / 2.0; 3], radius: r }]);
+    let ball = solid_cells(&cfg, &[Solid::Ball { center: [h / 2.0; 3], radius: r }]);
     let count = ball.iter().filter(|&&s| s).count() as f64;
     let exact = 4.0 / 3.0 * std::f64::consts::PI * r.powi(3);
     assert!((count - exact).abs() < 0.05 * exact, "sphere: {count} cells, volume {exact}");
     // A cylinder along each axis is the same set of cells turned.
-    let cyl = |axis: usize| solid_cells(&cfg, &[Solid3::Cylinder { axis, center: [0.4 * h, 0.4 * h, 0.4 * h], radius: 0.25 * h, extent: [2.0, 20.0] }]);
+    let cyl = |axis: usize| solid_cells(&cfg, &[Solid::Cylinder { axis, center: [0.4 * h, 0.4 * h, 0.4 * h], radius: 0.25 * h, extent: [2.0, 20.0] }]);
     let (cx, cz) = (cyl(0), cyl(2));
     let at = |i: usize, j: usize, k: usize| (k * n + j) * n + i;
     let mut cells = 0;
@@ -57,7 +58,7 @@ fn shapes_cover_the_cells_they_should() {
     assert!(disc > 100);
     assert_eq!(cells, 18 * disc, "cylinder cells");
     // A box is the cells whose centres lie inside, clipped to the domain.
-    let b = solid_cells(&cfg, &[Solid3::Box { lower: [-5.0, 3.0, 20.0], upper: [2.0, 5.0, 30.0] }]);
+    let b = solid_cells(&cfg, &[Solid::Box { lower: [-5.0, 3.0, 20.0], upper: [2.0, 5.0, 30.0] }]);
     assert_eq!(b.iter().filter(|&&s| s).count(), 2 * 2 * 4);
 }
 
@@ -86,7 +87,7 @@ fn projection_with_obstacles_leaves_no_divergence_and_no_flow_into_solids() {
         assert_eq!(sv == 0.0, solid[c] || x[c] == 0.0, "smoke at cell {c}");
     }
     for (axis, vel) in [u, v, w].into_iter().enumerate() {
-        let open = &open_faces(&cfg, &fluid)[axis];
+        let open = &open_faces(&cfg, &fluid)[cfg.face_range(axis)];
         for (f, (&vv, &o)) in vel.iter().zip(open).enumerate() {
             if o == 0.0 {
                 assert_eq!(vv, 0.0, "axis {axis} face {f} touches a solid and carries {vv}");
@@ -125,7 +126,7 @@ fn rollout_with_obstacles_enzyme_matches_the_hand_adjoint() {
     let n = 16;
     let cfg = MacGrid::p4(n);
     let h = n as f64;
-    let solid = solid_cells(&cfg, &[Solid3::Sphere { center: [0.5 * h, 0.55 * h, 0.5 * h], radius: 0.15 * h }]);
+    let solid = solid_cells(&cfg, &[Solid::Ball { center: [0.5 * h, 0.55 * h, 0.5 * h], radius: 0.15 * h }]);
     let run = |hand: bool| {
         let mut p = P4::new(n, 6, Preconditioner::Multigrid);
         p.step = p.step.with_obstacles(&solid);
@@ -149,30 +150,6 @@ fn rollout_with_obstacles_enzyme_matches_the_hand_adjoint() {
             assert_eq!(ga[c], 0.0, "gradient in solid cell {c}");
         }
     }
-}
-
-#[test]
-fn buoyancy_and_inflow_pass_all_checks() {
-    use diffsim::fluids::{Buoyancy, Inflow};
-    let cfg = MacGrid::new([6, 7, 5]).with_dt(0.5);
-    let x = state(&cfg, 31);
-    for axis in 0..3 {
-        let r = check_all(&Buoyancy { cfg, dt: 0.5, axis }, &x, &[0.3], &CheckParams::default());
-        assert!(r.passed(), "buoyancy along axis {axis}:\n{r}");
-    }
-    let inflow = Inflow { cfg, region: [[0, 2], [1, 3], [2, 5]] };
-    let r = check_all(&inflow, &x, &[0.8, 0.1, 0.4, -0.2], &CheckParams::default());
-    assert!(r.passed(), "inflow:\n{r}");
-    // The region's cells and faces are set, the rest passes through.
-    let y = inflow.eval(&x, &[0.8, 0.1, 0.4, -0.2]);
-    let cell = |i: usize, j: usize, k: usize| (k * 7 + j) * 6 + i;
-    assert_eq!(y[cell(1, 2, 4)], 0.8);
-    assert_eq!(y[cell(2, 2, 4)], x[cell(2, 2, 4)]);
-    // The x-face between cells (1, 2, 4) and (2, 2, 4) (inside the region's
-    // upper side) and the box's own left side (not set).
-    let u = |i: usize, j: usize, k: usize| cfg.n_s() + (k * 7 + j) * 7 + i;
-    assert_eq!(y[u(2, 2, 4)], 0.1);
-    assert_eq!(y[u(0, 2, 4)], x[u(0, 2, 4)]);
 }
 
 /// P4 written as a scene file: the advection, buoyancy and projection as
@@ -209,7 +186,7 @@ with_respect_to = ["smoke.init"]
 #[test]
 fn a_3d_scene_reproduces_the_p4_reference_table() {
     use diffsim::scene::Scene;
-    use diffsim_solvers::smoke3d::{P4_SIZES, p4_mid};
+    use diffsim_solvers::smoke::{P4_SIZES, probe};
     let scene = Scene::parse(P4_SCENE).unwrap();
     assert_eq!(scene.effects, ["advection", "buoyancy", "pressure"]);
     let r = &P4_SIZES[0];
@@ -219,7 +196,7 @@ fn a_3d_scene_reproduces_the_p4_reference_table() {
     let l2 = gs.iter().map(|v| v * v).sum::<f64>().sqrt();
     assert!((g.loss - r.loss).abs() <= 1e-6 * r.loss, "loss {} vs {}", g.loss, r.loss);
     assert!((l2 - r.grad_l2).abs() <= 1e-6 * r.grad_l2, "‖∇L‖ {l2} vs {}", r.grad_l2);
-    assert!((gs[0] - r.grad_0).abs() <= 1e-6 * r.grad_l2 && (gs[p4_mid(32)] - r.grad_mid).abs() <= 1e-6 * r.grad_l2);
+    assert!((gs[0] - r.grad_0).abs() <= 1e-6 * r.grad_l2 && (gs[probe::<3>(32)] - r.grad_probe).abs() <= 1e-6 * r.grad_l2);
     assert_eq!(g.inputs[0].arrays[0].1, vec![32, 32, 32]);
 }
 
@@ -309,8 +286,7 @@ with_respect_to = ["smoke.init", "buoyancy.coefficient"]
 }
 
 #[test]
-fn diffusion_and_force_in_3d_pass_all_checks() {
-    use diffsim::fluids::Force;
+fn diffusion_in_3d_passes_all_checks() {
     use diffsim::fluids::{Diffuse, DiffuseExplicit, DiffuseImplicit};
     let cfg = MacGrid::new([6, 5, 4]).with_dt(0.5);
     let x = state(&cfg, 41);
@@ -320,9 +296,6 @@ fn diffusion_and_force_in_3d_pass_all_checks() {
     let implicit = Diffuse::in_box_3d(cfg, true, true, |g| DiffuseImplicit::on(g, 1e-13, 500));
     let r = check_all(&implicit, &x, &[0.7], &CheckParams::default());
     assert!(r.passed(), "implicit diffusion:\n{r}");
-    let f = field(cfg.n_vel(), 8);
-    let r = check_all(&Force { cfg, dt: 0.5 }, &x, &f, &CheckParams::default());
-    assert!(r.passed(), "force:\n{r}");
 }
 
 #[test]
@@ -355,80 +328,12 @@ fn diffusion_in_3d_decays_a_mode_at_the_exact_rate() {
 }
 
 #[test]
-fn maccormack_and_upwind_in_3d_pass_the_checks() {
-    use diffsim::check::Verdict;
-    use diffsim::fluids::{Advect, AdvectUpwind};
-    use diffsim_solvers::smoke::Scheme;
-    let cfg = MacGrid::new([6, 6, 5]).with_dt(0.8);
-    let x = state(&cfg, 51);
-    let mc = |limiter, smoke, velocity| Advect { cfg, dt: cfg.dt, scheme: Scheme::MacCormack { limiter }, smoke, velocity };
-    let r = check_all(&mc(false, true, true), &x, &[], &CheckParams::default());
-    assert!(r.passed(), "MacCormack:\n{r}");
-    // With the limiter the map is piecewise smooth: the checks may report a
-    // kink, but never a failure.
-    let r = check_all(&mc(true, true, true), &x, &[], &CheckParams::default());
-    for v in [&r.fd.verdict, &r.taylor.verdict, &r.dot.verdict] {
-        assert!(!matches!(v, Verdict::Fail(_)), "limited MacCormack:\n{r}");
-    }
-    let y = mc(true, true, false).eval(&x, &[]);
-    let (lo, hi) = x[..cfg.n_s()].iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
-    assert!(y[..cfg.n_s()].iter().all(|&v| v >= lo - 1e-12 && v <= hi + 1e-12), "the limiter let a new extremum through");
-    // One field alone, semi-Lagrangian: the velocity passes through.
-    let sl = Advect { cfg, dt: cfg.dt, scheme: Scheme::SemiLagrangian, smoke: true, velocity: false };
-    let r = check_all(&sl, &x, &[], &CheckParams::default());
-    assert!(r.passed(), "semi-Lagrangian smoke:\n{r}");
-    assert_eq!(&sl.eval(&x, &[])[cfg.n_s()..], &x[cfg.n_s()..]);
-    // Upwind: checked, and the smoke conserved in the closed box.
-    let up = AdvectUpwind { cfg, dt: cfg.dt };
-    let r = check_all(&up, &x, &[], &CheckParams::default());
-    assert!(r.passed(), "upwind:\n{r}");
-    let mass = |v: &[f64]| v[..cfg.n_s()].iter().sum::<f64>();
-    assert!((mass(&up.eval(&x, &[])) - mass(&x)).abs() < 1e-12 * mass(&x));
-}
-
-#[test]
-fn maccormack_in_3d_is_more_accurate_than_semi_lagrangian_on_a_smooth_translation() {
-    // A smooth ball translated by a constant velocity (0.3, 0.2, 0.25) for 8
-    // steps: each scheme against the exactly translated ball.
-    use diffsim::fluids::Advect;
-    use diffsim_solvers::smoke::Scheme;
-    let n = 20;
-    let cfg = MacGrid::new([n, n, n]).with_dt(1.0);
-    let v = [0.3, 0.2, 0.25];
-    let bump = |p: [f64; 3]| (-((p[0] - 8.0).powi(2) + (p[1] - 8.0).powi(2) + (p[2] - 8.0).powi(2)) / 8.0).exp();
-    let centre = |c: usize| [(c % n) as f64 + 0.5, ((c / n) % n) as f64 + 0.5, (c / (n * n)) as f64 + 0.5];
-    let mut x = vec![0.0; cfg.n_state()];
-    for (c, s) in x[..cfg.n_s()].iter_mut().enumerate() {
-        *s = bump(centre(c));
-    }
-    // Every velocity sample the traces read (the walls' faces included:
-    // the translation runs in the interior, far from them).
-    let mut start = cfg.n_s();
-    for (a, &va) in v.iter().enumerate() {
-        x[start..start + cfg.n_face(a)].fill(va);
-        start += cfg.n_face(a);
-    }
-    let run = |scheme: Scheme| -> f64 {
-        let op = Advect { cfg, dt: cfg.dt, scheme, smoke: true, velocity: false };
-        let mut s = x.clone();
-        for _ in 0..8 {
-            s = op.eval(&s, &[]);
-        }
-        (0..cfg.n_s()).map(|c| (s[c] - bump(std::array::from_fn(|a| centre(c)[a] - 8.0 * v[a]))).abs()).fold(0.0, f64::max)
-    };
-    let (sl, mc, mcl) = (run(Scheme::SemiLagrangian), run(Scheme::MacCormack { limiter: false }), run(Scheme::MacCormack { limiter: true }));
-    eprintln!("3D, max error after 8 steps: semi-Lagrangian {sl:.3e}, MacCormack {mc:.3e}, limited {mcl:.3e}");
-    assert!(mc < 0.5 * sl, "MacCormack {mc} vs semi-Lagrangian {sl}");
-    assert!(mcl <= sl, "limited MacCormack {mcl} vs semi-Lagrangian {sl}");
-}
-
-#[test]
 fn projection_of_any_box_with_mic0_passes_the_checks() {
     use diffsim_solvers::smoke3d::Mic3;
     // A box whose sides all differ, with a sphere: MIC(0) of its own
     // matrix, the aggregation V-cycle on the fluid cells, none.
     let cfg = MacGrid::new([7, 9, 5]).with_dt(1.0);
-    let solid = solid_cells(&cfg, &[Solid3::Sphere { center: [3.5, 4.5, 2.5], radius: 1.6 }]);
+    let solid = solid_cells(&cfg, &[Solid::Ball { center: [3.5, 4.5, 2.5], radius: 1.6 }]);
     assert!(solid.iter().any(|&s| s));
     let x = state(&cfg, 61);
     // Multigrid in a box whose sides all differ is the aggregation V-cycle.
@@ -459,7 +364,7 @@ fn iterations_per_preconditioner_in_3d() {
     // the fluid cells, MIC(0) of the matrix, none.
     let n = 24;
     let cfg = MacGrid::p4(n);
-    let solid = solid_cells(&cfg, &[Solid3::Sphere { center: [12.0, 14.0, 12.0], radius: 5.0 }]);
+    let solid = solid_cells(&cfg, &[Solid::Ball { center: [12.0, 14.0, 12.0], radius: 5.0 }]);
     let mut x = state(&cfg, 71);
     let ns = cfg.n_s();
     diffsim_solvers::smoke::enforce_boundary(&cfg, &mut x[ns..]);
@@ -483,7 +388,7 @@ fn multigrid_takes_any_box_with_two_equal_sides() {
     // and the V-cycle of a stack of slabs is symmetric and positive.
     for dims in [[8, 8, 12], [6, 10, 6], [10, 6, 6]] {
         let cfg = MacGrid::new([dims[0], dims[1], dims[2]]).with_dt(1.0);
-        let solid = solid_cells(&cfg, &[Solid3::Sphere { center: [dims[0] as f64 / 2.0, dims[1] as f64 / 2.0, dims[2] as f64 / 2.0], radius: 1.8 }]);
+        let solid = solid_cells(&cfg, &[Solid::Ball { center: [dims[0] as f64 / 2.0, dims[1] as f64 / 2.0, dims[2] as f64 / 2.0], radius: 1.8 }]);
         let op = Project3::with_obstacles(cfg, 1e-13, 500, Preconditioner::Multigrid, &solid);
         assert_eq!(op.preconditioner(), Preconditioner::Multigrid);
         let x = state(&cfg, 81);

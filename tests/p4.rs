@@ -4,11 +4,13 @@
 //! multigrid preconditioner in 3D.
 
 use diffsim::check::{CheckParams, check_all};
-use diffsim::problems::smoke3d::{P4, Project3, SmokeAdvect3, SmokeAdvect3Hand, SmokeAdvect3Slabs, SmokeStep3, slab_ranges};
+use diffsim::problems::ranges::split_ranges as slab_ranges;
+use diffsim::problems::smoke::{SmokeAdvect, SmokeAdvectHand, SmokeAdvectSlabs};
+use diffsim::problems::smoke3d::{P4, Project3, SmokeStep3};
 use diffsim::rollout::{Checkpointing, Workspace};
 use diffsim_solvers::smoke::MacGrid;
 use diffsim_solvers::smoke::Preconditioner;
-use diffsim_solvers::smoke3d::{P4_SIZES, p4_mid};
+use diffsim_solvers::smoke::{P4_SIZES, probe};
 
 fn check_size(k: usize, hand: bool) {
     let r = &P4_SIZES[k];
@@ -19,7 +21,7 @@ fn check_size(k: usize, hand: bool) {
     let g = p.grad_in(&mut Workspace::new(), Checkpointing::Store).unwrap();
     let gs = p.smoke_gradient(&g);
     let l2 = gs.iter().map(|v| v * v).sum::<f64>().sqrt();
-    let mid = p4_mid(r.n);
+    let mid = probe::<3>(r.n);
     eprintln!(
         "P4 {} hand {hand}: loss {:.10} ‖∇L‖ {:.10} g0 {:.8e} gmid {:.8e} cg {} / {}",
         r.n,
@@ -33,7 +35,7 @@ fn check_size(k: usize, hand: bool) {
     assert!((g.loss - r.loss).abs() <= 1e-6 * r.loss, "loss {} vs {}", g.loss, r.loss);
     assert!((l2 - r.grad_l2).abs() <= 1e-6 * r.grad_l2, "‖∇L‖ {} vs {}", l2, r.grad_l2);
     assert!((gs[0] - r.grad_0).abs() <= 1e-6 * r.grad_l2, "g0 {} vs {}", gs[0], r.grad_0);
-    assert!((gs[mid] - r.grad_mid).abs() <= 1e-6 * r.grad_l2, "gmid {} vs {}", gs[mid], r.grad_mid);
+    assert!((gs[mid] - r.grad_probe).abs() <= 1e-6 * r.grad_l2, "gmid {} vs {}", gs[mid], r.grad_probe);
 }
 
 #[test]
@@ -79,7 +81,7 @@ fn explicit_part_passes_all_checks() {
     for n in [6, 7] {
         let cfg = MacGrid::p4(n);
         let x = state(&cfg, n as u64);
-        let r = check_all(&SmokeAdvect3(cfg), &x, &[], &CheckParams::default());
+        let r = check_all(&SmokeAdvect(cfg), &x, &[], &CheckParams::default());
         assert!(r.passed(), "Enzyme n = {n}:\n{r}");
     }
     // The slab ranges whose adjoints the parallel VJP sums: a middle range
@@ -87,7 +89,7 @@ fn explicit_part_passes_all_checks() {
     let cfg = MacGrid::p4(8);
     let x = state(&cfg, 3);
     for ks in [3..5, 5..8] {
-        let r = check_all(&SmokeAdvect3Slabs::new(cfg, ks.clone()), &x, &[], &CheckParams::default());
+        let r = check_all(&SmokeAdvectSlabs::new(cfg, ks.clone()), &x, &[], &CheckParams::default());
         assert!(r.passed(), "slabs {ks:?}:\n{r}");
     }
 }
@@ -97,12 +99,12 @@ fn slab_ranges_tile_the_step() {
     use diffsim::op::OperatorExt;
     let cfg = MacGrid::p4(16);
     let x = state(&cfg, 9);
-    let full = SmokeAdvect3(cfg).eval(&x, &[]);
+    let full = SmokeAdvect(cfg).eval(&x, &[]);
     let ranges = slab_ranges(cfg.n[2]);
     assert_eq!(ranges.len(), 2);
     let mut pieces: Vec<Vec<f64>> = vec![Vec::new(); 4];
     for ks in &ranges {
-        let y = SmokeAdvect3Slabs::new(cfg, ks.clone()).eval(&x, &[]);
+        let y = SmokeAdvectSlabs::new(cfg, ks.clone()).eval(&x, &[]);
         let mut o = 0;
         for (f, (_, len)) in cfg.slab_pieces(ks.clone()).into_iter().enumerate() {
             pieces[f].extend_from_slice(&y[o..o + len]);
@@ -126,17 +128,17 @@ fn hand_adjoint_passes_the_checks_against_enzyme() {
             assert_eq!(slab_ranges(n).len(), 2);
         }
         // Enzyme's JVP against the hand VJP: an independent pair.
-        let r = dot_product_between(&SmokeAdvect3(cfg), &SmokeAdvect3Hand(cfg), &x, &[], &CheckParams { tol: 1e-12, ..Default::default() });
+        let r = dot_product_between(&SmokeAdvect(cfg), &SmokeAdvectHand(cfg), &x, &[], &CheckParams { tol: 1e-12, ..Default::default() });
         assert!(r.verdict.passed(), "n = {n}: {r}");
-        let fd = finite_differences(&SmokeAdvect3Hand(cfg), &x, &[], &CheckParams::default());
+        let fd = finite_differences(&SmokeAdvectHand(cfg), &x, &[], &CheckParams::default());
         assert!(fd.verdict.passed(), "n = {n}: {fd}");
-        let t = taylor(&SmokeAdvect3Hand(cfg), &x, &[], &CheckParams::default());
+        let t = taylor(&SmokeAdvectHand(cfg), &x, &[], &CheckParams::default());
         assert!(t.verdict.passed(), "n = {n}: {t}");
         // And the two VJPs themselves, entry by entry.
         let seed = field(cfg.n_state(), 4);
         let (mut a, mut b) = (vec![0.0; cfg.n_state()], vec![0.0; cfg.n_state()]);
-        SmokeAdvect3(cfg).vjp(&x, &[], &mut seed.clone(), &mut a, &mut []);
-        SmokeAdvect3Hand(cfg).vjp(&x, &[], &mut seed.clone(), &mut b, &mut []);
+        SmokeAdvect(cfg).vjp(&x, &[], &mut seed.clone(), &mut a, &mut []);
+        SmokeAdvectHand(cfg).vjp(&x, &[], &mut seed.clone(), &mut b, &mut []);
         let scale = a.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         let diff = a.iter().zip(&b).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
         assert!(diff <= 1e-13 * scale, "n = {n}: Enzyme and hand differ by {diff:e} (scale {scale:e})");
@@ -168,11 +170,11 @@ fn projection_leaves_no_divergence() {
     let y = Project3::new(cfg, 1e-12, 500, Preconditioner::Multigrid).eval(&x, &[]);
     let (_, [u, v, w]) = cfg.split(&y);
     let mut d = vec![0.0; cfg.n_s()];
-    diffsim_solvers::smoke3d::divergence(&cfg, [u, v, w], &mut d);
+    diffsim_solvers::smoke::divergence(&cfg, [u, v, w], &mut d);
     let before = {
         let (_, [u, v, w]) = cfg.split(&x);
         let mut d0 = vec![0.0; cfg.n_s()];
-        diffsim_solvers::smoke3d::divergence(&cfg, [u, v, w], &mut d0);
+        diffsim_solvers::smoke::divergence(&cfg, [u, v, w], &mut d0);
         d0.iter().map(|v| v * v).sum::<f64>().sqrt()
     };
     let after = d.iter().map(|v| v * v).sum::<f64>().sqrt();

@@ -179,7 +179,7 @@ proptest! {
         let norm = |state: &[f64]| {
             let (_, [u, v]) = cfg.split(state);
             let mut d = vec![0.0; cfg.n_s()];
-            divergence(&cfg, u, v, &mut d);
+            divergence(&cfg, [u, v], &mut d);
             d.iter().enumerate().filter(|(k, _)| fluid(*k)).map(|(_, d)| d * d).sum::<f64>().sqrt()
         };
         let (before, after) = (norm(&x), norm(&y));

@@ -10,7 +10,7 @@ use diffsim::op::{OperatorExt, PerThread};
 use diffsim::rollout::{AtSteps, Checkpointing, Rollout};
 use diffsim::train::{Coupled, Coupling, Sample, batch_gradient};
 use diffsim_solvers::boundary::{Boundary, Profile, Side};
-use diffsim_solvers::smoke::{MacGrid, Scheme, divergence, obstacle_disc};
+use diffsim_solvers::smoke::{MacGrid, Scheme, Solid, divergence, solid_cells};
 use diffsim_studies::sol::SolProblem;
 use diffsim_studies::wake::{WakeSetup, WakeStep};
 use rand::SeedableRng;
@@ -21,7 +21,7 @@ use crate::checks::{assert_passes, smoke_state};
 fn channel(nx: usize, ny: usize) -> (MacGrid<2>, Vec<bool>) {
     let b = Boundary::CLOSED.with_lower(0, Side::Inflow(Profile::Uniform(0.7))).with_upper(0, Side::Outflow);
     let cfg = MacGrid::new([nx, ny]).with_boundary(b);
-    let solid = obstacle_disc(&cfg, [3.0, 2.6], 1.2).unwrap();
+    let solid = solid_cells(&cfg, &[Solid::Ball { center: [3.0, 2.6], radius: 1.2 }]);
     (cfg, solid)
 }
 
@@ -37,7 +37,7 @@ fn the_wake_step_passes_all_checks_on_an_oblong_channel_with_a_disc() {
 fn max_divergence(cfg: &MacGrid<2>, x: &[f64], solid: &[bool]) -> f64 {
     let (_, [u, v]) = cfg.split(x);
     let mut d = vec![0.0; cfg.n_s()];
-    divergence(cfg, u, v, &mut d);
+    divergence(cfg, [u, v], &mut d);
     d.iter().zip(solid).filter(|(_, s)| !**s).map(|(d, _)| d.abs()).fold(0.0, f64::max)
 }
 
@@ -54,7 +54,7 @@ fn reference_states_and_their_downsampling_stay_divergence_free() {
     // outside the (coarse) disc's neighbourhood either: fluxes add up.
     let traj = setup.reference(&x0, 1).unwrap();
     assert_eq!(traj.len(), 2);
-    let solid = obstacle_disc(&setup.coarse, setup.center, setup.radius + 1.5).unwrap();
+    let solid = solid_cells(&setup.coarse, &[Solid::Ball { center: setup.center, radius: setup.radius + 1.5 }]);
     let d = max_divergence(&setup.coarse, &traj[1], &solid);
     assert!(d < 1e-4, "coarse divergence {d:e}");
     // The inflow arrives at the coarse inflow faces in coarse units.

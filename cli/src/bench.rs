@@ -9,8 +9,7 @@ use diffsim::problems::burgers::P1;
 use diffsim::problems::smoke::{P2, SmokeStep};
 use diffsim::problems::smoke3d::{P4, SmokeStep3};
 use diffsim::rollout::{Gradient, Rollout, RolloutError, Workspace};
-use diffsim_solvers::smoke::{P2_SIZES, Preconditioner};
-use diffsim_solvers::smoke3d::P4_SIZES;
+use diffsim_solvers::smoke::{P2_SIZES, P4_SIZES, Preconditioner};
 
 #[derive(Debug, Subcommand)]
 pub(super) enum BenchCommand {
@@ -473,7 +472,7 @@ impl SmokeBench for SmokeStep {
         &self.project.log
     }
     fn probe(n: usize) -> usize {
-        n * n / 2
+        diffsim_solvers::smoke::probe::<2>(n)
     }
     fn reference(n: usize, steps: usize) -> Option<(f64, f64)> {
         P2_SIZES.iter().find(|r| r.n == n && r.steps == steps).map(|r| (r.loss, r.grad_l2))
@@ -497,7 +496,7 @@ impl SmokeBench for SmokeStep3 {
         &self.project.log
     }
     fn probe(n: usize) -> usize {
-        diffsim_solvers::smoke3d::p4_mid(n)
+        diffsim_solvers::smoke::probe::<3>(n)
     }
     fn reference(n: usize, steps: usize) -> Option<(f64, f64)> {
         P4_SIZES.iter().find(|r| r.n == n && r.steps == steps).map(|r| (r.loss, r.grad_l2))

@@ -205,6 +205,7 @@ pub fn main() {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
+    diffsim::memory::keep_freed_memory();
     // Standard output that cannot be written (a full disk, /dev/full) is an
     // error that says so, not a backtrace: `println!` panics there, and the
     // hook turns that one panic into the error line and exit code 1.

@@ -11,16 +11,19 @@ use crate::fluids::Project;
 
 use crate::op::{Forward, Jvp, LocalInverse, OpError, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
-/// Steps 1–4 of P2 (advection, walls, buoyancy) on the packed state
-/// `[s, u, v]`, with Enzyme-generated VJP and JVP. In a closed box of 16
-/// rows or more the VJP is Enzyme's adjoint of [`SmokeAdvectRows`] over
-/// two fixed row ranges in parallel, summed in a fixed order
-/// ([`super::ranges`]): the same result for any thread count; otherwise
-/// the adjoint of the whole step.
+/// Steps 1–4 of P2 (`D = 2`) and P4 (`D = 3`) — advection, walls, buoyancy
+/// — on the packed state, with Enzyme-generated VJP and JVP, in any box in
+/// 2D and in the closed box in 3D.
+/// The forward runs each lattice's slabs in parallel (the same values for
+/// any thread count). In a closed box of 16 slabs or more (rows in 2D) the
+/// VJP is Enzyme's adjoint of [`SmokeAdvectSlabs`] over two fixed slab
+/// ranges in parallel, summed in a fixed order ([`super::ranges`]): the
+/// same result for any thread count; otherwise the adjoint of the whole
+/// step.
 #[derive(Clone, Copy, Debug)]
-pub struct SmokeAdvect(pub MacGrid<2>);
+pub struct SmokeAdvect<const D: usize>(pub MacGrid<D>);
 
-impl Operator for SmokeAdvect {
+impl<const D: usize> Operator for SmokeAdvect<D> {
     fn n_in(&self) -> usize {
         self.0.n_state()
     }
@@ -29,9 +32,10 @@ impl Operator for SmokeAdvect {
     }
 }
 
-impl Forward for SmokeAdvect {
+impl<const D: usize> Forward for SmokeAdvect<D> {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
-        SmokeAdvectWhole(self.0).forward(x, p, y)
+        validate_forward(self, "SmokeAdvect", x, p, y);
+        smoke::advect_buoyancy_parallel(&self.0, x, y);
     }
 
     fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
@@ -39,31 +43,47 @@ impl Forward for SmokeAdvect {
     }
 }
 
-impl Vjp for SmokeAdvect {
+impl<const D: usize> Vjp for SmokeAdvect<D>
+where
+    SmokeAdvectWhole<D>: Vjp,
+    SmokeAdvectSlabs<D>: Vjp,
+{
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         let cfg = self.0;
-        let ranges = super::ranges::split_ranges(cfg.n[1]);
-        if cfg.boundary != diffsim_solvers::boundary::Boundary::CLOSED || ranges.len() == 1 {
+        closed_in_3d(&cfg);
+        let ranges = super::ranges::split_ranges(cfg.n[D - 1]);
+        if !cfg.is_closed() || ranges.len() == 1 {
             return SmokeAdvectWhole(cfg).vjp(x, p, dy, dx, dp);
         }
         validate_vjp(self, "SmokeAdvect", x, p, dy, dx, dp);
-        // Each field's rows are contiguous in the packed state.
-        let pieces = |js: &std::ops::Range<usize>| cfg.slab_pieces(js.clone());
-        super::ranges::vjp_over_ranges(&ranges, |js| SmokeAdvectRows::new(cfg, js), pieces, x, dy, dx);
+        // Each field's slabs are contiguous in the packed state.
+        let pieces = |ks: &std::ops::Range<usize>| cfg.slab_pieces(ks.clone());
+        super::ranges::vjp_over_ranges(&ranges, |ks| SmokeAdvectSlabs::new(cfg, ks), pieces, x, dy, dx);
     }
 }
 
-impl Jvp for SmokeAdvect {
+impl<const D: usize> Jvp for SmokeAdvect<D>
+where
+    SmokeAdvectWhole<D>: Jvp,
+{
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        closed_in_3d(&self.0);
         SmokeAdvectWhole(self.0).jvp(x, p, tx, tp, y, ty)
     }
 }
 
+/// P4's step's derivatives are the closed box's (checked before the
+/// generated code runs); a 3D box with other sides takes
+/// [`crate::fluids::Advect`] and [`crate::fluids::Buoyancy`].
+fn closed_in_3d<const D: usize>(cfg: &MacGrid<D>) {
+    assert!(D == 2 || cfg.is_closed(), "SmokeAdvect in 3D is P4's step of the closed box; a box with other sides takes fluids::Advect and fluids::Buoyancy");
+}
+
 /// The whole of [`SmokeAdvect`], as Enzyme differentiates it.
 #[derive(Clone, Copy, Debug)]
-struct SmokeAdvectWhole(MacGrid<2>);
+pub struct SmokeAdvectWhole<const D: usize>(MacGrid<D>);
 
-impl Operator for SmokeAdvectWhole {
+impl<const D: usize> Operator for SmokeAdvectWhole<D> {
     fn n_in(&self) -> usize {
         self.0.n_state()
     }
@@ -72,9 +92,17 @@ impl Operator for SmokeAdvectWhole {
     }
 }
 
-/// The thin wrapper Enzyme differentiates.
-fn smoke_advect(op: &SmokeAdvectWhole, x: &[f64], _p: &[f64], y: &mut [f64]) {
+/// The thin wrapper Enzyme differentiates in 2D (any box).
+fn smoke_advect_2d(op: &SmokeAdvectWhole<2>, x: &[f64], _p: &[f64], y: &mut [f64]) {
     smoke::advect_buoyancy(&op.0, x, y)
+}
+
+/// In 3D (the closed box): the step as all its slabs, the function
+/// [`SmokeAdvectSlabs`] differentiates. (Enzyme differentiating
+/// `advect_buoyancy::<3>` beside the slabs' function and the 2D ones made
+/// LLVM's GVN crash at the link, docs/pitfalls.md.)
+fn smoke_advect_3d(op: &SmokeAdvectWhole<3>, x: &[f64], _p: &[f64], y: &mut [f64]) {
+    smoke::advect_buoyancy_slabs(&op.0, x, 0..op.0.n[2], y)
 }
 
 /// P2's and P4's step traces every field back over `cfg.dt` (1):
@@ -83,98 +111,91 @@ pub(crate) fn step_radius<const D: usize>(cfg: &MacGrid<D>, x: &[f64], dx: &[f64
     smoke::advect_radius(cfg, smoke::Scheme::SemiLagrangian, cfg.dt, true, true, x, dx)
 }
 
-fn smoke_advect_radius(op: &SmokeAdvectWhole, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+fn smoke_advect_radius<const D: usize>(op: &SmokeAdvectWhole<D>, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
     step_radius(&op.0, x, dx)
 }
 
-crate::differentiable!(SmokeAdvectWhole => smoke_advect, smooth_radius = smoke_advect_radius);
+crate::differentiable!(SmokeAdvectWhole<2> => smoke_advect_2d, smooth_radius = smoke_advect_radius::<2>);
+crate::differentiable!(SmokeAdvectWhole<3> => smoke_advect_3d, smooth_radius = smoke_advect_radius::<3>);
 
-/// Rows `j0..j1` of [`SmokeAdvect`]'s output in the closed box, packed as
-/// [`MacGrid::slab_lens`] says, with Enzyme-generated VJP and JVP: the piece
-/// of the step whose adjoints [`SmokeAdvect`] runs in parallel. Over
-/// `0..ny` it is [`SmokeAdvect`].
+/// Slabs `k0..k1` (layers along the slowest axis: rows in 2D) of
+/// [`SmokeAdvect`]'s output in the closed box, packed as
+/// [`MacGrid::slab_lens`] says, with Enzyme-generated VJP and JVP: the
+/// piece of the step whose adjoints [`SmokeAdvect`] runs in parallel. Over
+/// all slabs it is [`SmokeAdvect`].
 #[derive(Clone, Copy, Debug)]
-pub struct SmokeAdvectRows {
-    cfg: MacGrid<2>,
-    j0: usize,
-    j1: usize,
+pub struct SmokeAdvectSlabs<const D: usize> {
+    cfg: MacGrid<D>,
+    k0: usize,
+    k1: usize,
 }
 
-impl SmokeAdvectRows {
-    /// Rows `js` of the closed box `cfg`.
+impl<const D: usize> SmokeAdvectSlabs<D> {
+    /// Slabs `ks` of the closed box `cfg`.
     ///
     /// # Panics
-    /// If the box is not closed, or `js` is empty or reaches past `ny`.
-    pub fn new(cfg: MacGrid<2>, js: std::ops::Range<usize>) -> Self {
-        assert!(cfg.boundary == diffsim_solvers::boundary::Boundary::CLOSED, "SmokeAdvectRows: the closed box only");
-        assert!(js.start < js.end && js.end <= cfg.n[1], "SmokeAdvectRows: rows {js:?} of {}", cfg.n[1]);
-        Self { cfg, j0: js.start, j1: js.end }
+    /// If the box is not closed, or `ks` is empty or reaches past the last
+    /// slab.
+    pub fn new(cfg: MacGrid<D>, ks: std::ops::Range<usize>) -> Self {
+        assert!(cfg.is_closed(), "SmokeAdvectSlabs: the closed box only");
+        assert!(ks.start < ks.end && ks.end <= cfg.n[D - 1], "SmokeAdvectSlabs: slabs {ks:?} of {}", cfg.n[D - 1]);
+        Self { cfg, k0: ks.start, k1: ks.end }
     }
 }
 
-impl Operator for SmokeAdvectRows {
+impl<const D: usize> Operator for SmokeAdvectSlabs<D> {
     fn n_in(&self) -> usize {
         self.cfg.n_state()
     }
     fn n_out(&self) -> usize {
-        self.cfg.slabs_len(self.j0..self.j1)
+        self.cfg.slabs_len(self.k0..self.k1)
     }
 }
 
 /// The thin wrapper Enzyme differentiates.
-fn smoke_advect_rows(op: &SmokeAdvectRows, x: &[f64], _p: &[f64], y: &mut [f64]) {
-    smoke::advect_buoyancy_slabs(&op.cfg, x, op.j0..op.j1, y)
+fn smoke_advect_slabs<const D: usize>(op: &SmokeAdvectSlabs<D>, x: &[f64], _p: &[f64], y: &mut [f64]) {
+    smoke::advect_buoyancy_slabs(&op.cfg, x, op.k0..op.k1, y)
 }
 
-fn smoke_advect_rows_radius(op: &SmokeAdvectRows, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+fn smoke_advect_slabs_radius<const D: usize>(op: &SmokeAdvectSlabs<D>, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
     step_radius(&op.cfg, x, dx)
 }
 
-crate::differentiable!(SmokeAdvectRows => smoke_advect_rows, smooth_radius = smoke_advect_rows_radius);
+crate::differentiable!(SmokeAdvectSlabs<2> => smoke_advect_slabs::<2>, smooth_radius = smoke_advect_slabs_radius::<2>);
+crate::differentiable!(SmokeAdvectSlabs<3> => smoke_advect_slabs::<3>, smooth_radius = smoke_advect_slabs_radius::<3>);
 
-/// Steps 1–4 of P2 with the hand-written adjoint (the reference for
+/// Steps 1–4 of P2 and P4 with the hand-written adjoint (the reference for
 /// [`SmokeAdvect`]'s generated one).
 #[derive(Clone, Copy, Debug)]
-pub struct SmokeAdvectHand(pub MacGrid<2>);
+pub struct SmokeAdvectHand<const D: usize>(pub MacGrid<D>);
 
-/// `Operator`, `Forward` and `Vjp` of the explicit part `$ty(grid)` with a
-/// hand-written adjoint: the forward `$explicit(grid, x, y)`, the adjoint
-/// `$adjoint(grid, x, dy, dx)` (accumulating; the seed is then zeroed), the
-/// smooth radius `$radius(grid, x, dx)`. One shape for 2D and 3D.
-macro_rules! hand_explicit_operator {
-    ($ty:ident, $explicit:path, $adjoint:path, $radius:path) => {
-        impl $crate::op::Operator for $ty {
-            fn n_in(&self) -> usize {
-                self.0.n_state()
-            }
-            fn n_out(&self) -> usize {
-                self.0.n_state()
-            }
-        }
-
-        impl $crate::op::Forward for $ty {
-            fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
-                $crate::op::validate_forward(self, stringify!($ty), x, p, y);
-                $explicit(&self.0, x, y)
-            }
-
-            fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-                $radius(&self.0, x, dx)
-            }
-        }
-
-        impl $crate::op::Vjp for $ty {
-            fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
-                $crate::op::validate_vjp(self, stringify!($ty), x, p, dy, dx, dp);
-                $adjoint(&self.0, x, dy, dx);
-                dy.fill(0.0);
-            }
-        }
-    };
+impl<const D: usize> Operator for SmokeAdvectHand<D> {
+    fn n_in(&self) -> usize {
+        self.0.n_state()
+    }
+    fn n_out(&self) -> usize {
+        self.0.n_state()
+    }
 }
-pub(crate) use hand_explicit_operator;
 
-hand_explicit_operator!(SmokeAdvectHand, smoke::advect_buoyancy, smoke::advect_buoyancy_adjoint, step_radius);
+impl<const D: usize> Forward for SmokeAdvectHand<D> {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "SmokeAdvectHand", x, p, y);
+        smoke::advect_buoyancy(&self.0, x, y)
+    }
+
+    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+        step_radius(&self.0, x, dx)
+    }
+}
+
+impl<const D: usize> Vjp for SmokeAdvectHand<D> {
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "SmokeAdvectHand", x, p, dy, dx, dp);
+        smoke::advect_buoyancy_adjoint(&self.0, x, dy, dx);
+        dy.fill(0.0);
+    }
+}
 
 /// One full P2 step: [`SmokeAdvect`], then the pressure projection
 /// ([`Project`], with the obstacle mask when there are obstacles).
@@ -185,7 +206,7 @@ hand_explicit_operator!(SmokeAdvectHand, smoke::advect_buoyancy, smoke::advect_b
 /// through [`Forward::take_error`] (rollouts turn it into an error).
 #[derive(Debug)]
 pub struct SmokeStep {
-    advect: SmokeAdvect,
+    advect: SmokeAdvect<2>,
     /// Use the hand-written adjoint of the explicit part instead of Enzyme's.
     hand: bool,
     /// The projection (owns the solver and its iteration counters).
@@ -462,7 +483,7 @@ impl P2 {
     /// iterations, preconditioned by `precond`.
     pub fn new(n: usize, steps: usize, precond: Preconditioner) -> Self {
         let cfg = MacGrid::p2(n);
-        Self { step: SmokeStep::new(cfg, 1e-8, 2000, precond), steps, x0: smoke::p2_initial(&cfg), target: smoke::p2_target(&cfg) }
+        Self { step: SmokeStep::new(cfg, 1e-8, 2000, precond), steps, x0: smoke::initial(&cfg), target: smoke::target(&cfg) }
     }
 
     /// The same problem with the hand-written adjoint of the explicit part.

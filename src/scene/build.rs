@@ -15,7 +15,8 @@ use super::{Array, Control, Domain, Field, Line, Scene, SceneError, SceneLoss};
 use crate::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, DiffuseExplicit, DiffuseImplicit, Force, Inflow, Project};
 use crate::op::{AddParams, Chain, Effect, Part};
 use crate::problems::burgers::BurgersEnzyme;
-use crate::problems::smoke3d::{Project3, SmokeAdvect3};
+use crate::problems::smoke::SmokeAdvect;
+use crate::problems::smoke3d::Project3;
 use crate::words::unknown;
 
 /// The 1-based line of byte offset `at` in `text`.
@@ -553,7 +554,7 @@ impl Builder<'_> {
                 self.effects.push("advection".into());
                 match self.advection_scheme(k, &a, v)? {
                     // Both fields semi-Lagrangian: P4's step (in parallel, with its hand adjoint beside it).
-                    Some(Scheme::SemiLagrangian) if s && v && cfg.is_closed() => self.ops.push(Box::new(SmokeAdvect3(cfg))),
+                    Some(Scheme::SemiLagrangian) if s && v && cfg.is_closed() => self.ops.push(Box::new(SmokeAdvect(cfg))),
                     Some(scheme) => self.ops.push(Box::new(Advect { cfg, scheme, dt: cfg.dt, smoke: s, velocity: v })),
                     None => self.ops.push(Box::new(AdvectUpwind { cfg, dt: cfg.dt })),
                 }

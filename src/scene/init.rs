@@ -9,8 +9,7 @@ use std::path::Path;
 
 use diffsim_solvers::flow::Shape;
 use diffsim_solvers::smoke::MacGrid;
-use diffsim_solvers::smoke::{enforce_boundary, obstacle_box, obstacle_disc};
-use diffsim_solvers::smoke3d::{Solid3, solid_cells};
+use diffsim_solvers::smoke::{Solid, enforce_boundary, solid_cells};
 
 use super::spec::{InitSpec, NpyPaths, ShapeSpec};
 use super::value::{finite, positive};
@@ -78,11 +77,11 @@ fn shape_cells_3d(key: &str, cfg: &MacGrid<3>, shape: &ShapeSpec, dir: &Path) ->
     let solid = match shape {
         ShapeSpec::Box { lower, upper } => {
             let (a, b) = box_corners(key, lower, upper, 3)?;
-            Solid3::Box { lower: [a[0], a[1], a[2]], upper: [b[0], b[1], b[2]] }
+            Solid::Box { lower: [a[0], a[1], a[2]], upper: [b[0], b[1], b[2]] }
         }
         ShapeSpec::Sphere { center, radius } => {
             let c = point(&format!("{key}.center"), center, 3)?;
-            Solid3::Sphere { center: [c[0], c[1], c[2]], radius: positive(&format!("{key}.radius"), *radius)? }
+            Solid::Ball { center: [c[0], c[1], c[2]], radius: positive(&format!("{key}.radius"), *radius)? }
         }
         ShapeSpec::Cylinder { center, radius, axis, extent } => {
             let c = point(&format!("{key}.center"), center, 3)?;
@@ -98,7 +97,7 @@ fn shape_cells_3d(key: &str, cfg: &MacGrid<3>, shape: &ShapeSpec, dir: &Path) ->
                     [e[0], e[1]]
                 }
             };
-            Solid3::Cylinder { axis, center: [c[0], c[1], c[2]], radius: positive(&format!("{key}.radius"), *radius)?, extent }
+            Solid::Cylinder { axis, center: [c[0], c[1], c[2]], radius: positive(&format!("{key}.radius"), *radius)?, extent }
         }
         ShapeSpec::Npy(path) => {
             let shape = [cfg.n[2] as u64, cfg.n[1] as u64, cfg.n[0] as u64];
@@ -130,12 +129,12 @@ pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec, dir: &P
         (_, ShapeSpec::Sphere { .. } | ShapeSpec::Cylinder { .. } | ShapeSpec::Npy(_)) => return Err(only_3d(key)),
         (Domain::Box(cfg), ShapeSpec::Box { lower, upper }) => {
             let (a, b) = box_corners(key, lower, upper, dims)?;
-            obstacle_box(cfg, [a[0], a[1]], [b[0], b[1]])
+            Some(solid_cells(cfg, &[Solid::Box { lower: [a[0], a[1]], upper: [b[0], b[1]] }])).filter(|c| c.contains(&true))
         }
         (Domain::Box(cfg), ShapeSpec::Disc { center, radius }) => {
             let c = point(&format!("{key}.center"), center, dims)?;
             positive(&format!("{key}.radius"), *radius)?;
-            obstacle_disc(cfg, [c[0], c[1]], *radius)
+            Some(solid_cells(cfg, &[Solid::Ball { center: [c[0], c[1]], radius: *radius }])).filter(|c| c.contains(&true))
         }
         (Domain::Box(cfg), ShapeSpec::Fourier { .. } | ShapeSpec::Polygon { .. }) => {
             let body = shape_of(key, shape)?;

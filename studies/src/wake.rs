@@ -28,7 +28,7 @@ use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
 use diffsim_solvers::boundary::{Boundary, Profile, Side, for_each_face};
-use diffsim_solvers::smoke::{MacGrid, Scheme, obstacle_disc};
+use diffsim_solvers::smoke::{MacGrid, Scheme, Solid, solid_cells};
 
 use crate::sol::{Method, SolProblem, StudyParams, TrainParams, Trajectory};
 use diffsim::fluids::{Advect, Diffuse, DiffuseExplicit, Project};
@@ -182,7 +182,7 @@ impl WakeSetup {
     /// Solid cells of the disc on the box `cfg`, `scale` cells per coarse cell.
     fn solid(&self, cfg: &MacGrid<2>, scale: f64) -> Vec<bool> {
         let c = [self.center[0] * scale, self.center[1] * scale];
-        obstacle_disc(cfg, c, self.radius * scale).unwrap_or_else(|| vec![false; cfg.n_s()])
+        solid_cells(cfg, &[Solid::Ball { center: c, radius: self.radius * scale }])
     }
 
     /// The reference solver (fine grid, `dt / factor`, viscosity in fine cells).

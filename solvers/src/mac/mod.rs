@@ -114,6 +114,20 @@ impl<const D: usize> Wraps<D> for [bool; D] {
     }
 }
 
+/// A copy of `n` read entry by entry. Code Enzyme differentiates copies a
+/// `[usize; D]` field of a struct this way: a copy of the whole array
+/// reaches Enzyme typed as integers at every offset past it, which clashes
+/// with the floating-point fields that follow it in the struct
+/// (docs/pitfalls.md).
+#[inline(always)]
+pub fn axes_of<const D: usize>(n: &[usize; D]) -> [usize; D] {
+    let mut c = [1; D];
+    each_axis!(D, a => {
+        c[a] = n[a];
+    });
+    c
+}
+
 /// The lattices of a MAC grid.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum At {
@@ -426,9 +440,17 @@ pub fn sample_range<const D: usize>(wrap: [bool; D], f: &[f64], lat: &Lattice<D>
     let (c, _) = corners(wrap, lat, p);
     let mut lo = f[c[0]];
     let mut hi = lo;
-    for &k in &c[1..1 << D] {
-        lo = lo.min(f[k]);
-        hi = hi.max(f[k]);
+    // Comparisons, not `f64::min`/`max`: LLVM turns those into
+    // `llvm.minimumnum`/`maximumnum`, which Enzyme cannot type
+    // (docs/pitfalls.md).
+    for k in 1..1 << D {
+        let v = f[c[k]];
+        if v < lo {
+            lo = v;
+        }
+        if v > hi {
+            hi = v;
+        }
     }
     (lo, hi)
 }

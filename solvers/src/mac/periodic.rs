@@ -56,7 +56,7 @@ pub struct PeriodicWork<const D: usize> {
 impl<const D: usize> Periodic<D> {
     /// The index rules of the box (every axis wraps).
     pub fn mac(&self) -> Mac<D, Wrapping> {
-        Mac { n: self.n, wrap: Wrapping }
+        Mac { n: super::axes_of(&self.n), wrap: Wrapping }
     }
 
     /// Length of the face array of `axis` (with the periodic copies).
@@ -116,12 +116,13 @@ impl<const D: usize> Periodic<D> {
 
     /// The packed velocity's components.
     fn parts<'a>(&self, vel: &'a [f64]) -> [&'a [f64]; D] {
+        // One constant index at a time (docs/pitfalls.md).
         let mut parts = [vel; D];
         let mut start = 0;
-        for (a, part) in parts.iter_mut().enumerate() {
-            *part = &vel[start..start + self.face_len(a)];
+        each_axis!(D, a => {
+            parts[a] = &vel[start..start + self.face_len(a)];
             start += self.face_len(a);
-        }
+        });
         parts
     }
 
@@ -164,25 +165,23 @@ impl<const D: usize> Periodic<D> {
         let n_vel = self.n_vel();
         assert!(x.len() == n_vel && y.len() == n_vel && scratch.len() >= self.explicit_scratch_len(), "periodic step: packed lengths");
         let mac = self.mac();
-        let (l0, l1) = (self.face_len(0), self.face_len(1));
+        let longest = (0..D).map(|a| self.face_len(a)).max().unwrap_or(0);
         let (advected, rest) = scratch.split_at_mut(n_vel);
-        let half = (rest.len() / 2).min(l0.max(l1).max(if D == 3 { self.face_len(2) } else { 0 }));
+        let half = (rest.len() / 2).min(longest);
         let (hat, rest) = rest.split_at_mut(half);
         let tilde = &mut rest[..half];
         let vel = self.parts(x);
         let cells = dt / self.h;
-        advect_field(mac, At::Face(0), self.scheme, cells, vel, vel[0], &mut advected[..l0], &mut hat[..l0], &mut tilde[..l0]);
-        advect_field(mac, At::Face(1), self.scheme, cells, vel, vel[1], &mut advected[l0..l0 + l1], &mut hat[..l1], &mut tilde[..l1]);
-        if D == 3 {
-            let l2 = n_vel - l0 - l1;
-            advect_field(mac, At::Face(2), self.scheme, cells, vel, vel[2], &mut advected[l0 + l1..], &mut hat[..l2], &mut tilde[..l2]);
-        }
         let kappa = nu * dt / (self.h * self.h);
-        diffuse(&mac.lattice(At::Face(0)), 0, kappa, &advected[..l0], &mut y[..l0]);
-        diffuse(&mac.lattice(At::Face(1)), 1, kappa, &advected[l0..l0 + l1], &mut y[l0..l0 + l1]);
-        if D == 3 {
-            diffuse(&mac.lattice(At::Face(2)), 2, kappa, &advected[l0 + l1..], &mut y[l0 + l1..]);
-        }
+        // Each component through its range of the packed arrays.
+        let mut start = 0;
+        each_axis!(D, a => {
+            let len = vel[a].len();
+            let r = start..start + len;
+            advect_field(mac, At::Face(a), self.scheme, cells, vel, vel[a], &mut advected[r.clone()], &mut hat[..len], &mut tilde[..len]);
+            diffuse(&mac.lattice(At::Face(a)), a, kappa, &advected[r.clone()], &mut y[r]);
+            start += len;
+        });
     }
 
     /// How far the packed velocity `x` and the time step `dt` may move along

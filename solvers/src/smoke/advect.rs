@@ -242,19 +242,29 @@ pub fn advect_buoyancy_slabs<const D: usize>(cfg: &MacGrid<D>, x: &[f64], ks: st
     // again).
     let (centre, faces) = (mac.lattice(At::Centre), mac.lattice(At::Face(1)));
     let (cbase, fbase) = (ks.start * centre.stride[D - 1], ks.start * faces.stride[D - 1]);
+    let coefficient = cfg.buoyancy * 0.5;
     for k in ks.clone() {
         for r in 0..faces.rows_per_slab() {
-            let mut q = faces.row_start(k, r);
+            let q = faces.row_start(k, r);
             if q[1] == 0 || q[1] >= n[1] {
                 continue;
             }
-            for i in 0..n[0] {
-                q[0] = i;
-                let mut below = q;
-                below[1] -= 1;
-                let c = centre.index(q) - cbase;
-                let lower = if below[D - 1] < ks.start { traced(mac, At::Centre, &centre, vel, s, cfg.dt, below) } else { s2[centre.index(below) - cbase] };
-                v2[faces.index(q) - fbase] += cfg.buoyancy * 0.5 * (lower + s2[c]);
+            // The row's first face and the first cells above and below it
+            // (rows of the same length: x fastest in both arrays).
+            let mut below = q;
+            below[1] -= 1;
+            let (f0, c0) = (faces.index(q) - fbase, centre.index(q) - cbase);
+            if D == 2 && q[1] == ks.start {
+                for i in 0..n[0] {
+                    below[0] = i;
+                    let lower = traced(mac, At::Centre, &centre, vel, s, cfg.dt, below);
+                    v2[f0 + i] += coefficient * (lower + s2[c0 + i]);
+                }
+            } else {
+                let b0 = centre.index(below) - cbase;
+                for i in 0..n[0] {
+                    v2[f0 + i] += coefficient * (s2[b0 + i] + s2[c0 + i]);
+                }
             }
         }
     }
@@ -271,13 +281,19 @@ fn close_walls<const D: usize>(cfg: &MacGrid<D>, ks: std::ops::Range<usize>, a: 
     // reaches the end.
     let end = if ks.end == n[D - 1] { faces.n[D - 1] } else { ks.end };
     let base = ks.start * faces.stride[D - 1];
+    // Row by row: along x the row's two end faces; along another axis the
+    // whole row when it lies on a wall (indexed stores: a fill is a memset
+    // Enzyme cannot type).
     for k in ks.start..end {
         for r in 0..faces.rows_per_slab() {
-            let mut q = faces.row_start(k, r);
-            for i in 0..faces.n[0] {
-                q[0] = i;
-                if q[a] == 0 || q[a] == n[a] {
-                    f[faces.index(q) - base] = 0.0;
+            let q = faces.row_start(k, r);
+            let row = faces.index(q) - base;
+            if a == 0 {
+                f[row] = 0.0;
+                f[row + n[0]] = 0.0;
+            } else if q[a] == 0 || q[a] == n[a] {
+                for i in 0..n[0] {
+                    f[row + i] = 0.0;
                 }
             }
         }
@@ -323,17 +339,26 @@ pub fn advect_buoyancy_adjoint<const D: usize>(cfg: &MacGrid<D>, x: &[f64], gy: 
 /// `coefficient / 2` of itself to each cell beside the face (`gs +=`); a
 /// periodic copy first hands its adjoint to face `0`.
 fn add_buoyancy_adjoint<const D: usize>(cfg: &MacGrid<D>, axis: usize, coefficient: f64, gf: &mut [f64], gs: &mut [f64]) {
-    for_each_face(cfg.n, &cfg.boundary, axis, |f| {
-        if let Some(k) = f.copy {
-            gf[f.index] += gf[k];
-            gf[k] = 0.0;
-        }
-        if let (Some(lo), Some(hi)) = (f.lower, f.upper) {
-            let b = coefficient * 0.5 * gf[f.index];
-            gs[lo] += b;
-            gs[hi] += b;
-        }
-    });
+    let mac = cfg.bounded();
+    let (faces, cells) = (mac.lattice(At::Face(axis)), mac.lattice(At::Centre));
+    let m = cfg.n[axis];
+    let wrap = cfg.boundary.periodic(axis);
+    let (down, copy) = (cells.stride[axis], m * faces.stride[axis]);
+    for q in faces.points() {
+        let (along, face) = (q[axis], faces.index(q));
+        let lower = if along > 0 && along < m {
+            cells.index(q) - down
+        } else if wrap && along == 0 {
+            gf[face] += gf[face + copy];
+            gf[face + copy] = 0.0;
+            cells.index(q) + (m - 1) * down
+        } else {
+            continue;
+        };
+        let b = coefficient * 0.5 * gf[face];
+        gs[lower] += b;
+        gs[cells.index(q)] += b;
+    }
 }
 
 /// Hand-written adjoint of [`advect`] with the semi-Lagrangian scheme over
@@ -356,8 +381,12 @@ pub fn advect_adjoint<const D: usize>(cfg: &MacGrid<D>, dt: f64, smoke: bool, ve
     let (gs, mut gvel) = cfg.split_mut(gx);
     if velocity {
         with_mac!(cfg, mac => {
+            // The lattice a constant in each call (a run-time one costs a
+            // branch per point).
             for a in (0..D).rev() {
-                trace_adjoint(mac, At::Face(a), vel, vel[a], dt, &*gvel2[a], None, &mut gvel);
+                on_axis!(a, b => {
+                    trace_adjoint(mac, At::Face(b), vel, vel[b], dt, &*gvel2[b], None, &mut gvel);
+                });
             }
         });
     } else {

@@ -69,11 +69,7 @@ impl<const D: usize> MacGrid<D> {
     /// (docs/pitfalls.md).
     #[inline(always)]
     pub fn cells(&self) -> [usize; D] {
-        let mut c = [1; D];
-        crate::mac::each_axis!(D, a => {
-            c[a] = self.n[a];
-        });
-        c
+        crate::mac::axes_of(&self.n)
     }
 
     /// Whether every side is closed (P2's and P4's box).
@@ -243,6 +239,7 @@ impl<const D: usize> MacGrid<D> {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
 

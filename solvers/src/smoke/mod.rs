@@ -66,15 +66,17 @@ fn open(fluid: Option<&[f64]>, f: &crate::boundary::Face) -> f64 {
 }
 
 mod advect;
+mod benchmarks;
 mod forces;
 mod grid;
-mod p2;
+mod obstacles;
 mod pressure;
 mod walls;
 
 pub use advect::*;
+pub use benchmarks::*;
 pub use forces::*;
 pub use grid::*;
-pub use p2::*;
+pub use obstacles::*;
 pub use pressure::*;
 pub use walls::*;

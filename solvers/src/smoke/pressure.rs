@@ -7,24 +7,43 @@ use super::*;
 use crate::boundary::Boundary;
 use std::fmt;
 
-/// Divergence of a MAC velocity, `d[c] = Σ` outward flux over the faces
-/// of cell `c` (overwrites `d`): `u[j][i+1] − u[j][i] + v[j+1][i] − v[j][i]`
-/// inside the box; a periodic axis's face `N` is not read (face `0` wraps).
-pub fn divergence(cfg: &MacGrid<2>, u: &[f64], v: &[f64], d: &mut [f64]) {
-    if cfg.boundary == Boundary::CLOSED {
-        // P2's box in plain loops (the face list's sums in its order).
-        let (n, nu) = (cfg.n[0], cfg.n[0] + 1);
-        for j in 0..cfg.n[1] {
-            for i in 0..n {
-                d[j * n + i] = -u[j * nu + i] + u[j * nu + i + 1] - v[j * n + i] + v[(j + 1) * n + i];
+/// Calls `f(c, face, first)` for every cell `c` of the box with the index
+/// of its lower face along `a` (the upper one a stride of the face array
+/// further) and whether it is the first cell along `a`: the closed boxes'
+/// plain loops.
+#[inline(always)]
+fn cell_faces<const D: usize>(cfg: &MacGrid<D>, a: usize, mut f: impl FnMut(usize, usize, bool)) {
+    let mac = cfg.bounded();
+    let (cells, faces) = (mac.lattice(At::Centre), mac.lattice(At::Face(a)));
+    for k in 0..cells.n[D - 1] {
+        for r in 0..cells.rows_per_slab() {
+            let mut q = cells.row_start(k, r);
+            for i in 0..cells.n[0] {
+                q[0] = i;
+                f(cells.index(q), faces.index(q), q[a] == 0);
             }
+        }
+    }
+}
+
+/// Divergence of a MAC velocity, `d[c] = Σ` outward flux over the faces
+/// of cell `c` (overwrites `d`): `Σ_a u_a[upper face] − u_a[lower face]`
+/// inside the box; a periodic axis's face `N` is not read (face `0` wraps).
+/// In 2D and 3D, `vel` the components.
+pub fn divergence<const D: usize>(cfg: &MacGrid<D>, vel: [&[f64]; D], d: &mut [f64]) {
+    if cfg.is_closed() {
+        // P2's and P4's box in plain loops.
+        d.fill(0.0);
+        for (a, u) in vel.into_iter().enumerate() {
+            let up = cfg.face_dims(a)[..a].iter().product::<usize>();
+            cell_faces(cfg, a, |c, f, _| d[c] += u[f + up] - u[f]);
         }
         return;
     }
     d.fill(0.0);
-    for (axis, vel) in [u, v].into_iter().enumerate() {
+    for (axis, u) in vel.into_iter().enumerate() {
         for_each_face(cfg.n, &cfg.boundary, axis, |f| {
-            let w = vel[f.index];
+            let w = u[f.index];
             if let Some(c) = f.lower {
                 d[c] += w;
             }
@@ -35,25 +54,88 @@ pub fn divergence(cfg: &MacGrid<2>, u: &[f64], v: &[f64], d: &mut [f64]) {
     }
 }
 
-/// Transpose of [`divergence`]: `(u, v) += Dᵀ·d` (accumulates).
-pub fn divergence_transpose(cfg: &MacGrid<2>, d: &[f64], u: &mut [f64], v: &mut [f64]) {
-    if cfg.boundary == Boundary::CLOSED {
-        let (n, ny, nu) = (cfg.n[0], cfg.n[1], cfg.n[0] + 1);
-        let at = |j: usize, i: usize| if j < ny && i < n { d[j * n + i] } else { 0.0 };
-        for j in 0..ny {
-            for i in 0..=n {
-                u[j * nu + i] += (if i > 0 { at(j, i - 1) } else { 0.0 }) - at(j, i);
-            }
-        }
-        for j in 0..=ny {
-            for i in 0..n {
-                v[j * n + i] += (if j > 0 { at(j - 1, i) } else { 0.0 }) - at(j, i);
-            }
+/// Transpose of [`divergence`]: `vel += Dᵀ·d` (accumulates).
+pub fn divergence_transpose<const D: usize>(cfg: &MacGrid<D>, d: &[f64], vel: [&mut [f64]; D]) {
+    if cfg.is_closed() {
+        for (a, u) in vel.into_iter().enumerate() {
+            let up = cfg.face_dims(a)[..a].iter().product::<usize>();
+            cell_faces(cfg, a, |c, f, _| {
+                u[f + up] += d[c];
+                u[f] -= d[c];
+            });
         }
         return;
     }
-    for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.n, &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
+    for (axis, u) in vel.into_iter().enumerate() {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| u[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
+    }
+}
+
+/// `vel −= G·p` on the faces the projection changes (interior, periodic,
+/// outflow; with `fluid`, scaled by the face's openness, fluid–fluid only):
+/// the pressure difference across each face, upper cell minus lower (`p = 0`
+/// beyond an outflow side); periodic copies refreshed. In 2D and 3D.
+pub fn subtract_gradient<const D: usize>(cfg: &MacGrid<D>, fluid: Option<&[f64]>, p: &[f64], vel: [&mut [f64]; D]) {
+    if cfg.is_closed() && fluid.is_none() {
+        // P2's and P4's box: the interior faces, each the lower face of a
+        // cell past the first along its axis.
+        for (a, u) in vel.into_iter().enumerate() {
+            let down = cfg.n[..a].iter().product::<usize>();
+            cell_faces(cfg, a, |c, f, first| {
+                if !first {
+                    u[f] -= p[c] - p[c - down];
+                }
+            });
+        }
+        return;
+    }
+    for (axis, u) in vel.into_iter().enumerate() {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+            if f.projected {
+                u[f.index] -= open(fluid, &f) * (f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]));
+                if let Some(k) = f.copy {
+                    u[k] = u[f.index];
+                }
+            }
+        });
+    }
+}
+
+/// Transpose of [`subtract_gradient`]'s `G` (with `fluid`'s openness) on
+/// the faces the projection changes: `out = Gᵀ·g` (overwrites), after each
+/// periodic copy's adjoint is handed to its face `0` (the copy is written
+/// from it, never read).
+pub fn gradient_transpose<const D: usize>(cfg: &MacGrid<D>, fluid: Option<&[f64]>, vel: [&mut [f64]; D], out: &mut [f64]) {
+    out.fill(0.0);
+    if cfg.is_closed() && fluid.is_none() {
+        for (a, g) in vel.into_iter().enumerate() {
+            let down = cfg.n[..a].iter().product::<usize>();
+            cell_faces(cfg, a, |c, f, first| {
+                if !first {
+                    out[c] += g[f];
+                    out[c - down] -= g[f];
+                }
+            });
+        }
+        return;
+    }
+    for (axis, g) in vel.into_iter().enumerate() {
+        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
+            if !f.projected {
+                return;
+            }
+            if let Some(k) = f.copy {
+                g[f.index] += g[k];
+                g[k] = 0.0;
+            }
+            let l = open(fluid, &f) * g[f.index];
+            if let Some(c) = f.upper {
+                out[c] += l;
+            }
+            if let Some(c) = f.lower {
+                out[c] -= l;
+            }
+        });
     }
 }
 
@@ -754,7 +836,7 @@ pub fn project_velocity(
     debug_assert_eq!(solver.boundary, cfg.boundary, "pressure solver built for another boundary");
     let weight = |axis: usize, k: usize| apertures.map_or(1.0, |(au, av)| if axis == 0 { au[k] } else { av[k] });
     match apertures {
-        None => divergence(cfg, u, v, &mut scratch.d),
+        None => divergence(cfg, [u, v], &mut scratch.d),
         Some(_) => {
             let d = &mut scratch.d;
             d.fill(0.0);
@@ -781,31 +863,18 @@ pub fn project_velocity(
     }
     let iterations = if warm { solver.solve_from(&scratch.d, &mut scratch.p)? } else { solver.solve(&scratch.d, &mut scratch.p)? };
     let (p, fluid) = (&scratch.p, solver.fluid());
-    if cfg.boundary == Boundary::CLOSED && fluid.is_none() && apertures.is_none() && grad_scale.is_none() {
-        // P2's box: the interior faces in plain loops.
-        let (n, nu) = (cfg.n[0], cfg.n[0] + 1);
-        for j in 0..cfg.n[1] {
-            for i in 1..n {
-                u[j * nu + i] -= p[j * n + i] - p[j * n + i - 1];
-            }
-        }
-        for j in 1..cfg.n[1] {
-            for i in 0..n {
-                v[j * n + i] -= p[j * n + i] - p[(j - 1) * n + i];
-            }
-        }
+    let Some(_) = apertures else {
+        debug_assert!(grad_scale.is_none(), "a gradient scale goes with apertures");
+        subtract_gradient(cfg, fluid, p, [u, v]);
         return Ok(iterations);
-    }
+    };
+    // Cut cells: every face open by any fraction takes the gradient, scaled.
     for (axis, vel) in [u, v].into_iter().enumerate() {
         for_each_face(cfg.n, &cfg.boundary, axis, |f| {
             if f.projected {
                 let grad = f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]);
-                let open = match apertures {
-                    None => open(fluid, &f),
-                    Some(_) => {
-                        (weight(axis, f.index) > 0.0) as u8 as f64 * grad_scale.map_or(1.0, |m| m[if axis == 0 { f.index } else { cfg.n_face(0) + f.index }])
-                    }
-                };
+                let open =
+                    (weight(axis, f.index) > 0.0) as u8 as f64 * grad_scale.map_or(1.0, |m| m[if axis == 0 { f.index } else { cfg.n_face(0) + f.index }]);
                 vel[f.index] -= open * grad;
                 if let Some(k) = f.copy {
                     vel[k] = vel[f.index];
@@ -825,54 +894,14 @@ pub fn project_velocity(
 pub fn project_adjoint(cfg: &MacGrid<2>, g: &mut [f64], solver: &mut PressureSolver, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
     let (_, [gu, gv]) = cfg.split_mut(g);
     let lp = &mut scratch.d;
-    lp.fill(0.0);
-    if cfg.boundary == Boundary::CLOSED && solver.fluid().is_none() {
-        // P2's box: the interior faces in plain loops, in the face list's order.
-        let (n, nu) = (cfg.n[0], cfg.n[0] + 1);
-        for j in 0..cfg.n[1] {
-            for i in 1..n {
-                let l = gu[j * nu + i];
-                lp[j * n + i] -= l;
-                lp[j * n + i - 1] += l;
-            }
-        }
-        for j in 1..cfg.n[1] {
-            for i in 0..n {
-                let l = gv[j * n + i];
-                lp[j * n + i] -= l;
-                lp[(j - 1) * n + i] += l;
-            }
-        }
-    } else {
-        project_adjoint_faces(cfg, solver.fluid(), gu, gv, lp);
+    gradient_transpose(cfg, solver.fluid(), [&mut *gu, &mut *gv], lp);
+    for l in lp.iter_mut() {
+        *l = -*l;
     }
     let iterations = solver.solve(lp, &mut scratch.p)?;
     for (c, m) in scratch.p.iter_mut().enumerate() {
         *m = -*m * solver.fluid().map_or(1.0, |w| w[c]);
     }
-    divergence_transpose(cfg, &scratch.p, gu, gv);
+    divergence_transpose(cfg, &scratch.p, [gu, gv]);
     Ok(iterations)
-}
-
-/// `λ_p = −Gᵀ·λ` of [`project_adjoint`] through the face list (periodic
-/// copies handed to their originals first), accumulated into `lp`.
-fn project_adjoint_faces(cfg: &MacGrid<2>, fluid: Option<&[f64]>, gu: &mut [f64], gv: &mut [f64], lp: &mut [f64]) {
-    for (axis, gvel) in [&mut *gu, &mut *gv].into_iter().enumerate() {
-        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
-            if !f.projected {
-                return;
-            }
-            if let Some(k) = f.copy {
-                gvel[f.index] += gvel[k];
-                gvel[k] = 0.0;
-            }
-            let l = open(fluid, &f) * gvel[f.index];
-            if let Some(c) = f.upper {
-                lp[c] -= l;
-            }
-            if let Some(c) = f.lower {
-                lp[c] += l;
-            }
-        });
-    }
 }

@@ -1,5 +1,4 @@
-//! Velocity boundary conditions on the box's sides, and obstacles (solid
-//! cells whose faces are held at zero).
+//! Velocity boundary conditions on the box's sides.
 
 use super::*;
 
@@ -70,57 +69,37 @@ pub fn enforce_boundary_linear<const D: usize>(cfg: &MacGrid<D>, vel: &mut [f64]
 
 /// Adjoint of [`enforce_boundary`] (of its linear part) on the velocity
 /// adjoint, in place: set faces pass nothing back, a periodic copy passes
-/// its adjoint to face `0`. On the packed velocity adjoint.
+/// its adjoint to face `0`. On the packed velocity adjoint; the sides'
+/// faces only.
 pub fn enforce_boundary_adjoint<const D: usize>(cfg: &MacGrid<D>, vel: &mut [f64]) {
-    for (a, g) in cfg.components_mut(vel).into_iter().enumerate() {
-        for_each_face(cfg.n, &cfg.boundary, a, |f| {
-            if let Some(k) = f.copy {
-                g[f.index] += g[k];
-                g[k] = 0.0;
+    for a in 0..D {
+        let [lo, hi] = cfg.boundary.axis(a);
+        let g = &mut vel[cfg.face_range(a)];
+        side_faces(cfg, a, |first, last| {
+            if hi == Side::Periodic {
+                g[first] += g[last];
+                g[last] = 0.0;
             }
-            if f.side.is_some_and(Side::sets_faces) {
-                g[f.index] = 0.0;
+            if lo.sets_faces() {
+                g[first] = 0.0;
             }
-        });
-    }
-}
-
-/// Zeroes the smoke in solid cells and the velocity on every face that
-/// touches a solid cell, in place on a packed state: the obstacle boundary
-/// condition. Linear and self-adjoint (a diagonal 0/1 mask), so the same
-/// call is its own VJP.
-pub fn apply_obstacle_mask(cfg: &MacGrid<2>, fluid: &[f64], x: &mut [f64]) {
-    let (s, [u, v]) = cfg.split_mut(x);
-    for (sv, &w) in s.iter_mut().zip(fluid) {
-        *sv *= w;
-    }
-    for (axis, vel) in [u, v].into_iter().enumerate() {
-        for_each_face(cfg.n, &cfg.boundary, axis, |f| {
-            let o = open(Some(fluid), &f);
-            vel[f.index] *= o;
-            if let Some(k) = f.copy {
-                vel[k] *= o;
+            if hi.sets_faces() {
+                g[last] = 0.0;
             }
         });
     }
 }
 
-/// Solid cells of an axis-aligned box `[lower, upper)` in cell units (x
-/// first), for the fluid operators and, complemented, as the fluid mask of
-/// [`PressureSolver::general`]: a cell is solid when its centre lies inside. The box is clipped to the
-/// domain; `None` when no cell centre lies inside (a box wholly outside).
-pub fn obstacle_box(cfg: &MacGrid<2>, lower: [f64; 2], upper: [f64; 2]) -> Option<Vec<bool>> {
-    obstacle(cfg, |x, y| x >= lower[0] && x < upper[0] && y >= lower[1] && y < upper[1])
-}
-
-/// Solid cells of a disc (centre in cell units, x first): a cell is solid
-/// when its centre lies within `radius`. `None` when no cell is covered.
-pub fn obstacle_disc(cfg: &MacGrid<2>, center: [f64; 2], radius: f64) -> Option<Vec<bool>> {
-    obstacle(cfg, |x, y| (x - center[0]).powi(2) + (y - center[1]).powi(2) <= radius * radius)
-}
-
-fn obstacle(cfg: &MacGrid<2>, inside: impl Fn(f64, f64) -> bool) -> Option<Vec<bool>> {
-    let n = cfg.n[0];
-    let solid: Vec<bool> = (0..cfg.n_s()).map(|c| inside((c % n) as f64 + 0.5, (c / n) as f64 + 0.5)).collect();
-    solid.iter().any(|&s| s).then_some(solid)
+/// Calls `f(first, last)` for every point of the two sides normal to `a`
+/// with the indices of its face on the lower side and on the upper one in
+/// the face array of `a` (for code Enzyme does not differentiate).
+fn side_faces<const D: usize>(cfg: &MacGrid<D>, a: usize, mut f: impl FnMut(usize, usize)) {
+    let faces = cfg.bounded().lattice(At::Face(a));
+    let up = cfg.n[a] * faces.stride[a];
+    for q in faces.points() {
+        if q[a] == 0 {
+            let first = faces.index(q);
+            f(first, first + up);
+        }
+    }
 }

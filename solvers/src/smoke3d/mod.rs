@@ -21,15 +21,10 @@
 //! the hand-written [`advect_buoyancy_adjoint`] beside it) and [`project`]
 //! (a linear solve; its adjoint [`project_adjoint`] is the same solve).
 
-use crate::boundary::for_each_face;
 use crate::smoke::MacGrid;
 
 mod mic;
-mod obstacles;
-mod p4;
 mod pressure;
 
 pub use mic::*;
-pub use obstacles::*;
-pub use p4::*;
 pub use pressure::*;

@@ -10,154 +10,7 @@ use super::mic::{Mic3, apply_general_matrix3};
 use super::*;
 use crate::cg::{CgWork, NoConvergence, Null, Stop, System};
 use crate::multigrid::{AggregateMultigrid, Multigrid, apply_box_matrix};
-use crate::smoke::{Preconditioner, ProjectScratch};
-
-/// Calls `f(c, faces)` for every cell `c` with the flat indices of its six
-/// faces, `[u_left, u_right, v_below, v_above, w_back, w_front]`.
-#[inline(always)]
-fn for_each_cell(cfg: &MacGrid<3>, mut f: impl FnMut(usize, [usize; 6])) {
-    let [nx, ny, nz] = cfg.n;
-    for k in 0..nz {
-        for j in 0..ny {
-            let (ru, rv0, rv1) = ((k * ny + j) * (nx + 1), (k * (ny + 1) + j) * nx, (k * (ny + 1) + j + 1) * nx);
-            let (rw0, rw1, rc) = ((k * ny + j) * nx, ((k + 1) * ny + j) * nx, (k * ny + j) * nx);
-            for i in 0..nx {
-                f(rc + i, [ru + i, ru + i + 1, rv0 + i, rv1 + i, rw0 + i, rw1 + i]);
-            }
-        }
-    }
-}
-
-/// Divergence of the MAC velocity, `d[c] = Σ` outward flux over the six
-/// faces of cell `c` (overwrites `d`); across a periodic side the flux of
-/// face `0` (its copy is not read).
-pub fn divergence(cfg: &MacGrid<3>, [u, v, w]: [&[f64]; 3], d: &mut [f64]) {
-    if !cfg.is_closed() {
-        d.fill(0.0);
-        for (axis, vel) in [u, v, w].into_iter().enumerate() {
-            for_each_face(cfg.n, &cfg.boundary, axis, |f| {
-                if let Some(c) = f.lower {
-                    d[c] += vel[f.index];
-                }
-                if let Some(c) = f.upper {
-                    d[c] -= vel[f.index];
-                }
-            });
-        }
-        return;
-    }
-    for_each_cell(cfg, |c, f| d[c] = (u[f[1]] - u[f[0]]) + (v[f[3]] - v[f[2]]) + (w[f[5]] - w[f[4]]));
-}
-
-/// Transpose of [`divergence`]: `(u, v, w) += Dᵀ·d` (accumulates).
-pub fn divergence_transpose(cfg: &MacGrid<3>, d: &[f64], [u, v, w]: [&mut [f64]; 3]) {
-    if !cfg.is_closed() {
-        for (axis, vel) in [u, v, w].into_iter().enumerate() {
-            for_each_face(cfg.n, &cfg.boundary, axis, |f| vel[f.index] += f.lower.map_or(0.0, |c| d[c]) - f.upper.map_or(0.0, |c| d[c]));
-        }
-        return;
-    }
-    for_each_cell(cfg, |c, f| {
-        let g = d[c];
-        u[f[1]] += g;
-        u[f[0]] -= g;
-        v[f[3]] += g;
-        v[f[2]] -= g;
-        w[f[5]] += g;
-        w[f[4]] -= g;
-    });
-}
-
-/// `(u, v, w) −= s·G·p` on the faces the projection changes (interior,
-/// periodic, outflow): the pressure difference across each face, upper
-/// cell minus lower (`p = 0` beyond an outflow side), scaled by `s`;
-/// periodic copies refreshed.
-fn subtract_gradient(cfg: &MacGrid<3>, scale: f64, p: &[f64], [u, v, w]: [&mut [f64]; 3]) {
-    if !cfg.is_closed() {
-        for (axis, vel) in [u, v, w].into_iter().enumerate() {
-            for_each_face(cfg.n, &cfg.boundary, axis, |f| {
-                if f.projected {
-                    vel[f.index] -= scale * (f.upper.map_or(0.0, |c| p[c]) - f.lower.map_or(0.0, |c| p[c]));
-                    if let Some(k) = f.copy {
-                        vel[k] = vel[f.index];
-                    }
-                }
-            });
-        }
-        return;
-    }
-    let [nx, ny, nz] = cfg.n;
-    for k in 0..nz {
-        for j in 0..ny {
-            let (ru, rc) = ((k * ny + j) * (nx + 1), (k * ny + j) * nx);
-            for i in 1..nx {
-                u[ru + i] -= scale * (p[rc + i] - p[rc + i - 1]);
-            }
-        }
-        for j in 1..ny {
-            let (rv, rc, rd) = ((k * (ny + 1) + j) * nx, (k * ny + j) * nx, (k * ny + j - 1) * nx);
-            for i in 0..nx {
-                v[rv + i] -= scale * (p[rc + i] - p[rd + i]);
-            }
-        }
-    }
-    let slab = nx * ny;
-    for k in 1..nz {
-        for c in 0..slab {
-            w[k * slab + c] -= scale * (p[k * slab + c] - p[(k - 1) * slab + c]);
-        }
-    }
-}
-
-/// Transpose of `G` on the faces the projection changes: `out = Gᵀ·g`
-/// (overwrites), after each periodic copy's adjoint is handed to its face
-/// `0` (the copy is written from it, never read).
-fn gradient_transpose(cfg: &MacGrid<3>, [u, v, w]: [&mut [f64]; 3], out: &mut [f64]) {
-    out.fill(0.0);
-    if !cfg.is_closed() {
-        for (axis, g) in [u, v, w].into_iter().enumerate() {
-            for_each_face(cfg.n, &cfg.boundary, axis, |f| {
-                if f.projected {
-                    if let Some(k) = f.copy {
-                        g[f.index] += g[k];
-                        g[k] = 0.0;
-                    }
-                    if let Some(c) = f.upper {
-                        out[c] += g[f.index];
-                    }
-                    if let Some(c) = f.lower {
-                        out[c] -= g[f.index];
-                    }
-                }
-            });
-        }
-        return;
-    }
-    let [nx, ny, nz] = cfg.n;
-    for k in 0..nz {
-        for j in 0..ny {
-            let (ru, rc) = ((k * ny + j) * (nx + 1), (k * ny + j) * nx);
-            for i in 1..nx {
-                out[rc + i] += u[ru + i];
-                out[rc + i - 1] -= u[ru + i];
-            }
-        }
-        for j in 1..ny {
-            let (rv, rc, rd) = ((k * (ny + 1) + j) * nx, (k * ny + j) * nx, (k * ny + j - 1) * nx);
-            for i in 0..nx {
-                out[rc + i] += v[rv + i];
-                out[rd + i] -= v[rv + i];
-            }
-        }
-    }
-    let slab = nx * ny;
-    for k in 1..nz {
-        for c in 0..slab {
-            out[k * slab + c] += w[k * slab + c];
-            out[(k - 1) * slab + c] -= w[k * slab + c];
-        }
-    }
-}
+use crate::smoke::{Preconditioner, ProjectScratch, divergence, divergence_transpose, gradient_transpose, subtract_gradient};
 
 /// Conjugate gradients on the pressure matrix of a box (any sides), with or
 /// without solid cells, preconditioned by a multigrid V-cycle, MIC(0) of
@@ -280,7 +133,7 @@ impl PressureSolver3 {
             (Preconditioner::None, _) => Precond3::None,
             (other, _) => panic!("3D pressure solves take multigrid, MIC(0) or no preconditioner, not {other}"),
         };
-        let obstacles = fluid.map(|fluid| Masked { buf: vec![0.0; fluid.len()], solid_beside: super::solid_neighbours(cfg, &fluid), fluid });
+        let obstacles = fluid.map(|fluid| Masked { buf: vec![0.0; fluid.len()], solid_beside: crate::smoke::solid_neighbours(cfg, &fluid), fluid });
         Self { cfg: *cfg, stop: Stop { tolerance, max_iterations }, precond, obstacles, work: CgWork::new(cfg.n_s()) }
     }
 
@@ -383,7 +236,7 @@ impl System for PressureSolver3 {
 /// faces. Returns the CG iterations. With obstacles, the velocity must
 /// hold no flow through the faces of solid cells before (then `D·(u, v,
 /// w)` is zero in them) and be masked again after
-/// ([`apply_obstacle_mask3`](super::apply_obstacle_mask3)): the gradient
+/// ([`apply_obstacle_mask`](crate::smoke::apply_obstacle_mask)): the gradient
 /// across a face beside a solid cell is then dropped, and the result is
 /// divergence-free in every fluid cell.
 pub fn project(cfg: &MacGrid<3>, y: &mut [f64], solver: &mut PressureSolver3, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
@@ -393,7 +246,7 @@ pub fn project(cfg: &MacGrid<3>, y: &mut [f64], solver: &mut PressureSolver3, sc
         *d = -*d;
     }
     let it = solver.solve(&scratch.d, &mut scratch.p)?;
-    subtract_gradient(cfg, 1.0, &scratch.p, [u, v, w]);
+    subtract_gradient(cfg, None, &scratch.p, [u, v, w]);
     Ok(it)
 }
 
@@ -403,7 +256,7 @@ pub fn project(cfg: &MacGrid<3>, y: &mut [f64], solver: &mut PressureSolver3, sc
 /// the CG iterations.
 pub fn project_adjoint(cfg: &MacGrid<3>, g: &mut [f64], solver: &mut PressureSolver3, scratch: &mut ProjectScratch) -> Result<usize, NoConvergence> {
     let (_, [gu, gv, gw]) = cfg.split_mut(g);
-    gradient_transpose(cfg, [&mut *gu, &mut *gv, &mut *gw], &mut scratch.d);
+    gradient_transpose(cfg, None, [&mut *gu, &mut *gv, &mut *gw], &mut scratch.d);
     for d in scratch.d.iter_mut() {
         *d = -*d;
     }
