@@ -70,6 +70,52 @@ macro_rules! on_axis {
 }
 pub(crate) use on_axis;
 
+/// Runs `$body` for `$k` = 0, 1, … while `$k < $m` (at most 8: the corners
+/// of a cell in 3D), each copy with `$k` a constant: the small loops of
+/// the multilinear sample written out, for the reason of [`each_axis`].
+macro_rules! each_corner {
+    ($m:expr, $k:ident => $body:block) => {{
+        #[allow(unused_assignments, unconditional_panic, clippy::identity_op)]
+        {
+            let m: usize = $m;
+            if 0 < m {
+                let $k: usize = 0;
+                $body
+            }
+            if 1 < m {
+                let $k: usize = 1;
+                $body
+            }
+            if 2 < m {
+                let $k: usize = 2;
+                $body
+            }
+            if 3 < m {
+                let $k: usize = 3;
+                $body
+            }
+            if 4 < m {
+                let $k: usize = 4;
+                $body
+            }
+            if 5 < m {
+                let $k: usize = 5;
+                $body
+            }
+            if 6 < m {
+                let $k: usize = 6;
+                $body
+            }
+            if 7 < m {
+                let $k: usize = 7;
+                $body
+            }
+        }
+    }};
+}
+#[allow(unused_imports)]
+pub(crate) use each_corner;
+
 pub(crate) mod advect;
 pub mod fft;
 pub mod periodic;
@@ -400,7 +446,7 @@ pub fn corners<const D: usize>(wrap: [bool; D], lat: &Lattice<D>, p: [f64; D]) -
         fr[a] = f;
     });
     let mut c = [lat.len; 8];
-    for k in 0..1 << D {
+    each_corner!(1 << D, k => {
         let mut index = if k & 1 == 1 { hi[0] } else { lo[0] };
         each_axis!(D, a => {
             if a >= 1 {
@@ -408,7 +454,7 @@ pub fn corners<const D: usize>(wrap: [bool; D], lat: &Lattice<D>, p: [f64; D]) -
             }
         });
         c[k] = index;
-    }
+    });
     (c, fr)
 }
 
@@ -420,15 +466,15 @@ pub fn corners<const D: usize>(wrap: [bool; D], lat: &Lattice<D>, p: [f64; D]) -
 pub fn sample<const D: usize>(wrap: [bool; D], f: &[f64], lat: &Lattice<D>, p: [f64; D]) -> f64 {
     let (c, fr) = corners(wrap, lat, p);
     let mut v = [f[c[0]]; 8];
-    for k in 1..1 << D {
+    each_corner!(1 << D, k => {
         v[k] = f[c[k]];
-    }
+    });
     let mut m = 1 << D;
     each_axis!(D, a => {
         m /= 2;
-        for k in 0..m {
+        each_corner!(m, k => {
             v[k] = v[2 * k] * (1.0 - fr[a]) + v[2 * k + 1] * fr[a];
-        }
+        });
     });
     v[0]
 }
@@ -443,7 +489,7 @@ pub fn sample_range<const D: usize>(wrap: [bool; D], f: &[f64], lat: &Lattice<D>
     // Comparisons, not `f64::min`/`max`: LLVM turns those into
     // `llvm.minimumnum`/`maximumnum`, which Enzyme cannot type
     // (docs/pitfalls.md).
-    for k in 1..1 << D {
+    each_corner!(1 << D, k => {
         let v = f[c[k]];
         if v < lo {
             lo = v;
@@ -451,7 +497,7 @@ pub fn sample_range<const D: usize>(wrap: [bool; D], f: &[f64], lat: &Lattice<D>
         if v > hi {
             hi = v;
         }
-    }
+    });
     (lo, hi)
 }
 
