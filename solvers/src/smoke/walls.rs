@@ -94,12 +94,13 @@ pub fn enforce_boundary_adjoint<const D: usize>(cfg: &MacGrid<D>, vel: &mut [f64
 /// with the indices of its face on the lower side and on the upper one in
 /// the face array of `a` (for code Enzyme does not differentiate).
 fn side_faces<const D: usize>(cfg: &MacGrid<D>, a: usize, mut f: impl FnMut(usize, usize)) {
-    let faces = cfg.bounded().lattice(At::Face(a));
-    let up = cfg.n[a] * faces.stride[a];
-    for q in faces.points() {
-        if q[a] == 0 {
-            let first = faces.index(q);
-            f(first, first + up);
-        }
+    let mut side = cfg.bounded().lattice(At::Face(a));
+    let up = cfg.n[a] * side.stride[a];
+    // The face lattice cut to its first layer along `a`: the lower side's
+    // points, indexed in the whole array.
+    side.n[a] = 1;
+    for q in side.points() {
+        let first = side.index(q);
+        f(first, first + up);
     }
 }
