@@ -257,7 +257,7 @@ pub struct Diffuse<D> {
 /// The velocity boundary conditions re-applied after a velocity diffusion:
 /// the box's sides, in 2D or 3D ([`smoke::enforce_boundary`]).
 #[derive(Clone, Copy, Debug)]
-enum Walls {
+pub enum Walls {
     /// A 2D box.
     Box(MacGrid<2>),
     /// A 3D box.
@@ -272,6 +272,18 @@ macro_rules! with_box {
             Walls::Box3($cfg) => $body,
         }
     };
+}
+
+impl From<MacGrid<2>> for Walls {
+    fn from(cfg: MacGrid<2>) -> Self {
+        Walls::Box(cfg)
+    }
+}
+
+impl From<MacGrid<3>> for Walls {
+    fn from(cfg: MacGrid<3>) -> Self {
+        Walls::Box3(cfg)
+    }
 }
 
 impl Walls {
@@ -292,32 +304,23 @@ impl Walls {
 }
 
 impl<D: Operator> Diffuse<D> {
-    /// The chosen fields of the box `cfg`, each lattice's operator made by `op`.
-    pub fn in_box(cfg: MacGrid<2>, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self {
-        let [gs, gu, gv] = Grid::of_state(&cfg);
-        let (ns, nu) = (cfg.n_s(), cfg.n_face(0));
+    /// The chosen fields of the box `cfg`, 2D or 3D (`[s, u₀, …]`, each
+    /// velocity component on its own faces, the walls applied after), each
+    /// lattice's operator made by `op`.
+    pub fn in_box<const N: usize>(cfg: MacGrid<N>, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self
+    where
+        Walls: From<MacGrid<N>>,
+    {
         let mut parts = Vec::new();
-        if smoke {
-            parts.push((0, op(gs)));
-        }
-        if velocity {
-            parts.push((ns, op(gu)));
-            parts.push((ns + nu, op(gv)));
-        }
-        Self { n: cfg.n_state(), parts, velocity_box: velocity.then_some(Walls::Box(cfg)) }
-    }
-
-    /// The chosen fields of the closed 3D box `cfg` (`[s, u, v, w]`, each
-    /// velocity component on its own faces, the walls closed after).
-    pub fn in_box_3d(cfg: MacGrid<3>, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self {
-        let grids = Grid::of_state_3d(&cfg);
-        let mut parts = Vec::new();
-        for (f, grid) in grids.into_iter().enumerate() {
-            if (f == 0 && smoke) || (f > 0 && velocity) {
-                parts.push((if f == 0 { 0 } else { cfg.slab_starts(0).1[f - 1] }, op(grid)));
+        for (l, grid) in Grid::of_state(&cfg).into_iter().enumerate() {
+            if l == 0 && smoke {
+                parts.push((0, op(grid)));
+            } else if l > 0 && velocity {
+                parts.push((cfg.n_s() + cfg.face_range(l - 1).start, op(grid)));
             }
         }
-        Self { n: cfg.n_state(), parts, velocity_box: velocity.then_some(Walls::Box3(cfg)) }
+        let velocity_box = if velocity { Some(Walls::from(cfg)) } else { None };
+        Self { n: cfg.n_state(), parts, velocity_box }
     }
 
     /// The chosen fields of a line of `n` cells (state `[s, u]`, unit

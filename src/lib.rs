@@ -63,8 +63,9 @@
 //! (with respect to `x_0`, `p` or both), so [`check::check_all`] applies to
 //! it. [`problems::burgers::P1`] and
 //! [`problems::smoke::P2`] are the benchmarks built exactly this way;
-//! [`fluids`] holds further 2D operators (diffusion, advection schemes,
-//! forces, inflow).
+//! [`fluids`] holds further operators, each for 2D and 3D (diffusion,
+//! advection schemes, forces, inflow), and [`navier_stokes`] the
+//! incompressible Navier–Stokes step of a periodic box.
 //!
 //! **5. Train through it** ([`nn`], [`train`]): a network is an operator
 //! too (its weights are the parameters), so [`train::Coupled`] joins a
@@ -128,6 +129,7 @@ pub mod files;
 pub mod fluids;
 pub mod implicit;
 pub mod memory;
+pub mod navier_stokes;
 pub mod nn;
 pub mod op;
 pub mod prelude;

@@ -198,9 +198,9 @@ fn every_3d_operator_passes_all_checks_under_every_boundary() {
         let x = state(&cfg, 31);
         let name = |op: &str| format!("{op} under {b:?}");
         // The operators written once for every dimension: boundaries.rs.
-        let r = check_all(&Diffuse::in_box_3d(cfg, true, true, DiffuseExplicit::on), &x, &[0.1], &opts);
+        let r = check_all(&Diffuse::in_box(cfg, true, true, DiffuseExplicit::on), &x, &[0.1], &opts);
         assert!(r.passed(), "{}:\n{r}", name("explicit diffusion"));
-        let r = check_all(&Diffuse::in_box_3d(cfg, true, true, |g| DiffuseImplicit::on(g, 1e-13, 500)), &x, &[0.7], &opts);
+        let r = check_all(&Diffuse::in_box(cfg, true, true, |g| DiffuseImplicit::on(g, 1e-13, 500)), &x, &[0.7], &opts);
         assert!(r.passed(), "{}:\n{r}", name("implicit diffusion"));
         for precond in [Preconditioner::Mic0, Preconditioner::None] {
             let r = check_all(&Project3::new(cfg, 1e-13, 2000, precond), &x, &[], &opts);

@@ -290,10 +290,10 @@ fn diffusion_in_3d_passes_all_checks() {
     use diffsim::fluids::{Diffuse, DiffuseExplicit, DiffuseImplicit};
     let cfg = MacGrid::new([6, 5, 4]).with_dt(0.5);
     let x = state(&cfg, 41);
-    let explicit = Diffuse::in_box_3d(cfg, true, true, DiffuseExplicit::on);
+    let explicit = Diffuse::in_box(cfg, true, true, DiffuseExplicit::on);
     let r = check_all(&explicit, &x, &[0.1], &CheckParams::default());
     assert!(r.passed(), "explicit diffusion:\n{r}");
-    let implicit = Diffuse::in_box_3d(cfg, true, true, |g| DiffuseImplicit::on(g, 1e-13, 500));
+    let implicit = Diffuse::in_box(cfg, true, true, |g| DiffuseImplicit::on(g, 1e-13, 500));
     let r = check_all(&implicit, &x, &[0.7], &CheckParams::default());
     assert!(r.passed(), "implicit diffusion:\n{r}");
 }
@@ -304,7 +304,7 @@ fn diffusion_in_3d_decays_a_mode_at_the_exact_rate() {
     // The cell lattice's Laplacian is the closed box's pressure matrix,
     // written apart (the multigrid's slab-by-slab product).
     let n = 8;
-    let g = Grid::of_state_3d(&MacGrid::p4(n))[0];
+    let g = Grid::of_state(&MacGrid::p4(n))[0];
     let s = field(n * n * n, 3);
     let (mut a, mut b) = (vec![0.0; s.len()], vec![0.0; s.len()]);
     laplacian(&g, &s, &mut a);

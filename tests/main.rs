@@ -20,6 +20,7 @@ mod inputs;
 mod integrators;
 mod layout;
 mod memory;
+mod navier_stokes;
 mod nn;
 mod nonlinear;
 mod nonsmooth;

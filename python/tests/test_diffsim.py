@@ -169,3 +169,29 @@ def test_long_calls_release_the_gil_and_stop_at_ctrl_c():
         assert time.perf_counter() - start < 0.3 + 1.0
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+def test_the_periodic_navier_stokes_step_decays_taylor_green_and_passes_the_checks():
+    n, nu, dt = 16, 0.05, 0.1
+    op = diffsim.navier_stokes_step([n, n])
+    h = 2 * np.pi / n
+    # The packed MAC velocity: u on the x-faces (i·h, (j+½)·h), v on the
+    # y-faces ((i+½)·h, j·h), x fastest, the last face the copy of the first.
+    xu, yu = np.meshgrid(np.arange(n + 1) * h, (np.arange(n) + 0.5) * h)
+    xv, yv = np.meshgrid((np.arange(n) + 0.5) * h, np.arange(n + 1) * h)
+    tg = np.concatenate([(np.sin(xu) * np.cos(yu)).ravel(), (-np.cos(xv) * np.sin(yv)).ravel()])
+    assert op.n_in == tg.size == 2 * n * (n + 1) and op.n_params == 2
+    y = op.forward(tg, np.array([nu, dt]))
+    # The exact solution decays as exp(−2νt); one step at 16² is within 1e-2.
+    assert np.max(np.abs(y - tg * np.exp(-2 * nu * dt))) < 1e-2
+    # The gradient with respect to the velocity, ν and dt: the three checks,
+    # at a state moving through the box (no trace lands on a lattice line).
+    x = tg + 0.3
+    verdict, report = op.check(x, np.array([nu, dt]))
+    assert verdict == "pass", report
+    # A negative viscosity is an error, not a result.
+    with pytest.raises(diffsim.SimulationError, match="viscosity"):
+        op.forward(x, np.array([-1.0, dt]))
+    assert diffsim.navier_stokes_step([4, 4, 4]).n_in == 3 * 4 * 4 * 5
+    with pytest.raises(diffsim.DiffsimError, match="2 or 3"):
+        diffsim.navier_stokes_step([8])

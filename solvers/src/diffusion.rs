@@ -55,28 +55,24 @@ impl Grid {
         Self::plane(n, n, n, false, false)
     }
 
-    /// The three lattices of a smoke state `[s, u, v]` for `cfg`'s boundary:
-    /// cell centres, x-faces, y-faces (a periodic axis's copy faces left out).
-    pub fn of_state(cfg: &MacGrid<2>) -> [Grid; 3] {
-        let (nx, ny, wx, wy) = (cfg.n[0], cfg.n[1], cfg.boundary.periodic(0), cfg.boundary.periodic(1));
-        [
-            Grid::plane(nx, nx, ny, wx, wy),
-            Grid::plane(nx + 1, if wx { nx } else { nx + 1 }, ny, wx, wy),
-            Grid::plane(nx, nx, if wy { ny } else { ny + 1 }, wx, wy),
-        ]
-    }
-
-    /// The four lattices of a 3D state `[s, u, v, w]` for `cfg`'s sides:
-    /// cell centres and the faces normal to x, y and z (a periodic axis's
-    /// copy faces left out).
-    pub fn of_state_3d(cfg: &MacGrid<3>) -> [Grid; 4] {
+    /// The lattices of a state `[s, u₀, …]` for `cfg`'s sides, in 2D or
+    /// 3D: the cell centres, then the faces normal to each axis (each over
+    /// its whole array; a periodic axis's copy faces are not samples).
+    pub fn of_state<const D: usize>(cfg: &MacGrid<D>) -> Vec<Grid> {
         let w = cfg.boundary.wraps();
-        [3, 0, 1, 2].map(|axis| {
-            // The array's extents, and the samples (own faces) per axis.
-            let ext = if axis == 3 { cfg.n } else { cfg.face_dims(axis) };
-            let own = [0, 1, 2].map(|a| ext[a] - (a == axis && w[a]) as usize);
-            Grid { stride: ext[0], nx: own[0], ny: own[1], nz: own[2], wrap_x: w[0], wrap_y: w[1], wrap_z: w[2], rows: ext[1] }
-        })
+        let mut grids = Vec::with_capacity(D + 1);
+        for l in 0..=D {
+            // The array's extents, the samples (own faces) and the wrapping
+            // per axis, padded to three axes.
+            let (mut ext, mut own, mut wraps) = ([1usize; 3], [1usize; 3], [false; 3]);
+            for a in 0..D {
+                ext[a] = cfg.n[a] + usize::from(l == a + 1);
+                own[a] = ext[a] - usize::from(l == a + 1 && w[a]);
+                wraps[a] = w[a];
+            }
+            grids.push(Grid { stride: ext[0], nx: own[0], ny: own[1], nz: own[2], wrap_x: wraps[0], wrap_y: wraps[1], wrap_z: wraps[2], rows: ext[1] });
+        }
+        grids
     }
 
     /// Distance between slabs in the slice.

@@ -1,6 +1,7 @@
 //! Exact solutions to measure the schemes against: viscous Burgers by the
-//! Cole–Hopf transform, the Taylor–Green vortex, Fourier modes of the heat
-//! equation and translation by constant advection.
+//! Cole–Hopf transform, the Taylor–Green vortex, the
+//! Arnold–Beltrami–Childress flow, Fourier modes of the heat equation and
+//! translation by constant advection.
 //!
 //! All are plain functions of position and time; sampling them on a grid
 //! (cell centres, MAC faces) is the caller's business.
@@ -113,6 +114,57 @@ impl TaylorGreen {
         }
         (u, v)
     }
+}
+
+/// The Arnold–Beltrami–Childress flow on the periodic cube `[0, 2π)³`,
+///
+/// ```text
+/// u = (A·sin z + C·cos y,  B·sin x + A·cos z,  C·sin y + B·cos x)·e^{−νt}
+/// ```
+///
+/// a Beltrami field (its vorticity is itself, so `(u·∇)u = ∇|u|²/2`, which
+/// the pressure balances) and an eigenfunction of the Laplacian
+/// (`Δu = −u`): an exact solution of the 3D incompressible Navier–Stokes
+/// equations that decays as `e^{−νt}` (steady under the forcing `ν·u₀`).
+#[derive(Clone, Copy, Debug)]
+pub struct Abc {
+    /// The coefficients `A`, `B`, `C`.
+    pub coefficients: [f64; 3],
+    /// Viscosity ν.
+    pub nu: f64,
+}
+
+impl Abc {
+    /// The velocity at `p` and time `t`.
+    pub fn velocity(&self, p: [f64; 3], t: f64) -> [f64; 3] {
+        let ([a, b, c], f) = (self.coefficients, (-self.nu * t).exp());
+        let [x, y, z] = p;
+        [f * (a * z.sin() + c * y.cos()), f * (b * x.sin() + a * z.cos()), f * (c * y.sin() + b * x.cos())]
+    }
+}
+
+/// A velocity field `f(axis, point)` sampled on the faces of a periodic
+/// box of `n` cells of size `h` (in its own units, not divided by `h`):
+/// the packed MAC layout of `mac::periodic::Periodic` (component `a` at the
+/// faces normal to axis `a`, `x` fastest, face `n` along `a` the copy of
+/// face 0).
+pub fn on_faces<const D: usize>(n: [usize; D], h: f64, f: impl Fn(usize, [f64; D]) -> f64) -> Vec<f64> {
+    let mut out = Vec::new();
+    for axis in 0..D {
+        let len = |b: usize| n[b] + usize::from(b == axis);
+        let total: usize = (0..D).map(len).product();
+        for c in 0..total {
+            let mut p = [0.0; D];
+            let mut rest = c;
+            for (b, x) in p.iter_mut().enumerate() {
+                let q = (rest % len(b)) as f64;
+                rest /= len(b);
+                *x = (q + if b == axis { 0.0 } else { 0.5 }) * h;
+            }
+            out.push(f(axis, p));
+        }
+    }
+    out
 }
 
 /// A Fourier mode of the heat equation `s_t = ν·Δs` on the periodic square

@@ -422,7 +422,7 @@ impl Builder<'_> {
                         }
                         self.ops.push(match (line, domain) {
                             (Some(l), _) => Box::new(Diffuse::line(l.n, l.periodic, s, v, DiffuseExplicit::on)),
-                            (None, Domain::Box3(cfg)) => Box::new(Diffuse::in_box_3d(cfg, s, v, DiffuseExplicit::on)),
+                            (None, Domain::Box3(cfg)) => Box::new(Diffuse::in_box(cfg, s, v, DiffuseExplicit::on)),
                             (None, _) => Box::new(Diffuse::explicit(*self_cfg(&domain), s, v)),
                         });
                     }
@@ -431,7 +431,7 @@ impl Builder<'_> {
                         let max = iterations(&at("max_iterations"), d.max_iterations, domain.n_state())?;
                         self.ops.push(match (line, domain) {
                             (Some(l), _) => Box::new(Diffuse::line(l.n, l.periodic, s, v, |g| DiffuseImplicit::on(g, tol, max))),
-                            (None, Domain::Box3(cfg)) => Box::new(Diffuse::in_box_3d(cfg, s, v, |g| DiffuseImplicit::on(g, tol, max))),
+                            (None, Domain::Box3(cfg)) => Box::new(Diffuse::in_box(cfg, s, v, |g| DiffuseImplicit::on(g, tol, max))),
                             (None, _) => Box::new(Diffuse::implicit(*self_cfg(&domain), s, v, tol, max)),
                         });
                     }

@@ -436,6 +436,7 @@ pub fn _diffsim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<scene::SceneFile>()?;
     m.add_function(wrap_pyfunction!(ops::burgers_step, m)?)?;
     m.add_function(wrap_pyfunction!(ops::smoke_step, m)?)?;
+    m.add_function(wrap_pyfunction!(ops::navier_stokes_step, m)?)?;
     m.add_function(wrap_pyfunction!(ops::p1_problem, m)?)?;
     m.add_function(wrap_pyfunction!(ops::p1_loss, m)?)?;
     m.add_function(wrap_pyfunction!(ffi_targets, m)?)?;

@@ -293,6 +293,46 @@ pub(crate) fn smoke_step(n: usize) -> PyResult<Operator> {
     Ok(Operator::new(Arc::new(StepOp(step)), format!("smoke_step(n={n})")))
 }
 
+/// One step of incompressible Navier–Stokes on a periodic box of `n`
+/// cells per axis (2 or 3 axes, the same cell size on each, the box
+/// `length` long along x): the packed MAC velocity `[u, v(, w)]` (each
+/// component on its faces, x fastest, face `n` along its own axis the copy
+/// of face 0) in and out, the parameters `p = [ν, dt]`. A step is split
+/// into stable sub-steps (advection by `scheme`, `"maccormack"` or
+/// `"semi_lagrangian"`; explicit viscosity; projection by FFT); Enzyme's
+/// derivatives with respect to the velocity, ν and dt.
+#[pyfunction]
+#[pyo3(signature = (n, scheme = "maccormack", length = std::f64::consts::TAU))]
+pub(crate) fn navier_stokes_step(n: Vec<usize>, scheme: &str, length: f64) -> PyResult<Operator> {
+    use diffsim::navier_stokes::PeriodicNavierStokes;
+    use diffsim_solvers::mac::periodic::Periodic;
+    use diffsim_solvers::smoke::Scheme;
+    let scheme = match scheme {
+        "maccormack" => Scheme::MacCormack { limiter: false },
+        "semi_lagrangian" => Scheme::SemiLagrangian,
+        other => return Err(DiffsimError::new_err(format!("scheme = {other:?}: expected \"maccormack\" or \"semi_lagrangian\""))),
+    };
+    if !(length.is_finite() && length > 0.0) {
+        return Err(DiffsimError::new_err(format!("length = {length}: must be positive")));
+    }
+    if n.iter().any(|&m| !(4..=512).contains(&m)) {
+        return Err(DiffsimError::new_err(format!("n = {n:?}: need 4 ≤ n ≤ 512 cells on each axis")));
+    }
+    let h = length / n[0] as f64;
+    let name = format!("navier_stokes_step(n={n:?})");
+    match n[..] {
+        [nx, ny] => {
+            let step = diffsim::op::PerThread::new(move || PeriodicNavierStokes::new(Periodic::new([nx, ny], h, 0.0, scheme)));
+            Ok(Operator::new(Arc::new(StepOp(step)), name))
+        }
+        [nx, ny, nz] => {
+            let step = diffsim::op::PerThread::new(move || PeriodicNavierStokes::new(Periodic::new([nx, ny, nz], h, 0.0, scheme)));
+            Ok(Operator::new(Arc::new(StepOp(step)), name))
+        }
+        _ => Err(DiffsimError::new_err(format!("n = {n:?}: give 2 or 3 cell counts, one per axis"))),
+    }
+}
+
 /// The coupled oscillators of the half-inverse-gradients problem
 /// (`kind`: `"linear"`, 24 RK4 steps of 0.5, or `"nonlinear"`, 96 steps of
 /// 0.125): the initial state `(x₁, x₂, v₁, v₂)` and one control per step

@@ -141,7 +141,15 @@ pub(crate) fn advect_field<const D: usize, W: Wraps<D>>(
                         if limiter {
                             let p = Mac::<D, W>::back(&lat, q, mac.velocity(at, vel, q), dt);
                             let (lo, hi) = sample_range(mac.wraps(), f, &lat, p);
-                            val = val.clamp(lo, hi);
+                            // Comparisons, not `f64::clamp` (its assertion's
+                            // branch and selects left a phi Enzyme could not
+                            // type in 3D: docs/pitfalls.md).
+                            if val < lo {
+                                val = lo;
+                            }
+                            if val > hi {
+                                val = hi;
+                            }
                         }
                         out[c] = val;
                     }

@@ -15,11 +15,12 @@
 //! once per call from the velocity it starts from (so that a call is one
 //! function of its input, and its gradient that function's).
 
-use super::advect::{advect_field, advect_radius};
+use super::advect::advect_radius;
 use super::fft::FftProjection;
-use super::{At, Mac, Wrapping};
+use super::{At, Mac};
+use crate::boundary::{Boundary, Side};
 use crate::diffusion::Grid;
-use crate::smoke::Scheme;
+use crate::smoke::{MacGrid, Scheme, advect_velocity};
 
 /// Largest `κ = ν·dt/h²` of one explicit viscous sub-step in `D`
 /// dimensions, with a margin: the forward Euler step of the `2D+1`-point
@@ -35,8 +36,9 @@ pub const COURANT_LIMIT: f64 = 0.9;
 /// Settings of the periodic Navier–Stokes step.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Periodic<const D: usize> {
-    /// Cells per axis.
-    pub n: [usize; D],
+    /// The grid: its cells, every side periodic. The velocity is advected
+    /// by the fluid operators' own code ([`crate::smoke::advect_velocity`]).
+    pub grid: MacGrid<D>,
     /// Cell size (every axis).
     pub h: f64,
     /// Kinematic viscosity.
@@ -54,19 +56,29 @@ pub struct PeriodicWork<const D: usize> {
 }
 
 impl<const D: usize> Periodic<D> {
+    /// The box of `n` cells of size `h` on every axis, every side periodic.
+    pub fn new(n: [usize; D], h: f64, viscosity: f64, scheme: Scheme) -> Self {
+        Self { grid: MacGrid::new(n).with_boundary(Boundary::all(Side::Periodic)), h, viscosity, scheme }
+    }
+
+    /// Cells per axis.
+    pub fn n(&self) -> [usize; D] {
+        self.grid.n
+    }
+
     /// The index rules of the box (every axis wraps).
-    pub fn mac(&self) -> Mac<D, Wrapping> {
-        Mac { n: super::axes_of(&self.n), wrap: Wrapping }
+    pub fn mac(&self) -> Mac<D, [bool; D]> {
+        self.grid.mac()
     }
 
     /// Length of the face array of `axis` (with the periodic copies).
     pub fn face_len(&self, axis: usize) -> usize {
-        self.mac().lattice(At::Face(axis)).len
+        self.grid.n_face(axis)
     }
 
     /// Buffers for [`Self::step`].
     pub fn work(&self) -> PeriodicWork<D> {
-        PeriodicWork { fft: FftProjection::new(self.n), next: vec![0.0; self.n_vel()], scratch: vec![0.0; self.explicit_scratch_len()] }
+        PeriodicWork { fft: FftProjection::new(self.grid.n), next: vec![0.0; self.n_vel()], scratch: vec![0.0; self.explicit_scratch_len()] }
     }
 
     /// The number of equal sub-steps a step of `dt` takes from the packed
@@ -106,36 +118,12 @@ impl<const D: usize> Periodic<D> {
 
     /// The projection of the packed velocity `vel` by `fft`, in place.
     pub fn project(&self, fft: &mut FftProjection<D>, vel: &mut [f64]) {
-        fft.project(self.components(vel));
+        fft.project(self.grid.components_mut(vel));
     }
 
     /// The adjoint of [`Self::project`] on the packed adjoint `g`, in place.
     pub fn project_adjoint(&self, fft: &mut FftProjection<D>, g: &mut [f64]) {
-        fft.project_adjoint(self.components(g));
-    }
-
-    /// The packed velocity's components.
-    fn parts<'a>(&self, vel: &'a [f64]) -> [&'a [f64]; D] {
-        // One constant index at a time (docs/pitfalls.md).
-        let mut parts = [vel; D];
-        let mut start = 0;
-        each_axis!(D, a => {
-            parts[a] = &vel[start..start + self.face_len(a)];
-            start += self.face_len(a);
-        });
-        parts
-    }
-
-    /// The packed velocity cut into its components, mutably.
-    fn components<'a>(&self, vel: &'a mut [f64]) -> [&'a mut [f64]; D] {
-        let mut parts = Vec::with_capacity(D);
-        let mut rest = vel;
-        for a in 0..D {
-            let (head, tail) = rest.split_at_mut(self.face_len(a));
-            parts.push(head);
-            rest = tail;
-        }
-        parts.try_into().expect("one face array per axis")
+        fft.project_adjoint(self.grid.components_mut(g));
     }
 }
 
@@ -143,43 +131,69 @@ impl<const D: usize> Periodic<D> {
     /// Length of the packed velocity `[u, v(, w)]` (each face array with
     /// its copies).
     pub fn n_vel(&self) -> usize {
-        (0..D).map(|a| self.face_len(a)).sum()
+        self.grid.n_vel()
     }
 
-    /// Scratch [`Self::explicit`] needs: the advected velocity and, for
-    /// MacCormack, two fields of the longest component.
+    /// Scratch [`Self::explicit`] needs: the advected velocity and
+    /// [`Self::advect_scratch_len`].
     pub fn explicit_scratch_len(&self) -> usize {
-        let longest = (0..D).map(|a| self.face_len(a)).max().unwrap_or(0);
-        self.n_vel() + 2 * longest
+        self.n_vel() + self.advect_scratch_len()
     }
 
     /// The explicit part of one sub-step on the packed velocity `x`:
-    /// advection over `dt`, then viscosity `nu`, written to `y` (the
-    /// projection follows, outside). `nu` and `dt` are arguments so that a
-    /// gradient reaches them. Plain loops on slices, one call per component
-    /// (Enzyme differentiates this).
+    /// [`Self::advect`] over `dt`, then [`Self::viscosity`] `nu`, written
+    /// to `y` (the projection follows, outside). `nu` and `dt` are
+    /// arguments so that a gradient reaches them; the operator
+    /// differentiates the two parts apart (Enzyme gave a wrong 3D gradient
+    /// for the two in one function, each alone is right: docs/pitfalls.md).
     ///
     /// # Panics
     /// If a length is wrong.
     pub fn explicit(&self, nu: f64, dt: f64, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
         let n_vel = self.n_vel();
         assert!(x.len() == n_vel && y.len() == n_vel && scratch.len() >= self.explicit_scratch_len(), "periodic step: packed lengths");
-        let mac = self.mac();
-        let longest = (0..D).map(|a| self.face_len(a)).max().unwrap_or(0);
         let (advected, rest) = scratch.split_at_mut(n_vel);
-        let half = (rest.len() / 2).min(longest);
-        let (hat, rest) = rest.split_at_mut(half);
-        let tilde = &mut rest[..half];
-        let vel = self.parts(x);
-        let cells = dt / self.h;
+        self.advect(dt, x, advected, rest);
+        self.viscosity(nu, dt, advected, y);
+    }
+
+    /// The advection of one sub-step: the packed velocity `x` advected by
+    /// itself over `dt` by the box's scheme into `y` (the fluid operators'
+    /// [`advect_velocity`]), the periodic copies refreshed; `scratch` holds
+    /// [`Self::advect_scratch_len`] values. The gradient's first part (Enzyme differentiates it alone:
+    /// docs/navier-stokes.md).
+    #[inline(always)]
+    pub fn advect(&self, dt: f64, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+        advect_velocity(&self.grid, self.scheme, dt / self.h, x, y, scratch);
+        // The periodic copies, by this module's own loop.
+        let n = self.grid.cells();
+        let mut start = 0;
+        each_axis!(D, a => {
+            let len = self.grid.n_face(a);
+            refresh_copies(n, a, &mut y[start..start + len]);
+            start += len;
+        });
+    }
+
+    /// Scratch of [`Self::advect`] (the scaled velocity and MacCormack's
+    /// two intermediate fields).
+    pub fn advect_scratch_len(&self) -> usize {
+        crate::smoke::advect_velocity_scratch_len(&self.grid, self.scheme)
+    }
+
+    /// The viscosity of one sub-step: `y = x + ν·dt·Δx/h²` on each
+    /// component of the packed velocity `x` ([`diffuse`]). Linear in `x`.
+    #[inline(always)]
+    pub fn viscosity(&self, nu: f64, dt: f64, x: &[f64], y: &mut [f64]) {
+        assert!(x.len() == self.n_vel() && y.len() == self.n_vel(), "periodic viscosity: packed lengths");
+        let n = self.grid.cells();
         let kappa = nu * dt / (self.h * self.h);
         // Each component through its range of the packed arrays.
         let mut start = 0;
         each_axis!(D, a => {
-            let len = vel[a].len();
+            let len = self.grid.n_face(a);
             let r = start..start + len;
-            advect_field(mac, At::Face(a), self.scheme, cells, vel, vel[a], &mut advected[r.clone()], &mut hat[..len], &mut tilde[..len]);
-            diffuse(&mac.lattice(At::Face(a)), a, kappa, &advected[r.clone()], &mut y[r]);
+            diffuse(n, a, kappa, &x[r.clone()], &mut y[r]);
             start += len;
         });
     }
@@ -195,29 +209,44 @@ impl<const D: usize> Periodic<D> {
             Scheme::MacCormack { .. } => (&[cells, -cells], &[rate, -rate]),
         };
         let lattices: Vec<At> = (0..D).map(At::Face).collect();
-        advect_radius(self.mac(), &lattices, steps, rates, self.parts(x), self.parts(dx), |_, _| false)
+        advect_radius(self.mac(), &lattices, steps, rates, self.grid.components(x), self.grid.components(dx), |_, _| false)
     }
 }
 
-/// `out = s + κ·Δs` on the own samples of the periodic face lattice `lat`
-/// of `axis` (the `2D+1`-point Laplacian, wrapping on every axis:
-/// [`crate::diffusion::explicit`] on the lattice's [`Grid`]), its copies
-/// (face `n` along `axis`) refreshed.
-pub fn diffuse<const D: usize>(lat: &super::Lattice<D>, axis: usize, kappa: f64, s: &[f64], out: &mut [f64]) {
-    // Rows per slab in the array (one more along `axis` when it is y).
-    let rows = if D == 3 { lat.stride[2] / lat.stride[1] } else { lat.len / lat.stride[1] };
-    let grid =
-        Grid { stride: lat.stride[1], nx: lat.n[0], ny: lat.n[1], nz: if D == 3 { lat.n[2] } else { 1 }, wrap_x: true, wrap_y: true, wrap_z: D == 3, rows };
+/// `out = s + κ·Δs` on the own samples of the faces normal to `axis` of a
+/// periodic box of `n` cells (the `2D+1`-point Laplacian, wrapping on every
+/// axis: [`crate::diffusion::explicit`] on the face array's [`Grid`]), the
+/// copies (face `n` along `axis`) refreshed.
+///
+/// Integers in, no [`super::Lattice`]: a lattice struct (integers, then
+/// its origin's `f64`s) built here and handed on reached Enzyme mistyped,
+/// and the 3D gradient came out wrong (docs/pitfalls.md).
+#[inline(always)]
+pub fn diffuse<const D: usize>(n: [usize; D], axis: usize, kappa: f64, s: &[f64], out: &mut [f64]) {
+    // The face array: one more face along `axis` (the copy).
+    let len = |b: usize| n[b] + usize::from(b == axis);
+    let grid = Grid { stride: len(0), nx: n[0], ny: n[1], nz: if D == 3 { n[D - 1] } else { 1 }, wrap_x: true, wrap_y: true, wrap_z: D == 3, rows: len(1) };
     crate::diffusion::explicit(&grid, kappa, s, out);
-    refresh_copies(lat, axis, out);
+    refresh_copies(n, axis, out);
 }
 
-/// On the face lattice of `axis`, face `n` (the copy) set to face 0.
-pub fn refresh_copies<const D: usize>(lat: &super::Lattice<D>, axis: usize, f: &mut [f64]) {
-    let (st, shift) = (lat.stride[axis], lat.n[axis] * lat.stride[axis]);
-    // Layers along `axis`: `st` values inside each, `len / (st·(n + 1))` of them.
-    for outer in 0..lat.len / (st * (lat.n[axis] + 1)) {
-        let base = outer * st * (lat.n[axis] + 1);
+/// On the faces normal to `axis` of a periodic box of `n` cells (the array
+/// with the copies), face `n` (the copy) set to face 0.
+#[inline(always)]
+pub fn refresh_copies<const D: usize>(n: [usize; D], axis: usize, f: &mut [f64]) {
+    // Values inside one layer along `axis`, and layers of `n + 1` faces.
+    let mut st = 1;
+    let mut total = 1;
+    each_axis!(D, b => {
+        let m = n[b] + usize::from(b == axis);
+        if b < axis {
+            st *= m;
+        }
+        total *= m;
+    });
+    let (na, shift) = (n[axis], n[axis] * st);
+    for outer in 0..total / (st * (na + 1)) {
+        let base = outer * st * (na + 1);
         for c in base..base + st {
             f[c + shift] = f[c];
         }

@@ -67,18 +67,76 @@ fn advect_on<const D: usize, W: Wraps<D>>(
     } else {
         copy(s, s2);
     }
+    advect_faces(mac, scheme, dt, velocity, vel, vel, vel2, hat, tilde);
+}
+
+/// The velocity components `fields` advected along `vel` over `dt` (if
+/// `velocity`; copied otherwise) into the packed `out`; `hat` and `tilde`
+/// scratch of MacCormack, their first values used. `fields` is `vel`
+/// itself, or the velocity when `vel` is the velocity scaled by the time
+/// step ([`advect_velocity`]).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn advect_faces<const D: usize, W: Wraps<D>>(
+    mac: Mac<D, W>,
+    scheme: Scheme,
+    dt: f64,
+    velocity: bool,
+    vel: [&[f64]; D],
+    fields: [&[f64]; D],
+    out: &mut [f64],
+    hat: &mut [f64],
+    tilde: &mut [f64],
+) {
+    let half = hat.len().min(tilde.len());
     let mut start = 0;
     each_axis!(D, a => {
-        let len = vel[a].len();
+        let len = fields[a].len();
         let k = len.min(half);
-        let out = &mut vel2[start..start + len];
+        let o = &mut out[start..start + len];
         start += len;
         if velocity {
-            advect_field(mac, At::Face(a), scheme, dt, vel, vel[a], out, &mut hat[..k], &mut tilde[..k]);
+            advect_field(mac, At::Face(a), scheme, dt, vel, fields[a], o, &mut hat[..k], &mut tilde[..k]);
         } else {
-            copy(vel[a], out);
+            copy(fields[a], o);
         }
     });
+}
+
+/// The packed velocity `vel` advected by itself over `dt` cells per unit
+/// speed by `scheme` (the velocity part of [`advect`]); overwrites `out`.
+/// The velocity boundary conditions are the caller's: the faces they set
+/// (walls, inflow, periodic copies) hold traced values. `scratch` holds
+/// [`advect_velocity_scratch_len`] values. The Navier–Stokes step's
+/// advection ([`crate::mac::periodic`]).
+///
+/// The traces run along `dt·vel`, kept in `scratch`, with a unit step: a
+/// time step Enzyme differentiates (the Navier–Stokes gradient with
+/// respect to `dt`) reaches the traces only through that scaled velocity.
+/// With `dt` inside the traces, Enzyme's 3D derivative with respect to it
+/// was wrong; so was the whole 3D gradient when this function called
+/// [`enforce_boundary`], which [`advect`] calls too (docs/pitfalls.md).
+///
+/// # Panics
+/// If a length is wrong or an axis has fewer than 2 cells.
+#[inline(always)]
+pub fn advect_velocity<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, vel: &[f64], out: &mut [f64], scratch: &mut [f64]) {
+    let n = cfg.n_vel();
+    assert!(cfg.min_cells() >= 2 && vel.len() == n && out.len() == n, "advect_velocity: packed velocity lengths");
+    assert!(scratch.len() >= advect_velocity_scratch_len(cfg, scheme), "advect_velocity: scratch");
+    let (scaled, rest) = scratch.split_at_mut(n);
+    for (s, &v) in scaled.iter_mut().zip(vel) {
+        *s = dt * v;
+    }
+    let half = rest.len() / 2;
+    let (hat, tilde) = rest.split_at_mut(half);
+    with_mac!(cfg, mac => advect_faces(mac, scheme, 1.0, true, cfg.components(scaled), cfg.components(vel), out, hat, tilde));
+}
+
+/// Scratch of [`advect_velocity`]: the scaled velocity and
+/// [`advect_scratch_len`].
+pub fn advect_velocity_scratch_len<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme) -> usize {
+    cfg.n_vel() + advect_scratch_len(cfg, scheme)
 }
 
 /// A perturbation `d` of the state carried along the velocity of the

@@ -143,9 +143,12 @@ impl<const D: usize> MacGrid<D> {
     /// Splits a packed velocity `[u₀, …, u_{D−1}]` into its components.
     #[inline(always)]
     pub fn components<'a>(&self, vel: &'a [f64]) -> [&'a [f64]; D] {
-        // Filled from a splat of a slice (no array constructor Enzyme cannot
-        // type), one constant index at a time (docs/pitfalls.md).
-        let mut parts = [vel; D];
+        // Filled from a splat of an empty slice (no array constructor Enzyme
+        // cannot type; a splat of `vel` itself stored its length, an
+        // argument Enzyme could not type, when `vel` was the differentiated
+        // function's own argument), one constant index at a time
+        // (docs/pitfalls.md).
+        let mut parts = [&vel[..0]; D];
         let mut start = 0;
         crate::mac::each_axis!(D, a => {
             let len = self.n_face(a);

@@ -1,0 +1,264 @@
+//! Incompressible Navier–Stokes on a box periodic on every axis, in 2D and
+//! 3D, as an operator with its gradient (docs/navier-stokes.md): the state
+//! is the packed MAC velocity `[u, v(, w)]` (each face array with its
+//! periodic copies), the parameters `p = [ν, dt]`.
+//!
+//! One call takes `dt` in `k` equal sub-steps, `k` chosen at the start of
+//! the call from the velocity and the parameters (the viscous number and
+//! the Courant number within their limits,
+//! [`Periodic::substeps`]), so that a call is one function of its input and
+//! its gradient that function's. Each sub-step is three maps: the advection
+//! of the velocity by itself ([`PeriodicAdvect`], the fluid operators' own
+//! code), the viscosity ([`PeriodicViscosity`]), each differentiated by
+//! Enzyme, and the projection by FFT, a linear map that is its own adjoint.
+//! The VJP runs the sub-steps again to have their states, then goes back
+//! through them.
+
+use std::cell::{Cell, RefCell};
+
+use diffsim_solvers::mac::fft::FftProjection;
+use diffsim_solvers::mac::periodic::{COURANT_LIMIT, Periodic, viscous_limit};
+
+use crate::op::{Forward, Jvp, OpError, OpMessage, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+
+/// More sub-steps than this in one call is refused (recorded as
+/// [`OpError::Unstable`], the velocity left as it was): the velocity has
+/// blown up or `dt` is far beyond the flow's time scale.
+pub const MAX_SUBSTEPS: usize = 4096;
+
+/// The advection of one sub-step: the packed velocity advected by itself
+/// over `p[0]` ([`Periodic::advect`]). Derivatives by Enzyme, with respect
+/// to the velocity and the time step.
+#[derive(Clone, Copy, Debug)]
+pub struct PeriodicAdvect<const D: usize>(pub Periodic<D>);
+
+/// The viscosity of one sub-step, `p = [ν, dt]`: each component `u ↦ u +
+/// ν·dt·Δu/h²` ([`Periodic::viscosity`]). Derivatives by Enzyme.
+#[derive(Clone, Copy, Debug)]
+pub struct PeriodicViscosity<const D: usize>(pub Periodic<D>);
+
+macro_rules! velocity_sizes {
+    ($t:ident, $params:expr) => {
+        impl<const D: usize> Operator for $t<D> {
+            fn n_in(&self) -> usize {
+                self.0.n_vel()
+            }
+            fn n_out(&self) -> usize {
+                self.0.n_vel()
+            }
+            fn n_params(&self) -> usize {
+                $params
+            }
+        }
+    };
+}
+velocity_sizes!(PeriodicAdvect, 1);
+velocity_sizes!(PeriodicViscosity, 2);
+
+/// The thin wrappers Enzyme differentiates.
+fn periodic_advect<const D: usize>(op: &PeriodicAdvect<D>, x: &[f64], p: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+    op.0.advect(p[0], x, y, scratch)
+}
+
+fn periodic_advect_scratch<const D: usize>(op: &PeriodicAdvect<D>) -> usize {
+    op.0.advect_scratch_len()
+}
+
+fn periodic_advect_radius<const D: usize>(op: &PeriodicAdvect<D>, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+    op.0.radius(p[0], x, dx, dp[0])
+}
+
+fn periodic_viscosity<const D: usize>(op: &PeriodicViscosity<D>, x: &[f64], p: &[f64], y: &mut [f64]) {
+    op.0.viscosity(p[0], p[1], x, y)
+}
+
+crate::differentiable!(PeriodicAdvect<2> => periodic_advect::<2>, smooth_radius = periodic_advect_radius::<2>, scratch = periodic_advect_scratch::<2>);
+crate::differentiable!(PeriodicAdvect<3> => periodic_advect::<3>, smooth_radius = periodic_advect_radius::<3>, scratch = periodic_advect_scratch::<3>);
+crate::differentiable!(PeriodicViscosity<2> => periodic_viscosity::<2>);
+crate::differentiable!(PeriodicViscosity<3> => periodic_viscosity::<3>);
+
+/// One step of incompressible Navier–Stokes on a periodic box: `x` the
+/// packed velocity, `p = [ν, dt]` (the box's own `viscosity` is not used:
+/// the parameter is). A call it refuses leaves the velocity as it was and
+/// reports why ([`Forward::take_error`]): `ν` or `dt` negative or not
+/// finite ([`OpError::Input`]), a velocity not finite or needing more than
+/// [`MAX_SUBSTEPS`] sub-steps ([`OpError::Unstable`]).
+#[derive(Debug)]
+pub struct PeriodicNavierStokes<const D: usize> {
+    flow: Periodic<D>,
+    fft: RefCell<FftProjection<D>>,
+    error: Cell<Option<OpError>>,
+}
+
+impl<const D: usize> PeriodicNavierStokes<D> {
+    /// The step of the box `flow` (its cells, cell size and scheme).
+    pub fn new(flow: Periodic<D>) -> Self {
+        Self { flow, fft: RefCell::new(FftProjection::new(flow.n())), error: Cell::new(None) }
+    }
+
+    /// The box.
+    pub fn flow(&self) -> &Periodic<D> {
+        &self.flow
+    }
+
+    /// The sub-steps of a call at `(x, p)`, or the error that refuses it
+    /// (checked before any generated code runs): `ν` or `dt` negative or
+    /// not finite, a velocity not finite, or more than [`MAX_SUBSTEPS`].
+    fn substeps(&self, x: &[f64], p: &[f64]) -> Result<usize, OpError> {
+        let flow = &self.flow;
+        // One test per parameter: an array of (name, value) pairs iterated
+        // by value trips Enzyme's type analysis (docs/pitfalls.md).
+        let refuse = |name: &str, v: f64| OpError::Input(OpMessage::new(&format!("PeriodicNavierStokes: {name} must be finite and ≥ 0, got {v}")));
+        if !(p[0].is_finite() && p[0] >= 0.0) {
+            return Err(refuse("the viscosity p[0]", p[0]));
+        }
+        if !(p[1].is_finite() && p[1] >= 0.0) {
+            return Err(refuse("the time step p[1]", p[1]));
+        }
+        let k = flow.substeps(p[0], p[1], x);
+        if k > MAX_SUBSTEPS || x.iter().any(|v| !v.is_finite()) {
+            let speed = x.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            let (courant, kappa) = (speed * p[1] / flow.h, p[0] * p[1] / (flow.h * flow.h));
+            let (value, limit) = if courant.is_nan() || courant / COURANT_LIMIT >= kappa / viscous_limit(D) {
+                (courant, COURANT_LIMIT * MAX_SUBSTEPS as f64)
+            } else {
+                (kappa, viscous_limit(D) * MAX_SUBSTEPS as f64)
+            };
+            return Err(OpError::Unstable { value, limit });
+        }
+        Ok(k)
+    }
+
+    /// One sub-step's advection, viscosity and projection from `x`: the
+    /// advected velocity into `advected`, the result into `y`.
+    fn substep(&self, x: &[f64], sub: f64, nu: f64, advected: &mut [f64], y: &mut [f64])
+    where
+        PeriodicAdvect<D>: Forward,
+        PeriodicViscosity<D>: Forward,
+    {
+        PeriodicAdvect(self.flow).forward(x, &[sub], advected);
+        PeriodicViscosity(self.flow).forward(advected, &[nu, sub], y);
+        self.flow.project(&mut self.fft.borrow_mut(), y);
+    }
+}
+
+impl<const D: usize> Operator for PeriodicNavierStokes<D> {
+    fn n_in(&self) -> usize {
+        self.flow.n_vel()
+    }
+    fn n_out(&self) -> usize {
+        self.flow.n_vel()
+    }
+    fn n_params(&self) -> usize {
+        2
+    }
+}
+
+impl<const D: usize> Forward for PeriodicNavierStokes<D>
+where
+    PeriodicAdvect<D>: Forward,
+    PeriodicViscosity<D>: Forward,
+{
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "PeriodicNavierStokes", x, p, y);
+        let k = match self.substeps(x, p) {
+            Ok(k) => k,
+            Err(e) => {
+                y.copy_from_slice(x);
+                self.error.set(Some(e));
+                return;
+            }
+        };
+        let sub = p[1] / k as f64;
+        let (mut cur, mut advected) = (x.to_vec(), vec![0.0; x.len()]);
+        for _ in 0..k {
+            self.substep(&cur, sub, p[0], &mut advected, y);
+            cur.copy_from_slice(y);
+        }
+    }
+
+    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+        match self.substeps(x, p) {
+            Ok(k) => self.flow.radius(p[1] / k as f64, x, dx, dp[1] / k as f64),
+            Err(_) => 0.0,
+        }
+    }
+
+    fn take_error(&self) -> Option<OpError> {
+        self.error.take()
+    }
+}
+
+impl<const D: usize> Vjp for PeriodicNavierStokes<D>
+where
+    PeriodicAdvect<D>: Vjp,
+    PeriodicViscosity<D>: Vjp,
+{
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "PeriodicNavierStokes", x, p, dy, dx, dp);
+        let Ok(k) = self.substeps(x, p) else {
+            // The forward left the velocity as it was (and reported why).
+            for (d, g) in dx.iter_mut().zip(dy.iter_mut()) {
+                *d += std::mem::take(g);
+            }
+            return;
+        };
+        let (sub, nu, n) = (p[1] / k as f64, p[0], x.len());
+        // The state before each sub-step and its advected velocity.
+        let mut states = vec![x.to_vec()];
+        let mut advected = Vec::with_capacity(k);
+        for i in 0..k {
+            let (mut a, mut next) = (vec![0.0; n], vec![0.0; n]);
+            self.substep(&states[i], sub, nu, &mut a, &mut next);
+            advected.push(a);
+            if i + 1 < k {
+                states.push(next);
+            }
+        }
+        let (advect, viscosity) = (PeriodicAdvect(self.flow), PeriodicViscosity(self.flow));
+        let mut g = dy.to_vec();
+        dy.fill(0.0);
+        let mut ga = vec![0.0; n];
+        for (state, a) in states.iter().zip(&advected).rev() {
+            self.flow.project_adjoint(&mut self.fft.borrow_mut(), &mut g);
+            let (mut gv, mut gx) = ([0.0; 2], vec![0.0; n]);
+            ga.fill(0.0);
+            viscosity.vjp(a, &[nu, sub], &mut g, &mut ga, &mut gv);
+            let mut gt = [0.0];
+            advect.vjp(state, &[sub], &mut ga, &mut gx, &mut gt);
+            dp[0] += gv[0];
+            dp[1] += (gv[1] + gt[0]) / k as f64;
+            g = gx;
+        }
+        for (d, g) in dx.iter_mut().zip(&g) {
+            *d += g;
+        }
+    }
+}
+
+impl<const D: usize> Jvp for PeriodicNavierStokes<D>
+where
+    PeriodicAdvect<D>: Jvp,
+    PeriodicViscosity<D>: Jvp,
+{
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        validate_jvp(self, "PeriodicNavierStokes", x, p, tx, tp, y, ty);
+        let Ok(k) = self.substeps(x, p) else {
+            y.copy_from_slice(x);
+            ty.copy_from_slice(tx);
+            return;
+        };
+        let (sub, tsub, n) = (p[1] / k as f64, tp[1] / k as f64, x.len());
+        let (advect, viscosity) = (PeriodicAdvect(self.flow), PeriodicViscosity(self.flow));
+        let (mut cur, mut tcur) = (x.to_vec(), tx.to_vec());
+        let (mut a, mut ta) = (vec![0.0; n], vec![0.0; n]);
+        for _ in 0..k {
+            advect.jvp(&cur, &[sub], &tcur, &[tsub], &mut a, &mut ta);
+            viscosity.jvp(&a, &[p[0], sub], &ta, &[tp[0], tsub], y, ty);
+            self.flow.project(&mut self.fft.borrow_mut(), y);
+            self.flow.project(&mut self.fft.borrow_mut(), ty);
+            cur.copy_from_slice(y);
+            tcur.copy_from_slice(ty);
+        }
+    }
+}

@@ -1,0 +1,84 @@
+//! Periodic Navier–Stokes as an operator (`src/navier_stokes.rs`), 2D and 3D
+//! from one code: the three gradient checks with respect to the velocity,
+//! the viscosity and the time step, with one sub-step and with several;
+//! a call split into sub-steps is those sub-steps; a blown-up velocity or
+//! a bad parameter is an error, not a result.
+
+use diffsim::check::{CheckParams, check_all};
+use diffsim::navier_stokes::{PeriodicAdvect, PeriodicNavierStokes, PeriodicViscosity};
+use diffsim::op::{Forward, OpError};
+use diffsim_solvers::exact::on_faces;
+use diffsim_solvers::mac::periodic::Periodic;
+use diffsim_solvers::smoke::Scheme;
+
+/// A smooth periodic velocity (a few low modes, amplitude about `a`) on the
+/// faces of the box, copies included.
+fn velocity<const D: usize>(flow: &Periodic<D>, a: f64, seed: usize) -> Vec<f64> {
+    on_faces(flow.n(), flow.h, |axis, p| {
+        let phase = seed as f64 * 0.37 + axis as f64 + p.iter().enumerate().map(|(b, x)| (b + 1 + seed % 3) as f64 * x).sum::<f64>();
+        a * (phase.sin() + 0.3 * (2.0 * phase + 1.0).cos() + 0.4)
+    })
+}
+
+fn checks<const D: usize>(n: [usize; D])
+where
+    PeriodicNavierStokes<D>: diffsim::op::Vjp + diffsim::op::Jvp,
+    PeriodicAdvect<D>: diffsim::op::Vjp + diffsim::op::Jvp,
+    PeriodicViscosity<D>: diffsim::op::Vjp + diffsim::op::Jvp,
+{
+    let h = 2.0 * std::f64::consts::PI / n[0] as f64;
+    for scheme in [Scheme::SemiLagrangian, Scheme::MacCormack { limiter: false }] {
+        let flow = Periodic::new(n, h, 0.0, scheme);
+        let op = PeriodicNavierStokes::new(flow);
+        let x = velocity(&flow, 0.3, 1);
+        // Its parts: the advection, the viscosity.
+        let r = check_all(&PeriodicAdvect(flow), &x, &[0.2], &CheckParams::default());
+        assert!(r.passed(), "advection, D = {D}, {scheme:?}:\n{r}");
+        let r = check_all(&PeriodicViscosity(flow), &x, &[0.05, 0.2], &CheckParams::default());
+        assert!(r.passed(), "viscosity, D = {D}, {scheme:?}:\n{r}");
+        // One sub-step, then two (the viscous number above its limit).
+        for p in [[0.05, 0.2], [0.9 * h * h, 0.3]] {
+            let r = check_all(&op, &x, &p, &CheckParams::default());
+            assert!(r.passed(), "D = {D}, {scheme:?}, p = {p:?}:\n{r}");
+        }
+    }
+}
+
+#[test]
+fn the_periodic_step_passes_the_three_checks_in_2d_and_3d() {
+    checks([8, 8]);
+    checks([5, 5, 5]);
+}
+
+#[test]
+fn a_call_is_its_substeps_and_a_blown_up_velocity_is_refused() {
+    let n = 8;
+    let h = 2.0 * std::f64::consts::PI / n as f64;
+    let flow = Periodic::new([n, n], h, 0.3, Scheme::MacCormack { limiter: true });
+    let op = PeriodicNavierStokes::new(flow);
+    let x = velocity(&flow, 1.0, 2);
+    let dt = 3.0 * h;
+    let k = flow.substeps(flow.viscosity, dt, &x);
+    assert!(k > 3, "{k} sub-steps");
+    let mut y = vec![0.0; x.len()];
+    op.forward(&x, &[flow.viscosity, dt], &mut y);
+    assert!(op.take_error().is_none());
+    let (mut by_hand, mut work) = (x.clone(), flow.work());
+    for _ in 0..k {
+        flow.substep(dt / k as f64, &mut by_hand, &mut work);
+    }
+    let diff = y.iter().zip(&by_hand).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(diff < 1e-13, "the operator and the solver's sub-steps differ by {diff:e}");
+    let mut bad = x.clone();
+    bad[5] = f64::INFINITY;
+    op.forward(&bad, &[flow.viscosity, dt], &mut y);
+    assert!(matches!(op.take_error(), Some(OpError::Unstable { .. })), "an infinite velocity must be refused");
+    assert_eq!(y, bad, "the refused call leaves the velocity as it was");
+    // A negative viscosity or a time step that is not finite: refused the same way.
+    op.forward(&x, &[-0.1, dt], &mut y);
+    let e = op.take_error();
+    assert!(matches!(e, Some(OpError::Input(_))) && y == x, "a negative viscosity: {e:?}");
+    op.forward(&x, &[flow.viscosity, f64::NAN], &mut y);
+    let e = op.take_error();
+    assert!(matches!(e, Some(OpError::Input(_))) && y == x, "a time step that is not a number: {e:?}");
+}
