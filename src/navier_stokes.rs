@@ -262,3 +262,77 @@ where
         }
     }
 }
+
+/// The packed face velocity of a periodic box on its cell centres
+/// ([`Periodic::faces_to_centres`]: a spectral half-cell shift per
+/// component, exact for band-limited fields); `D` values per cell out. A
+/// linear map; its VJP is its transpose.
+#[derive(Clone, Copy, Debug)]
+pub struct FacesToCentres<const D: usize>(pub Periodic<D>);
+
+/// The way back: `D` centred values per cell onto the faces, the periodic
+/// copies filled ([`Periodic::centres_to_faces`]).
+#[derive(Clone, Copy, Debug)]
+pub struct CentresToFaces<const D: usize>(pub Periodic<D>);
+
+impl<const D: usize> Operator for FacesToCentres<D> {
+    fn n_in(&self) -> usize {
+        self.0.n_vel()
+    }
+    fn n_out(&self) -> usize {
+        D * self.0.grid.n_s()
+    }
+}
+
+impl<const D: usize> Operator for CentresToFaces<D> {
+    fn n_in(&self) -> usize {
+        D * self.0.grid.n_s()
+    }
+    fn n_out(&self) -> usize {
+        self.0.n_vel()
+    }
+}
+
+/// Forward, VJP (the transpose, accumulated) and JVP (the map itself) of a
+/// linear conversion.
+macro_rules! linear_conversion {
+    ($t:ident, $map:ident, $transpose:ident) => {
+        impl<const D: usize> Forward for $t<D> {
+            fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+                validate_forward(self, stringify!($t), x, p, y);
+                y.copy_from_slice(&self.0.$map(x));
+            }
+        }
+        impl<const D: usize> Vjp for $t<D> {
+            fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+                validate_vjp(self, stringify!($t), x, p, dy, dx, dp);
+                for (d, g) in dx.iter_mut().zip(self.0.$transpose(dy)) {
+                    *d += g;
+                }
+                dy.fill(0.0);
+            }
+        }
+        impl<const D: usize> Jvp for $t<D> {
+            fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+                validate_jvp(self, stringify!($t), x, p, tx, tp, y, ty);
+                y.copy_from_slice(&self.0.$map(x));
+                ty.copy_from_slice(&self.0.$map(tx));
+            }
+        }
+    };
+}
+linear_conversion!(FacesToCentres, faces_to_centres, faces_to_centres_transpose);
+linear_conversion!(CentresToFaces, centres_to_faces, centres_to_faces_transpose);
+
+impl<const D: usize> PeriodicNavierStokes<D>
+where
+    PeriodicAdvect<D>: Vjp + Jvp,
+    PeriodicViscosity<D>: Vjp + Jvp,
+{
+    /// The step with its velocity in and out on the cell centres (`D`
+    /// values per cell, component after component, x fastest): the chain
+    /// [`CentresToFaces`], the step, [`FacesToCentres`]; `p = [ν, dt]`.
+    pub fn centred(flow: Periodic<D>) -> crate::op::Chain {
+        crate::op::Chain::new(vec![Box::new(CentresToFaces(flow)), Box::new(Self::new(flow)), Box::new(FacesToCentres(flow))])
+    }
+}

@@ -5,8 +5,10 @@
 //! (unit cells; in 3D `(i + ½, j + ½, k + ½)`); on a line, value `i` sits at `x = i·dx` (the grid points of
 //! a periodic line, as in benchmark P1).
 
+use std::f64::consts::TAU;
 use std::path::Path;
 
+use diffsim_solvers::exact::on_faces;
 use diffsim_solvers::flow::Shape;
 use diffsim_solvers::smoke::MacGrid;
 use diffsim_solvers::smoke::{Solid, enforce_boundary, solid_cells};
@@ -210,6 +212,28 @@ pub(super) fn field_init(key: &str, domain: &Domain, field: Field, init: &InitSp
             }
         }
         (InitSpec::Uniform(_), Field::Smoke, _) => return Err(SceneError::key(key, "`uniform` is for the velocity; use a shape, `sine`, `npy` or \"zero\"")),
+        (InitSpec::TaylorGreen(a), Field::Velocity, Domain::Box(cfg)) => {
+            let a = finite(&format!("{key}.taylor_green"), *a)?;
+            let (lx, ly) = (cfg.n[0] as f64, cfg.n[1] as f64);
+            let k = [TAU / lx, TAU / ly];
+            on_faces(
+                cfg.n,
+                1.0,
+                |axis, [x, y]| {
+                    if axis == 0 { a * (k[0] * x).sin() * (k[1] * y).cos() } else { -a * (ly / lx) * (k[0] * x).cos() * (k[1] * y).sin() }
+                },
+            )
+        }
+        (InitSpec::Abc(a), Field::Velocity, Domain::Box3(cfg)) => {
+            let a = finite(&format!("{key}.abc"), *a)?;
+            let k = cfg.n.map(|m| TAU / m as f64);
+            on_faces(cfg.n, 1.0, |axis, [x, y, z]| {
+                let (x, y, z) = (k[0] * x, k[1] * y, k[2] * z);
+                a * [z.sin() + y.cos(), x.sin() + z.cos(), y.sin() + x.cos()][axis]
+            })
+        }
+        (InitSpec::TaylorGreen(_), _, _) => return Err(SceneError::key(key, "`taylor_green` is a 2D velocity (size = [nx, ny])")),
+        (InitSpec::Abc(_), _, _) => return Err(SceneError::key(key, "`abc` is a 3D velocity (size = [nx, ny, nz])")),
         (InitSpec::Disc { .. } | InitSpec::Box { .. } | InitSpec::Sphere { .. }, Field::Velocity, Domain::Box(_)) => {
             return Err(SceneError::key(key, "a 2D velocity starts \"zero\", `uniform = [vx, vy]`, `sine` or `npy = [u, v]`"));
         }
@@ -236,7 +260,6 @@ pub(super) fn field_init(key: &str, domain: &Domain, field: Field, init: &InitSp
 
 /// `a·sin(2π·k·x/L)` at the field's sample positions.
 fn sine(domain: &Domain, field: Field, a: f64, k: &[f64]) -> Vec<f64> {
-    use std::f64::consts::TAU;
     match domain {
         Domain::Line(l) => {
             let len = l.n as f64 * l.dx;

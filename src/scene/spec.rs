@@ -147,6 +147,15 @@ pub enum InitSpec {
     },
     /// The same vector on every face (velocity only), x first.
     Uniform(Vec<f64>),
+    /// The Taylor–Green vortex of this amplitude, one period across the box
+    /// (2D velocity only): `u = A·sin(2πx/Lx)·cos(2πy/Ly)`, `v =
+    /// −A·(Ly/Lx)·cos(2πx/Lx)·sin(2πy/Ly)`, divergence-free; with periodic
+    /// sides an exact solution that decays as `e^{−ν·(k_x² + k_y²)·t}`.
+    TaylorGreen(f64),
+    /// The Arnold–Beltrami–Childress flow (`A = B = C`) of this amplitude,
+    /// one period across the box (3D velocity only): in a periodic cube an
+    /// exact solution that decays as `e^{−ν·k²·t}`, `k = 2π/L`.
+    Abc(f64),
     /// Values from `.npy` files (float64 or float32), paths relative to the
     /// scene file: one file for a scalar field or a 1D velocity, two
     /// (`[u, v]`) for a 2D velocity.

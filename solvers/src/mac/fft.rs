@@ -300,3 +300,55 @@ impl<const D: usize> FftProjection<D> {
         }
     }
 }
+
+/// Moves a periodic field of `n` samples per axis (x fastest) by `shift`
+/// samples along `axis` in place, by the Fourier shift theorem: each mode
+/// `k` (signed, `|k| < m/2` on an axis of `m` samples) multiplied by
+/// `e^{2πi·k·shift/m}`, so that a band-limited field is moved exactly. The
+/// Nyquist mode of an even `m` (real, a sign per sample) keeps its real
+/// part, `cos(π·shift)`: a half-sample shift drops it. Linear in the field;
+/// its transpose is the shift by `−shift` (the Nyquist factor is even).
+/// Every rustfft call is in this non-generic function (see [`Transforms`]).
+///
+/// # Panics
+/// If `field` does not have `Π n` values or `axis` is not an axis.
+#[inline(never)]
+pub fn shift_along(n: &[usize], axis: usize, shift: f64, field: &mut [f64]) {
+    let cells: usize = n.iter().product();
+    assert!(axis < n.len() && field.len() == cells, "shift_along: {} values for {n:?}, axis {axis}", field.len());
+    let m = n[axis];
+    let mut planner = FftPlanner::<f64>::new();
+    let (forward, inverse) = (planner.plan_fft_forward(m), planner.plan_fft_inverse(m));
+    let mut scratch = vec![Complex::default(); forward.get_inplace_scratch_len().max(inverse.get_inplace_scratch_len())];
+    // The shift per mode, with the inverse transform's 1/m.
+    let t = 2.0 * std::f64::consts::PI * shift / m as f64;
+    let factor: Vec<Complex<f64>> = (0..m)
+        .map(|k| {
+            let c = if 2 * k == m {
+                Complex::new((std::f64::consts::PI * shift).cos(), 0.0)
+            } else {
+                let signed = if 2 * k < m { k as f64 } else { k as f64 - m as f64 };
+                Complex::from_polar(1.0, t * signed)
+            };
+            c / m as f64
+        })
+        .collect();
+    let inner: usize = n[..axis].iter().product();
+    let (block, blocks) = (inner * m, cells / (inner * m));
+    let mut line = vec![Complex::default(); m];
+    for b in 0..blocks {
+        for i in 0..inner {
+            for (k, l) in line.iter_mut().enumerate() {
+                *l = Complex::new(field[b * block + k * inner + i], 0.0);
+            }
+            forward.process_with_scratch(&mut line, &mut scratch);
+            for (l, f) in line.iter_mut().zip(&factor) {
+                *l *= f;
+            }
+            inverse.process_with_scratch(&mut line, &mut scratch);
+            for (k, l) in line.iter().enumerate() {
+                field[b * block + k * inner + i] = l.re;
+            }
+        }
+    }
+}

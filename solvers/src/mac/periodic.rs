@@ -213,6 +213,122 @@ impl<const D: usize> Periodic<D> {
     }
 }
 
+impl<const D: usize> Periodic<D> {
+    /// The packed face velocity `vel` on the cell centres: each component
+    /// moved half a cell along its own axis by the Fourier shift theorem
+    /// ([`super::fft::shift_along`]), exact for a band-limited field (no
+    /// `cos²(πk/n)` damping, as a linear average has); returns the `D`
+    /// components, each on the `Π n` cells (x fastest), one after another.
+    ///
+    /// # Panics
+    /// If `vel` has the wrong length.
+    pub fn faces_to_centres(&self, vel: &[f64]) -> Vec<f64> {
+        assert_eq!(vel.len(), self.n_vel(), "faces_to_centres: length of the packed velocity");
+        let n = self.n();
+        let mut out = Vec::with_capacity(D * self.grid.n_s());
+        let mut start = 0;
+        for a in 0..D {
+            let len = self.face_len(a);
+            let mut own = own_faces(n, a, &vel[start..start + len]);
+            super::fft::shift_along(&n, a, 0.5, &mut own);
+            out.extend_from_slice(&own);
+            start += len;
+        }
+        out
+    }
+
+    /// The inverse of [`Self::faces_to_centres`] (and its transpose): the
+    /// `D` centred components moved back half a cell along their axes onto
+    /// the faces, the periodic copies filled. A round trip returns a
+    /// band-limited field to rounding (measured in docs/navier-stokes.md).
+    ///
+    /// # Panics
+    /// If `centred` does not have `D` values per cell.
+    pub fn centres_to_faces(&self, centred: &[f64]) -> Vec<f64> {
+        let cells = self.grid.n_s();
+        assert_eq!(centred.len(), D * cells, "centres_to_faces: D values per cell");
+        let n = self.n();
+        let mut out = Vec::with_capacity(self.n_vel());
+        for a in 0..D {
+            let mut own = centred[a * cells..(a + 1) * cells].to_vec();
+            super::fft::shift_along(&n, a, -0.5, &mut own);
+            out.extend(with_copies(n, a, &own));
+        }
+        out
+    }
+
+    /// The transpose of [`Self::faces_to_centres`]: centred adjoints `g`
+    /// onto the faces (the copies, which the conversion does not read, get
+    /// zero).
+    pub fn faces_to_centres_transpose(&self, g: &[f64]) -> Vec<f64> {
+        let mut out = self.centres_to_faces(g);
+        self.zero_copies(&mut out);
+        out
+    }
+
+    /// The transpose of [`Self::centres_to_faces`]: face adjoints `g` (the
+    /// copies' added to the faces they copy) onto the centres.
+    pub fn centres_to_faces_transpose(&self, g: &[f64]) -> Vec<f64> {
+        assert_eq!(g.len(), self.n_vel(), "centres_to_faces_transpose: length of the packed adjoint");
+        let n = self.n();
+        let mut out = Vec::with_capacity(D * self.grid.n_s());
+        let mut start = 0;
+        for a in 0..D {
+            let len = self.face_len(a);
+            let faces = &g[start..start + len];
+            let mut own = own_faces(n, a, faces);
+            let inner: usize = n[..a].iter().product();
+            // Face `n` along `a` is a copy of face 0: its adjoint goes there.
+            for (o, layer) in own.chunks_mut(inner * n[a]).zip(faces.chunks(inner * (n[a] + 1))) {
+                for (x, c) in o[..inner].iter_mut().zip(&layer[inner * n[a]..]) {
+                    *x += c;
+                }
+            }
+            super::fft::shift_along(&n, a, 0.5, &mut own);
+            out.extend_from_slice(&own);
+            start += len;
+        }
+        out
+    }
+
+    /// The periodic copies of the packed velocity `vel` set to zero.
+    fn zero_copies(&self, vel: &mut [f64]) {
+        let n = self.n();
+        let mut start = 0;
+        for a in 0..D {
+            let len = self.face_len(a);
+            let inner: usize = n[..a].iter().product();
+            for layer in vel[start..start + len].chunks_mut(inner * (n[a] + 1)) {
+                layer[inner * n[a]..].fill(0.0);
+            }
+            start += len;
+        }
+    }
+}
+
+/// The faces normal to `axis` that hold their own value (the copies along
+/// `axis` left out), as a field of `Π n` samples.
+pub(crate) fn own_faces<const D: usize>(n: [usize; D], axis: usize, faces: &[f64]) -> Vec<f64> {
+    let inner: usize = n[..axis].iter().product();
+    let na = n[axis];
+    let mut out = Vec::with_capacity(n.iter().product());
+    for layer in faces.chunks(inner * (na + 1)) {
+        out.extend_from_slice(&layer[..inner * na]);
+    }
+    out
+}
+
+/// The inverse of [`own_faces`]: the face array of `axis` with its copies.
+fn with_copies<const D: usize>(n: [usize; D], axis: usize, own: &[f64]) -> Vec<f64> {
+    let inner: usize = n[..axis].iter().product();
+    let mut out = Vec::with_capacity(own.len() / n[axis] * (n[axis] + 1));
+    for layer in own.chunks(inner * n[axis]) {
+        out.extend_from_slice(layer);
+        out.extend_from_slice(&layer[..inner]);
+    }
+    out
+}
+
 /// `out = s + κ·Δs` on the own samples of the faces normal to `axis` of a
 /// periodic box of `n` cells (the `2D+1`-point Laplacian, wrapping on every
 /// axis: [`crate::diffusion::explicit`] on the face array's [`Grid`]), the
