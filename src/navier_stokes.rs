@@ -37,6 +37,24 @@ pub struct PeriodicAdvect<const D: usize>(pub Periodic<D>);
 #[derive(Clone, Copy, Debug)]
 pub struct PeriodicViscosity<const D: usize>(pub Periodic<D>);
 
+/// A body force over one sub-step, `p = [dt, f…]` with `f` one value per
+/// face (the packed velocity's layout): `u ↦ u + dt·f`. Derivatives by
+/// Enzyme, with respect to the velocity, the time step and the force.
+#[derive(Clone, Copy, Debug)]
+pub struct PeriodicForce<const D: usize>(pub Periodic<D>);
+
+impl<const D: usize> Operator for PeriodicForce<D> {
+    fn n_in(&self) -> usize {
+        self.0.n_vel()
+    }
+    fn n_out(&self) -> usize {
+        self.0.n_vel()
+    }
+    fn n_params(&self) -> usize {
+        1 + self.0.n_vel()
+    }
+}
+
 macro_rules! velocity_sizes {
     ($t:ident, $params:expr) => {
         impl<const D: usize> Operator for $t<D> {
@@ -72,6 +90,15 @@ fn periodic_viscosity<const D: usize>(op: &PeriodicViscosity<D>, x: &[f64], p: &
     op.0.viscosity(p[0], p[1], x, y)
 }
 
+fn periodic_force<const D: usize>(_op: &PeriodicForce<D>, x: &[f64], p: &[f64], y: &mut [f64]) {
+    let (dt, f) = (p[0], &p[1..]);
+    for ((y, &x), &f) in y.iter_mut().zip(x).zip(f) {
+        *y = x + dt * f;
+    }
+}
+
+crate::differentiable!(PeriodicForce<2> => periodic_force::<2>);
+crate::differentiable!(PeriodicForce<3> => periodic_force::<3>);
 crate::differentiable!(PeriodicAdvect<2> => periodic_advect::<2>, smooth_radius = periodic_advect_radius::<2>, scratch = periodic_advect_scratch::<2>);
 crate::differentiable!(PeriodicAdvect<3> => periodic_advect::<3>, smooth_radius = periodic_advect_radius::<3>, scratch = periodic_advect_scratch::<3>);
 crate::differentiable!(PeriodicViscosity<2> => periodic_viscosity::<2>);
@@ -86,6 +113,8 @@ crate::differentiable!(PeriodicViscosity<3> => periodic_viscosity::<3>);
 #[derive(Debug)]
 pub struct PeriodicNavierStokes<const D: usize> {
     flow: Periodic<D>,
+    /// Whether a body force follows `[ν, dt]` in the parameters.
+    forced: bool,
     fft: RefCell<FftProjection<D>>,
     error: Cell<Option<OpError>>,
 }
@@ -93,7 +122,15 @@ pub struct PeriodicNavierStokes<const D: usize> {
 impl<const D: usize> PeriodicNavierStokes<D> {
     /// The step of the box `flow` (its cells, cell size and scheme).
     pub fn new(flow: Periodic<D>) -> Self {
-        Self { flow, fft: RefCell::new(FftProjection::new(flow.n())), error: Cell::new(None) }
+        Self { flow, forced: false, fft: RefCell::new(FftProjection::new(flow.n())), error: Cell::new(None) }
+    }
+
+    /// The step under a body force: `p = [ν, dt, f…]`, `f` one value per
+    /// face in the packed velocity's layout (the copies' values unused:
+    /// the projection refreshes them), added over each sub-step after the
+    /// viscosity ([`PeriodicForce`]); the gradient reaches `f` too.
+    pub fn forced(flow: Periodic<D>) -> Self {
+        Self { forced: true, ..Self::new(flow) }
     }
 
     /// The box.
@@ -115,6 +152,9 @@ impl<const D: usize> PeriodicNavierStokes<D> {
         if !(p[1].is_finite() && p[1] >= 0.0) {
             return Err(refuse("the time step p[1]", p[1]));
         }
+        if let Some(i) = p[2..].iter().position(|f| !f.is_finite()) {
+            return Err(OpError::Input(OpMessage::new(&format!("PeriodicNavierStokes: the force p[{}] is {}", i + 2, p[2 + i]))));
+        }
         let k = flow.substeps(p[0], p[1], x);
         if k > MAX_SUBSTEPS || x.iter().any(|v| !v.is_finite()) {
             let speed = x.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -129,15 +169,27 @@ impl<const D: usize> PeriodicNavierStokes<D> {
         Ok(k)
     }
 
-    /// One sub-step's advection, viscosity and projection from `x`: the
-    /// advected velocity into `advected`, the result into `y`.
-    fn substep(&self, x: &[f64], sub: f64, nu: f64, advected: &mut [f64], y: &mut [f64])
+    /// The force's parameters over a sub-step of `sub`: `[sub, f…]`.
+    fn force_params(p: &[f64], sub: f64) -> Vec<f64> {
+        std::iter::once(sub).chain(p[2..].iter().copied()).collect()
+    }
+
+    /// One sub-step from `x` (`sub` its time step): the advected velocity
+    /// into `advected`, the velocity after the viscosity into `viscous`
+    /// (with a force; else straight into `y`), the result into `y`.
+    fn substep(&self, x: &[f64], p: &[f64], sub: f64, advected: &mut [f64], viscous: &mut [f64], y: &mut [f64])
     where
         PeriodicAdvect<D>: Forward,
         PeriodicViscosity<D>: Forward,
+        PeriodicForce<D>: Forward,
     {
         PeriodicAdvect(self.flow).forward(x, &[sub], advected);
-        PeriodicViscosity(self.flow).forward(advected, &[nu, sub], y);
+        if self.forced {
+            PeriodicViscosity(self.flow).forward(advected, &[p[0], sub], viscous);
+            PeriodicForce(self.flow).forward(viscous, &Self::force_params(p, sub), y);
+        } else {
+            PeriodicViscosity(self.flow).forward(advected, &[p[0], sub], y);
+        }
         self.flow.project(&mut self.fft.borrow_mut(), y);
     }
 }
@@ -150,7 +202,7 @@ impl<const D: usize> Operator for PeriodicNavierStokes<D> {
         self.flow.n_vel()
     }
     fn n_params(&self) -> usize {
-        2
+        if self.forced { 2 + self.flow.n_vel() } else { 2 }
     }
 }
 
@@ -158,6 +210,7 @@ impl<const D: usize> Forward for PeriodicNavierStokes<D>
 where
     PeriodicAdvect<D>: Forward,
     PeriodicViscosity<D>: Forward,
+    PeriodicForce<D>: Forward,
 {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "PeriodicNavierStokes", x, p, y);
@@ -170,9 +223,9 @@ where
             }
         };
         let sub = p[1] / k as f64;
-        let (mut cur, mut advected) = (x.to_vec(), vec![0.0; x.len()]);
+        let (mut cur, mut advected, mut viscous) = (x.to_vec(), vec![0.0; x.len()], vec![0.0; x.len()]);
         for _ in 0..k {
-            self.substep(&cur, sub, p[0], &mut advected, y);
+            self.substep(&cur, p, sub, &mut advected, &mut viscous, y);
             cur.copy_from_slice(y);
         }
     }
@@ -193,6 +246,7 @@ impl<const D: usize> Vjp for PeriodicNavierStokes<D>
 where
     PeriodicAdvect<D>: Vjp,
     PeriodicViscosity<D>: Vjp,
+    PeriodicForce<D>: Vjp,
 {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         validate_vjp(self, "PeriodicNavierStokes", x, p, dy, dx, dp);
@@ -204,23 +258,32 @@ where
             return;
         };
         let (sub, nu, n) = (p[1] / k as f64, p[0], x.len());
-        // The state before each sub-step and its advected velocity.
+        // Each sub-step's starting state, advected velocity and (with a
+        // force) velocity after the viscosity.
         let mut states = vec![x.to_vec()];
-        let mut advected = Vec::with_capacity(k);
+        let (mut advected, mut viscous) = (Vec::with_capacity(k), Vec::with_capacity(k));
         for i in 0..k {
-            let (mut a, mut next) = (vec![0.0; n], vec![0.0; n]);
-            self.substep(&states[i], sub, nu, &mut a, &mut next);
+            let (mut a, mut v, mut next) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+            self.substep(&states[i], p, sub, &mut a, &mut v, &mut next);
             advected.push(a);
+            viscous.push(v);
             if i + 1 < k {
                 states.push(next);
             }
         }
-        let (advect, viscosity) = (PeriodicAdvect(self.flow), PeriodicViscosity(self.flow));
+        let (advect, viscosity, force) = (PeriodicAdvect(self.flow), PeriodicViscosity(self.flow), PeriodicForce(self.flow));
+        let fp = if self.forced { Self::force_params(p, sub) } else { Vec::new() };
+        let mut gf = vec![0.0; fp.len()];
         let mut g = dy.to_vec();
         dy.fill(0.0);
-        let mut ga = vec![0.0; n];
-        for (state, a) in states.iter().zip(&advected).rev() {
+        let (mut ga, mut gw) = (vec![0.0; n], vec![0.0; n]);
+        for ((state, a), v) in states.iter().zip(&advected).zip(&viscous).rev() {
             self.flow.project_adjoint(&mut self.fft.borrow_mut(), &mut g);
+            if self.forced {
+                gw.fill(0.0);
+                force.vjp(v, &fp, &mut g, &mut gw, &mut gf);
+                std::mem::swap(&mut g, &mut gw);
+            }
             let (mut gv, mut gx) = ([0.0; 2], vec![0.0; n]);
             ga.fill(0.0);
             viscosity.vjp(a, &[nu, sub], &mut g, &mut ga, &mut gv);
@@ -229,6 +292,13 @@ where
             dp[0] += gv[0];
             dp[1] += (gv[1] + gt[0]) / k as f64;
             g = gx;
+        }
+        if self.forced {
+            // The force's time step is the sub-step's: dt/k.
+            dp[1] += gf[0] / k as f64;
+            for (d, g) in dp[2..].iter_mut().zip(&gf[1..]) {
+                *d += g;
+            }
         }
         for (d, g) in dx.iter_mut().zip(&g) {
             *d += g;
@@ -240,6 +310,7 @@ impl<const D: usize> Jvp for PeriodicNavierStokes<D>
 where
     PeriodicAdvect<D>: Jvp,
     PeriodicViscosity<D>: Jvp,
+    PeriodicForce<D>: Jvp,
 {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         validate_jvp(self, "PeriodicNavierStokes", x, p, tx, tp, y, ty);
@@ -249,12 +320,18 @@ where
             return;
         };
         let (sub, tsub, n) = (p[1] / k as f64, tp[1] / k as f64, x.len());
-        let (advect, viscosity) = (PeriodicAdvect(self.flow), PeriodicViscosity(self.flow));
+        let (advect, viscosity, force) = (PeriodicAdvect(self.flow), PeriodicViscosity(self.flow), PeriodicForce(self.flow));
+        let (fp, tfp) = if self.forced { (Self::force_params(p, sub), Self::force_params(tp, tsub)) } else { (Vec::new(), Vec::new()) };
         let (mut cur, mut tcur) = (x.to_vec(), tx.to_vec());
-        let (mut a, mut ta) = (vec![0.0; n], vec![0.0; n]);
+        let (mut a, mut ta, mut v, mut tv) = (vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]);
         for _ in 0..k {
             advect.jvp(&cur, &[sub], &tcur, &[tsub], &mut a, &mut ta);
-            viscosity.jvp(&a, &[p[0], sub], &ta, &[tp[0], tsub], y, ty);
+            if self.forced {
+                viscosity.jvp(&a, &[p[0], sub], &ta, &[tp[0], tsub], &mut v, &mut tv);
+                force.jvp(&v, &fp, &tv, &tfp, y, ty);
+            } else {
+                viscosity.jvp(&a, &[p[0], sub], &ta, &[tp[0], tsub], y, ty);
+            }
             self.flow.project(&mut self.fft.borrow_mut(), y);
             self.flow.project(&mut self.fft.borrow_mut(), ty);
             cur.copy_from_slice(y);
@@ -328,6 +405,7 @@ impl<const D: usize> PeriodicNavierStokes<D>
 where
     PeriodicAdvect<D>: Vjp + Jvp,
     PeriodicViscosity<D>: Vjp + Jvp,
+    PeriodicForce<D>: Vjp + Jvp,
 {
     /// The step with its velocity in and out on the cell centres (`D`
     /// values per cell, component after component, x fastest): the chain

@@ -97,3 +97,33 @@ fn the_step_on_cell_centres_passes_the_three_checks_in_2d_and_3d() {
     let r = check_all(&PeriodicNavierStokes::centred(flow3), &x3, &[0.05, 0.2], &CheckParams::default());
     assert!(r.passed(), "3D:\n{r}");
 }
+
+#[test]
+fn a_body_force_holds_the_taylor_green_vortex_steady_and_its_gradient_checks() {
+    // f = 2ν·u₀ balances the viscous decay of the Taylor–Green vortex
+    // (Δu₀ = −2u₀ on [0, 2π]²; its advection is a gradient): forced, the
+    // vortex stays; unforced, it decays to e^{−2νt}.
+    let (n, nu, dt) = (32, 0.5, 0.1);
+    let h = 2.0 * std::f64::consts::PI / n as f64;
+    let flow = Periodic::new([n, n], h, nu, Scheme::MacCormack { limiter: false });
+    let u0 = on_faces([n, n], h, |a, [x, y]| if a == 0 { x.sin() * y.cos() } else { -x.cos() * y.sin() });
+    let mut p = vec![nu, dt];
+    p.extend(u0.iter().map(|u| 2.0 * nu * u));
+    let (forced, free) = (PeriodicNavierStokes::forced(flow), PeriodicNavierStokes::new(flow));
+    let (mut a, mut b) = (u0.clone(), u0.clone());
+    for _ in 0..10 {
+        a = forced.eval(&a, &p);
+        b = free.eval(&b, &p[..2]);
+    }
+    let off = |v: &[f64], scale: f64| v.iter().zip(&u0).fold(0.0f64, |m, (x, u)| m.max((x - scale * u).abs()));
+    assert!(off(&a, 1.0) < 0.02, "forced: {:.3e} from the initial vortex", off(&a, 1.0));
+    assert!(off(&b, (-2.0 * nu).exp()) < 0.02 && off(&b, 1.0) > 0.5, "unforced: {:.3e} from the exact decay", off(&b, (-2.0 * nu).exp()));
+    // The three checks with respect to the velocity, ν, dt and the force.
+    let small = Periodic::new([8, 8], 2.0 * std::f64::consts::PI / 8.0, 0.0, Scheme::MacCormack { limiter: false });
+    let op = PeriodicNavierStokes::forced(small);
+    let x = velocity(&small, 0.3, 3);
+    let mut q = vec![0.05, 0.2];
+    q.extend(velocity(&small, 0.5, 4));
+    let r = check_all(&op, &x, &q, &CheckParams::default());
+    assert!(r.passed(), "forced step:\n{r}");
+}

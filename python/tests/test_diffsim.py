@@ -193,5 +193,10 @@ def test_the_periodic_navier_stokes_step_decays_taylor_green_and_passes_the_chec
     with pytest.raises(diffsim.SimulationError, match="viscosity"):
         op.forward(x, np.array([-1.0, dt]))
     assert diffsim.navier_stokes_step([4, 4, 4]).n_in == 3 * 4 * 4 * 5
+    # With a body force f = 2ν·u₀ the vortex holds (Δu₀ = −2u₀).
+    forced = diffsim.navier_stokes_step([n, n], forced=True)
+    assert forced.n_params == 2 + tg.size
+    held = forced.forward(tg, np.concatenate([[nu, dt], 2 * nu * tg]))
+    assert np.max(np.abs(held - tg)) < 0.5 * np.max(np.abs(y - tg))
     with pytest.raises(diffsim.DiffsimError, match="2 or 3"):
         diffsim.navier_stokes_step([8])

@@ -300,10 +300,11 @@ pub(crate) fn smoke_step(n: usize) -> PyResult<Operator> {
 /// of face 0) in and out, the parameters `p = [ν, dt]`. A step is split
 /// into stable sub-steps (advection by `scheme`, `"maccormack"` or
 /// `"semi_lagrangian"`; explicit viscosity; projection by FFT); Enzyme's
-/// derivatives with respect to the velocity, ν and dt.
+/// derivatives with respect to the velocity, ν and dt. With `forced`, a
+/// body force follows: `p = [ν, dt, f…]`, one value per face.
 #[pyfunction]
-#[pyo3(signature = (n, scheme = "maccormack", length = std::f64::consts::TAU))]
-pub(crate) fn navier_stokes_step(n: Vec<usize>, scheme: &str, length: f64) -> PyResult<Operator> {
+#[pyo3(signature = (n, scheme = "maccormack", length = std::f64::consts::TAU, forced = false))]
+pub(crate) fn navier_stokes_step(n: Vec<usize>, scheme: &str, length: f64, forced: bool) -> PyResult<Operator> {
     use diffsim::navier_stokes::PeriodicNavierStokes;
     use diffsim_solvers::mac::periodic::Periodic;
     use diffsim_solvers::smoke::Scheme;
@@ -322,11 +323,13 @@ pub(crate) fn navier_stokes_step(n: Vec<usize>, scheme: &str, length: f64) -> Py
     let name = format!("navier_stokes_step(n={n:?})");
     match n[..] {
         [nx, ny] => {
-            let step = diffsim::op::PerThread::new(move || PeriodicNavierStokes::new(Periodic::new([nx, ny], h, 0.0, scheme)));
+            let make = if forced { PeriodicNavierStokes::forced } else { PeriodicNavierStokes::new };
+            let step = diffsim::op::PerThread::new(move || make(Periodic::new([nx, ny], h, 0.0, scheme)));
             Ok(Operator::new(Arc::new(StepOp(step)), name))
         }
         [nx, ny, nz] => {
-            let step = diffsim::op::PerThread::new(move || PeriodicNavierStokes::new(Periodic::new([nx, ny, nz], h, 0.0, scheme)));
+            let make = if forced { PeriodicNavierStokes::forced } else { PeriodicNavierStokes::new };
+            let step = diffsim::op::PerThread::new(move || make(Periodic::new([nx, ny, nz], h, 0.0, scheme)));
             Ok(Operator::new(Arc::new(StepOp(step)), name))
         }
         _ => Err(DiffsimError::new_err(format!("n = {n:?}: give 2 or 3 cell counts, one per axis"))),
