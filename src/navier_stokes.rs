@@ -43,35 +43,29 @@ pub struct PeriodicViscosity<const D: usize>(pub Periodic<D>);
 #[derive(Clone, Copy, Debug)]
 pub struct PeriodicForce<const D: usize>(pub Periodic<D>);
 
-impl<const D: usize> Operator for PeriodicForce<D> {
-    fn n_in(&self) -> usize {
-        self.0.n_vel()
-    }
-    fn n_out(&self) -> usize {
-        self.0.n_vel()
-    }
-    fn n_params(&self) -> usize {
-        1 + self.0.n_vel()
-    }
-}
-
-macro_rules! velocity_sizes {
-    ($t:ident, $params:expr) => {
+/// The sizes of an operator on a box `$f` (the operator's `Periodic`).
+macro_rules! sizes {
+    ($t:ident, |$f:ident| $in:expr, $out:expr, $params:expr) => {
         impl<const D: usize> Operator for $t<D> {
             fn n_in(&self) -> usize {
-                self.0.n_vel()
+                let $f = &self.0;
+                $in
             }
             fn n_out(&self) -> usize {
-                self.0.n_vel()
+                let $f = &self.0;
+                $out
             }
             fn n_params(&self) -> usize {
+                let $f = &self.0;
+                let _ = $f;
                 $params
             }
         }
     };
 }
-velocity_sizes!(PeriodicAdvect, 1);
-velocity_sizes!(PeriodicViscosity, 2);
+sizes!(PeriodicAdvect, |f| f.n_vel(), f.n_vel(), 1);
+sizes!(PeriodicViscosity, |f| f.n_vel(), f.n_vel(), 2);
+sizes!(PeriodicForce, |f| f.n_vel(), f.n_vel(), 1 + f.n_vel());
 
 /// The thin wrappers Enzyme differentiates.
 fn periodic_advect<const D: usize>(op: &PeriodicAdvect<D>, x: &[f64], p: &[f64], y: &mut [f64], scratch: &mut [f64]) {
@@ -352,23 +346,8 @@ pub struct FacesToCentres<const D: usize>(pub Periodic<D>);
 #[derive(Clone, Copy, Debug)]
 pub struct CentresToFaces<const D: usize>(pub Periodic<D>);
 
-impl<const D: usize> Operator for FacesToCentres<D> {
-    fn n_in(&self) -> usize {
-        self.0.n_vel()
-    }
-    fn n_out(&self) -> usize {
-        D * self.0.grid.n_s()
-    }
-}
-
-impl<const D: usize> Operator for CentresToFaces<D> {
-    fn n_in(&self) -> usize {
-        D * self.0.grid.n_s()
-    }
-    fn n_out(&self) -> usize {
-        self.0.n_vel()
-    }
-}
+sizes!(FacesToCentres, |f| f.n_vel(), D * f.grid.n_s(), 0);
+sizes!(CentresToFaces, |f| D * f.grid.n_s(), f.n_vel(), 0);
 
 /// Forward, VJP (the transpose, accumulated) and JVP (the map itself) of a
 /// linear conversion.
