@@ -380,16 +380,84 @@ macro_rules! linear_conversion {
 linear_conversion!(FacesToCentres, faces_to_centres, faces_to_centres_transpose);
 linear_conversion!(CentresToFaces, centres_to_faces, centres_to_faces_transpose);
 
-impl<const D: usize> PeriodicNavierStokes<D>
+impl<const D: usize> PeriodicNavierStokes<D> {
+    /// This step with its velocity in and out on the cell centres (`D`
+    /// values per cell, component after component, x fastest): the
+    /// conversions [`CentresToFaces`] and [`FacesToCentres`] around it
+    /// ([`Centred`]); the parameters are the step's.
+    pub fn centred(self) -> Centred<D> {
+        Centred(self)
+    }
+}
+
+/// A [`PeriodicNavierStokes`] step with its velocity on the cell centres:
+/// `x ↦ F(step(C(x), p))` with `C` the way onto the faces and `F` the way
+/// back, both linear (their transposes in the VJP). Plain data and its own
+/// type (not a [`crate::op::Chain`]) so that batches run it per thread.
+#[derive(Debug)]
+pub struct Centred<const D: usize>(pub PeriodicNavierStokes<D>);
+
+impl<const D: usize> Operator for Centred<D> {
+    fn n_in(&self) -> usize {
+        D * self.0.flow.grid.n_s()
+    }
+    fn n_out(&self) -> usize {
+        D * self.0.flow.grid.n_s()
+    }
+    fn n_params(&self) -> usize {
+        self.0.n_params()
+    }
+}
+
+impl<const D: usize> Forward for Centred<D>
 where
-    PeriodicAdvect<D>: Vjp + Jvp,
-    PeriodicViscosity<D>: Vjp + Jvp,
-    PeriodicForce<D>: Vjp + Jvp,
+    PeriodicNavierStokes<D>: Forward,
 {
-    /// The step with its velocity in and out on the cell centres (`D`
-    /// values per cell, component after component, x fastest): the chain
-    /// [`CentresToFaces`], the step, [`FacesToCentres`]; `p = [ν, dt]`.
-    pub fn centred(flow: Periodic<D>) -> crate::op::Chain {
-        crate::op::Chain::new(vec![Box::new(CentresToFaces(flow)), Box::new(Self::new(flow)), Box::new(FacesToCentres(flow))])
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "Centred", x, p, y);
+        let flow = &self.0.flow;
+        let mut faces = vec![0.0; flow.n_vel()];
+        self.0.forward(&flow.centres_to_faces(x), p, &mut faces);
+        y.copy_from_slice(&flow.faces_to_centres(&faces));
+    }
+
+    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+        let flow = &self.0.flow;
+        self.0.smooth_radius(&flow.centres_to_faces(x), p, &flow.centres_to_faces(dx), dp)
+    }
+
+    fn take_error(&self) -> Option<OpError> {
+        self.0.take_error()
+    }
+}
+
+impl<const D: usize> Vjp for Centred<D>
+where
+    PeriodicNavierStokes<D>: Vjp,
+{
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "Centred", x, p, dy, dx, dp);
+        let flow = &self.0.flow;
+        let mut g = flow.faces_to_centres_transpose(dy);
+        dy.fill(0.0);
+        let mut gfaces = vec![0.0; flow.n_vel()];
+        self.0.vjp(&flow.centres_to_faces(x), p, &mut g, &mut gfaces, dp);
+        for (d, g) in dx.iter_mut().zip(flow.centres_to_faces_transpose(&gfaces)) {
+            *d += g;
+        }
+    }
+}
+
+impl<const D: usize> Jvp for Centred<D>
+where
+    PeriodicNavierStokes<D>: Jvp,
+{
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        validate_jvp(self, "Centred", x, p, tx, tp, y, ty);
+        let flow = &self.0.flow;
+        let (mut yf, mut tyf) = (vec![0.0; flow.n_vel()], vec![0.0; flow.n_vel()]);
+        self.0.jvp(&flow.centres_to_faces(x), p, &flow.centres_to_faces(tx), tp, &mut yf, &mut tyf);
+        y.copy_from_slice(&flow.faces_to_centres(&yf));
+        ty.copy_from_slice(&flow.faces_to_centres(&tyf));
     }
 }

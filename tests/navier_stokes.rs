@@ -90,11 +90,14 @@ fn the_step_on_cell_centres_passes_the_three_checks_in_2d_and_3d() {
     // wrapped in the spectral conversions.
     let flow2 = Periodic::new([8, 8], 2.0 * std::f64::consts::PI / 8.0, 0.0, Scheme::MacCormack { limiter: false });
     let x2 = FacesToCentres(flow2).eval(&velocity(&flow2, 0.3, 2), &[]);
-    let r = check_all(&PeriodicNavierStokes::centred(flow2), &x2, &[0.05, 0.2], &CheckParams::default());
+    let r = check_all(&PeriodicNavierStokes::new(flow2).centred(), &x2, &[0.05, 0.2], &CheckParams::default());
     assert!(r.passed(), "2D:\n{r}");
     let flow3 = Periodic::new([5, 5, 5], 2.0 * std::f64::consts::PI / 5.0, 0.0, Scheme::SemiLagrangian);
     let x3 = FacesToCentres(flow3).eval(&velocity(&flow3, 0.3, 2), &[]);
-    let r = check_all(&PeriodicNavierStokes::centred(flow3), &x3, &[0.05, 0.2], &CheckParams::default());
+    // Under a body force too (given on the faces).
+    let mut p3 = vec![0.05, 0.2];
+    p3.extend(velocity(&flow3, 0.5, 5));
+    let r = check_all(&PeriodicNavierStokes::forced(flow3).centred(), &x3, &p3, &CheckParams::default());
     assert!(r.passed(), "3D:\n{r}");
 }
 

@@ -301,11 +301,13 @@ pub(crate) fn smoke_step(n: usize) -> PyResult<Operator> {
 /// into stable sub-steps (advection by `scheme`, `"maccormack"` or
 /// `"semi_lagrangian"`; explicit viscosity; projection by FFT); Enzyme's
 /// derivatives with respect to the velocity, ν and dt. With `forced`, a
-/// body force follows: `p = [ν, dt, f…]`, one value per face.
+/// body force follows: `p = [ν, dt, f…]`, one value per face. With
+/// `centred`, the velocity in and out is `D` values per cell (component
+/// after component), moved to and from the faces by a spectral half-cell
+/// shift.
 #[pyfunction]
-#[pyo3(signature = (n, scheme = "maccormack", length = std::f64::consts::TAU, forced = false))]
-pub(crate) fn navier_stokes_step(n: Vec<usize>, scheme: &str, length: f64, forced: bool) -> PyResult<Operator> {
-    use diffsim::navier_stokes::PeriodicNavierStokes;
+#[pyo3(signature = (n, scheme = "maccormack", length = std::f64::consts::TAU, forced = false, centred = false))]
+pub(crate) fn navier_stokes_step(n: Vec<usize>, scheme: &str, length: f64, forced: bool, centred: bool) -> PyResult<Operator> {
     use diffsim_solvers::mac::periodic::Periodic;
     use diffsim_solvers::smoke::Scheme;
     let scheme = match scheme {
@@ -322,17 +324,25 @@ pub(crate) fn navier_stokes_step(n: Vec<usize>, scheme: &str, length: f64, force
     let h = length / n[0] as f64;
     let name = format!("navier_stokes_step(n={n:?})");
     match n[..] {
-        [nx, ny] => {
-            let make = if forced { PeriodicNavierStokes::forced } else { PeriodicNavierStokes::new };
-            let step = diffsim::op::PerThread::new(move || make(Periodic::new([nx, ny], h, 0.0, scheme)));
-            Ok(Operator::new(Arc::new(StepOp(step)), name))
-        }
-        [nx, ny, nz] => {
-            let make = if forced { PeriodicNavierStokes::forced } else { PeriodicNavierStokes::new };
-            let step = diffsim::op::PerThread::new(move || make(Periodic::new([nx, ny, nz], h, 0.0, scheme)));
-            Ok(Operator::new(Arc::new(StepOp(step)), name))
-        }
+        [nx, ny] => Ok(periodic_step(Periodic::new([nx, ny], h, 0.0, scheme), forced, centred, name)),
+        [nx, ny, nz] => Ok(periodic_step(Periodic::new([nx, ny, nz], h, 0.0, scheme), forced, centred, name)),
         _ => Err(DiffsimError::new_err(format!("n = {n:?}: give 2 or 3 cell counts, one per axis"))),
+    }
+}
+
+/// The periodic step of `flow` as a Python operator (one per thread of a
+/// batch), forced or not, on the faces or the centres.
+fn periodic_step<const D: usize>(flow: diffsim_solvers::mac::periodic::Periodic<D>, forced: bool, centred: bool, name: String) -> Operator
+where
+    diffsim::navier_stokes::PeriodicNavierStokes<D>: Vjp + Jvp,
+    diffsim::navier_stokes::Centred<D>: Vjp + Jvp,
+{
+    use diffsim::navier_stokes::PeriodicNavierStokes;
+    let make = move || if forced { PeriodicNavierStokes::forced(flow) } else { PeriodicNavierStokes::new(flow) };
+    if centred {
+        Operator::new(Arc::new(StepOp(diffsim::op::PerThread::new(move || make().centred()))), name)
+    } else {
+        Operator::new(Arc::new(StepOp(diffsim::op::PerThread::new(make))), name)
     }
 }
 
