@@ -25,12 +25,17 @@ macro_rules! state_sizes {
         state_sizes!($ty, |_op| 0);
     };
     ($ty:ident, |$op:ident| $params:expr) => {
+        state_sizes!($ty, cfg, |$op| $params);
+    };
+    // `$grid`: the field holding the operator's `MacGrid` (`cfg`, or `0`
+    // in a tuple struct).
+    ($ty:ident, $grid:tt, |$op:ident| $params:expr) => {
         impl<const D: usize> $crate::op::Operator for $ty<D> {
             fn n_in(&self) -> usize {
-                self.cfg.n_state()
+                self.$grid.n_state()
             }
             fn n_out(&self) -> usize {
-                self.cfg.n_state()
+                self.$grid.n_state()
             }
             fn n_params(&self) -> usize {
                 let $op = self;
@@ -39,6 +44,7 @@ macro_rules! state_sizes {
         }
     };
 }
+pub(crate) use state_sizes;
 
 /// Explicit diffusion of a field on a lattice ([`Grid`]), `s' = s − κ·A·s`,
 /// with the parameter `p = [κ]` (κ = ν·dt). Derivatives by Enzyme, with

@@ -217,7 +217,9 @@ where
             }
         };
         let sub = p[1] / k as f64;
-        let (mut cur, mut advected, mut viscous) = (x.to_vec(), vec![0.0; x.len()], vec![0.0; x.len()]);
+        // The velocity after the viscosity is kept apart only under a force.
+        let viscous_len = if self.forced { x.len() } else { 0 };
+        let (mut cur, mut advected, mut viscous) = (x.to_vec(), vec![0.0; x.len()], vec![0.0; viscous_len]);
         for _ in 0..k {
             self.substep(&cur, p, sub, &mut advected, &mut viscous, y);
             cur.copy_from_slice(y);
@@ -257,7 +259,7 @@ where
         let mut states = vec![x.to_vec()];
         let (mut advected, mut viscous) = (Vec::with_capacity(k), Vec::with_capacity(k));
         for i in 0..k {
-            let (mut a, mut v, mut next) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+            let (mut a, mut v, mut next) = (vec![0.0; n], vec![0.0; if self.forced { n } else { 0 }], vec![0.0; n]);
             self.substep(&states[i], p, sub, &mut a, &mut v, &mut next);
             advected.push(a);
             viscous.push(v);

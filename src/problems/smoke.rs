@@ -23,14 +23,7 @@ use crate::op::{Forward, Jvp, LocalInverse, OpError, Operator, Vjp, validate_for
 #[derive(Clone, Copy, Debug)]
 pub struct SmokeAdvect<const D: usize>(pub MacGrid<D>);
 
-impl<const D: usize> Operator for SmokeAdvect<D> {
-    fn n_in(&self) -> usize {
-        self.0.n_state()
-    }
-    fn n_out(&self) -> usize {
-        self.0.n_state()
-    }
-}
+crate::fluids::state_sizes!(SmokeAdvect, 0, |_op| 0);
 
 impl<const D: usize> Forward for SmokeAdvect<D> {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
@@ -83,14 +76,7 @@ fn closed_in_3d<const D: usize>(cfg: &MacGrid<D>) {
 #[derive(Clone, Copy, Debug)]
 pub struct SmokeAdvectWhole<const D: usize>(MacGrid<D>);
 
-impl<const D: usize> Operator for SmokeAdvectWhole<D> {
-    fn n_in(&self) -> usize {
-        self.0.n_state()
-    }
-    fn n_out(&self) -> usize {
-        self.0.n_state()
-    }
-}
+crate::fluids::state_sizes!(SmokeAdvectWhole, 0, |_op| 0);
 
 /// The thin wrapper Enzyme differentiates in 2D (any box).
 fn smoke_advect_2d(op: &SmokeAdvectWhole<2>, x: &[f64], _p: &[f64], y: &mut [f64]) {
@@ -169,14 +155,7 @@ crate::differentiable!(SmokeAdvectSlabs<3> => smoke_advect_slabs::<3>, smooth_ra
 #[derive(Clone, Copy, Debug)]
 pub struct SmokeAdvectHand<const D: usize>(pub MacGrid<D>);
 
-impl<const D: usize> Operator for SmokeAdvectHand<D> {
-    fn n_in(&self) -> usize {
-        self.0.n_state()
-    }
-    fn n_out(&self) -> usize {
-        self.0.n_state()
-    }
-}
+crate::fluids::state_sizes!(SmokeAdvectHand, 0, |_op| 0);
 
 impl<const D: usize> Forward for SmokeAdvectHand<D> {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {

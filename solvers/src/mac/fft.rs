@@ -184,16 +184,8 @@ impl<const D: usize> FftProjection<D> {
     }
 
     /// Calls `f(face 0, its copy)` for every copy of axis `a`'s face array.
-    pub(crate) fn for_copies(&self, a: usize, mut f: impl FnMut(usize, usize)) {
-        let ext: [usize; D] = std::array::from_fn(|b| self.n[b] + (a == b) as usize);
-        let stride: usize = ext[..a].iter().product();
-        let outer: usize = ext[a + 1..].iter().product();
-        for o in 0..outer {
-            for i in 0..stride {
-                let face = o * stride * ext[a] + i;
-                f(face, face + self.n[a] * stride);
-            }
-        }
+    pub(crate) fn for_copies(&self, a: usize, f: impl FnMut(usize, usize)) {
+        for_copies(self.n, a, f)
     }
 
     /// The own faces of each component into the pairs' complex fields (the
@@ -297,6 +289,21 @@ impl<const D: usize> FftProjection<D> {
                 }
                 q[a] = 0;
             }
+        }
+    }
+}
+
+/// Calls `f(face 0, its copy)` for every periodic copy in the array of the
+/// faces normal to `a` of a box of `n` cells (face `n_a` along `a` copies
+/// face 0).
+pub(crate) fn for_copies<const D: usize>(n: [usize; D], a: usize, mut f: impl FnMut(usize, usize)) {
+    let ext: [usize; D] = std::array::from_fn(|b| n[b] + (a == b) as usize);
+    let stride: usize = ext[..a].iter().product();
+    let outer: usize = ext[a + 1..].iter().product();
+    for o in 0..outer {
+        for i in 0..stride {
+            let face = o * stride * ext[a] + i;
+            f(face, face + n[a] * stride);
         }
     }
 }

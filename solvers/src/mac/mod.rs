@@ -20,6 +20,26 @@
 // Loops over the axes index several per-axis arrays at once.
 #![allow(clippy::needless_range_loop)]
 
+/// Runs `$body` once per `$k` in the listed constants below `$m`, each
+/// copy with `$k` a constant: a small loop written out (the mechanism of
+/// [`each_axis`] and [`each_corner`]).
+macro_rules! unrolled {
+    ($m:expr, $k:ident => $body:block; $($i:literal)*) => {{
+        // A running value the last copy updates is not read again.
+        #[allow(unused_assignments, unconditional_panic, clippy::identity_op, clippy::absurd_extreme_comparisons)]
+        {
+            let m: usize = $m;
+            $(
+                if $i < m {
+                    let $k: usize = $i;
+                    $body
+                }
+            )*
+        }
+    }};
+}
+pub(crate) use unrolled;
+
 /// Runs `$body` once per axis `0..D` (`D` at most 3), with `$a` a
 /// constant in each copy: the loop written out. In code Enzyme
 /// differentiates, an index into a small array (`n[a]`, `stride[a]`) by a
@@ -27,24 +47,9 @@
 /// every offset, which clashes with the floating-point fields that follow it
 /// in memory (docs/pitfalls.md); a constant index does not.
 macro_rules! each_axis {
-    ($d:expr, $a:ident => $body:block) => {{
-        // A running value the last copy updates is not read again.
-        #[allow(unused_assignments)]
-        {
-            {
-                let $a: usize = 0;
-                $body
-            }
-            if $d > 1 {
-                let $a: usize = 1;
-                $body
-            }
-            if $d > 2 {
-                let $a: usize = 2;
-                $body
-            }
-        }
-    }};
+    ($d:expr, $a:ident => $body:block) => {
+        $crate::mac::unrolled!($d, $a => $body; 0 1 2)
+    };
 }
 pub(crate) use each_axis;
 
@@ -74,44 +79,9 @@ pub(crate) use on_axis;
 /// of a cell in 3D), each copy with `$k` a constant: the small loops of
 /// the multilinear sample written out, for the reason of [`each_axis`].
 macro_rules! each_corner {
-    ($m:expr, $k:ident => $body:block) => {{
-        #[allow(unused_assignments, unconditional_panic, clippy::identity_op)]
-        {
-            let m: usize = $m;
-            if 0 < m {
-                let $k: usize = 0;
-                $body
-            }
-            if 1 < m {
-                let $k: usize = 1;
-                $body
-            }
-            if 2 < m {
-                let $k: usize = 2;
-                $body
-            }
-            if 3 < m {
-                let $k: usize = 3;
-                $body
-            }
-            if 4 < m {
-                let $k: usize = 4;
-                $body
-            }
-            if 5 < m {
-                let $k: usize = 5;
-                $body
-            }
-            if 6 < m {
-                let $k: usize = 6;
-                $body
-            }
-            if 7 < m {
-                let $k: usize = 7;
-                $body
-            }
-        }
-    }};
+    ($m:expr, $k:ident => $body:block) => {
+        $crate::mac::unrolled!($m, $k => $body; 0 1 2 3 4 5 6 7)
+    };
 }
 #[allow(unused_imports)]
 pub(crate) use each_corner;

@@ -108,6 +108,18 @@ impl<const D: usize> Periodic<D> {
         k
     }
 
+    /// Steps the packed velocity `vel` from time 0 to `t` in the fewest
+    /// equal steps of at most `max_dt` (each split into stable sub-steps by
+    /// [`Self::step`]); returns the number of steps.
+    pub fn run(&self, t: f64, max_dt: f64, vel: &mut [f64]) -> usize {
+        let mut work = self.work();
+        let steps = (t / max_dt).ceil() as usize;
+        for _ in 0..steps {
+            self.step(t / steps as f64, vel, &mut work);
+        }
+        steps
+    }
+
     /// One sub-step of `dt` (no splitting): [`Self::explicit`], then the
     /// projection.
     pub fn substep(&self, dt: f64, vel: &mut [f64], work: &mut PeriodicWork<D>) {
@@ -226,13 +238,10 @@ impl<const D: usize> Periodic<D> {
         assert_eq!(vel.len(), self.n_vel(), "faces_to_centres: length of the packed velocity");
         let n = self.n();
         let mut out = Vec::with_capacity(D * self.grid.n_s());
-        let mut start = 0;
         for a in 0..D {
-            let len = self.face_len(a);
-            let mut own = own_faces(n, a, &vel[start..start + len]);
+            let mut own = own_faces(n, a, &vel[self.grid.face_range(a)]);
             super::fft::shift_along(&n, a, 0.5, &mut own);
             out.extend_from_slice(&own);
-            start += len;
         }
         out
     }
@@ -262,47 +271,24 @@ impl<const D: usize> Periodic<D> {
     /// zero).
     pub fn faces_to_centres_transpose(&self, g: &[f64]) -> Vec<f64> {
         let mut out = self.centres_to_faces(g);
-        self.zero_copies(&mut out);
+        for a in 0..D {
+            let faces = &mut out[self.grid.face_range(a)];
+            super::fft::for_copies(self.n(), a, |_, copy| faces[copy] = 0.0);
+        }
         out
     }
 
-    /// The transpose of [`Self::centres_to_faces`]: face adjoints `g` (the
-    /// copies' added to the faces they copy) onto the centres.
+    /// The transpose of [`Self::centres_to_faces`]: face adjoints `g`, each
+    /// copy's added to the face it copies, then [`Self::faces_to_centres`]
+    /// (which reads no copy).
     pub fn centres_to_faces_transpose(&self, g: &[f64]) -> Vec<f64> {
         assert_eq!(g.len(), self.n_vel(), "centres_to_faces_transpose: length of the packed adjoint");
-        let n = self.n();
-        let mut out = Vec::with_capacity(D * self.grid.n_s());
-        let mut start = 0;
+        let mut folded = g.to_vec();
         for a in 0..D {
-            let len = self.face_len(a);
-            let faces = &g[start..start + len];
-            let mut own = own_faces(n, a, faces);
-            let inner: usize = n[..a].iter().product();
-            // Face `n` along `a` is a copy of face 0: its adjoint goes there.
-            for (o, layer) in own.chunks_mut(inner * n[a]).zip(faces.chunks(inner * (n[a] + 1))) {
-                for (x, c) in o[..inner].iter_mut().zip(&layer[inner * n[a]..]) {
-                    *x += c;
-                }
-            }
-            super::fft::shift_along(&n, a, 0.5, &mut own);
-            out.extend_from_slice(&own);
-            start += len;
+            let faces = &mut folded[self.grid.face_range(a)];
+            super::fft::for_copies(self.n(), a, |face, copy| faces[face] += faces[copy]);
         }
-        out
-    }
-
-    /// The periodic copies of the packed velocity `vel` set to zero.
-    fn zero_copies(&self, vel: &mut [f64]) {
-        let n = self.n();
-        let mut start = 0;
-        for a in 0..D {
-            let len = self.face_len(a);
-            let inner: usize = n[..a].iter().product();
-            for layer in vel[start..start + len].chunks_mut(inner * (n[a] + 1)) {
-                layer[inner * n[a]..].fill(0.0);
-            }
-            start += len;
-        }
+        self.faces_to_centres(&folded)
     }
 }
 
