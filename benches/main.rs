@@ -82,7 +82,7 @@ fn p2(c: &mut Criterion) {
 /// P4 smoke3d at 32³ × 10 (the spec's first size): forward, Enzyme gradient,
 /// hand-adjoint gradient.
 fn p4(c: &mut Criterion) {
-    use diffsim::problems::smoke3d::P4;
+    use diffsim::problems::smoke::P4;
     let mut g = c.benchmark_group("p4_smoke3d");
     g.sample_size(10);
     let p = P4::new(32, 10, Preconditioner::Multigrid);
@@ -110,59 +110,41 @@ criterion_group!(benches, p1, p1_step, p2, p3, p4, solver_parts, periodic_projec
 criterion_main!(benches);
 
 /// The projection of a fully periodic box, by FFT against conjugate
-/// gradients to 1e-8 (2D: MIC(0), the periodic 2D solver's
-/// preconditioner; 3D: the aggregation V-cycle), at 64², 128² and 32³
-/// (docs/fluids.md, "Periodic boxes").
+/// gradients to 1e-8 preconditioned by multigrid (the aggregation V-cycle),
+/// at 64², 128² and 32³ (docs/fluids.md, "Periodic boxes").
 fn periodic_projection(c: &mut Criterion) {
-    use diffsim_solvers::boundary::{Boundary, Side};
-    use diffsim_solvers::mac::fft::FftProjection;
-    use diffsim_solvers::smoke::{self, MacGrid, ProjectScratch};
-    use diffsim_solvers::smoke3d::{self, PressureSolver3};
-    let field = |len: usize| -> Vec<f64> { (0..len).map(|k| ((k as f64) * 0.618).fract() - 0.5).collect() };
     let mut g = c.benchmark_group("periodic_projection");
     g.sample_size(20);
     for n in [64, 128] {
-        let cfg = MacGrid::new([n, n]).with_boundary(Boundary::all(Side::Periodic));
-        let x = field(cfg.n_state());
-        let mut y = x.clone();
-        let mut solver = smoke::PressureSolver::general(n, n, cfg.boundary, 1e-8, 5000, None);
-        let mut scratch = ProjectScratch::new(n * n);
-        g.bench_function(BenchmarkId::new("cg_2d", n), |b| {
-            b.iter(|| {
-                y.copy_from_slice(&x);
-                smoke::project(&cfg, &mut y, &mut solver, &mut scratch).unwrap()
-            })
-        });
-        let mut fft = FftProjection::new([n, n]);
-        g.bench_function(BenchmarkId::new("fft_2d", n), |b| {
-            b.iter(|| {
-                y.copy_from_slice(&x);
-                let (_, [u, v]) = cfg.split_mut(&mut y);
-                fft.project([u, v])
-            })
-        });
+        periodic_projection_at(&mut g, [n, n]);
     }
-    let n = 32;
-    let cfg = MacGrid::new([n, n, n]).with_dt(1.0).with_boundary(Boundary::all(Side::Periodic));
-    let x = field(cfg.n_state());
-    let mut y = x.clone();
-    let mut solver = PressureSolver3::new(&cfg, 1e-8, 5000, smoke::Preconditioner::Multigrid);
-    let mut scratch = ProjectScratch::new(cfg.n_s());
-    g.bench_function(BenchmarkId::new("cg_3d", n), |b| {
-        b.iter(|| {
-            y.copy_from_slice(&x);
-            smoke3d::project(&cfg, &mut y, &mut solver, &mut scratch).unwrap()
-        })
-    });
-    let mut fft = FftProjection::new([n, n, n]);
-    g.bench_function(BenchmarkId::new("fft_3d", n), |b| {
-        b.iter(|| {
-            y.copy_from_slice(&x);
-            let (_, [u, v, w]) = cfg.split_mut(&mut y);
-            fft.project([u, v, w])
-        })
-    });
+    periodic_projection_at(&mut g, [32; 3]);
     g.finish();
+}
+
+/// [`periodic_projection`] on a box of `n` cells.
+fn periodic_projection_at<const D: usize>(g: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>, n: [usize; D]) {
+    use diffsim_solvers::boundary::{Boundary, Side};
+    use diffsim_solvers::mac::fft::FftProjection;
+    use diffsim_solvers::smoke::{self, MacGrid, PressureSolver, ProjectScratch};
+    let cfg = MacGrid::new(n).with_boundary(Boundary::all(Side::Periodic));
+    let x: Vec<f64> = (0..cfg.n_state()).map(|k| ((k as f64) * 0.618).fract() - 0.5).collect();
+    let mut y = x.clone();
+    let mut solver = PressureSolver::new(&cfg, 1e-8, 5000, Preconditioner::Multigrid);
+    let mut scratch = ProjectScratch::new(cfg.n_s());
+    g.bench_function(BenchmarkId::new(format!("cg_{D}d"), n[0]), |b| {
+        b.iter(|| {
+            y.copy_from_slice(&x);
+            smoke::project(&cfg, &mut y, &mut solver, &mut scratch).unwrap()
+        })
+    });
+    let mut fft = FftProjection::new(n);
+    g.bench_function(BenchmarkId::new(format!("fft_{D}d"), n[0]), |b| {
+        b.iter(|| {
+            y.copy_from_slice(&x);
+            fft.project(cfg.split_mut(&mut y).1)
+        })
+    });
 }
 
 /// One multigrid V-cycle and one plain CG matrix product at 64² and 128²,

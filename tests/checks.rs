@@ -204,56 +204,6 @@ pub(crate) fn smoke_state(cfg: &diffsim_solvers::smoke::MacGrid<2>, seed: u64) -
 }
 
 #[test]
-fn smoke_operators_pass_all_checks() {
-    use diffsim::problems::smoke::{SmokeAdvect, SmokeStep};
-    use diffsim_solvers::smoke::{MacGrid, Preconditioner};
-    // 5: odd, no coarse level; 8 and 12: two levels.
-    for n in [5, 8, 12] {
-        let cfg = MacGrid::p2(n);
-        let x = smoke_state(&cfg, n as u64);
-        assert_passes(&format!("SmokeAdvect n={n}"), &SmokeAdvect(cfg), &x, &[]);
-        // Tight solves so that the finite differences see the exact map.
-        for precond in [Preconditioner::Mic0, Preconditioner::Multigrid] {
-            let step = SmokeStep::new(cfg, 1e-13, 2000, precond);
-            assert_passes(&format!("SmokeStep n={n} {precond}"), &step, &x, &[]);
-        }
-    }
-}
-
-#[test]
-fn smoke_advection_hand_adjoint_matches_enzyme() {
-    use diffsim::check::{finite_differences, taylor};
-    use diffsim::problems::smoke::{SmokeAdvect, SmokeAdvectHand};
-    use diffsim_solvers::smoke::MacGrid;
-    for n in [5, 8] {
-        let cfg = MacGrid::p2(n);
-        let x = smoke_state(&cfg, 40 + n as u64);
-        let o = CheckParams { tol: 1e-12, ..Default::default() };
-        // Enzyme's JVP against the hand VJP: an independent pair.
-        let r = dot_product_between(&SmokeAdvect(cfg), &SmokeAdvectHand(cfg), &x, &[], &o);
-        assert!(r.verdict.passed(), "n = {n}: {r}");
-        let fd = finite_differences(&SmokeAdvectHand(cfg), &x, &[], &CheckParams::default());
-        assert!(fd.verdict.passed(), "n = {n}: {fd}");
-        let t = taylor(&SmokeAdvectHand(cfg), &x, &[], &CheckParams::default());
-        assert!(t.verdict.passed(), "n = {n}: {t}");
-    }
-}
-
-#[test]
-fn smoke_step_with_an_obstacle_passes_all_checks() {
-    use diffsim::problems::smoke::SmokeStep;
-    use diffsim_solvers::smoke::MacGrid;
-    for n in [6, 9] {
-        let cfg = MacGrid::p2(n);
-        // A 2×2 solid block off the centre.
-        let solid: Vec<bool> = (0..n * n).map(|c| (2..4).contains(&(c % n)) && (2..4).contains(&(c / n))).collect();
-        let step = SmokeStep::with_obstacles(cfg, 1e-13, 2000, &solid);
-        let x = smoke_state(&cfg, 70 + n as u64);
-        assert_passes(&format!("SmokeStep with obstacle n={n}"), &step, &x, &[]);
-    }
-}
-
-#[test]
 fn central_gradient_of_a_scalar_function_matches_its_derivative() {
     // f(x) = Σ sin(x_i)·x_{i+1} + x_i³: a smooth function with a known gradient.
     let f = |x: &[f64]| (0..x.len()).map(|i| x[i].sin() * x[(i + 1) % x.len()] + x[i].powi(3)).sum::<f64>();

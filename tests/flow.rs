@@ -116,26 +116,42 @@ fn bad_flows_are_refused_and_an_unfinished_march_says_so() {
 /// without an obstacle, in one or two iterations.
 #[test]
 fn the_direct_pressure_solve_matches_mic0_under_every_boundary() {
-    use diffsim_solvers::smoke::{MacGrid, PressureSolver, Solid, solid_cells};
-    let (nx, ny) = (24, 16);
+    use diffsim_solvers::smoke::Solid;
     let channel = Boundary { sides: [[Side::Inflow(Profile::Uniform(1.0)), Side::Outflow], [Side::Closed, Side::Closed]] };
     let boundaries = [Boundary::CLOSED, Boundary::axes([Side::Periodic, Side::Closed]), Boundary::all(Side::Periodic), channel];
-    for b in boundaries.iter() {
+    every_solve_matches_the_direct_one([24, 16], &boundaries, Solid::Ball { center: [8.0, 8.0], radius: 3.0 });
+    let channel = Boundary { sides: [[Side::Inflow(Profile::Uniform(1.0)), Side::Outflow], [Side::Closed; 2], [Side::Periodic; 2]] };
+    let boundaries = [Boundary::CLOSED, Boundary::axes([Side::Periodic, Side::Closed, Side::Closed]), Boundary::all(Side::Periodic), channel];
+    every_solve_matches_the_direct_one([10, 8, 6], &boundaries, Solid::Ball { center: [4.0, 4.0, 3.0], radius: 2.0 });
+}
+
+/// The pressure solve of a box of `n` cells under each of `boundaries`,
+/// with and without the solid `ball`, by CG with MIC(0), multigrid and no
+/// preconditioner, against the direct solve (sparse Cholesky, at most two
+/// iterations).
+fn every_solve_matches_the_direct_one<const D: usize>(n: [usize; D], boundaries: &[Boundary<D>], ball: diffsim_solvers::smoke::Solid<D>) {
+    use diffsim_solvers::smoke::{MacGrid, Preconditioner, PressureSolver, solid_cells};
+    let cells: usize = n.iter().product();
+    for b in boundaries {
+        let grid = MacGrid::new(n).with_boundary(*b);
         for with_obstacle in [false, true] {
-            let fluid = with_obstacle.then(|| {
-                let solid = solid_cells(&MacGrid::new([nx, ny]).with_boundary(*b), &[Solid::Ball { center: [8.0, 8.0], radius: 3.0 }]);
-                solid.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect::<Vec<f64>>()
-            });
-            let rhs: Vec<f64> = (0..nx * ny).map(|c| ((c * 37 % 11) as f64 - 5.0) * fluid.as_ref().map_or(1.0, |w| w[c])).collect();
-            let mut mic = PressureSolver::general(nx, ny, *b, 1e-12, 10_000, fluid.clone());
-            let mut direct = PressureSolver::general_direct(nx, ny, *b, 1e-12, 10_000, fluid.clone()).unwrap();
-            let (mut p1, mut p2) = (vec![0.0; nx * ny], vec![0.0; nx * ny]);
-            mic.solve(&rhs, &mut p1).unwrap();
+            let fluid = with_obstacle.then(|| solid_cells(&grid, &[ball]).iter().map(|&s| if s { 0.0 } else { 1.0 }).collect::<Vec<f64>>());
+            let rhs: Vec<f64> = (0..cells).map(|c| ((c * 37 % 11) as f64 - 5.0) * fluid.as_ref().map_or(1.0, |w| w[c])).collect();
+            let mut direct = PressureSolver::direct(&grid, 1e-12, 10_000, fluid.clone()).unwrap();
+            let mut p2 = vec![0.0; cells];
             let iterations = direct.solve(&rhs, &mut p2).unwrap();
-            let scale = p1.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-            let diff = p1.iter().zip(&p2).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
-            assert!(diff < 1e-9 * scale, "{b:?}, obstacle {with_obstacle}: differ by {diff:e} (scale {scale})");
             assert!(iterations <= 2, "{b:?}, obstacle {with_obstacle}: {iterations} iterations");
+            for precond in [Preconditioner::Mic0, Preconditioner::Multigrid, Preconditioner::None] {
+                let mut solver = match &fluid {
+                    Some(f) => PressureSolver::with_obstacles(&grid, 1e-12, 10_000, precond, f.clone()),
+                    None => PressureSolver::new(&grid, 1e-12, 10_000, precond),
+                };
+                let mut p1 = vec![0.0; cells];
+                solver.solve(&rhs, &mut p1).unwrap();
+                let scale = p1.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                let diff = p1.iter().zip(&p2).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                assert!(diff < 1e-9 * scale, "{n:?} {b:?} {precond}, obstacle {with_obstacle}: differ by {diff:e} (scale {scale})");
+            }
         }
     }
 }

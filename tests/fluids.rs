@@ -23,8 +23,25 @@ fn diffusion_operators_pass_all_checks() {
         let r = check_all(&DiffuseImplicit::new(n, 1e-13, 500), &x, &[0.7], &CheckParams::default());
         assert!(r.passed(), "implicit n = {n}:\n{r}");
     }
+    // Smoke and velocity of a closed box, in 2D and 3D (other sides:
+    // boundaries.rs).
+    box_diffusion_passes(MacGrid::new([7, 5]));
+    box_diffusion_passes(MacGrid::new([6, 5, 4]));
 }
 
+/// Explicit and implicit diffusion of the smoke and the velocity of the
+/// box `cfg` under the three checks.
+fn box_diffusion_passes<const D: usize>(cfg: MacGrid<D>)
+where
+    diffsim::fluids::Walls: From<MacGrid<D>>,
+{
+    use diffsim::fluids::Diffuse;
+    let x = crate::boundaries::signed_state(&cfg, 41);
+    let r = check_all(&Diffuse::explicit(cfg, true, true), &x, &[0.1], &CheckParams::default());
+    assert!(r.passed(), "explicit diffusion {:?}:\n{r}", cfg.n);
+    let r = check_all(&Diffuse::implicit(cfg, true, true, 1e-13, 500), &x, &[0.7], &CheckParams::default());
+    assert!(r.passed(), "implicit diffusion {:?}:\n{r}", cfg.n);
+}
 #[test]
 fn implicit_diffusion_is_stable_at_100x_the_explicit_limit() {
     let n = 16;
@@ -81,7 +98,7 @@ fn advection_keeps_its_promises_in_2d_and_3d() {
         advection_keeps_its_promises(cfg, &x);
     }
     let cfg = MacGrid::new([6, 6, 5]).with_dt(0.8);
-    advection_keeps_its_promises(cfg, &crate::p4::state(&cfg, 51));
+    advection_keeps_its_promises(cfg, &crate::boundaries::signed_state(&cfg, 51));
 }
 
 /// A smooth bump in an `n`-cube translated by the constant velocity `v`
@@ -176,4 +193,33 @@ fn inflow_sets_its_region_in_2d_and_3d() {
         inflow_sets_its_region(MacGrid::p2(n), [[1, 3], [0, 2]], &[1.0, 0.2, 0.7], 21 + n as u64);
     }
     inflow_sets_its_region(MacGrid::new([6, 7, 5]), [[0, 2], [1, 3], [2, 5]], &[0.8, 0.1, 0.4, -0.2], 31);
+}
+
+#[test]
+fn diffusion_in_3d_decays_a_mode_at_the_exact_rate() {
+    use diffsim_solvers::diffusion::{Grid, ImplicitSolver, explicit, laplacian};
+    // The cell lattice's Laplacian is the closed box's pressure matrix,
+    // written apart (the multigrid's slab-by-slab product).
+    let n = 8;
+    let g = Grid::of_state(&MacGrid::p4(n))[0];
+    let s = field(n * n * n, 3);
+    let (mut a, mut b) = (vec![0.0; s.len()], vec![0.0; s.len()]);
+    laplacian(&g, &s, &mut a);
+    diffsim_solvers::multigrid::apply_box_matrix(n, n, &s, &mut b);
+    let diff = a.iter().zip(&b).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+    assert!(diff < 1e-12, "3D Laplacian against the box matrix: {diff:e}");
+    // cos(π(k+½)/n) along z (constant in x, y) is an eigenvector of the
+    // closed lattice's matrix with eigenvalue λ = 2 − 2cos(π/n): explicit
+    // diffusion scales it by 1 − κλ, implicit by 1/(1 + κλ).
+    let mode: Vec<f64> = (0..n * n * n).map(|c| (std::f64::consts::PI * ((c / (n * n)) as f64 + 0.5) / n as f64).cos()).collect();
+    let lambda = 2.0 - 2.0 * (std::f64::consts::PI / n as f64).cos();
+    let kappa = 0.15;
+    let mut y = vec![0.0; mode.len()];
+    explicit(&g, kappa, &mode, &mut y);
+    let worst = y.iter().zip(&mode).map(|(y, m)| (y - (1.0 - kappa * lambda) * m).abs()).fold(0.0, f64::max);
+    assert!(worst < 1e-13, "explicit: {worst:e}");
+    let mut solver = ImplicitSolver::new(g, 1e-13, 500);
+    solver.solve(kappa, &mode, &mut y).unwrap();
+    let worst = y.iter().zip(&mode).map(|(y, m)| (y - m / (1.0 + kappa * lambda)).abs()).fold(0.0, f64::max);
+    assert!(worst < 1e-11, "implicit: {worst:e}");
 }

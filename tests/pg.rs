@@ -220,7 +220,7 @@ fn sip_and_physics_gradients_match_finite_differences() {
 
 /// A smoke state of P2 on `n × n` cells after `warm` steps from 2 blobs:
 /// smoke that moves, a velocity that is not zero.
-fn moving_smoke(n: usize, warm: usize) -> (diffsim::problems::smoke::SmokeStep, Vec<f64>) {
+fn moving_smoke(n: usize, warm: usize) -> (diffsim::problems::smoke::SmokeStep<2>, Vec<f64>) {
     use diffsim::op::Forward;
     use diffsim::problems::smoke::SmokeStep;
     use diffsim_solvers::smoke::{MacGrid, Preconditioner};

@@ -128,8 +128,8 @@ proptest! {
         checked(&name("implicit diffusion"), &Diffuse::implicit(cfg, fields.0, fields.1, 1e-13, 2000), &x, &[10.0 * kappa])?;
         match &c.solid {
             Some(solid) => {
-                checked(&name("projection"), &Project::with_obstacles(cfg, 1e-13, 4000, solid), &x, &[])?;
-                checked(&name("smoke step"), &SmokeStep::with_obstacles(cfg, 1e-13, 4000, solid), &x, &[])?;
+                checked(&name("projection"), &Project::with_obstacles(cfg, 1e-13, 4000, Preconditioner::Mic0, solid), &x, &[])?;
+                checked(&name("smoke step"), &SmokeStep::new(cfg, 1e-13, 4000, Preconditioner::Mic0).with_obstacles(solid), &x, &[])?;
             }
             None => {
                 checked(&name("projection"), &Project::new(cfg, 1e-13, 4000, Preconditioner::Multigrid), &x, &[])?;
@@ -172,7 +172,7 @@ proptest! {
         let ns = cfg.n_s();
         enforce_boundary(&cfg, &mut x[ns..]);
         let y = match &c.solid {
-            Some(solid) => Project::with_obstacles(cfg, tol, 4000, solid).eval(&x, &[]),
+            Some(solid) => Project::with_obstacles(cfg, tol, 4000, Preconditioner::Mic0, solid).eval(&x, &[]),
             None => Project::new(cfg, tol, 4000, Preconditioner::Multigrid).eval(&x, &[]),
         };
         let fluid = |k: usize| c.solid.as_ref().is_none_or(|s| !s[k]);
@@ -200,7 +200,7 @@ proptest! {
         let ns = cfg.n_s();
         enforce_boundary(&cfg, &mut x[ns..]);
         let op = match &c.solid {
-            Some(solid) => Project::with_obstacles(cfg, 1e-10, 4000, solid),
+            Some(solid) => Project::with_obstacles(cfg, 1e-10, 4000, Preconditioner::Mic0, solid),
             None => Project::new(cfg, 1e-10, 4000, Preconditioner::Multigrid),
         };
         let s = 2f64.powi(k);

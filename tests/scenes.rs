@@ -290,15 +290,16 @@ fn undeclared_effects_never_run() {
     // Two steps forward in the run, two in the gradient's forward pass, two VJPs.
     assert_eq!((counts[0].forward, counts[0].vjp, counts[0].jvp), (4, 2, 0));
 
-    // The obstacle scene: advection, buoyancy, pressure; never diffusion,
-    // force or inflow.
+    // The obstacle scene: advection (smoke and velocity semi-Lagrangian in
+    // a closed box: P2's explicit step), buoyancy, pressure; never
+    // diffusion, force or inflow.
     let scene = with_steps(&root().join("scenes/smoke_obstacle.toml"), 2);
     count::start();
     scene.run(|_, _| {}).unwrap();
     let counts = count::stop();
     let mut names: Vec<&str> = counts.iter().map(|c| c.name).collect();
     names.sort_unstable();
-    assert_eq!(names, vec!["Advect<2>", "Buoyancy<2>", "Project"], "{counts:?}");
+    assert_eq!(names, vec!["Buoyancy<2>", "Project", "SmokeAdvect"], "{counts:?}");
     assert!(counts.iter().all(|c| c.forward == 2 && c.vjp == 0));
 }
 
@@ -421,4 +422,202 @@ fn the_taylor_green_scene_decays_as_the_exact_solution() {
     let err = x.iter().zip(&x0).fold(0.0f64, |m, (a, b)| m.max((a - decay * b).abs()));
     // Measured: 1.6% of the peak (the schemes' error at 64², 40 steps).
     assert!(decay < 0.9 && err < 0.02 * peak, "largest error {err:.3e} against a decay to {decay:.4} of {peak}");
+}
+
+/// `(f(h) − f(−h)) / 2h`.
+pub(crate) fn central(f: impl Fn(f64) -> f64, h: f64) -> f64 {
+    (f(h) - f(-h)) / (2.0 * h)
+}
+
+/// P4 written as a scene file: the advection, buoyancy and projection as
+/// three declared effects.
+const P4_SCENE: &str = r#"
+[domain]
+size = [32, 32, 32]
+
+[time]
+dt = 1.0
+steps = 10
+
+[fields.smoke]
+init = { sphere = { center = [16.0, 8.0, 16.0], radius = 4.0 } }
+[fields.velocity]
+init = "zero"
+
+[[effects]]
+kind = "advection"
+
+[[effects]]
+kind = "buoyancy"
+coefficient = 0.1
+
+[[effects]]
+kind = "pressure"
+
+[loss]
+field = "smoke"
+target = { sphere = { center = [16.0, 24.0, 16.0], radius = 4.0 } }
+with_respect_to = ["smoke.init"]
+"#;
+
+#[test]
+fn a_3d_scene_reproduces_the_p4_reference_table() {
+    use diffsim::scene::Scene;
+    use diffsim_solvers::smoke::{P4_SIZES, probe};
+    let scene = Scene::parse(P4_SCENE).unwrap();
+    assert_eq!(scene.effects, ["advection", "buoyancy", "pressure"]);
+    let r = &P4_SIZES[0];
+    assert_eq!((r.n, r.steps), (32, 10));
+    let g = scene.gradient(scene.loss.as_ref().unwrap(), Checkpointing::Store).unwrap();
+    let gs = &g.inputs[0].arrays[0].2;
+    let l2 = gs.iter().map(|v| v * v).sum::<f64>().sqrt();
+    assert!((g.loss - r.loss).abs() <= 1e-6 * r.loss, "loss {} vs {}", g.loss, r.loss);
+    assert!((l2 - r.grad_l2).abs() <= 1e-6 * r.grad_l2, "‖∇L‖ {l2} vs {}", r.grad_l2);
+    assert!((gs[0] - r.grad_0).abs() <= 1e-6 * r.grad_l2 && (gs[probe::<3>(32)] - r.grad_probe).abs() <= 1e-6 * r.grad_l2);
+    assert_eq!(g.inputs[0].arrays[0].1, vec![32, 32, 32]);
+}
+
+#[test]
+fn a_3d_scene_with_obstacles_and_inflow_has_the_gradient_of_its_loss() {
+    use diffsim::scene::Scene;
+    let text = r#"
+[domain]
+size = [10, 12, 9]
+
+[time]
+dt = 0.8
+steps = 4
+
+[fields.smoke]
+init = { sphere = { center = [5.0, 3.0, 5.0], radius = 2.5 } }
+[fields.velocity]
+init = { uniform = [0.2, 0.3, -0.1] }
+
+[[obstacles]]
+cylinder = { center = [5.0, 7.0, 0.0], radius = 1.6, axis = "z", extent = [2.0, 8.0] }
+
+[[effects]]
+kind = "inflow"
+region = { box = { lower = [4.0, 0.0, 4.0], upper = [6.0, 1.0, 6.0] } }
+smoke = 1.0
+velocity = [0.0, 0.5, 0.0]
+
+[[effects]]
+kind = "advection"
+
+[[effects]]
+kind = "buoyancy"
+coefficient = 0.2
+axis = "y"
+
+[[effects]]
+kind = "diffusion"
+fields = ["smoke", "velocity"]
+viscosity = 0.05
+scheme = "implicit"
+tolerance = 1e-13
+
+[[effects]]
+kind = "force"
+value = [0.0, 0.0, 0.05]
+
+[[effects]]
+kind = "pressure"
+tolerance = 1e-13
+
+[loss]
+field = "smoke"
+target = { box = { lower = [3.0, 6.0, 3.0], upper = [7.0, 9.0, 7.0] } }
+with_respect_to = ["smoke.init", "buoyancy.coefficient"]
+"#;
+    let scene = Scene::parse(text).unwrap();
+    let loss = scene.loss.as_ref().unwrap();
+    let g = scene.gradient(loss, Checkpointing::Store).unwrap();
+    let p = scene.rollout_params();
+    // ∂L/∂b against central differences of whole runs.
+    let (_, index, _) = scene.named.iter().find(|(n, _, _)| n == "buoyancy.coefficient").unwrap().clone();
+    let h = 1e-5;
+    let fd = crate::scenes::central(
+        |d| {
+            let mut q = p.clone();
+            q[index] += d;
+            scene.loss_value(loss, &scene.x0, &q).unwrap()
+        },
+        h,
+    );
+    let db = g.inputs[1].arrays[0].2[0];
+    assert!((fd - db).abs() <= 1e-6 * fd.abs().max(1e-8), "∂L/∂b {db} vs finite differences {fd}");
+    // A directional derivative along a smooth change of the initial smoke.
+    let gs = &g.inputs[0].arrays[0].2;
+    let dir: Vec<f64> = crate::smoke::field(gs.len(), 5);
+    let fd = crate::scenes::central(
+        |d| {
+            // The smoke moved along `dir`, the velocity as it was.
+            let x: Vec<f64> = scene.x0.iter().zip(dir.iter().chain(std::iter::repeat(&0.0))).map(|(x, v)| x + d * v).collect();
+            scene.loss_value(loss, &x, &p).unwrap()
+        },
+        h,
+    );
+    let dot: f64 = gs.iter().zip(&dir).map(|(a, b)| a * b).sum();
+    assert!((fd - dot).abs() <= 1e-6 * fd.abs(), "∂L/∂s₀·d {dot} vs finite differences {fd}");
+}
+
+#[test]
+fn a_3d_obstacle_mask_comes_from_a_npy_file() {
+    use diffsim::scene::Scene;
+    use npyz::WriterBuilder;
+    // A mask [nz, ny, nx] with a solid slab across the middle of y, except
+    // a hole; written as float64 like `diffsim run` writes volumes.
+    let (nx, ny, nz) = (6, 8, 5);
+    let mut mask = vec![0.0; nx * ny * nz];
+    for k in 0..nz {
+        for i in 0..nx {
+            if (i, k) != (2, 2) {
+                mask[(k * ny + 4) * nx + i] = 1.0;
+            }
+        }
+    }
+    let dir = std::env::temp_dir().join(format!("diffsim-mask-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = std::io::BufWriter::new(std::fs::File::create(dir.join("mask.npy")).unwrap());
+    let mut w = npyz::WriteOptions::new().default_dtype().shape(&[nz as u64, ny as u64, nx as u64]).writer(file).begin_nd().unwrap();
+    w.extend(mask.iter().copied()).unwrap();
+    w.finish().unwrap();
+    let text = r#"
+[domain]
+size = [6, 8, 5]
+[time]
+dt = 1.0
+steps = 2
+[fields.velocity]
+init = { sine = { amplitude = 0.5, wavenumber = [1.0, 1.0, 1.0] } }
+[[obstacles]]
+npy = "mask.npy"
+[[effects]]
+kind = "pressure"
+"#;
+    let scene = Scene::parse_in(text, &dir).unwrap();
+    let solid = scene.solid.as_ref().unwrap();
+    assert_eq!(solid.iter().filter(|&&s| s).count(), nx * nz - 1);
+    assert!(solid[(4 * ny + 4) * nx + 3] && !solid[(2 * ny + 4) * nx + 2]);
+    // No flow through the slab's faces; and since the box is closed, the net
+    // flux through the plane of the slab is zero, so the hole, its only
+    // opening, carries none either.
+    let x = scene.run(|_, _| {}).unwrap();
+    let v = &x[scene.domain.range(diffsim::scene::Field::Velocity)][(nx + 1) * ny * nz..][..nx * (ny + 1) * nz];
+    for k in 0..nz {
+        for i in 0..nx {
+            let face = (k * (ny + 1) + 4) * nx + i;
+            if (i, k) == (2, 2) {
+                assert!(v[face].abs() < 1e-8, "net flux through the hole {}", v[face]);
+            } else {
+                assert_eq!(v[face], 0.0, "flow into the slab at ({i}, {k})");
+            }
+        }
+    }
+    assert!(v.iter().any(|v| v.abs() > 1e-3), "the flow vanished");
+    // A mask of the wrong shape is refused with the file named.
+    let bad = text.replace("size = [6, 8, 5]", "size = [6, 8, 6]");
+    let err = Scene::parse_in(&bad, &dir).unwrap_err().to_string();
+    assert!(err.contains("mask.npy") && err.contains("shape"), "{err}");
 }

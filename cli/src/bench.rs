@@ -6,8 +6,7 @@ use serde_json::json;
 use super::{CliError, interleaved_times, median_time, peak_rss_bytes};
 use diffsim::problems::SmokeBenchmark;
 use diffsim::problems::burgers::P1;
-use diffsim::problems::smoke::{P2, SmokeStep};
-use diffsim::problems::smoke3d::{P4, SmokeStep3};
+use diffsim::problems::smoke::{P2, P4, SmokeStep};
 use diffsim::rollout::{Gradient, Rollout, RolloutError, Workspace};
 use diffsim_solvers::smoke::{P2_SIZES, P4_SIZES, Preconditioner};
 
@@ -426,11 +425,11 @@ fn p1(a: P1Args) -> Result<(), CliError> {
 }
 
 fn p2(a: P2Args) -> Result<(), CliError> {
-    smoke_bench::<SmokeStep>(a.n, a.steps, a.run)
+    smoke_bench::<SmokeStep<2>>(a.n, a.steps, a.run)
 }
 
 fn p4(a: P4Args) -> Result<(), CliError> {
-    smoke_bench::<SmokeStep3>(a.n, a.steps, a.run)
+    smoke_bench::<SmokeStep<3>>(a.n, a.steps, a.run)
 }
 
 /// What the smoke benchmarks (P2 in 2D, P4 in 3D) need beyond
@@ -455,7 +454,7 @@ trait SmokeBench: diffsim::op::Vjp + Sized {
     fn reference(n: usize, steps: usize) -> Option<(f64, f64)>;
 }
 
-impl SmokeBench for SmokeStep {
+impl SmokeBench for SmokeStep<2> {
     const NAME: &'static str = "p2";
     const TITLE: &'static str = "P2 smoke2d";
     const DIM: u32 = 2;
@@ -479,7 +478,7 @@ impl SmokeBench for SmokeStep {
     }
 }
 
-impl SmokeBench for SmokeStep3 {
+impl SmokeBench for SmokeStep<3> {
     const NAME: &'static str = "p4";
     const TITLE: &'static str = "P4 smoke3d";
     const DIM: u32 = 3;

@@ -39,7 +39,7 @@ pub(super) fn plume(a: PlumeArgs) -> Result<(), CliError> {
             (n * 6 / 16..n * 13 / 16).contains(&i) && (n / 2..n / 2 + n / 24 + 1).contains(&j)
         })
         .collect();
-    let step = SmokeStep::with_obstacles(cfg, 1e-6, 5000, &solid);
+    let step = SmokeStep::new(cfg, 1e-6, 5000, diffsim_solvers::smoke::Preconditioner::Mic0).with_obstacles(&solid);
     let source = Inflow { cfg, region: [[n * 7 / 16, n * 9 / 16], [n / 16, n / 16 + 3]] };
     let mut x = vec![0.0; cfg.n_state()];
     let mut y = vec![0.0; cfg.n_state()];

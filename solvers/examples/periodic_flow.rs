@@ -104,58 +104,42 @@ fn main() {
 }
 
 /// The time of one projection of a velocity that is not divergence-free
-/// on periodic boxes: the FFT, and the smoke solver's CG (2D: MIC(0), the
-/// only preconditioner of a periodic 2D box; 3D: the aggregation multigrid
-/// and MIC(0)).
+/// on periodic boxes: the FFT, and the smoke solver's CG preconditioned by
+/// the aggregation multigrid and by MIC(0).
 fn projection_times() {
+    for n in [64usize, 128] {
+        projection_time([n, n]);
+    }
+    for n in [32usize, 64] {
+        projection_time([n, n, n]);
+    }
+}
+
+/// [`projection_times`] on a box of `n` cells.
+fn projection_time<const D: usize>(n: [usize; D]) {
     use diffsim_solvers::boundary::{Boundary, Side};
     use diffsim_solvers::mac::fft::FftProjection;
     use diffsim_solvers::smoke::{MacGrid, Preconditioner, PressureSolver, ProjectScratch, project};
-    use diffsim_solvers::smoke3d::{PressureSolver3, project as project3};
-    let field = |len: usize| -> Vec<f64> { (0..len).map(|k| ((k as f64) * 0.618).fract() - 0.5).collect() };
-    for n in [64usize, 128] {
-        let cfg = MacGrid::new([n, n]).with_boundary(Boundary::all(Side::Periodic));
-        let vel = field(cfg.n_vel());
-        let mut fft = FftProjection::new([n, n]);
-        let t_fft = best_of(5, || {
-            let mut v = vel.clone();
-            let (u, w) = v.split_at_mut(cfg.n_face(0));
-            fft.project([u, w]);
-        });
-        let mut solver = PressureSolver::general(n, n, cfg.boundary, 1e-8, 10_000, None);
-        let mut scratch = ProjectScratch::new(n * n);
+    let cfg = MacGrid::new(n).with_boundary(Boundary::all(Side::Periodic));
+    let vel: Vec<f64> = (0..cfg.n_vel()).map(|k| ((k as f64) * 0.618).fract() - 0.5).collect();
+    let mut fft = FftProjection::new(n);
+    let t_fft = best_of(5, || {
+        let mut v = vel.clone();
+        fft.project(cfg.components_mut(&mut v));
+    });
+    let mut line = format!("  {D}D {}: FFT {:.0} µs", n.map(|k| k.to_string()).join("×"), t_fft * 1e6);
+    for (name, precond) in [("multigrid", Preconditioner::Multigrid), ("MIC(0)", Preconditioner::Mic0)] {
+        let mut solver = PressureSolver::new(&cfg, 1e-8, 10_000, precond);
+        let mut scratch = ProjectScratch::new(cfg.n_s());
         let mut iterations = 0;
-        let t_cg = best_of(5, || {
+        let t = best_of(5, || {
             let mut state = vec![0.0; cfg.n_s()];
             state.extend_from_slice(&vel);
             iterations = project(&cfg, &mut state, &mut solver, &mut scratch).expect("the CG projection converges");
         });
-        println!("  2D {n}²: FFT {:.0} µs, CG with MIC(0) {:.0} µs ({iterations} iterations)", t_fft * 1e6, t_cg * 1e6);
+        line += &format!(", CG with {name} {:.0} µs ({iterations} iterations)", t * 1e6);
     }
-    for n in [32usize, 64] {
-        let cfg = MacGrid::new([n, n, n]).with_boundary(Boundary::all(Side::Periodic));
-        let vel = field(cfg.n_vel());
-        let mut fft = FftProjection::new([n, n, n]);
-        let t_fft = best_of(5, || {
-            let mut v = vel.clone();
-            let (u, rest) = v.split_at_mut(cfg.n_face(0));
-            let (w0, w1) = rest.split_at_mut(cfg.n_face(1));
-            fft.project([u, w0, w1]);
-        });
-        let mut line = format!("  3D {n}³: FFT {:.0} µs", t_fft * 1e6);
-        for (name, precond) in [("multigrid", Preconditioner::Multigrid), ("MIC(0)", Preconditioner::Mic0)] {
-            let mut solver = PressureSolver3::new(&cfg, 1e-8, 10_000, precond);
-            let mut scratch = ProjectScratch::new(cfg.n_s());
-            let mut iterations = 0;
-            let t = best_of(5, || {
-                let mut state = vec![0.0; cfg.n_s()];
-                state.extend_from_slice(&vel);
-                iterations = project3(&cfg, &mut state, &mut solver, &mut scratch).expect("the CG projection converges");
-            });
-            line += &format!(", CG with {name} {:.0} µs ({iterations} iterations)", t * 1e6);
-        }
-        println!("{line}");
-    }
+    println!("{line}");
 }
 
 /// Faces → centres → faces at 16²: the largest error of the spectral

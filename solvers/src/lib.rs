@@ -34,5 +34,4 @@ pub mod par;
 pub mod real;
 pub mod simd;
 pub mod smoke;
-pub mod smoke3d;
 pub mod spectral;

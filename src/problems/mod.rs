@@ -9,7 +9,6 @@ pub mod oscillators;
 pub mod ranges;
 pub mod robertson;
 pub mod smoke;
-pub mod smoke3d;
 
 /// `L = ½·Σ (x_i − target_i)²` over the first `target.len()` entries of `x`
 /// (a packed state's smoke part); writes `∂L/∂x` into `grad` (overwrites;
@@ -28,7 +27,7 @@ pub fn half_squared_error(x: &[f64], target: &[f64], grad: &mut [f64]) -> f64 {
 /// A smoke benchmark (P2, P4): a step operator rolled out `steps` steps
 /// from the packed state `x0`, and the loss `L = ½·Σ (s_T − s*)²` on the
 /// first `target.len()` entries of the final state (the smoke). The
-/// problems' constructors are [`smoke::P2`]'s and [`smoke3d::P4`]'s.
+/// problems' constructors are [`smoke::P2`]'s and [`smoke::P4`]'s.
 #[derive(Debug)]
 pub struct SmokeBenchmark<S> {
     /// The step operator (owns the solver and its iteration counters).

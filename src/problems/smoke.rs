@@ -27,6 +27,7 @@ crate::fluids::state_sizes!(SmokeAdvect, 0, |_op| 0);
 
 impl<const D: usize> Forward for SmokeAdvect<D> {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        crate::op::count::record("SmokeAdvect", crate::op::count::Method::Forward);
         validate_forward(self, "SmokeAdvect", x, p, y);
         smoke::advect_buoyancy_parallel(&self.0, x, y);
     }
@@ -176,30 +177,33 @@ impl<const D: usize> Vjp for SmokeAdvectHand<D> {
     }
 }
 
-/// One full P2 step: [`SmokeAdvect`], then the pressure projection
-/// ([`Project`], with the obstacle mask when there are obstacles).
+/// One full P2 or P4 step: [`SmokeAdvect`] (or its hand-written adjoint),
+/// then the pressure projection ([`Project`], with the obstacle mask when
+/// there are obstacles).
 ///
 /// The VJP chains the projection's implicit adjoint (one solve with the
-/// transposed matrix, to the same tolerance) with Enzyme's VJP of the
-/// explicit part. A solve that does not converge is recorded and reported
-/// through [`Forward::take_error`] (rollouts turn it into an error).
+/// transposed matrix, to the same tolerance) with the explicit part's VJP
+/// (Enzyme's, or [`SmokeAdvectHand`]); the JVP applies the (linear)
+/// projection to the explicit part's value and tangent. A solve that does
+/// not converge is recorded and reported through [`Forward::take_error`]
+/// (rollouts turn it into an error).
 #[derive(Debug)]
-pub struct SmokeStep {
-    advect: SmokeAdvect<2>,
+pub struct SmokeStep<const D: usize> {
+    advect: SmokeAdvect<D>,
     /// Use the hand-written adjoint of the explicit part instead of Enzyme's.
     hand: bool,
     /// The projection (owns the solver and its iteration counters).
-    pub project: Project,
+    pub project: Project<D>,
 }
 
-impl SmokeStep {
-    /// A step of the P2 box `cfg` whose solves stop at relative tolerance
+impl<const D: usize> SmokeStep<D> {
+    /// A step of the box `cfg` whose solves stop at relative tolerance
     /// `tolerance` (true residual), fail after `max_iterations`, and use
     /// `precond` (see [`Project::new`]).
     ///
     /// # Panics
     /// If `cfg.boundary` does not [validate](diffsim_solvers::boundary::Boundary::validate).
-    pub fn new(cfg: MacGrid<2>, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
+    pub fn new(cfg: MacGrid<D>, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
         Self { advect: SmokeAdvect(cfg), hand: false, project: Project::new(cfg, tolerance, max_iterations, precond) }
     }
 
@@ -210,14 +214,19 @@ impl SmokeStep {
         self
     }
 
-    /// A step of the box `cfg` with solid cells where `solid[c]` is true
-    /// (see [`Project::with_obstacles`]).
-    pub fn with_obstacles(cfg: MacGrid<2>, tolerance: f64, max_iterations: usize, solid: &[bool]) -> Self {
-        Self { advect: SmokeAdvect(cfg), hand: false, project: Project::with_obstacles(cfg, tolerance, max_iterations, solid) }
+    /// The same step with solid cells where `solid[c]` is true (see
+    /// [`Project::with_obstacles`]; the solves keep this step's settings).
+    ///
+    /// # Panics
+    /// As [`Project::with_obstacles`].
+    pub fn with_obstacles(mut self, solid: &[bool]) -> Self {
+        let (stop, precond) = (self.project.stop(), self.project.preconditioner());
+        self.project = Project::with_obstacles(*self.cfg(), stop.tolerance, stop.max_iterations, precond, solid);
+        self
     }
 
     /// The grid.
-    pub fn cfg(&self) -> &MacGrid<2> {
+    pub fn cfg(&self) -> &MacGrid<D> {
         &self.advect.0
     }
 
@@ -227,7 +236,7 @@ impl SmokeStep {
     }
 }
 
-impl Operator for SmokeStep {
+impl<const D: usize> Operator for SmokeStep<D> {
     fn n_in(&self) -> usize {
         self.advect.0.n_state()
     }
@@ -236,64 +245,59 @@ impl Operator for SmokeStep {
     }
 }
 
-/// `Forward`, `Vjp` and `Jvp` of a smoke step `$ty` with fields `advect`
-/// (the explicit part as an Enzyme operator over the grid `advect.0`),
-/// `hand` (use the hand-written adjoint `$hand` instead) and `project` (the
-/// projection): the explicit part (`$explicit`), then the projection. The
-/// VJP goes through the projection's implicit adjoint (in place on `dy`),
-/// then the explicit part's VJP; the JVP applies the (linear) projection to
-/// the explicit part's value and tangent alike. The smooth radius is the
-/// advection's (`$radius`; the projection after it is linear). One shape
-/// for the 2D and 3D steps.
-macro_rules! smoke_step_operator {
-    ($ty:ty, $name:literal, $hand:ident, $explicit:path, $radius:path) => {
-        impl $crate::op::Forward for $ty {
-            fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
-                $crate::op::validate_forward(self, $name, x, p, y);
-                $explicit(&self.advect.0, x, y);
-                self.project.apply(y);
-            }
+// The step's operator traits: the explicit part, then the projection; the
+// VJP through the projection's implicit adjoint (in place on `dy`), then
+// the explicit part's VJP; the JVP applies the (linear) projection to the
+// explicit part's value and tangent alike; the smooth radius is the
+// advection's (the projection after it is linear).
+impl<const D: usize> Forward for SmokeStep<D> {
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        crate::op::validate_forward(self, "SmokeStep", x, p, y);
+        smoke::advect_buoyancy_parallel(&self.advect.0, x, y);
+        self.project.apply(y);
+    }
 
-            fn solve_tolerance(&self) -> f64 {
-                $crate::op::Forward::solve_tolerance(&self.project)
-            }
+    fn solve_tolerance(&self) -> f64 {
+        Forward::solve_tolerance(&self.project)
+    }
 
-            fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
-                $radius(&self.advect.0, x, dx)
-            }
+    fn smooth_radius(&self, x: &[f64], _p: &[f64], dx: &[f64], _dp: &[f64]) -> f64 {
+        step_radius(&self.advect.0, x, dx)
+    }
 
-            fn take_error(&self) -> Option<$crate::op::OpError> {
-                self.project.log.take_error()
-            }
-        }
-
-        impl $crate::op::Vjp for $ty {
-            fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
-                $crate::op::validate_vjp(self, $name, x, p, dy, dx, dp);
-                self.project.apply_adjoint(dy);
-                if self.hand {
-                    $hand(self.advect.0).vjp(x, p, dy, dx, dp);
-                } else {
-                    self.advect.vjp(x, p, dy, dx, dp);
-                }
-            }
-        }
-
-        impl $crate::op::Jvp for $ty {
-            fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
-                $crate::op::validate_jvp(self, $name, x, p, tx, tp, y, ty);
-                self.advect.jvp(x, p, tx, tp, y, ty);
-                self.project.apply(y);
-                self.project.apply(ty);
-            }
-        }
-    };
+    fn take_error(&self) -> Option<crate::op::OpError> {
+        self.project.log.take_error()
+    }
 }
-pub(crate) use smoke_step_operator;
 
-smoke_step_operator!(SmokeStep, "SmokeStep", SmokeAdvectHand, smoke::advect_buoyancy_parallel, step_radius);
+impl<const D: usize> Vjp for SmokeStep<D>
+where
+    SmokeAdvect<D>: Vjp,
+{
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        crate::op::validate_vjp(self, "SmokeStep", x, p, dy, dx, dp);
+        self.project.apply_adjoint(dy);
+        if self.hand {
+            SmokeAdvectHand(self.advect.0).vjp(x, p, dy, dx, dp);
+        } else {
+            self.advect.vjp(x, p, dy, dx, dp);
+        }
+    }
+}
 
-impl LocalInverse for SmokeStep {
+impl<const D: usize> Jvp for SmokeStep<D>
+where
+    SmokeAdvect<D>: Jvp,
+{
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        crate::op::validate_jvp(self, "SmokeStep", x, p, tx, tp, y, ty);
+        self.advect.jvp(x, p, tx, tp, y, ty);
+        self.project.apply(y);
+        self.project.apply(ty);
+    }
+}
+
+impl<const D: usize> LocalInverse for SmokeStep<D> {
     /// The step run backwards in time on the perturbation, along the
     /// velocity of `x` (the one the forward step advected with): the
     /// buoyancy the step added to `dy`'s velocity taken back, every field of
@@ -311,8 +315,8 @@ impl LocalInverse for SmokeStep {
         assert_eq!(dx.len(), self.n_in(), "SmokeStep::local_inverse: dx has the wrong length");
         let cfg = *self.cfg();
         let mut d = dy.to_vec();
-        let (s, [_, v]) = cfg.split_mut(&mut d);
-        smoke::add_buoyancy(&cfg, 1, -cfg.buoyancy, s, v);
+        let (s, vel) = cfg.split_mut(&mut d);
+        smoke::add_buoyancy(&cfg, 1, -cfg.buoyancy, s, &mut *vel[1]);
         smoke::advect_along(&cfg, -1.0, x, &d, dx);
         self.project.apply(dx);
     }
@@ -335,7 +339,7 @@ impl LocalInverse for SmokeStep {
 pub struct SmokeRise {
     /// The step (owns the solver; not `Sync`: wrap in
     /// [`crate::op::PerThread`] for batches).
-    pub step: SmokeStep,
+    pub step: SmokeStep<2>,
     /// Number of steps `T`.
     pub steps: usize,
 }
@@ -455,18 +459,35 @@ impl LocalInverse for SmokeRise {
 }
 
 /// Benchmark P2 at `n × n` cells and `steps` steps.
-pub type P2 = crate::problems::SmokeBenchmark<SmokeStep>;
+pub type P2 = crate::problems::SmokeBenchmark<SmokeStep<2>>;
 
-impl P2 {
-    /// The P2 problem with solves to relative tolerance 1e-8, at most 2000
-    /// iterations, preconditioned by `precond`.
-    pub fn new(n: usize, steps: usize, precond: Preconditioner) -> Self {
-        let cfg = MacGrid::p2(n);
+/// Benchmark P4 at `n³` cells and `steps` steps.
+pub type P4 = crate::problems::SmokeBenchmark<SmokeStep<3>>;
+
+impl<const D: usize> crate::problems::SmokeBenchmark<SmokeStep<D>> {
+    /// The smoke benchmark on the box `cfg` (P2's or P4's): `steps` steps
+    /// from [`smoke::initial`] towards [`smoke::target`], solves to relative
+    /// tolerance 1e-8, at most 2000 iterations, preconditioned by `precond`.
+    pub fn on(cfg: MacGrid<D>, steps: usize, precond: Preconditioner) -> Self {
         Self { step: SmokeStep::new(cfg, 1e-8, 2000, precond), steps, x0: smoke::initial(&cfg), target: smoke::target(&cfg) }
     }
 
     /// The same problem with the hand-written adjoint of the explicit part.
     pub fn with_hand_adjoint(self) -> Self {
         Self { step: self.step.with_hand_adjoint(), ..self }
+    }
+}
+
+impl P2 {
+    /// The P2 problem ([`MacGrid::p2`]).
+    pub fn new(n: usize, steps: usize, precond: Preconditioner) -> Self {
+        Self::on(MacGrid::p2(n), steps, precond)
+    }
+}
+
+impl P4 {
+    /// The P4 problem ([`MacGrid::p4`]).
+    pub fn new(n: usize, steps: usize, precond: Preconditioner) -> Self {
+        Self::on(MacGrid::p4(n), steps, precond)
     }
 }

@@ -16,7 +16,6 @@ use crate::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, DiffuseExplicit, Di
 use crate::op::{AddParams, Chain, Effect, Part};
 use crate::problems::burgers::BurgersEnzyme;
 use crate::problems::smoke::SmokeAdvect;
-use crate::problems::smoke3d::Project3;
 use crate::words::unknown;
 
 /// The 1-based line of byte offset `at` in `text`.
@@ -137,8 +136,10 @@ pub(super) fn build(file: SceneFile, text: &str, dir: &Path) -> Result<Scene, Sc
         }
         Ok((positive("time.dt", t.dt)?, count("time.steps", t.steps)?))
     })?;
-    if let Domain::Box3(cfg) = &mut domain {
-        cfg.dt = dt;
+    match &mut domain {
+        Domain::Box(cfg) => cfg.dt = dt,
+        Domain::Box3(cfg) => cfg.dt = dt,
+        Domain::Line(_) => {}
     }
     let cells = domain.range(Field::Smoke).len() as u64;
     if cells.saturating_mul(steps as u64) > MAX_CELL_STEPS {
@@ -358,15 +359,19 @@ impl Builder<'_> {
             Domain::Box(_) | Domain::Box3(_) => None,
         };
         let box_only = |kind: &str| SceneError::key(at("kind"), format!("{kind} needs a 2D or 3D domain"));
-        // Diffusion and forces are built below for every domain.
-        if let Domain::Box3(cfg) = domain
-            && !matches!(e, EffectSpec::Diffusion(_) | EffectSpec::Force(_))
-        {
-            return self.effect_3d(k, e, cfg);
+        // Advection, pressure, buoyancy and inflow in a box are built by
+        // `box_effect`, once for 2D and 3D; diffusion and forces below for
+        // every domain.
+        if matches!(e, EffectSpec::Advection(_) | EffectSpec::Pressure(_) | EffectSpec::Buoyancy(_) | EffectSpec::Inflow(_)) {
+            match domain {
+                Domain::Box(cfg) => return self.box_effect(k, e, cfg),
+                Domain::Box3(cfg) => return self.box_effect(k, e, cfg),
+                Domain::Line(_) => {}
+            }
         }
         match (e, domain) {
             (EffectSpec::Advection(a), _) => {
-                let (s, v) = self.fields_of(&at("fields"), &a.fields)?;
+                let (s, _) = self.fields_of(&at("fields"), &a.fields)?;
                 self.effects.push("advection".into());
                 if let Some(l) = line {
                     if s {
@@ -391,11 +396,7 @@ impl Builder<'_> {
                     self.ops.push(Box::new(Part::new(op, domain.n_state(), domain.range(Field::Velocity))));
                     return Ok(());
                 }
-                let cfg = *self_cfg(&domain);
-                match self.advection_scheme(k, &a, v)? {
-                    Some(scheme) => self.ops.push(Box::new(Advect { cfg, scheme, dt, smoke: s, velocity: v })),
-                    None => self.ops.push(Box::new(AdvectUpwind { cfg, dt })),
-                }
+                unreachable!("advection in a box is built by box_effect");
             }
             (EffectSpec::Diffusion(d), _) => {
                 let (s, v) = self.fields_of(&at("fields"), &d.fields)?;
@@ -422,8 +423,9 @@ impl Builder<'_> {
                         }
                         self.ops.push(match (line, domain) {
                             (Some(l), _) => Box::new(Diffuse::line(l.n, l.periodic, s, v, DiffuseExplicit::on)),
-                            (None, Domain::Box3(cfg)) => Box::new(Diffuse::in_box(cfg, s, v, DiffuseExplicit::on)),
-                            (None, _) => Box::new(Diffuse::explicit(*self_cfg(&domain), s, v)),
+                            (None, Domain::Box(cfg)) => Box::new(Diffuse::explicit(cfg, s, v)),
+                            (None, Domain::Box3(cfg)) => Box::new(Diffuse::explicit(cfg, s, v)),
+                            (None, Domain::Line(_)) => unreachable!("a line has `line`"),
                         });
                     }
                     "implicit" => {
@@ -431,8 +433,9 @@ impl Builder<'_> {
                         let max = iterations(&at("max_iterations"), d.max_iterations, domain.n_state())?;
                         self.ops.push(match (line, domain) {
                             (Some(l), _) => Box::new(Diffuse::line(l.n, l.periodic, s, v, |g| DiffuseImplicit::on(g, tol, max))),
-                            (None, Domain::Box3(cfg)) => Box::new(Diffuse::in_box(cfg, s, v, |g| DiffuseImplicit::on(g, tol, max))),
-                            (None, _) => Box::new(Diffuse::implicit(*self_cfg(&domain), s, v, tol, max)),
+                            (None, Domain::Box(cfg)) => Box::new(Diffuse::implicit(cfg, s, v, tol, max)),
+                            (None, Domain::Box3(cfg)) => Box::new(Diffuse::implicit(cfg, s, v, tol, max)),
+                            (None, Domain::Line(_)) => unreachable!("a line has `line`"),
                         });
                     }
                     other => return Err(SceneError::key(at("scheme"), unknown("scheme", other, &["explicit", "implicit"]))),
@@ -468,17 +471,13 @@ impl Builder<'_> {
                         self.params.extend(std::iter::repeat_n(f.value[0], l.n));
                     }
                     None => {
-                        let faces = match domain {
-                            Domain::Box3(cfg) => {
-                                self.ops.push(Box::new(Force { cfg, dt }));
-                                vec![cfg.n_face(0), cfg.n_face(1), cfg.n_face(2)]
-                            }
-                            _ => {
-                                let cfg = *self_cfg(&domain);
-                                self.ops.push(Box::new(Force { cfg, dt }));
-                                vec![cfg.n_face(0), cfg.n_face(1)]
-                            }
+                        // One value per face of each axis, in the velocity's layout.
+                        let (op, faces): (Box<dyn Effect>, Vec<usize>) = match domain {
+                            Domain::Box(cfg) => (Box::new(Force { cfg, dt }), (0..2).map(|a| cfg.n_face(a)).collect()),
+                            Domain::Box3(cfg) => (Box::new(Force { cfg, dt }), (0..3).map(|a| cfg.n_face(a)).collect()),
+                            Domain::Line(_) => unreachable!("a line has `AddParams`"),
                         };
+                        self.ops.push(op);
                         for (&value, count) in f.value.iter().zip(faces) {
                             self.params.extend(std::iter::repeat_n(value, count));
                         }
@@ -488,38 +487,7 @@ impl Builder<'_> {
             (EffectSpec::Pressure(_) | EffectSpec::Buoyancy(_) | EffectSpec::Inflow(_), Domain::Line(_)) => {
                 return Err(box_only(table.get("kind").and_then(|v| v.as_str()).unwrap_or("this effect")));
             }
-            (EffectSpec::Pressure(p), Domain::Box(cfg)) => {
-                self.need(&at("kind"), "pressure", &[Field::Velocity])?;
-                let tol = tolerance(&at("tolerance"), p.tolerance)?;
-                let max = iterations(&at("max_iterations"), p.max_iterations, domain.n_state())?;
-                let precond = preconditioner(&at("preconditioner"), &p.preconditioner, &["multigrid", "mic0", "none"])?;
-                self.effects.push("pressure".into());
-                self.ops.push(Box::new(match self.solid {
-                    Some(s) => Project::with_obstacles(cfg, tol, max, s),
-                    None => Project::new(cfg, tol, max, precond),
-                }));
-                self.projected = true;
-            }
-            (EffectSpec::Buoyancy(b), Domain::Box(cfg)) => {
-                if b.field != "smoke" {
-                    return Err(SceneError::key(at("field"), unknown("field", &b.field, &["smoke"])));
-                }
-                if b.axis != "y" {
-                    return Err(SceneError::key(at("axis"), format!("2D buoyancy acts along y (a negative coefficient pulls down), got \"{}\"", b.axis)));
-                }
-                self.need(&at("kind"), "buoyancy", &[Field::Smoke, Field::Velocity])?;
-                self.effects.push("buoyancy".into());
-                self.ops.push(Box::new(Buoyancy { cfg, dt, axis: 1 }));
-                self.name(k, "buoyancy", "coefficient", 1.0);
-                self.params.push(finite(&at("coefficient"), b.coefficient)?);
-            }
-            (EffectSpec::Inflow(i), Domain::Box(cfg)) => {
-                let (r, values) = inflow(k, &i, &[cfg.n[0], cfg.n[1]], self.dt)?;
-                self.effects.push("inflow".into());
-                self.ops.push(Box::new(Inflow { cfg, region: [[r[0], r[1]], [r[2], r[3]]] }));
-                self.params.extend(values);
-            }
-            (_, Domain::Box3(_)) => unreachable!("3D effects are built by effect_3d"),
+            (_, Domain::Box(_) | Domain::Box3(_)) => unreachable!("built by box_effect"),
         }
         Ok(())
     }
@@ -541,19 +509,26 @@ impl Builder<'_> {
         }
     }
 
-    /// An effect of a 3D scene other than diffusion and forces (built with
-    /// the other domains'): advection (semi-Lagrangian, MacCormack, upwind),
-    /// buoyancy along any axis, inflow regions and the pressure projection
-    /// of a cube (with obstacles).
-    fn effect_3d(&mut self, k: usize, e: EffectSpec, cfg: MacGrid<3>) -> Result<(), SceneError> {
+    /// An effect of a box scene other than diffusion and forces, in 2D and
+    /// 3D: advection (semi-Lagrangian, MacCormack, upwind), buoyancy along
+    /// any axis, inflow regions and the pressure projection (with
+    /// obstacles).
+    fn box_effect<const D: usize>(&mut self, k: usize, e: EffectSpec, cfg: MacGrid<D>) -> Result<(), SceneError>
+    where
+        SmokeAdvect<D>: Effect,
+        Advect<D>: Effect,
+        AdvectUpwind<D>: Effect,
+        Buoyancy<D>: Effect,
+        Inflow<D>: Effect,
+        Project<D>: Effect,
+    {
         let at = |key: &str| format!("effects[{k}].{key}");
-        let n = cfg.n_state();
         match e {
             EffectSpec::Advection(a) => {
                 let (s, v) = self.fields_of(&at("fields"), &a.fields)?;
                 self.effects.push("advection".into());
                 match self.advection_scheme(k, &a, v)? {
-                    // Both fields semi-Lagrangian: P4's step (in parallel, with its hand adjoint beside it).
+                    // Both fields semi-Lagrangian: P2's and P4's step (in parallel, with its hand adjoint beside it).
                     Some(Scheme::SemiLagrangian) if s && v && cfg.is_closed() => self.ops.push(Box::new(SmokeAdvect(cfg))),
                     Some(scheme) => self.ops.push(Box::new(Advect { cfg, scheme, dt: cfg.dt, smoke: s, velocity: v })),
                     None => self.ops.push(Box::new(AdvectUpwind { cfg, dt: cfg.dt })),
@@ -562,12 +537,12 @@ impl Builder<'_> {
             EffectSpec::Pressure(p) => {
                 self.need(&at("kind"), "pressure", &[Field::Velocity])?;
                 let tol = tolerance(&at("tolerance"), p.tolerance)?;
-                let max = iterations(&at("max_iterations"), p.max_iterations, n)?;
+                let max = iterations(&at("max_iterations"), p.max_iterations, cfg.n_state())?;
                 let precond = preconditioner(&at("preconditioner"), &p.preconditioner, &["multigrid", "mic0", "none"])?;
                 self.effects.push("pressure".into());
                 self.ops.push(Box::new(match self.solid {
-                    Some(s) => Project3::with_obstacles(cfg, tol, max, precond, s),
-                    None => Project3::new(cfg, tol, max, precond),
+                    Some(s) => Project::with_obstacles(cfg, tol, max, precond, s),
+                    None => Project::new(cfg, tol, max, precond),
                 }));
                 self.projected = true;
             }
@@ -576,6 +551,9 @@ impl Builder<'_> {
                     return Err(SceneError::key(at("field"), unknown("field", &b.field, &["smoke"])));
                 }
                 let axis = axis_of(&at("axis"), &b.axis)?;
+                if axis >= D {
+                    return Err(SceneError::key(at("axis"), format!("a {D}D domain has no {} axis", b.axis)));
+                }
                 self.need(&at("kind"), "buoyancy", &[Field::Smoke, Field::Velocity])?;
                 self.effects.push("buoyancy".into());
                 self.ops.push(Box::new(Buoyancy { cfg, dt: self.dt, axis }));
@@ -585,10 +563,10 @@ impl Builder<'_> {
             EffectSpec::Inflow(i) => {
                 let (r, values) = inflow(k, &i, &cfg.n, self.dt)?;
                 self.effects.push("inflow".into());
-                self.ops.push(Box::new(Inflow { cfg, region: [[r[0], r[1]], [r[2], r[3]], [r[4], r[5]]] }));
+                self.ops.push(Box::new(Inflow { cfg, region: std::array::from_fn(|a| [r[2 * a], r[2 * a + 1]]) }));
                 self.params.extend(values);
             }
-            EffectSpec::Diffusion(_) | EffectSpec::Force(_) => unreachable!("built by effect for every domain"),
+            EffectSpec::Diffusion(_) | EffectSpec::Force(_) => unreachable!("built by `effect` for every domain"),
         }
         Ok(())
     }
@@ -651,14 +629,6 @@ fn preconditioner(key: &str, name: &str, known: &[&str]) -> Result<Preconditione
         "mic0" if known.contains(&name) => Ok(Preconditioner::Mic0),
         "none" => Ok(Preconditioner::None),
         other => Err(SceneError::key(key, unknown("preconditioner", other, known))),
-    }
-}
-
-fn self_cfg(domain: &Domain) -> &MacGrid<2> {
-    match domain {
-        Domain::Box(cfg) => cfg,
-        Domain::Line(_) => unreachable!("2D effects are refused on a line before this"),
-        Domain::Box3(_) => unreachable!("3D effects are built by effect_3d"),
     }
 }
 

@@ -46,7 +46,7 @@ pub struct WakeStep {
     diffuse: Diffuse<DiffuseExplicit>,
     kappa: [f64; 1],
     /// The projection (with the disc).
-    pub project: Project,
+    pub project: Project<2>,
     /// The advected state and its adjoint or tangent (the VJP and JVP
     /// recompute the advection).
     mid: RefCell<[Vec<f64>; 2]>,
@@ -63,7 +63,7 @@ impl WakeStep {
             advect,
             diffuse: Diffuse::explicit(cfg, false, true),
             kappa: [nu * dt],
-            project: Project::with_obstacles(cfg, tolerance, 10_000, solid),
+            project: Project::with_obstacles(cfg, tolerance, 10_000, diffsim_solvers::smoke::Preconditioner::Mic0, solid),
             mid: RefCell::new([vec![0.0; n], vec![0.0; n]]),
         }
     }

@@ -194,9 +194,9 @@ fn p2(n: usize, steps: usize) -> PyResult<diffsim::problems::smoke::P2> {
     Ok(diffsim::problems::smoke::P2::new(n, steps, diffsim_solvers::smoke::Preconditioner::Multigrid))
 }
 
-fn p4(n: usize, steps: usize) -> PyResult<diffsim::problems::smoke3d::P4> {
+fn p4(n: usize, steps: usize) -> PyResult<diffsim::problems::smoke::P4> {
     smoke_sizes("P4", n, steps, 256)?;
-    Ok(diffsim::problems::smoke3d::P4::new(n, steps, diffsim_solvers::smoke::Preconditioner::Multigrid))
+    Ok(diffsim::problems::smoke::P4::new(n, steps, diffsim_solvers::smoke::Preconditioner::Multigrid))
 }
 
 /// P2 of the shared benchmarks (2D smoke, `n × n`, `steps` steps):

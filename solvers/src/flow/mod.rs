@@ -276,7 +276,7 @@ pub struct Stepper {
     cfg: Flow2d,
     grid: MacGrid<2>,
     /// The projection without bodies.
-    solver: Option<PressureSolver>,
+    solver: Option<PressureSolver<2>>,
     scratch: ProjectScratch,
     pads: Pads,
     rhs: Vec<f64>,
@@ -301,7 +301,7 @@ pub struct Stepper {
 #[derive(Debug)]
 struct CutSolver {
     weight: f64,
-    solver: PressureSolver,
+    solver: PressureSolver<2>,
     /// `M` per velocity (packed `[u, v]`).
     scale: Vec<f64>,
 }
@@ -316,14 +316,14 @@ impl Stepper {
         let max_it = 20 * (cfg.nx * cfg.ny).max(100);
         let multigrid = cfg.boundary == Boundary::CLOSED && cfg.nx == cfg.ny && cfg.nx.is_power_of_two();
         let solver = if multigrid {
-            PressureSolver::new(cfg.nx, tolerance, max_it, crate::smoke::Preconditioner::Multigrid)
+            PressureSolver::new(&cfg.grid(), tolerance, max_it, crate::smoke::Preconditioner::Multigrid)
         } else {
-            PressureSolver::general_direct(cfg.nx, cfg.ny, cfg.boundary, tolerance, max_it, None).map_err(|_| FlowError::Factor)?
+            PressureSolver::direct(&cfg.grid(), tolerance, max_it, None).map_err(|_| FlowError::Factor)?
         };
         Ok(Self::assemble(cfg, Some(solver), None, tolerance))
     }
 
-    fn assemble(cfg: Flow2d, solver: Option<PressureSolver>, cut: Option<Cut>, tolerance: f64) -> Self {
+    fn assemble(cfg: Flow2d, solver: Option<PressureSolver<2>>, cut: Option<Cut>, tolerance: f64) -> Self {
         let n = cfg.n_vel();
         Self {
             cfg,
@@ -376,7 +376,7 @@ impl Stepper {
         let au: Vec<f64> = cut.aperture_u.iter().zip(&scale[..n_u]).map(|(a, m)| a * m).collect();
         let av: Vec<f64> = cut.aperture_v.iter().zip(&scale[n_u..]).map(|(a, m)| a * m).collect();
         let max_it = 20 * (cfg.nx * cfg.ny).max(100);
-        let solver = PressureSolver::with_apertures(cfg.nx, cfg.ny, cfg.boundary, self.tolerance, max_it, &au, &av).map_err(|_| FlowError::Factor)?;
+        let solver = PressureSolver::with_apertures(&cfg.grid(), self.tolerance, max_it, [&au, &av]).map_err(|_| FlowError::Factor)?;
         if self.cut_solvers.len() == 6 {
             self.cut_solvers.remove(0);
         }
@@ -490,12 +490,12 @@ impl Stepper {
             }
             let warm = self.last_dt > 0.0;
             let projected = match &self.cut {
-                None => project_velocity(&self.grid, u, v, None, None, self.solver.as_mut().expect("the projection without bodies"), &mut self.scratch, warm),
+                None => project_velocity(&self.grid, [u, v], None, None, self.solver.as_mut().expect("the projection without bodies"), &mut self.scratch, warm),
                 Some(_) => {
                     let k = self.cut_solver(weight)?;
                     let cut = self.cut.as_ref().expect("bodies");
                     let CutSolver { solver, scale, .. } = &mut self.cut_solvers[k];
-                    project_velocity(&self.grid, u, v, Some((&cut.aperture_u, &cut.aperture_v)), Some(scale), solver, &mut self.scratch, warm)
+                    project_velocity(&self.grid, [u, v], Some([&cut.aperture_u, &cut.aperture_v]), Some(scale), solver, &mut self.scratch, warm)
                 }
             };
             iterations += projected.map_err(|cause| FlowError::Pressure { step: self.steps, cause })?;

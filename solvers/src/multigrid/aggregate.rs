@@ -74,7 +74,7 @@ pub fn apply_weighted3(dims: [usize; 3], b: &Boundary<3>, w: [f64; 3], p: &[f64]
 /// `fluid[c] = 0` (`None`: none): `out[c] = f_c·Σ_a w_a·Σ_m f_m·(p_c − p_m)
 /// + (1 − f_c)·p_c` (a ghost counts `p_c`), which couples fluid cells only
 /// and keeps solid rows as the identity. The one loop behind both 3D
-/// pressure matrices (this one's and [`crate::smoke3d::apply_general_matrix3`]).
+/// pressure matrices (this one's and [`crate::smoke::PressureSolver`]'s on a periodic box).
 pub fn apply_stencil3(dims: [usize; 3], b: &Boundary<3>, w: [f64; 3], fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
     let [nx, ny, nz] = dims;
     let slab = nx * ny;
@@ -180,7 +180,8 @@ pub struct AggregateMultigrid {
 }
 
 impl AggregateMultigrid {
-    /// The hierarchy for a box of `dims` cells (each at least 2) with sides
+    /// The hierarchy for a box of `dims` cells (x and y at least 2; a 2D box
+    /// is one cell deep along z between closed sides) with sides
     /// `boundary`: levels until no axis can be halved.
     pub fn new(dims: [usize; 3], boundary: Boundary<3>) -> Self {
         let mut levels = vec![Level::new(dims, &boundary, [1.0; 3])];

@@ -196,8 +196,9 @@ impl Multigrid {
 
     /// The hierarchy for a box of `nz` square slabs of `n × n` cells (`nz =
     /// n`: the cube); both are halved together while both are even.
+    /// One slab is the square ([`Multigrid::new`]).
     pub fn slabs(n: usize, nz: usize) -> Self {
-        Self::hierarchy(n, nz)
+        Self::hierarchy(n, if nz == 1 { 0 } else { nz })
     }
 
     /// `nz = 0`: the square (one slab, never coarsened along z).

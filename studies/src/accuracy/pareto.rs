@@ -436,9 +436,9 @@ fn gradient_rows(
 /// 1e-10) on a periodic box from a Taylor–Green velocity with a uniform
 /// drift, carrying a smoke blob; loss `½‖x_T − x*‖²` with `x*` the exact vortex at `T` and no smoke.
 struct TaylorGreenGradient {
-    step: SmokeStep,
+    step: SmokeStep<2>,
     /// The same step with the hand-written adjoint.
-    hand: SmokeStep,
+    hand: SmokeStep<2>,
     steps: usize,
     x0: Vec<f64>,
     target: Vec<f64>,

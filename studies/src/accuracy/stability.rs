@@ -289,11 +289,11 @@ pub fn ill_conditioned_pressure() -> Case {
     for (k, u) in x[cfg.n_s()..cfg.n_s() + cfg.n_face(0)].iter_mut().enumerate() {
         *u = ((k * 7919) % 101) as f64 / 101.0 - 0.5;
     }
-    let short = Project::with_obstacles(cfg, 1e-10, 50, &solid);
+    let short = Project::with_obstacles(cfg, 1e-10, 50, diffsim_solvers::smoke::Preconditioner::Mic0, &solid);
     let mut y = x.clone();
     short.apply(&mut y);
     let reported = short.take_error();
-    let full = Project::with_obstacles(cfg, 1e-10, 100_000, &solid);
+    let full = Project::with_obstacles(cfg, 1e-10, 100_000, diffsim_solvers::smoke::Preconditioner::Mic0, &solid);
     let mut y = x.clone();
     full.apply(&mut y);
     let forward = full.take_error();
