@@ -487,7 +487,7 @@ fn flows_that_do_not_vary_along_a_periodic_z_match_the_2d_solver() {
 
 #[test]
 fn the_aggregation_multigrid_is_galerkin_and_preconditions_any_box_and_sides() {
-    use diffsim_solvers::multigrid::{AggregateMultigrid, apply_weighted3};
+    use diffsim_solvers::multigrid::{AggregateMultigrid, apply_weighted};
     // Pᵀ·A·P (P copies each coarse value to its cells) is the seven-point
     // stencil of the same sides on the coarse box, each axis weighted by
     // the faces between two coarse cells: checked on a box halved along x
@@ -504,13 +504,13 @@ fn the_aggregation_multigrid_is_galerkin_and_preconditions_any_box_and_sides() {
             };
             let pv: Vec<f64> = (0..cells).map(|c| v[parent(c)]).collect();
             let mut apv = vec![0.0; cells];
-            apply_weighted3(fine, &b, [1.0; 3], &pv, &mut apv);
+            apply_weighted(fine, &b, [1.0; 3], &pv, &mut apv);
             let mut galerkin = vec![0.0; v.len()];
             for (c, a) in apv.iter().enumerate() {
                 galerkin[parent(c)] += a;
             }
             let mut direct = vec![0.0; v.len()];
-            apply_weighted3(coarse, &b, w, &v, &mut direct);
+            apply_weighted(coarse, &b, w, &v, &mut direct);
             let worst = galerkin.iter().zip(&direct).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
             assert!(worst < 1e-12, "{fine:?} under {b:?}: Pᵀ·A·P vs the weighted stencil: {worst:e}");
         }

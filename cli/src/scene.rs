@@ -195,8 +195,7 @@ pub(super) fn write_images(scene: &Scene, out: &dyn Outputs, tag: &str, x: &[f64
             let (name, values) = if scene.fields.contains(&Field::Smoke) {
                 (format!("smoke{tag}.png"), x[scene.domain.range(Field::Smoke)].to_vec())
             } else {
-                let (_, [u, v]) = cfg.split(x);
-                (format!("speed{tag}.png"), relative_speed((n, ny), u, v))
+                (format!("speed{tag}.png"), relative_speed(cfg, cfg.split(x).1))
             };
             let path = out.file(&name)?;
             super::demo::write_png(&path, (n, ny), &values, solid).map_err(io(path.clone()))?;
@@ -210,7 +209,7 @@ pub(super) fn write_images(scene: &Scene, out: &dyn Outputs, tag: &str, x: &[f64
             let (field, values) = if scene.fields.contains(&Field::Smoke) {
                 ("smoke", x[scene.domain.range(Field::Smoke)].to_vec())
             } else {
-                ("speed", relative_speed_3d(cfg, x))
+                ("speed", relative_speed(cfg, cfg.split(x).1))
             };
             let names_axis = diffsim::volume::AXES;
             let (ax, index) = views.slice;
@@ -232,33 +231,16 @@ pub(super) fn write_images(scene: &Scene, out: &dyn Outputs, tag: &str, x: &[f64
     Ok(names)
 }
 
-/// The speed at the cell centres of a 3D MAC velocity, scaled to its
-/// maximum.
-fn relative_speed_3d(cfg: &diffsim_solvers::smoke::MacGrid<3>, x: &[f64]) -> Vec<f64> {
+/// The speed at the cell centres of the MAC velocity `vel` of the box
+/// `cfg` (2D or 3D), scaled to its maximum.
+fn relative_speed<const D: usize>(cfg: &diffsim_solvers::smoke::MacGrid<D>, vel: [&[f64]; D]) -> Vec<f64> {
     use diffsim_solvers::mac::At;
-    let (_, [u, v, w]) = cfg.split(x);
     let mac = cfg.mac();
-    let [nx, ny, _] = cfg.n;
-    let speed: Vec<f64> = (0..cfg.n_s())
-        .map(|c| {
-            let [a, b, d] = mac.velocity(At::Centre, [u, v, w], [c % nx, (c / nx) % ny, c / (nx * ny)]);
-            (a * a + b * b + d * d).sqrt()
-        })
-        .collect();
-    scaled_to_max(speed)
-}
-
-/// The speed at cell centres of a MAC velocity `(u, v)` on `nx × ny`
-/// cells, scaled to its maximum.
-fn relative_speed((n, ny): (usize, usize), u: &[f64], v: &[f64]) -> Vec<f64> {
-    let speed: Vec<f64> = (0..n * ny)
-        .map(|c| {
-            let (i, j) = (c % n, c / n);
-            let uc = 0.5 * (u[j * (n + 1) + i] + u[j * (n + 1) + i + 1]);
-            let vc = 0.5 * (v[j * n + i] + v[(j + 1) * n + i]);
-            uc.hypot(vc)
-        })
-        .collect();
+    let cells = mac.lattice(At::Centre);
+    let mut speed = vec![0.0; cells.len];
+    for q in cells.points() {
+        speed[cells.index(q)] = mac.velocity(At::Centre, vel, q).iter().map(|v| v * v).sum::<f64>().sqrt();
+    }
     scaled_to_max(speed)
 }
 
@@ -530,7 +512,8 @@ pub(super) fn write_steady(scene: &SteadyScene, run: &diffsim::scene::SteadyRun,
     let (nx, ny, h) = (scene.flow.nx, scene.flow.ny, scene.flow.h);
     let solid: Vec<bool> = (0..nx * ny).map(|c| scene.shapes.iter().any(|b| b.level(((c % nx) as f64 + 0.5) * h, ((c / nx) as f64 + 0.5) * h) < 0.0)).collect();
     let path = out.file("speed.png")?;
-    super::demo::write_png(&path, (nx, ny), &relative_speed((nx, ny), u, v), &solid).map_err(|source| CliError::Io { path: path.clone(), source })?;
+    let grid = diffsim_solvers::smoke::MacGrid::new([nx, ny]);
+    super::demo::write_png(&path, (nx, ny), &relative_speed(&grid, [u, v]), &solid).map_err(|source| CliError::Io { path: path.clone(), source })?;
     names.push("speed.png".into());
     Ok(names)
 }

@@ -385,6 +385,18 @@ impl Operator {
 
 /// The XLA FFI targets (name, function address) that `diffsim.jax`
 /// registers with `jax.ffi.register_ffi_target`.
+/// Keeps the memory the process frees instead of returning each large
+/// block to the system (glibc; elsewhere nothing happens): the adjoints
+/// Enzyme generates allocate their buffers afresh on every call, and
+/// mapping them again each time costs a page fault per page (8 % of the
+/// periodic Navier–Stokes VJP at 64², docs/navier-stokes.md). A setting of
+/// the whole process, so not made on import: call it once, early, in a
+/// program that runs many gradients.
+#[pyfunction]
+fn keep_freed_memory() {
+    diffsim::memory::keep_freed_memory();
+}
+
 #[pyfunction]
 fn ffi_targets() -> Vec<(&'static str, usize)> {
     ffi::targets()
@@ -440,6 +452,7 @@ pub fn _diffsim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(ops::p1_problem, m)?)?;
     m.add_function(wrap_pyfunction!(ops::p1_loss, m)?)?;
     m.add_function(wrap_pyfunction!(ffi_targets, m)?)?;
+    m.add_function(wrap_pyfunction!(keep_freed_memory, m)?)?;
     m.add_function(wrap_pyfunction!(ops::p2_problem, m)?)?;
     m.add_function(wrap_pyfunction!(ops::p2_loss, m)?)?;
     m.add_function(wrap_pyfunction!(ops::p4_problem, m)?)?;

@@ -11,7 +11,7 @@
 //! again the seven-point stencil of the same sides, its coupling along an
 //! axis weighted by the number of fine faces between two coarse cells (the
 //! product of the other axes' aggregation factors), which
-//! [`apply_weighted3`] applies. Damped Jacobi smooths (ω = 6/7, one sweep
+//! [`apply_weighted`] applies. Damped Jacobi smooths (ω = 6/7, one sweep
 //! before and after the correction, thirty on the coarsest level), the
 //! coarse correction is scaled by [`OVER_CORRECTION`] (piecewise-constant
 //! prolongation under-corrects smooth errors); pre- and post-smoothing
@@ -66,16 +66,16 @@ pub fn across(dims: [usize; 3], b: &Boundary<3>, c: usize, q: [usize; 3], axis: 
 /// p_m)` over the neighbours [`across`] gives (`p_m = 0` for a ghost,
 /// nothing at a wall). Overwrites `out`; slab by slab, in parallel on large
 /// boxes.
-pub fn apply_weighted3(dims: [usize; 3], b: &Boundary<3>, w: [f64; 3], p: &[f64], out: &mut [f64]) {
-    apply_stencil3(dims, b, w, None, p, out);
+pub fn apply_weighted(dims: [usize; 3], b: &Boundary<3>, w: [f64; 3], p: &[f64], out: &mut [f64]) {
+    apply_stencil(dims, b, w, None, p, out);
 }
 
-/// The seven-point matrix of [`apply_weighted3`] with solid cells where
+/// The seven-point matrix of [`apply_weighted`] with solid cells where
 /// `fluid[c] = 0` (`None`: none): `out[c] = f_c·Σ_a w_a·Σ_m f_m·(p_c − p_m)
 /// + (1 − f_c)·p_c` (a ghost counts `p_c`), which couples fluid cells only
 /// and keeps solid rows as the identity. The one loop behind both 3D
 /// pressure matrices (this one's and [`crate::smoke::PressureSolver`]'s on a periodic box).
-pub fn apply_stencil3(dims: [usize; 3], b: &Boundary<3>, w: [f64; 3], fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
+pub fn apply_stencil(dims: [usize; 3], b: &Boundary<3>, w: [f64; 3], fluid: Option<&[f64]>, p: &[f64], out: &mut [f64]) {
     let [nx, ny, nz] = dims;
     let slab = nx * ny;
     let f = |c: usize| fluid.map_or(1.0, |f| f[c]);
@@ -154,7 +154,7 @@ impl Level {
 
     /// `t = r − A·e`.
     fn residual(&mut self, b: &Boundary<3>) {
-        apply_weighted3(self.dims, b, self.w, &self.e, &mut self.t);
+        apply_weighted(self.dims, b, self.w, &self.e, &mut self.t);
         for (t, &r) in self.t.iter_mut().zip(&self.r) {
             *t = r - *t;
         }

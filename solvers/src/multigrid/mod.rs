@@ -21,7 +21,7 @@ use crate::smoke::apply_pressure_matrix;
 
 mod aggregate;
 
-pub use aggregate::{Across, AggregateMultigrid, OVER_CORRECTION, across, apply_stencil3, apply_weighted3};
+pub use aggregate::{Across, AggregateMultigrid, OVER_CORRECTION, across, apply_stencil, apply_weighted};
 
 /// The pressure matrix of the closed box of `n × n × nz` cells (`nz = 1`:
 /// the square's five-point matrix): `(A·p)[c] = Σ_{neighbours m of c inside

@@ -19,7 +19,7 @@
 //!   ([`Coefficients`]: the diagonal and one coupling per axis, `2D + 1`
 //!   shifted streams, branch-free);
 //! - a box with a periodic side: the stencil of
-//!   [`crate::multigrid::apply_stencil3`] (a 2D box is a 3D box one cell
+//!   [`crate::multigrid::apply_stencil`] (a 2D box is a 3D box one cell
 //!   deep between closed sides).
 //!
 //! Preconditioners ([`Preconditioner`]): the geometric multigrid V-cycle in
@@ -35,7 +35,7 @@ use crate::boundary::{Boundary, Side};
 pub use crate::cg::NoConvergence;
 use crate::cg::{CgWork, Null, Stop, System, dot};
 use crate::linalg::{FactorFailed, SparseCholesky};
-use crate::multigrid::{Across, AggregateMultigrid, Multigrid, across, apply_box_matrix, apply_stencil3};
+use crate::multigrid::{Across, AggregateMultigrid, Multigrid, across, apply_box_matrix, apply_stencil};
 
 /// Preconditioner of the pressure solve.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -652,7 +652,7 @@ impl<const D: usize> System for PressureSolver<D> {
                 }
             }
             (Product::Coefficients(k), _) => k.apply(p, out),
-            (Product::Stencil(dims, b), fluid) => apply_stencil3(*dims, b, [1.0; 3], fluid.as_deref(), p, out),
+            (Product::Stencil(dims, b), fluid) => apply_stencil(*dims, b, [1.0; 3], fluid.as_deref(), p, out),
         }
     }
 
