@@ -694,6 +694,15 @@ impl<const D: usize> Project<D> {
         matches!(*self.solve.borrow(), Solve::Fft(_))
     }
 
+    /// Records a velocity (or its adjoint) that is not finite as the FFT
+    /// projection's error, as a CG solve's right-hand side holding one is
+    /// recorded.
+    fn refuse_non_finite(&self, y: &[f64], adjoint: bool) {
+        if y[self.cfg.n_s()..].iter().any(|v| !v.is_finite()) {
+            self.log.record(Err(NoConvergence { iterations: 0, relative_residual: f64::NAN, tolerance: 0.0 }), adjoint);
+        }
+    }
+
     /// The map in place on a packed state (or tangent).
     pub fn apply(&self, y: &mut [f64]) {
         if let Some((fluid, open)) = &self.mask {
@@ -702,13 +711,8 @@ impl<const D: usize> Project<D> {
         match &mut *self.solve.borrow_mut() {
             Solve::Cg(solver, scratch) => self.log.record(smoke::project(&self.cfg, y, solver, scratch), false),
             Solve::Fft(fft) => {
-                // A state that is not finite is an error, as a CG solve's
-                // right-hand side holding one is.
-                let (_, vel) = self.cfg.split_mut(y);
-                if vel.iter().any(|v| v.iter().any(|v| !v.is_finite())) {
-                    self.log.record(Err(NoConvergence { iterations: 0, relative_residual: f64::NAN, tolerance: 0.0 }), false);
-                }
-                fft.project(vel);
+                self.refuse_non_finite(y, false);
+                fft.project(self.cfg.split_mut(y).1);
             }
         }
     }
@@ -718,11 +722,8 @@ impl<const D: usize> Project<D> {
         match &mut *self.solve.borrow_mut() {
             Solve::Cg(solver, scratch) => self.log.record(smoke::project_adjoint(&self.cfg, g, solver, scratch), true),
             Solve::Fft(fft) => {
-                let (_, vel) = self.cfg.split_mut(g);
-                if vel.iter().any(|v| v.iter().any(|v| !v.is_finite())) {
-                    self.log.record(Err(NoConvergence { iterations: 0, relative_residual: f64::NAN, tolerance: 0.0 }), true);
-                }
-                fft.project_adjoint(vel);
+                self.refuse_non_finite(g, true);
+                fft.project_adjoint(self.cfg.split_mut(g).1);
             }
         }
         if let Some((fluid, open)) = &self.mask {

@@ -258,12 +258,14 @@ fn a_channel_with_uniform_inflow_carries_it_through_after_one_projection() {
     a_channel_carries_uniform_inflow([6, 5, 4]);
 }
 
-/// The largest divergence over the fluid cells of a packed state.
-fn max_divergence<const D: usize>(cfg: &MacGrid<D>, x: &[f64], solid: Option<&[bool]>) -> f64 {
+/// The largest divergence over the fluid cells of a packed state (NaN if
+/// one is not a number, so that no bound holds).
+pub(crate) fn max_divergence<const D: usize>(cfg: &MacGrid<D>, x: &[f64], solid: Option<&[bool]>) -> f64 {
     let (_, vel) = cfg.split(x);
     let mut d = vec![0.0; cfg.n_s()];
     divergence(cfg, vel, &mut d);
-    d.iter().enumerate().filter(|(c, _)| solid.is_none_or(|s| !s[*c])).map(|(_, d)| d.abs()).fold(0.0, f64::max)
+    let fluid = d.iter().enumerate().filter(|(c, _)| solid.is_none_or(|s| !s[*c])).map(|(_, d)| d.abs());
+    fluid.fold(0.0, |m: f64, d| if d.is_nan() || m.is_nan() { f64::NAN } else { m.max(d) })
 }
 
 /// The projection of the box `cfg` under each preconditioner, without and

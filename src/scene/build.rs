@@ -370,33 +370,29 @@ impl Builder<'_> {
             }
         }
         match (e, domain) {
-            (EffectSpec::Advection(a), _) => {
+            (EffectSpec::Advection(a), Domain::Line(l)) => {
                 let (s, _) = self.fields_of(&at("fields"), &a.fields)?;
                 self.effects.push("advection".into());
-                if let Some(l) = line {
-                    if s {
-                        return Err(SceneError::key(at("fields"), "on a line only the velocity is advected (Burgers): fields = [\"velocity\"]"));
-                    }
-                    if a.scheme != "upwind" {
-                        return Err(SceneError::key(at("scheme"), format!("on a line the advection scheme is \"upwind\", got \"{}\"", a.scheme)));
-                    }
-                    if !l.periodic {
-                        return Err(SceneError::key(at("kind"), "advection on a line needs boundary = \"periodic\""));
-                    }
-                    // Upwind is stable for CFL = max|u|·dt/dx ≤ 1; checked on the initial state.
-                    let umax = self.x0[domain.range(Field::Velocity)].iter().fold(0.0f64, |m, u| m.max(u.abs()));
-                    let cfl = umax * dt / l.dx;
-                    if cfl > 1.0 {
-                        return Err(SceneError::key(
-                            at("kind"),
-                            format!("unstable: the CFL number max|u|·dt/dx = {cfl:.3} of the initial velocity exceeds 1; use dt ≤ {:.4e}", l.dx / umax),
-                        ));
-                    }
-                    let op = BurgersEnzyme(Burgers1d { n: l.n, dx: l.dx, dt, nu: 0.0 });
-                    self.ops.push(Box::new(Part::new(op, domain.n_state(), domain.range(Field::Velocity))));
-                    return Ok(());
+                if s {
+                    return Err(SceneError::key(at("fields"), "on a line only the velocity is advected (Burgers): fields = [\"velocity\"]"));
                 }
-                unreachable!("advection in a box is built by box_effect");
+                if a.scheme != "upwind" {
+                    return Err(SceneError::key(at("scheme"), format!("on a line the advection scheme is \"upwind\", got \"{}\"", a.scheme)));
+                }
+                if !l.periodic {
+                    return Err(SceneError::key(at("kind"), "advection on a line needs boundary = \"periodic\""));
+                }
+                // Upwind is stable for CFL = max|u|·dt/dx ≤ 1; checked on the initial state.
+                let umax = self.x0[domain.range(Field::Velocity)].iter().fold(0.0f64, |m, u| m.max(u.abs()));
+                let cfl = umax * dt / l.dx;
+                if cfl > 1.0 {
+                    return Err(SceneError::key(
+                        at("kind"),
+                        format!("unstable: the CFL number max|u|·dt/dx = {cfl:.3} of the initial velocity exceeds 1; use dt ≤ {:.4e}", l.dx / umax),
+                    ));
+                }
+                let op = BurgersEnzyme(Burgers1d { n: l.n, dx: l.dx, dt, nu: 0.0 });
+                self.ops.push(Box::new(Part::new(op, domain.n_state(), domain.range(Field::Velocity))));
             }
             (EffectSpec::Diffusion(d), _) => {
                 let (s, v) = self.fields_of(&at("fields"), &d.fields)?;

@@ -446,7 +446,7 @@ enum Product<const D: usize> {
     /// A closed box of `slabs` square slabs of `n × n` cells along the last
     /// axis (2D: one slab), with what the solid cells need: the count of
     /// solid cells beside each cell and a buffer.
-    Slabs { n: usize, slabs: usize, solid_beside: Vec<f64>, buf: Vec<f64> },
+    Slabs { n: usize, slabs: usize, solid_beside: Vec<f64> },
     /// The coefficient form (no periodic side).
     Coefficients(Coefficients<D>),
     /// The stencil of the box as a 3D one (a periodic side).
@@ -480,7 +480,7 @@ pub struct PressureSolver<const D: usize> {
     precond: Precond<D>,
     /// Fluid indicator per cell (1 fluid, 0 solid) when there are obstacles.
     fluid: Option<Vec<f64>>,
-    /// A buffer for the masked multigrid.
+    /// A buffer for the masked product and the masked V-cycle (with obstacles).
     buf: Vec<f64>,
     work: CgWork,
 }
@@ -573,14 +573,14 @@ impl<const D: usize> PressureSolver<D> {
         };
         let product = if slabs {
             let solid_beside = fluid.as_deref().map_or_else(Vec::new, |f| crate::smoke::solid_neighbours(grid, f));
-            let buf = if fluid.is_some() { vec![0.0; cells] } else { Vec::new() };
-            Product::Slabs { n: dims[0], slabs: dims[2], solid_beside, buf }
+            Product::Slabs { n: dims[0], slabs: dims[2], solid_beside }
         } else if !k.wraps {
             Product::Coefficients(k)
         } else {
             Product::Stencil(dims, b)
         };
-        let buf = if fluid.is_some() && matches!(precond, Precond::Multigrid(..) | Precond::Aggregate(_)) { vec![0.0; cells] } else { Vec::new() };
+        // The masked product and the masked V-cycle use it in turn.
+        let buf = if fluid.is_some() { vec![0.0; cells] } else { Vec::new() };
         Ok(Self { grid: *grid, stop, product, precond, fluid, buf, work: CgWork::new(cells) })
     }
 
@@ -641,12 +641,12 @@ impl<const D: usize> System for PressureSolver<D> {
             // The square's product straight here (vectorised by the caller).
             (Product::Slabs { n, slabs: 1, .. }, None) => apply_pressure_matrix(*n, *n, p, out),
             (Product::Slabs { n, slabs, .. }, None) => apply_box_matrix(*n, *slabs, p, out),
-            (Product::Slabs { n, slabs, solid_beside, buf }, Some(fluid)) => {
+            (Product::Slabs { n, slabs, solid_beside }, Some(fluid)) => {
                 // W·(A_box·(W·p) − S·p) + (I − W)·p.
-                for ((b, &p), &w) in buf.iter_mut().zip(p).zip(fluid) {
+                for ((b, &p), &w) in self.buf.iter_mut().zip(p).zip(fluid) {
                     *b = w * p;
                 }
-                apply_box_matrix(*n, *slabs, buf, out);
+                apply_box_matrix(*n, *slabs, &self.buf, out);
                 for (((o, &p), &w), &s) in out.iter_mut().zip(p).zip(fluid).zip(&*solid_beside) {
                     *o = w * (*o - s * p) + (1.0 - w) * p;
                 }
