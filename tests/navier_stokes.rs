@@ -130,3 +130,184 @@ fn a_body_force_holds_the_taylor_green_vortex_steady_and_its_gradient_checks() {
     let r = check_all(&op, &x, &q, &CheckParams::default());
     assert!(r.passed(), "forced step:\n{r}");
 }
+
+// ---- Any box: `NavierStokes<D>` (src/navier_stokes/step.rs) ----
+
+use diffsim::navier_stokes::{NavierStokes, NavierStokesError, Viscosity};
+use diffsim_solvers::boundary::{Boundary, Profile, Side};
+use diffsim_solvers::smoke::{MacGrid, Preconditioner, Solid, solid_cells};
+
+/// The box of `n` cells with `sides` (`[lower, upper]` per axis).
+fn boxed<const D: usize>(n: [usize; D], sides: [[Side; 2]; D]) -> MacGrid<D> {
+    MacGrid::new(n).with_boundary(Boundary { sides })
+}
+
+/// A smooth velocity (amplitude about `a`) on the faces of any box.
+fn box_velocity<const D: usize>(n: [usize; D], h: f64, a: f64, seed: usize) -> Vec<f64> {
+    on_faces(n, h, |axis, p| {
+        let phase = seed as f64 * 0.37 + axis as f64 + p.iter().enumerate().map(|(b, x)| (b + 1 + seed % 3) as f64 * 2.1 * x).sum::<f64>();
+        a * (phase.sin() + 0.3 * (2.0 * phase + 1.0).cos() + 0.4)
+    })
+}
+
+/// The three checks of the step on `grid` at two time steps (one sub-step,
+/// then several), with the velocity, ν, dt, the inflow profile and (when
+/// `forced`) a body force all perturbed.
+fn box_checks<const D: usize>(what: &str, grid: MacGrid<D>, viscosity: Viscosity, forced: bool, solid: Option<&[bool]>)
+where
+    NavierStokes<D>: diffsim::op::Vjp + diffsim::op::Jvp,
+{
+    let h = 1.0 / grid.n[0] as f64;
+    for scheme in [Scheme::SemiLagrangian, Scheme::MacCormack { limiter: false }] {
+        let mut op = NavierStokes::new(grid, h, scheme).unwrap().with_viscosity(viscosity).with_projection(1e-13, 4000, Preconditioner::Multigrid);
+        if forced {
+            op = op.forced();
+        }
+        if let Some(solid) = solid {
+            op = op.with_obstacles(solid).unwrap();
+        }
+        let x = box_velocity(grid.n, h, 0.3, 1);
+        let nu = 0.05;
+        // One sub-step (κ = 0.16·h²/h², Courant about 0.3), then several.
+        for dt in [0.16 * h * h / nu * 0.9, 2.5 * h * h / nu] {
+            let mut p = op.params(nu, dt);
+            if forced {
+                let f = box_velocity(grid.n, h, 0.5, 4);
+                let start = p.len() - f.len();
+                p[start..].copy_from_slice(&f);
+            }
+            let r = check_all(&op, &x, &p, &CheckParams::default());
+            assert!(r.passed(), "{what}, D = {D}, {scheme:?}, dt = {dt}:\n{r}");
+        }
+    }
+}
+
+#[test]
+fn the_step_on_any_box_passes_the_three_checks_in_2d_and_3d() {
+    use Side::*;
+    let inflow = Inflow(Profile::Parabolic(0.5));
+    let implicit = Viscosity::Implicit { tolerance: 1e-13, max_iterations: 500 };
+    // Between no-slip walls, periodic along x, under a body force.
+    box_checks("no-slip walls, forced", boxed([8, 6], [[Periodic, Periodic], [NoSlip, NoSlip]]), Viscosity::Explicit, true, None);
+    // A channel: a parabolic inflow, an outflow, no-slip walls; implicit viscosity.
+    box_checks("channel", boxed([8, 6], [[inflow, Outflow], [NoSlip, NoSlip]]), implicit, false, None);
+    // A closed (free-slip) box with an obstacle.
+    let closed = boxed([8, 8], [[Closed, Closed], [Closed, NoSlip]]);
+    let solid = solid_cells(&closed, &[Solid::Box { lower: [3.0, 3.0], upper: [5.0, 5.0] }]);
+    box_checks("closed box with an obstacle", closed, Viscosity::Explicit, false, Some(&solid));
+    // 3D: a channel along x, no-slip along y, periodic along z, forced.
+    box_checks("3D channel", boxed([5, 4, 4], [[inflow, Outflow], [NoSlip, NoSlip], [Periodic, Periodic]]), Viscosity::Explicit, true, None);
+}
+
+#[test]
+fn on_a_periodic_box_the_step_is_the_periodic_one() {
+    fn same<const D: usize>(n: [usize; D])
+    where
+        NavierStokes<D>: Forward,
+        PeriodicNavierStokes<D>: Forward,
+    {
+        let h = 2.0 * std::f64::consts::PI / n[0] as f64;
+        let flow = Periodic::new(n, h, 0.0, Scheme::MacCormack { limiter: true });
+        let x = velocity(&flow, 0.8, 3);
+        // Several sub-steps: κ and the Courant number both above their limits.
+        let p = [0.3 * h * h, 2.0 * h];
+        let any = NavierStokes::new(flow.grid, h, flow.scheme).unwrap();
+        let (a, b) = (any.eval(&x, &p), PeriodicNavierStokes::new(flow).eval(&x, &p));
+        let diff = a.iter().zip(&b).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(diff < 1e-12, "D = {D}: the two steps differ by {diff:e}");
+    }
+    same([8, 8]);
+    same([5, 5, 5]);
+}
+
+/// Plane Poiseuille flow between no-slip walls at y = 0 and 1 (periodic on
+/// the other axes), driven by a body force `g` along x: steady `u(y) =
+/// g/(2ν)·y(1 − y)`. Returns the largest error of the steady state reached
+/// from rest over `t = 2` (the slowest mode decays as `e^{−π²νt}`).
+fn poiseuille<const D: usize>(n: [usize; D], viscosity: Viscosity, dt: f64) -> f64
+where
+    NavierStokes<D>: Forward,
+{
+    let mut sides = [[Side::Periodic; 2]; D];
+    sides[1] = [Side::NoSlip; 2];
+    let grid = boxed(n, sides);
+    let (h, nu, g) = (1.0 / n[1] as f64, 1.0, 8.0);
+    let op = NavierStokes::new(grid, h, Scheme::SemiLagrangian).unwrap().with_viscosity(viscosity).forced();
+    let mut p = op.params(nu, dt);
+    let u_faces = grid.face_range(0);
+    for v in &mut p[2 + u_faces.start..2 + u_faces.end] {
+        *v = g;
+    }
+    let mut x = vec![0.0; grid.n_vel()];
+    for _ in 0..(2.0 / dt).round() as usize {
+        x = op.eval(&x, &p);
+    }
+    let exact = on_faces(n, h, |axis, q| if axis == 0 { g / (2.0 * nu) * q[1] * (1.0 - q[1]) } else { 0.0 });
+    x.iter().zip(&exact).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()))
+}
+
+#[test]
+fn poiseuille_flow_between_no_slip_walls_converges_at_second_order() {
+    // Explicit viscosity (many sub-steps), then implicit (few, long ones):
+    // the same steady state.
+    let implicit = Viscosity::Implicit { tolerance: 1e-12, max_iterations: 500 };
+    let e: Vec<f64> = [8, 16, 32].iter().map(|&n| poiseuille([4, n], Viscosity::Explicit, 0.1)).collect();
+    let orders: Vec<f64> = e.windows(2).map(|w| (w[0] / w[1]).log2()).collect();
+    assert!(orders.iter().all(|&o| (1.9..2.1).contains(&o)), "errors {e:?}, orders {orders:?}");
+    // The error is the no-slip ghost value's: g·h²/(8ν) = h² here.
+    assert!(e[2] < 1.05 / (32.0 * 32.0), "32 cells: error {:.3e}", e[2]);
+    let ei = poiseuille([4, 16], implicit, 0.5);
+    assert!((ei - e[1]).abs() < 1e-3 * e[1], "implicit viscosity: error {ei:.4e} against explicit {:.4e}", e[1]);
+    // 3D, periodic along x and z: the same profile.
+    let e3 = poiseuille([4, 16, 4], Viscosity::Explicit, 0.1);
+    assert!((e3 - e[1]).abs() < 1e-3 * e[1], "3D: error {e3:.4e} against 2D {:.4e}", e[1]);
+}
+
+#[test]
+fn a_channel_with_a_parabolic_inflow_keeps_its_poiseuille_profile() {
+    // Inflow u = 4y(1 − y) on the left, outflow on the right, no-slip walls;
+    // started from that profile everywhere, the flow stays on it (the
+    // pressure gradient balancing the viscosity).
+    let (nx, ny) = (32, 16);
+    let h = 1.0 / ny as f64;
+    let grid = boxed([nx, ny], [[Side::Inflow(Profile::Parabolic(1.0)), Side::Outflow], [Side::NoSlip, Side::NoSlip]]);
+    let op = NavierStokes::new(grid, h, Scheme::MacCormack { limiter: true }).unwrap();
+    let exact = on_faces([nx, ny], h, |axis, q| if axis == 0 { 4.0 * q[1] * (1.0 - q[1]) } else { 0.0 });
+    let p = op.params(0.1, 0.1);
+    let mut x = exact.clone();
+    for _ in 0..20 {
+        x = op.eval(&x, &p);
+        assert!(op.take_error().is_none());
+    }
+    let off = x.iter().zip(&exact).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(off < 0.02, "{off:.3e} from the Poiseuille profile after t = 2");
+    // The profile is the parameters' (the faces of the left side).
+    assert_eq!(op.inflow_faces().len(), ny);
+    assert!(op.inflow_faces().iter().zip(&p[2..]).all(|(f, &q)| f.speed == q && f.sign == 1.0));
+}
+
+#[test]
+fn a_bad_box_or_call_of_the_any_box_step_is_an_error() {
+    let h = 0.1;
+    let scheme = Scheme::SemiLagrangian;
+    // Inflow without an outflow side; a cell size of zero; too few cells.
+    let no_outflow = boxed([8, 8], [[Side::Inflow(Profile::Uniform(1.0)), Side::Closed], [Side::NoSlip, Side::NoSlip]]);
+    let e = NavierStokes::new(no_outflow, h, scheme).unwrap_err();
+    assert!(matches!(e, NavierStokesError::Sides(_)) && e.to_string().contains("outflow"), "{e}");
+    assert!(matches!(NavierStokes::new(boxed([8, 8], [[Side::Closed; 2]; 2]), 0.0, scheme), Err(NavierStokesError::CellSize(_))));
+    assert!(matches!(NavierStokes::new(boxed([1, 8], [[Side::Closed; 2]; 2]), h, scheme), Err(NavierStokesError::TooFewCells(_))));
+    let grid = boxed([8, 8], [[Side::Closed; 2], [Side::NoSlip; 2]]);
+    let op = NavierStokes::new(grid, h, scheme).unwrap();
+    assert!(matches!(op.with_obstacles(&[true; 64]), Err(NavierStokesError::AllSolid)), "every cell solid");
+    let op = NavierStokes::new(grid, h, scheme).unwrap();
+    let x = box_velocity(grid.n, h, 0.3, 2);
+    let mut y = vec![0.0; x.len()];
+    op.forward(&x, &[-1.0, 0.1], &mut y);
+    let e = op.take_error();
+    assert!(matches!(e, Some(OpError::Input(_))) && y == x, "a negative viscosity: {e:?}");
+    assert!(e.unwrap().to_string().contains("viscosity p[0] = -1"));
+    let mut bad = x.clone();
+    bad[3] = f64::NAN;
+    op.forward(&bad, &[0.1, 0.1], &mut y);
+    assert!(matches!(op.take_error(), Some(OpError::Unstable { .. })), "a velocity that is not a number");
+}

@@ -435,6 +435,54 @@ fn the_taylor_green_scene_decays_as_the_exact_solution() {
     }
 }
 
+#[test]
+fn the_navier_stokes_effect_decays_taylor_green_and_names_its_parameters() {
+    // The same vortex, the three effects replaced by the one Navier–Stokes
+    // step (MacCormack, explicit viscosity, sub-steps), periodic and closed.
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/taylor_green.toml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let effects = text.find("[[effects]]").unwrap();
+    let one = format!("{}[[effects]]\nkind = \"navier_stokes\"\nviscosity = 0.2\ntolerance = 1e-10\n", &text[..effects]);
+    for boundary in ["periodic", "closed"] {
+        let text = one.replace("boundary = \"periodic\"", &format!("boundary = \"{boundary}\""));
+        let scene = Scene::parse(&text).unwrap();
+        assert_eq!(scene.effects, ["navier_stokes"]);
+        let (_, viscosity, _) = scene.named.iter().find(|(n, _, _)| n == "navier_stokes.viscosity").unwrap().clone();
+        let (_, dt, _) = scene.named.iter().find(|(n, _, _)| n == "navier_stokes.dt").unwrap().clone();
+        assert_eq!((scene.params[viscosity], scene.params[dt]), (0.2, 1.0));
+        let x0 = scene.x0.clone();
+        let x = scene.run(|_, _| {}).unwrap();
+        let decay = (-2.0 * 0.2 * (std::f64::consts::TAU / 64.0).powi(2) * 40.0).exp();
+        let peak = x0.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let err = x.iter().zip(&x0).fold(0.0f64, |m, (a, b)| m.max((a - decay * b).abs()));
+        assert!(err < 0.02 * peak, "{boundary}: largest error {err:.3e} against a decay to {decay:.4} of {peak}");
+    }
+}
+
+#[test]
+fn no_slip_walls_slow_a_channel_flow_where_free_slip_walls_do_not() {
+    // A uniform inflow into a channel: between free-slip (closed) walls the
+    // flow stays a plug; between no-slip walls the viscosity slows it next
+    // to the walls.
+    let channel = |walls: &str| {
+        format!(
+            "[domain]\nsize = [24, 12]\nboundary = {{ y = \"{walls}\", left = {{ inflow = [1.0, 0.0] }}, right = \"outflow\" }}\n\
+             [time]\ndt = 0.5\nsteps = 40\n[fields.velocity]\ninit = \"zero\"\n\
+             [[effects]]\nkind = \"navier_stokes\"\nviscosity = 1.0\nscheme = \"semi_lagrangian\"\ntolerance = 1e-10\n"
+        )
+    };
+    let (nx, ny) = (24, 12);
+    let u = |x: &[f64], j: usize| x[nx * ny + j * (nx + 1) + nx - 2];
+    let free = Scene::parse(&channel("free-slip")).unwrap().run(|_, _| {}).unwrap();
+    let ratio = u(&free, 0) / u(&free, ny / 2);
+    assert!((ratio - 1.0).abs() < 1e-6, "free slip: wall row / middle row = {ratio}");
+    let held = Scene::parse(&channel("no-slip")).unwrap().run(|_, _| {}).unwrap();
+    let ratio = u(&held, 0) / u(&held, ny / 2);
+    assert!(ratio < 0.8, "no slip: wall row / middle row = {ratio}");
+    // Mass: what flows in leaves (the middle row faster than the inflow).
+    assert!(u(&held, ny / 2) > 1.05, "no slip: middle row {}", u(&held, ny / 2));
+}
+
 /// `(f(h) − f(−h)) / 2h`.
 pub(crate) fn central(f: impl Fn(f64) -> f64, h: f64) -> f64 {
     (f(h) - f(-h)) / (2.0 * h)

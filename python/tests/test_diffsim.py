@@ -209,3 +209,32 @@ def test_the_periodic_navier_stokes_step_decays_taylor_green_and_passes_the_chec
     assert verdict == "pass", report
     with pytest.raises(diffsim.DiffsimError, match="2 or 3"):
         diffsim.navier_stokes_step([8])
+
+
+def test_the_navier_stokes_step_in_a_channel_keeps_poiseuille_flow_and_checks():
+    # A channel 2 × 1: a parabolic inflow on the left (its speeds are the
+    # parameters after [ν, dt]), an outflow on the right, no-slip walls.
+    nx, ny = 16, 8
+    channel = [["inflow", "outflow"], ["no_slip", "no_slip"]]
+    op = diffsim.navier_stokes_step([nx, ny], length=2.0, boundary=channel)
+    h = 1.0 / ny
+    yc = (np.arange(ny) + 0.5) * h
+    profile = 4 * yc * (1 - yc)
+    assert op.n_params == 2 + ny and op.n_in == (nx + 1) * ny + nx * (ny + 1)
+    u = np.tile(profile[:, None], (1, nx + 1)).ravel()
+    x = np.concatenate([u, np.zeros(nx * (ny + 1))])
+    p = np.concatenate([[0.1, 0.1], profile])
+    y = x
+    for _ in range(10):
+        y = op.forward(y, p)
+    # Off by the no-slip walls' discretisation error at 8 cells across.
+    assert np.max(np.abs(y - x)) < 0.015
+    # The three checks, the inflow speeds among the parameters, with
+    # implicit viscosity.
+    implicit = diffsim.navier_stokes_step([nx, ny], length=2.0, boundary=channel, viscosity="implicit")
+    verdict, report = implicit.check(x + 0.1 * np.cos(0.7 * np.arange(x.size)), p)
+    assert verdict == "pass", report
+    with pytest.raises(diffsim.DiffsimError, match="no_slip"):
+        diffsim.navier_stokes_step([8, 8], boundary=[["periodic", "periodic"], ["wall", "wall"]])
+    with pytest.raises(diffsim.DiffsimError, match="outflow"):
+        diffsim.navier_stokes_step([8, 8], boundary=[["inflow", "free_slip"], ["no_slip", "no_slip"]])

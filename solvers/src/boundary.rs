@@ -9,7 +9,8 @@
 //!
 //! | kind | normal velocity on the side's faces | pressure | advection |
 //! |---|---|---|---|
-//! | closed | 0 | no flux (Neumann) | samples clamped to the box |
+//! | closed (free slip) | 0 | no flux (Neumann) | samples clamped to the box |
+//! | no-slip | 0, and the tangential velocity 0 at the wall (viscosity) | no flux (Neumann) | clamped |
 //! | periodic | face `N` is a copy of face `0` (never read) | wraps | samples wrap |
 //! | inflow | the profile, inward | no flux (Neumann: the face is given) | clamped |
 //! | outflow | free (advected, then projected) | `p = 0` outside (Dirichlet) | clamped |
@@ -78,8 +79,14 @@ impl Profile {
 /// The condition on one side of the box.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Side {
-    /// No flow through (free slip along it).
+    /// No flow through (free slip along it: the viscosity sees no
+    /// gradient of the tangential velocity across it).
     Closed,
+    /// No flow through and no slip along it: the tangential velocity is 0
+    /// on the wall (the viscosity's ghost value beyond it is the negative
+    /// of the value inside, [`crate::diffusion::Grid`]). Otherwise as
+    /// [`Side::Closed`].
+    NoSlip,
     /// Wraps to the opposite side.
     Periodic,
     /// Fluid enters with this inward normal speed profile.
@@ -99,7 +106,13 @@ impl Side {
     /// Whether the side sets its faces' normal velocity (closed: 0, inflow:
     /// the profile), so that nothing computed there before survives.
     pub fn sets_faces(self) -> bool {
-        matches!(self, Side::Closed | Side::Inflow(_))
+        matches!(self, Side::Closed | Side::NoSlip | Side::Inflow(_))
+    }
+
+    /// Whether the side is a wall (closed or no-slip): no flow through.
+    #[inline(always)]
+    pub fn is_wall(self) -> bool {
+        matches!(self, Side::Closed | Side::NoSlip)
     }
 
     /// The side with its inhomogeneous part dropped (an inflow closed): the

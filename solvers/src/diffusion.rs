@@ -12,12 +12,18 @@
 //! - implicit: `(I + κ·A)·s' = s`, stable for every `κ ≥ 0`. The matrix is
 //!   symmetric positive definite, so its adjoint is the same solve.
 
+use crate::boundary::Side;
 use crate::smoke::{MacGrid, NoConvergence, apply_pressure_matrix};
 
 /// A lattice of `nx × ny × nz` samples at `f[m·slab + l·stride + k]` in a
 /// slice of [`Grid::len`] values (a line or a plane: `nz = 1`); on a
-/// wrapping axis the lattice is periodic, on the others no flux leaves it. Entries of the slice that are not samples (a periodic
-/// velocity's copy column or row) do not diffuse.
+/// wrapping axis the lattice is periodic, on the others no flux leaves it
+/// (the value beyond an edge is the edge's own) unless the edge is marked
+/// in [`Grid::fixed`]: there the value beyond it is the negative of the
+/// edge's, so that the field is zero half a sample beyond the edge (a
+/// no-slip wall for a velocity component tangential to it). Entries of the
+/// slice that are not samples (a periodic velocity's copy column or row)
+/// do not diffuse.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Grid {
     /// Distance between rows in the slice.
@@ -37,12 +43,18 @@ pub struct Grid {
     /// Rows per slab in the slice (`ny`, or one more where a periodic y
     /// axis keeps its copy row inside each slab).
     pub rows: usize,
+    /// The edges where the field is held at zero half a sample beyond the
+    /// last sample: bit `2a` the lower edge of axis `a` (0 x, 1 y, 2 z),
+    /// bit `2a + 1` the upper one; 0 for none. (Bits, not an array of
+    /// flags: a plain integer is what Enzyme types surely in the explicit
+    /// step it differentiates.)
+    pub fixed: u32,
 }
 
 impl Grid {
     /// A plane of `nx × ny` samples, rows `stride` apart.
     pub fn plane(stride: usize, nx: usize, ny: usize, wrap_x: bool, wrap_y: bool) -> Self {
-        Self { stride, nx, ny, nz: 1, wrap_x, wrap_y, wrap_z: false, rows: ny }
+        Self { stride, nx, ny, nz: 1, wrap_x, wrap_y, wrap_z: false, rows: ny, fixed: 0 }
     }
 
     /// A line of `n` samples, periodic or closed.
@@ -57,22 +69,36 @@ impl Grid {
 
     /// The lattices of a state `[s, u₀, …]` for `cfg`'s sides, in 2D or
     /// 3D: the cell centres, then the faces normal to each axis (each over
-    /// its whole array; a periodic axis's copy faces are not samples).
+    /// its whole array; a periodic axis's copy faces are not samples). A
+    /// face lattice's edges along a no-slip side ([`Side::NoSlip`]) of
+    /// another axis are [fixed](Grid::fixed): the component tangential to
+    /// the wall is zero on it.
     pub fn of_state<const D: usize>(cfg: &MacGrid<D>) -> Vec<Grid> {
         let w = cfg.boundary.wraps();
         let mut grids = Vec::with_capacity(D + 1);
         for l in 0..=D {
             // The array's extents, the samples (own faces) and the wrapping
             // per axis, padded to three axes.
-            let (mut ext, mut own, mut wraps) = ([1usize; 3], [1usize; 3], [false; 3]);
+            let (mut ext, mut own, mut wraps, mut fixed) = ([1usize; 3], [1usize; 3], [false; 3], 0);
             for a in 0..D {
                 ext[a] = cfg.n[a] + usize::from(l == a + 1);
                 own[a] = ext[a] - usize::from(l == a + 1 && w[a]);
                 wraps[a] = w[a];
+                for (h, side) in cfg.boundary.axis(a).into_iter().enumerate() {
+                    if l >= 1 && l != a + 1 && side == Side::NoSlip {
+                        fixed |= 1 << (2 * a + h);
+                    }
+                }
             }
-            grids.push(Grid { stride: ext[0], nx: own[0], ny: own[1], nz: own[2], wrap_x: wraps[0], wrap_y: wraps[1], wrap_z: wraps[2], rows: ext[1] });
+            grids.push(Grid { stride: ext[0], nx: own[0], ny: own[1], nz: own[2], wrap_x: wraps[0], wrap_y: wraps[1], wrap_z: wraps[2], rows: ext[1], fixed });
         }
         grids
+    }
+
+    /// Whether edge `bit` ([`Grid::fixed`]'s numbering) is fixed: `1.0` or `0.0`.
+    #[inline(always)]
+    fn fixed_at(&self, bit: u32) -> f64 {
+        ((self.fixed >> bit) & 1) as f64
     }
 
     /// Distance between slabs in the slice.
@@ -104,7 +130,7 @@ impl Grid {
 /// periodic axis); zero at slice entries that are not samples. Symmetric
 /// positive semi-definite.
 pub fn laplacian(g: &Grid, s: &[f64], out: &mut [f64]) {
-    if !g.wrap_x && !g.wrap_y && g.stride == g.nx && g.nx >= 2 && g.nz == 1 && g.rows == g.ny {
+    if !g.wrap_x && !g.wrap_y && g.fixed == 0 && g.stride == g.nx && g.nx >= 2 && g.nz == 1 && g.rows == g.ny {
         return apply_pressure_matrix(g.nx, g.ny, s, out);
     }
     for o in out.iter_mut() {
@@ -120,11 +146,15 @@ pub fn laplacian(g: &Grid, s: &[f64], out: &mut [f64]) {
                     acc += s[c] - s[c - slab];
                 } else if g.wrap_z {
                     acc += s[c] - s[c + (nz - 1) * slab];
+                } else {
+                    acc += 2.0 * g.fixed_at(4) * s[c];
                 }
                 if m + 1 < nz {
                     acc += s[c] - s[c + slab];
                 } else if g.wrap_z {
                     acc += s[c] - s[c - (nz - 1) * slab];
+                } else {
+                    acc += 2.0 * g.fixed_at(5) * s[c];
                 }
                 out[c] = acc;
             }
@@ -139,25 +169,35 @@ fn plane_terms(g: &Grid, s: &[f64], c: usize, k: usize, l: usize, base: usize) -
     let (nx, ny, st) = (g.nx, g.ny, g.stride);
     let sc = s[c];
     let mut acc = 0.0;
+    // Beyond an edge: the wrapped sample, the edge's own value (no flux)
+    // or its negative (fixed: `2·s` in the sum).
     if k > 0 {
         acc += sc - s[c - 1];
     } else if g.wrap_x {
         acc += sc - s[c + nx - 1];
+    } else {
+        acc += 2.0 * g.fixed_at(0) * sc;
     }
     if k + 1 < nx {
         acc += sc - s[c + 1];
     } else if g.wrap_x {
         acc += sc - s[base + l * st];
+    } else {
+        acc += 2.0 * g.fixed_at(1) * sc;
     }
     if l > 0 {
         acc += sc - s[c - st];
     } else if g.wrap_y {
         acc += sc - s[base + (ny - 1) * st + k];
+    } else {
+        acc += 2.0 * g.fixed_at(2) * sc;
     }
     if l + 1 < ny {
         acc += sc - s[c + st];
     } else if g.wrap_y {
         acc += sc - s[base + k];
+    } else {
+        acc += 2.0 * g.fixed_at(3) * sc;
     }
     acc
 }

@@ -13,6 +13,7 @@ use super::spec::{EffectSpec, SceneFile, ShapeSpec};
 use super::value::{count, finite, iterations, positive, tolerance};
 use super::{Array, Control, Domain, Field, Line, Scene, SceneError, SceneLoss};
 use crate::fluids::{Advect, AdvectUpwind, Buoyancy, Diffuse, DiffuseExplicit, DiffuseImplicit, Force, Inflow, Project};
+use crate::navier_stokes::{NavierStokes, Viscosity};
 use crate::op::{AddParams, Chain, Effect, Part};
 use crate::problems::burgers::BurgersEnzyme;
 use crate::problems::smoke::SmokeAdvect;
@@ -362,7 +363,7 @@ impl Builder<'_> {
         // Advection, pressure, buoyancy and inflow in a box are built by
         // `box_effect`, once for 2D and 3D; diffusion and forces below for
         // every domain.
-        if matches!(e, EffectSpec::Advection(_) | EffectSpec::Pressure(_) | EffectSpec::Buoyancy(_) | EffectSpec::Inflow(_)) {
+        if matches!(e, EffectSpec::Advection(_) | EffectSpec::Pressure(_) | EffectSpec::Buoyancy(_) | EffectSpec::Inflow(_) | EffectSpec::NavierStokes(_)) {
             match domain {
                 Domain::Box(cfg) => return self.box_effect(k, e, cfg),
                 Domain::Box3(cfg) => return self.box_effect(k, e, cfg),
@@ -480,7 +481,7 @@ impl Builder<'_> {
                     }
                 }
             }
-            (EffectSpec::Pressure(_) | EffectSpec::Buoyancy(_) | EffectSpec::Inflow(_), Domain::Line(_)) => {
+            (EffectSpec::Pressure(_) | EffectSpec::Buoyancy(_) | EffectSpec::Inflow(_) | EffectSpec::NavierStokes(_), Domain::Line(_)) => {
                 return Err(box_only(table.get("kind").and_then(|v| v.as_str()).unwrap_or("this effect")));
             }
             (_, Domain::Box(_) | Domain::Box3(_)) => unreachable!("built by box_effect"),
@@ -517,9 +518,44 @@ impl Builder<'_> {
         Buoyancy<D>: Effect,
         Inflow<D>: Effect,
         Project<D>: Effect,
+        NavierStokes<D>: Effect,
     {
         let at = |key: &str| format!("effects[{k}].{key}");
         match e {
+            EffectSpec::NavierStokes(ns) => {
+                self.need(&at("kind"), "navier_stokes", &[Field::Velocity])?;
+                let nu = finite(&at("viscosity"), ns.viscosity)?;
+                if nu < 0.0 {
+                    return Err(SceneError::key(at("viscosity"), format!("must not be negative, got {nu}")));
+                }
+                let scheme = match ns.scheme.as_str() {
+                    "maccormack" => Scheme::MacCormack { limiter: ns.limiter },
+                    "semi_lagrangian" => Scheme::SemiLagrangian,
+                    other => return Err(SceneError::key(at("scheme"), unknown("scheme", other, &["maccormack", "semi_lagrangian"]))),
+                };
+                let tol = tolerance(&at("tolerance"), ns.tolerance)?;
+                let max = iterations(&at("max_iterations"), ns.max_iterations, cfg.n_state())?;
+                let viscosity = match ns.viscous.as_str() {
+                    "explicit" => Viscosity::Explicit,
+                    "implicit" => Viscosity::Implicit { tolerance: tol, max_iterations: max },
+                    other => return Err(SceneError::key(at("viscous"), unknown("viscous scheme", other, &["explicit", "implicit"]))),
+                };
+                let precond = preconditioner(&at("preconditioner"), &ns.preconditioner, &["multigrid", "mic0", "none"])?;
+                // Unit cells; the domain's sides were validated with the domain.
+                let step = NavierStokes::new(cfg, 1.0, scheme).map_err(|e| SceneError::key(at("kind"), e.to_string()))?;
+                let mut step = step.with_viscosity(viscosity).with_projection(tol, max, precond);
+                if let Some(solid) = self.solid {
+                    step = step.with_obstacles(solid).map_err(|e| SceneError::key("obstacles", e.to_string()))?;
+                }
+                let params = step.params(nu, self.dt);
+                self.effects.push("navier_stokes".into());
+                self.ops.push(Box::new(Part::new(step, cfg.n_state(), cfg.n_s()..cfg.n_state())));
+                self.name(k, "navier_stokes", "viscosity", 1.0);
+                self.params.push(params[0]);
+                self.name(k, "navier_stokes", "dt", 1.0);
+                self.params.extend(&params[1..]);
+                self.projected = true;
+            }
             EffectSpec::Advection(a) => {
                 let (s, v) = self.fields_of(&at("fields"), &a.fields)?;
                 self.effects.push("advection".into());
@@ -668,7 +704,11 @@ fn boundary_sides(v: &toml::Value, dims: usize) -> Result<Vec<[Side; 2]>, SceneE
         }
         _ => Err(SceneError::key(
             KEY,
-            format!("expected a kind (\"closed\", \"periodic\", \"outflow\"), {{ {} = … }} or {{ {} = … }}", axes.join(" = …, "), sides.join(" = …, ")),
+            format!(
+                "expected a kind (\"closed\", \"no-slip\", \"periodic\", \"outflow\"), {{ {} = … }} or {{ {} = … }}",
+                axes.join(" = …, "),
+                sides.join(" = …, ")
+            ),
         )),
     }
 }
@@ -677,11 +717,12 @@ fn boundary_sides(v: &toml::Value, dims: usize) -> Result<Vec<[Side; 2]>, SceneE
 /// "parabolic" }` (`inward`: the side's inward normal, for the inflow
 /// speed; its length is the box's dimension).
 fn side(key: &str, v: &toml::Value, inward: Option<&[f64]>) -> Result<Side, SceneError> {
-    const KINDS: [&str; 4] = ["closed", "periodic", "outflow", "inflow"];
+    const KINDS: [&str; 6] = ["closed", "free-slip", "no-slip", "periodic", "outflow", "inflow"];
     let coords = |n: usize| ["vx", "vy", "vz"][..n].join(", ");
     match v {
         toml::Value::String(s) => match s.as_str() {
-            "closed" => Ok(Side::Closed),
+            "closed" | "free-slip" => Ok(Side::Closed),
+            "no-slip" => Ok(Side::NoSlip),
             "periodic" => Ok(Side::Periodic),
             "outflow" => Ok(Side::Outflow),
             "inflow" => Err(SceneError::key(key, format!("inflow needs its velocity: {{ inflow = [{}] }}", coords(inward.map_or(2, <[f64]>::len))))),

@@ -43,7 +43,7 @@ pub struct DomainSpec {
     pub length: Option<f64>,
     /// Cell width of a steady scene's box (default 1).
     pub cell: Option<f64>,
-    /// `"closed"`, `"periodic"`, `"outflow"`, per axis `{ x = …, y = … }`,
+    /// `"closed"` (or `"free-slip"`), `"no-slip"`, `"periodic"`, `"outflow"`, per axis `{ x = …, y = … }`,
     /// or per side `{ left = …, right = …, bottom = …, top = … }`.
     #[serde(default)]
     pub boundary: Option<toml::Value>,
@@ -337,10 +337,51 @@ pub enum EffectSpec {
     Force(ForceSpec),
     /// `kind = "inflow"`.
     Inflow(InflowSpec),
+    /// `kind = "navier_stokes"`.
+    NavierStokes(NavierStokesSpec),
 }
 
 /// The effect kinds, as written.
-pub const EFFECT_KINDS: [&str; 6] = ["advection", "diffusion", "pressure", "buoyancy", "force", "inflow"];
+pub const EFFECT_KINDS: [&str; 7] = ["advection", "diffusion", "pressure", "buoyancy", "force", "inflow", "navier_stokes"];
+
+/// `kind = "navier_stokes"`: one step of incompressible Navier–Stokes on the
+/// velocity (`diffsim::navier_stokes::NavierStokes`): advection of the
+/// velocity by itself, viscosity, projection, split into stable sub-steps,
+/// the domain's sides and obstacles.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NavierStokesSpec {
+    /// Kinematic viscosity ν (per unit time, unit cells).
+    pub viscosity: f64,
+    /// `"maccormack"` (default) or `"semi_lagrangian"`.
+    #[serde(default = "maccormack")]
+    pub scheme: String,
+    /// MacCormack's limiter (default off: the scheme's second order).
+    #[serde(default)]
+    pub limiter: bool,
+    /// `"explicit"` (default: its limit enters the sub-steps) or `"implicit"`.
+    #[serde(default = "explicit")]
+    pub viscous: String,
+    /// Relative tolerance of the solves: the projection's and the implicit
+    /// viscosity's (default 1e-8).
+    #[serde(default = "tolerance")]
+    pub tolerance: f64,
+    /// Iteration cap of each solve (default 1000).
+    #[serde(default = "max_iterations")]
+    pub max_iterations: i64,
+    /// The projection's preconditioner: `"multigrid"` (default), `"mic0"`
+    /// or `"none"`.
+    #[serde(default = "multigrid")]
+    pub preconditioner: String,
+}
+
+fn maccormack() -> String {
+    "maccormack".into()
+}
+
+fn explicit() -> String {
+    "explicit".into()
+}
 
 /// `kind = "advection"`.
 #[derive(Debug, Deserialize)]
@@ -476,6 +517,7 @@ pub fn effect(k: usize, table: &toml::Table) -> Result<EffectSpec, SceneError> {
         "buoyancy" => EffectSpec::Buoyancy(value.try_into().map_err(fail)?),
         "force" => EffectSpec::Force(value.try_into().map_err(fail)?),
         "inflow" => EffectSpec::Inflow(value.try_into().map_err(fail)?),
+        "navier_stokes" => EffectSpec::NavierStokes(value.try_into().map_err(fail)?),
         other => return Err(SceneError::key(format!("{at}.kind"), unknown("effect kind", other, &EFFECT_KINDS))),
     })
 }

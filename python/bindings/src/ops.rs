@@ -293,27 +293,46 @@ pub(crate) fn smoke_step(n: usize) -> PyResult<Operator> {
     Ok(Operator::new(Arc::new(StepOp(step)), format!("smoke_step(n={n})")))
 }
 
-/// One step of incompressible Navier–Stokes on a periodic box of `n`
-/// cells per axis (2 or 3 axes, the same cell size on each, the box
-/// `length` long along x): the packed MAC velocity `[u, v(, w)]` (each
-/// component on its faces, x fastest, face `n` along its own axis the copy
-/// of face 0) in and out, the parameters `p = [ν, dt]`. A step is split
-/// into stable sub-steps (advection by `scheme`, `"maccormack"` or
-/// `"semi_lagrangian"`; explicit viscosity; projection by FFT); Enzyme's
-/// derivatives with respect to the velocity, ν and dt. With `forced`, a
-/// body force follows: `p = [ν, dt, f…]`, one value per face. With
-/// `centred`, the velocity in and out is `D` values per cell (component
-/// after component), moved to and from the faces by a spectral half-cell
-/// shift.
+/// One step of incompressible Navier–Stokes on a box of `n` cells per axis
+/// (2 or 3 axes, the same cell size on each, the box `length` long along
+/// x): the packed MAC velocity `[u, v(, w)]` (each component on its faces,
+/// x fastest; on a periodic axis face `n` is the copy of face 0) in and
+/// out, the parameters `p = [ν, dt, q…, f…]`. A step is split into stable
+/// sub-steps (advection by `scheme`, `"maccormack"` or `"semi_lagrangian"`;
+/// viscosity `"explicit"` or `"implicit"`; the projection by FFT on a
+/// periodic box, by multigrid CG otherwise); the derivatives with respect
+/// to the velocity and every parameter.
+///
+/// `boundary`: `None` (periodic on every axis) or one `[lower, upper]`
+/// pair per axis of `"periodic"`, `"free_slip"`, `"no_slip"`, `"outflow"`
+/// or `"inflow"`. Each inflow side adds its faces' inward speeds `q` to the
+/// parameters (axis by axis, lower side first, the side's points x
+/// fastest; an inflow needs an outflow side). With `forced`, a body force
+/// follows: one value per face. With `centred` (periodic boxes only), the
+/// velocity in and out is `D` values per cell (component after
+/// component), moved to and from the faces by a spectral half-cell shift.
 #[pyfunction]
-#[pyo3(signature = (n, scheme = "maccormack", length = std::f64::consts::TAU, forced = false, centred = false))]
-pub(crate) fn navier_stokes_step(n: Vec<usize>, scheme: &str, length: f64, forced: bool, centred: bool) -> PyResult<Operator> {
+#[pyo3(signature = (n, scheme = "maccormack", length = std::f64::consts::TAU, forced = false, centred = false, boundary = None, viscosity = "explicit"))]
+pub(crate) fn navier_stokes_step(
+    n: Vec<usize>,
+    scheme: &str,
+    length: f64,
+    forced: bool,
+    centred: bool,
+    boundary: Option<Vec<[String; 2]>>,
+    viscosity: &str,
+) -> PyResult<Operator> {
     use diffsim_solvers::mac::periodic::Periodic;
     use diffsim_solvers::smoke::Scheme;
     let scheme = match scheme {
         "maccormack" => Scheme::MacCormack { limiter: false },
         "semi_lagrangian" => Scheme::SemiLagrangian,
         other => return Err(DiffsimError::new_err(format!("scheme = {other:?}: expected \"maccormack\" or \"semi_lagrangian\""))),
+    };
+    let viscosity = match viscosity {
+        "explicit" => diffsim::navier_stokes::Viscosity::Explicit,
+        "implicit" => diffsim::navier_stokes::Viscosity::Implicit { tolerance: 1e-10, max_iterations: 2000 },
+        other => return Err(DiffsimError::new_err(format!("viscosity = {other:?}: expected \"explicit\" or \"implicit\""))),
     };
     if !(length.is_finite() && length > 0.0) {
         return Err(DiffsimError::new_err(format!("length = {length}: must be positive")));
@@ -323,11 +342,74 @@ pub(crate) fn navier_stokes_step(n: Vec<usize>, scheme: &str, length: f64, force
     }
     let h = length / n[0] as f64;
     let name = format!("navier_stokes_step(n={n:?})");
+    let sides = match &boundary {
+        None => None,
+        Some(b) if b.len() != n.len() => return Err(DiffsimError::new_err(format!("boundary: {} axes for a box of {}", b.len(), n.len()))),
+        Some(b) => Some(b.iter().enumerate().map(|(a, pair)| Ok([side(a, 0, &pair[0])?, side(a, 1, &pair[1])?])).collect::<PyResult<Vec<_>>>()?),
+    };
+    let periodic = sides.as_ref().is_none_or(|s| s.iter().flatten().all(|&s| s == Side::Periodic));
+    if centred && !periodic {
+        return Err(DiffsimError::new_err("centred = True needs a box periodic on every axis (the spectral half-cell shift)"));
+    }
+    if periodic && viscosity == diffsim::navier_stokes::Viscosity::Explicit {
+        return match n[..] {
+            [nx, ny] => Ok(periodic_step(Periodic::new([nx, ny], h, 0.0, scheme), forced, centred, name)),
+            [nx, ny, nz] => Ok(periodic_step(Periodic::new([nx, ny, nz], h, 0.0, scheme), forced, centred, name)),
+            _ => Err(DiffsimError::new_err(format!("n = {n:?}: give 2 or 3 cell counts, one per axis"))),
+        };
+    }
+    let sides = sides.unwrap_or_else(|| vec![[Side::Periodic; 2]; n.len()]);
     match n[..] {
-        [nx, ny] => Ok(periodic_step(Periodic::new([nx, ny], h, 0.0, scheme), forced, centred, name)),
-        [nx, ny, nz] => Ok(periodic_step(Periodic::new([nx, ny, nz], h, 0.0, scheme), forced, centred, name)),
+        [nx, ny] => box_step([nx, ny], [sides[0], sides[1]], h, scheme, viscosity, forced, name),
+        [nx, ny, nz] => box_step([nx, ny, nz], [sides[0], sides[1], sides[2]], h, scheme, viscosity, forced, name),
         _ => Err(DiffsimError::new_err(format!("n = {n:?}: give 2 or 3 cell counts, one per axis"))),
     }
+}
+
+use diffsim_solvers::boundary::{Profile, Side};
+
+/// One side of `navier_stokes_step`'s `boundary` (side `h` of axis `a`).
+fn side(a: usize, h: usize, kind: &str) -> PyResult<Side> {
+    Ok(match kind {
+        "periodic" => Side::Periodic,
+        "free_slip" | "closed" => Side::Closed,
+        "no_slip" => Side::NoSlip,
+        "outflow" => Side::Outflow,
+        // The speeds are parameters; the profile only gives their defaults.
+        "inflow" => Side::Inflow(Profile::Uniform(0.0)),
+        other => {
+            return Err(DiffsimError::new_err(format!(
+                "boundary[{a}][{h}] = {other:?}: expected \"periodic\", \"free_slip\", \"no_slip\", \"outflow\" or \"inflow\""
+            )));
+        }
+    })
+}
+
+/// The step on a box with any sides as a Python operator (one per thread
+/// of a batch).
+fn box_step<const D: usize>(
+    n: [usize; D],
+    sides: [[Side; 2]; D],
+    h: f64,
+    scheme: diffsim_solvers::smoke::Scheme,
+    viscosity: diffsim::navier_stokes::Viscosity,
+    forced: bool,
+    name: String,
+) -> PyResult<Operator>
+where
+    diffsim::navier_stokes::NavierStokes<D>: Vjp + Jvp,
+{
+    use diffsim::navier_stokes::NavierStokes;
+    let grid = diffsim_solvers::smoke::MacGrid::new(n).with_boundary(diffsim_solvers::boundary::Boundary { sides });
+    let make = move || {
+        NavierStokes::new(grid, h, scheme).map(|op| {
+            let op = op.with_viscosity(viscosity);
+            if forced { op.forced() } else { op }
+        })
+    };
+    // Checked once here: the same inputs build every thread's copy.
+    make().map_err(|e| DiffsimError::new_err(e.to_string()))?;
+    Ok(Operator::new(Arc::new(StepOp(diffsim::op::PerThread::new(move || make().expect("checked above")))), name))
 }
 
 /// The periodic step of `flow` as a Python operator (one per thread of a

@@ -10,8 +10,8 @@
 //! [`crate::smoke`] (`u[j][i]` at the x-face `(i·h, (j+½)·h)`, `Ny·(Nx+1)`
 //! values; `v[j][i]` at the y-face `((i+½)·h, j·h)`, `(Ny+1)·Nx` values).
 //! Density is 1. The sides' normal conditions and the pressure equation are
-//! those of [`Boundary`] (`Closed` is a wall); the tangential condition is
-//! no-slip on walls (at the wall's sliding speed) and inflow sides, zero
+//! those of [`Boundary`] (`Closed` and `NoSlip` are walls); the tangential
+//! condition is no-slip on both kinds of wall here (at the wall's sliding speed) and inflow sides, zero
 //! normal gradient on outflow sides, imposed through ghost values (`2·U_wall −
 //! u_inside`). Periodic sides are not supported here.
 //!

@@ -27,7 +27,7 @@ impl Pads {
 #[inline(always)]
 fn tangential_ghost(side: Side, wall_speed: f64, inside: f64) -> f64 {
     match side {
-        Side::Closed => 2.0 * wall_speed - inside,
+        Side::Closed | Side::NoSlip => 2.0 * wall_speed - inside,
         Side::Inflow(_) => -inside,
         Side::Outflow | Side::Periodic => inside,
     }

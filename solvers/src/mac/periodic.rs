@@ -15,12 +15,11 @@
 //! once per call from the velocity it starts from (so that a call is one
 //! function of its input, and its gradient that function's).
 
-use super::advect::advect_radius;
+use super::Mac;
 use super::fft::FftProjection;
-use super::{At, Mac};
 use crate::boundary::{Boundary, Side};
 use crate::diffusion::Grid;
-use crate::smoke::{MacGrid, Scheme, advect_velocity};
+use crate::smoke::{MacGrid, Scheme, advect_velocity, advect_velocity_radius};
 
 /// Largest `κ = ν·dt/h²` of one explicit viscous sub-step in `D`
 /// dimensions, with a margin: the forward Euler step of the `2D+1`-point
@@ -213,15 +212,10 @@ impl<const D: usize> Periodic<D> {
     /// How far the packed velocity `x` and the time step `dt` may move along
     /// `(dx, ddt)` before a trace of one sub-step crosses a lattice plane,
     /// where multilinear sampling kinks (for MacCormack, the forward trace
-    /// too; its limiter is not counted). Over the first sub-step only.
+    /// too, and with its limiter where the clamp switches): the fluid
+    /// operators' [`advect_velocity_radius`]. Over the first sub-step only.
     pub fn radius(&self, dt: f64, x: &[f64], dx: &[f64], ddt: f64) -> f64 {
-        let (cells, rate) = (dt / self.h, ddt / self.h);
-        let (steps, rates): (&[f64], &[f64]) = match self.scheme {
-            Scheme::SemiLagrangian => (&[cells], &[rate]),
-            Scheme::MacCormack { .. } => (&[cells, -cells], &[rate, -rate]),
-        };
-        let lattices: Vec<At> = (0..D).map(At::Face).collect();
-        advect_radius(self.mac(), &lattices, steps, rates, self.grid.components(x), self.grid.components(dx), |_, _| false)
+        advect_velocity_radius(&self.grid, self.scheme, dt / self.h, ddt / self.h, x, dx)
     }
 }
 
@@ -327,7 +321,8 @@ fn with_copies<const D: usize>(n: [usize; D], axis: usize, own: &[f64]) -> Vec<f
 pub fn diffuse<const D: usize>(n: [usize; D], axis: usize, kappa: f64, s: &[f64], out: &mut [f64]) {
     // The face array: one more face along `axis` (the copy).
     let len = |b: usize| n[b] + usize::from(b == axis);
-    let grid = Grid { stride: len(0), nx: n[0], ny: n[1], nz: if D == 3 { n[D - 1] } else { 1 }, wrap_x: true, wrap_y: true, wrap_z: D == 3, rows: len(1) };
+    let grid =
+        Grid { stride: len(0), nx: n[0], ny: n[1], nz: if D == 3 { n[D - 1] } else { 1 }, wrap_x: true, wrap_y: true, wrap_z: D == 3, rows: len(1), fixed: 0 };
     crate::diffusion::explicit(&grid, kappa, s, out);
     refresh_copies(n, axis, out);
 }

@@ -433,3 +433,56 @@ fn centred_values_survive_the_round_trip_spectrally() {
     let (lhs, rhs) = (dot(&flow.centres_to_faces(&c), &g), dot(&c, &flow.centres_to_faces_transpose(&g)));
     assert!((lhs - rhs).abs() < 1e-10 * lhs.abs().max(1.0), "centres → faces transpose: {lhs} against {rhs}");
 }
+
+/// The sides of a box on a MAC grid: the faces an inflow side sets, as
+/// listed for a profile given as parameters, are those `enforce_boundary`
+/// sets, with its values; the viscosity's lattices of a no-slip box are
+/// symmetric, with the wall's ghost value the negative of the one inside.
+fn sides_of_a_box<const D: usize>() {
+    use crate::boundary::{Boundary, Profile, Side};
+    use crate::diffusion::{Grid, laplacian};
+    use crate::smoke::{MacGrid, enforce_boundary, inflow_faces};
+    let n: [usize; D] = std::array::from_fn(|a| 3 + a);
+    let mut sides = [[Side::NoSlip; 2]; D];
+    sides[0] = [Side::Inflow(Profile::Parabolic(0.7)), Side::Outflow];
+    sides[D - 1] = [Side::NoSlip, Side::Inflow(Profile::Uniform(0.4))];
+    let cfg = MacGrid::new(n).with_boundary(Boundary { sides });
+    let faces = inflow_faces(&cfg);
+    let across = |a: usize| (0..D).filter(|&b| b != a).map(|b| n[b]).product::<usize>();
+    assert_eq!(faces.len(), across(0) + across(D - 1));
+    let mut v = vec![f64::NAN; cfg.n_vel()];
+    enforce_boundary(&cfg, &mut v);
+    for f in &faces {
+        assert_eq!(v[f.index], f.sign * f.speed, "face {}", f.index);
+        v[f.index] = f64::NAN;
+    }
+    // No other face holds a profile value (walls hold 0, the rest NaN).
+    assert!(v.iter().all(|x| x.is_nan() || *x == 0.0));
+    // The tangential components' lattices: fixed on the no-slip sides.
+    for (l, g) in Grid::of_state(&cfg).iter().enumerate().skip(1) {
+        let (x, y) = (values(g.len(), 3 + l as u64), values(g.len(), 7 + l as u64));
+        let (mut ax, mut ay) = (vec![0.0; g.len()], vec![0.0; g.len()]);
+        laplacian(g, &x, &mut ax);
+        laplacian(g, &y, &mut ay);
+        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
+        assert!((dot(&ax, &y) - dot(&x, &ay)).abs() < 1e-12, "lattice {l}: not symmetric");
+        // Component l − 1 is fixed on the no-slip sides of the other axes:
+        // both sides of the middle axis (3D), the lower side of the last.
+        let expected: u32 = (1..D).filter(|&a| a != l - 1).map(|a| if a == D - 1 { 1 << (2 * a) } else { 3 << (2 * a) }).sum();
+        assert_eq!(g.fixed, expected, "lattice {l}");
+    }
+    // On a constant field the Laplacian is 2 per fixed edge a sample
+    // touches: the u faces of the first row touch the lowest side of the
+    // last axis (and in 3D of the middle one, as the next row does).
+    let g = Grid::of_state(&cfg)[1];
+    let (ones, mut out) = (vec![1.0; g.len()], vec![0.0; g.len()]);
+    laplacian(&g, &ones, &mut out);
+    let middle = if D == 3 { 2.0 } else { 0.0 };
+    assert_eq!((out[0], out[g.stride]), (2.0 + middle, middle));
+}
+
+#[test]
+fn the_sides_of_a_box_set_their_faces_and_fix_the_tangential_velocity() {
+    sides_of_a_box::<2>();
+    sides_of_a_box::<3>();
+}

@@ -54,7 +54,7 @@ pub fn across(dims: [usize; 3], b: &Boundary<3>, c: usize, q: [usize; 3], axis: 
     let beyond = |side: Side, wrapped: usize| match side {
         Side::Periodic => Across::Cell(wrapped),
         Side::Outflow => Across::Ghost,
-        Side::Closed | Side::Inflow(_) => Across::Wall,
+        Side::Closed | Side::NoSlip | Side::Inflow(_) => Across::Wall,
     };
     let down = if q[axis] > 0 { Across::Cell(c - stride) } else { beyond(lo, c + span) };
     let up = if q[axis] + 1 < dims[axis] { Across::Cell(c + stride) } else { beyond(hi, c - span) };

@@ -188,7 +188,8 @@ fn lattices<const D: usize>(smoke: bool, velocity: bool) -> Vec<At> {
 /// multilinear sampling is smooth between lattice planes and kinks where a
 /// traced point crosses one (or a clamped edge). The smallest, over the
 /// traced points (the backward trace, and for MacCormack also the forward
-/// one; the faces the boundary sets after the trace left out), of the
+/// one; under semi-Lagrangian advection the faces the boundary sets after
+/// the trace left out), of the
 /// distance to the nearest plane over the speed at which `d` moves the
 /// point; ∞ when `d` moves none. MacCormack's limiter is
 /// [`limiter_radius`].
@@ -200,7 +201,41 @@ pub fn advect_radius<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, 
         Scheme::SemiLagrangian => &[dt],
         Scheme::MacCormack { .. } => &[dt, -dt],
     };
-    crate::mac::advect::advect_radius(cfg.mac(), &lattices::<D>(smoke, velocity), steps, &[0.0; 2], vel, dvel, |at, q| set_by_boundary(cfg, at, q))
+    crate::mac::advect::advect_radius(cfg.mac(), &lattices::<D>(smoke, velocity), steps, &[0.0; 2], vel, dvel, |at, q| traced_for_nothing(cfg, scheme, at, q))
+}
+
+/// Whether the trace of point `q` of the lattice `at` leaves no mark on
+/// the step: a face the boundary sets after the trace, under
+/// semi-Lagrangian advection. Under MacCormack the first trace's value at
+/// such a face is sampled by its neighbours' second trace, so every point
+/// counts.
+#[inline(always)]
+fn traced_for_nothing<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, at: At, q: [usize; D]) -> bool {
+    scheme == Scheme::SemiLagrangian && set_by_boundary(cfg, at, q)
+}
+
+/// [`advect_radius`] of the packed velocity `vel` advected by itself alone
+/// ([`advect_velocity`]) over `dt` cells, the perturbation moving the
+/// velocity along `dvel` and the time step at the rate `ddt` (the
+/// Navier–Stokes step's gradient with respect to its time step); with
+/// MacCormack's limiter also [`limiter_radius`] (of the velocity's
+/// perturbation).
+pub fn advect_velocity_radius<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, ddt: f64, vel: &[f64], dvel: &[f64]) -> f64 {
+    let (steps, rates): (&[f64], &[f64]) = match scheme {
+        Scheme::SemiLagrangian => (&[dt], &[ddt]),
+        Scheme::MacCormack { .. } => (&[dt, -dt], &[ddt, -ddt]),
+    };
+    let (v, dv) = (cfg.components(vel), cfg.components(dvel));
+    let r = crate::mac::advect::advect_radius(cfg.mac(), &lattices::<D>(false, true), steps, rates, v, dv, |at, q| traced_for_nothing(cfg, scheme, at, q));
+    if scheme != (Scheme::MacCormack { limiter: true }) {
+        return r;
+    }
+    let state = |v: &[f64]| {
+        let mut s = vec![0.0; cfg.n_state()];
+        s[cfg.n_s()..].copy_from_slice(v);
+        s
+    };
+    r.min(limiter_radius(cfg, dt, false, true, &state(vel), &state(dvel)))
 }
 
 /// Whether point `q` of the lattice `at` is a face the boundary sets after
@@ -533,7 +568,7 @@ pub fn upwind_radius<const D: usize>(cfg: &MacGrid<D>, x: &[f64], d: &[f64]) -> 
     let mut r = f64::INFINITY;
     for a in 0..D {
         for_each_face(cfg.n, &cfg.boundary, a, |f| {
-            if f.side != Some(Side::Closed) && dvel[a][f.index] != 0.0 {
+            if !f.side.is_some_and(Side::is_wall) && dvel[a][f.index] != 0.0 {
                 r = r.min((vel[a][f.index] / dvel[a][f.index]).abs());
             }
         });

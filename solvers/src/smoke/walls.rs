@@ -46,12 +46,12 @@ fn set_sides<const D: usize>(cfg: &MacGrid<D>, a: usize, f: &mut [f64]) {
         });
         let last = first + n[a] * stride[a];
         match lo {
-            Side::Closed => f[first] = 0.0,
+            Side::Closed | Side::NoSlip => f[first] = 0.0,
             Side::Inflow(p) => f[first] = p.on_side(a, t),
             Side::Periodic | Side::Outflow => {}
         }
         match hi {
-            Side::Closed => f[last] = 0.0,
+            Side::Closed | Side::NoSlip => f[last] = 0.0,
             Side::Inflow(p) => f[last] = -p.on_side(a, t),
             Side::Periodic => f[last] = f[first],
             Side::Outflow => {}
@@ -88,6 +88,41 @@ pub fn enforce_boundary_adjoint<const D: usize>(cfg: &MacGrid<D>, vel: &mut [f64
             }
         });
     }
+}
+
+/// A face an inflow side sets ([`inflow_faces`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct InflowFace {
+    /// Its index in the packed velocity.
+    pub index: usize,
+    /// The sign of the inward direction along the side's axis: `+1` on a
+    /// lower side, `−1` on an upper one (the face holds `sign·speed`).
+    pub sign: f64,
+    /// The side's profile there: the inward speed [`enforce_boundary`] sets.
+    pub speed: f64,
+}
+
+/// The faces the inflow sides of `cfg` set, in a fixed order: axis by
+/// axis, the lower side before the upper, each side's points with the
+/// lowest other axis fastest. The order of an inflow profile given as
+/// parameters (the Navier–Stokes operator's).
+pub fn inflow_faces<const D: usize>(cfg: &MacGrid<D>) -> Vec<InflowFace> {
+    let mut out = Vec::new();
+    for a in 0..D {
+        let start = cfg.face_range(a).start;
+        for (h, side) in cfg.boundary.axis(a).into_iter().enumerate() {
+            let Side::Inflow(profile) = side else { continue };
+            let mut lat = cfg.bounded().lattice(At::Face(a));
+            let up = cfg.n[a] * lat.stride[a];
+            lat.n[a] = 1;
+            for q in lat.points() {
+                let t: [f64; D] = std::array::from_fn(|b| (q[b] as f64 + 0.5) / cfg.n[b] as f64);
+                let index = start + lat.index(q) + h * up;
+                out.push(InflowFace { index, sign: if h == 0 { 1.0 } else { -1.0 }, speed: profile.on_side(a, t) });
+            }
+        }
+    }
+    out
 }
 
 /// Calls `f(first, last)` for every point of the two sides normal to `a`

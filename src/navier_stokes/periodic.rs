@@ -19,12 +19,8 @@ use std::cell::{Cell, RefCell};
 use diffsim_solvers::mac::fft::FftProjection;
 use diffsim_solvers::mac::periodic::{COURANT_LIMIT, Periodic, viscous_limit};
 
+use super::MAX_SUBSTEPS;
 use crate::op::{Forward, Jvp, OpError, OpMessage, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
-
-/// More sub-steps than this in one call is refused (recorded as
-/// [`OpError::Unstable`], the velocity left as it was): the velocity has
-/// blown up or `dt` is far beyond the flow's time scale.
-pub const MAX_SUBSTEPS: usize = 4096;
 
 /// The advection of one sub-step: the packed velocity advected by itself
 /// over `p[0]` ([`Periodic::advect`]). Derivatives by Enzyme, with respect
