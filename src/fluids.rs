@@ -256,55 +256,33 @@ pub struct Diffuse<D> {
     parts: Vec<(usize, D)>,
     /// The box whose velocity boundary conditions are applied after a
     /// velocity diffusion.
-    velocity_box: Option<Walls>,
+    velocity_box: Option<Box<dyn Walls>>,
 }
 
 /// The velocity boundary conditions re-applied after a velocity diffusion:
-/// the box's sides, in 2D or 3D ([`smoke::enforce_boundary`]).
-#[derive(Clone, Copy, Debug)]
-pub enum Walls {
-    /// A 2D box.
-    Box(MacGrid<2>),
-    /// A 3D box.
-    Box3(MacGrid<3>),
-}
-
-/// `$body` with `$cfg` the grid of either kind of box.
-macro_rules! with_box {
-    ($walls:expr, $cfg:ident => $body:expr) => {
-        match $walls {
-            Walls::Box($cfg) => $body,
-            Walls::Box3($cfg) => $body,
-        }
-    };
-}
-
-impl From<MacGrid<2>> for Walls {
-    fn from(cfg: MacGrid<2>) -> Self {
-        Walls::Box(cfg)
-    }
-}
-
-impl From<MacGrid<3>> for Walls {
-    fn from(cfg: MacGrid<3>) -> Self {
-        Walls::Box3(cfg)
-    }
-}
-
-impl Walls {
+/// the sides of a box of any dimension ([`smoke::enforce_boundary`]), on
+/// the velocity part of a packed state. Implemented by every
+/// [`MacGrid<N>`].
+pub trait Walls: std::fmt::Debug + Send + Sync {
     /// The boundary conditions in place on a state.
-    fn apply(&self, y: &mut [f64]) {
-        with_box!(self, cfg => smoke::enforce_boundary(cfg, &mut y[cfg.n_s()..]))
-    }
-
+    fn apply(&self, y: &mut [f64]);
     /// Their linear part in place on a tangent.
-    fn apply_linear(&self, t: &mut [f64]) {
-        with_box!(self, cfg => smoke::enforce_boundary_linear(cfg, &mut t[cfg.n_s()..]))
+    fn apply_linear(&self, t: &mut [f64]);
+    /// Their adjoint in place on an adjoint.
+    fn apply_adjoint(&self, g: &mut [f64]);
+}
+
+impl<const N: usize> Walls for MacGrid<N> {
+    fn apply(&self, y: &mut [f64]) {
+        smoke::enforce_boundary(self, &mut y[self.n_s()..]);
     }
 
-    /// Their adjoint in place on an adjoint.
+    fn apply_linear(&self, t: &mut [f64]) {
+        smoke::enforce_boundary_linear(self, &mut t[self.n_s()..]);
+    }
+
     fn apply_adjoint(&self, g: &mut [f64]) {
-        with_box!(self, cfg => smoke::enforce_boundary_adjoint(cfg, &mut g[cfg.n_s()..]))
+        smoke::enforce_boundary_adjoint(self, &mut g[self.n_s()..]);
     }
 }
 
@@ -312,10 +290,7 @@ impl<D: Operator> Diffuse<D> {
     /// The chosen fields of the box `cfg`, 2D or 3D (`[s, u₀, …]`, each
     /// velocity component on its own faces, the walls applied after), each
     /// lattice's operator made by `op`.
-    pub fn in_box<const N: usize>(cfg: MacGrid<N>, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self
-    where
-        Walls: From<MacGrid<N>>,
-    {
+    pub fn in_box<const N: usize>(cfg: MacGrid<N>, smoke: bool, velocity: bool, op: impl Fn(Grid) -> D) -> Self {
         let mut parts = Vec::new();
         for (l, grid) in Grid::of_state(&cfg).into_iter().enumerate() {
             if l == 0 && smoke {
@@ -324,7 +299,7 @@ impl<D: Operator> Diffuse<D> {
                 parts.push((cfg.n_s() + cfg.face_range(l - 1).start, op(grid)));
             }
         }
-        let velocity_box = if velocity { Some(Walls::from(cfg)) } else { None };
+        let velocity_box: Option<Box<dyn Walls>> = if velocity { Some(Box::new(cfg)) } else { None };
         Self { n: cfg.n_state(), parts, velocity_box }
     }
 
@@ -339,10 +314,7 @@ impl<D: Operator> Diffuse<D> {
 
 impl Diffuse<DiffuseExplicit> {
     /// Explicit diffusion of the smoke and/or the velocity of a box.
-    pub fn explicit<const N: usize>(cfg: MacGrid<N>, smoke: bool, velocity: bool) -> Self
-    where
-        Walls: From<MacGrid<N>>,
-    {
+    pub fn explicit<const N: usize>(cfg: MacGrid<N>, smoke: bool, velocity: bool) -> Self {
         Self::in_box(cfg, smoke, velocity, DiffuseExplicit::on)
     }
 }
@@ -350,10 +322,7 @@ impl Diffuse<DiffuseExplicit> {
 impl Diffuse<DiffuseImplicit> {
     /// Implicit diffusion of the smoke and/or the velocity of a box, each
     /// solve to relative `tolerance` in at most `max_iterations` iterations.
-    pub fn implicit<const N: usize>(cfg: MacGrid<N>, smoke: bool, velocity: bool, tolerance: f64, max_iterations: usize) -> Self
-    where
-        Walls: From<MacGrid<N>>,
-    {
+    pub fn implicit<const N: usize>(cfg: MacGrid<N>, smoke: bool, velocity: bool, tolerance: f64, max_iterations: usize) -> Self {
         Self::in_box(cfg, smoke, velocity, |g| DiffuseImplicit::on(g, tolerance, max_iterations))
     }
 }

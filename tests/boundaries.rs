@@ -144,7 +144,6 @@ where
 fn solved_operators_pass_all_checks<const D: usize>(cfg: MacGrid<D>, shape: Solid<D>, seed: u64)
 where
     SmokeAdvect<D>: Vjp + Jvp,
-    diffsim::fluids::Walls: From<MacGrid<D>>,
     Diffuse<diffsim::fluids::DiffuseExplicit>: Vjp + Jvp,
     Diffuse<diffsim::fluids::DiffuseImplicit>: Vjp + Jvp,
 {
@@ -360,10 +359,7 @@ fn smoke_leaves_through_an_outflow_side() {
 /// on every axis keep the smoke's mass and each component's momentum (the
 /// sums over the faces, copies left out), shrink the smoke's spread, and
 /// refresh the periodic copies.
-fn periodic_diffusion_conserves<const D: usize>(n: [usize; D])
-where
-    diffsim::fluids::Walls: From<MacGrid<D>>,
-{
+fn periodic_diffusion_conserves<const D: usize>(n: [usize; D]) {
     let cfg = MacGrid::new(n).with_boundary(Boundary::all(Side::Periodic));
     let x = signed_state(&cfg, 17);
     let ns = cfg.n_s();

@@ -7,9 +7,9 @@
 //!   inflow and outflow sides, obstacles — with explicit or implicit
 //!   viscosity, the projection by conjugate gradients (by FFT when every
 //!   side is periodic), an inflow profile and a body force as parameters.
-//! - [`PeriodicNavierStokes`]: the box periodic on every axis, its explicit
-//!   step specialised (the index rules' wrapping known when compiling),
-//!   with values on the cell centres as well ([`Centred`]).
+//! - [`PeriodicNavierStokes`]: that operator on the box periodic on every
+//!   axis of a [`diffsim_solvers::mac::periodic::Periodic`], with values on
+//!   the cell centres as well ([`Centred`]).
 //!
 //! Both split a requested `dt` into `k` equal sub-steps chosen at the start
 //! of the call (the viscous number and the Courant number within their

@@ -19,7 +19,7 @@ use std::fmt;
 
 use diffsim_solvers::boundary::BoundaryError;
 use diffsim_solvers::diffusion::Grid;
-use diffsim_solvers::mac::periodic::{COURANT_LIMIT, viscous_limit};
+use diffsim_solvers::mac::periodic::{COURANT_LIMIT, refresh_periodic_copies, viscous_limit};
 use diffsim_solvers::smoke::{self, InflowFace, MacGrid, Preconditioner, Scheme};
 
 use super::MAX_SUBSTEPS;
@@ -45,8 +45,8 @@ pub enum Viscosity {
 
 /// The advection of one sub-step on any box: the packed velocity advected
 /// by itself over the time `p[0]` ([`smoke::advect_velocity`], the fluid
-/// operators' advection; cells of size `h`), the faces the sides set left
-/// to the map that follows. Derivatives by Enzyme, with respect to the
+/// operators' advection; cells of size `h`), the periodic copies refreshed
+/// (the other faces the sides set are left to the map that follows). Derivatives by Enzyme, with respect to the
 /// velocity and the time step.
 #[derive(Clone, Copy, Debug)]
 pub struct AdvectVelocity<const D: usize> {
@@ -71,7 +71,8 @@ impl<const D: usize> Operator for AdvectVelocity<D> {
 }
 
 fn advect_velocity<const D: usize>(op: &AdvectVelocity<D>, x: &[f64], p: &[f64], y: &mut [f64], scratch: &mut [f64]) {
-    smoke::advect_velocity(&op.grid, op.scheme, p[0] / op.h, x, y, scratch)
+    smoke::advect_velocity(&op.grid, op.scheme, p[0] / op.h, x, y, scratch);
+    refresh_periodic_copies(&op.grid, y);
 }
 
 fn advect_velocity_scratch<const D: usize>(op: &AdvectVelocity<D>) -> usize {

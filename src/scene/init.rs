@@ -73,50 +73,62 @@ pub(super) fn axis_of(key: &str, name: &str) -> Result<usize, SceneError> {
     crate::volume::axis_index(name).ok_or_else(|| SceneError::key(key, crate::words::unknown("axis", name, &crate::volume::AXES)))
 }
 
-/// The solid cells of a 3D shape (a cell is solid when its centre lies
-/// inside; `npy`: where the file's value is not zero).
-fn shape_cells_3d(key: &str, cfg: &MacGrid<3>, shape: &ShapeSpec, dir: &Path) -> Result<Vec<bool>, SceneError> {
+/// The solid cells of a shape in a box of `D` axes (a cell is solid when
+/// its centre lies inside; `npy`, 3D: where the file's value is not zero),
+/// or `None` when no cell is: one function for 2D and 3D, each shape
+/// refused with its reason in the dimension it does not exist in.
+fn box_shape_cells<const D: usize>(key: &str, cfg: &MacGrid<D>, shape: &ShapeSpec, dir: &Path) -> Result<Option<Vec<bool>>, SceneError> {
+    let at = |k: &str| format!("{key}.{k}");
+    let corner = |v: &[f64]| -> [f64; D] { std::array::from_fn(|a| v[a]) };
     let solid = match shape {
         ShapeSpec::Box { lower, upper } => {
-            let (a, b) = box_corners(key, lower, upper, 3)?;
-            Solid::Box { lower: [a[0], a[1], a[2]], upper: [b[0], b[1], b[2]] }
+            let (a, b) = box_corners(key, lower, upper, D)?;
+            Solid::Box { lower: corner(&a), upper: corner(&b) }
         }
-        ShapeSpec::Sphere { center, radius } => {
-            let c = point(&format!("{key}.center"), center, 3)?;
-            Solid::Ball { center: [c[0], c[1], c[2]], radius: positive(&format!("{key}.radius"), *radius)? }
+        ShapeSpec::Sphere { .. } | ShapeSpec::Cylinder { .. } | ShapeSpec::Npy(_) if D != 3 => return Err(only_3d(key)),
+        ShapeSpec::Disc { .. } if D != 2 => return Err(SceneError::key(key, "a disc is 2D; in 3D use a sphere or a cylinder")),
+        ShapeSpec::Disc { center, radius } | ShapeSpec::Sphere { center, radius } => {
+            let c = point(&at("center"), center, D)?;
+            Solid::Ball { center: corner(&c), radius: positive(&at("radius"), *radius)? }
         }
         ShapeSpec::Cylinder { center, radius, axis, extent } => {
-            let c = point(&format!("{key}.center"), center, 3)?;
-            let axis = axis_of(&format!("{key}.axis"), axis)?;
+            let c = point(&at("center"), center, D)?;
+            let axis = axis_of(&at("axis"), axis)?;
             let extent = match extent {
                 None => [f64::NEG_INFINITY, f64::INFINITY],
                 Some(e) => {
-                    let e =
-                        point(&format!("{key}.extent"), e, 2).map_err(|_| SceneError::key(format!("{key}.extent"), "expected [from, to] along the axis"))?;
+                    let e = point(&at("extent"), e, 2).map_err(|_| SceneError::key(at("extent"), "expected [from, to] along the axis"))?;
                     if e[0] >= e[1] {
-                        return Err(SceneError::key(format!("{key}.extent"), format!("`to` {} must exceed `from` {}", e[1], e[0])));
+                        return Err(SceneError::key(at("extent"), format!("`to` {} must exceed `from` {}", e[1], e[0])));
                     }
                     [e[0], e[1]]
                 }
             };
-            Solid::Cylinder { axis, center: [c[0], c[1], c[2]], radius: positive(&format!("{key}.radius"), *radius)?, extent }
+            Solid::Cylinder { axis, center: corner(&c), radius: positive(&at("radius"), *radius)?, extent }
         }
         ShapeSpec::Npy(path) => {
-            let shape = [cfg.n[2] as u64, cfg.n[1] as u64, cfg.n[0] as u64];
+            // The file's axes slowest first.
+            let shape: Vec<u64> = cfg.n.iter().rev().map(|&m| m as u64).collect();
             let full = dir.join(path);
-            let fail = |why: String| SceneError::key(format!("{key}.npy"), format!("{}: {why}", full.display()));
+            let fail = |why: String| SceneError::key(at("npy"), format!("{}: {why}", full.display()));
             let bytes = crate::files::read_bytes(&full, 8 * cfg.n_s() as u64 + 65_536, "`.npy` obstacle mask").map_err(|e| fail(e.to_string()))?;
             let values = npy_values(&bytes, &shape).map_err(fail)?;
             // Not "wholly outside": the mask is inside, it marks nothing.
             if values.iter().all(|&v| v == 0.0) {
                 return Err(fail("every value is zero: the mask marks no solid cell (solid where a value is not zero)".into()));
             }
-            return Ok(values.iter().map(|&v| v != 0.0).collect());
+            return Ok(Some(values.iter().map(|&v| v != 0.0).collect()));
         }
-        ShapeSpec::Disc { .. } => return Err(SceneError::key(key, "a disc is 2D; in 3D use a sphere or a cylinder")),
-        ShapeSpec::Fourier { .. } | ShapeSpec::Polygon { .. } => return Err(SceneError::key(key, "Fourier and polygon shapes need a 2D domain")),
+        ShapeSpec::Fourier { .. } | ShapeSpec::Polygon { .. } if D != 2 => return Err(SceneError::key(key, "Fourier and polygon shapes need a 2D domain")),
+        ShapeSpec::Fourier { .. } | ShapeSpec::Polygon { .. } => {
+            let body = shape_of(key, shape)?;
+            let (nx, ny) = (cfg.n[0], cfg.n[1]);
+            let cells: Vec<bool> = (0..nx * ny).map(|c| body.level((c % nx) as f64 + 0.5, (c / nx) as f64 + 0.5) < 0.0).collect();
+            return Ok(cells.contains(&true).then_some(cells));
+        }
     };
-    Ok(solid_cells(cfg, &[solid]))
+    let cells = solid_cells(cfg, &[solid]);
+    Ok(cells.contains(&true).then_some(cells))
 }
 
 /// The cells (values, on a line) inside a shape, clipped to the domain; a
@@ -124,26 +136,9 @@ fn shape_cells_3d(key: &str, cfg: &MacGrid<3>, shape: &ShapeSpec, dir: &Path) ->
 pub(super) fn shape_cells(key: &str, domain: &Domain, shape: &ShapeSpec, dir: &Path) -> Result<Vec<bool>, SceneError> {
     let dims = domain.dims();
     let cells = match (domain, shape) {
-        (Domain::Box3(cfg), _) => {
-            let cells = shape_cells_3d(key, cfg, shape, dir)?;
-            cells.iter().any(|&c| c).then_some(cells)
-        }
-        (_, ShapeSpec::Sphere { .. } | ShapeSpec::Cylinder { .. } | ShapeSpec::Npy(_)) => return Err(only_3d(key)),
-        (Domain::Box(cfg), ShapeSpec::Box { lower, upper }) => {
-            let (a, b) = box_corners(key, lower, upper, dims)?;
-            Some(solid_cells(cfg, &[Solid::Box { lower: [a[0], a[1]], upper: [b[0], b[1]] }])).filter(|c| c.contains(&true))
-        }
-        (Domain::Box(cfg), ShapeSpec::Disc { center, radius }) => {
-            let c = point(&format!("{key}.center"), center, dims)?;
-            positive(&format!("{key}.radius"), *radius)?;
-            Some(solid_cells(cfg, &[Solid::Ball { center: [c[0], c[1]], radius: *radius }])).filter(|c| c.contains(&true))
-        }
-        (Domain::Box(cfg), ShapeSpec::Fourier { .. } | ShapeSpec::Polygon { .. }) => {
-            let body = shape_of(key, shape)?;
-            let (nx, ny) = (cfg.n[0], cfg.n[1]);
-            let cells: Vec<bool> = (0..nx * ny).map(|c| body.level((c % nx) as f64 + 0.5, (c / nx) as f64 + 0.5) < 0.0).collect();
-            cells.iter().any(|&c| c).then_some(cells)
-        }
+        (Domain::Box(cfg), _) => box_shape_cells(key, cfg, shape, dir)?,
+        (Domain::Box3(cfg), _) => box_shape_cells(key, cfg, shape, dir)?,
+        (Domain::Line(_), ShapeSpec::Sphere { .. } | ShapeSpec::Cylinder { .. } | ShapeSpec::Npy(_)) => return Err(only_3d(key)),
         (Domain::Line(_), ShapeSpec::Fourier { .. } | ShapeSpec::Polygon { .. }) => {
             return Err(SceneError::key(key, "Fourier and polygon shapes need a 2D domain"));
         }

@@ -176,14 +176,7 @@ impl<const D: usize> Periodic<D> {
     #[inline(always)]
     pub fn advect(&self, dt: f64, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
         advect_velocity(&self.grid, self.scheme, dt / self.h, x, y, scratch);
-        // The periodic copies, by this module's own loop.
-        let n = self.grid.cells();
-        let mut start = 0;
-        each_axis!(D, a => {
-            let len = self.grid.n_face(a);
-            refresh_copies(n, a, &mut y[start..start + len]);
-            start += len;
-        });
+        refresh_periodic_copies(&self.grid, y);
     }
 
     /// Scratch of [`Self::advect`] (the scaled velocity and MacCormack's
@@ -325,6 +318,26 @@ pub fn diffuse<const D: usize>(n: [usize; D], axis: usize, kappa: f64, s: &[f64]
         Grid { stride: len(0), nx: n[0], ny: n[1], nz: if D == 3 { n[D - 1] } else { 1 }, wrap_x: true, wrap_y: true, wrap_z: D == 3, rows: len(1), fixed: 0 };
     crate::diffusion::explicit(&grid, kappa, s, out);
     refresh_copies(n, axis, out);
+}
+
+/// On the packed velocity `vel` of `grid`, the periodic copies (face `n`
+/// along each wrapping axis, of the component normal to it) set to face 0,
+/// by this module's own loop: the Navier–Stokes advection's last part,
+/// inside the function Enzyme differentiates (so that every output is
+/// defined and every seed consumed; calling the walls'
+/// [`crate::smoke::enforce_boundary`] there gave a wrong 3D gradient,
+/// docs/pitfalls.md).
+#[inline(always)]
+pub fn refresh_periodic_copies<const D: usize>(grid: &MacGrid<D>, vel: &mut [f64]) {
+    let (n, wraps) = (grid.cells(), grid.boundary.wraps());
+    let mut start = 0;
+    each_axis!(D, a => {
+        let len = grid.n_face(a);
+        if wraps[a] {
+            refresh_copies(n, a, &mut vel[start..start + len]);
+        }
+        start += len;
+    });
 }
 
 /// On the faces normal to `axis` of a periodic box of `n` cells (the array
