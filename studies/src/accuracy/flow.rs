@@ -16,6 +16,7 @@ use diffsim_solvers::smoke::{MacGrid, Preconditioner, Scheme};
 
 use super::{AccuracyError, Diffusion, all_finite, positive, relative_l2, steps_to};
 use diffsim::fluids::{Advect, AdvectUpwind, Diffuse, Project};
+use diffsim::navier_stokes::{NavierStokes, Viscosity};
 use diffsim::op::{Forward, OpError};
 
 /// Side of the periodic box.
@@ -107,6 +108,20 @@ impl TaylorGreenRun {
         TaylorGreen { length: LENGTH, amplitude: 1.0, nu: self.nu }
     }
 
+    /// The settings checked: at least 4 cells, `ν ≥ 0`, a positive final
+    /// time, Courant number and pressure tolerance.
+    fn validate(&self) -> Result<(), AccuracyError> {
+        if self.n < 4 {
+            return Err(AccuracyError::Invalid { what: "n", reason: format!("need at least 4 cells per side, got {}", self.n) });
+        }
+        if !(self.nu >= 0.0 && self.nu.is_finite()) {
+            return Err(AccuracyError::Invalid { what: "nu", reason: format!("must be ≥ 0 and finite, got {}", self.nu) });
+        }
+        positive("t_end", self.t_end)?;
+        positive("cfl", self.cfl)?;
+        positive("pressure_tolerance", self.pressure_tolerance)
+    }
+
     /// Number of steps and the time step.
     pub fn steps(&self) -> (usize, f64) {
         let h = LENGTH / self.n as f64;
@@ -119,15 +134,7 @@ impl TaylorGreenRun {
 
     /// The packed state `[s, u, v]` at `t_end` (the smoke is zero).
     pub fn run(&self) -> Result<Vec<f64>, AccuracyError> {
-        if self.n < 4 {
-            return Err(AccuracyError::Invalid { what: "n", reason: format!("need at least 4 cells per side, got {}", self.n) });
-        }
-        if !(self.nu >= 0.0 && self.nu.is_finite()) {
-            return Err(AccuracyError::Invalid { what: "nu", reason: format!("must be ≥ 0 and finite, got {}", self.nu) });
-        }
-        positive("t_end", self.t_end)?;
-        positive("cfl", self.cfl)?;
-        positive("pressure_tolerance", self.pressure_tolerance)?;
+        self.validate()?;
         let n = self.n;
         let cfg = periodic_box(n);
         let h = LENGTH / n as f64;
@@ -166,6 +173,81 @@ impl TaylorGreenRun {
 
     /// Runs and returns the relative L2 error of the velocity at `t_end`.
     pub fn error(&self) -> Result<f64, AccuracyError> {
+        Ok(self.error_of(&self.run()?))
+    }
+}
+
+/// The Taylor–Green vortex by the Navier–Stokes operator
+/// ([`NavierStokes`] on the periodic box: sub-steps, the projection by
+/// FFT) in calls of `cfl·h` (each split into stable sub-steps by the
+/// operator), the viscosity explicit or implicit.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NavierStokesRun {
+    /// Cells per side.
+    pub n: usize,
+    /// Viscosity ν.
+    pub nu: f64,
+    /// Final time.
+    pub t_end: f64,
+    /// Courant number of a call (its sub-steps keep theirs within 0.9).
+    pub cfl: f64,
+    /// Advection of the velocity.
+    pub scheme: Scheme,
+    /// Viscosity in time.
+    pub viscosity: Diffusion,
+}
+
+impl NavierStokesRun {
+    /// The run of the same vortex as `tg` by the operator.
+    pub fn of(tg: &TaylorGreenRun) -> Self {
+        Self { n: tg.n, nu: tg.nu, t_end: tg.t_end, cfl: tg.cfl, scheme: tg.scheme, viscosity: tg.diffusion }
+    }
+
+    /// The Taylor–Green run with the same settings (its exact solution and
+    /// error measure are this run's).
+    fn vortex(&self) -> TaylorGreenRun {
+        TaylorGreenRun { n: self.n, nu: self.nu, t_end: self.t_end, cfl: self.cfl, scheme: self.scheme, diffusion: self.viscosity, pressure_tolerance: 1e-8 }
+    }
+
+    /// Number of calls and the time of each.
+    pub fn steps(&self) -> (usize, f64) {
+        steps_to(self.t_end, self.cfl * LENGTH / self.n as f64)
+    }
+
+    /// The packed state `[s, u, v]` at `t_end` (the smoke is zero).
+    pub fn run(&self) -> Result<Vec<f64>, AccuracyError> {
+        self.vortex().validate()?;
+        let (n, cfg) = (self.n, periodic_box(self.n));
+        let viscosity = match self.viscosity {
+            Diffusion::Explicit => Viscosity::Explicit,
+            Diffusion::Implicit { tolerance } => Viscosity::Implicit { tolerance, max_iterations: 100 * n },
+        };
+        // Unit cells, as the fluid operators (velocities in cells per unit
+        // time, the viscosity in cells² per unit time).
+        let h = LENGTH / n as f64;
+        let op = NavierStokes::new(cfg, 1.0, self.scheme).map_err(|e| AccuracyError::Invalid { what: "n", reason: e.to_string() })?.with_viscosity(viscosity);
+        let (steps, dt) = self.steps();
+        let (u, v) = self.vortex().exact_solution().mac(n, 0.0);
+        let mut x: Vec<f64> = u.into_iter().chain(v).collect();
+        let mut y = vec![0.0; x.len()];
+        for step in 0..steps {
+            op.forward(&x, &[self.nu / (h * h), dt], &mut y);
+            after("Navier–Stokes step", step, op.take_error(), &y)?;
+            std::mem::swap(&mut x, &mut y);
+        }
+        let mut state = vec![0.0; cfg.n_s()];
+        state.extend(x);
+        Ok(state)
+    }
+
+    /// Relative L2 error of the velocity of `x` (a result of
+    /// [`NavierStokesRun::run`]) against the exact one at `t_end`.
+    pub fn error_of(&self, x: &[f64]) -> f64 {
+        self.vortex().error_of(x)
+    }
+
+    /// Runs and returns the relative L2 error of the velocity at `t_end`.
+    pub fn run_error(&self) -> Result<f64, AccuracyError> {
         Ok(self.error_of(&self.run()?))
     }
 }
