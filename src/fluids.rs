@@ -666,37 +666,58 @@ impl<const D: usize> Project<D> {
     /// Records a velocity (or its adjoint) that is not finite as the FFT
     /// projection's error, as a CG solve's right-hand side holding one is
     /// recorded.
-    fn refuse_non_finite(&self, y: &[f64], adjoint: bool) {
-        if y[self.cfg.n_s()..].iter().any(|v| !v.is_finite()) {
+    fn refuse_non_finite(&self, vel: &[f64], adjoint: bool) {
+        if vel.iter().any(|v| !v.is_finite()) {
             self.log.record(Err(NoConvergence { iterations: 0, relative_residual: f64::NAN, tolerance: 0.0 }), adjoint);
         }
     }
 
     /// The map in place on a packed state (or tangent).
     pub fn apply(&self, y: &mut [f64]) {
-        if let Some((fluid, open)) = &self.mask {
-            smoke::apply_obstacle_mask(&self.cfg, fluid, open, y);
+        let ns = self.cfg.n_s();
+        if let Some((fluid, _)) = &self.mask {
+            smoke::mask_cells(fluid, &mut y[..ns]);
+        }
+        self.apply_velocity(&mut y[ns..]);
+    }
+
+    /// The map in place on a packed velocity `[u₀, …]` alone (or its
+    /// tangent): the faces that touch a solid zeroed, then the solve.
+    pub fn apply_velocity(&self, vel: &mut [f64]) {
+        if let Some((_, open)) = &self.mask {
+            smoke::mask_faces(open, vel);
         }
         match &mut *self.solve.borrow_mut() {
-            Solve::Cg(solver, scratch) => self.log.record(smoke::project(&self.cfg, y, solver, scratch), false),
+            Solve::Cg(solver, scratch) => {
+                self.log.record(smoke::project_velocity(&self.cfg, self.cfg.components_mut(vel), None, None, solver, scratch, false), false)
+            }
             Solve::Fft(fft) => {
-                self.refuse_non_finite(y, false);
-                fft.project(self.cfg.split_mut(y).1);
+                self.refuse_non_finite(vel, false);
+                fft.project(self.cfg.components_mut(vel));
             }
         }
     }
 
     /// The transposed map in place on an adjoint.
     pub fn apply_adjoint(&self, g: &mut [f64]) {
+        let ns = self.cfg.n_s();
+        self.apply_adjoint_velocity(&mut g[ns..]);
+        if let Some((fluid, _)) = &self.mask {
+            smoke::mask_cells(fluid, &mut g[..ns]);
+        }
+    }
+
+    /// The transposed map in place on a packed velocity adjoint alone.
+    pub fn apply_adjoint_velocity(&self, vel: &mut [f64]) {
         match &mut *self.solve.borrow_mut() {
-            Solve::Cg(solver, scratch) => self.log.record(smoke::project_adjoint(&self.cfg, g, solver, scratch), true),
+            Solve::Cg(solver, scratch) => self.log.record(smoke::project_velocity_adjoint(&self.cfg, self.cfg.components_mut(vel), solver, scratch), true),
             Solve::Fft(fft) => {
-                self.refuse_non_finite(g, true);
-                fft.project_adjoint(self.cfg.split_mut(g).1);
+                self.refuse_non_finite(vel, true);
+                fft.project_adjoint(self.cfg.components_mut(vel));
             }
         }
-        if let Some((fluid, open)) = &self.mask {
-            smoke::apply_obstacle_mask(&self.cfg, fluid, open, g);
+        if let Some((_, open)) = &self.mask {
+            smoke::mask_faces(open, vel);
         }
     }
 }

@@ -14,7 +14,7 @@
 //! | the sides | as above | by hand |
 //! | projection | [`Project`] (CG, or FFT when every side is periodic) | the transposed solve |
 
-use std::cell::{Cell, RefCell};
+use std::cell::Cell;
 use std::fmt;
 
 use diffsim_solvers::boundary::BoundaryError;
@@ -132,11 +132,7 @@ pub struct NavierStokes<const D: usize> {
     parts: Vec<(std::ops::Range<usize>, Box<dyn ViscousPart>)>,
     inflow: Vec<InflowFace>,
     forced: bool,
-    /// The projection and its settings (kept to rebuild it with obstacles).
     projection: Project<D>,
-    solve: (f64, usize, Preconditioner),
-    /// `[s, u…]` for the projection, which acts on packed states.
-    state: RefCell<Vec<f64>>,
     error: Cell<Option<OpError>>,
 }
 
@@ -189,7 +185,6 @@ impl<const D: usize> NavierStokes<D> {
         if grid.min_cells() < 2 {
             return Err(NavierStokesError::TooFewCells(grid.n.to_vec()));
         }
-        let solve = (1e-10, 1000, Preconditioner::Multigrid);
         let walls = grid.with_boundary(grid.boundary.homogeneous());
         let mut op = Self {
             grid,
@@ -200,9 +195,7 @@ impl<const D: usize> NavierStokes<D> {
             parts: Vec::new(),
             inflow: smoke::inflow_faces(&grid),
             forced: false,
-            projection: Project::new(grid, solve.0, solve.1, solve.2),
-            solve,
-            state: RefCell::new(vec![0.0; grid.n_state()]),
+            projection: Project::new(grid, 1e-10, 1000, Preconditioner::Multigrid),
             error: Cell::new(None),
         };
         op.set_viscosity(Viscosity::Explicit);
@@ -235,8 +228,9 @@ impl<const D: usize> NavierStokes<D> {
 
     /// The step under a body force: `f`, one value per face in the packed
     /// velocity's layout, follows `[ν, dt, q…]` in the parameters; added over
-    /// each sub-step after the viscosity (`u += s·f`; the faces the sides set
-    /// keep their value). The gradient reaches `f` too.
+    /// each sub-step on the viscous step's right-hand side (`u += s·f` after
+    /// explicit viscosity, before the implicit solve; the faces the sides
+    /// set keep their value). The gradient reaches `f` too.
     pub fn forced(self) -> Self {
         Self { forced: true, ..self }
     }
@@ -245,7 +239,6 @@ impl<const D: usize> NavierStokes<D> {
     /// at most `max_iterations` CG iterations preconditioned by `precond`
     /// (unused by the FFT of a box periodic on every axis).
     pub fn with_projection(mut self, tolerance: f64, max_iterations: usize, precond: Preconditioner) -> Self {
-        self.solve = (tolerance, max_iterations, precond);
         self.projection = Project::new(self.grid, tolerance, max_iterations, precond);
         self
     }
@@ -262,8 +255,9 @@ impl<const D: usize> NavierStokes<D> {
         if solid.iter().all(|&s| s) {
             return Err(NavierStokesError::AllSolid);
         }
-        let (tolerance, max_iterations, precond) = self.solve;
-        self.projection = Project::with_obstacles(self.grid, tolerance, max_iterations, precond, solid);
+        // The projection's own settings, now with the solids.
+        let (stop, precond) = (self.projection.stop(), self.projection.preconditioner());
+        self.projection = Project::with_obstacles(self.grid, stop.tolerance, stop.max_iterations, precond, solid);
         Ok(self)
     }
 
@@ -364,22 +358,12 @@ impl<const D: usize> NavierStokes<D> {
 
     /// The projection in place on a velocity (or a tangent).
     fn project(&self, v: &mut [f64]) {
-        let ns = self.grid.n_s();
-        let mut state = self.state.borrow_mut();
-        state[..ns].fill(0.0);
-        state[ns..].copy_from_slice(v);
-        self.projection.apply(&mut state);
-        v.copy_from_slice(&state[ns..]);
+        self.projection.apply_velocity(v);
     }
 
     /// The projection's adjoint in place on a velocity adjoint.
     fn project_adjoint(&self, g: &mut [f64]) {
-        let ns = self.grid.n_s();
-        let mut state = self.state.borrow_mut();
-        state[..ns].fill(0.0);
-        state[ns..].copy_from_slice(g);
-        self.projection.apply_adjoint(&mut state);
-        g.copy_from_slice(&state[ns..]);
+        self.projection.apply_adjoint_velocity(g);
     }
 
     /// Whether the force is added before the viscosity (implicit: `(I +

@@ -110,9 +110,21 @@ pub fn solid_neighbours<const D: usize>(cfg: &MacGrid<D>, fluid: &[f64]) -> Vec<
 /// fluid indicator `fluid`.
 pub fn apply_obstacle_mask<const D: usize>(cfg: &MacGrid<D>, fluid: &[f64], open: &[f64], x: &mut [f64]) {
     let (s, vel) = x.split_at_mut(cfg.n_s());
+    mask_cells(fluid, s);
+    mask_faces(open, vel);
+}
+
+/// The smoke part of [`apply_obstacle_mask`]: the smoke (or its tangent or
+/// adjoint) in solid cells set to zero.
+pub fn mask_cells(fluid: &[f64], s: &mut [f64]) {
     for (v, &f) in s.iter_mut().zip(fluid) {
         *v *= f;
     }
+}
+
+/// The velocity part of [`apply_obstacle_mask`] on a packed velocity (or
+/// its tangent or adjoint): every face that touches a solid set to zero.
+pub fn mask_faces(open: &[f64], vel: &mut [f64]) {
     for (v, &o) in vel.iter_mut().zip(open) {
         *v *= o;
     }

@@ -258,7 +258,18 @@ pub fn project_adjoint<const D: usize>(
     solver: &mut PressureSolver<D>,
     scratch: &mut ProjectScratch,
 ) -> Result<usize, NoConvergence> {
-    let (_, mut vel) = cfg.split_mut(g);
+    let (_, vel) = cfg.split_mut(g);
+    project_velocity_adjoint(cfg, vel, solver, scratch)
+}
+
+/// [`project_adjoint`] on separate velocity adjoint arrays (the adjoint of
+/// [`project_velocity`] without apertures).
+pub fn project_velocity_adjoint<const D: usize>(
+    cfg: &MacGrid<D>,
+    mut vel: [&mut [f64]; D],
+    solver: &mut PressureSolver<D>,
+    scratch: &mut ProjectScratch,
+) -> Result<usize, NoConvergence> {
     let lp = &mut scratch.d;
     gradient_transpose(cfg, solver.fluid(), vel.each_mut().map(|v| &mut **v), lp);
     for l in lp.iter_mut() {
