@@ -106,7 +106,7 @@ fn p3(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, p1, p1_step, p2, p3, p4, solver_parts, periodic_projection, scene_effects, nn_layers, hig_adam);
+criterion_group!(benches, p1, p1_step, p2, p3, p4, solver_parts, periodic_projection, periodic_advection, scene_effects, nn_layers, hig_adam);
 criterion_main!(benches);
 
 /// The projection of a fully periodic box, by FFT against conjugate
@@ -143,6 +143,65 @@ fn periodic_projection_at<const D: usize>(g: &mut criterion::BenchmarkGroup<'_, 
         b.iter(|| {
             y.copy_from_slice(&x);
             fft.project(cfg.split_mut(&mut y).1)
+        })
+    });
+}
+
+/// The Navier–Stokes step's advection on a fully periodic box (MacCormack,
+/// unlimited, Courant 0.5): the general traces against the traces shorter
+/// than a cell (baseline x86-64 and the widest vectors), forward, and the
+/// latter's adjoint by Enzyme (the operator's VJP) against the hand-written
+/// one, at 64² and 32³ (docs/navier-stokes.md).
+fn periodic_advection(c: &mut Criterion) {
+    let mut g = c.benchmark_group("periodic_advection");
+    g.sample_size(20);
+    periodic_advection_at(&mut g, [64, 64]);
+    periodic_advection_at(&mut g, [32; 3]);
+    g.finish();
+}
+
+/// [`periodic_advection`] on a box of `n` cells.
+fn periodic_advection_at<const D: usize>(g: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>, n: [usize; D])
+where
+    diffsim::navier_stokes::AdvectVelocity<D>: Vjp,
+{
+    use diffsim::navier_stokes::AdvectVelocity;
+    use diffsim_solvers::boundary::{Boundary, Side};
+    use diffsim_solvers::mac::periodic::refresh_periodic_copies;
+    use diffsim_solvers::smoke::{self, MacGrid, Scheme};
+    let cfg = MacGrid::new(n).with_boundary(Boundary::all(Side::Periodic));
+    let scheme = Scheme::MacCormack { limiter: false };
+    let mut x: Vec<f64> = (0..cfg.n_vel()).map(|k| ((k as f64) * 0.618).fract() - 0.5).collect();
+    refresh_periodic_copies(&cfg, &mut x);
+    // Courant 0.5: the largest face moves half a cell.
+    let dt = 0.5 / x.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let mut y = vec![0.0; x.len()];
+    let mut scratch = vec![0.0; smoke::advect_velocity_scratch_len(&cfg, scheme).max(smoke::advect_velocity_near_scratch_len(&cfg))];
+    g.bench_function(BenchmarkId::new(format!("traces_forward_{D}d"), n[0]), |b| {
+        b.iter(|| {
+            smoke::advect_velocity(&cfg, scheme, dt, &x, &mut y, &mut scratch);
+            refresh_periodic_copies(&cfg, &mut y);
+        })
+    });
+    g.bench_function(BenchmarkId::new(format!("near_forward_{D}d"), n[0]), |b| {
+        b.iter(|| smoke::advect_velocity_near(&cfg, scheme, dt, &x, &mut y, &mut scratch))
+    });
+    g.bench_function(BenchmarkId::new(format!("near_widest_forward_{D}d"), n[0]), |b| {
+        b.iter(|| smoke::advect_velocity_near_widest(&cfg, scheme, dt, &x, &mut y, &mut scratch))
+    });
+    let op = AdvectVelocity { grid: cfg, h: 1.0, scheme };
+    let w: Vec<f64> = (0..x.len()).map(|k| ((k as f64) * 0.377).fract() - 0.5).collect();
+    let (mut dx, mut dp) = (vec![0.0; x.len()], [0.0]);
+    g.bench_function(BenchmarkId::new(format!("near_vjp_enzyme_{D}d"), n[0]), |b| {
+        b.iter(|| {
+            dx.fill(0.0);
+            op.vjp(&x, &[dt], &mut w.clone(), &mut dx, &mut dp)
+        })
+    });
+    g.bench_function(BenchmarkId::new(format!("near_vjp_hand_{D}d"), n[0]), |b| {
+        b.iter(|| {
+            dx.fill(0.0);
+            smoke::advect_velocity_near_adjoint(&cfg, scheme, dt, &x, &w, &mut dx)
         })
     });
 }

@@ -47,7 +47,13 @@ pub enum Viscosity {
 /// by itself over the time `p[0]` ([`smoke::advect_velocity`], the fluid
 /// operators' advection; cells of size `h`), the periodic copies refreshed
 /// (the other faces the sides set are left to the map that follows). Derivatives by Enzyme, with respect to the
-/// velocity and the time step.
+/// velocity and the time step. On a box periodic on every axis below a
+/// cell per call (every sub-step of [`NavierStokes`] is) and without
+/// MacCormack's limiter, the traces shorter than a cell
+/// ([`smoke::advect_velocity_near`]: the same values to rounding, several
+/// times faster), differentiated by Enzyme as a function of their own;
+/// [`smoke::advect_velocity_near_adjoint`] is its hand-written adjoint,
+/// the reference in the tests.
 #[derive(Clone, Copy, Debug)]
 pub struct AdvectVelocity<const D: usize> {
     /// The box and its sides.
@@ -57,6 +63,38 @@ pub struct AdvectVelocity<const D: usize> {
     /// Advection scheme.
     pub scheme: Scheme,
 }
+
+impl<const D: usize> AdvectVelocity<D> {
+    /// Whether the call at `(x, p)` takes the traces shorter than a cell.
+    fn near(&self, x: &[f64], p: &[f64]) -> bool {
+        smoke::near_applies(&self.grid, self.scheme, p[0] / self.h, x)
+    }
+}
+
+/// [`AdvectVelocity`] by the general traces.
+#[derive(Clone, Copy, Debug)]
+struct AdvectTraced<const D: usize>(AdvectVelocity<D>);
+
+/// [`AdvectVelocity`] by the traces shorter than a cell.
+#[derive(Clone, Copy, Debug)]
+struct AdvectNear<const D: usize>(AdvectVelocity<D>);
+
+macro_rules! advect_sizes {
+    ($($ty:ident),*) => {$(
+        impl<const D: usize> Operator for $ty<D> {
+            fn n_in(&self) -> usize {
+                self.0.n_in()
+            }
+            fn n_out(&self) -> usize {
+                self.0.n_out()
+            }
+            fn n_params(&self) -> usize {
+                1
+            }
+        }
+    )*};
+}
+advect_sizes!(AdvectTraced, AdvectNear);
 
 impl<const D: usize> Operator for AdvectVelocity<D> {
     fn n_in(&self) -> usize {
@@ -70,21 +108,86 @@ impl<const D: usize> Operator for AdvectVelocity<D> {
     }
 }
 
-fn advect_velocity<const D: usize>(op: &AdvectVelocity<D>, x: &[f64], p: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+fn advect_traced<const D: usize>(op: &AdvectTraced<D>, x: &[f64], p: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+    let op = &op.0;
     smoke::advect_velocity(&op.grid, op.scheme, p[0] / op.h, x, y, scratch);
     refresh_periodic_copies(&op.grid, y);
 }
 
-fn advect_velocity_scratch<const D: usize>(op: &AdvectVelocity<D>) -> usize {
-    smoke::advect_velocity_scratch_len(&op.grid, op.scheme)
+fn advect_traced_scratch<const D: usize>(op: &AdvectTraced<D>) -> usize {
+    smoke::advect_velocity_scratch_len(&op.0.grid, op.0.scheme)
+}
+
+fn advect_near<const D: usize>(op: &AdvectNear<D>, x: &[f64], p: &[f64], y: &mut [f64], scratch: &mut [f64]) {
+    let op = &op.0;
+    smoke::advect_velocity_near(&op.grid, op.scheme, p[0] / op.h, x, y, scratch);
+}
+
+fn advect_near_scratch<const D: usize>(op: &AdvectNear<D>) -> usize {
+    smoke::advect_velocity_near_scratch_len(&op.0.grid)
 }
 
 fn advect_velocity_radius<const D: usize>(op: &AdvectVelocity<D>, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
     smoke::advect_velocity_radius(&op.grid, op.scheme, p[0] / op.h, dp[0] / op.h, x, dx)
 }
 
-crate::differentiable!(AdvectVelocity<2> => advect_velocity::<2>, smooth_radius = advect_velocity_radius::<2>, scratch = advect_velocity_scratch::<2>);
-crate::differentiable!(AdvectVelocity<3> => advect_velocity::<3>, smooth_radius = advect_velocity_radius::<3>, scratch = advect_velocity_scratch::<3>);
+fn advect_traced_radius<const D: usize>(op: &AdvectTraced<D>, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+    advect_velocity_radius(&op.0, x, p, dx, dp)
+}
+
+fn advect_near_radius<const D: usize>(op: &AdvectNear<D>, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+    advect_velocity_radius(&op.0, x, p, dx, dp)
+}
+
+crate::differentiable!(AdvectTraced<2> => advect_traced::<2>, smooth_radius = advect_traced_radius::<2>, scratch = advect_traced_scratch::<2>);
+crate::differentiable!(AdvectTraced<3> => advect_traced::<3>, smooth_radius = advect_traced_radius::<3>, scratch = advect_traced_scratch::<3>);
+crate::differentiable!(AdvectNear<2> => advect_near::<2>, smooth_radius = advect_near_radius::<2>, scratch = advect_near_scratch::<2>);
+crate::differentiable!(AdvectNear<3> => advect_near::<3>, smooth_radius = advect_near_radius::<3>, scratch = advect_near_scratch::<3>);
+
+impl<const D: usize> Forward for AdvectVelocity<D>
+where
+    AdvectTraced<D>: Forward,
+    AdvectNear<D>: Forward,
+{
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        validate_forward(self, "AdvectVelocity", x, p, y);
+        if self.near(x, p) {
+            // The generated code's primal, compiled for wider vectors (the
+            // same values bit for bit).
+            crate::op::count::record("AdvectNear", crate::op::count::Method::Forward);
+            let (dt, len) = (p[0] / self.h, smoke::advect_velocity_near_scratch_len(&self.grid));
+            crate::op::with_scratch(len, |s| smoke::advect_velocity_near_widest(&self.grid, self.scheme, dt, x, y, s))
+        } else {
+            AdvectTraced(*self).forward(x, p, y)
+        }
+    }
+
+    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+        advect_velocity_radius(self, x, p, dx, dp)
+    }
+}
+
+impl<const D: usize> Vjp for AdvectVelocity<D>
+where
+    AdvectTraced<D>: Vjp,
+    AdvectNear<D>: Vjp,
+{
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        validate_vjp(self, "AdvectVelocity", x, p, dy, dx, dp);
+        if self.near(x, p) { AdvectNear(*self).vjp(x, p, dy, dx, dp) } else { AdvectTraced(*self).vjp(x, p, dy, dx, dp) }
+    }
+}
+
+impl<const D: usize> Jvp for AdvectVelocity<D>
+where
+    AdvectTraced<D>: Jvp,
+    AdvectNear<D>: Jvp,
+{
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        validate_jvp(self, "AdvectVelocity", x, p, tx, tp, y, ty);
+        if self.near(x, p) { AdvectNear(*self).jvp(x, p, tx, tp, y, ty) } else { AdvectTraced(*self).jvp(x, p, tx, tp, y, ty) }
+    }
+}
 
 /// One component's viscosity: an explicit or implicit diffusion operator on
 /// its faces (`p = [κ]`).

@@ -88,6 +88,7 @@ pub(crate) use each_corner;
 
 pub(crate) mod advect;
 pub mod fft;
+pub(crate) mod near;
 pub mod periodic;
 
 use crate::grid::{beside, next, own_faces, passes, position};

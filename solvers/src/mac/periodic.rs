@@ -170,19 +170,22 @@ impl<const D: usize> Periodic<D> {
 
     /// The advection of one sub-step: the packed velocity `x` advected by
     /// itself over `dt` by the box's scheme into `y` (the fluid operators'
-    /// [`advect_velocity`]), the periodic copies refreshed; `scratch` holds
-    /// [`Self::advect_scratch_len`] values. The gradient's first part (Enzyme differentiates it alone:
-    /// docs/navier-stokes.md).
+    /// [`advect_velocity`], or [`crate::smoke::advect_velocity_near`] where
+    /// it applies), the periodic copies refreshed; `scratch` holds
+    /// [`Self::advect_scratch_len`] values.
     #[inline(always)]
     pub fn advect(&self, dt: f64, x: &[f64], y: &mut [f64], scratch: &mut [f64]) {
-        advect_velocity(&self.grid, self.scheme, dt / self.h, x, y, scratch);
+        let dt = dt / self.h;
+        if crate::smoke::near_applies(&self.grid, self.scheme, dt, x) {
+            return crate::smoke::advect_velocity_near_widest(&self.grid, self.scheme, dt, x, y, scratch);
+        }
+        advect_velocity(&self.grid, self.scheme, dt, x, y, scratch);
         refresh_periodic_copies(&self.grid, y);
     }
 
-    /// Scratch of [`Self::advect`] (the scaled velocity and MacCormack's
-    /// two intermediate fields).
+    /// Scratch of [`Self::advect`] (either path's).
     pub fn advect_scratch_len(&self) -> usize {
-        crate::smoke::advect_velocity_scratch_len(&self.grid, self.scheme)
+        crate::smoke::advect_velocity_scratch_len(&self.grid, self.scheme).max(crate::smoke::advect_velocity_near_scratch_len(&self.grid))
     }
 
     /// The viscosity of one sub-step: `y = x + ν·dt·Δx/h²` on each
@@ -360,5 +363,27 @@ pub fn refresh_copies<const D: usize>(n: [usize; D], axis: usize, f: &mut [f64])
         for c in base..base + st {
             f[c + shift] = f[c];
         }
+    }
+}
+
+/// Adjoint of [`refresh_periodic_copies`]: each copy's adjoint added into
+/// its face's and zeroed.
+pub fn refresh_periodic_copies_adjoint<const D: usize>(grid: &MacGrid<D>, g: &mut [f64]) {
+    let (n, wraps) = (grid.cells(), grid.boundary.wraps());
+    let mut start = 0;
+    for a in 0..D {
+        let len = grid.n_face(a);
+        if wraps[a] {
+            let f = &mut g[start..start + len];
+            let st: usize = (0..a).map(|b| n[b]).product();
+            let (na, shift) = (n[a], n[a] * st);
+            for outer in 0..len / (st * (na + 1)) {
+                let base = outer * st * (na + 1);
+                for c in base..base + st {
+                    f[c] += std::mem::take(&mut f[c + shift]);
+                }
+            }
+        }
+        start += len;
     }
 }

@@ -522,3 +522,83 @@ fn the_3d_taylor_green_vortex_loses_energy_at_the_exact_early_rate() {
     let sl: Vec<f64> = [16, 32].iter().map(|&n| off(Scheme::SemiLagrangian, n)).collect();
     assert!(sl[1] < sl[0] / 1.8, "semi-Lagrangian: the rate off by {sl:?} at 16³ and 32³");
 }
+
+/// The traces shorter than a cell ([`super::near`]) give the general
+/// traces' values to rounding, semi-Lagrangian and MacCormack, on boxes of
+/// unequal sides, with displacements of either sign up to 0.95 cells and
+/// exact zeros (the periodic copies refreshed in both); it does not apply
+/// at a cell or more, with the limiter, or on a box not periodic.
+fn near_traces_are_the_traces<const D: usize>(n: [usize; D]) {
+    use crate::boundary::{Boundary, Side};
+    use crate::smoke::{MacGrid, advect_velocity, advect_velocity_near, advect_velocity_near_scratch_len, advect_velocity_scratch_len, near_applies};
+    let cfg = MacGrid::<D> { n, buoyancy: 0.0, dt: 1.0, boundary: Boundary::all(Side::Periodic) };
+    let mut vel: Vec<f64> = periodic_velocity(n, 7, true).concat();
+    vel[3] = 0.0;
+    let dt = 0.95;
+    for scheme in [Scheme::SemiLagrangian, Scheme::MacCormack { limiter: false }] {
+        assert!(near_applies(&cfg, scheme, dt, &vel) && !near_applies(&cfg, scheme, 1.2, &vel));
+        let mut scratch = vec![0.0; advect_velocity_scratch_len(&cfg, scheme).max(advect_velocity_near_scratch_len(&cfg))];
+        let (mut near, mut traced) = (vec![f64::NAN; vel.len()], vec![f64::NAN; vel.len()]);
+        advect_velocity_near(&cfg, scheme, dt, &vel, &mut near, &mut scratch);
+        advect_velocity(&cfg, scheme, dt, &vel, &mut traced, &mut scratch);
+        super::periodic::refresh_periodic_copies(&cfg, &mut traced);
+        let diff = max_diff(&near, &traced);
+        assert!(diff <= 1e-14, "{n:?} {scheme:?}: {diff:e}");
+        // Compiled for the widest vectors: the same bits.
+        let mut widest = vec![f64::NAN; vel.len()];
+        crate::smoke::advect_velocity_near_widest(&cfg, scheme, dt, &vel, &mut widest, &mut scratch);
+        assert!(widest.iter().zip(&near).all(|(a, b)| a.to_bits() == b.to_bits()), "{n:?} {scheme:?}: the widest copy differs");
+    }
+    assert!(!near_applies(&cfg, Scheme::MacCormack { limiter: true }, dt, &vel));
+    let mut bad = vel.clone();
+    bad[vel.len() - 2] = f64::NAN;
+    assert!(!near_applies(&cfg, Scheme::SemiLagrangian, dt, &bad));
+    let mut closed = cfg;
+    closed.boundary = Boundary::CLOSED;
+    assert!(!near_applies(&closed, Scheme::SemiLagrangian, dt, &vel));
+}
+
+#[test]
+fn traces_shorter_than_a_cell_are_the_traces() {
+    near_traces_are_the_traces([5, 4]);
+    near_traces_are_the_traces([8, 8]);
+    near_traces_are_the_traces([4, 5, 3]);
+    near_traces_are_the_traces([6, 6, 6]);
+}
+
+/// The hand-written adjoint of the near path against central differences of the forward, with respect to every
+/// face (copies included: they get nothing) and the time step.
+fn near_adjoint_matches<const D: usize>(n: [usize; D]) {
+    use crate::boundary::{Boundary, Side};
+    use crate::smoke::{MacGrid, advect_velocity_near, advect_velocity_near_adjoint, advect_velocity_near_scratch_len};
+    let cfg = MacGrid::<D> { n, buoyancy: 0.0, dt: 1.0, boundary: Boundary::all(Side::Periodic) };
+    let vel: Vec<f64> = periodic_velocity(n, 11, true).concat();
+    let (dt, len) = (0.8, vel.len());
+    let w = values(len, 5);
+    for scheme in [Scheme::SemiLagrangian, Scheme::MacCormack { limiter: false }] {
+        let mut scratch = vec![0.0; advect_velocity_near_scratch_len(&cfg)];
+        let mut phi = |v: &[f64], dt: f64| {
+            let mut y = vec![0.0; len];
+            advect_velocity_near(&cfg, scheme, dt, v, &mut y, &mut scratch);
+            y.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let mut g = vec![0.0; len];
+        let gdt = advect_velocity_near_adjoint(&cfg, scheme, dt, &vel, &w, &mut g);
+        let e = 1e-6;
+        for k in 0..len {
+            let (mut up, mut down) = (vel.clone(), vel.clone());
+            up[k] += e;
+            down[k] -= e;
+            let fd = (phi(&up, dt) - phi(&down, dt)) / (2.0 * e);
+            assert!((fd - g[k]).abs() <= 1e-7 * (1.0 + fd.abs()), "{n:?} {scheme:?} face {k}: {fd} against {}", g[k]);
+        }
+        let fd = (phi(&vel, dt + e) - phi(&vel, dt - e)) / (2.0 * e);
+        assert!((fd - gdt).abs() <= 1e-7 * (1.0 + fd.abs()), "{n:?} {scheme:?} dt: {fd} against {gdt}");
+    }
+}
+
+#[test]
+fn near_adjoint_matches_central_differences() {
+    near_adjoint_matches([5, 4]);
+    near_adjoint_matches([4, 3, 5]);
+}

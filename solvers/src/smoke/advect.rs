@@ -106,9 +106,11 @@ fn advect_faces<const D: usize, W: Wraps<D>>(
 /// The packed velocity `vel` advected by itself over `dt` cells per unit
 /// speed by `scheme` (the velocity part of [`advect`]); overwrites `out`.
 /// The velocity boundary conditions are the caller's: the faces they set
-/// (walls, inflow, periodic copies) hold traced values. `scratch` holds
+/// (walls, inflow) hold traced values, the periodic copies traced values
+/// or none (the caller refreshes them). `scratch` holds
 /// [`advect_velocity_scratch_len`] values. The Navier–Stokes step's
-/// advection ([`crate::mac::periodic`]).
+/// advection ([`crate::mac::periodic`]); where [`near_applies`] holds,
+/// [`advect_velocity_near`] gives the same values faster.
 ///
 /// The traces run along `dt·vel`, kept in `scratch`, with a unit step: a
 /// time step Enzyme differentiates (the Navier–Stokes gradient with
@@ -144,6 +146,94 @@ pub fn advect_velocity<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64
 /// [`advect_scratch_len`].
 pub fn advect_velocity_scratch_len<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme) -> usize {
     cfg.n_vel() + advect_scratch_len(cfg, scheme)
+}
+
+/// Whether [`advect_velocity_near`] applies: a box periodic on every axis,
+/// semi-Lagrangian or MacCormack without the limiter, and every face of
+/// `dt·vel` below one cell (the Navier–Stokes step's sub-steps keep them
+/// at 0.9 or less). False for NaN.
+#[inline(always)]
+pub fn near_applies<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, vel: &[f64]) -> bool {
+    cfg.boundary.wraps().iter().all(|&w| w) && scheme != (Scheme::MacCormack { limiter: true }) && crate::mac::near::below_a_cell(dt, vel)
+}
+
+/// [`advect_velocity`] by the traces shorter than a cell
+/// ([`crate::mac::near`]) where [`near_applies`], the periodic copies
+/// refreshed: the same values to rounding, several times faster
+/// (docs/navier-stokes.md). Differentiated by Enzyme on its own, apart
+/// from [`advect_velocity`]. `scratch` holds
+/// [`advect_velocity_near_scratch_len`] values.
+///
+/// # Panics
+/// If a length is wrong or [`near_applies`] does not hold.
+#[inline(always)]
+pub fn advect_velocity_near<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, vel: &[f64], out: &mut [f64], scratch: &mut [f64]) {
+    let n = cfg.n_vel();
+    assert!(cfg.min_cells() >= 2 && vel.len() == n && out.len() == n, "advect_velocity_near: packed velocity lengths");
+    assert!(near_applies(cfg, scheme, dt, vel), "advect_velocity_near: a periodic box, no limiter, below a cell");
+    let mac = Mac { n: cfg.cells(), wrap: crate::mac::Wrapping };
+    let mut strides = [[0; D]; D];
+    each_axis!(D, a => {
+        strides[a] = mac.lattice(At::Face(a)).stride;
+    });
+    let maccormack = scheme != Scheme::SemiLagrangian;
+    crate::mac::near::advect_velocity(cfg.cells(), strides, maccormack, dt, cfg.components(vel), cfg.components_mut(out), scratch);
+    crate::mac::periodic::refresh_periodic_copies(cfg, out);
+}
+
+/// [`advect_velocity_near`] compiled for the widest of AVX-512F, AVX2 and
+/// baseline x86-64 that the processor has (as [`crate::simd_dispatch!`]):
+/// the same values bit for bit, for forward passes (Enzyme differentiates
+/// the baseline [`advect_velocity_near`]).
+///
+/// # Panics
+/// As [`advect_velocity_near`].
+pub fn advect_velocity_near_widest<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, vel: &[f64], out: &mut [f64], scratch: &mut [f64]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx512f")]
+        fn wide<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, vel: &[f64], out: &mut [f64], scratch: &mut [f64]) {
+            advect_velocity_near(cfg, scheme, dt, vel, out, scratch)
+        }
+        #[target_feature(enable = "avx2")]
+        fn medium<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, vel: &[f64], out: &mut [f64], scratch: &mut [f64]) {
+            advect_velocity_near(cfg, scheme, dt, vel, out, scratch)
+        }
+        if ::std::is_x86_feature_detected!("avx512f") {
+            // SAFETY: the processor has AVX-512F, checked just above.
+            return unsafe { wide(cfg, scheme, dt, vel, out, scratch) };
+        }
+        if ::std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the processor has AVX2, checked just above.
+            return unsafe { medium(cfg, scheme, dt, vel, out, scratch) };
+        }
+    }
+    advect_velocity_near(cfg, scheme, dt, vel, out, scratch)
+}
+
+/// Scratch of [`advect_velocity_near`].
+pub fn advect_velocity_near_scratch_len<const D: usize>(cfg: &MacGrid<D>) -> usize {
+    crate::mac::near::scratch_len(cfg.cells())
+}
+
+/// Adjoint of [`advect_velocity_near`], hand-written (the reference for
+/// Enzyme's): adds `Jᵀ·g` into `gvel` (`g` and `gvel` packed velocities;
+/// the copies of `g` count for the faces they copy, those of `gvel` get
+/// nothing: the step reads only own faces) and returns the derivative with
+/// respect to `dt`.
+///
+/// # Panics
+/// If a length is wrong or [`near_applies`] does not hold.
+pub fn advect_velocity_near_adjoint<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, vel: &[f64], g: &[f64], gvel: &mut [f64]) -> f64 {
+    let n = cfg.n_vel();
+    assert!(vel.len() == n && g.len() == n && gvel.len() == n, "advect_velocity_near_adjoint: packed velocity lengths");
+    assert!(near_applies(cfg, scheme, dt, vel), "advect_velocity_near_adjoint: a periodic box, no limiter, below a cell");
+    let mut folded = g.to_vec();
+    crate::mac::periodic::refresh_periodic_copies_adjoint(cfg, &mut folded);
+    let mac = Mac { n: cfg.cells(), wrap: crate::mac::Wrapping };
+    let strides: [[usize; D]; D] = std::array::from_fn(|a| mac.lattice(At::Face(a)).stride);
+    let maccormack = scheme != Scheme::SemiLagrangian;
+    crate::mac::near::advect_velocity_adjoint(cfg.cells(), strides, maccormack, dt, cfg.components(vel), cfg.components(&folded), cfg.components_mut(gvel))
 }
 
 /// A perturbation `d` of the state carried along the velocity of the
