@@ -153,6 +153,10 @@ fn periodic_projection_at<const D: usize>(g: &mut criterion::BenchmarkGroup<'_, 
 /// latter's adjoint by Enzyme (the operator's VJP) against the hand-written
 /// one, at 64² and 32³ (docs/navier-stokes.md).
 fn periodic_advection(c: &mut Criterion) {
+    // As the command line and the Python package's benchmark script: the
+    // generated adjoints' tapes reused, not mapped afresh per call (it stays
+    // on for the groups after this one).
+    diffsim::memory::keep_freed_memory();
     let mut g = c.benchmark_group("periodic_advection");
     g.sample_size(20);
     periodic_advection_at(&mut g, [64, 64]);

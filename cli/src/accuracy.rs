@@ -17,6 +17,9 @@ pub enum Problem {
     Burgers,
     /// The Taylor–Green vortex (ν = 0.01, t = 1) against its exact decay.
     TaylorGreen,
+    /// The 3D Arnold–Beltrami–Childress flow (ν = 0.05, t = 1) by the
+    /// Navier–Stokes operator against its exact decay.
+    Abc,
     /// Schäfer–Turek's cylinder, case 2D-1: c_D against the tight
     /// reference value, by Newton's method and by pseudo-time marching.
     Cylinder,
@@ -56,7 +59,14 @@ pub fn pareto(a: ParetoArgs) -> Result<(), CliError> {
     let problem = match (a.problem, a.gradients) {
         (Problem::Burgers, false) => ParetoProblem::Burgers,
         (Problem::TaylorGreen, false) => ParetoProblem::TaylorGreen,
+        (Problem::Abc, false) => ParetoProblem::Abc,
         (Problem::Cylinder, false) => ParetoProblem::Cylinder,
+        (Problem::Abc, true) => {
+            return Err(CliError::Argument {
+                arg: "--gradients",
+                reason: "the ABC flow has no gradient sweep (the Navier–Stokes operator's gradient is checked in tests/navier_stokes.rs)".into(),
+            });
+        }
         (Problem::Cylinder, true) => {
             return Err(CliError::Argument {
                 arg: "--gradients",

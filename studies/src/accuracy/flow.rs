@@ -2,7 +2,9 @@
 //! against exact solutions: the Taylor–Green vortex (advection of the
 //! velocity, viscosity, pressure projection), translation of a smooth
 //! profile by a constant velocity (advection of a scalar) and a Fourier
-//! mode of the heat equation (diffusion).
+//! mode of the heat equation (diffusion); and the Navier–Stokes operator
+//! on the Taylor–Green vortex and, in 3D, on the Arnold–Beltrami–Childress
+//! flow.
 //!
 //! The solver works on unit cells; a run converts: cell width
 //! `h = 2π/n`, velocities in cells per unit time (`u/h`), diffusion number
@@ -11,7 +13,7 @@
 use std::f64::consts::PI;
 
 use diffsim_solvers::boundary::{Boundary, Side};
-use diffsim_solvers::exact::{HeatMode, TaylorGreen, Translation};
+use diffsim_solvers::exact::{Abc, HeatMode, TaylorGreen, Translation, on_faces};
 use diffsim_solvers::smoke::{MacGrid, Preconditioner, Scheme};
 
 use super::{AccuracyError, Diffusion, all_finite, positive, relative_l2, steps_to};
@@ -249,6 +251,102 @@ impl NavierStokesRun {
     /// Runs and returns the relative L2 error of the velocity at `t_end`.
     pub fn run_error(&self) -> Result<f64, AccuracyError> {
         Ok(self.error_of(&self.run()?))
+    }
+}
+
+/// The Arnold–Beltrami–Childress flow (`A = B = C = 1`: an exact steady
+/// solution of the Euler equations that viscosity makes decay as
+/// `e^{−νt}`) on the `n³` periodic box `[0, 2π)³` by the Navier–Stokes
+/// operator ([`NavierStokes`] in 3D: sub-steps, the projection by FFT), in
+/// calls of Courant number `cfl` on the flow's largest speed (2), each
+/// split into stable sub-steps by the operator.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AbcRun {
+    /// Cells per side.
+    pub n: usize,
+    /// Viscosity ν.
+    pub nu: f64,
+    /// Final time.
+    pub t_end: f64,
+    /// Courant number of a call.
+    pub cfl: f64,
+    /// Advection of the velocity.
+    pub scheme: Scheme,
+    /// Viscosity in time.
+    pub viscosity: Diffusion,
+}
+
+impl AbcRun {
+    /// The exact solution.
+    pub fn exact_solution(&self) -> Abc {
+        Abc { coefficients: [1.0; 3], nu: self.nu }
+    }
+
+    /// The exact velocity at time `t` on the faces (with the copies).
+    fn faces(&self, t: f64) -> Vec<f64> {
+        let exact = self.exact_solution();
+        on_faces([self.n; 3], LENGTH / self.n as f64, |a, p| exact.velocity(p, t)[a])
+    }
+
+    /// Number of calls and the time of each.
+    pub fn steps(&self) -> (usize, f64) {
+        steps_to(self.t_end, self.cfl * LENGTH / self.n as f64 / 2.0)
+    }
+
+    /// The packed velocity `[u, v, w]` at `t_end`.
+    pub fn run(&self) -> Result<Vec<f64>, AccuracyError> {
+        if self.n < 4 {
+            return Err(AccuracyError::Invalid { what: "n", reason: format!("need at least 4 cells per side, got {}", self.n) });
+        }
+        if !(self.nu >= 0.0 && self.nu.is_finite()) {
+            return Err(AccuracyError::Invalid { what: "nu", reason: format!("must be ≥ 0 and finite, got {}", self.nu) });
+        }
+        positive("t_end", self.t_end)?;
+        positive("cfl", self.cfl)?;
+        let n = self.n;
+        let cfg = MacGrid::new([n; 3]).with_boundary(Boundary::all(Side::Periodic));
+        let viscosity = match self.viscosity {
+            Diffusion::Explicit => Viscosity::Explicit,
+            Diffusion::Implicit { tolerance } => Viscosity::Implicit { tolerance, max_iterations: 100 * n },
+        };
+        let op = NavierStokes::new(cfg, LENGTH / n as f64, self.scheme)
+            .map_err(|e| AccuracyError::Invalid { what: "n", reason: e.to_string() })?
+            .with_viscosity(viscosity);
+        let (steps, dt) = self.steps();
+        let mut x = self.faces(0.0);
+        let mut y = vec![0.0; x.len()];
+        for step in 0..steps {
+            op.forward(&x, &[self.nu, dt], &mut y);
+            after("Navier–Stokes step", step, op.take_error(), &y)?;
+            std::mem::swap(&mut x, &mut y);
+        }
+        Ok(x)
+    }
+
+    /// Relative L2 error of the velocity `x` (a result of [`AbcRun::run`])
+    /// against the exact one at `t_end`, over the faces that hold their own
+    /// value (the periodic copies left out).
+    pub fn error_of(&self, x: &[f64]) -> f64 {
+        let exact = self.faces(self.t_end);
+        if x.len() != exact.len() || !all_finite(x) {
+            return f64::NAN;
+        }
+        let n = self.n;
+        let (mut own_x, mut own_e) = (Vec::new(), Vec::new());
+        let mut start = 0;
+        for a in 0..3 {
+            let len = |b: usize| n + usize::from(b == a);
+            let stride: usize = (0..a).map(len).product();
+            let total: usize = (0..3).map(len).product();
+            for c in 0..total {
+                if (c / stride) % len(a) < n {
+                    own_x.push(x[start + c]);
+                    own_e.push(exact[start + c]);
+                }
+            }
+            start += total;
+        }
+        relative_l2(&own_x, &own_e)
     }
 }
 

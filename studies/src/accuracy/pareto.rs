@@ -13,7 +13,7 @@ use diffsim_solvers::smoke::{Preconditioner, Scheme};
 use serde_json::{Map, Value, json};
 
 use super::burgers::{BurgersRun, BurgersScheme};
-use super::flow::{NavierStokesRun, TaylorGreenRun, scheme_name};
+use super::flow::{AbcRun, NavierStokesRun, TaylorGreenRun, scheme_name};
 use super::{AccuracyError, Diffusion};
 use crate::StudyError;
 use crate::measure::{median_time, peak_rss_bytes, reset_peak_rss};
@@ -182,6 +182,41 @@ pub fn navier_stokes_params(r: &NavierStokesRun) -> (String, Map<String, Value>)
     (family, m)
 }
 
+/// The 3D Arnold–Beltrami–Childress flow (ν = 0.05 to `t = 1`) by the
+/// Navier–Stokes operator: semi-Lagrangian and MacCormack advection, calls
+/// of Courant number 0.5, 1, 2 and 4 (on the largest speed) split into
+/// sub-steps, explicit viscosity, and implicit at Courant number 1;
+/// `8³…32³` (`quick`: `8³, 16³`).
+pub fn abc_sweep(quick: bool) -> Vec<AbcRun> {
+    let sizes: &[usize] = if quick { &[8, 16] } else { &[8, 16, 32] };
+    let mut runs = Vec::new();
+    for &n in sizes {
+        for scheme in [Scheme::SemiLagrangian, Scheme::MacCormack { limiter: false }] {
+            let base = AbcRun { n, nu: 0.05, t_end: 1.0, cfl: 1.0, scheme, viscosity: Diffusion::Explicit };
+            for cfl in [0.5, 1.0, 2.0, 4.0] {
+                runs.push(AbcRun { cfl, ..base });
+            }
+            runs.push(AbcRun { viscosity: Diffusion::Implicit { tolerance: 1e-8 }, ..base });
+        }
+    }
+    runs
+}
+
+/// Family and settings of an ABC run, for reports.
+pub fn abc_params(r: &AbcRun) -> (String, Map<String, Value>) {
+    let (steps, dt) = r.steps();
+    let family = format!("operator/{}/{}", scheme_name(r.scheme), r.viscosity);
+    let mut m = Map::new();
+    m.insert("n".into(), json!(r.n));
+    m.insert("advection".into(), json!(scheme_name(r.scheme)));
+    m.insert("diffusion".into(), json!(r.viscosity.to_string()));
+    m.insert("cfl".into(), json!(r.cfl));
+    m.insert("diffusion_tolerance".into(), tolerance(r.viscosity));
+    m.insert("dt".into(), json!(dt));
+    m.insert("steps".into(), json!(steps));
+    (family, m)
+}
+
 /// Family and settings of a Taylor–Green run, for reports.
 pub fn taylor_green_params(r: &TaylorGreenRun) -> (String, Map<String, Value>) {
     let (steps, dt) = r.steps();
@@ -205,6 +240,9 @@ pub enum ParetoProblem {
     Burgers,
     /// The Taylor–Green vortex (ν = 0.01, t = 1) against its exact decay.
     TaylorGreen,
+    /// The 3D Arnold–Beltrami–Childress flow (ν = 0.05, t = 1) by the
+    /// Navier–Stokes operator against its exact decay.
+    Abc,
     /// Schäfer–Turek's case 2D-1: c_D against the tight reference, by
     /// Newton's method and by pseudo-time marching.
     Cylinder,
@@ -222,6 +260,7 @@ impl ParetoProblem {
         match self {
             ParetoProblem::Burgers => "burgers",
             ParetoProblem::TaylorGreen => "taylor-green",
+            ParetoProblem::Abc => "abc",
             ParetoProblem::Cylinder => "cylinder",
             ParetoProblem::BurgersGradients => "burgers-gradients",
             ParetoProblem::TaylorGreenGradients => "taylor-green-gradients",
@@ -233,6 +272,7 @@ impl ParetoProblem {
         match self {
             ParetoProblem::Burgers => "Burgers (ν = 0.05, t = 1): error vs time",
             ParetoProblem::TaylorGreen => "Taylor–Green vortex (ν = 0.01, t = 1): error vs time",
+            ParetoProblem::Abc => "ABC flow, 3D (ν = 0.05, t = 1): error vs time",
             ParetoProblem::Cylinder => "Schäfer–Turek 2D-1 (Re 20): c_D error vs time",
             ParetoProblem::BurgersGradients => "P1 Burgers gradient: error vs time",
             ParetoProblem::TaylorGreenGradients => "Taylor–Green gradient (∂L/∂x₀): error vs time",
@@ -295,6 +335,13 @@ pub fn run(p: &ParetoParams) -> Result<ParetoReport, StudyError> {
             }
             rows
         }
+        ParetoProblem::Abc => abc_sweep(quick)
+            .iter()
+            .map(|r| {
+                let (family, params) = abc_params(r);
+                accuracy_row(family, params, timed_error(budget, || r.run(), |u| r.error_of(u)), &mut warnings)
+            })
+            .collect(),
         ParetoProblem::Cylinder => cylinder_rows(budget, quick, &mut warnings),
         ParetoProblem::BurgersGradients => {
             let p = if quick { P1::new(64, 64) } else { P1::new(256, 256) };
