@@ -388,3 +388,60 @@ fn taylor_judges_the_steps_that_stay_in_the_domain() {
     let wrong = taylor(&Root { factor: 1.01 }, &x, &[], &CheckParams::default());
     assert!(matches!(wrong.verdict, Verdict::Fail(_)), "{wrong}");
 }
+
+/// `y_i = (x_i − c)³`, its adjoint off by `error·dy` when `error ≠ 0`.
+struct Cube {
+    c: f64,
+    error: f64,
+}
+
+impl Operator for Cube {
+    fn n_in(&self) -> usize {
+        4
+    }
+    fn n_out(&self) -> usize {
+        4
+    }
+}
+
+impl Forward for Cube {
+    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) {
+        for (y, x) in y.iter_mut().zip(x) {
+            *y = (x - self.c).powi(3);
+        }
+    }
+}
+
+impl Vjp for Cube {
+    fn vjp(&self, x: &[f64], _p: &[f64], dy: &mut [f64], dx: &mut [f64], _dp: &mut [f64]) {
+        for ((d, g), x) in dx.iter_mut().zip(dy.iter()).zip(x) {
+            *d += 3.0 * (x - self.c).powi(2) * g + self.error * g;
+        }
+        dy.fill(0.0);
+    }
+}
+
+/// Close to the cube's inflection its remainder `3δ·A·h² + B·h³` (with
+/// `A = Σ w v²`, `B = Σ w v³` of the seeded directions) has a small
+/// second-order term: for one sign of `δ` it changes sign at `h = 3|δ·A/B|`,
+/// and where that falls among the smallest steps the plain rates have no
+/// room to recover. The Taylor test then judges `4R(h) − R(2h) = −4B·h³`
+/// (rate 3). Over a range of `δ` of both signs a right gradient passes
+/// every time (through that judgement at least once, with its note), and
+/// a gradient off by 1e-4 fails every time.
+#[test]
+fn a_remainder_that_changes_sign_is_judged_without_its_second_order_term() {
+    let mut crossed = 0;
+    for delta in [1e-6, 3e-6, 1e-5, 3e-5, 1e-4, -1e-6, -3e-6, -1e-5, -3e-5, -1e-4] {
+        let x = [delta; 4];
+        let right = taylor(&Cube { c: 0.0, error: 0.0 }, &x, &[], &CheckParams::default());
+        println!("δ = {delta}:\n{right}");
+        assert!(right.verdict.passed(), "δ = {delta}:\n{right}");
+        if right.note.as_deref().is_some_and(|n| n.contains("changes sign")) {
+            crossed += 1;
+        }
+        let wrong = taylor(&Cube { c: 0.0, error: 1e-4 }, &x, &[], &CheckParams::default());
+        assert!(matches!(wrong.verdict, Verdict::Fail(_)), "δ = {delta}:\n{wrong}");
+    }
+    assert!(crossed >= 1, "no δ put the sign change among the smallest steps");
+}

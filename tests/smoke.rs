@@ -104,6 +104,9 @@ fn the_explicit_part_by_slab_ranges_is_the_step_and_passes_all_checks() {
     // First rows and last rows (which hold the last faces); a middle range
     // and the top one in 3D.
     explicit_part_and_its_ranges(MacGrid::p2(20), &[0..7, 7..8, 8..20], &[0..5, 12..20], 5);
+    // A state where the first rows' Taylor remainder changes sign within
+    // the steps (judged by 4R(h) − R(2h); the plain rates had failed).
+    explicit_part_and_its_ranges(MacGrid::p2(20), &[0..7, 7..20], std::slice::from_ref(&(0..7)), 9);
     explicit_part_and_its_ranges(MacGrid::p4(8), &[0..3, 3..5, 5..8], &[3..5, 5..8], 3);
     explicit_part_and_its_ranges(MacGrid::p4(16), &split_ranges(16), &[], 9);
 }

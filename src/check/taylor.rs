@@ -55,7 +55,11 @@ impl fmt::Display for TaylorReport {
 /// only taken where the remainder stands 100× above the rounding level of
 /// `φ`, and the verdict is taken on the last two (the asymptotic regime);
 /// lower rates at larger steps are reported in [`TaylorReport::note`] as an
-/// undeclared kink within their reach. A remainder at rounding level for every step (a linear operator with
+/// undeclared kink within their reach. Where the signed remainder changes
+/// sign between usable steps (its second-order term small along `v`) and
+/// the plain rates fail, `4R(h) − R(2h)` is judged instead (no
+/// second-order term: rate 3 for a right gradient, 1 for a wrong one),
+/// with a note. A remainder at rounding level for every step (a linear operator with
 /// an exact gradient) passes, and the report's note says so; a radius too
 /// small for any usable step, or one that leaves fewer than three
 /// remainders above rounding, gives [`Verdict::Kink`]. Where the operator
@@ -81,7 +85,8 @@ pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> Taylo
     let zscale = max_abs(x).max(max_abs(p)).max(1.0);
     let h0 = (0.1 * zscale).min(0.5 * radius);
     let steps: Vec<f64> = (0..16).map(|k| h0 / 2f64.powi(k)).collect();
-    let remainders: Vec<f64> = steps.iter().map(|&h| (functional(op, &axpy(x, h, &vx), &axpy(p, h, &vp), &w, &mut y) - phi0 - h * slope).abs()).collect();
+    let signed: Vec<f64> = steps.iter().map(|&h| functional(op, &axpy(x, h, &vx), &axpy(p, h, &vp), &w, &mut y) - phi0 - h * slope).collect();
+    let remainders: Vec<f64> = signed.iter().map(|r| r.abs()).collect();
     // The perturbed point may leave the operator's domain at the larger
     // steps (a concentration turned negative, a solve without a root): its
     // output there is NaN. If every smaller step gives a number, judge on
@@ -89,6 +94,12 @@ pub fn taylor<O: Vjp>(op: &O, x: &[f64], p: &[f64], opts: &CheckParams) -> Taylo
     let skip = remainders.iter().rposition(|r| r.is_nan()).map_or(0, |k| k + 1);
     let skip = if skip < steps.len() && slope.is_finite() { skip } else { 0 };
     let mut judged = judge(&steps[skip..], &remainders[skip..], slope, rounding, h0, radius, zscale);
+    if matches!(judged.verdict, Verdict::Fail(_))
+        && skip == 0
+        && let Some(again) = across_a_sign_change(&steps, &signed, rounding)
+    {
+        judged = Judged { rates: judged.rates, ..again };
+    }
     if skip > 0 {
         judged.rates.splice(0..0, std::iter::repeat_n(None, skip));
         judged.note.get_or_insert(format!(
@@ -133,6 +144,46 @@ struct Judged {
     noise: f64,
     /// Two rates at the smallest usable steps were there to judge.
     judged_rates: bool,
+}
+
+/// The remainder `R(h) = a·h² + b·h³ + …` of a right gradient changes sign
+/// where its second-order term is small along the direction (`a` and `b·h`
+/// of opposite signs): its rates dip near the crossing and climb back to 2
+/// only a few halvings later, perhaps below rounding, which fails the
+/// plain judgement on a right gradient. Where the signed remainders
+/// `signed` change sign between usable steps, judge instead the Richardson
+/// combination `E(h) = 4R(h) − R(2h) = 2εh − 4b·h³ + …`: `a` cancels
+/// exactly, so a right gradient (`ε = 0`) leaves `E` falling at rate 3, a
+/// first-order error `ε` at rate 1. Pass on its last two usable rates ≥
+/// 2.5 (with a note), fail below 1.8; `None` (keep the plain verdict)
+/// without a sign change or with too few usable values.
+fn across_a_sign_change(steps: &[f64], signed: &[f64], noise: f64) -> Option<Judged> {
+    let usable = |r: f64| r.abs() > 100.0 * noise;
+    let crossing = signed.windows(2).position(|r| usable(r[0]) && usable(r[1]) && r[0] * r[1] < 0.0)?;
+    // E at each step h_{k+1} = h_k / 2, its noise 5× the remainders'.
+    let e: Vec<f64> = signed.windows(2).map(|r| 4.0 * r[1] - r[0]).collect();
+    let rates: Vec<f64> = e.windows(2).filter(|e| e[0].abs() > 500.0 * noise && e[1].abs() > 500.0 * noise).map(|e| (e[0] / e[1]).abs().log2()).collect();
+    if rates.len() < 2 {
+        return None;
+    }
+    let low = rates[rates.len() - 2..].iter().copied().fold(f64::INFINITY, f64::min);
+    let at = steps[crossing + 1];
+    let verdict = if low >= 2.5 {
+        Verdict::Pass
+    } else if low < 1.8 {
+        Verdict::Fail(format!(
+            "the remainder changes sign near h = {at:.2e}, and 4R(h) − R(2h) falls at rate {low:.2} < 1.8: the gradient leaves a first-order error"
+        ))
+    } else {
+        return None;
+    };
+    let note = verdict.passed().then(|| {
+        format!(
+            "the remainder changes sign near h = {at:.2e} (its second-order term is small along this direction), so its rates dip there; judged instead by 4R(h) − R(2h), which has no second-order term: rates {} (3 for a right gradient, 1 for a wrong one)",
+            rates.iter().map(|r| format!("{r:.2}")).collect::<Vec<_>>().join(", ")
+        )
+    });
+    Some(Judged { rates: Vec::new(), verdict, note, noise, judged_rates: true })
 }
 
 /// The rates where both remainders stand 100× above `noise`, and the

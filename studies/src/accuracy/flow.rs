@@ -230,13 +230,7 @@ impl NavierStokesRun {
         let op = NavierStokes::new(cfg, 1.0, self.scheme).map_err(|e| AccuracyError::Invalid { what: "n", reason: e.to_string() })?.with_viscosity(viscosity);
         let (steps, dt) = self.steps();
         let (u, v) = self.vortex().exact_solution().mac(n, 0.0);
-        let mut x: Vec<f64> = u.into_iter().chain(v).collect();
-        let mut y = vec![0.0; x.len()];
-        for step in 0..steps {
-            op.forward(&x, &[self.nu / (h * h), dt], &mut y);
-            after("Navier–Stokes step", step, op.take_error(), &y)?;
-            std::mem::swap(&mut x, &mut y);
-        }
+        let x = calls(&op, u.into_iter().chain(v).collect(), [self.nu / (h * h), dt], steps)?;
         let mut state = vec![0.0; cfg.n_s()];
         state.extend(x);
         Ok(state)
@@ -252,6 +246,21 @@ impl NavierStokesRun {
     pub fn run_error(&self) -> Result<f64, AccuracyError> {
         Ok(self.error_of(&self.run()?))
     }
+}
+
+/// `steps` calls of the Navier–Stokes operator `op` with `p` from the
+/// velocity `x`; a refused call is the run's error.
+fn calls<const D: usize>(op: &NavierStokes<D>, mut x: Vec<f64>, p: [f64; 2], steps: usize) -> Result<Vec<f64>, AccuracyError>
+where
+    NavierStokes<D>: Forward,
+{
+    let mut y = vec![0.0; x.len()];
+    for step in 0..steps {
+        op.forward(&x, &p, &mut y);
+        after("Navier–Stokes step", step, op.take_error(), &y)?;
+        std::mem::swap(&mut x, &mut y);
+    }
+    Ok(x)
 }
 
 /// The Arnold–Beltrami–Childress flow (`A = B = C = 1`: an exact steady
@@ -313,14 +322,7 @@ impl AbcRun {
             .map_err(|e| AccuracyError::Invalid { what: "n", reason: e.to_string() })?
             .with_viscosity(viscosity);
         let (steps, dt) = self.steps();
-        let mut x = self.faces(0.0);
-        let mut y = vec![0.0; x.len()];
-        for step in 0..steps {
-            op.forward(&x, &[self.nu, dt], &mut y);
-            after("Navier–Stokes step", step, op.take_error(), &y)?;
-            std::mem::swap(&mut x, &mut y);
-        }
-        Ok(x)
+        calls(&op, self.faces(0.0), [self.nu, dt], steps)
     }
 
     /// Relative L2 error of the velocity `x` (a result of [`AbcRun::run`])

@@ -169,14 +169,19 @@ pub fn navier_stokes_sweep(quick: bool) -> Vec<NavierStokesRun> {
 
 /// Family and settings of a Navier–Stokes operator run, for reports.
 pub fn navier_stokes_params(r: &NavierStokesRun) -> (String, Map<String, Value>) {
-    let (steps, dt) = r.steps();
-    let family = format!("operator/{}/{}", scheme_name(r.scheme), r.viscosity);
+    operator_params(r.n, r.scheme, r.viscosity, r.cfl, r.steps())
+}
+
+/// Family and settings of a run of the Navier–Stokes operator on `n`
+/// cells per side in `(calls, time of each)`, for reports.
+fn operator_params(n: usize, scheme: Scheme, viscosity: Diffusion, cfl: f64, (steps, dt): (usize, f64)) -> (String, Map<String, Value>) {
+    let family = format!("operator/{}/{}", scheme_name(scheme), viscosity);
     let mut m = Map::new();
-    m.insert("n".into(), json!(r.n));
-    m.insert("advection".into(), json!(scheme_name(r.scheme)));
-    m.insert("diffusion".into(), json!(r.viscosity.to_string()));
-    m.insert("cfl".into(), json!(r.cfl));
-    m.insert("diffusion_tolerance".into(), tolerance(r.viscosity));
+    m.insert("n".into(), json!(n));
+    m.insert("advection".into(), json!(scheme_name(scheme)));
+    m.insert("diffusion".into(), json!(viscosity.to_string()));
+    m.insert("cfl".into(), json!(cfl));
+    m.insert("diffusion_tolerance".into(), tolerance(viscosity));
     m.insert("dt".into(), json!(dt));
     m.insert("steps".into(), json!(steps));
     (family, m)
@@ -204,17 +209,7 @@ pub fn abc_sweep(quick: bool) -> Vec<AbcRun> {
 
 /// Family and settings of an ABC run, for reports.
 pub fn abc_params(r: &AbcRun) -> (String, Map<String, Value>) {
-    let (steps, dt) = r.steps();
-    let family = format!("operator/{}/{}", scheme_name(r.scheme), r.viscosity);
-    let mut m = Map::new();
-    m.insert("n".into(), json!(r.n));
-    m.insert("advection".into(), json!(scheme_name(r.scheme)));
-    m.insert("diffusion".into(), json!(r.viscosity.to_string()));
-    m.insert("cfl".into(), json!(r.cfl));
-    m.insert("diffusion_tolerance".into(), tolerance(r.viscosity));
-    m.insert("dt".into(), json!(dt));
-    m.insert("steps".into(), json!(steps));
-    (family, m)
+    operator_params(r.n, r.scheme, r.viscosity, r.cfl, r.steps())
 }
 
 /// Family and settings of a Taylor–Green run, for reports.
