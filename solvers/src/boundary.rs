@@ -4,8 +4,7 @@
 //! (four in 2D, six in 3D); the rules below act on one axis at a time
 //! ([`axis_face`], [`validate_axes`]) and are shared by both.
 //!
-//! What each kind means for the MAC grids of [`crate::smoke`] and
-//! [`crate::smoke3d`]:
+//! What each kind means for the MAC grids of [`crate::smoke`] (2D and 3D):
 //!
 //! | kind | normal velocity on the side's faces | pressure | advection |
 //! |---|---|---|---|

@@ -4,7 +4,7 @@
 //! traced point falls, which cell follows another, which cells lie beside a
 //! face) acts on one axis at a time: bilinear and trilinear sampling
 //! multiply the per-axis weights of [`axis_position`], and the MAC grids of
-//! [`crate::smoke`] (2D) and [`crate::smoke3d`] (3D) average velocities over
+//! [`crate::smoke`] (2D and 3D) average velocities over
 //! the cells of [`next`] and [`beside`]. An axis either wraps (periodic) or
 //! is bounded (every other boundary kind: samples clamp to it).
 

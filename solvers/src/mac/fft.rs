@@ -5,7 +5,7 @@
 //! with no iteration and no tolerance (as JAX-CFD and Exponax project).
 //!
 //! The discrete operators are those of the CG projection ([`crate::smoke`],
-//! [`crate::smoke3d`]): the divergence of cell `c` is `Σ_a (u_a[c + e_a] −
+//! 2D and 3D): the divergence of cell `c` is `Σ_a (u_a[c + e_a] −
 //! u_a[c])` (face `c` of axis `a` lies between cells `c − e_a` and `c`), the
 //! gradient on face `c` is `p[c] − p[c − e_a]`, and the projection is `u ←
 //! u − G·p` with `D·G·p = D·u`. In Fourier space, with `θ_a = 2π·k_a/n_a`,

@@ -1,9 +1,8 @@
 //! The staggered (MAC) grid in any dimension `D` (2 or 3): where its
 //! values live, how a point between them is sampled and how that sample is
 //! differentiated, and which faces make up the velocity at each point.
-//! Written once for every dimension: the 2D smoke of [`crate::smoke`] and the
-//! 3D smoke of [`crate::smoke3d`] both trace and sample through these rules
-//! (instantiated as `Mac<2>` and `Mac<3>`, each differentiated by Enzyme on
+//! Written once for every dimension: the 2D and 3D smoke of [`crate::smoke`]
+//! trace and sample through these rules (instantiated as `Mac<2>` and `Mac<3>`, each differentiated by Enzyme on
 //! its own).
 //!
 //! Conventions: `n[0] × … × n[D−1]` unit cells, axis 0 (x) fastest in memory,

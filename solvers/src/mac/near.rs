@@ -10,8 +10,10 @@
 //! arithmetic per point. On lattices padded with one layer of periodic
 //! copies on every side, each neighbour is a fixed offset from the point,
 //! so the loops along x read memory in order and vectorise; nothing
-//! gathers. [`crate::smoke::advect_velocity`] takes this path when every
-//! face of the scaled velocity is below one cell in magnitude.
+//! gathers. [`crate::smoke::advect_velocity_near`] is this path, where
+//! [`crate::smoke::near_applies`] (every face of the scaled velocity below
+//! one cell in magnitude, no limiter); [`advect_velocity_adjoint`] is its
+//! hand-written adjoint.
 
 /// A lattice of `n` own samples per axis padded with one layer of copies
 /// on every side: `n[a] + 2` per axis, axis 0 fastest. Every lattice of a

@@ -158,7 +158,7 @@ pub fn near_applies<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, v
 }
 
 /// [`advect_velocity`] by the traces shorter than a cell
-/// ([`crate::mac::near`]) where [`near_applies`], the periodic copies
+/// (`mac::near`) where [`near_applies`], the periodic copies
 /// refreshed: the same values to rounding, several times faster
 /// (docs/navier-stokes.md). Differentiated by Enzyme on its own, apart
 /// from [`advect_velocity`]. `scratch` holds
