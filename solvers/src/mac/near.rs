@@ -62,6 +62,18 @@ impl<const D: usize> Padded<D> {
         q
     }
 
+    /// Where own row `r` starts in a lattice array of strides `stride` and
+    /// in the padded one.
+    #[inline(always)]
+    pub fn starts(&self, r: usize, stride: [usize; D]) -> (usize, usize) {
+        let q = self.row(r);
+        let mut s = 0;
+        each_axis!(D, a => {
+            s += q[a] * stride[a];
+        });
+        (s, self.index(q))
+    }
+
     /// Padded index of own sample `q`.
     #[inline(always)]
     pub fn index(&self, q: [usize; D]) -> usize {
@@ -122,11 +134,7 @@ pub(crate) fn pad_from<const D: usize>(pad: &Padded<D>, src_stride: [usize; D], 
     assert!(dst.len() >= pad.len, "near: padded lattice length");
     let n0 = pad.n[0];
     for r in 0..pad.rows() {
-        let q = pad.row(r);
-        let (mut s, d) = (0, pad.index(q));
-        each_axis!(D, a => {
-            s += q[a] * src_stride[a];
-        });
+        let (s, d) = pad.starts(r, src_stride);
         for i in 0..n0 {
             dst[d + i] = scale * src[s + i];
         }
@@ -248,11 +256,7 @@ pub(crate) fn trace<const D: usize>(pad: &Padded<D>, disp: &[f64], sign: f64, f:
 fn unpad<const D: usize>(pad: &Padded<D>, o_stride: [usize; D], o: &mut [f64], g: impl Fn(usize) -> f64) {
     let n0 = pad.n[0];
     for r in 0..pad.rows() {
-        let q = pad.row(r);
-        let (mut s, d) = (0, pad.index(q));
-        each_axis!(D, a => {
-            s += q[a] * o_stride[a];
-        });
+        let (s, d) = pad.starts(r, o_stride);
         for i in 0..n0 {
             o[s + i] = g(d + i);
         }
@@ -388,22 +392,35 @@ pub(crate) fn fill_copies_adjoint<const D: usize>(pad: &Padded<D>, g: &mut [f64]
     }
 }
 
+/// Adjoint of [`displacement`]: the displacement's adjoint `gdisp` (`D`
+/// padded arrays, own samples read) added into the padded components'
+/// `gvel` (copies included: fold them with [`fill_copies_adjoint`]).
+pub(crate) fn displacement_adjoint<const D: usize>(pad: &Padded<D>, a: usize, gdisp: &[f64], gvel: &mut [Vec<f64>]) {
+    let (p, st, n0) = (pad.len, pad.stride, pad.n[0]);
+    for (b, gv) in gvel.iter_mut().enumerate() {
+        let gd = &gdisp[b * p..(b + 1) * p];
+        for r in 0..pad.rows() {
+            let c0 = pad.index(pad.row(r));
+            for c in c0..c0 + n0 {
+                if b == a {
+                    gv[c] += gd[c];
+                } else {
+                    for t in [c - st[a], c, c - st[a] + st[b], c + st[b]] {
+                        gv[t] += 0.25 * gd[c];
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// Adjoint of [`trace`] (hand-written): adds `Jᵀ·g` (`g` padded, read at
 /// the own samples) into the padded `gf` (the traced field's, copies
-/// included: fold them with [`fill_copies_adjoint`]) and the padded
-/// `gvel` (the scaled velocity's, likewise).
+/// included: fold them with [`fill_copies_adjoint`]) and `gdisp` (the
+/// displacement's, `D` padded arrays).
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn trace_adjoint<const D: usize>(
-    pad: &Padded<D>,
-    a: usize,
-    vel: [&[f64]; D],
-    sign: f64,
-    f: &[f64],
-    g: &[f64],
-    gf: &mut [f64],
-    gvel: &mut [Vec<f64>],
-) {
-    let st = pad.stride;
+pub(crate) fn trace_adjoint<const D: usize>(pad: &Padded<D>, disp: &[f64], sign: f64, f: &[f64], g: &[f64], gf: &mut [f64], gdisp: &mut [f64]) {
+    let (p, st) = (pad.len, pad.stride);
     let n0 = pad.n[0];
     let rows_around = 3usize.pow(D as u32 - 1);
     let mut corner = 1;
@@ -421,8 +438,7 @@ pub(crate) fn trace_adjoint<const D: usize>(
             let gc = g[c];
             let mut s = [0.0; D];
             for b in 0..D {
-                let v = vel[b];
-                s[b] = sign * if b == a { v[c] } else { 0.25 * ((v[c - st[a]] + v[c]) + (v[c - st[a] + st[b]] + v[c + st[b]])) };
+                s[b] = sign * disp[b * p + c];
             }
             let lo = c - corner;
             let mut w = [[0.0; 3]; D];
@@ -457,15 +473,7 @@ pub(crate) fn trace_adjoint<const D: usize>(
                         t[k] = if e == b { blend_ds(s[e], l, o, u) } else { blend(s[e], l, o, u) };
                     }
                 }
-                let gs = sign * gc * t[0];
-                let gv = &mut gvel[b];
-                if b == a {
-                    gv[c] += gs;
-                } else {
-                    for t in [c - st[a], c, c - st[a] + st[b], c + st[b]] {
-                        gv[t] += 0.25 * gs;
-                    }
-                }
+                gdisp[b * p + c] += sign * gc * t[0];
             }
         }
     }
@@ -498,19 +506,18 @@ pub fn advect_velocity_adjoint<const D: usize>(
     let mut gscaled = vec![vec![0.0; p]; D];
     let mut gfields = vec![vec![0.0; p]; D];
     let (mut hat, mut ghat, mut gtilde, mut gp) = (vec![0.0; p], vec![0.0; p], vec![0.0; p], vec![0.0; p]);
-    let mut disp = vec![0.0; D * p];
+    let (mut disp, mut gdisp) = (vec![0.0; D * p], vec![0.0; D * p]);
     for a in 0..D {
         // The output's adjoint, padded (own samples only).
         gp.fill(0.0);
-        let (pa, sa) = (&pad, strides[a]);
-        for r in 0..pa.rows() {
-            let q = pa.row(r);
-            let (s, d) = ((0..D).map(|b| q[b] * sa[b]).sum::<usize>(), pa.index(q));
+        for r in 0..pad.rows() {
+            let (s, d) = pad.starts(r, strides[a]);
             gp[d..d + n[0]].copy_from_slice(&g[a][s..s + n[0]]);
         }
         let f = &fields[a];
+        displacement(&pad, a, v, &mut disp);
+        gdisp.fill(0.0);
         if maccormack {
-            displacement(&pad, a, v, &mut disp);
             trace(&pad, &disp, 1.0, f, &mut hat);
             fill_copies(&pad, &mut hat);
             // out = hat + ½(f − tilde), tilde = trace₋(hat).
@@ -521,20 +528,20 @@ pub fn advect_velocity_adjoint<const D: usize>(
             for (y, &x) in gfields[a].iter_mut().zip(&gp) {
                 *y += 0.5 * x;
             }
-            trace_adjoint(&pad, a, v, -1.0, &hat, &gtilde, &mut ghat, &mut gscaled);
+            trace_adjoint(&pad, &disp, -1.0, &hat, &gtilde, &mut ghat, &mut gdisp);
             fill_copies_adjoint(&pad, &mut ghat);
-            trace_adjoint(&pad, a, v, 1.0, f, &ghat, &mut gfields[a], &mut gscaled);
+            trace_adjoint(&pad, &disp, 1.0, f, &ghat, &mut gfields[a], &mut gdisp);
         } else {
-            trace_adjoint(&pad, a, v, 1.0, f, &gp, &mut gfields[a], &mut gscaled);
+            trace_adjoint(&pad, &disp, 1.0, f, &gp, &mut gfields[a], &mut gdisp);
         }
+        displacement_adjoint(&pad, a, &gdisp, &mut gscaled);
     }
     let mut gdt = 0.0;
     for (a, gc) in gcomps.into_iter().enumerate() {
         fill_copies_adjoint(&pad, &mut gscaled[a]);
         fill_copies_adjoint(&pad, &mut gfields[a]);
         for r in 0..pad.rows() {
-            let q = pad.row(r);
-            let (s, d) = ((0..D).map(|b| q[b] * strides[a][b]).sum::<usize>(), pad.index(q));
+            let (s, d) = pad.starts(r, strides[a]);
             for i in 0..n[0] {
                 gc[s + i] += dt * gscaled[a][d + i] + gfields[a][d + i];
                 gdt += comps[a][s + i] * gscaled[a][d + i];

@@ -113,14 +113,7 @@ impl TaylorGreenRun {
     /// The settings checked: at least 4 cells, `ν ≥ 0`, a positive final
     /// time, Courant number and pressure tolerance.
     fn validate(&self) -> Result<(), AccuracyError> {
-        if self.n < 4 {
-            return Err(AccuracyError::Invalid { what: "n", reason: format!("need at least 4 cells per side, got {}", self.n) });
-        }
-        if !(self.nu >= 0.0 && self.nu.is_finite()) {
-            return Err(AccuracyError::Invalid { what: "nu", reason: format!("must be ≥ 0 and finite, got {}", self.nu) });
-        }
-        positive("t_end", self.t_end)?;
-        positive("cfl", self.cfl)?;
+        check_flow(self.n, self.nu, self.t_end, self.cfl)?;
         positive("pressure_tolerance", self.pressure_tolerance)
     }
 
@@ -220,14 +213,10 @@ impl NavierStokesRun {
     pub fn run(&self) -> Result<Vec<f64>, AccuracyError> {
         self.vortex().validate()?;
         let (n, cfg) = (self.n, periodic_box(self.n));
-        let viscosity = match self.viscosity {
-            Diffusion::Explicit => Viscosity::Explicit,
-            Diffusion::Implicit { tolerance } => Viscosity::Implicit { tolerance, max_iterations: 100 * n },
-        };
         // Unit cells, as the fluid operators (velocities in cells per unit
         // time, the viscosity in cells² per unit time).
         let h = LENGTH / n as f64;
-        let op = NavierStokes::new(cfg, 1.0, self.scheme).map_err(|e| AccuracyError::Invalid { what: "n", reason: e.to_string() })?.with_viscosity(viscosity);
+        let op = operator(cfg, 1.0, self.scheme, self.viscosity)?;
         let (steps, dt) = self.steps();
         let (u, v) = self.vortex().exact_solution().mac(n, 0.0);
         let x = calls(&op, u.into_iter().chain(v).collect(), [self.nu / (h * h), dt], steps)?;
@@ -246,6 +235,30 @@ impl NavierStokesRun {
     pub fn run_error(&self) -> Result<f64, AccuracyError> {
         Ok(self.error_of(&self.run()?))
     }
+}
+
+/// The settings every flow run checks: at least 4 cells, `ν ≥ 0`, a
+/// positive final time and Courant number.
+fn check_flow(n: usize, nu: f64, t_end: f64, cfl: f64) -> Result<(), AccuracyError> {
+    if n < 4 {
+        return Err(AccuracyError::Invalid { what: "n", reason: format!("need at least 4 cells per side, got {n}") });
+    }
+    if !(nu >= 0.0 && nu.is_finite()) {
+        return Err(AccuracyError::Invalid { what: "nu", reason: format!("must be ≥ 0 and finite, got {nu}") });
+    }
+    positive("t_end", t_end)?;
+    positive("cfl", cfl)
+}
+
+/// The Navier–Stokes operator on `grid` (cells of size `h`) with `scheme`
+/// and `viscosity` (an implicit solve allowed 100 iterations per cell
+/// along x).
+fn operator<const D: usize>(grid: MacGrid<D>, h: f64, scheme: Scheme, viscosity: Diffusion) -> Result<NavierStokes<D>, AccuracyError> {
+    let viscosity = match viscosity {
+        Diffusion::Explicit => Viscosity::Explicit,
+        Diffusion::Implicit { tolerance } => Viscosity::Implicit { tolerance, max_iterations: 100 * grid.n[0] },
+    };
+    Ok(NavierStokes::new(grid, h, scheme).map_err(|e| AccuracyError::Invalid { what: "n", reason: e.to_string() })?.with_viscosity(viscosity))
 }
 
 /// `steps` calls of the Navier–Stokes operator `op` with `p` from the
@@ -304,23 +317,10 @@ impl AbcRun {
 
     /// The packed velocity `[u, v, w]` at `t_end`.
     pub fn run(&self) -> Result<Vec<f64>, AccuracyError> {
-        if self.n < 4 {
-            return Err(AccuracyError::Invalid { what: "n", reason: format!("need at least 4 cells per side, got {}", self.n) });
-        }
-        if !(self.nu >= 0.0 && self.nu.is_finite()) {
-            return Err(AccuracyError::Invalid { what: "nu", reason: format!("must be ≥ 0 and finite, got {}", self.nu) });
-        }
-        positive("t_end", self.t_end)?;
-        positive("cfl", self.cfl)?;
+        check_flow(self.n, self.nu, self.t_end, self.cfl)?;
         let n = self.n;
         let cfg = MacGrid::new([n; 3]).with_boundary(Boundary::all(Side::Periodic));
-        let viscosity = match self.viscosity {
-            Diffusion::Explicit => Viscosity::Explicit,
-            Diffusion::Implicit { tolerance } => Viscosity::Implicit { tolerance, max_iterations: 100 * n },
-        };
-        let op = NavierStokes::new(cfg, LENGTH / n as f64, self.scheme)
-            .map_err(|e| AccuracyError::Invalid { what: "n", reason: e.to_string() })?
-            .with_viscosity(viscosity);
+        let op = operator(cfg, LENGTH / n as f64, self.scheme, self.viscosity)?;
         let (steps, dt) = self.steps();
         calls(&op, self.faces(0.0), [self.nu, dt], steps)
     }
