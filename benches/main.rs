@@ -1,7 +1,7 @@
 //! The one criterion binary: a group per benchmark problem, with forward,
 //! Enzyme gradient and hand-written gradient as members.
 
-use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use criterion::{BenchmarkId, Criterion, criterion_group};
 use diffsim::op::Vjp;
 use diffsim::problems::burgers::{BurgersEnzyme, BurgersEnzymeWholeStep, BurgersHand, P1};
 use diffsim::problems::smoke::P2;
@@ -107,7 +107,17 @@ fn p3(c: &mut Criterion) {
 }
 
 criterion_group!(benches, p1, p1_step, p2, p3, p4, solver_parts, periodic_projection, periodic_advection, scene_effects, nn_layers, hig_adam);
-criterion_main!(benches);
+
+/// criterion's `main`, after the vector-instruction cap of `DIFFSIM_MAX_ISA`
+/// (as the command line reads it).
+fn main() {
+    if let Err(e) = diffsim_solvers::simd::max_isa_from_env() {
+        eprintln!("error: {e}");
+        std::process::exit(1);
+    }
+    benches();
+    Criterion::default().configure_from_args().final_summary();
+}
 
 /// The projection of a fully periodic box, by FFT against conjugate
 /// gradients to 1e-8 preconditioned by multigrid (the aggregation V-cycle),

@@ -92,6 +92,28 @@ fn info_prints_no_nul_byte() {
     assert!(!out.contains('\0'), "{out:?}");
 }
 
+/// `DIFFSIM_MAX_ISA` caps the vector instructions (`info` says which run);
+/// a value that names none is refused before any work.
+#[test]
+fn the_vector_cap_is_reported_and_a_bad_one_refused() {
+    let run = |isa: &str, args: &[&str]| {
+        let out = Command::new(crate::diffsim_bin()).args(args).env("DIFFSIM_MAX_ISA", isa).output().unwrap();
+        (out.status.code(), String::from_utf8_lossy(&out.stdout).into_owned(), String::from_utf8_lossy(&out.stderr).into_owned())
+    };
+    let (code, out, err) = run("baseline", &["info"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("vector instructions: baseline (capped by DIFFSIM_MAX_ISA)"), "{out}");
+    let (code, out, err) = run("sse9", &["check", "--n", "8", "--steps", "2"]);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.is_empty() && err.contains("DIFFSIM_MAX_ISA=\"sse9\": expected avx512, avx2 or baseline") && !err.contains("panicked"), "{err}");
+    // The same check under the cap gives the same numbers as without it.
+    let (code, capped, err) = run("baseline", &["check", "--n", "8", "--steps", "2"]);
+    assert_eq!(code, Some(0), "{err}");
+    let (code, plain, err) = diffsim(&["check", "--n", "8", "--steps", "2"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(capped, plain);
+}
+
 #[test]
 fn output_that_cannot_be_written_is_an_error_and_a_closed_pipe_ends_quietly() {
     let full = std::fs::OpenOptions::new().write(true).open("/dev/full").unwrap();

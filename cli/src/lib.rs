@@ -52,6 +52,9 @@ pub enum CliError {
     /// A run does not fit the memory budget.
     #[error(transparent)]
     Memory(#[from] diffsim::memory::MemoryError),
+    /// `DIFFSIM_MAX_ISA` names no instruction set.
+    #[error(transparent)]
+    Isa(#[from] diffsim_solvers::simd::IsaError),
     /// A training checkpoint cannot be written or used.
     #[error(transparent)]
     Checkpoint(#[from] diffsim::train::checkpoint::CheckpointError),
@@ -327,6 +330,7 @@ fn checkpointing(arg: &str, job: &diffsim::rollout::plan::Job, other: u64, what:
 
 /// Runs the command line.
 pub fn run(cli: Cli) -> Result<(), CliError> {
+    diffsim_solvers::simd::max_isa_from_env()?;
     if let Some(b) = &cli.memory_budget {
         diffsim::memory::set_budget(diffsim::memory::parse_bytes(b)?);
     }
@@ -414,6 +418,13 @@ fn info(world: &diffsim::distributed::World) -> Result<(), CliError> {
     let ranks_ok = all.chunks(2).enumerate().all(|(r, c)| c[0] == r as f64);
     if world.is_root() {
         println!("diffsim {}", env!("CARGO_PKG_VERSION"));
+        let isa = diffsim_solvers::simd::isa();
+        let capped = if std::env::var_os(diffsim_solvers::simd::MAX_ISA_VAR).is_some() {
+            format!(" (capped by {})", diffsim_solvers::simd::MAX_ISA_VAR)
+        } else {
+            String::new()
+        };
+        println!("vector instructions: {}{capped}", isa.name());
         println!("MPI: {}", diffsim::distributed::World::library().unwrap_or_else(|| "not in this build (built without the `mpi` feature)".into()));
         let per_rank: Vec<String> = all.chunks(2).map(|c| format!("{}", c[1])).collect();
         println!("ranks: {} (threads per rank: {}); exchange between the ranks: {}", world.size(), per_rank.join(", "), if ranks_ok { "ok" } else { "WRONG" });

@@ -301,11 +301,11 @@ macro_rules! linear_system {
             fn medium(s: &$ty, a: &[f64], b: &[f64], out: &mut [f64]) {
                 $f(s, a, b, out)
             }
-            if ::std::is_x86_feature_detected!("avx512f") {
+            if $crate::solvers::simd::avx512_allowed() {
                 // SAFETY: the processor has AVX-512F, checked just above.
                 return unsafe { wide($s, $a, $b, $out) };
             }
-            if ::std::is_x86_feature_detected!("avx2") {
+            if $crate::solvers::simd::avx2_allowed() {
                 // SAFETY: the processor has AVX2, checked just above.
                 return unsafe { medium($s, $a, $b, $out) };
             }

@@ -59,11 +59,11 @@ macro_rules! dispatch_generic {
             fn medium<$($g: $bound),*>($($arg: $ty),*) {
                 $body($($arg),*)
             }
-            if std::is_x86_feature_detected!("avx512f") {
+            if diffsim_solvers::simd::avx512_allowed() {
                 // SAFETY: the CPU supports AVX-512F, checked just above.
                 return unsafe { wide($($arg),*) };
             }
-            if std::is_x86_feature_detected!("avx2") {
+            if diffsim_solvers::simd::avx2_allowed() {
                 // SAFETY: the CPU supports AVX2, checked just above.
                 return unsafe { medium($($arg),*) };
             }

@@ -199,11 +199,11 @@ pub fn advect_velocity_near_widest<const D: usize>(cfg: &MacGrid<D>, scheme: Sch
         fn medium<const D: usize>(cfg: &MacGrid<D>, scheme: Scheme, dt: f64, vel: &[f64], out: &mut [f64], scratch: &mut [f64]) {
             advect_velocity_near(cfg, scheme, dt, vel, out, scratch)
         }
-        if ::std::is_x86_feature_detected!("avx512f") {
+        if crate::simd::avx512_allowed() {
             // SAFETY: the processor has AVX-512F, checked just above.
             return unsafe { wide(cfg, scheme, dt, vel, out, scratch) };
         }
-        if ::std::is_x86_feature_detected!("avx2") {
+        if crate::simd::avx2_allowed() {
             // SAFETY: the processor has AVX2, checked just above.
             return unsafe { medium(cfg, scheme, dt, vel, out, scratch) };
         }
