@@ -261,3 +261,90 @@ fn losses_at_listed_steps_and_parameters_per_step_under_every_checkpointing() {
     // A per-step parameter vector of the wrong length is an error.
     assert!(Rollout::per_step(&step, &p[..n], 7).is_err());
 }
+
+#[test]
+fn a_repeated_step_is_an_operator_of_the_initial_state_and_the_shared_parameters() {
+    use diffsim::check::{CheckParams, check_all};
+    use diffsim::op::{AddParams, Chain, Effect, Forward, Jvp, Vjp};
+    use diffsim::rollout::Repeat;
+    // A Burgers step then a source held the same at every step (the
+    // parameters): x_T as a function of x_0 and the source.
+    let (n, steps) = (16, 9);
+    let p1 = P1::new(n, steps);
+    let step = || {
+        let ops: Vec<Box<dyn Effect>> = vec![Box::new(diffsim::problems::burgers::BurgersHand(p1.cfg)), Box::new(AddParams { n, range: 0..n, scale: 0.1 })];
+        Chain::new(ops)
+    };
+    let p: Vec<f64> = (0..n).map(|k| ((k as f64) * 0.37).sin()).collect();
+    let repeat = Repeat::new(step(), steps).unwrap();
+    assert_eq!((repeat.n_in(), repeat.n_out(), repeat.n_params()), (n, n, n));
+    // The forward pass is the rollout's final state.
+    let mut y = vec![0.0; n];
+    repeat.forward(&p1.u0, &p, &mut y);
+    let op = step();
+    assert_eq!(y, Rollout::new(&op, &p, steps).unwrap().final_state(&p1.u0).unwrap());
+    // The VJP against central differences of one output weighted by w.
+    let w: Vec<f64> = (0..n).map(|k| ((k as f64) * 1.3).cos()).collect();
+    let (mut dx, mut dp, mut dy) = (vec![0.0; n], vec![0.0; n], w.clone());
+    repeat.vjp(&p1.u0, &p, &mut dy, &mut dx, &mut dp);
+    assert!(dy.iter().all(|&v| v == 0.0), "the seed is consumed");
+    let value = |x: &[f64], q: &[f64]| {
+        let mut y = vec![0.0; n];
+        repeat.forward(x, q, &mut y);
+        y.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+    };
+    let h = 1e-6;
+    for i in [0, 7, 15] {
+        let (mut up, mut down) = (p1.u0.clone(), p1.u0.clone());
+        up[i] += h;
+        down[i] -= h;
+        let fd = (value(&up, &p) - value(&down, &p)) / (2.0 * h);
+        assert!((fd - dx[i]).abs() < 1e-7 * fd.abs().max(1e-2), "x0[{i}]: {fd} vs {}", dx[i]);
+        let (mut up, mut down) = (p.clone(), p.clone());
+        up[i] += h;
+        down[i] -= h;
+        let fd = (value(&p1.u0, &up) - value(&p1.u0, &down)) / (2.0 * h);
+        assert!((fd - dp[i]).abs() < 1e-7 * fd.abs().max(1e-2), "p[{i}]: {fd} vs {}", dp[i]);
+    }
+    // Every checkpointing gives the same bits as the budget's choice.
+    for mode in [Checkpointing::Store, Checkpointing::Periodic { every: 3 }, Checkpointing::Binomial { snapshots: 2 }] {
+        let r = Repeat::new(step(), steps).unwrap().with_checkpointing(mode);
+        let (mut dx2, mut dp2, mut dy) = (vec![0.0; n], vec![0.0; n], w.clone());
+        r.vjp(&p1.u0, &p, &mut dy, &mut dx2, &mut dp2);
+        assert_eq!((&dx2, &dp2), (&dx, &dp), "{mode}");
+    }
+    // The JVP carries both tangents: ⟨w, J·(tx, tp)⟩ = ⟨dx, tx⟩ + ⟨dp, tp⟩.
+    let (tx, tp): (Vec<f64>, Vec<f64>) = ((0..n).map(|k| (k as f64 * 0.7).sin()).collect(), (0..n).map(|k| (k as f64 * 0.2).cos()).collect());
+    let (mut y2, mut ty) = (vec![0.0; n], vec![0.0; n]);
+    repeat.jvp(&p1.u0, &p, &tx, &tp, &mut y2, &mut ty);
+    assert_eq!(y2, y);
+    let left: f64 = ty.iter().zip(&w).map(|(a, b)| a * b).sum();
+    let right: f64 = dx.iter().zip(&tx).chain(dp.iter().zip(&tp)).map(|(a, b)| a * b).sum();
+    assert!((left - right).abs() < 1e-12 * left.abs(), "{left} vs {right}");
+    // And the library's three checks pass on it.
+    let report = check_all(&repeat, &p1.u0, &p, &CheckParams::default());
+    assert!(report.passed(), "{report}");
+    // Bad uses: not a state map, no steps; a state that is not finite is
+    // the rollout's error, kept for the caller.
+    struct Total;
+    impl Operator for Total {
+        fn n_in(&self) -> usize {
+            3
+        }
+        fn n_out(&self) -> usize {
+            1
+        }
+    }
+    impl Forward for Total {
+        fn forward(&self, x: &[f64], _: &[f64], y: &mut [f64]) {
+            y[0] = x.iter().sum();
+        }
+    }
+    assert!(matches!(Repeat::new(Total, 2), Err(RolloutError::NotAStateMap { n_in: 3, n_out: 1 })));
+    assert!(matches!(Repeat::new(step(), 0), Err(RolloutError::Length { what: Argument::Steps, got: 0, expected: 1 })));
+    let infinite = vec![f64::INFINITY; n];
+    repeat.forward(&p1.u0, &infinite, &mut y);
+    assert!(y.iter().all(|v| v.is_nan()));
+    assert!(matches!(repeat.take_rollout_error(), Some(RolloutError::NonFinite { pass: Pass::Forward, .. })), "a non-finite state is an error");
+    assert!(repeat.take_rollout_error().is_none(), "taken once");
+}

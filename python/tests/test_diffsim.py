@@ -135,6 +135,27 @@ def test_a_panic_inside_diffsim_is_an_internal_error():
     assert diffsim.burgers_step(8, 0.01, 0.01).forward(np.ones(8)).shape == (8,)
 
 
+def test_the_vector_cap_is_read_at_import():
+    """DIFFSIM_MAX_ISA caps the vector instructions (same values); a value
+    that names none fails the import with a message saying so."""
+    import subprocess
+    import sys
+
+    code = "import numpy as np, diffsim; print(repr(diffsim.burgers_step(16, 0.01, 0.01).forward(np.sin(np.arange(16.0)))[3]))"
+    runs = {}
+    for isa in ["baseline", "avx2", None]:
+        env = {k: v for k, v in os.environ.items() if k != "DIFFSIM_MAX_ISA"}
+        if isa:
+            env["DIFFSIM_MAX_ISA"] = isa
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+        runs[isa] = out.stdout
+    assert runs["baseline"] == runs["avx2"] == runs[None]
+    env = dict(os.environ, DIFFSIM_MAX_ISA="sse9")
+    out = subprocess.run([sys.executable, "-c", "import diffsim"], env=env, capture_output=True, text=True)
+    assert out.returncode != 0 and 'DIFFSIM_MAX_ISA="sse9": expected avx512, avx2 or baseline' in out.stderr, out.stderr
+
+
 def test_long_calls_release_the_gil_and_stop_at_ctrl_c():
     op = diffsim.p1_loss(2048, 4000)
     u0 = diffsim.p1_problem(2048, 4000)["u0"]
@@ -238,3 +259,57 @@ def test_the_navier_stokes_step_in_a_channel_keeps_poiseuille_flow_and_checks():
         diffsim.navier_stokes_step([8, 8], boundary=[["periodic", "periodic"], ["wall", "wall"]])
     with pytest.raises(diffsim.DiffsimError, match="outflow"):
         diffsim.navier_stokes_step([8, 8], boundary=[["inflow", "free_slip"], ["no_slip", "no_slip"]])
+
+
+def test_a_repeated_step_is_one_operator_of_the_initial_state_and_the_parameters():
+    """``op.repeat(T)``: the rollout of T steps in one call, its VJP one
+    backward pass in Rust; against the steps chained here in Python."""
+    n, steps = 12, 6
+    op = diffsim.navier_stokes_step([n, n])
+    rng = np.random.default_rng(3)
+    x0 = 0.3 * rng.standard_normal(op.n_in) + 0.2
+    p = np.array([0.05, 0.1])
+    rolled = op.repeat(steps)
+    assert (rolled.n_in, rolled.n_out, rolled.n_params) == (op.n_in, op.n_out, 2)
+    assert rolled.name.endswith(".repeat(6)")
+    states = [x0]
+    for _ in range(steps):
+        states.append(op.forward(states[-1], p))
+    y = rolled.forward(x0, p)
+    assert np.array_equal(y, states[-1])
+    w = rng.standard_normal(op.n_out)
+    dx, dp = rolled.vjp(x0, p, w)
+    g, gp = w, np.zeros(2)
+    for t in reversed(range(steps)):
+        g, dpt = op.vjp(states[t], p, g)
+        gp += dpt
+    assert np.allclose(dx, g, rtol=1e-12, atol=1e-14) and np.allclose(dp, gp, rtol=1e-12)
+    # Named checkpointing gives the same numbers; a batch runs element-wise.
+    dx2, dp2 = op.repeat(steps, checkpoint="binomial:2").vjp(x0, p, w)
+    assert np.array_equal(dx2, dx) and np.array_equal(dp2, dp)
+    ys = rolled.forward(np.stack([x0, x0 + 0.01]), p)
+    assert ys.shape == (2, op.n_out) and np.array_equal(ys[0], y)
+    verdict, report = op.repeat(3).check(x0, p)
+    assert verdict == "pass", report
+    # On cell-centred values the rollout moves to the faces once: for a
+    # smooth field the same as converting at every step, to rounding.
+    centred = diffsim.navier_stokes_step([n, n], centred=True)
+    i, j = np.meshgrid(np.arange(n), np.arange(n))
+    x, yy = 2 * np.pi * (i + 0.5) / n, 2 * np.pi * (j + 0.5) / n
+    c0 = np.concatenate([(np.sin(x) * np.cos(yy) + 0.3).ravel(), (-np.cos(x) * np.sin(yy) + 0.2).ravel()])
+    chained = c0
+    for _ in range(steps):
+        chained = centred.forward(chained, p)
+    once = centred.repeat(steps).forward(c0, p)
+    assert np.max(np.abs(once - chained)) < 1e-3 * np.max(np.abs(chained)), np.max(np.abs(once - chained))
+    verdict, report = centred.repeat(3).check(c0, p)
+    assert verdict == "pass", report
+    # Mistakes are errors that say what.
+    with pytest.raises(diffsim.DiffsimError, match="steps = 0"):
+        op.repeat(0)
+    with pytest.raises(diffsim.DiffsimError, match="unknown checkpointing"):
+        op.repeat(3, checkpoint="sometimes")
+    with pytest.raises(diffsim.DiffsimError, match="a state to a state"):
+        diffsim.p1_loss(16, 4).repeat(2)
+    with pytest.raises(diffsim.SimulationError, match="viscosity"):
+        rolled.forward(x0, np.array([-1.0, 0.1]))

@@ -177,77 +177,100 @@ impl<const D: usize> PeriodicNavierStokes<D> {
     /// conversions [`CentresToFaces`] and [`FacesToCentres`] around it
     /// ([`Centred`]); the parameters are the step's.
     pub fn centred(self) -> Centred<D> {
-        Centred(self)
+        Centred::around(self.flow, self)
     }
 }
 
-/// A [`PeriodicNavierStokes`] step with its velocity on the cell centres:
-/// `x ↦ F(step(C(x), p))` with `C` the way onto the faces and `F` the way
-/// back, both linear (their transposes in the VJP). Plain data and its own
+/// An operator on the face velocities of the periodic box `flow` (a
+/// [`PeriodicNavierStokes`] step by default, or a whole rollout of them,
+/// [`crate::rollout::Repeat`]) with its velocity on the cell centres:
+/// `x ↦ F(op(C(x), p))` with `C` the way onto the faces and `F` the way
+/// back, both linear (their transposes in the VJP). Around a rollout the
+/// conversions are made once, not at every step. Plain data and its own
 /// type (not a [`crate::op::Chain`]) so that batches run it per thread.
 #[derive(Debug)]
-pub struct Centred<const D: usize>(pub PeriodicNavierStokes<D>);
+pub struct Centred<const D: usize, O = PeriodicNavierStokes<D>> {
+    flow: Periodic<D>,
+    op: O,
+}
 
-impl<const D: usize> Operator for Centred<D> {
-    fn n_in(&self) -> usize {
-        D * self.0.flow.grid.n_s()
+impl<const D: usize, O: Operator> Centred<D, O> {
+    /// `op` (velocity on the faces of `flow`, in and out) on the centres.
+    ///
+    /// # Panics
+    /// If `op` does not map `flow`'s face velocity to itself.
+    pub fn around(flow: Periodic<D>, op: O) -> Self {
+        assert!(
+            op.n_in() == flow.n_vel() && op.n_out() == flow.n_vel(),
+            "Centred: the operator maps {} values to {}; the box has {} face velocities",
+            op.n_in(),
+            op.n_out(),
+            flow.n_vel()
+        );
+        Self { flow, op }
     }
-    fn n_out(&self) -> usize {
-        D * self.0.flow.grid.n_s()
-    }
-    fn n_params(&self) -> usize {
-        self.0.n_params()
+
+    /// The operator on the faces.
+    pub fn inner(&self) -> &O {
+        &self.op
     }
 }
 
-impl<const D: usize> Forward for Centred<D>
-where
-    PeriodicNavierStokes<D>: Forward,
-{
+impl<const D: usize, O: Operator> Operator for Centred<D, O> {
+    fn n_in(&self) -> usize {
+        D * self.flow.grid.n_s()
+    }
+    fn n_out(&self) -> usize {
+        D * self.flow.grid.n_s()
+    }
+    fn n_params(&self) -> usize {
+        self.op.n_params()
+    }
+}
+
+impl<const D: usize, O: Forward> Forward for Centred<D, O> {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "Centred", x, p, y);
-        let flow = &self.0.flow;
+        let flow = &self.flow;
         let mut faces = vec![0.0; flow.n_vel()];
-        self.0.forward(&flow.centres_to_faces(x), p, &mut faces);
+        self.op.forward(&flow.centres_to_faces(x), p, &mut faces);
         y.copy_from_slice(&flow.faces_to_centres(&faces));
     }
 
     fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
-        let flow = &self.0.flow;
-        self.0.smooth_radius(&flow.centres_to_faces(x), p, &flow.centres_to_faces(dx), dp)
+        let flow = &self.flow;
+        self.op.smooth_radius(&flow.centres_to_faces(x), p, &flow.centres_to_faces(dx), dp)
+    }
+
+    fn solve_tolerance(&self) -> f64 {
+        self.op.solve_tolerance()
     }
 
     fn take_error(&self) -> Option<OpError> {
-        self.0.take_error()
+        self.op.take_error()
     }
 }
 
-impl<const D: usize> Vjp for Centred<D>
-where
-    PeriodicNavierStokes<D>: Vjp,
-{
+impl<const D: usize, O: Vjp> Vjp for Centred<D, O> {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
         validate_vjp(self, "Centred", x, p, dy, dx, dp);
-        let flow = &self.0.flow;
+        let flow = &self.flow;
         let mut g = flow.faces_to_centres_transpose(dy);
         dy.fill(0.0);
         let mut gfaces = vec![0.0; flow.n_vel()];
-        self.0.vjp(&flow.centres_to_faces(x), p, &mut g, &mut gfaces, dp);
+        self.op.vjp(&flow.centres_to_faces(x), p, &mut g, &mut gfaces, dp);
         for (d, g) in dx.iter_mut().zip(flow.centres_to_faces_transpose(&gfaces)) {
             *d += g;
         }
     }
 }
 
-impl<const D: usize> Jvp for Centred<D>
-where
-    PeriodicNavierStokes<D>: Jvp,
-{
+impl<const D: usize, O: Jvp> Jvp for Centred<D, O> {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         validate_jvp(self, "Centred", x, p, tx, tp, y, ty);
-        let flow = &self.0.flow;
+        let flow = &self.flow;
         let (mut yf, mut tyf) = (vec![0.0; flow.n_vel()], vec![0.0; flow.n_vel()]);
-        self.0.jvp(&flow.centres_to_faces(x), p, &flow.centres_to_faces(tx), tp, &mut yf, &mut tyf);
+        self.op.jvp(&flow.centres_to_faces(x), p, &flow.centres_to_faces(tx), tp, &mut yf, &mut tyf);
         y.copy_from_slice(&flow.faces_to_centres(&yf));
         ty.copy_from_slice(&flow.faces_to_centres(&tyf));
     }

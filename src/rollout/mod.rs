@@ -34,7 +34,7 @@ use thiserror::Error;
 use crate::op::{Forward, Real, Vjp};
 
 pub use checkpoint::{Checkpointing, Workspace};
-pub use operator::{RolloutLoss, RolloutOperator, Wrt};
+pub use operator::{Repeat, RolloutLoss, RolloutOperator, Wrt};
 
 /// Errors of a rollout.
 ///
@@ -101,6 +101,8 @@ pub enum Argument {
     X0,
     /// The parameters.
     P,
+    /// The number of steps.
+    Steps,
 }
 
 impl std::fmt::Display for Argument {
@@ -108,6 +110,7 @@ impl std::fmt::Display for Argument {
         f.write_str(match self {
             Argument::X0 => "x0",
             Argument::P => "p",
+            Argument::Steps => "steps",
         })
     }
 }

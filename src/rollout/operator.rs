@@ -8,6 +8,9 @@
 //!   computation for the dot-product test.
 //! - [`RolloutOperator`]: `x_0 ↦ x_T`, the final state as a function of the
 //!   initial one (the parameters held fixed).
+//! - [`Repeat`]: `(x_0, p) ↦ x_T`, an owned operator of the initial state
+//!   and the parameters shared by every step, its checkpointing chosen by
+//!   the memory budget.
 //!
 //! ```ignore
 //! use diffsim::check::{CheckParams, check_all};
@@ -317,5 +320,195 @@ impl<O: Jvp> Jvp for RolloutOperator<'_, O> {
         let (xt, tt) = carry_tangent(&self.rollout, x, tx, |_| &tp[..], |_, _, _, _| {}, |_, _, _| {});
         y.copy_from_slice(&xt);
         ty.copy_from_slice(&tt);
+    }
+}
+
+/// `(x_0, p) ↦ x_T`: `steps` steps of `op` with the same parameters `p` at
+/// every step, as an operator of the initial state **and** the parameters
+/// (JAX-CFD's `repeated`, with gradients): its VJP is one backward pass
+/// over the rollout ([`super::checkpoint`], `∂x_T/∂p` summed over the
+/// steps), under a checkpointing chosen per call by the memory budget
+/// ([`super::plan::choose`]) unless one is set; its JVP carries the
+/// tangents of `x_0` and `p` through the per-step JVPs.
+///
+/// A failure of any step (a solve that does not converge, a state that is
+/// not finite) is kept: [`Repeat::take_rollout_error`] gives it in full,
+/// [`Forward::take_error`] as the step's own error.
+#[derive(Debug)]
+pub struct Repeat<O> {
+    op: O,
+    steps: usize,
+    mode: Option<Checkpointing>,
+    error: std::sync::Mutex<Option<RolloutError>>,
+}
+
+impl<O: Forward> Repeat<O> {
+    /// `steps ≥ 1` steps of `op`.
+    ///
+    /// # Errors
+    /// `op` does not map a state to a state of the same size, or `steps` is
+    /// zero.
+    pub fn new(op: O, steps: usize) -> Result<Self, RolloutError> {
+        if op.n_in() != op.n_out() {
+            return Err(RolloutError::NotAStateMap { n_in: op.n_in(), n_out: op.n_out() });
+        }
+        if steps == 0 {
+            return Err(RolloutError::Length { what: super::Argument::Steps, got: 0, expected: 1 });
+        }
+        Ok(Self { op, steps, mode: None, error: std::sync::Mutex::new(None) })
+    }
+
+    /// The VJP keeps its states as `mode` says instead of choosing by the
+    /// memory budget.
+    pub fn with_checkpointing(mut self, mode: Checkpointing) -> Self {
+        self.mode = Some(mode.resolve(self.steps));
+        self
+    }
+
+    /// The step operator.
+    pub fn op(&self) -> &O {
+        &self.op
+    }
+
+    /// Number of steps.
+    pub fn steps(&self) -> usize {
+        self.steps
+    }
+
+    /// The failure of the last call, if one failed (taken: a second call
+    /// returns `None`).
+    pub fn take_rollout_error(&self) -> Option<RolloutError> {
+        self.error.lock().unwrap_or_else(|e| e.into_inner()).take()
+    }
+
+    fn record(&self, e: RolloutError) {
+        *self.error.lock().unwrap_or_else(|e| e.into_inner()) = Some(e);
+    }
+
+    /// The checkpointing of a VJP from `x`: the one set, else the fastest
+    /// that fits the memory budget by the cost model, with one step timed.
+    fn mode(&self, x: &[f64], p: &[f64]) -> Result<Checkpointing, RolloutError> {
+        if let Some(m) = self.mode {
+            return Ok(m);
+        }
+        if self.steps == 1 {
+            return Ok(Checkpointing::Store);
+        }
+        let mut y = vec![0.0; x.len()];
+        let start = std::time::Instant::now();
+        self.op.forward(x, p, &mut y);
+        let forward_s = start.elapsed().as_secs_f64();
+        if let Some(error) = self.op.take_error() {
+            return Err(RolloutError::Operator { pass: super::Pass::Forward, error });
+        }
+        let job = super::plan::Job { steps: self.steps, state_bytes: 8 * x.len() as u64, copies: 1, forward_s };
+        // None fits: refused (the error is pointer-free, so the estimate
+        // stays out of it; `plan::choose` says how much would be needed).
+        let plan = super::plan::choose(&job, 0, crate::memory::budget(), "the gradient of a repeated step").map_err(|_| RolloutError::Operator {
+            pass: super::Pass::Backward,
+            error: crate::op::OpError::Input(crate::op::OpMessage::new("no checkpointing fits the memory budget")),
+        })?;
+        Ok(plan.mode)
+    }
+}
+
+impl<O: Forward> Operator for Repeat<O> {
+    fn n_in(&self) -> usize {
+        self.op.n_in()
+    }
+    fn n_out(&self) -> usize {
+        self.op.n_out()
+    }
+    fn n_params(&self) -> usize {
+        self.op.n_params()
+    }
+}
+
+impl<O: Jvp> Forward for Repeat<O> {
+    #[track_caller]
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
+        crate::op::validate_forward(self, "Repeat", x, p, y);
+        match Rollout::new(&self.op, p, self.steps).and_then(|r| r.final_state(x)) {
+            Ok(xt) => y.copy_from_slice(&xt),
+            Err(e) => {
+                y.fill(f64::NAN);
+                self.record(e);
+            }
+        }
+    }
+
+    /// The step's solve tolerance times the number of steps.
+    fn solve_tolerance(&self) -> f64 {
+        self.op.solve_tolerance() * self.steps as f64
+    }
+
+    /// The smallest radius of the steps along the tangent the JVPs carry
+    /// (a parameter's own limit, a time step that must stay positive, among
+    /// them), as [`RolloutLoss`]'s.
+    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+        match Rollout::new(&self.op, p, self.steps) {
+            Ok(r) => rollout_radius(&r, x, dx, |_| dp),
+            Err(_) => f64::INFINITY,
+        }
+    }
+
+    fn take_error(&self) -> Option<crate::op::OpError> {
+        self.take_rollout_error().map(|e| match e {
+            RolloutError::Operator { error, .. } => error,
+            other => crate::op::OpError::Input(crate::op::OpMessage::new(&other.to_string())),
+        })
+    }
+}
+
+impl<O: Vjp + Jvp> Vjp for Repeat<O> {
+    #[track_caller]
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &mut [f64], dx: &mut [f64], dp: &mut [f64]) {
+        crate::op::validate_vjp(self, "Repeat", x, p, dy, dx, dp);
+        let seed = dy.to_vec();
+        let linear = |y: &[f64], g: &mut [f64]| -> f64 {
+            g.copy_from_slice(&seed);
+            y.iter().zip(&seed).map(|(a, b)| a * b).sum()
+        };
+        let run = || {
+            let mode = self.mode(x, p)?;
+            let rollout = Rollout::new(&self.op, p, self.steps)?;
+            checkpoint::run(&rollout, &mut Workspace::new(), x, &linear, mode, checkpoint::CHECK_EVERY, None)
+        };
+        match run() {
+            Ok(g) => {
+                dx.iter_mut().zip(&g.dx0).for_each(|(d, v)| *d += v);
+                dp.iter_mut().zip(&g.dp).for_each(|(d, v)| *d += v);
+            }
+            Err(e) => {
+                dx.fill(f64::NAN);
+                dp.fill(f64::NAN);
+                self.record(e);
+            }
+        }
+        dy.fill(0.0);
+    }
+}
+
+impl<O: Jvp> Jvp for Repeat<O> {
+    #[track_caller]
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
+        crate::op::validate_jvp(self, "Repeat", x, p, tx, tp, y, ty);
+        let (mut xs, mut ts) = (x.to_vec(), tx.to_vec());
+        for t in 0..self.steps {
+            self.op.jvp(&xs, p, &ts, tp, y, ty);
+            if let Some(error) = self.op.take_error() {
+                y.fill(f64::NAN);
+                ty.fill(f64::NAN);
+                return self.record(RolloutError::Operator { pass: super::Pass::Forward, error });
+            }
+            if !crate::op::all_finite(y) || !crate::op::all_finite(ty) {
+                y.fill(f64::NAN);
+                ty.fill(f64::NAN);
+                let operator = self.op.locate_non_finite(&xs, p);
+                return self.record(RolloutError::NonFinite { pass: super::Pass::Forward, step: t, operator });
+            }
+            xs.copy_from_slice(y);
+            ts.copy_from_slice(ty);
+        }
     }
 }

@@ -14,7 +14,8 @@
 //!
 //! Here: the errors, the runners (GIL, Ctrl-C), arrays in and out, the
 //! [`PyOp`] contract and the `Operator` class that serves any of them.
-//! [`ops`]: the solver steps and benchmark losses; [`scene`]: scene files;
+//! [`ops`]: the solver steps and benchmark losses; [`repeat`]: any step
+//! run many times as one operator; [`scene`]: scene files;
 //! [`ffi`]: the same operators as XLA FFI custom calls for `diffsim.jax`.
 
 use std::sync::Arc;
@@ -28,6 +29,7 @@ use rayon::prelude::*;
 
 mod ffi;
 mod ops;
+mod repeat;
 mod scene;
 
 create_exception!(_diffsim, DiffsimError, PyValueError, "An input diffsim cannot use: a malformed scene, a bad argument, an array of the wrong shape.");
@@ -135,10 +137,25 @@ trait PyOp: Send + Sync {
     fn vjp(&self, x: &[f64], p: &[f64], dy: &[f64], dx: &mut [f64], dp: &mut [f64]) -> Result<(), Failure>;
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure>;
     fn check(&self, x: &[f64], p: &[f64]) -> Result<(&'static str, String), Failure>;
+    /// How far from `(x, p)` along `(dx, dp)` the operator stays smooth and
+    /// defined (a time step that must stay positive, say): the checks of a
+    /// rollout built on it keep their steps within it.
+    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+        let _ = (x, p, dx, dp);
+        f64::INFINITY
+    }
     /// A whole rollout or scene per element (rather than one step): worth
     /// a thread per element even in small batches.
     fn heavy(&self) -> bool {
         false
+    }
+    /// `steps` of this operator as one, when it knows a better way than
+    /// chaining its own calls (a step on cell-centred values converts to
+    /// the faces once, not at every step); `None`: the generic
+    /// [`repeat::Repeated`].
+    fn repeat(&self, steps: usize, mode: Option<diffsim::rollout::Checkpointing>) -> Option<Result<Arc<dyn PyOp>, Failure>> {
+        let _ = (steps, mode);
+        None
     }
 }
 
@@ -351,6 +368,22 @@ impl Operator {
         Ok((to_numpy(py, &shape, y)?, to_numpy(py, &shape, ty)?))
     }
 
+    /// `steps` applications of this operator (a step: `n_in == n_out`)
+    /// with the same `p`, as one operator `(x_0, p) ↦ x_T`: one call for a
+    /// whole rollout, its VJP (`∂x_T/∂x_0` and `∂x_T/∂p` summed over the
+    /// steps) one backward pass, keeping its states as `checkpoint` says
+    /// (`"store"`, `"periodic[:K]"`, `"binomial[:S]"`), by default the
+    /// fastest way that fits the memory budget.
+    #[pyo3(signature = (steps, checkpoint = None))]
+    fn repeat(&self, steps: usize, checkpoint: Option<&str>) -> PyResult<Operator> {
+        let mode = repeat::mode(steps, checkpoint)?;
+        let op: Arc<dyn PyOp> = match self.op.repeat(steps, mode) {
+            Some(own) => own?,
+            None => Arc::new(repeat::Repeated::new(self.op.clone(), steps, mode)?),
+        };
+        Ok(Operator::new(op, format!("{}.repeat({steps})", self.name)))
+    }
+
     /// The three gradient checks (finite differences, Taylor remainder,
     /// dot product) at one point `(x, p)` (no batch axes): `(verdict,
     /// report)`, the verdict `"pass"`, `"fail"` or `"inconclusive"` (a
@@ -441,6 +474,7 @@ fn _panicking_operator() -> Operator {
 /// diffsim's Python module.
 #[pymodule]
 pub fn _diffsim(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    diffsim_solvers::simd::max_isa_from_env().map_err(|e| PyValueError::new_err(e.to_string()))?;
     m.add("DiffsimError", m.py().get_type::<DiffsimError>())?;
     m.add("SimulationError", m.py().get_type::<SimulationError>())?;
     m.add("InternalError", m.py().get_type::<InternalError>())?;

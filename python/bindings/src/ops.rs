@@ -10,9 +10,10 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use diffsim::check::{CheckParams, check_all};
+use diffsim::navier_stokes::{Centred, PeriodicNavierStokes};
 use diffsim::op::{Jvp, Vjp};
 use diffsim::problems::burgers::{BurgersEnzyme, P1};
-use diffsim::rollout::{Checkpointing, Loss, Rollout, RolloutLoss, Wrt};
+use diffsim::rollout::{Checkpointing, Loss, Repeat, Rollout, RolloutLoss, Wrt};
 
 use super::{DiffsimError, Failure, Operator, PyOp, simulation};
 
@@ -53,6 +54,9 @@ impl<O: Vjp + Jvp + Send + Sync> PyOp for StepOp<O> {
     fn check(&self, x: &[f64], p: &[f64]) -> Result<(&'static str, String), Failure> {
         let r = check_all(&self.0, x, p, &CheckParams::default());
         Ok((verdict(&r), r.to_string()))
+    }
+    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+        self.0.smooth_radius(x, p, dx, dp)
     }
 }
 
@@ -416,15 +420,83 @@ where
 /// batch), forced or not, on the faces or the centres.
 fn periodic_step<const D: usize>(flow: diffsim_solvers::mac::periodic::Periodic<D>, forced: bool, centred: bool, name: String) -> Operator
 where
-    diffsim::navier_stokes::PeriodicNavierStokes<D>: Vjp + Jvp,
-    diffsim::navier_stokes::Centred<D>: Vjp + Jvp,
+    PeriodicNavierStokes<D>: Vjp + Jvp,
 {
-    use diffsim::navier_stokes::PeriodicNavierStokes;
     let make = move || if forced { PeriodicNavierStokes::forced(flow) } else { PeriodicNavierStokes::new(flow) };
     if centred {
-        Operator::new(Arc::new(StepOp(diffsim::op::PerThread::new(move || make().centred()))), name)
+        Operator::new(Arc::new(CentredStep { flow, forced, step: StepOp(diffsim::op::PerThread::new(move || make().centred())) }), name)
     } else {
         Operator::new(Arc::new(StepOp(diffsim::op::PerThread::new(make))), name)
+    }
+}
+
+/// The periodic step on cell-centred values: a step as any other, and a
+/// rollout of it ([`PyOp::repeat`]) converts to the faces once, repeats
+/// the face step, and converts back once.
+struct CentredStep<const D: usize> {
+    flow: diffsim_solvers::mac::periodic::Periodic<D>,
+    forced: bool,
+    step: StepOp<diffsim::op::PerThread<Centred<D>>>,
+}
+
+impl<const D: usize> PyOp for CentredStep<D>
+where
+    PeriodicNavierStokes<D>: Vjp + Jvp,
+{
+    fn sizes(&self) -> (usize, usize, usize) {
+        self.step.sizes()
+    }
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) -> Result<(), Failure> {
+        self.step.forward(x, p, y)
+    }
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &[f64], dx: &mut [f64], dp: &mut [f64]) -> Result<(), Failure> {
+        self.step.vjp(x, p, dy, dx, dp)
+    }
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+        self.step.jvp(x, p, tx, tp, y, ty)
+    }
+    fn check(&self, x: &[f64], p: &[f64]) -> Result<(&'static str, String), Failure> {
+        self.step.check(x, p)
+    }
+    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+        self.step.smooth_radius(x, p, dx, dp)
+    }
+    fn repeat(&self, steps: usize, mode: Option<Checkpointing>) -> Option<Result<Arc<dyn PyOp>, Failure>> {
+        let (flow, forced) = (self.flow, self.forced);
+        let make = move || {
+            let step = if forced { PeriodicNavierStokes::forced(flow) } else { PeriodicNavierStokes::new(flow) };
+            let rollout = Repeat::new(step, steps).expect("a step maps its velocity to itself; steps checked");
+            Centred::around(flow, if let Some(m) = mode { rollout.with_checkpointing(m) } else { rollout })
+        };
+        Some(Ok(Arc::new(Rolled(StepOp(diffsim::op::PerThread::new(make))))))
+    }
+}
+
+/// A whole rollout as one Python operator: worth a thread per element of a
+/// batch, and interruptible.
+struct Rolled<O>(StepOp<O>);
+
+impl<O: Vjp + Jvp + Send + Sync> PyOp for Rolled<O> {
+    fn sizes(&self) -> (usize, usize, usize) {
+        self.0.sizes()
+    }
+    fn heavy(&self) -> bool {
+        true
+    }
+    fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) -> Result<(), Failure> {
+        self.0.forward(x, p, y)
+    }
+    fn vjp(&self, x: &[f64], p: &[f64], dy: &[f64], dx: &mut [f64], dp: &mut [f64]) -> Result<(), Failure> {
+        self.0.vjp(x, p, dy, dx, dp)
+    }
+    fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) -> Result<(), Failure> {
+        self.0.jvp(x, p, tx, tp, y, ty)
+    }
+    fn check(&self, x: &[f64], p: &[f64]) -> Result<(&'static str, String), Failure> {
+        self.0.check(x, p)
+    }
+    fn smooth_radius(&self, x: &[f64], p: &[f64], dx: &[f64], dp: &[f64]) -> f64 {
+        self.0.smooth_radius(x, p, dx, dp)
     }
 }
 

@@ -1,0 +1,133 @@
+"""diffsim's Tesseract for Mosaic (integrations/mosaic/navier-stokes-grid/
+diffsim), opened in-process as the harness opens ``inprocess:`` tags, on the
+harness's smallest settings: forward/baseline (one step of the Taylor–Green
+vortex at N = 16, against its exact decay) and gradient/fd_check (N = 16,
+ν = 0.001, dt = 0.05, 20 steps from the multimode field), with the
+finite differences computed here as the harness computes them (float32
+outputs, ``sum(result²)``, central differences along random directions, ε
+relative to the field's RMS); and 3D at N = 16."""
+
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from tesseract_core import Tesseract
+
+API = pathlib.Path(__file__).resolve().parents[2] / "integrations/mosaic/navier-stokes-grid/diffsim/tesseract_api.py"
+L = 2 * np.pi
+
+
+@pytest.fixture(scope="module")
+def tess():
+    return Tesseract.from_tesseract_api(API)
+
+
+def tgv(n, d=2):
+    """Mosaic's Taylor–Green field, sampled at x_i = i·L/N."""
+    x = np.arange(n) * L / n
+    if d == 2:
+        X, Y = np.meshgrid(x, x, indexing="ij")
+        v = np.stack([np.sin(X) * np.cos(Y), -np.cos(X) * np.sin(Y)], axis=-1)[:, :, None, :]
+    else:
+        X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+        v = np.stack([np.sin(X) * np.cos(Y) * np.cos(Z), -np.cos(X) * np.sin(Y) * np.cos(Z), 0 * X], axis=-1)
+    return v.astype(np.float32)
+
+
+def multimode(n, seed=42):
+    """Mosaic's multimode field (benchmarks/problems/navier_stokes_grid/ics.py)."""
+    key = jax.random.PRNGKey(seed)
+    kn = jnp.fft.fftfreq(n, d=1.0 / n)
+    KX, KY = jnp.meshgrid(kn, kn, indexing="ij")
+    envelope = jnp.exp(-0.5 * ((jnp.sqrt(KX**2 + KY**2) - 2.0) / 0.5) ** 2)
+    phases = jax.random.uniform(key, (n, n), minval=0.0, maxval=2.0 * jnp.pi)
+    psi_hat = envelope * jnp.exp(1j * phases)
+    psi_hat = 0.5 * (psi_hat + jnp.conj(psi_hat[::-1, ::-1]))
+    psi_hat = psi_hat.at[0, 0].set(0.0)
+    vx = jnp.real(jnp.fft.ifft2(1j * KY * psi_hat))
+    vy = jnp.real(jnp.fft.ifft2(-1j * KX * psi_hat))
+    u_max = float(jnp.sqrt(vx**2 + vy**2).max())
+    return np.asarray(jnp.stack([vx, vy], axis=-1)[:, :, None, :] / u_max * 0.3, dtype=np.float32)
+
+
+def inputs(v0, nu, dt, steps):
+    return {"v0": v0, "viscosity": np.array([nu], np.float32), "dt": np.array([dt], np.float32), "steps": steps, "domain_extent": L}
+
+
+def test_one_step_of_taylor_green_is_at_the_collocated_peers_level(tess):
+    n, nu, dt = 16, 0.05, 0.01
+    v0 = tgv(n)
+    out = tess.apply(inputs(v0, nu, dt, 1))
+    assert out["result"].shape == v0.shape and out["result"].dtype == np.float32
+    exact = v0 * np.exp(-2 * nu * dt)
+    err = np.linalg.norm(out["result"] - exact) / np.linalg.norm(exact)
+    # Mosaic's baseline: collocated peers about 1e-3 at N = 16, staggered
+    # ones 3.8e-2 (their linear averages damp by sin²(π/N)).
+    assert err < 1e-3, err
+    one = {"shape": [1], "dtype": "float32"}
+    abstract = {**inputs(None, nu, dt, 1), "v0": {"shape": [n, n, 1, 2], "dtype": "float32"}, "viscosity": one, "dt": one}
+    shapes = tess.abstract_eval(abstract)
+    assert tuple(shapes["result"]["shape"]) == (n, n, 1, 2)
+
+
+def test_the_gradient_passes_the_harness_fd_check_at_its_settings(tess):
+    n, nu, dt, steps = 16, 0.001, 0.05, 20
+    base = inputs(multimode(n), nu, dt, steps)
+    v0 = base["v0"]
+
+    def loss(v):
+        return float(np.sum(tess.apply({**base, "v0": v.astype(np.float32)})["result"].astype(np.float32) ** 2))
+
+    out = tess.apply(base)["result"]
+    g = tess.vector_jacobian_product(base, ["v0"], ["result"], {"result": 2 * out})["v0"]
+    assert g.shape == v0.shape
+    rng = np.random.default_rng(0)
+    dirs = [rng.standard_normal(v0.shape).astype(np.float32) for _ in range(20)]
+    dirs = [d / np.linalg.norm(d) for d in dirs]
+    vjp = np.array([float(np.sum(g * d)) for d in dirs])
+    scale = float(np.sqrt(np.mean(v0.astype(np.float64) ** 2)))
+    best, best_cosine = np.inf, 0.0
+    for eps in [5e0, 1e0, 1e-1, 1e-2, 1e-3, 1e-4]:
+        h = eps * scale
+        fd = np.array([(loss(v0 + h * d) - loss(v0 - h * d)) / (2 * h) for d in dirs])
+        rel = np.abs(fd - vjp) / np.maximum(np.maximum(np.abs(fd), np.abs(vjp)), 1e-30)
+        if np.median(rel) < best:
+            best, best_cosine = float(np.median(rel)), float(fd @ vjp / (np.linalg.norm(fd) * np.linalg.norm(vjp)))
+    assert best_cosine >= 0.999999, best_cosine
+    # Measured 2.1e-5 here (docs/mosaic.md): the float32 sum of result² sets
+    # a noise of about 1e-5 at ε = 1 and ten times that at ε = 0.1, and this
+    # scheme's own third-order term is 2.6e-5 at ε = 1 (float64 throughout).
+    # The issue's goal (1e-5, the best published peers') is not met yet;
+    # this bound keeps what is.
+    assert best <= 3e-5, best
+
+
+def test_viscosity_and_dt_gradients_and_3d(tess):
+    base = inputs(multimode(16), 0.01, 0.05, 5)
+    out = tess.apply(base)["result"]
+    grads = tess.vector_jacobian_product(base, ["viscosity", "dt"], ["result"], {"result": 2 * out})
+    for name, h in [("viscosity", 1e-3), ("dt", 1e-3)]:
+        up = {**base, name: base[name] + np.float32(h)}
+        down = {**base, name: base[name] - np.float32(h)}
+        step = float(up[name][0] - down[name][0])
+        fd = (np.sum(tess.apply(up)["result"].astype(np.float64) ** 2) - np.sum(tess.apply(down)["result"].astype(np.float64) ** 2)) / step
+        assert abs(fd - grads[name][0]) < 2e-3 * abs(fd), (name, fd, grads[name])
+    # 3D: the Taylor–Green start decays at the exact initial rate 6ν.
+    n, nu, dt = 16, 0.05, 0.01
+    v0 = tgv(n, 3)
+    r = tess.apply(inputs(v0, nu, dt, 2))["result"]
+    assert r.shape == v0.shape
+    rate = -np.log(np.sum(r.astype(np.float64) ** 2) / np.sum(v0.astype(np.float64) ** 2)) / (2 * dt)
+    assert abs(rate - 6 * nu) < 0.03 * 6 * nu, rate
+
+
+def test_what_this_slice_cannot_run_is_refused(tess):
+    bad = inputs(tgv(16), 0.01, 0.01, 2)
+    with pytest.raises(Exception, match="periodic boxes only"):
+        tess.apply({**bad, "obstacle": {"shape": "cylinder", "center": [0.5, 0.5], "radius": 0.1}, "boundary_conditions": {"y_lo": {"type": "no_slip"}, "y_hi": {"type": "no_slip"}}})
+    with pytest.raises(Exception, match="expected \\(N, N, 1, 2\\)"):
+        tess.apply({**bad, "v0": np.zeros((16, 8, 1, 2), np.float32)})
+    with pytest.raises(Exception, match="not finite"):
+        tess.apply({**bad, "v0": np.full((16, 16, 1, 2), np.nan, np.float32)})
