@@ -75,23 +75,38 @@ impl Transforms {
                 plan.process_with_scratch(field, &mut self.scratch);
                 continue;
             }
-            // Gather the lines along `a` contiguously, transform, scatter back.
+            // Gather the lines along `a` contiguously, transform, scatter back:
+            // each block of the field is an `m × inner` matrix whose columns
+            // are the lines, transposed tile by tile so that both sides stay
+            // in cache (a row at a time wrote one value per cache line, at a
+            // power-of-two stride: half the projection's time at 256²).
             let inner: usize = self.n[..a].iter().product();
             let lines = &mut self.lines;
             let (block, blocks) = (inner * m, cells / (inner * m));
             for b in 0..blocks {
-                for k in 0..m {
-                    for i in 0..inner {
-                        lines[(b * inner + i) * m + k] = field[b * block + k * inner + i];
-                    }
-                }
+                transpose(&field[b * block..(b + 1) * block], &mut lines[b * block..(b + 1) * block], m, inner);
             }
             plan.process_with_scratch(lines, &mut self.scratch);
             for b in 0..blocks {
-                for k in 0..m {
-                    for i in 0..inner {
-                        field[b * block + k * inner + i] = lines[(b * inner + i) * m + k];
-                    }
+                transpose(&lines[b * block..(b + 1) * block], &mut field[b * block..(b + 1) * block], inner, m);
+            }
+        }
+    }
+}
+
+/// `to = fromᵀ` for `from` a `rows × cols` matrix (row-major), by tiles
+/// of 8 × 8 (eight lines a power of two apart share a cache set; more
+/// would evict each other).
+fn transpose(from: &[Complex<f64>], to: &mut [Complex<f64>], rows: usize, cols: usize) {
+    const TILE: usize = 8;
+    assert!(from.len() == rows * cols && to.len() == rows * cols);
+    for r0 in (0..rows).step_by(TILE) {
+        let r1 = (r0 + TILE).min(rows);
+        for c0 in (0..cols).step_by(TILE) {
+            for c in c0..(c0 + TILE).min(cols) {
+                let out = &mut to[c * rows + r0..c * rows + r1];
+                for (k, o) in out.iter_mut().enumerate() {
+                    *o = from[(r0 + k) * cols + c];
                 }
             }
         }
