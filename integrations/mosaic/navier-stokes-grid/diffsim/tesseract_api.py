@@ -123,13 +123,34 @@ def _run(inputs: dict) -> tuple[np.ndarray, np.ndarray, diffsim.Operator | None]
     return x0, p, _operator(tuple(v0.shape), float(inputs["domain_extent"]), steps)
 
 
+# An unforced flow in a periodic box cannot gain kinetic energy (viscosity
+# only removes it); a rollout whose energy more than doubles has gone
+# unstable (MacCormack advection without its limiter, at a resolution too
+# coarse for the viscosity: docs/mosaic.md), and is refused rather than
+# passed on.
+_ENERGY_GROWTH_LIMIT = 2.0
+
+
+def _float32(name: str, a: np.ndarray) -> np.ndarray:
+    out = a.astype(np.float32)
+    if not np.all(np.isfinite(out)):
+        raise RuntimeError(f"diffsim: {name} does not fit in float32 (largest magnitude {np.max(np.abs(a)):.3e})")
+    return out
+
+
 def apply(inputs: InputSchema) -> OutputSchema:
     """``v0`` advanced ``steps`` steps of ``dt``."""
     raw = inputs.model_dump()
     x0, p, op = _run(raw)
     x = x0 if op is None else op.forward(x0, p)
+    e0, e = float(np.sum(x0**2)), float(np.sum(x**2))
+    if e > _ENERGY_GROWTH_LIMIT * e0:
+        raise RuntimeError(
+            f"diffsim: the kinetic energy grew {e / e0:.3g}-fold over {raw['steps']} steps of an unforced "
+            "periodic flow; the advection is unstable at this resolution and viscosity"
+        )
     result = _unpack(x, tuple(np.shape(raw["v0"])))
-    return {"result": result.astype(np.float32), "drag": np.zeros((1,), dtype=np.float32)}
+    return {"result": _float32("result", result), "drag": np.zeros((1,), dtype=np.float32)}
 
 
 def abstract_eval(abstract_inputs: InputSchema) -> dict:
@@ -162,11 +183,11 @@ def vector_jacobian_product(
     out: dict[str, Any] = {}
     for name in vjp_inputs:
         if name == "v0":
-            out[name] = _unpack(dx, shape).astype(np.float32)
+            out[name] = _float32("the gradient with respect to v0", _unpack(dx, shape))
         elif name == "viscosity":
-            out[name] = np.array([dp[0]], dtype=np.float32)
+            out[name] = _float32("the gradient with respect to viscosity", np.array([dp[0]]))
         elif name == "dt":
-            out[name] = np.array([dp[1]], dtype=np.float32)
+            out[name] = _float32("the gradient with respect to dt", np.array([dp[1]]))
         elif name == "inflow_profile":
             raise ValueError("diffsim: no inflow profile in this slice")
     return out
