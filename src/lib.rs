@@ -61,7 +61,9 @@
 //! states (`Store`, `Periodic`, `Binomial`), and check it through every
 //! step: [`rollout::RolloutLoss`] is the map `(x_0, p) ↦ L` as an operator
 //! (with respect to `x_0`, `p` or both), so [`check::check_all`] applies to
-//! it. [`problems::burgers::P1`] and
+//! it; [`rollout::Repeat`] is the map `(x_0, p) ↦ x_T` of a step repeated
+//! with the same parameters, its checkpointing chosen by the memory
+//! budget. [`problems::burgers::P1`] and
 //! [`problems::smoke::P2`] are the benchmarks built exactly this way;
 //! [`fluids`] holds further operators, each for 2D and 3D (diffusion,
 //! advection schemes, forces, inflow), and [`navier_stokes`] the

@@ -327,9 +327,9 @@ impl<O: Jvp> Jvp for RolloutOperator<'_, O> {
 /// every step, as an operator of the initial state **and** the parameters
 /// (JAX-CFD's `repeated`, with gradients): its VJP is one backward pass
 /// over the rollout ([`super::checkpoint`], `∂x_T/∂p` summed over the
-/// steps), under a checkpointing chosen per call by the memory budget
-/// ([`super::plan::choose`]) unless one is set; its JVP carries the
-/// tangents of `x_0` and `p` through the per-step JVPs.
+/// steps), under a checkpointing chosen by the memory budget
+/// ([`super::plan::choose`], once per operator) unless one is set; its
+/// JVP carries the tangents of `x_0` and `p` through the per-step JVPs.
 ///
 /// A failure of any step (a solve that does not converge, a state that is
 /// not finite) is kept: [`Repeat::take_rollout_error`] gives it in full,
@@ -338,7 +338,10 @@ impl<O: Jvp> Jvp for RolloutOperator<'_, O> {
 pub struct Repeat<O> {
     op: O,
     steps: usize,
+    /// Set by [`Repeat::with_checkpointing`].
     mode: Option<Checkpointing>,
+    /// Chosen by the memory budget on the first VJP that needed a choice.
+    chosen: std::sync::Mutex<Option<Checkpointing>>,
     error: std::sync::Mutex<Option<RolloutError>>,
 }
 
@@ -355,7 +358,7 @@ impl<O: Forward> Repeat<O> {
         if steps == 0 {
             return Err(RolloutError::Length { what: super::Argument::Steps, got: 0, expected: 1 });
         }
-        Ok(Self { op, steps, mode: None, error: std::sync::Mutex::new(None) })
+        Ok(Self { op, steps, mode: None, chosen: std::sync::Mutex::new(None), error: std::sync::Mutex::new(None) })
     }
 
     /// The VJP keeps its states as `mode` says instead of choosing by the
@@ -385,14 +388,21 @@ impl<O: Forward> Repeat<O> {
         *self.error.lock().unwrap_or_else(|e| e.into_inner()) = Some(e);
     }
 
-    /// The checkpointing of a VJP from `x`: the one set, else the fastest
-    /// that fits the memory budget by the cost model, with one step timed.
+    /// The checkpointing of a VJP from `x`: the one set; else storing
+    /// every state when they all fit in cache ([`super::plan::CACHE`]:
+    /// nothing is faster); else the fastest that fits the memory budget by
+    /// the cost model, with one step timed (chosen once per operator).
     fn mode(&self, x: &[f64], p: &[f64]) -> Result<Checkpointing, RolloutError> {
         if let Some(m) = self.mode {
             return Ok(m);
         }
-        if self.steps == 1 {
+        let states = 8 * x.len() as u64 * (self.steps as u64 + 2);
+        if states <= super::plan::CACHE && states.saturating_add(crate::memory::BASE) <= crate::memory::budget() {
             return Ok(Checkpointing::Store);
+        }
+        let mut chosen = self.chosen.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(m) = *chosen {
+            return Ok(m);
         }
         let mut y = vec![0.0; x.len()];
         let start = std::time::Instant::now();
@@ -408,6 +418,7 @@ impl<O: Forward> Repeat<O> {
             pass: super::Pass::Backward,
             error: crate::op::OpError::Input(crate::op::OpMessage::new("no checkpointing fits the memory budget")),
         })?;
+        *chosen = Some(plan.mode);
         Ok(plan.mode)
     }
 }
