@@ -344,35 +344,50 @@ fn a_negative_solve_tolerance_is_refused() {
     taylor(&op, &[0.1; 8], &[0.5], &opts);
 }
 
-/// `y = √x` per element, its VJP scaled by `factor` (1: correct).
-struct Root {
+/// `y_i = f(x_i)` on `n` values, its adjoint `(factor·f′(x_i) + error)·dy_i`
+/// (`factor` 1 and `error` 0: the right one).
+struct Pointwise {
+    n: usize,
+    f: fn(f64) -> f64,
+    df: fn(f64) -> f64,
     factor: f64,
+    error: f64,
 }
 
-impl Operator for Root {
+impl Operator for Pointwise {
     fn n_in(&self) -> usize {
-        3
+        self.n
     }
     fn n_out(&self) -> usize {
-        3
+        self.n
     }
 }
 
-impl Forward for Root {
+impl Forward for Pointwise {
     fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) {
-        for (y, x) in y.iter_mut().zip(x) {
-            *y = x.sqrt();
+        for (y, &x) in y.iter_mut().zip(x) {
+            *y = (self.f)(x);
         }
     }
 }
 
-impl Vjp for Root {
+impl Vjp for Pointwise {
     fn vjp(&self, x: &[f64], _p: &[f64], dy: &mut [f64], dx: &mut [f64], _dp: &mut [f64]) {
-        for ((d, g), x) in dx.iter_mut().zip(dy.iter()).zip(x) {
-            *d += self.factor * g * 0.5 / x.sqrt();
+        for ((d, g), &x) in dx.iter_mut().zip(dy.iter()).zip(x) {
+            *d += (self.factor * (self.df)(x) + self.error) * g;
         }
         dy.fill(0.0);
     }
+}
+
+/// `√x` on 3 values, its adjoint scaled by `factor`.
+fn root(factor: f64) -> Pointwise {
+    Pointwise { n: 3, f: f64::sqrt, df: |x| 0.5 / x.sqrt(), factor, error: 0.0 }
+}
+
+/// `x³` on 4 values, its adjoint off by `error·dy`.
+fn cube(error: f64) -> Pointwise {
+    Pointwise { n: 4, f: |x| x.powi(3), df: |x| 3.0 * x.powi(2), factor: 1.0, error }
 }
 
 /// Near the edge of its domain (√ of a small number) the larger Taylor
@@ -381,44 +396,12 @@ impl Vjp for Root {
 #[test]
 fn taylor_judges_the_steps_that_stay_in_the_domain() {
     let x = [0.004, 0.003, 0.005];
-    let right = taylor(&Root { factor: 1.0 }, &x, &[], &CheckParams::default());
+    let right = taylor(&root(1.0), &x, &[], &CheckParams::default());
     assert!(right.remainders[0].is_nan(), "the largest step leaves the domain: {right}");
     assert!(right.verdict.passed(), "{right}");
     assert!(right.note.as_deref().is_some_and(|n| n.contains("no finite value")), "{right}");
-    let wrong = taylor(&Root { factor: 1.01 }, &x, &[], &CheckParams::default());
+    let wrong = taylor(&root(1.01), &x, &[], &CheckParams::default());
     assert!(matches!(wrong.verdict, Verdict::Fail(_)), "{wrong}");
-}
-
-/// `y_i = (x_i − c)³`, its adjoint off by `error·dy` when `error ≠ 0`.
-struct Cube {
-    c: f64,
-    error: f64,
-}
-
-impl Operator for Cube {
-    fn n_in(&self) -> usize {
-        4
-    }
-    fn n_out(&self) -> usize {
-        4
-    }
-}
-
-impl Forward for Cube {
-    fn forward(&self, x: &[f64], _p: &[f64], y: &mut [f64]) {
-        for (y, x) in y.iter_mut().zip(x) {
-            *y = (x - self.c).powi(3);
-        }
-    }
-}
-
-impl Vjp for Cube {
-    fn vjp(&self, x: &[f64], _p: &[f64], dy: &mut [f64], dx: &mut [f64], _dp: &mut [f64]) {
-        for ((d, g), x) in dx.iter_mut().zip(dy.iter()).zip(x) {
-            *d += 3.0 * (x - self.c).powi(2) * g + self.error * g;
-        }
-        dy.fill(0.0);
-    }
 }
 
 /// Close to the cube's inflection its remainder `3δ·A·h² + B·h³` (with
@@ -434,13 +417,13 @@ fn a_remainder_that_changes_sign_is_judged_without_its_second_order_term() {
     let mut crossed = 0;
     for delta in [1e-6, 3e-6, 1e-5, 3e-5, 1e-4, -1e-6, -3e-6, -1e-5, -3e-5, -1e-4] {
         let x = [delta; 4];
-        let right = taylor(&Cube { c: 0.0, error: 0.0 }, &x, &[], &CheckParams::default());
+        let right = taylor(&cube(0.0), &x, &[], &CheckParams::default());
         println!("δ = {delta}:\n{right}");
         assert!(right.verdict.passed(), "δ = {delta}:\n{right}");
         if right.note.as_deref().is_some_and(|n| n.contains("changes sign")) {
             crossed += 1;
         }
-        let wrong = taylor(&Cube { c: 0.0, error: 1e-4 }, &x, &[], &CheckParams::default());
+        let wrong = taylor(&cube(1e-4), &x, &[], &CheckParams::default());
         assert!(matches!(wrong.verdict, Verdict::Fail(_)), "δ = {delta}:\n{wrong}");
     }
     assert!(crossed >= 1, "no δ put the sign change among the smallest steps");

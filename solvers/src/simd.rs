@@ -86,23 +86,14 @@ pub fn max_isa_from_env() -> Result<Option<Isa>, IsaError> {
 }
 
 /// The instructions the dispatch chooses now: the widest the processor
-/// has, at most the cap of [`set_max_isa`].
+/// has, at most the cap of [`set_max_isa`] (the tests the dispatches make).
 pub fn isa() -> Isa {
-    let has = if avx512_allowed() {
+    if avx512_allowed() {
         Isa::Avx512
     } else if avx2_allowed() {
         Isa::Avx2
     } else {
         Isa::Baseline
-    };
-    has.min(max_isa())
-}
-
-fn max_isa() -> Isa {
-    match MAX_ISA.load(Ordering::Relaxed) {
-        0 => Isa::Baseline,
-        1 => Isa::Avx2,
-        _ => Isa::Avx512,
     }
 }
 

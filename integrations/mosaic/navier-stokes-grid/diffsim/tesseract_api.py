@@ -72,16 +72,15 @@ class OutputSchema(make_differentiable(_CanonicalOutputSchema, ["result", "drag"
     """The canonical outputs (``drag`` is zero: no obstacle in this slice)."""
 
 
+def _dim(shape: tuple[int, ...]) -> int:
+    return 2 if shape[2:] == (1, 2) else 3
+
+
 @lru_cache(maxsize=32)
 def _operator(shape: tuple[int, ...], length: float, steps: int) -> diffsim.Operator:
     """The rollout of ``steps`` steps on cell-centred values, one per box."""
-    d = 2 if shape[3] == 2 and shape[2] == 1 else 3
-    step = diffsim.navier_stokes_step([shape[0]] * d, length=length, centred=True)
+    step = diffsim.navier_stokes_step([shape[0]] * _dim(shape), length=length, centred=True)
     return step.repeat(steps)
-
-
-def _dim(shape: tuple[int, ...]) -> int:
-    return 2 if shape[2:] == (1, 2) else 3
 
 
 def _pack(v: np.ndarray) -> np.ndarray:
