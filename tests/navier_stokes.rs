@@ -410,3 +410,82 @@ fn a_bad_box_or_call_of_the_any_box_step_is_an_error() {
     op.forward(&bad, &[0.1, 0.1], &mut y);
     assert!(matches!(op.take_error(), Some(OpError::Unstable { .. })), "a velocity that is not a number");
 }
+
+// ---- The drag on obstacles (src/navier_stokes/drag.rs) ----
+
+#[test]
+fn the_drag_is_the_pressure_on_the_obstacle_summed_along_rows_and_its_gradient_checks() {
+    use Side::*;
+    use diffsim::navier_stokes::SurfaceDrag;
+    // Mosaic's drag box: periodic along x, no-slip walls, a disc.
+    let grid = boxed([12, 10], [[Periodic, Periodic], [NoSlip, NoSlip]]);
+    let h = 1.0 / 12.0;
+    let solid = solid_cells(&grid, &[Solid::Ball { center: [6.0, 5.0], radius: 2.2 }]);
+    let drag = SurfaceDrag::new(&grid, h, &solid).unwrap();
+    let scheme = Scheme::MacCormack { limiter: false };
+    let op = NavierStokes::new(grid, h, scheme).unwrap().with_projection(1e-13, 4000, Preconditioner::Multigrid).with_obstacles(&solid).unwrap();
+    // One projection of a rough velocity. Along a row through the disc the
+    // pressure differences are the sums of the velocity change over the
+    // row's faces between fluid cells (Δu = −s·∂p/∂x, around the periodic
+    // side from the disc's back to its front), so the pressure term times
+    // `s` is −h²·Σ Δu over every such x-face: a path other than the
+    // weights' spanning tree.
+    let before = box_velocity(grid.n, h, 0.7, 3);
+    let mut after = before.clone();
+    op.projection().apply_velocity(&mut after);
+    let du: Vec<f64> = after.iter().zip(&before).map(|(a, b)| a - b).collect();
+    let by_weights: f64 = drag.impulse.iter().zip(&du).map(|(w, d)| w * d).sum();
+    let mut by_rows = 0.0;
+    for f in diffsim_solvers::boundary::faces(grid.n, &grid.boundary, 0) {
+        if let (Some(l), Some(u)) = (f.lower, f.upper)
+            && !solid[l]
+            && !solid[u]
+        {
+            by_rows -= h * h * du[f.index];
+        }
+    }
+    assert!(by_rows.abs() > 1e-3, "a projection that changes nothing: {by_rows:e}");
+    assert!((by_weights - by_rows).abs() < 1e-9 * by_rows.abs(), "weights {by_weights:e}, rows {by_rows:e}");
+    // The shear sum: the disc's front cells count +ū, its back cells −ū.
+    let uniform: Vec<f64> = (0..grid.n_vel()).map(|i| if i < grid.n_face(0) { 1.0 } else { 0.0 }).collect();
+    let shear: f64 = drag.shear.iter().zip(&uniform).map(|(w, u)| w * u).sum();
+    assert!(shear.abs() < 1e-12, "front and back cancel on a uniform flow: {shear:e}");
+
+    // A uniform flow along +x pushes on the disc's front: the pressure
+    // impulse of a step is positive (Mosaic's sign: + on the front).
+    let op = op.with_drag().unwrap();
+    let mut x = uniform.clone();
+    x.extend([0.0, 0.0]);
+    let y = op.eval(&x, &op.params(0.01, 0.05));
+    assert!(op.take_error().is_none());
+    assert!(y[grid.n_vel()] > 0.0, "impulse {:e}", y[grid.n_vel()]);
+
+    // The three checks with the carried sums in the state, over one
+    // sub-step and several, here and in a channel with an inflow.
+    let mut x = box_velocity(grid.n, h, 0.3, 1);
+    x.extend([0.3, -0.2]);
+    for dt in [0.02, 0.3] {
+        let r = check_all(&op, &x, &op.params(0.05, dt), &CheckParams::default());
+        assert!(r.passed(), "periodic channel, dt = {dt}:\n{r}");
+    }
+    let channel = boxed([12, 10], [[Inflow(Profile::Parabolic(0.5)), Outflow], [NoSlip, NoSlip]]);
+    let solid = solid_cells(&channel, &[Solid::Ball { center: [4.0, 5.0], radius: 2.0 }]);
+    let op = NavierStokes::new(channel, h, scheme)
+        .unwrap()
+        .with_viscosity(Viscosity::Implicit { tolerance: 1e-13, max_iterations: 500 })
+        .with_projection(1e-13, 4000, Preconditioner::Multigrid)
+        .with_obstacles(&solid)
+        .unwrap()
+        .with_drag()
+        .unwrap();
+    let r = check_all(&op, &x, &op.params(0.05, 0.2), &CheckParams::default());
+    assert!(r.passed(), "channel with an inflow:\n{r}");
+
+    // Without obstacles, or with one against a closed side along x: errors.
+    let closed = boxed([8, 8], [[Closed, Closed], [NoSlip, NoSlip]]);
+    let e = NavierStokes::new(closed, h, scheme).unwrap().with_drag().unwrap_err();
+    assert_eq!(e, NavierStokesError::NoObstacles);
+    let against = solid_cells(&closed, &[Solid::Box { lower: [0.0, 3.0], upper: [2.0, 5.0] }]);
+    let e = NavierStokes::new(closed, h, scheme).unwrap().with_obstacles(&against).unwrap().with_drag().unwrap_err();
+    assert!(matches!(e, NavierStokesError::DragLevel { .. }), "{e}");
+}

@@ -5,7 +5,10 @@ vortex at N = 16, against its exact decay) and gradient/fd_check (N = 16,
 ν = 0.001, dt = 0.05, 20 steps from the multimode field), with the
 finite differences computed here as the harness computes them (float32
 outputs, ``sum(result²)``, central differences along random directions, ε
-relative to the field's RMS); and 3D at N = 16."""
+relative to the field's RMS); 3D at N = 16; and the walled boxes: the
+drag of Mosaic's drag_opt box (small) with its gradient with respect to the
+inflow profile against central differences, the result's gradient past
+the cylinder between Neumann sides, and what cannot run refused."""
 
 import pathlib
 
@@ -123,10 +126,71 @@ def test_viscosity_and_dt_gradients_and_3d(tess):
     assert abs(rate - 6 * nu) < 0.03 * 6 * nu, rate
 
 
-def test_what_this_slice_cannot_run_is_refused(tess):
+CYLINDER = {"shape": "cylinder", "center": [0.5, 0.5], "radius": 0.12}
+CHANNEL = {"x_lo": {"type": "periodic"}, "x_hi": {"type": "periodic"}, "y_lo": {"type": "no_slip"}, "y_hi": {"type": "no_slip"}}
+
+
+def drag_inputs(n, profile, steps=12):
+    """Mosaic's drag_opt setting, small: a flat inflow through x_lo, no-slip
+    walls, a cylinder, the unit box."""
+    v0 = np.zeros((n, n, 1, 2), np.float32)
+    v0[..., 0] = 0.5
+    return {
+        **inputs(v0, 0.01, 0.02, steps),
+        "domain_extent": 1.0,
+        "obstacle": CYLINDER,
+        "boundary_conditions": CHANNEL,
+        "inflow_profile": profile.astype(np.float32),
+    }
+
+
+def test_the_drag_and_its_gradient_with_respect_to_the_inflow_profile(tess):
+    n = 16
+    rng = np.random.default_rng(1)
+    profile = 0.5 + 0.1 * rng.standard_normal(n)
+    base = drag_inputs(n, profile)
+    out = tess.apply(base)
+    drag = float(out["drag"][0])
+    # The flow pushes the cylinder downstream: Mosaic's surface sum is
+    # positive (the pressure on its front), and grows with the inflow.
+    assert drag > 0, drag
+    faster = float(tess.apply(drag_inputs(n, 1.5 * profile))["drag"][0])
+    assert faster > drag, (faster, drag)
+    g = tess.vector_jacobian_product(base, ["inflow_profile", "viscosity", "v0"], ["drag"], {"drag": np.ones(1, np.float32)})
+    assert g["inflow_profile"].shape == (n,) and g["v0"].shape == base["v0"].shape
+    # Central differences of the float64 drag behind the float32 output,
+    # along random directions of the profile.
+    for k in range(3):
+        d = rng.standard_normal(n)
+        h = 1e-2
+        up = float(tess.apply(drag_inputs(n, profile + h * d))["drag"][0])
+        down = float(tess.apply(drag_inputs(n, profile - h * d))["drag"][0])
+        fd = (up - down) / (2 * h)
+        vjp = float(np.dot(g["inflow_profile"], d))
+        assert abs(fd - vjp) < 2e-3 * max(abs(fd), 1e-3), (k, fd, vjp)
+    # The result's gradient with respect to v0 past the cylinder between
+    # Neumann (outflow) sides: Mosaic's forward/cylinder box.
+    cyl = {**inputs(tgv(n) * 0.3 + np.array([1.0, 0.0], np.float32), 0.02, 0.05, 6)}
+    cyl["obstacle"] = CYLINDER
+    cyl["boundary_conditions"] = {"x_lo": {"type": "neumann"}, "x_hi": {"type": "neumann"}, "y_lo": {"type": "no_slip"}, "y_hi": {"type": "no_slip"}}
+    r = tess.apply(cyl)["result"].astype(np.float64)
+    gv = tess.vector_jacobian_product(cyl, ["v0"], ["result"], {"result": (2 * r).astype(np.float32)})["v0"].astype(np.float64)
+    d = rng.standard_normal(cyl["v0"].shape).astype(np.float32)
+    h = 1e-2
+    f = lambda v: float(np.sum(tess.apply({**cyl, "v0": v.astype(np.float32)})["result"].astype(np.float64) ** 2))
+    fd = (f(cyl["v0"] + h * d) - f(cyl["v0"] - h * d)) / (2 * h)
+    assert abs(fd - float(np.sum(gv * d))) < 2e-3 * abs(fd), (fd, float(np.sum(gv * d)))
+
+
+def test_what_diffsim_cannot_run_is_refused(tess):
     bad = inputs(tgv(16), 0.01, 0.01, 2)
-    with pytest.raises(Exception, match="periodic boxes only"):
-        tess.apply({**bad, "obstacle": {"shape": "cylinder", "center": [0.5, 0.5], "radius": 0.1}, "boundary_conditions": {"y_lo": {"type": "no_slip"}, "y_hi": {"type": "no_slip"}}})
+    with pytest.raises(Exception, match="moves along the side"):
+        walls = {**CHANNEL, "x_lo": {"type": "dirichlet", "value": [1.0, 0.5]}, "x_hi": {"type": "neumann"}}
+        tess.apply({**bad, "obstacle": CYLINDER, "boundary_conditions": walls})
+    with pytest.raises(Exception, match="needs its opposite periodic"):
+        tess.apply({**bad, "obstacle": CYLINDER, "boundary_conditions": {**CHANNEL, "x_hi": {"type": "neumann"}}})
+    with pytest.raises(Exception, match="inflow_profile has shape"):
+        tess.apply(drag_inputs(16, np.ones(8)))
     with pytest.raises(Exception, match="expected \\(N, N, 1, 2\\)"):
         tess.apply({**bad, "v0": np.zeros((16, 8, 1, 2), np.float32)})
     with pytest.raises(Exception, match="not finite"):

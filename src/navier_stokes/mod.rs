@@ -6,7 +6,9 @@
 //! - [`NavierStokes`]: any box — periodic, free-slip (closed), no-slip,
 //!   inflow and outflow sides, obstacles — with explicit or implicit
 //!   viscosity, the projection by conjugate gradients (by FFT when every
-//!   side is periodic), an inflow profile and a body force as parameters.
+//!   side is periodic), an inflow profile and a body force as parameters;
+//!   the force on its obstacles along x carried in the state
+//!   ([`SurfaceDrag`], Mosaic's surface sums, its gradient included).
 //! - [`PeriodicNavierStokes`]: that operator on the box periodic on every
 //!   axis of a [`diffsim_solvers::mac::periodic::Periodic`], with values on
 //!   the cell centres as well ([`Centred`]).
@@ -19,9 +21,11 @@
 //! parts get their derivatives from Enzyme; the solves (the projection,
 //! implicit viscosity) from the implicit rule.
 
+mod drag;
 mod periodic;
 mod step;
 
+pub use drag::SurfaceDrag;
 pub use periodic::*;
 pub use step::*;
 

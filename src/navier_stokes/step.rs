@@ -23,6 +23,7 @@ use diffsim_solvers::mac::periodic::{COURANT_LIMIT, refresh_periodic_copies, vis
 use diffsim_solvers::smoke::{self, InflowFace, MacGrid, Preconditioner, Scheme};
 
 use super::MAX_SUBSTEPS;
+use super::drag::{SurfaceDrag, add, dot};
 use crate::fluids::{DiffuseExplicit, DiffuseImplicit, Project};
 use crate::op::{Forward, Jvp, OpError, OpMessage, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
 
@@ -236,6 +237,10 @@ pub struct NavierStokes<const D: usize> {
     inflow: Vec<InflowFace>,
     forced: bool,
     projection: Project<D>,
+    /// The solid cells, when there are obstacles.
+    solid: Option<Vec<bool>>,
+    /// The drag carried in the state ([`NavierStokes::with_drag`]).
+    drag: Option<SurfaceDrag>,
     error: Cell<Option<OpError>>,
 }
 
@@ -267,6 +272,17 @@ pub enum NavierStokesError {
     /// Every cell is solid.
     #[error("NavierStokes: every cell is solid")]
     AllSolid,
+    /// The drag asked of a box without obstacles.
+    #[error("NavierStokes: the drag needs obstacles (with_obstacles first)")]
+    NoObstacles,
+    /// An obstacle of the drag touches a closed side along x.
+    #[error(
+        "NavierStokes: the drag's pressure term needs the pressure's level in the fluid region of cell {cell} (an obstacle against a closed side along x?)"
+    )]
+    DragLevel {
+        /// A cell of the region.
+        cell: usize,
+    },
 }
 
 impl<const D: usize> NavierStokes<D> {
@@ -299,6 +315,8 @@ impl<const D: usize> NavierStokes<D> {
             inflow: smoke::inflow_faces(&grid),
             forced: false,
             projection: Project::new(grid, 1e-10, 1000, Preconditioner::Multigrid),
+            solid: None,
+            drag: None,
             error: Cell::new(None),
         };
         op.set_viscosity(Viscosity::Explicit);
@@ -361,7 +379,32 @@ impl<const D: usize> NavierStokes<D> {
         // The projection's own settings, now with the solids.
         let (stop, precond) = (self.projection.stop(), self.projection.preconditioner());
         self.projection = Project::with_obstacles(self.grid, stop.tolerance, stop.max_iterations, precond, solid);
+        self.solid = Some(solid.to_vec());
+        if self.drag.is_some() {
+            self.drag = Some(SurfaceDrag::new(&self.grid, self.h, solid)?);
+        }
         Ok(self)
+    }
+
+    /// The step carrying the force on the obstacles along x in the state
+    /// ([`SurfaceDrag`], Mosaic's surface sums): the input and output gain
+    /// two numbers after the velocity, `[I, A]`, to which each call adds
+    /// the time integral of the pressure force over `dt` and the shear sum
+    /// `Σ σ·ū` of the velocity it returns. Over `m` steps of `dt` the mean
+    /// drag is `ΔI/(m·dt) − ν·ΔA/m`. The gradient flows through both.
+    ///
+    /// # Errors
+    /// Without obstacles, or if an obstacle touches a closed side along x
+    /// ([`NavierStokesError::DragLevel`]).
+    pub fn with_drag(mut self) -> Result<Self, NavierStokesError> {
+        let solid = self.solid.as_deref().ok_or(NavierStokesError::NoObstacles)?;
+        self.drag = Some(SurfaceDrag::new(&self.grid, self.h, solid)?);
+        Ok(self)
+    }
+
+    /// The drag's weights, when the state carries it.
+    pub fn drag(&self) -> Option<&SurfaceDrag> {
+        self.drag.as_ref()
     }
 
     /// The box and its sides.
@@ -417,7 +460,7 @@ impl<const D: usize> NavierStokes<D> {
             return Err(input(format!("{what} p[{}] = {}", i + 2, p[2 + i])));
         }
         let (q, _) = self.split_params(p);
-        let speed = x.iter().chain(q).fold(0.0f64, |m, v| m.max(v.abs()));
+        let speed = x[..self.grid.n_vel()].iter().chain(q).fold(0.0f64, |m, v| m.max(v.abs()));
         let (courant, kappa) = (speed * p[1] / self.h, p[0] * p[1] / (self.h * self.h));
         let viscous = if self.viscosity == Viscosity::Explicit { kappa / viscous_limit(D) } else { 0.0 };
         let k = viscous.max(courant / COURANT_LIMIT).ceil();
@@ -481,7 +524,7 @@ impl<const D: usize> NavierStokes<D> {
     /// One sub-step of `s` from `x`: the viscosity's input (the advected
     /// velocity, the force if first, the sides) into `advected`, the result
     /// into `y`.
-    fn substep(&self, x: &[f64], p: &[f64], s: f64, advected: &mut [f64], y: &mut [f64])
+    fn substep(&self, x: &[f64], p: &[f64], s: f64, advected: &mut [f64], y: &mut [f64], impulse: &mut f64)
     where
         AdvectVelocity<D>: Forward,
     {
@@ -499,7 +542,30 @@ impl<const D: usize> NavierStokes<D> {
             add_scaled(s, f, y);
         }
         self.sides(q, y);
-        self.project(y);
+        match &self.drag {
+            Some(d) => {
+                *impulse -= dot(&d.impulse, y);
+                self.project(y);
+                *impulse += dot(&d.impulse, y);
+            }
+            None => self.project(y),
+        }
+    }
+
+    /// The numbers the state carries after the velocity: 2 with the drag.
+    fn carried(&self) -> usize {
+        if self.drag.is_some() { 2 } else { 0 }
+    }
+
+    /// The carried drag sums `[I, A]` of `y` from those of `x`, the
+    /// impulse of the call and the velocity of `y`.
+    fn carry(&self, x: &[f64], impulse: f64, y: &mut [f64]) {
+        if let Some(d) = &self.drag {
+            let nv = self.grid.n_vel();
+            let shear = dot(&d.shear, &y[..nv]);
+            y[nv] = x[nv] + impulse;
+            y[nv + 1] = x[nv + 1] + shear;
+        }
     }
 }
 
@@ -531,10 +597,10 @@ fn add_scaled_tangent(s: f64, ts: f64, f: &[f64], tf: &[f64], v: &mut [f64], tv:
 
 impl<const D: usize> Operator for NavierStokes<D> {
     fn n_in(&self) -> usize {
-        self.grid.n_vel()
+        self.grid.n_vel() + self.carried()
     }
     fn n_out(&self) -> usize {
-        self.grid.n_vel()
+        self.grid.n_vel() + self.carried()
     }
     fn n_params(&self) -> usize {
         2 + self.inflow.len() + if self.forced { self.grid.n_vel() } else { 0 }
@@ -555,12 +621,13 @@ where
                 return;
             }
         };
-        let s = p[1] / k as f64;
-        let (mut cur, mut advected) = (x.to_vec(), vec![0.0; x.len()]);
+        let (s, nv) = (p[1] / k as f64, self.grid.n_vel());
+        let (mut cur, mut advected, mut impulse) = (x[..nv].to_vec(), vec![0.0; nv], 0.0);
         for _ in 0..k {
-            self.substep(&cur, p, s, &mut advected, y);
-            cur.copy_from_slice(y);
+            self.substep(&cur, p, s, &mut advected, &mut y[..nv], &mut impulse);
+            cur.copy_from_slice(&y[..nv]);
         }
+        self.carry(x, impulse, y);
     }
 
     /// The smallest of the sub-steps' advection radii, each at the state the
@@ -601,14 +668,14 @@ where
             }
             return;
         };
-        let (s, nu, n) = (p[1] / k as f64, p[0], x.len());
+        let (s, nu, n) = (p[1] / k as f64, p[0], self.grid.n_vel());
         let (_, f) = self.split_params(p);
         // Each sub-step's starting state and advected velocity.
-        let mut states = vec![x.to_vec()];
+        let mut states = vec![x[..n].to_vec()];
         let mut advected = Vec::with_capacity(k);
         for i in 0..k {
             let (mut a, mut next) = (vec![0.0; n], vec![0.0; n]);
-            self.substep(&states[i], p, s, &mut a, &mut next);
+            self.substep(&states[i], p, s, &mut a, &mut next, &mut 0.0);
             advected.push(a);
             if i + 1 < k {
                 states.push(next);
@@ -617,11 +684,30 @@ where
         let (advect, kappa, h2) = (self.advect(), [self.kappa(nu, s)], self.h * self.h);
         let (mut gq, mut gf) = (vec![0.0; self.inflow.len()], vec![0.0; f.len()]);
         let (mut g_nu, mut g_s) = (0.0, 0.0);
-        let mut g = dy.to_vec();
+        let mut g = dy[..n].to_vec();
+        // The carried sums pass through; the impulse's adjoint enters at
+        // every projection, the shear sum's at the velocity returned.
+        let g_impulse = match &self.drag {
+            Some(d) => {
+                let (gi, ga) = (dy[n], dy[n + 1]);
+                add(ga, &d.shear, &mut g);
+                dx[n] += gi;
+                dx[n + 1] += ga;
+                gi
+            }
+            None => 0.0,
+        };
         dy.fill(0.0);
         let mut ga = vec![0.0; n];
         for (state, a) in states.iter().zip(&advected).rev() {
-            self.project_adjoint(&mut g);
+            match &self.drag {
+                Some(d) => {
+                    add(g_impulse, &d.impulse, &mut g);
+                    self.project_adjoint(&mut g);
+                    add(-g_impulse, &d.impulse, &mut g);
+                }
+                None => self.project_adjoint(&mut g),
+            }
             self.sides_adjoint(&mut g, &mut gq);
             if !self.force_first() {
                 g_s += add_scaled_adjoint(s, f, &g, &mut gf);
@@ -647,7 +733,7 @@ where
         for (d, g) in dp[2..].iter_mut().zip(gq.iter().chain(&gf)) {
             *d += g;
         }
-        for (d, g) in dx.iter_mut().zip(&g) {
+        for (d, g) in dx[..n].iter_mut().zip(&g) {
             *d += g;
         }
     }
@@ -687,12 +773,15 @@ where
         ty: &mut [f64],
         mut visit: impl FnMut(&[f64], f64, &[f64], f64),
     ) {
-        let (s, ts, n, h2) = (p[1] / k as f64, tp[1] / k as f64, x.len(), self.h * self.h);
+        let (s, ts, n, h2) = (p[1] / k as f64, tp[1] / k as f64, self.grid.n_vel(), self.h * self.h);
         let ((q, f), (tq, tf)) = (self.split_params(p), self.split_params(tp));
         let (kappa, t_kappa) = ([self.kappa(p[0], s)], [(tp[0] * s + p[0] * ts) / h2]);
         let advect = self.advect();
-        let (mut cur, mut tcur, mut a, mut ta) = (x.to_vec(), tx.to_vec(), vec![0.0; n], vec![0.0; n]);
+        let (mut cur, mut tcur, mut a, mut ta) = (x[..n].to_vec(), tx[..n].to_vec(), vec![0.0; n], vec![0.0; n]);
+        let (mut impulse, mut t_impulse) = (0.0, 0.0);
+        let (y_all, ty_all) = (y, ty);
         for _ in 0..k {
+            let (y, ty) = (&mut y_all[..n], &mut ty_all[..n]);
             visit(&cur, s, &tcur, ts);
             advect.jvp(&cur, &[s], &tcur, &[ts], &mut a, &mut ta);
             if self.force_first() {
@@ -708,10 +797,20 @@ where
             }
             self.sides(q, y);
             self.sides(tq, ty);
+            if let Some(d) = &self.drag {
+                impulse -= dot(&d.impulse, y);
+                t_impulse -= dot(&d.impulse, ty);
+            }
             self.project(y);
             self.project(ty);
+            if let Some(d) = &self.drag {
+                impulse += dot(&d.impulse, y);
+                t_impulse += dot(&d.impulse, ty);
+            }
             cur.copy_from_slice(y);
             tcur.copy_from_slice(ty);
         }
+        self.carry(x, impulse, y_all);
+        self.carry(tx, t_impulse, ty_all);
     }
 }

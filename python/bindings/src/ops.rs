@@ -315,8 +315,16 @@ pub(crate) fn smoke_step(n: usize) -> PyResult<Operator> {
 /// follows: one value per face. With `centred` (periodic boxes only), the
 /// velocity in and out is `D` values per cell (component after
 /// component), moved to and from the faces by a spectral half-cell shift.
+///
+/// `solid`: one flag per cell (x fastest), true inside an obstacle (no
+/// flow through its faces; the projection by CG). With `drag`, the state
+/// carries two numbers after the velocity, `[I, A]`: each call adds the
+/// time integral of the pressure force on the obstacles along x over `dt`
+/// and the shear sum `Σ σ·ū` of the velocity it returns (Mosaic's surface
+/// sums; the mean drag over `m` steps is `ΔI/(m·dt) − ν·ΔA/m`).
 #[pyfunction]
-#[pyo3(signature = (n, scheme = "maccormack", length = std::f64::consts::TAU, forced = false, centred = false, boundary = None, viscosity = "explicit"))]
+#[pyo3(signature = (n, scheme = "maccormack", length = std::f64::consts::TAU, forced = false, centred = false, boundary = None, viscosity = "explicit", solid = None, drag = false))]
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn navier_stokes_step(
     n: Vec<usize>,
     scheme: &str,
@@ -325,6 +333,8 @@ pub(crate) fn navier_stokes_step(
     centred: bool,
     boundary: Option<Vec<[String; 2]>>,
     viscosity: &str,
+    solid: Option<Vec<bool>>,
+    drag: bool,
 ) -> PyResult<Operator> {
     use diffsim_solvers::mac::periodic::Periodic;
     use diffsim_solvers::smoke::Scheme;
@@ -352,20 +362,30 @@ pub(crate) fn navier_stokes_step(
         Some(b) => Some(b.iter().enumerate().map(|(a, pair)| Ok([side(a, 0, &pair[0])?, side(a, 1, &pair[1])?])).collect::<PyResult<Vec<_>>>()?),
     };
     let periodic = sides.as_ref().is_none_or(|s| s.iter().flatten().all(|&s| s == Side::Periodic));
-    if centred && !periodic {
-        return Err(DiffsimError::new_err("centred = True needs a box periodic on every axis (the spectral half-cell shift)"));
+    if centred && (!periodic || solid.is_some()) {
+        return Err(DiffsimError::new_err("centred = True needs a box periodic on every axis without obstacles (the spectral half-cell shift)"));
     }
-    if periodic && viscosity == diffsim::navier_stokes::Viscosity::Explicit {
+    if drag && solid.is_none() {
+        return Err(DiffsimError::new_err("drag = True needs obstacles (solid)"));
+    }
+    let cells: usize = n.iter().product();
+    if let Some(s) = &solid
+        && s.len() != cells
+    {
+        return Err(DiffsimError::new_err(format!("solid: {} flags for a box of {cells} cells (one per cell, x fastest)", s.len())));
+    }
+    let walls = Walls { sides: Vec::new(), solid, drag };
+    if periodic && walls.solid.is_none() && viscosity == diffsim::navier_stokes::Viscosity::Explicit {
         return match n[..] {
             [nx, ny] => Ok(periodic_step(Periodic::new([nx, ny], h, 0.0, scheme), forced, centred, name)),
             [nx, ny, nz] => Ok(periodic_step(Periodic::new([nx, ny, nz], h, 0.0, scheme), forced, centred, name)),
             _ => Err(DiffsimError::new_err(format!("n = {n:?}: give 2 or 3 cell counts, one per axis"))),
         };
     }
-    let sides = sides.unwrap_or_else(|| vec![[Side::Periodic; 2]; n.len()]);
+    let walls = Walls { sides: sides.unwrap_or_else(|| vec![[Side::Periodic; 2]; n.len()]), ..walls };
     match n[..] {
-        [nx, ny] => box_step([nx, ny], [sides[0], sides[1]], h, scheme, viscosity, forced, name),
-        [nx, ny, nz] => box_step([nx, ny, nz], [sides[0], sides[1], sides[2]], h, scheme, viscosity, forced, name),
+        [nx, ny] => box_step([nx, ny], walls, h, scheme, viscosity, forced, name),
+        [nx, ny, nz] => box_step([nx, ny, nz], walls, h, scheme, viscosity, forced, name),
         _ => Err(DiffsimError::new_err(format!("n = {n:?}: give 2 or 3 cell counts, one per axis"))),
     }
 }
@@ -389,11 +409,19 @@ fn side(a: usize, h: usize, kind: &str) -> PyResult<Side> {
     })
 }
 
+/// What a box has besides its cells: the sides (one pair per axis), the
+/// solid cells, whether the state carries the drag.
+struct Walls {
+    sides: Vec<[Side; 2]>,
+    solid: Option<Vec<bool>>,
+    drag: bool,
+}
+
 /// The step on a box with any sides as a Python operator (one per thread
 /// of a batch).
 fn box_step<const D: usize>(
     n: [usize; D],
-    sides: [[Side; 2]; D],
+    walls: Walls,
     h: f64,
     scheme: diffsim_solvers::smoke::Scheme,
     viscosity: diffsim::navier_stokes::Viscosity,
@@ -404,12 +432,15 @@ where
     diffsim::navier_stokes::NavierStokes<D>: Vjp + Jvp,
 {
     use diffsim::navier_stokes::NavierStokes;
+    let sides: [[Side; 2]; D] = std::array::from_fn(|a| walls.sides[a]);
     let grid = diffsim_solvers::smoke::MacGrid::new(n).with_boundary(diffsim_solvers::boundary::Boundary { sides });
+    let Walls { solid, drag, .. } = walls;
     let make = move || {
-        NavierStokes::new(grid, h, scheme).map(|op| {
-            let op = op.with_viscosity(viscosity);
-            if forced { op.forced() } else { op }
-        })
+        let op = NavierStokes::new(grid, h, scheme)?.with_viscosity(viscosity);
+        let op = if forced { op.forced() } else { op };
+        let Some(solid) = &solid else { return Ok(op) };
+        let op = op.with_obstacles(solid)?;
+        if drag { op.with_drag() } else { Ok(op) }
     };
     // Checked once here: the same inputs build every thread's copy.
     make().map_err(|e| DiffsimError::new_err(e.to_string()))?;
