@@ -2,7 +2,9 @@
 as the harness computes it (float32 inputs and outputs, float32 sum of
 result²) through diffsim's Tesseract, and in float64 throughout through the
 same rollout operator. Run from the repository root with the test
-environment: .venv/bin/python integrations/mosaic/fd_table.py"""
+environment: .venv/bin/python integrations/mosaic/fd_table.py (the scheme
+the Tesseract's: DIFFSIM_MOSAIC_SCHEME=central, maccormack or
+semi_lagrangian)."""
 
 import pathlib
 import sys
@@ -36,7 +38,7 @@ def loss32(v):
 
 
 # float64 throughout: the same rollout, packed as the Tesseract packs it.
-op = api._operator(v0.shape, 2 * np.pi, steps)
+op = api._centred(v0.shape, 2 * np.pi, steps)
 p = np.array([nu, dt])
 x0 = api._pack(v0.astype(np.float64))
 d64 = [api._pack(d.astype(np.float64)) for d in dirs]

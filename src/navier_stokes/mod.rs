@@ -12,6 +12,9 @@
 //! - [`PeriodicNavierStokes`]: that operator on the box periodic on every
 //!   axis of a [`diffsim_solvers::mac::periodic::Periodic`], with values on
 //!   the cell centres as well ([`Centred`]).
+//! - [`CentralNavierStokes`]: the periodic box by central differences and
+//!   a three-stage Runge–Kutta step: a smooth map, stable at any horizon
+//!   without a limiter.
 //!
 //! Both split a requested `dt` into `k` equal sub-steps chosen at the start
 //! of the call (the viscous number and the Courant number within their
@@ -21,10 +24,12 @@
 //! parts get their derivatives from Enzyme; the solves (the projection,
 //! implicit viscosity) from the implicit rule.
 
+mod central;
 mod drag;
 mod periodic;
 mod step;
 
+pub use central::*;
 pub use drag::SurfaceDrag;
 pub use periodic::*;
 pub use step::*;

@@ -10,7 +10,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use diffsim::check::{CheckParams, check_all};
-use diffsim::navier_stokes::{Centred, PeriodicNavierStokes};
+use diffsim::navier_stokes::{CentralNavierStokes, Centred, PeriodicNavierStokes};
 use diffsim::op::{Jvp, Vjp};
 use diffsim::problems::burgers::{BurgersEnzyme, P1};
 use diffsim::rollout::{Checkpointing, Loss, Repeat, Rollout, RolloutLoss, Wrt};
@@ -338,10 +338,11 @@ pub(crate) fn navier_stokes_step(
 ) -> PyResult<Operator> {
     use diffsim_solvers::mac::periodic::Periodic;
     use diffsim_solvers::smoke::Scheme;
+    let central = scheme == "central";
     let scheme = match scheme {
         "maccormack" => Scheme::MacCormack { limiter: false },
-        "semi_lagrangian" => Scheme::SemiLagrangian,
-        other => return Err(DiffsimError::new_err(format!("scheme = {other:?}: expected \"maccormack\" or \"semi_lagrangian\""))),
+        "semi_lagrangian" | "central" => Scheme::SemiLagrangian,
+        other => return Err(DiffsimError::new_err(format!("scheme = {other:?}: expected \"maccormack\", \"semi_lagrangian\" or \"central\""))),
     };
     let viscosity = match viscosity {
         "explicit" => diffsim::navier_stokes::Viscosity::Explicit,
@@ -375,10 +376,15 @@ pub(crate) fn navier_stokes_step(
         return Err(DiffsimError::new_err(format!("solid: {} flags for a box of {cells} cells (one per cell, x fastest)", s.len())));
     }
     let walls = Walls { sides: Vec::new(), solid, drag };
+    if central && !(periodic && walls.solid.is_none() && viscosity == diffsim::navier_stokes::Viscosity::Explicit && !forced) {
+        return Err(DiffsimError::new_err("scheme = \"central\" runs a box periodic on every axis without obstacles, explicit viscosity, no body force"));
+    }
     if periodic && walls.solid.is_none() && viscosity == diffsim::navier_stokes::Viscosity::Explicit {
-        return match n[..] {
-            [nx, ny] => Ok(periodic_step(Periodic::new([nx, ny], h, 0.0, scheme), forced, centred, name)),
-            [nx, ny, nz] => Ok(periodic_step(Periodic::new([nx, ny, nz], h, 0.0, scheme), forced, centred, name)),
+        return match (central, &n[..]) {
+            (false, &[nx, ny]) => Ok(periodic_step(Periodic::new([nx, ny], h, 0.0, scheme), forced, centred, name, face_step)),
+            (false, &[nx, ny, nz]) => Ok(periodic_step(Periodic::new([nx, ny, nz], h, 0.0, scheme), forced, centred, name, face_step)),
+            (true, &[nx, ny]) => Ok(periodic_step(Periodic::new([nx, ny], h, 0.0, scheme), forced, centred, name, central_step)),
+            (true, &[nx, ny, nz]) => Ok(periodic_step(Periodic::new([nx, ny, nz], h, 0.0, scheme), forced, centred, name, central_step)),
             _ => Err(DiffsimError::new_err(format!("n = {n:?}: give 2 or 3 cell counts, one per axis"))),
         };
     }
@@ -447,32 +453,45 @@ where
     Ok(Operator::new(Arc::new(StepOp(diffsim::op::PerThread::new(move || make().expect("checked above")))), name))
 }
 
-/// The periodic step of `flow` as a Python operator (one per thread of a
-/// batch), forced or not, on the faces or the centres.
-fn periodic_step<const D: usize>(flow: diffsim_solvers::mac::periodic::Periodic<D>, forced: bool, centred: bool, name: String) -> Operator
+type Periodic<const D: usize> = diffsim_solvers::mac::periodic::Periodic<D>;
+
+/// The traced schemes' periodic step (forced or not).
+fn face_step<const D: usize>(flow: Periodic<D>, forced: bool) -> PeriodicNavierStokes<D> {
+    if forced { PeriodicNavierStokes::forced(flow) } else { PeriodicNavierStokes::new(flow) }
+}
+
+/// The central scheme's periodic step (never forced: refused before).
+fn central_step<const D: usize>(flow: Periodic<D>, _forced: bool) -> CentralNavierStokes<D> {
+    CentralNavierStokes::new(flow)
+}
+
+/// The periodic step `make(flow, forced)` as a Python operator (one per
+/// thread of a batch), on the faces or the centres.
+fn periodic_step<const D: usize, O>(flow: Periodic<D>, forced: bool, centred: bool, name: String, make: fn(Periodic<D>, bool) -> O) -> Operator
 where
-    PeriodicNavierStokes<D>: Vjp + Jvp,
+    O: Vjp + Jvp + Send + 'static,
 {
-    let make = move || if forced { PeriodicNavierStokes::forced(flow) } else { PeriodicNavierStokes::new(flow) };
     if centred {
-        Operator::new(Arc::new(CentredStep { flow, forced, step: StepOp(diffsim::op::PerThread::new(move || make().centred())) }), name)
+        let step = StepOp(diffsim::op::PerThread::new(move || Centred::around(flow, make(flow, forced))));
+        Operator::new(Arc::new(CentredStep { flow, forced, make, step }), name)
     } else {
-        Operator::new(Arc::new(StepOp(diffsim::op::PerThread::new(make))), name)
+        Operator::new(Arc::new(StepOp(diffsim::op::PerThread::new(move || make(flow, forced)))), name)
     }
 }
 
 /// The periodic step on cell-centred values: a step as any other, and a
 /// rollout of it ([`PyOp::repeat`]) converts to the faces once, repeats
 /// the face step, and converts back once.
-struct CentredStep<const D: usize> {
-    flow: diffsim_solvers::mac::periodic::Periodic<D>,
+struct CentredStep<const D: usize, O> {
+    flow: Periodic<D>,
     forced: bool,
-    step: StepOp<diffsim::op::PerThread<Centred<D>>>,
+    make: fn(Periodic<D>, bool) -> O,
+    step: StepOp<diffsim::op::PerThread<Centred<D, O>>>,
 }
 
-impl<const D: usize> PyOp for CentredStep<D>
+impl<const D: usize, O> PyOp for CentredStep<D, O>
 where
-    PeriodicNavierStokes<D>: Vjp + Jvp,
+    O: Vjp + Jvp + Send + 'static,
 {
     fn sizes(&self) -> (usize, usize, usize) {
         self.step.sizes()
@@ -493,10 +512,9 @@ where
         self.step.smooth_radius(x, p, dx, dp)
     }
     fn repeat(&self, steps: usize, mode: Option<Checkpointing>) -> Option<Result<Arc<dyn PyOp>, Failure>> {
-        let (flow, forced) = (self.flow, self.forced);
+        let (flow, forced, step) = (self.flow, self.forced, self.make);
         let make = move || {
-            let step = if forced { PeriodicNavierStokes::forced(flow) } else { PeriodicNavierStokes::new(flow) };
-            let rollout = Repeat::new(step, steps).expect("a step maps its velocity to itself; steps checked");
+            let rollout = Repeat::new(step(flow, forced), steps).expect("a step maps its velocity to itself; steps checked");
             Centred::around(flow, if let Some(m) = mode { rollout.with_checkpointing(m) } else { rollout })
         };
         Some(Ok(Arc::new(Rolled(StepOp(diffsim::op::PerThread::new(make))))))

@@ -86,6 +86,7 @@ macro_rules! each_corner {
 pub(crate) use each_corner;
 
 pub(crate) mod advect;
+pub mod central;
 pub mod fft;
 pub(crate) mod near;
 pub mod periodic;

@@ -37,6 +37,7 @@ gradient (``navier_stokes_step(..., drag=True)``, docs/mosaic.md).
 from __future__ import annotations
 
 import json
+import os
 from functools import lru_cache
 from typing import Any
 
@@ -53,6 +54,13 @@ from pydantic import model_validator
 import diffsim
 
 _DIFFERENTIABLE = ["v0", "viscosity", "dt", "inflow_profile"]
+
+# The scheme of the periodic boxes: central differences with RK3 (smooth
+# and stable at any horizon, docs/navier-stokes.md), or a traced scheme
+# ("maccormack", "semi_lagrangian") for comparison.
+SCHEME = os.environ.get("DIFFSIM_MOSAIC_SCHEME", "central")
+if SCHEME not in ("central", "maccormack", "semi_lagrangian"):
+    raise ValueError(f"DIFFSIM_MOSAIC_SCHEME = {SCHEME!r}: expected central, maccormack or semi_lagrangian")
 _FACES = (("x_lo", "x_hi"), ("y_lo", "y_hi"), ("z_lo", "z_hi"))
 
 
@@ -215,7 +223,7 @@ def _solid(obstacle: dict, d: int, n: int) -> np.ndarray:
 @lru_cache(maxsize=32)
 def _centred(shape: tuple[int, ...], length: float, steps: int) -> diffsim.Operator:
     """The rollout of ``steps`` steps on cell-centred values of a periodic box."""
-    step = diffsim.navier_stokes_step([shape[0]] * _dim(shape), length=length, centred=True)
+    step = diffsim.navier_stokes_step([shape[0]] * _dim(shape), scheme=SCHEME, length=length, centred=True)
     return step.repeat(steps)
 
 
