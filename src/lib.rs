@@ -67,7 +67,8 @@
 //! [`problems::smoke::P2`] are the benchmarks built exactly this way;
 //! [`fluids`] holds further operators, each for 2D and 3D (diffusion,
 //! advection schemes, forces, inflow), and [`navier_stokes`] the
-//! incompressible Navier–Stokes step of a periodic box.
+//! incompressible Navier–Stokes step on any box (walls, inflow, obstacles
+//! and the drag on them), with a smooth central scheme for periodic ones.
 //!
 //! **5. Train through it** ([`nn`], [`train`]): a network is an operator
 //! too (its weights are the parameters), so [`train::Coupled`] joins a

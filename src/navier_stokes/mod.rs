@@ -38,3 +38,35 @@ pub use step::*;
 /// [`crate::op::OpError::Unstable`], the velocity left as it was): the
 /// velocity has blown up or `dt` is far beyond the flow's time scale.
 pub const MAX_SUBSTEPS: usize = 4096;
+
+/// The sub-steps of a forward call, or `None` when the call is refused:
+/// then the input is copied to the output and the error kept for
+/// [`crate::op::Forward::take_error`] (the steps' shared refusal).
+fn substeps_or_refuse(
+    substeps: Result<usize, crate::op::OpError>,
+    x: &[f64],
+    y: &mut [f64],
+    error: &std::cell::Cell<Option<crate::op::OpError>>,
+) -> Option<usize> {
+    match substeps {
+        Ok(k) => Some(k),
+        Err(e) => {
+            y.copy_from_slice(x);
+            error.set(Some(e));
+            None
+        }
+    }
+}
+
+/// The VJP of a refused call (the identity): `dy` moved into `dx`.
+fn refused_vjp(dy: &mut [f64], dx: &mut [f64]) {
+    for (d, g) in dx.iter_mut().zip(dy.iter_mut()) {
+        *d += std::mem::take(g);
+    }
+}
+
+/// The JVP of a refused call (the identity).
+fn refused_jvp(x: &[f64], tx: &[f64], y: &mut [f64], ty: &mut [f64]) {
+    y.copy_from_slice(x);
+    ty.copy_from_slice(tx);
+}

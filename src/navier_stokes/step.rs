@@ -613,14 +613,7 @@ where
 {
     fn forward(&self, x: &[f64], p: &[f64], y: &mut [f64]) {
         validate_forward(self, "NavierStokes", x, p, y);
-        let k = match self.substeps(x, p) {
-            Ok(k) => k,
-            Err(e) => {
-                y.copy_from_slice(x);
-                self.error.set(Some(e));
-                return;
-            }
-        };
+        let Some(k) = super::substeps_or_refuse(self.substeps(x, p), x, y, &self.error) else { return };
         let (s, nv) = (p[1] / k as f64, self.grid.n_vel());
         let (mut cur, mut advected, mut impulse) = (x[..nv].to_vec(), vec![0.0; nv], 0.0);
         for _ in 0..k {
@@ -663,10 +656,7 @@ where
         validate_vjp(self, "NavierStokes", x, p, dy, dx, dp);
         let Ok(k) = self.substeps(x, p) else {
             // The forward left the velocity as it was (and reported why).
-            for (d, g) in dx.iter_mut().zip(dy.iter_mut()) {
-                *d += std::mem::take(g);
-            }
-            return;
+            return super::refused_vjp(dy, dx);
         };
         let (s, nu, n) = (p[1] / k as f64, p[0], self.grid.n_vel());
         let (_, f) = self.split_params(p);
@@ -745,11 +735,7 @@ where
 {
     fn jvp(&self, x: &[f64], p: &[f64], tx: &[f64], tp: &[f64], y: &mut [f64], ty: &mut [f64]) {
         validate_jvp(self, "NavierStokes", x, p, tx, tp, y, ty);
-        let Ok(k) = self.substeps(x, p) else {
-            y.copy_from_slice(x);
-            ty.copy_from_slice(tx);
-            return;
-        };
+        let Ok(k) = self.substeps(x, p) else { return super::refused_jvp(x, tx, y, ty) };
         self.tangent_substeps(k, x, p, tx, tp, y, ty, |_, _, _, _| {});
     }
 }

@@ -280,19 +280,28 @@ def _to_faces(v: np.ndarray, box: _Box) -> np.ndarray:
     return np.concatenate(out)
 
 
-def _from_faces(x: np.ndarray, box: _Box, shape: tuple[int, ...]) -> np.ndarray:
-    """MAC faces → samples (faces 0…N−1 of each component)."""
+def _face_arrays(x: np.ndarray, box: _Box) -> list[np.ndarray]:
+    """The packed faces as one array per component (``N + 1`` faces along
+    its own axis, ``N`` along the others)."""
     d, n = box.d, box.n
-    comps, at = [], 0
+    arrays, at = [], 0
     for a in range(d):
         dims = [n] * d
         dims[a] += 1
         size = int(np.prod(dims))
-        f = x[at : at + size].reshape(dims, order="F")
-        comps.append(np.take(f, np.arange(n), axis=a))
+        arrays.append(x[at : at + size].reshape(dims, order="F"))
         at += size
+    return arrays
+
+
+def _samples(comps: list[np.ndarray], d: int) -> np.ndarray:
     v = np.stack(comps, axis=-1)
     return v[:, :, None, :] if d == 2 else v
+
+
+def _from_faces(x: np.ndarray, box: _Box) -> np.ndarray:
+    """MAC faces → samples (faces 0…N−1 of each component)."""
+    return _samples([np.take(f, np.arange(box.n), axis=a) for a, f in enumerate(_face_arrays(x, box))], box.d)
 
 
 def _from_faces_transpose(g: np.ndarray, box: _Box) -> np.ndarray:
@@ -313,21 +322,14 @@ def _to_faces_transpose(g: np.ndarray, box: _Box) -> np.ndarray:
     """The transpose of :func:`_to_faces`: face cotangents → sample
     cotangents (a component's last face adds to the sample it copied)."""
     d, n = box.d, box.n
-    comps, at = [], 0
-    for a in range(d):
-        dims = [n] * d
-        dims[a] += 1
-        size = int(np.prod(dims))
-        f = g[at : at + size].reshape(dims, order="F")
+    comps = []
+    for a, f in enumerate(_face_arrays(g, box)):
         s = np.take(f, np.arange(n), axis=a).copy()
-        src = 0 if box.sides[a][0] == "periodic" else n - 1
         idx = [slice(None)] * d
-        idx[a] = src
+        idx[a] = 0 if box.sides[a][0] == "periodic" else n - 1
         s[tuple(idx)] += np.take(f, n, axis=a)
         comps.append(s)
-        at += size
-    v = np.stack(comps, axis=-1)
-    return v[:, :, None, :] if d == 2 else v
+    return _samples(comps, d)
 
 
 def _finite(name: str, a: np.ndarray) -> None:
@@ -387,7 +389,7 @@ class _Call:
     def result(self, x: np.ndarray) -> np.ndarray:
         if self.box.periodic and not self.drag:
             return _unpack(x, self.shape)
-        return _from_faces(x[: len(x) - (2 if self.drag else 0)], self.box, self.shape)
+        return _from_faces(x[: len(x) - (2 if self.drag else 0)], self.box)
 
     def forward(self) -> tuple[np.ndarray, np.ndarray, float]:
         """The state after the first steps (sums restarted), the final state
