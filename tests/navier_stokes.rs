@@ -599,7 +599,12 @@ fn the_central_step_stays_bounded_where_unlimited_maccormack_blows_up() {
     }
     let e = energy(&flow, &x);
     assert!(e.is_finite() && e < e0, "energy {e} of {e0} after 640 steps");
-    // A bad parameter is refused, the velocity left as it was.
+    // A bad parameter is refused, the velocity left as it was; so is a
+    // step needing more sub-steps than allowed, naming the viscous number
+    // when that is what asked for them.
     let y = op.eval(&x, &[-1.0, 0.05]);
     assert!(matches!(op.take_error(), Some(OpError::Input(_))) && y == x);
+    let y = op.eval(&x, &[1e6, 0.05]);
+    let e = op.take_error();
+    assert!(matches!(e, Some(OpError::Unstable { value, .. }) if value > 1e6) && y == x, "{e:?}");
 }

@@ -74,8 +74,8 @@ const STAGES: [(f64, f64); 3] = [(0.0, 1.0), (0.75, 0.25), (1.0 / 3.0, 2.0 / 3.0
 /// face velocity (copies included), `p = [ν, dt]`. A call takes `dt` in
 /// `k` equal sub-steps, the fewest with `s·Σ_a max|u_a|/h` within
 /// [`CENTRAL_COURANT_LIMIT`] and `4D·ν·s/h²` within
-/// [`CENTRAL_VISCOUS_LIMIT`], `k` chosen at the start of the call. It refuses, leaving the
-/// velocity as it was and saying why ([`Forward::take_error`]): `ν` or `dt`
+/// [`CENTRAL_VISCOUS_LIMIT`], `k` chosen at the start of the call. It
+/// refuses, leaving the velocity as it was and saying why ([`Forward::take_error`]): `ν` or `dt`
 /// negative or not finite ([`OpError::Input`]), a velocity not finite or
 /// needing more than [`MAX_SUBSTEPS`] sub-steps ([`OpError::Unstable`]).
 #[derive(Debug)]
@@ -123,7 +123,13 @@ impl<const D: usize> CentralNavierStokes<D> {
         // RK3 amplification; checked on a grid of C, K and θ).
         let k = (courant / CENTRAL_COURANT_LIMIT).max(viscous / CENTRAL_VISCOUS_LIMIT).ceil();
         if k.is_nan() || k > MAX_SUBSTEPS as f64 || x.iter().any(|v| !v.is_finite()) {
-            return Err(OpError::Unstable { value: courant, limit: CENTRAL_COURANT_LIMIT * MAX_SUBSTEPS as f64 });
+            // The number that asked for the sub-steps, against its limit.
+            let (value, limit) = if courant.is_nan() || courant / CENTRAL_COURANT_LIMIT >= viscous / CENTRAL_VISCOUS_LIMIT {
+                (courant, CENTRAL_COURANT_LIMIT)
+            } else {
+                (viscous, CENTRAL_VISCOUS_LIMIT)
+            };
+            return Err(OpError::Unstable { value, limit: limit * MAX_SUBSTEPS as f64 });
         }
         Ok((k as usize).max(1))
     }
