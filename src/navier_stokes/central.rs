@@ -144,9 +144,10 @@ impl<const D: usize> CentralNavierStokes<D> {
         self.projection.apply_velocity(out);
     }
 
-    /// One sub-step of `s` from `u` into `out`; the stages' inputs `v₀ = u,
-    /// v₁, v₂` into `inputs` when given (for the adjoint).
-    fn substep(&self, nu: f64, s: f64, u: &[f64], out: &mut [f64], mut inputs: Option<&mut Vec<Vec<f64>>>)
+    /// One sub-step of `s` from `u` into `out`; each stage's input `vᵢ`
+    /// (`v₀ = u`) and right-hand side `L(vᵢ)` into `stages` when given (for
+    /// the adjoint).
+    fn substep(&self, nu: f64, s: f64, u: &[f64], out: &mut [f64], mut stages: Option<&mut Vec<(Vec<f64>, Vec<f64>)>>)
     where
         MomentumRhs<D>: Forward,
     {
@@ -155,10 +156,9 @@ impl<const D: usize> CentralNavierStokes<D> {
         for i in 0..3 {
             self.rhs.forward(&v, &[nu], &mut l);
             self.stage(i, s, u, &v, &l, out);
-            if let Some(inputs) = inputs.as_deref_mut() {
-                inputs.push(std::mem::replace(&mut v, out.to_vec()));
-            } else {
-                v.copy_from_slice(out);
+            match stages.as_deref_mut() {
+                Some(stages) => stages.push((std::mem::replace(&mut v, out.to_vec()), l.clone())),
+                None => v.copy_from_slice(out),
             }
         }
     }
@@ -204,33 +204,32 @@ where
         validate_vjp(self, "CentralNavierStokes", x, p, dy, dx, dp);
         let Ok(k) = self.substeps(x, p) else { return super::refused_vjp(dy, dx) };
         let (nu, s, n) = (p[0], p[1] / k as f64, x.len());
-        // Every stage's input, sub-step after sub-step.
-        let mut inputs: Vec<Vec<Vec<f64>>> = Vec::with_capacity(k);
+        // Every stage's input and right-hand side, sub-step after sub-step.
+        let mut substeps: Vec<Vec<(Vec<f64>, Vec<f64>)>> = Vec::with_capacity(k);
         let (mut cur, mut next) = (x.to_vec(), vec![0.0; n]);
         for _ in 0..k {
-            let mut v = Vec::with_capacity(3);
-            self.substep(nu, s, &cur, &mut next, Some(&mut v));
-            inputs.push(v);
+            let mut stages = Vec::with_capacity(3);
+            self.substep(nu, s, &cur, &mut next, Some(&mut stages));
+            substeps.push(stages);
             std::mem::swap(&mut cur, &mut next);
         }
         let mut g = dy.to_vec();
         dy.fill(0.0);
         let (mut g_nu, mut g_s) = (0.0, 0.0);
-        let mut l = vec![0.0; n];
-        for v in inputs.iter().rev() {
+        for stages in substeps.iter().rev() {
             // `g` is the adjoint of the sub-step's result; `gu` collects the
-            // adjoint of its start `u = v[0]`.
+            // adjoint of its start `u = v₀`.
             let mut gu = vec![0.0; n];
             for i in (0..3).rev() {
                 let (a, b) = STAGES[i];
                 self.projection.apply_adjoint_velocity(&mut g);
                 // out = a·u + b·v + b·s·L(v)
-                self.rhs.forward(&v[i], &[nu], &mut l);
-                g_s += b * g.iter().zip(&l).map(|(g, l)| g * l).sum::<f64>();
+                let (v, l) = &stages[i];
+                g_s += b * g.iter().zip(l).map(|(g, l)| g * l).sum::<f64>();
                 let mut gl: Vec<f64> = g.iter().map(|g| b * s * g).collect();
                 let mut gv: Vec<f64> = g.iter().map(|g| b * g).collect();
                 let mut gnu = [0.0];
-                self.rhs.vjp(&v[i], &[nu], &mut gl, &mut gv, &mut gnu);
+                self.rhs.vjp(v, &[nu], &mut gl, &mut gv, &mut gnu);
                 g_nu += gnu[0];
                 for (gu, g) in gu.iter_mut().zip(&g) {
                     *gu += a * g;

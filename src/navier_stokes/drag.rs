@@ -141,11 +141,6 @@ impl SurfaceDrag {
     }
 }
 
-/// `a·b`.
-pub(super) fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(a, b)| a * b).sum()
-}
-
 /// `v += c·w`.
 pub(super) fn add(c: f64, w: &[f64], v: &mut [f64]) {
     for (v, w) in v.iter_mut().zip(w) {

@@ -23,9 +23,10 @@ use diffsim_solvers::mac::periodic::{COURANT_LIMIT, refresh_periodic_copies, vis
 use diffsim_solvers::smoke::{self, InflowFace, MacGrid, Preconditioner, Scheme};
 
 use super::MAX_SUBSTEPS;
-use super::drag::{SurfaceDrag, add, dot};
+use super::drag::{SurfaceDrag, add};
 use crate::fluids::{DiffuseExplicit, DiffuseImplicit, Project};
 use crate::op::{Forward, Jvp, OpError, OpMessage, Operator, Vjp, validate_forward, validate_jvp, validate_vjp};
+use diffsim_solvers::cg::dot;
 
 /// How [`NavierStokes`] steps the viscosity.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -542,6 +543,12 @@ impl<const D: usize> NavierStokes<D> {
             add_scaled(s, f, y);
         }
         self.sides(q, y);
+        self.project_counting(y, impulse);
+    }
+
+    /// The projection in place on a velocity (or a tangent), its change
+    /// weighted by the drag's impulse weights added to `impulse`.
+    fn project_counting(&self, y: &mut [f64], impulse: &mut f64) {
         match &self.drag {
             Some(d) => {
                 *impulse -= dot(&d.impulse, y);
@@ -783,16 +790,8 @@ where
             }
             self.sides(q, y);
             self.sides(tq, ty);
-            if let Some(d) = &self.drag {
-                impulse -= dot(&d.impulse, y);
-                t_impulse -= dot(&d.impulse, ty);
-            }
-            self.project(y);
-            self.project(ty);
-            if let Some(d) = &self.drag {
-                impulse += dot(&d.impulse, y);
-                t_impulse += dot(&d.impulse, ty);
-            }
+            self.project_counting(y, &mut impulse);
+            self.project_counting(ty, &mut t_impulse);
             cur.copy_from_slice(y);
             tcur.copy_from_slice(ty);
         }

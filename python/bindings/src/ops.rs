@@ -341,6 +341,7 @@ pub(crate) fn navier_stokes_step(
     let central = scheme == "central";
     let scheme = match scheme {
         "maccormack" => Scheme::MacCormack { limiter: false },
+        // The central step does not trace: the box's scheme is unused.
         "semi_lagrangian" | "central" => Scheme::SemiLagrangian,
         other => return Err(DiffsimError::new_err(format!("scheme = {other:?}: expected \"maccormack\", \"semi_lagrangian\" or \"central\""))),
     };
@@ -375,20 +376,18 @@ pub(crate) fn navier_stokes_step(
     {
         return Err(DiffsimError::new_err(format!("solid: {} flags for a box of {cells} cells (one per cell, x fastest)", s.len())));
     }
-    let walls = Walls { sides: Vec::new(), solid, drag };
-    if central && !(periodic && walls.solid.is_none() && viscosity == diffsim::navier_stokes::Viscosity::Explicit && !forced) {
+    let fft_box = periodic && solid.is_none() && viscosity == diffsim::navier_stokes::Viscosity::Explicit;
+    if central && !(fft_box && !forced) {
         return Err(DiffsimError::new_err("scheme = \"central\" runs a box periodic on every axis without obstacles, explicit viscosity, no body force"));
     }
-    if periodic && walls.solid.is_none() && viscosity == diffsim::navier_stokes::Viscosity::Explicit {
-        return match (central, &n[..]) {
-            (false, &[nx, ny]) => Ok(periodic_step(Periodic::new([nx, ny], h, 0.0, scheme), forced, centred, name, face_step)),
-            (false, &[nx, ny, nz]) => Ok(periodic_step(Periodic::new([nx, ny, nz], h, 0.0, scheme), forced, centred, name, face_step)),
-            (true, &[nx, ny]) => Ok(periodic_step(Periodic::new([nx, ny], h, 0.0, scheme), forced, centred, name, central_step)),
-            (true, &[nx, ny, nz]) => Ok(periodic_step(Periodic::new([nx, ny, nz], h, 0.0, scheme), forced, centred, name, central_step)),
+    if fft_box {
+        return match n[..] {
+            [nx, ny] => Ok(fft_step(Periodic::new([nx, ny], h, 0.0, scheme), central, forced, centred, name)),
+            [nx, ny, nz] => Ok(fft_step(Periodic::new([nx, ny, nz], h, 0.0, scheme), central, forced, centred, name)),
             _ => Err(DiffsimError::new_err(format!("n = {n:?}: give 2 or 3 cell counts, one per axis"))),
         };
     }
-    let walls = Walls { sides: sides.unwrap_or_else(|| vec![[Side::Periodic; 2]; n.len()]), ..walls };
+    let walls = Walls { sides: sides.unwrap_or_else(|| vec![[Side::Periodic; 2]; n.len()]), solid, drag };
     match n[..] {
         [nx, ny] => box_step([nx, ny], walls, h, scheme, viscosity, forced, name),
         [nx, ny, nz] => box_step([nx, ny, nz], walls, h, scheme, viscosity, forced, name),
@@ -463,6 +462,15 @@ fn face_step<const D: usize>(flow: Periodic<D>, forced: bool) -> PeriodicNavierS
 /// The central scheme's periodic step (never forced: refused before).
 fn central_step<const D: usize>(flow: Periodic<D>, _forced: bool) -> CentralNavierStokes<D> {
     CentralNavierStokes::new(flow)
+}
+
+/// The step of a periodic box without obstacles, central or traced.
+fn fft_step<const D: usize>(flow: Periodic<D>, central: bool, forced: bool, centred: bool, name: String) -> Operator
+where
+    PeriodicNavierStokes<D>: Vjp + Jvp,
+    CentralNavierStokes<D>: Vjp + Jvp,
+{
+    if central { periodic_step(flow, forced, centred, name, central_step) } else { periodic_step(flow, forced, centred, name, face_step) }
 }
 
 /// The periodic step `make(flow, forced)` as a Python operator (one per

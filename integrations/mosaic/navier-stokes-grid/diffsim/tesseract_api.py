@@ -82,7 +82,7 @@ class InputSchema(make_differentiable(_CanonicalInputSchema, _DIFFERENTIABLE)):
         if not self.domain_extent > 0:
             raise ValueError(f"diffsim: domain_extent = {self.domain_extent}; must be positive")
         # The sides, the obstacle and the profile: errors before any work.
-        _box(self.model_dump())
+        _Box(self.model_dump())
         return self
 
 
@@ -186,10 +186,6 @@ class _Box:
             else:
                 p.extend([value] * self.n ** (self.d - 1))
         return np.array(p)
-
-
-def _box(raw: dict) -> _Box:
-    return _Box(raw)
 
 
 def _solid(obstacle: dict, d: int, n: int) -> np.ndarray:
@@ -359,7 +355,7 @@ class _Call:
         self.shape = tuple(np.shape(raw["v0"]))
         v0 = np.asarray(raw["v0"])
         _finite("v0", v0)
-        self.box = _box(raw)
+        self.box = _Box(raw)
         self.p = self.box.params(raw)
         _finite("viscosity, dt", self.p[:2])
         if self.p[0] < 0 or self.p[1] < 0:
